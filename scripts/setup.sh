@@ -1,0 +1,52 @@
+#!/usr/bin/env bash
+# Installs every Debian package flatnet needs. Idempotent and non-interactive:
+# packages already present are skipped, so a second run costs a few seconds.
+#
+# Traps this script takes care of (see DEVELOPERS.md):
+#  - libaravis-dev forgets libusb-1.0-0-dev, which its pkg-config file requires.
+#  - libgloo-dev is needed for LibTorch's c10d (distributed training).
+#  - libopenblas0-openmp: without it LibTorch falls back to reference BLAS (2-60x slower).
+#  - python3-skimage (its data folder) provides the photographs `flatnet demo` uses on a fresh machine.
+#  - python3-torch is optional: only reference comparisons in scripts/ and a few tests use it.
+set -euo pipefail
+
+packages=(
+  build-essential cmake ninja-build pkg-config
+  libtorch-dev libopenblas0-openmp libgloo-dev
+  libopencv-dev libopenimageio-dev openimageio-tools
+  libaravis-dev aravis-tools libusb-1.0-0-dev
+  libmatio-dev libcxxopts-dev catch2 libyaml-cpp-dev nlohmann-json3-dev
+  python3-skimage
+)
+optional=(python3-torch)
+
+SUDO=""
+if [ "$(id -u)" -ne 0 ]; then SUDO="sudo"; fi
+
+missing=()
+for p in "${packages[@]}" ${FLATNET_SKIP_OPTIONAL:+} "${optional[@]}"; do
+  if ! dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed"; then
+    missing+=("$p")
+  fi
+done
+
+if [ ${#missing[@]} -eq 0 ]; then
+  echo "setup: all ${#packages[@]} required packages present"
+  exit 0
+fi
+
+echo "setup: installing ${missing[*]}"
+export DEBIAN_FRONTEND=noninteractive
+$SUDO apt-get update -qq
+# Required packages must install; optional ones may be absent from a mirror.
+req_missing=()
+for p in "${missing[@]}"; do
+  case " ${optional[*]} " in *" $p "*) ;; *) req_missing+=("$p") ;; esac
+done
+if [ ${#req_missing[@]} -gt 0 ]; then
+  $SUDO apt-get install -y -qq --no-install-recommends "${req_missing[@]}"
+fi
+for p in "${optional[@]}"; do
+  $SUDO apt-get install -y -qq --no-install-recommends "$p" || echo "setup: optional $p not installed"
+done
+echo "setup: done"

@@ -1,0 +1,23 @@
+#pragma once
+// flatnet subcommands. Each parses its flags, builds library objects, calls the library, reports.
+#include <cxxopts.hpp>
+#include <string>
+
+#include "core/camera_config.hpp"
+
+namespace flatnet::cli {
+
+int simulate(int argc, char** argv);
+int calibrate(int argc, char** argv);
+int recon(int argc, char** argv);
+int eval(int argc, char** argv);
+int demo(int argc, char** argv);
+
+// Shared flag handling.
+void add_common(cxxopts::Options& options);                 // --threads, --help
+// Parses; prints help and returns false on --help. Applies --threads.
+bool parse(cxxopts::Options& options, int argc, char** argv, cxxopts::ParseResult& result);
+// --camera FILE (yaml or rig .mat); the reference camera when absent.
+CameraConfig camera_from(const cxxopts::ParseResult& r, const std::string& flag = "camera");
+
+}  // namespace flatnet::cli

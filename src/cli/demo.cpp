@@ -1,0 +1,75 @@
+#include <iostream>
+
+#include "cli/commands.hpp"
+#include "core/error.hpp"
+#include "core/util.hpp"
+#include "eval/report.hpp"
+#include "optics/simulator.hpp"
+#include "recon/run.hpp"
+
+namespace flatnet::cli {
+
+namespace {
+
+// Photographs that Debian's python3-skimage ships (installed by scripts/setup.sh).
+const char* kDemoImageDir = "/usr/lib/python3/dist-packages/skimage/data";
+const std::vector<std::string> kDemoImages = {"astronaut.png", "chelsea.png", "coffee.png",
+                                              "rocket.jpg", "motorcycle_left.png", "hubble_deep_field.jpg"};
+
+std::filesystem::path gather_demo_images(const std::filesystem::path& src, const std::filesystem::path& dst) {
+  std::filesystem::create_directories(dst);
+  int found = 0;
+  for (const auto& name : kDemoImages) {
+    if (!std::filesystem::exists(src / name)) continue;
+    std::filesystem::copy_file(src / name, dst / name, std::filesystem::copy_options::skip_existing);
+    ++found;
+  }
+  require(found > 0, src, "no demo photographs here; run scripts/setup.sh (installs python3-skimage) or pass --images DIR");
+  return dst;
+}
+
+}  // namespace
+
+int demo(int argc, char** argv) {
+  cxxopts::Options o("flatnet demo", "Simulate captures of a few photographs, reconstruct them, and evaluate.");
+  o.add_options()("out", "output folder", cxxopts::value<std::string>()->default_value("demo_out"))(
+      "images", "photographs to use (default: python3-skimage's sample photographs)", cxxopts::value<std::string>())(
+      "camera", "camera .yaml (default: the reference camera)", cxxopts::value<std::string>());
+  add_common(o);
+  cxxopts::ParseResult r;
+  if (!parse(o, argc, argv, r)) return 0;
+  const std::filesystem::path out = r["out"].as<std::string>();
+  const auto camera = camera_from(r);
+  const auto images = r.count("images") ? std::filesystem::path(r["images"].as<std::string>())
+                                        : gather_demo_images(kDemoImageDir, out / "photos");
+
+  std::cout << "[1/3] simulating captures with camera '" << camera.name << "'\n";
+  SimulateOptions sim;
+  sim.images = images;
+  sim.out = out / "dataset";
+  sim.val_fraction = 0;
+  sim.size = camera.scene_size;
+  const auto srep = simulate_dataset(load_rig(camera.rig), sim);
+
+  std::cout << "[2/3] reconstructing\n";
+  const auto calib = load_calibration(camera.calibration, camera);
+  const auto captures = collect_captures(sim.out / "meas");
+  for (const std::string method : {"tikhonov", "tv"}) {
+    ReconOptions ro;
+    ro.method = method;
+    ro.out = out / "recon" / method;
+    const auto rep = reconstruct_files(camera, calib, captures, ro);
+    std::cout << "  " << method << ": " << rep.recon_ms_per_capture << " ms per capture\n";
+  }
+
+  std::cout << "[3/3] evaluating\n";
+  const auto scores = evaluate({sim.out / "gt", out / "recon", 6});
+  std::cout << format_table(scores) << "\n"
+            << "captures:         " << (sim.out / "meas").string() << " (" << srep.total << ")\n"
+            << "reconstructions:  " << (out / "recon").string() << "/{tikhonov,tv}\n"
+            << "metrics:          " << (out / "recon" / "metrics.csv").string() << "\n"
+            << "contact sheet:    " << (out / "recon" / "sheet.png").string() << "\n";
+  return 0;
+}
+
+}  // namespace flatnet::cli

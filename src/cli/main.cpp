@@ -1,0 +1,55 @@
+// flatnet: lensless FlatCam reconstruction and mask design. This file only dispatches.
+#include <cxxopts.hpp>
+#include <iostream>
+#include <map>
+
+#include "cli/commands.hpp"
+#include "core/error.hpp"
+
+namespace {
+
+const std::map<std::string, std::pair<int (*)(int, char**), const char*>> kCommands = {
+    {"simulate", {flatnet::cli::simulate, "simulate display captures of photographs with a camera rig"}},
+    {"calibrate", {flatnet::cli::calibrate, "estimate a calibration (P, Q) from separable pattern captures"}},
+    {"recon", {flatnet::cli::recon, "classical reconstruction (Tikhonov, TV) of raw captures"}},
+    {"eval", {flatnet::cli::eval, "PSNR/SSIM of reconstructions against ground truth, with a contact sheet"}},
+    {"demo", {flatnet::cli::demo, "simulate, reconstruct and evaluate a few photographs end to end"}},
+};
+
+void usage() {
+  std::cout << "flatnet " << FLATNET_VERSION << ": lensless FlatCam imaging\n\nusage: flatnet <command> [options]\n\n";
+  for (const auto& [name, entry] : kCommands) std::cout << "  " << name << std::string(12 - name.size(), ' ') << entry.second << "\n";
+  std::cout << "\n'flatnet <command> --help' lists a command's options.\n";
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  if (argc < 2 || std::string(argv[1]) == "-h" || std::string(argv[1]) == "--help") {
+    usage();
+    return argc < 2 ? 2 : 0;
+  }
+  const std::string command = argv[1];
+  if (command == "--version" || command == "version") {
+    std::cout << "flatnet " << FLATNET_VERSION << "\n";
+    return 0;
+  }
+  auto it = kCommands.find(command);
+  if (it == kCommands.end()) {
+    std::cerr << "flatnet: unknown command '" << command << "' (run 'flatnet --help')\n";
+    return 2;
+  }
+  try {
+    return it->second.first(argc - 1, argv + 1);
+  } catch (const flatnet::Error& e) {
+    std::cerr << "flatnet " << command << ": error: " << e.what() << "\n";
+  } catch (const cxxopts::exceptions::exception& e) {
+    std::cerr << "flatnet " << command << ": error: " << e.what() << "\n";
+  } catch (const c10::Error& e) {
+    std::cerr << "flatnet " << command << ": internal error: " << e.what_without_backtrace() << "\n";
+    return 1;
+  } catch (const std::exception& e) {
+    std::cerr << "flatnet " << command << ": error: " << e.what() << "\n";
+  }
+  return 2;
+}

@@ -1,0 +1,93 @@
+#include "core/camera_config.hpp"
+
+#include <yaml-cpp/yaml.h>
+
+#include "core/error.hpp"
+#include "core/util.hpp"
+#include "io/mat.hpp"
+
+namespace flatnet {
+
+Centring parse_centring(const std::string& s, const std::filesystem::path& where) {
+  if (s == "plane") return Centring::plane;
+  if (s == "flatnet") return Centring::flatnet;
+  if (s == "none") return Centring::none;
+  throw Error(where, "centring must be plane, flatnet or none, got '" + s + "'");
+}
+
+std::filesystem::path default_camera_path() {
+  return std::filesystem::path(FLATNET_SOURCE_DIR) / "configs" / "cameras" / "sim.yaml";
+}
+
+namespace {
+
+const std::vector<std::string> kKnownKeys = {"name",  "raw_height", "raw_width", "adc_bits",
+                                             "rotation", "crop", "centring", "scene_size",
+                                             "calibration", "rig", "tikhonov_lambda", "tv_lambda"};
+
+void validate(const CameraConfig& c, const std::filesystem::path& path) {
+  const auto& g = c.raw;
+  require(g.raw_height > 0 && g.raw_width > 0 && g.raw_height % 2 == 0 && g.raw_width % 2 == 0, path,
+          "raw_height and raw_width must be positive and even (Bayer mosaic)");
+  require(g.adc_bits >= 1 && g.adc_bits <= 16, path, "adc_bits must be within 1..16");
+  require(g.crop[0] >= 0 && g.crop[1] >= 0 && g.crop[2] > 0 && g.crop[3] > 0 &&
+              g.crop[0] + g.crop[2] <= g.plane_height() && g.crop[1] + g.crop[3] <= g.plane_width(),
+          path, "crop [top, left, height, width] must lie inside the " + std::to_string(g.plane_height()) +
+                    "x" + std::to_string(g.plane_width()) + " Bayer plane");
+  require(c.scene_size > 0, path, "scene_size must be positive");
+  require(c.tikhonov_lambda > 0 && c.tv_lambda > 0, path, "regularisation weights must be positive");
+}
+
+}  // namespace
+
+CameraConfig load_camera_config(const std::filesystem::path& path) {
+  require(std::filesystem::exists(path), path, "no such camera file");
+  CameraConfig c;
+  if (path.extension() == ".mat") {
+    MatReader rig(path);
+    c.name = path.stem().string();
+    c.rig = path;
+    const auto crop = rig.read("crop", {4});
+    for (int i = 0; i < 4; ++i) c.raw.crop[i] = static_cast<int64_t>(crop[i].item<double>());
+    c.raw.adc_bits = static_cast<int>(rig.read_scalar("adc_bits"));
+    validate(c, path);
+    return c;
+  }
+  YAML::Node y;
+  try {
+    y = YAML::LoadFile(path.string());
+  } catch (const YAML::Exception& e) {
+    throw Error(path, std::string("invalid YAML: ") + e.what());
+  }
+  require(y.IsMap(), path, "expected a mapping of camera settings");
+  const auto base = path.parent_path();
+  try {
+    for (const auto& kv : y) {
+      const auto key = kv.first.as<std::string>();
+      require(std::find(kKnownKeys.begin(), kKnownKeys.end(), key) != kKnownKeys.end(), path,
+              "unknown camera setting '" + key + "'");
+    }
+    if (y["name"]) c.name = y["name"].as<std::string>();
+    if (y["raw_height"]) c.raw.raw_height = y["raw_height"].as<int64_t>();
+    if (y["raw_width"]) c.raw.raw_width = y["raw_width"].as<int64_t>();
+    if (y["adc_bits"]) c.raw.adc_bits = y["adc_bits"].as<int>();
+    if (y["rotation"]) c.raw.rotation = y["rotation"].as<double>();
+    if (y["crop"]) {
+      auto v = y["crop"].as<std::vector<int64_t>>();
+      require(v.size() == 4, path, "crop must be [top, left, height, width]");
+      std::copy(v.begin(), v.end(), c.raw.crop.begin());
+    }
+    if (y["centring"]) c.raw.centring = parse_centring(y["centring"].as<std::string>(), path);
+    if (y["scene_size"]) c.scene_size = y["scene_size"].as<int64_t>();
+    if (y["calibration"]) c.calibration = base / y["calibration"].as<std::string>();
+    if (y["rig"]) c.rig = base / y["rig"].as<std::string>();
+    if (y["tikhonov_lambda"]) c.tikhonov_lambda = y["tikhonov_lambda"].as<double>();
+    if (y["tv_lambda"]) c.tv_lambda = y["tv_lambda"].as<double>();
+  } catch (const YAML::Exception& e) {
+    throw Error(path, std::string("bad value: ") + e.what());
+  }
+  validate(c, path);
+  return c;
+}
+
+}  // namespace flatnet

@@ -1,0 +1,48 @@
+#pragma once
+// What flatnet knows about a camera: sensor layout, the preprocessing its calibration assumes,
+// and where its calibration (and, for a simulated camera, its true response) live.
+// Loaded from a YAML file (configs/cameras/*.yaml); library code takes these structs, not YAML.
+#include <array>
+#include <filesystem>
+#include <string>
+
+namespace flatnet {
+
+enum class Centring {
+  plane,    // Y - rowmean - colmean + mean of the plane (the camera README's definition)
+  flatnet,  // as FlatNet's loader: the added mean is taken over all four planes together
+  none
+};
+
+// How a raw frame becomes measurement planes (FlatNet's demosaic_raw, made explicit).
+struct RawGeometry {
+  int64_t raw_height = 1024;  // raw frame, rows
+  int64_t raw_width = 1280;   // raw frame, columns
+  int adc_bits = 10;          // ADC resolution; codes stored as q * 2^(16-adc_bits)
+  double rotation = 0.0;      // radians, applied to each Bayer plane about its top-left corner
+  std::array<int64_t, 4> crop = {6, 10, 500, 620};  // top, left, height, width within a plane
+  Centring centring = Centring::plane;
+  int64_t plane_height() const { return raw_height / 2; }
+  int64_t plane_width() const { return raw_width / 2; }
+};
+
+struct CameraConfig {
+  std::string name = "sim";
+  RawGeometry raw;
+  int64_t scene_size = 256;              // scene / reconstruction side, pixels
+  std::filesystem::path calibration;     // FlatNet-layout calib .mat (P1b.. Q1r); may be empty
+  std::filesystem::path rig;             // true response (simulated cameras only); may be empty
+  double tikhonov_lambda = 3e-4;         // default regulariser for this calibration
+  double tv_lambda = 1e-4;               // default TV weight
+};
+
+// Reads a camera YAML file; relative paths inside it are resolved against the file's folder.
+// A `.mat` path is taken as a rig file: geometry from its `crop` and `adc_bits`, the rest default.
+CameraConfig load_camera_config(const std::filesystem::path& path);
+
+// The project's reference camera (configs/cameras/sim.yaml) in the source tree.
+std::filesystem::path default_camera_path();
+
+Centring parse_centring(const std::string& s, const std::filesystem::path& where);
+
+}  // namespace flatnet

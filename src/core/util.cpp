@@ -1,0 +1,148 @@
+#include "core/util.hpp"
+
+#include <unistd.h>
+
+#include <fstream>
+#include <iomanip>
+#include <iostream>
+#include <mutex>
+#include <sstream>
+#include <thread>
+
+#include "core/error.hpp"
+
+namespace flatnet {
+
+const std::vector<std::string> kImageExtensions = {".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp"};
+
+int set_threads(int n) {
+  if (n <= 0) n = static_cast<int>(std::max(1u, std::thread::hardware_concurrency()));
+  at::set_num_threads(n);
+  return n;
+}
+
+void write_atomically(const fs::path& path, const std::function<void(const fs::path&)>& write_to) {
+  if (path.has_parent_path()) fs::create_directories(path.parent_path());
+  static std::atomic<uint64_t> counter{0};
+  const fs::path tmp = path.parent_path() /
+      ("." + path.stem().string() + ".tmp" + std::to_string(::getpid()) + "_" +
+       std::to_string(counter++) + path.extension().string());
+  try {
+    write_to(tmp);
+    fs::rename(tmp, path);
+  } catch (...) {
+    std::error_code ec;
+    fs::remove(tmp, ec);
+    throw;
+  }
+}
+
+void write_text_atomically(const fs::path& path, const std::string& text) {
+  write_atomically(path, [&](const fs::path& tmp) {
+    std::ofstream out(tmp, std::ios::binary);
+    require(static_cast<bool>(out), path, "cannot open for writing");
+    out << text;
+    out.close();
+    require(static_cast<bool>(out), path, "write failed (disk full?)");
+  });
+}
+
+std::vector<std::string> read_lines(const fs::path& path) {
+  std::ifstream in(path);
+  require(static_cast<bool>(in), path, "cannot open list file");
+  std::vector<std::string> lines;
+  std::string line;
+  while (std::getline(in, line)) {
+    const auto first = line.find_first_not_of(" \t\r\n");
+    if (first == std::string::npos) continue;
+    const auto last = line.find_last_not_of(" \t\r\n");
+    lines.push_back(line.substr(first, last - first + 1));
+  }
+  return lines;
+}
+
+bool has_extension(const fs::path& p, const std::vector<std::string>& extensions) {
+  std::string ext = p.extension().string();
+  std::transform(ext.begin(), ext.end(), ext.begin(), ::tolower);
+  return std::find(extensions.begin(), extensions.end(), ext) != extensions.end();
+}
+
+std::vector<fs::path> list_images(const fs::path& dir, const std::vector<std::string>& extensions) {
+  require(fs::is_directory(dir), dir, "not a folder");
+  std::vector<fs::path> files;
+  for (const auto& e : fs::directory_iterator(dir)) {
+    const auto name = e.path().filename().string();
+    if (e.is_regular_file() && !name.empty() && name[0] != '.' && has_extension(e.path(), extensions))
+      files.push_back(e.path());
+  }
+  std::sort(files.begin(), files.end());
+  return files;
+}
+
+uint64_t stable_hash(const std::string& s, uint64_t seed) {
+  uint64_t h = 1469598103934665603ull ^ (seed * 0x9E3779B97F4A7C15ull);
+  for (unsigned char c : s) {
+    h ^= c;
+    h *= 1099511628211ull;
+  }
+  return h;
+}
+
+std::string format_duration(double seconds) {
+  if (!std::isfinite(seconds) || seconds < 0) return "--:--";
+  const auto s = static_cast<int64_t>(seconds + 0.5);
+  std::ostringstream os;
+  if (s >= 3600) os << s / 3600 << ":";
+  os << std::setw(2) << std::setfill('0') << (s / 60) % 60 << ":" << std::setw(2) << s % 60;
+  return os.str();
+}
+
+namespace {
+std::mutex g_progress_mutex;
+}
+
+Progress::Progress(std::string label, int64_t total, bool enabled)
+    : label_(std::move(label)), total_(total), enabled_(enabled), tty_(::isatty(2) != 0),
+      start_(std::chrono::steady_clock::now()), last_draw_(start_) {}
+
+double Progress::elapsed_s() const {
+  return std::chrono::duration<double>(std::chrono::steady_clock::now() - start_).count();
+}
+
+double Progress::rate() const {
+  const double t = elapsed_s();
+  return t > 0 ? done_ / t : 0.0;
+}
+
+void Progress::tick(int64_t n) {
+  std::lock_guard<std::mutex> lock(g_progress_mutex);
+  done_ += n;
+  const auto now = std::chrono::steady_clock::now();
+  // Redraw at most 5x/s on a terminal, every 10 s in a log file.
+  const double interval = tty_ ? 0.2 : 10.0;
+  if (std::chrono::duration<double>(now - last_draw_).count() >= interval) {
+    last_draw_ = now;
+    draw(false);
+  }
+}
+
+void Progress::finish() {
+  std::lock_guard<std::mutex> lock(g_progress_mutex);
+  draw(true);
+}
+
+void Progress::draw(bool final_line) {
+  if (!enabled_) return;
+  const double r = rate();
+  const int width = 24;
+  const int filled = total_ > 0 ? static_cast<int>(width * std::min<int64_t>(done_, total_) / total_) : 0;
+  std::ostringstream os;
+  os << label_ << " " << done_ << "/" << total_ << " [" << std::string(filled, '#')
+     << std::string(width - filled, ' ') << "] " << std::fixed << std::setprecision(1) << r << " it/s";
+  if (final_line) os << " in " << format_duration(elapsed_s());
+  else os << " ETA " << format_duration(r > 0 ? (total_ - done_) / r : -1);
+  if (tty_) std::cerr << "\r" << os.str() << "\033[K" << (final_line ? "\n" : "") << std::flush;
+  else std::cerr << os.str() << "\n" << std::flush;
+}
+
+}  // namespace flatnet

@@ -1,0 +1,55 @@
+#pragma once
+// Small shared helpers: threads, atomic file output, text lists, progress reporting.
+#include <chrono>
+#include <cstdint>
+#include <filesystem>
+#include <functional>
+#include <string>
+#include <vector>
+
+namespace flatnet {
+
+namespace fs = std::filesystem;
+
+// Sets LibTorch's intra-op threads; n <= 0 means all hardware threads. Returns the count used.
+int set_threads(int n);
+
+// Writes a file atomically: `write_to` receives a temporary path in the same folder (same
+// extension, so format detection by suffix still works); on success it is renamed onto `path`,
+// on failure it is removed. A reader never sees a half-written file.
+void write_atomically(const fs::path& path, const std::function<void(const fs::path&)>& write_to);
+void write_text_atomically(const fs::path& path, const std::string& text);
+
+// Reads a list file: one entry per line, CR/LF and surrounding blanks stripped, empty lines skipped.
+std::vector<std::string> read_lines(const fs::path& path);
+
+// Image files (by extension) in a folder, sorted by name. Errors if the folder is missing.
+std::vector<fs::path> list_images(const fs::path& dir, const std::vector<std::string>& extensions);
+bool has_extension(const fs::path& p, const std::vector<std::string>& extensions);
+extern const std::vector<std::string> kImageExtensions;  // png jpg jpeg tif tiff bmp
+
+// Stable 64-bit hash (FNV-1a) for deterministic per-item seeds.
+uint64_t stable_hash(const std::string& s, uint64_t seed = 0);
+
+// A one-line progress bar on stderr: "label  12/100 [#####     ] 3.2 it/s ETA 00:27".
+class Progress {
+ public:
+  Progress(std::string label, int64_t total, bool enabled = true);
+  void tick(int64_t n = 1);  // thread-safe
+  void finish();
+  double rate() const;  // items per second so far
+  double elapsed_s() const;
+
+ private:
+  void draw(bool final_line);
+  std::string label_;
+  int64_t total_;
+  int64_t done_ = 0;
+  bool enabled_;
+  bool tty_;
+  std::chrono::steady_clock::time_point start_, last_draw_;
+};
+
+std::string format_duration(double seconds);
+
+}  // namespace flatnet

@@ -1,0 +1,25 @@
+#pragma once
+// Image quality metrics on RGB images in [0,1] (data range 1).
+#include <filesystem>
+#include <string>
+#include <vector>
+
+#include <torch/torch.h>
+
+namespace flatnet {
+
+// PSNR over all pixels and channels of {3,H,W} (or {B,3,H,W}, averaged per image).
+double psnr(const torch::Tensor& a, const torch::Tensor& b);
+// SSIM (Wang et al. 2004): Gaussian window sigma 1.5 (11x11), K1 = 0.01, K2 = 0.03, population
+// covariances, border of 5 pixels excluded, mean over channels; equals
+// skimage.metrics.structural_similarity(..., gaussian_weights=True, sigma=1.5,
+// use_sample_covariance=False, data_range=1, channel_axis=2).
+double ssim(const torch::Tensor& a, const torch::Tensor& b);
+
+// Contact sheet: one row per image, ground truth then each method; labels above the columns.
+// images[row][col] are {3,H,W} in [0,1]. Written as an 8-bit PNG.
+void write_contact_sheet(const std::filesystem::path& path, const std::vector<std::string>& column_labels,
+                         const std::vector<std::string>& row_labels,
+                         const std::vector<std::vector<torch::Tensor>>& images);
+
+}  // namespace flatnet

@@ -1,0 +1,102 @@
+#include "eval/report.hpp"
+
+#include <iomanip>
+
+#include "core/error.hpp"
+#include "core/util.hpp"
+#include "eval/metrics.hpp"
+#include "io/image.hpp"
+
+namespace flatnet {
+
+namespace {
+
+struct Method {
+  std::string name;
+  std::filesystem::path dir;
+};
+
+// A folder of PNGs is one method; otherwise each subfolder holding PNGs is a method.
+std::vector<Method> find_methods(const std::filesystem::path& out) {
+  require(std::filesystem::is_directory(out), out, "reconstruction folder not found");
+  std::vector<Method> methods;
+  bool has_png = false;
+  for (const auto& e : std::filesystem::directory_iterator(out))
+    if (e.is_regular_file() && has_extension(e.path(), {".png"}) && e.path().filename() != "sheet.png") has_png = true;
+  if (has_png) return {{out.filename().string(), out}};
+  for (const auto& e : std::filesystem::directory_iterator(out))
+    if (e.is_directory()) {
+      bool any = false;
+      for (const auto& f : std::filesystem::directory_iterator(e.path()))
+        if (has_extension(f.path(), {".png"})) { any = true; break; }
+      if (any) methods.push_back({e.path().filename().string(), e.path()});
+    }
+  std::sort(methods.begin(), methods.end(), [](const Method& a, const Method& b) { return a.name < b.name; });
+  require(!methods.empty(), out, "no reconstructions (.png files, or subfolders of them) to evaluate");
+  return methods;
+}
+
+}  // namespace
+
+std::vector<MethodScore> evaluate(const EvalOptions& opt) {
+  const auto gt_files = list_images(opt.gt, kImageExtensions);
+  require(!gt_files.empty(), opt.gt, "no ground-truth images in this folder");
+  const auto methods = find_methods(opt.out);
+  std::ostringstream csv;
+  csv << "image,method,psnr,ssim\n" << std::fixed << std::setprecision(4);
+  std::vector<MethodScore> scores;
+  std::vector<std::vector<torch::Tensor>> sheet;
+  std::vector<std::string> row_labels;
+  for (const auto& m : methods) scores.push_back({m.name});
+  for (const auto& gt_path : gt_files) {
+    const auto name = gt_path.stem().string() + ".png";
+    std::vector<torch::Tensor> row;
+    torch::Tensor gt;
+    for (size_t k = 0; k < methods.size(); ++k) {
+      const auto rec_path = methods[k].dir / name;
+      if (!std::filesystem::exists(rec_path)) continue;
+      auto rec = read_rgb(rec_path);
+      if (!gt.defined()) gt = resize(read_rgb(gt_path), rec.size(1), rec.size(2));
+      require(rec.sizes() == gt.sizes(), rec_path, "size differs from the other reconstructions");
+      const double p = psnr(rec, gt), s = ssim(rec, gt);
+      csv << name << "," << methods[k].name << "," << p << "," << s << "\n";
+      scores[k].count++;
+      scores[k].psnr += p;
+      scores[k].ssim += s;
+      if (static_cast<int>(sheet.size()) < opt.sheet_rows) {
+        if (row.empty()) row.resize(methods.size() + 1);
+        row[k + 1] = rec;
+      }
+    }
+    if (!row.empty() && static_cast<int>(sheet.size()) < opt.sheet_rows) {
+      row[0] = gt;
+      for (auto& t : row)
+        if (!t.defined()) t = torch::ones_like(gt);
+      sheet.push_back(row);
+      row_labels.push_back(gt_path.stem().string());
+    }
+  }
+  for (auto& s : scores) {
+    require(s.count > 0, opt.out / s.method, "no file matches a ground-truth name in " + opt.gt.string());
+    s.psnr /= s.count;
+    s.ssim /= s.count;
+    csv << "mean," << s.method << "," << s.psnr << "," << s.ssim << "\n";
+  }
+  write_text_atomically(opt.out / "metrics.csv", csv.str());
+  std::vector<std::string> labels{"ground truth"};
+  for (const auto& m : methods) labels.push_back(m.name);
+  write_contact_sheet(opt.out / "sheet.png", labels, row_labels, sheet);
+  return scores;
+}
+
+std::string format_table(const std::vector<MethodScore>& scores) {
+  std::ostringstream os;
+  os << std::left << std::setw(20) << "method" << std::right << std::setw(8) << "images" << std::setw(10) << "PSNR"
+     << std::setw(9) << "SSIM" << "\n";
+  for (const auto& s : scores)
+    os << std::left << std::setw(20) << s.method << std::right << std::setw(8) << s.count << std::fixed
+       << std::setprecision(2) << std::setw(10) << s.psnr << std::setprecision(3) << std::setw(9) << s.ssim << "\n";
+  return os.str();
+}
+
+}  // namespace flatnet

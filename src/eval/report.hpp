@@ -1,0 +1,25 @@
+#pragma once
+// `flatnet eval`: metrics of reconstruction folders against ground truth, as CSV, table and sheet.
+#include <filesystem>
+#include <string>
+#include <vector>
+
+namespace flatnet {
+
+struct MethodScore {
+  std::string method;
+  int64_t count = 0;
+  double psnr = 0, ssim = 0;  // means over images
+};
+
+struct EvalOptions {
+  std::filesystem::path gt;   // ground-truth images
+  std::filesystem::path out;  // one method's outputs, or a folder with one subfolder per method
+  int sheet_rows = 6;
+};
+
+// Writes out/metrics.csv (per image and mean rows) and out/sheet.png; returns the means.
+std::vector<MethodScore> evaluate(const EvalOptions& options);
+std::string format_table(const std::vector<MethodScore>& scores);
+
+}  // namespace flatnet

@@ -1,0 +1,129 @@
+#include "io/image.hpp"
+
+#include <OpenImageIO/imageio.h>
+#include <opencv2/imgproc.hpp>
+
+#include "core/error.hpp"
+#include "core/util.hpp"
+
+namespace flatnet {
+
+
+namespace {
+
+std::unique_ptr<OIIO::ImageInput> open_input(const std::filesystem::path& path) {
+  require(std::filesystem::exists(path), path, "no such file");
+  auto in = OIIO::ImageInput::open(path.string());
+  require(in != nullptr, path, "unreadable image (" + OIIO::geterror() + ")");
+  return in;
+}
+
+}  // namespace
+
+torch::Tensor read_rgb(const std::filesystem::path& path) {
+  auto in = open_input(path);
+  const auto& spec = in->spec();
+  const int w = spec.width, h = spec.height, c = spec.nchannels;
+  require(w > 0 && h > 0 && c >= 1, path, "empty image");
+  auto buf = torch::empty({h, w, c}, torch::kFloat32);
+  // Reading as FLOAT normalises integer formats to [0,1] (8-bit /255, 16-bit /65535).
+  const bool ok = in->read_image(0, 0, 0, c, OIIO::TypeDesc::FLOAT, buf.data_ptr<float>());
+  in->close();
+  require(ok, path, "corrupt or truncated image (" + in->geterror() + ")");
+  auto chw = buf.permute({2, 0, 1});
+  if (c == 1 || c == 2) chw = chw.slice(0, 0, 1).expand({3, h, w});
+  else chw = chw.slice(0, 0, 3);
+  return chw.contiguous().clamp(0.0, 1.0);
+}
+
+torch::Tensor read_gray16(const std::filesystem::path& path) {
+  auto in = open_input(path);
+  const auto& spec = in->spec();
+  require(spec.nchannels == 1, path,
+          "raw capture must be single-channel (Bayer mosaic), found " + std::to_string(spec.nchannels) +
+              " channels");
+  require(spec.format == OIIO::TypeDesc::UINT16, path,
+          "raw capture must be 16-bit, found " + std::string(spec.format.c_str()));
+  auto buf = torch::empty({spec.height, spec.width}, torch::kInt32);
+  std::vector<uint16_t> raw(static_cast<size_t>(spec.height) * spec.width);
+  const bool ok = in->read_image(0, 0, 0, 1, OIIO::TypeDesc::UINT16, raw.data());
+  in->close();
+  require(ok, path, "corrupt or truncated image (" + in->geterror() + ")");
+  auto* dst = buf.data_ptr<int32_t>();
+  for (size_t i = 0; i < raw.size(); ++i) dst[i] = raw[i];
+  return buf;
+}
+
+namespace {
+
+void write_image(const std::filesystem::path& path, const void* data, int w, int h, int c,
+                 OIIO::TypeDesc type) {
+  write_atomically(path, [&](const std::filesystem::path& tmp) {
+    auto out = OIIO::ImageOutput::create(tmp.string());
+    require(out != nullptr, path, "no image writer for this extension");
+    OIIO::ImageSpec spec(w, h, c, type);
+    require(out->open(tmp.string(), spec), path, "cannot open for writing (" + out->geterror() + ")");
+    const bool ok = out->write_image(type, data);
+    out->close();
+    require(ok, path, "write failed (" + out->geterror() + ")");
+  });
+}
+
+}  // namespace
+
+void write_rgb8(const std::filesystem::path& path, const torch::Tensor& rgb) {
+  TORCH_CHECK(rgb.dim() == 3 && rgb.size(0) == 3, "write_rgb8 expects {3,H,W}, got ", rgb.sizes());
+  auto hwc = (rgb.detach().to(torch::kFloat32).clamp(0, 1) * 255.0f)
+                 .round()
+                 .to(torch::kUInt8)
+                 .permute({1, 2, 0})
+                 .contiguous();
+  write_image(path, hwc.data_ptr<uint8_t>(), static_cast<int>(rgb.size(2)), static_cast<int>(rgb.size(1)), 3,
+              OIIO::TypeDesc::UINT8);
+}
+
+void write_gray16(const std::filesystem::path& path, const torch::Tensor& codes) {
+  TORCH_CHECK(codes.dim() == 2, "write_gray16 expects {H,W}, got ", codes.sizes());
+  auto c = codes.detach().to(torch::kInt32).clamp(0, 65535).contiguous();
+  std::vector<uint16_t> data(c.numel());
+  const auto* src = c.data_ptr<int32_t>();
+  for (size_t i = 0; i < data.size(); ++i) data[i] = static_cast<uint16_t>(src[i]);
+  write_image(path, data.data(), static_cast<int>(c.size(1)), static_cast<int>(c.size(0)), 1,
+              OIIO::TypeDesc::UINT16);
+}
+
+torch::Tensor resize(const torch::Tensor& chw, int64_t h, int64_t w) {
+  TORCH_CHECK(chw.dim() == 3, "resize expects {C,H,W}");
+  if (chw.size(1) == h && chw.size(2) == w) return chw;
+  auto hwc = chw.to(torch::kFloat32).permute({1, 2, 0}).contiguous();
+  const int c = static_cast<int>(chw.size(0));
+  cv::Mat src(static_cast<int>(chw.size(1)), static_cast<int>(chw.size(2)), CV_32FC(c), hwc.data_ptr<float>());
+  cv::Mat dst;
+  const bool shrinking = h < chw.size(1) || w < chw.size(2);
+  cv::resize(src, dst, cv::Size(static_cast<int>(w), static_cast<int>(h)), 0, 0,
+             shrinking ? cv::INTER_AREA : cv::INTER_LINEAR);
+  auto out = torch::from_blob(dst.data, {h, w, c}, torch::kFloat32).clone();
+  return out.permute({2, 0, 1}).contiguous();
+}
+
+torch::Tensor srgb_to_linear(const torch::Tensor& x) {
+  return torch::where(x <= 0.04045, x / 12.92, torch::pow((x + 0.055) / 1.055, 2.4));
+}
+
+torch::Tensor linear_to_srgb(const torch::Tensor& x) {
+  auto c = x.clamp(0.0, 1.0);
+  return torch::where(c <= 0.0031308, c * 12.92, 1.055 * torch::pow(c, 1.0 / 2.4) - 0.055);
+}
+
+torch::Tensor bayer_planes_to_rgb(const torch::Tensor& planes) {
+  // planes: {..,4,H,W} (b, gb, gr, r) -> {..,3,H,W} (R, G, B)
+  auto b = planes.select(-3, 0), gb = planes.select(-3, 1), gr = planes.select(-3, 2), r = planes.select(-3, 3);
+  return torch::stack({r, 0.5 * (gb + gr), b}, -3);
+}
+
+torch::Tensor rgb_to_bayer_planes(const torch::Tensor& rgb) {
+  auto R = rgb.select(-3, 0), G = rgb.select(-3, 1), B = rgb.select(-3, 2);
+  return torch::stack({B, G, G, R}, -3);
+}
+
+}  // namespace flatnet

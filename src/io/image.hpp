@@ -1,0 +1,36 @@
+#pragma once
+// Image files through OpenImageIO, and the colour conversions the camera model needs.
+#include <filesystem>
+
+#include <torch/torch.h>
+
+namespace flatnet {
+
+// Reads an 8- or 16-bit image as RGB in [0,1], {3,H,W} float32. Grey images are replicated to
+// three channels, alpha is dropped.
+torch::Tensor read_rgb(const std::filesystem::path& path);
+
+// Reads a single-channel 16-bit image exactly, {H,W} int32 holding the stored 0..65535 codes.
+// Errors name the file and the problem (channels, bit depth).
+torch::Tensor read_gray16(const std::filesystem::path& path);
+
+// Writes {3,H,W} values in [0,1] (clamped) as an 8-bit RGB image, atomically.
+void write_rgb8(const std::filesystem::path& path, const torch::Tensor& rgb);
+// Writes {H,W} codes 0..65535 as a 16-bit single-channel image, atomically.
+void write_gray16(const std::filesystem::path& path, const torch::Tensor& codes);
+
+// Resizes {C,H,W} to {C,h,w} ignoring aspect ratio (area averaging when shrinking, as an
+// anti-aliased resize does; bilinear when enlarging).
+torch::Tensor resize(const torch::Tensor& chw, int64_t h, int64_t w);
+
+// Standard sRGB transfer functions (IEC 61966-2-1), elementwise.
+torch::Tensor srgb_to_linear(const torch::Tensor& x);
+torch::Tensor linear_to_srgb(const torch::Tensor& x);
+
+// Per-channel reconstruction planes {.., 4, H, W} in FlatNet's order (b, gb, gr, r), linear light
+// -> RGB {.., 3, H, W}: R from r, G the mean of gb and gr, B from b.
+torch::Tensor bayer_planes_to_rgb(const torch::Tensor& planes);
+// RGB {.., 3, H, W} -> planes {.., 4, H, W}: b = B, gb = gr = G, r = R.
+torch::Tensor rgb_to_bayer_planes(const torch::Tensor& rgb);
+
+}  // namespace flatnet

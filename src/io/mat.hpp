@@ -1,0 +1,41 @@
+#pragma once
+// MATLAB .mat files (v5; v7.3 when matio was built with HDF5) through matio.
+// MATLAB stores arrays column-major; these functions return and take row-major torch tensors
+// with MATLAB's shape (a 500x256 variable becomes a {500,256} tensor, a 500x256x4 one {500,256,4}).
+#include <filesystem>
+#include <map>
+#include <string>
+#include <vector>
+
+#include <torch/torch.h>
+
+namespace flatnet {
+
+enum class MatVersion { v5, v73 };
+
+// Reads numeric variables (double, single or integer classes) as float64 tensors.
+class MatReader {
+ public:
+  explicit MatReader(const std::filesystem::path& path);
+  ~MatReader();
+  MatReader(const MatReader&) = delete;
+  MatReader& operator=(const MatReader&) = delete;
+
+  bool has(const std::string& name) const;
+  std::vector<std::string> names() const;
+  // Errors "<file>: missing variable 'name'" or "...: variable 'name' is HxW, expected ...".
+  torch::Tensor read(const std::string& name) const;
+  torch::Tensor read(const std::string& name, const std::vector<int64_t>& expected_shape) const;
+  double read_scalar(const std::string& name) const;
+  const std::filesystem::path& path() const { return path_; }
+
+ private:
+  std::filesystem::path path_;
+  void* mat_ = nullptr;
+};
+
+// Writes float64 variables. The file appears atomically when write() returns.
+void write_mat(const std::filesystem::path& path, const std::map<std::string, torch::Tensor>& vars,
+               MatVersion version = MatVersion::v5);
+
+}  // namespace flatnet

@@ -1,0 +1,86 @@
+#include "io/raw.hpp"
+
+#include "core/error.hpp"
+#include "io/image.hpp"
+
+namespace flatnet {
+
+using torch::indexing::None;
+using torch::indexing::Slice;
+
+torch::Tensor bayer_split(const torch::Tensor& raw) {
+  TORCH_CHECK(raw.dim() == 2 && raw.size(0) % 2 == 0 && raw.size(1) % 2 == 0, "bayer_split expects even {H,W}");
+  return torch::stack({raw.index({Slice(0, None, 2), Slice(0, None, 2)}),   // b
+                       raw.index({Slice(0, None, 2), Slice(1, None, 2)}),   // gb
+                       raw.index({Slice(1, None, 2), Slice(0, None, 2)}),   // gr
+                       raw.index({Slice(1, None, 2), Slice(1, None, 2)})}); // r
+}
+
+torch::Tensor bayer_merge(const torch::Tensor& planes) {
+  TORCH_CHECK(planes.dim() == 3 && planes.size(0) == 4, "bayer_merge expects {4,h,w}");
+  const auto h = planes.size(1), w = planes.size(2);
+  auto raw = torch::empty({2 * h, 2 * w}, planes.options());
+  raw.index_put_({Slice(0, None, 2), Slice(0, None, 2)}, planes[0]);
+  raw.index_put_({Slice(0, None, 2), Slice(1, None, 2)}, planes[1]);
+  raw.index_put_({Slice(1, None, 2), Slice(0, None, 2)}, planes[2]);
+  raw.index_put_({Slice(1, None, 2), Slice(1, None, 2)}, planes[3]);
+  return raw;
+}
+
+torch::Tensor rotate_planes(const torch::Tensor& planes, double angle) {
+  if (angle == 0.0) return planes;
+  const auto H = planes.size(-2), W = planes.size(-1);
+  auto opts = torch::TensorOptions().dtype(torch::kFloat64);
+  auto r = torch::arange(H, opts).unsqueeze(1).expand({H, W});
+  auto c = torch::arange(W, opts).unsqueeze(0).expand({H, W});
+  const double cs = std::cos(angle), sn = std::sin(angle);
+  auto src_r = sn * c + cs * r;  // inverse map of the similarity transform (skimage: x=col, y=row)
+  auto src_c = cs * c - sn * r;
+  auto r0 = torch::floor(src_r), c0 = torch::floor(src_c);
+  auto fr = (src_r - r0).to(planes.scalar_type()), fc = (src_c - c0).to(planes.scalar_type());
+  auto flat = planes.reshape({-1, H * W});
+  // Bilinear interpolation; neighbours outside the image contribute zero (cval = 0).
+  auto sample = [&](const torch::Tensor& rr, const torch::Tensor& cc) {
+    auto valid = (rr >= 0) & (rr < H) & (cc >= 0) & (cc < W);
+    auto idx = (rr.clamp(0, H - 1) * W + cc.clamp(0, W - 1)).to(torch::kLong).reshape({-1});
+    auto v = flat.index_select(1, idx).reshape(planes.sizes());
+    return v * valid.to(planes.scalar_type());
+  };
+  auto out = sample(r0, c0) * (1 - fr) * (1 - fc) + sample(r0, c0 + 1) * (1 - fr) * fc +
+             sample(r0 + 1, c0) * fr * (1 - fc) + sample(r0 + 1, c0 + 1) * fr * fc;
+  return out;
+}
+
+torch::Tensor double_centre(const torch::Tensor& planes, Centring mode) {
+  if (mode == Centring::none) return planes;
+  auto row_means = planes.mean(-1, true);  // {..,C,H,1}
+  auto col_means = planes.mean(-2, true);  // {..,C,1,W}
+  auto all_mean = mode == Centring::plane ? planes.mean({-2, -1}, true)
+                                          : planes.mean({-3, -2, -1}, true);  // FlatNet: rowMeans.mean()
+  return planes - row_means - col_means + all_mean;
+}
+
+torch::Tensor preprocess_raw(const torch::Tensor& raw_unit, const RawGeometry& g) {
+  auto planes = bayer_split(raw_unit.to(torch::kFloat32));  // {4,512,640}
+  planes = rotate_planes(planes, g.rotation);
+  planes = planes.index({Slice(), Slice(g.crop[0], g.crop[0] + g.crop[2]), Slice(g.crop[1], g.crop[1] + g.crop[3])});
+  return double_centre(planes, g.centring).contiguous();  // {4,500,620}
+}
+
+torch::Tensor load_raw_unit(const std::filesystem::path& path, const RawGeometry& g) {
+  auto codes = read_gray16(path);
+  require(codes.size(0) == g.raw_height && codes.size(1) == g.raw_width, path,
+          "raw capture is " + std::to_string(codes.size(1)) + "x" + std::to_string(codes.size(0)) +
+              " (WxH), this camera gives " + std::to_string(g.raw_width) + "x" + std::to_string(g.raw_height));
+  return codes.to(torch::kFloat32) / 65535.0f;
+}
+
+Capture load_capture(const std::filesystem::path& path, const RawGeometry& g) {
+  return {preprocess_raw(load_raw_unit(path, g), g), path.filename().string()};
+}
+
+torch::Tensor adc_to_stored(const torch::Tensor& codes, int adc_bits) {
+  return codes.to(torch::kInt32) * (1 << (16 - adc_bits));
+}
+
+}  // namespace flatnet

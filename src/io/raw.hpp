@@ -1,0 +1,44 @@
+#pragma once
+// Raw FlatCam frames <-> measurement planes, as FlatNet's loader (demosaic_raw) does it:
+// 16-bit PNG / 65535 -> Bayer planes b=[0::2,0::2] gb=[0::2,1::2] gr=[1::2,0::2] r=[1::2,1::2]
+// -> optional small rotation -> crop -> double centring.
+#include <filesystem>
+#include <string>
+
+#include <torch/torch.h>
+
+#include "core/camera_config.hpp"
+
+namespace flatnet {
+
+// One preprocessed capture: the four measurement planes the calibration refers to.
+struct Capture {
+  torch::Tensor planes;  // {4, crop_h, crop_w} float32, order b, gb, gr, r
+  std::string name;      // file name it came from (for outputs with the same name)
+};
+
+// {H,W} raw frame (any numeric type) -> {4, H/2, W/2} planes in b, gb, gr, r order.
+torch::Tensor bayer_split(const torch::Tensor& raw);
+// {4, H/2, W/2} -> {H,W}: the inverse of bayer_split.
+torch::Tensor bayer_merge(const torch::Tensor& planes);
+
+// Rotates each plane of {C,H,W} by `angle` radians with bilinear interpolation and zero fill,
+// exactly as skimage.transform.warp(img, SimilarityTransform(rotation=angle)) (FlatNet's loader):
+// output pixel (r, c) samples input (sin*c + cos*r, cos*c - sin*r).
+torch::Tensor rotate_planes(const torch::Tensor& planes, double angle);
+
+// Y - rowmean - colmean + mean, per plane (Centring::plane) or with FlatNet's all-plane mean.
+torch::Tensor double_centre(const torch::Tensor& planes, Centring mode);
+
+// Full-scale raw frame ({H,W}, values in [0,1]) -> measurement planes {4, crop_h, crop_w}.
+torch::Tensor preprocess_raw(const torch::Tensor& raw_unit, const RawGeometry& g);
+
+// Reads a raw PNG, checks size and bit depth against the geometry, and preprocesses it.
+Capture load_capture(const std::filesystem::path& path, const RawGeometry& g);
+// Reads a raw PNG as {H,W} float32 in [0,1] (codes / 65535), checking it against the geometry.
+torch::Tensor load_raw_unit(const std::filesystem::path& path, const RawGeometry& g);
+
+// ADC codes {H,W} (0 .. 2^adc_bits-1) -> stored 16-bit values (bits shifted to the top).
+torch::Tensor adc_to_stored(const torch::Tensor& codes, int adc_bits);
+
+}  // namespace flatnet

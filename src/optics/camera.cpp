@@ -1,0 +1,109 @@
+#include "optics/camera.hpp"
+
+#include "core/error.hpp"
+#include "io/image.hpp"
+#include "io/mat.hpp"
+#include "io/raw.hpp"
+
+namespace flatnet {
+
+using torch::indexing::Slice;
+
+const std::array<const char*, 4> kChannelNames = {"b", "gb", "gr", "r"};
+
+Rig load_rig(const std::filesystem::path& path) {
+  MatReader mat(path);
+  Rig rig;
+  const auto phil0 = mat.read("PhiL_b");
+  const auto phir0 = mat.read("PhiR_b");
+  require(phil0.dim() == 2 && phir0.dim() == 2 && phil0.size(1) == phir0.size(1), path,
+          "PhiL_b and PhiR_b must be matrices with the same number of columns (scene size)");
+  const auto H = phil0.size(0), W = phir0.size(0), N = phil0.size(1);
+  std::vector<torch::Tensor> L, R, G;
+  for (const char* c : kChannelNames) {
+    L.push_back(mat.read(std::string("PhiL_") + c, {H, N}));
+    R.push_back(mat.read(std::string("PhiR_") + c, {W, N}));
+    G.push_back(torch::tensor(mat.read_scalar(std::string("gain_") + c), torch::kFloat64));
+  }
+  rig.phil = torch::stack(L).to(torch::kFloat32);
+  rig.phir = torch::stack(R).to(torch::kFloat32);
+  rig.gain = torch::stack(G).to(torch::kFloat32);
+  rig.vig_rows = mat.read("vig_rows", {H}).to(torch::kFloat32);
+  rig.vig_cols = mat.read("vig_cols", {W}).to(torch::kFloat32);
+  rig.full_well = mat.read_scalar("full_well");
+  rig.read_noise = mat.read_scalar("read_noise");
+  rig.dark = mat.read_scalar("dark");
+  rig.adc_bits = static_cast<int>(mat.read_scalar("adc_bits"));
+  require(rig.full_well > 0 && rig.read_noise >= 0 && rig.adc_bits >= 1 && rig.adc_bits <= 16, path,
+          "implausible sensor constants (full_well > 0, read_noise >= 0, 1 <= adc_bits <= 16)");
+  return rig;
+}
+
+torch::Tensor expected_signal(const Rig& rig, const torch::Tensor& scene_planes) {
+  // scene_planes: {B,4,N,N} linear light
+  auto X = scene_planes.to(torch::kFloat32);
+  auto coded = torch::matmul(torch::matmul(rig.phil, X), rig.phir.transpose(1, 2));  // {B,4,h,w}
+  auto open = torch::outer(rig.vig_rows, rig.vig_cols) * X.sum({-2, -1}).unsqueeze(-1).unsqueeze(-1);
+  return rig.gain.view({1, 4, 1, 1}) * (coded + open);
+}
+
+torch::Tensor sensor_readout(const Rig& rig, const torch::Tensor& signal, bool noise,
+                             c10::optional<at::Generator> gen) {
+  auto s = signal.to(torch::kFloat64);
+  if (noise) {
+    auto electrons = at::poisson(s.clamp_min(0) * rig.full_well, gen) +
+                     at::normal(0.0, rig.read_noise, s.sizes(), gen, torch::TensorOptions().dtype(torch::kFloat64));
+    s = electrons / rig.full_well;
+  }
+  s = s + rig.dark;
+  const double levels = std::pow(2.0, rig.adc_bits) - 1;
+  return torch::round(s * levels).clamp(0, levels).to(torch::kInt32);
+}
+
+torch::Tensor simulate_raw(const Rig& rig, const torch::Tensor& scene_srgb, bool noise,
+                           c10::optional<at::Generator> gen) {
+  TORCH_CHECK(scene_srgb.dim() == 3 && scene_srgb.size(0) == 3, "scene must be {3,N,N}");
+  auto planes = rgb_to_bayer_planes(srgb_to_linear(scene_srgb.to(torch::kFloat32))).unsqueeze(0);
+  auto codes = sensor_readout(rig, expected_signal(rig, planes), noise, gen)[0];  // {4,h,w}
+  return adc_to_stored(bayer_merge(codes), rig.adc_bits);
+}
+
+Calibration load_calibration(const std::filesystem::path& path, const CameraConfig& camera) {
+  MatReader mat(path);
+  const auto h = camera.raw.crop[2], w = camera.raw.crop[3], n = camera.scene_size;
+  std::vector<torch::Tensor> P, Q;
+  for (const char* c : kChannelNames) {
+    const auto pname = std::string("P1") + c, qname = std::string("Q1") + c;
+    auto p = mat.read(pname);
+    auto q = mat.read(qname);
+    require(p.dim() == 2 && p.size(0) == h && p.size(1) == n, path,
+            pname + " is " + std::to_string(p.size(0)) + "x" + std::to_string(p.size(1)) + " but the camera's crop gives " +
+                std::to_string(h) + " rows and the scene is " + std::to_string(n) + " pixels");
+    require(q.dim() == 2 && q.size(0) == w && q.size(1) == n, path,
+            qname + " is " + std::to_string(q.size(0)) + "x" + std::to_string(q.size(1)) + " but the camera's crop gives " +
+                std::to_string(w) + " columns and the scene is " + std::to_string(n) + " pixels");
+    require(torch::isfinite(p).all().item<bool>() && torch::isfinite(q).all().item<bool>(), path,
+            pname + "/" + qname + " contain NaN or Inf");
+    P.push_back(p);
+    Q.push_back(q);
+  }
+  return {torch::stack(P), torch::stack(Q)};
+}
+
+void save_calibration(const std::filesystem::path& path, const Calibration& calib) {
+  std::map<std::string, torch::Tensor> vars;
+  for (int i = 0; i < 4; ++i) {
+    vars[std::string("P1") + kChannelNames[i]] = calib.P[i];
+    vars[std::string("Q1") + kChannelNames[i]] = calib.Q[i];
+  }
+  write_mat(path, vars);
+}
+
+Calibration ideal_calibration(const Rig& rig, const RawGeometry& g) {
+  auto centre = [](const torch::Tensor& m) { return m - m.mean(-2, true); };  // C_m M (centred columns)
+  auto L = rig.phil.to(torch::kFloat64).index({Slice(), Slice(g.crop[0], g.crop[0] + g.crop[2]), Slice()});
+  auto R = rig.phir.to(torch::kFloat64).index({Slice(), Slice(g.crop[1], g.crop[1] + g.crop[3]), Slice()});
+  return {rig.gain.to(torch::kFloat64).view({4, 1, 1}) * centre(L), centre(R)};
+}
+
+}  // namespace flatnet

@@ -1,0 +1,62 @@
+#pragma once
+// The FlatCam camera model: its true response (a "rig", for simulation only) and its
+// calibration (what reconstruction uses). Physics in one place: the simulator, the calibration
+// procedure, the tests and the benchmarks all call these functions.
+#include <filesystem>
+#include <optional>
+
+#include <torch/torch.h>
+
+#include "core/camera_config.hpp"
+
+namespace flatnet {
+
+// True response of a separable FlatCam, per Bayer channel c in (b, gb, gr, r), on the whole plane:
+//   S_c = gain_c * ( PhiL_c X_c PhiR_c^T + vig_rows vig_cols^T * sum(X_c) )      (full-scale units)
+// The second term is the light through the open half of the mask, which carries no code.
+struct Rig {
+  torch::Tensor phil;      // {4, plane_h, N} float32
+  torch::Tensor phir;      // {4, plane_w, N}
+  torch::Tensor gain;      // {4}
+  torch::Tensor vig_rows;  // {plane_h}
+  torch::Tensor vig_cols;  // {plane_w}
+  double full_well = 40000;  // electrons at full scale
+  double read_noise = 4;     // electrons, standard deviation
+  double dark = 0.02;        // full-scale units
+  int adc_bits = 10;
+  int64_t scene_size() const { return phil.size(2); }
+};
+
+// Reads rig.mat (PhiL_c, PhiR_c, gain_c, vig_rows, vig_cols, full_well, read_noise, dark, adc_bits).
+Rig load_rig(const std::filesystem::path& path);
+
+// Noise-free expected signal for linear-light scene planes. {B,4,N,N} -> {B,4,plane_h,plane_w}.
+torch::Tensor expected_signal(const Rig& rig, const torch::Tensor& scene_planes);
+
+// Sensor noise and ADC: electrons = Poisson(max(S,0) * full_well) + Normal(0, read_noise);
+// signal = electrons / full_well + dark; q = clip(round(signal * (2^bits - 1)), 0, 2^bits - 1).
+// With noise off the signal is S + dark. Returns integer ADC codes, same shape as S.
+torch::Tensor sensor_readout(const Rig& rig, const torch::Tensor& signal, bool noise,
+                             c10::optional<at::Generator> gen = c10::nullopt);
+
+// sRGB scene {3,N,N} in [0,1] (as shown on the monitor) -> stored 16-bit raw frame {2h,2w} int32.
+torch::Tensor simulate_raw(const Rig& rig, const torch::Tensor& scene_srgb, bool noise,
+                           c10::optional<at::Generator> gen = c10::nullopt);
+
+// A calibration in FlatNet's layout: after preprocessing, Y_c ~= P_c X_c Q_c^T.
+struct Calibration {
+  torch::Tensor P;  // {4, crop_h, N} float64 (P1b, P1gb, P1gr, P1r)
+  torch::Tensor Q;  // {4, crop_w, N} float64 (Q1b, ...)
+};
+
+extern const std::array<const char*, 4> kChannelNames;  // b, gb, gr, r
+
+// Reads P1b..P1r and Q1b..Q1r; checks they match the geometry's crop and scene size.
+Calibration load_calibration(const std::filesystem::path& path, const CameraConfig& camera);
+void save_calibration(const std::filesystem::path& path, const Calibration& calib);
+
+// The calibration a perfect procedure would find from this rig: the cropped, double-centred
+// response (P = gain * C PhiL_window, Q = C PhiR_window). Used as ground truth in tests.
+Calibration ideal_calibration(const Rig& rig, const RawGeometry& g);
+
+}  // namespace flatnet

@@ -1,0 +1,66 @@
+#include "recon/run.hpp"
+
+#include "core/error.hpp"
+#include "core/util.hpp"
+#include "io/image.hpp"
+#include "io/raw.hpp"
+#include "recon/tikhonov.hpp"
+
+namespace flatnet {
+
+std::vector<std::filesystem::path> collect_captures(const std::filesystem::path& input) {
+  require(std::filesystem::exists(input), input, "no such file or folder");
+  if (std::filesystem::is_directory(input)) {
+    auto files = list_images(input, {".png"});
+    require(!files.empty(), input, "no .png captures in this folder");
+    return files;
+  }
+  return {input};
+}
+
+torch::Tensor planes_to_srgb(const torch::Tensor& planes) {
+  return linear_to_srgb(bayer_planes_to_rgb(planes).clamp(0, 1));
+}
+
+ReconReport reconstruct_files(const CameraConfig& camera, const Calibration& calib,
+                              const std::vector<std::filesystem::path>& captures, const ReconOptions& opt) {
+  require(opt.method == "tikhonov" || opt.method == "tv", "--method", "must be tikhonov or tv, got '" + opt.method + "'");
+  c10::InferenceMode guard;
+  std::function<torch::Tensor(const torch::Tensor&)> solve;
+  if (opt.method == "tikhonov") {
+    auto tik = std::make_shared<Tikhonov>(calib, opt.lambda > 0 ? opt.lambda : camera.tikhonov_lambda);
+    solve = [tik](const torch::Tensor& y) { return (*tik)(y); };
+  } else {
+    TVOptions tv;
+    tv.lambda = opt.lambda > 0 ? opt.lambda : camera.tv_lambda;
+    tv.tikhonov_lambda = camera.tikhonov_lambda;
+    auto solver = std::make_shared<TVSolver>(calib, tv);
+    solve = [solver](const torch::Tensor& y) { return (*solver)(y); };
+  }
+  ReconReport report;
+  Progress progress(opt.method, static_cast<int64_t>(captures.size()), opt.progress);
+  double recon_s = 0;
+  const auto start = std::chrono::steady_clock::now();
+  for (size_t first = 0; first < captures.size(); first += opt.batch) {
+    const size_t last = std::min(captures.size(), first + static_cast<size_t>(opt.batch));
+    std::vector<torch::Tensor> planes;
+    for (size_t i = first; i < last; ++i) planes.push_back(load_capture(captures[i], camera.raw).planes);
+    auto Y = torch::stack(planes);  // {B,4,h,w}
+    const auto t0 = std::chrono::steady_clock::now();
+    auto X = solve(Y);              // {B,4,N,N}
+    recon_s += std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+    for (size_t i = first; i < last; ++i) {
+      auto name = captures[i].filename();
+      name.replace_extension(".png");
+      write_rgb8(opt.out / name, planes_to_srgb(X[i - first]));
+      progress.tick();
+    }
+  }
+  progress.finish();
+  report.count = static_cast<int64_t>(captures.size());
+  report.recon_ms_per_capture = 1000.0 * recon_s / std::max<int64_t>(1, report.count);
+  report.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  return report;
+}
+
+}  // namespace flatnet

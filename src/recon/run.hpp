@@ -1,0 +1,35 @@
+#pragma once
+// Reconstructing folders of raw captures with a classical method.
+#include <filesystem>
+#include <string>
+#include <vector>
+
+#include "core/camera_config.hpp"
+#include "optics/camera.hpp"
+
+namespace flatnet {
+
+struct ReconOptions {
+  std::string method = "tikhonov";  // tikhonov | tv
+  double lambda = 0;                // <= 0: the camera file's default for the method
+  std::filesystem::path out;
+  int batch = 8;
+  bool progress = true;
+};
+
+struct ReconReport {
+  int64_t count = 0;
+  double recon_ms_per_capture = 0;  // reconstruction alone (no file I/O)
+  double seconds = 0;               // everything, I/O included
+};
+
+// A FILE, or every .png in a DIR (sorted).
+std::vector<std::filesystem::path> collect_captures(const std::filesystem::path& input);
+
+// Linear-light planes {4,N,N} (b, gb, gr, r) -> sRGB image {3,N,N} in [0,1].
+torch::Tensor planes_to_srgb(const torch::Tensor& planes);
+
+ReconReport reconstruct_files(const CameraConfig& camera, const Calibration& calib,
+                              const std::vector<std::filesystem::path>& captures, const ReconOptions& options);
+
+}  // namespace flatnet

@@ -1,0 +1,103 @@
+#include "recon/tikhonov.hpp"
+
+namespace flatnet {
+
+Tikhonov::Tikhonov(const Calibration& calib, double lambda) : lambda_(lambda) {
+  // Thin SVDs in float64 (once), then stored in float32 for fast per-capture products.
+  auto [UL, sL, VLt] = torch::linalg_svd(calib.P.to(torch::kFloat64), false);  // {4,h,N},{4,N},{4,N,N}
+  auto [UR, sR, VRt] = torch::linalg_svd(calib.Q.to(torch::kFloat64), false);
+  ULt_ = UL.transpose(1, 2).contiguous().to(torch::kFloat32);
+  UR_ = UR.contiguous().to(torch::kFloat32);
+  VL_ = VLt.transpose(1, 2).contiguous().to(torch::kFloat32);
+  VRt_ = VRt.contiguous().to(torch::kFloat32);
+  sL_ = sL;
+  sR_ = sR;
+  set_lambda(lambda);
+}
+
+void Tikhonov::set_lambda(double lambda) {
+  lambda_ = lambda;
+  auto s = sL_.unsqueeze(2) * sR_.unsqueeze(1);  // {4,N,N} products of singular values
+  filter_ = (s / (s * s + lambda)).to(torch::kFloat32).contiguous();
+}
+
+torch::Tensor Tikhonov::operator()(const torch::Tensor& Y) const {
+  // Y: {B,4,h,w}
+  auto Z = torch::matmul(torch::matmul(ULt_, Y), UR_);  // {B,4,N,N}
+  return torch::matmul(torch::matmul(VL_, Z * filter_), VRt_);
+}
+
+namespace {
+
+using torch::indexing::None;
+using torch::indexing::Slice;
+
+// Forward differences with Neumann boundary: {..,N,N} -> ({..,N,N}, {..,N,N}).
+std::pair<torch::Tensor, torch::Tensor> grad(const torch::Tensor& x) {
+  auto gx = torch::zeros_like(x), gy = torch::zeros_like(x);
+  gx.index_put_({"...", Slice(), Slice(0, -1)}, x.index({"...", Slice(), Slice(1, None)}) - x.index({"...", Slice(), Slice(0, -1)}));
+  gy.index_put_({"...", Slice(0, -1), Slice()}, x.index({"...", Slice(1, None), Slice()}) - x.index({"...", Slice(0, -1), Slice()}));
+  return {gx, gy};
+}
+// Negative adjoint of grad (divergence).
+torch::Tensor divergence(const torch::Tensor& px, const torch::Tensor& py) {
+  auto dx = px.clone(), dy = py.clone();
+  dx.index_put_({"...", Slice(), Slice(1, None)}, px.index({"...", Slice(), Slice(1, None)}) - px.index({"...", Slice(), Slice(0, -1)}));
+  dx.index_put_({"...", Slice(), -1}, -px.index({"...", Slice(), -2}));
+  dy.index_put_({"...", Slice(1, None), Slice()}, py.index({"...", Slice(1, None), Slice()}) - py.index({"...", Slice(0, -1), Slice()}));
+  dy.index_put_({"...", -1, Slice()}, -py.index({"...", -2, Slice()}));
+  return dx + dy;
+}
+
+// prox of t*TV plus the constraint X >= 0 at point b, by FGP (Beck & Teboulle 2009) on the dual:
+// TV(x) = max_{|p|<=1} <-div p, x>, so x(p) = P_{x>=0}(b + t div p) and p ascends along grad x(p) / (8t).
+torch::Tensor tv_prox_nonneg(const torch::Tensor& b, double t, int iterations) {
+  auto px = torch::zeros_like(b), py = torch::zeros_like(b);
+  auto rx = px, ry = py;
+  double tk = 1.0;
+  for (int k = 0; k < iterations; ++k) {
+    auto x = (b + t * divergence(rx, ry)).clamp_min(0);
+    auto [gx, gy] = grad(x);
+    auto qx = rx + gx / (8.0 * t), qy = ry + gy / (8.0 * t);
+    auto norm = torch::sqrt(qx * qx + qy * qy).clamp_min(1.0);  // project onto unit ball
+    auto nx = qx / norm, ny = qy / norm;
+    const double tn = (1 + std::sqrt(1 + 4 * tk * tk)) / 2;
+    rx = nx + ((tk - 1) / tn) * (nx - px);
+    ry = ny + ((tk - 1) / tn) * (ny - py);
+    px = nx;
+    py = ny;
+    tk = tn;
+  }
+  return (b + t * divergence(px, py)).clamp_min(0);
+}
+
+}  // namespace
+
+TVSolver::TVSolver(const Calibration& calib, TVOptions options)
+    : opt_(options), init_(calib, options.tikhonov_lambda) {
+  P_ = calib.P.to(torch::kFloat32).contiguous();
+  Q_ = calib.Q.to(torch::kFloat32).contiguous();
+  auto nP = torch::linalg_matrix_norm(calib.P.to(torch::kFloat64), 2);  // {4}
+  auto nQ = torch::linalg_matrix_norm(calib.Q.to(torch::kFloat64), 2);
+  lipschitz_ = (nP * nP * nQ * nQ).max().item<double>();
+}
+
+torch::Tensor TVSolver::operator()(const torch::Tensor& Y) const {
+  auto Qt = Q_.transpose(1, 2), Pt = P_.transpose(1, 2);
+  auto x = init_(Y).clamp_min(0);
+  auto z = x;
+  double tk = 1.0;
+  const double step = 1.0 / lipschitz_;
+  for (int k = 0; k < opt_.iterations; ++k) {
+    auto residual = torch::matmul(torch::matmul(P_, z), Qt) - Y;       // {B,4,h,w}
+    auto g = torch::matmul(torch::matmul(Pt, residual), Q_);           // {B,4,N,N}
+    auto xn = tv_prox_nonneg(z - step * g, step * opt_.lambda, opt_.prox_iterations);
+    const double tn = (1 + std::sqrt(1 + 4 * tk * tk)) / 2;
+    z = xn + ((tk - 1) / tn) * (xn - x);
+    x = xn;
+    tk = tn;
+  }
+  return x;
+}
+
+}  // namespace flatnet

@@ -1,0 +1,33 @@
+#include "helpers.hpp"
+
+#include <unistd.h>
+
+#include <array>
+#include <cstdio>
+#include <random>
+#include <sys/wait.h>
+
+namespace test {
+
+Scratch::Scratch(const std::string& name) {
+  dir = fs::temp_directory_path() / ("flatnet_test_" + name + "_" + std::to_string(::getpid()));
+  fs::remove_all(dir);
+  fs::create_directories(dir);
+}
+
+Scratch::~Scratch() {
+  std::error_code ec;
+  fs::remove_all(dir, ec);
+}
+
+RunResult run_flatnet(const std::string& args) {
+  const std::string cmd = std::string(FLATNET_BINARY) + " " + args + " 2>&1";
+  FILE* pipe = ::popen(cmd.c_str(), "r");
+  std::string out;
+  std::array<char, 4096> buf{};
+  while (pipe && std::fgets(buf.data(), buf.size(), pipe)) out += buf.data();
+  const int status = pipe ? ::pclose(pipe) : -1;
+  return {WIFEXITED(status) ? WEXITSTATUS(status) : -1, out};
+}
+
+}  // namespace test

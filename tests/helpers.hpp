@@ -1,0 +1,30 @@
+#pragma once
+// Shared test helpers: paths to fixtures and the shared data, a scratch folder, running the CLI.
+#include <filesystem>
+#include <string>
+
+namespace test {
+
+namespace fs = std::filesystem;
+
+inline fs::path data_dir() { return FLATNET_TEST_DATA; }
+inline fs::path source_dir() { return fs::path(FLATNET_TEST_DATA).parent_path().parent_path(); }
+inline fs::path shared_dir() { return FLATNET_SHARED_DIR; }
+inline fs::path rig_path() { return source_dir() / "models" / "camera" / "rig.mat"; }
+inline fs::path calib_path() { return source_dir() / "models" / "camera" / "calib.mat"; }
+
+// A fresh, empty folder under the system temp dir, removed at scope exit.
+struct Scratch {
+  fs::path dir;
+  explicit Scratch(const std::string& name);
+  ~Scratch();
+};
+
+struct RunResult {
+  int code;
+  std::string output;  // stdout and stderr together
+};
+// Runs the flatnet binary with the given argument string.
+RunResult run_flatnet(const std::string& args);
+
+}  // namespace test
