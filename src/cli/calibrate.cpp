@@ -22,16 +22,18 @@ int calibrate(int argc, char** argv) {
       "out", "calibration .mat to write (FlatNet layout)", cxxopts::value<std::string>())(
       "average", "frames averaged per pattern (simulated)", cxxopts::value<int>()->default_value("4"))(
       "noise", "on|off (simulated)", cxxopts::value<std::string>()->default_value("on"))(
-      "seed", "noise seed (simulated)", cxxopts::value<uint64_t>()->default_value("0"));
+      "seed", "noise seed (simulated)", cxxopts::value<uint64_t>()->default_value("0"))(
+      "level", "display code (sRGB, 1..255) of the patterns' bright parts", cxxopts::value<int>()->default_value(std::to_string(kDefaultPatternLevel)));
   add_common(o);
   cxxopts::ParseResult r;
   if (!parse(o, argc, argv, r)) return 0;
+  const int level = r["level"].as<int>();
 
   if (r.count("write-patterns")) {
     const auto camera = camera_from(r);
     const std::filesystem::path dir = r["write-patterns"].as<std::string>();
     std::string list;
-    for (const auto& p : calibration_patterns(camera.scene_size)) {
+    for (const auto& p : calibration_patterns(camera.scene_size, level)) {
       write_rgb8(dir / (p.name + ".png"), p.image.unsqueeze(0).expand({3, -1, -1}));
       list += p.name + ".png\n";
     }
@@ -53,11 +55,11 @@ int calibrate(int argc, char** argv) {
     const bool noise = r["noise"].as<std::string>() == "on";
     const int average = std::max(1, r["average"].as<int>());
     std::map<std::string, torch::Tensor> patterns;
-    for (auto& p : calibration_patterns(camera.scene_size)) patterns[p.name] = p.image;
+    for (auto& p : calibration_patterns(camera.scene_size, level)) patterns[p.name] = p.image;
     auto gen = at::detail::createCPUGenerator(r["seed"].as<uint64_t>());
     auto capture = [&](const std::string& name) {
       // The display shows the pattern (linear 0/1 in every colour); average K raw frames.
-      auto X = patterns.at(name).unsqueeze(0).unsqueeze(0).expand({1, 4, -1, -1});
+      auto X = srgb_to_linear(patterns.at(name)).unsqueeze(0).unsqueeze(0).expand({1, 4, -1, -1});
       auto S = expected_signal(rig, X);
       torch::Tensor sum;
       for (int k = 0; k < average; ++k) {
@@ -67,14 +69,14 @@ int calibrate(int argc, char** argv) {
       }
       return preprocess_raw(sum / average, camera.raw);
     };
-    est = estimate_calibration(camera.scene_size, capture);
+    est = estimate_calibration(camera.scene_size, capture, level);
     truth = ideal_calibration(rig, camera.raw);
   } else {
     const auto camera = camera_from(r);
     const std::filesystem::path dir = r["captures"].as<std::string>();
     require(std::filesystem::is_directory(dir), dir, "captures folder not found");
     auto capture = [&](const std::string& name) { return load_capture(dir / (name + ".png"), camera.raw).planes; };
-    est = estimate_calibration(camera.scene_size, capture);
+    est = estimate_calibration(camera.scene_size, capture, level);
   }
   save_calibration(out, est);
   std::cout << "wrote " << out.string() << " (P1b..P1r " << est.P.size(1) << "x" << est.P.size(2) << ", Q1b..Q1r "

@@ -14,7 +14,15 @@ std::string pattern_name(const char* axis, int64_t k, const char* sign) {
 }
 }  // namespace
 
-std::vector<CalibrationPattern> calibration_patterns(int64_t N) {
+double pattern_level_linear(int level_code) {
+  require(level_code > 0 && level_code <= 255, "pattern level", "must be a display code within 1..255");
+  const double v = level_code / 255.0;
+  return v <= 0.04045 ? v / 12.92 : std::pow((v + 0.055) / 1.055, 2.4);
+}
+
+std::vector<CalibrationPattern> calibration_patterns(int64_t N, int level_code) {
+  const float level = static_cast<float>(level_code / 255.0);
+  pattern_level_linear(level_code);  // validates
   const auto H = hadamard(N).to(torch::kFloat32);
   std::vector<CalibrationPattern> out;
   auto ones = torch::ones({N}, torch::kFloat32);
@@ -22,15 +30,16 @@ std::vector<CalibrationPattern> calibration_patterns(int64_t N) {
     for (int64_t k = 0; k < N; ++k) {
       auto pos = (1 + H.select(1, k)) / 2, neg = (1 - H.select(1, k)) / 2;
       const bool row = axis[0] == 'r';
-      out.push_back({pattern_name(axis, k, "pos"), row ? torch::outer(pos, ones) : torch::outer(ones, pos)});
-      out.push_back({pattern_name(axis, k, "neg"), row ? torch::outer(neg, ones) : torch::outer(ones, neg)});
+      out.push_back({pattern_name(axis, k, "pos"), level * (row ? torch::outer(pos, ones) : torch::outer(ones, pos))});
+      out.push_back({pattern_name(axis, k, "neg"), level * (row ? torch::outer(neg, ones) : torch::outer(ones, neg))});
     }
   }
   return out;
 }
 
 Calibration estimate_calibration(int64_t N, const std::function<torch::Tensor(const std::string&)>& capture,
-                                 bool show_progress) {
+                                 int level_code, bool show_progress) {
+  const double level = pattern_level_linear(level_code);
   const auto H = hadamard(N);  // {N,N} float64
   std::vector<torch::Tensor> drow, dcol;  // N each, {4,h,w} float64
   Progress progress("calibrate", 4 * N, show_progress);
@@ -39,7 +48,7 @@ Calibration estimate_calibration(int64_t N, const std::function<torch::Tensor(co
     for (int64_t k = 0; k < N; ++k) {
       auto pos = capture(pattern_name(axis, k, "pos")).to(torch::kFloat64);
       auto neg = capture(pattern_name(axis, k, "neg")).to(torch::kFloat64);
-      d.push_back(pos - neg);
+      d.push_back((pos - neg) / level);  // response to a unit-contrast pattern
       progress.tick(2);
     }
   }

@@ -21,16 +21,22 @@ namespace flatnet {
 
 struct CalibrationPattern {
   std::string name;     // file stem, e.g. "row_005_pos"
-  torch::Tensor image;  // {N,N} float32 in {0,1} (0 = black, 1 = full white)
+  torch::Tensor image;  // {N,N} float32 display values (sRGB): 0 or level_code / 255
 };
 
-// The 4N patterns for an N-pixel scene (N a power of two), in display order.
-std::vector<CalibrationPattern> calibration_patterns(int64_t scene_size);
+// Patterns are shown at a display level below full white: a full-white scene saturates a FlatCam
+// (the reference camera reaches 2.3x full scale). 160 (sRGB) is 0.35 in linear light.
+constexpr int kDefaultPatternLevel = 160;
+double pattern_level_linear(int level_code);  // sRGB code -> linear light
 
-// `capture(name)` returns the preprocessed planes {4,h,w} of the capture of pattern `name`.
+// The 4N patterns for an N-pixel scene (N a power of two), in display order.
+std::vector<CalibrationPattern> calibration_patterns(int64_t scene_size, int level_code = kDefaultPatternLevel);
+
+// `capture(name)` returns the preprocessed planes {4,h,w} of the capture of pattern `name`, shown
+// at `level_code`; the estimate is scaled to a unit (linear 1.0) scene, as FlatNet's calibration is.
 Calibration estimate_calibration(int64_t scene_size,
                                  const std::function<torch::Tensor(const std::string&)>& capture,
-                                 bool show_progress = true);
+                                 int level_code = kDefaultPatternLevel, bool show_progress = true);
 
 // Relative error of an estimate against a truth, insensitive to the scale split between P and Q
 // (P*s, Q/s is the same camera): each factor is compared after its best scalar fit.

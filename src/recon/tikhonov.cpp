@@ -32,15 +32,15 @@ namespace {
 using torch::indexing::None;
 using torch::indexing::Slice;
 
-// Forward differences with Neumann boundary: {..,N,N} -> ({..,N,N}, {..,N,N}).
-std::pair<torch::Tensor, torch::Tensor> grad(const torch::Tensor& x) {
+}  // namespace
+
+std::pair<torch::Tensor, torch::Tensor> tv_gradient(const torch::Tensor& x) {
   auto gx = torch::zeros_like(x), gy = torch::zeros_like(x);
   gx.index_put_({"...", Slice(), Slice(0, -1)}, x.index({"...", Slice(), Slice(1, None)}) - x.index({"...", Slice(), Slice(0, -1)}));
   gy.index_put_({"...", Slice(0, -1), Slice()}, x.index({"...", Slice(1, None), Slice()}) - x.index({"...", Slice(0, -1), Slice()}));
   return {gx, gy};
 }
-// Negative adjoint of grad (divergence).
-torch::Tensor divergence(const torch::Tensor& px, const torch::Tensor& py) {
+torch::Tensor tv_divergence(const torch::Tensor& px, const torch::Tensor& py) {
   auto dx = px.clone(), dy = py.clone();
   dx.index_put_({"...", Slice(), Slice(1, None)}, px.index({"...", Slice(), Slice(1, None)}) - px.index({"...", Slice(), Slice(0, -1)}));
   dx.index_put_({"...", Slice(), -1}, -px.index({"...", Slice(), -2}));
@@ -49,6 +49,8 @@ torch::Tensor divergence(const torch::Tensor& px, const torch::Tensor& py) {
   return dx + dy;
 }
 
+namespace {
+
 // prox of t*TV plus the constraint X >= 0 at point b, by FGP (Beck & Teboulle 2009) on the dual:
 // TV(x) = max_{|p|<=1} <-div p, x>, so x(p) = P_{x>=0}(b + t div p) and p ascends along grad x(p) / (8t).
 torch::Tensor tv_prox_nonneg(const torch::Tensor& b, double t, int iterations) {
@@ -56,8 +58,8 @@ torch::Tensor tv_prox_nonneg(const torch::Tensor& b, double t, int iterations) {
   auto rx = px, ry = py;
   double tk = 1.0;
   for (int k = 0; k < iterations; ++k) {
-    auto x = (b + t * divergence(rx, ry)).clamp_min(0);
-    auto [gx, gy] = grad(x);
+    auto x = (b + t * tv_divergence(rx, ry)).clamp_min(0);
+    auto [gx, gy] = tv_gradient(x);
     auto qx = rx + gx / (8.0 * t), qy = ry + gy / (8.0 * t);
     auto norm = torch::sqrt(qx * qx + qy * qy).clamp_min(1.0);  // project onto unit ball
     auto nx = qx / norm, ny = qy / norm;
@@ -68,7 +70,7 @@ torch::Tensor tv_prox_nonneg(const torch::Tensor& b, double t, int iterations) {
     py = ny;
     tk = tn;
   }
-  return (b + t * divergence(px, py)).clamp_min(0);
+  return (b + t * tv_divergence(px, py)).clamp_min(0);
 }
 
 }  // namespace

@@ -36,6 +36,11 @@ struct TVOptions {
   double tikhonov_lambda = 3e-4;  // for the starting point
 };
 
+// Forward differences with Neumann boundary, {..,N,N} -> (d/dcol, d/drow), and the divergence,
+// the negative adjoint: <tv_gradient(x), p> = -<x, tv_divergence(p)>.
+std::pair<torch::Tensor, torch::Tensor> tv_gradient(const torch::Tensor& x);
+torch::Tensor tv_divergence(const torch::Tensor& px, const torch::Tensor& py);
+
 class TVSolver {
  public:
   TVSolver(const Calibration& calib, TVOptions options);

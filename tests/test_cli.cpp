@@ -1,0 +1,105 @@
+// The flatnet binary end to end: simulate -> recon -> eval, resumability, and bad input.
+#include <catch2/catch.hpp>
+#include <fstream>
+
+#include "core/util.hpp"
+#include "helpers.hpp"
+#include "io/mat.hpp"
+
+using namespace flatnet;
+using Catch::Matchers::Contains;
+
+namespace {
+std::string q(const std::filesystem::path& p) { return "'" + p.string() + "'"; }
+
+// Two photographs: the golden scenes.
+std::filesystem::path make_photos(const std::filesystem::path& dir) {
+  std::filesystem::create_directories(dir);
+  for (const char* n : {"bsds_16052_scene.png", "inet_n02980441_castle_scene.png"})
+    std::filesystem::copy_file(test::data_dir() / "golden" / n, dir / n);
+  return dir;
+}
+}  // namespace
+
+TEST_CASE("simulate, recon and eval end to end; simulate resumes and is deterministic", "[cli][e2e]") {
+  test::Scratch s("e2e");
+  auto photos = make_photos(s.dir / "photos");
+  auto r = test::run_flatnet("simulate --images " + q(photos) + " --out " + q(s.dir / "ds") + " --val-fraction 0.5 --seed 3");
+  INFO(r.output);
+  REQUIRE(r.code == 0);
+  CHECK(read_lines(s.dir / "ds" / "train_meas.txt").size() == 1);
+  CHECK(read_lines(s.dir / "ds" / "val_gt.txt").size() == 1);
+  REQUIRE(std::filesystem::exists(s.dir / "ds" / "meas" / "bsds_16052_scene.png"));
+
+  auto again = test::run_flatnet("simulate --images " + q(photos) + " --out " + q(s.dir / "ds") + " --val-fraction 0.5 --seed 3");
+  CHECK_THAT(again.output, Contains("simulated 0 captures (2 already done)"));
+  auto other = test::run_flatnet("simulate --images " + q(photos) + " --out " + q(s.dir / "ds2") + " --val-fraction 0.5 --seed 3 --workers 1");
+  REQUIRE(other.code == 0);
+  auto bytes = [](const std::filesystem::path& p) {
+    std::ifstream f(p, std::ios::binary);
+    return std::string(std::istreambuf_iterator<char>(f), {});
+  };
+  CHECK(bytes(s.dir / "ds" / "meas" / "bsds_16052_scene.png") == bytes(s.dir / "ds2" / "meas" / "bsds_16052_scene.png"));
+
+  r = test::run_flatnet("recon --method tikhonov --input " + q(s.dir / "ds" / "meas") + " --out " + q(s.dir / "rec" / "tikhonov"));
+  INFO(r.output);
+  REQUIRE(r.code == 0);
+  CHECK_THAT(r.output, Contains("ms per capture"));
+  r = test::run_flatnet("eval --gt " + q(s.dir / "ds" / "gt") + " --out " + q(s.dir / "rec"));
+  INFO(r.output);
+  REQUIRE(r.code == 0);
+  CHECK(std::filesystem::exists(s.dir / "rec" / "sheet.png"));
+  CHECK(read_lines(s.dir / "rec" / "metrics.csv").size() == 4);  // header, 2 images, mean
+}
+
+TEST_CASE("bad input: one clear line, exit code 2", "[cli][errors]") {
+  test::Scratch s("bad");
+  std::filesystem::create_directories(s.dir / "empty");
+
+  auto r = test::run_flatnet("simulate --images " + q(s.dir / "empty") + " --out " + q(s.dir / "o"));
+  CHECK(r.code == 2);
+  CHECK_THAT(r.output, Contains("empty") && Contains("no images"));
+
+  // a calibration without P1r
+  std::map<std::string, torch::Tensor> vars;
+  for (const char* c : {"b", "gb", "gr"}) {
+    vars[std::string("P1") + c] = torch::zeros({500, 256}, torch::kFloat64);
+    vars[std::string("Q1") + c] = torch::zeros({620, 256}, torch::kFloat64);
+  }
+  write_mat(s.dir / "nor.mat", vars);
+  auto golden = test::data_dir() / "golden" / "bsds_16052_raw.png";
+  r = test::run_flatnet("recon --calib " + q(s.dir / "nor.mat") + " --input " + q(golden) + " --out " + q(s.dir / "o"));
+  CHECK(r.code == 2);
+  CHECK_THAT(r.output, Contains("nor.mat") && Contains("missing variable 'P1r'"));
+  CHECK_FALSE(std::filesystem::exists(s.dir / "o"));
+
+  // a calibration whose shape does not match the camera's crop
+  vars["P1r"] = torch::zeros({480, 256}, torch::kFloat64);
+  vars["Q1r"] = torch::zeros({620, 256}, torch::kFloat64);
+  write_mat(s.dir / "shape.mat", vars);
+  r = test::run_flatnet("recon --calib " + q(s.dir / "shape.mat") + " --input " + q(golden) + " --out " + q(s.dir / "o"));
+  CHECK(r.code == 2);
+  CHECK_THAT(r.output, Contains("P1b is 500x256") || Contains("P1r is 480x256"));
+
+  // an 8-bit RGB image where a raw capture is expected
+  r = test::run_flatnet("recon --input " + q(test::data_dir() / "golden" / "bsds_16052_scene.png") + " --out " + q(s.dir / "o"));
+  CHECK(r.code == 2);
+  CHECK_THAT(r.output, Contains("bsds_16052_scene.png") && Contains("single-channel"));
+  CHECK_FALSE(std::filesystem::exists(s.dir / "o" / "bsds_16052_scene.png"));
+
+  r = test::run_flatnet("recon --method wiener --input " + q(golden) + " --out " + q(s.dir / "o"));
+  CHECK(r.code == 2);
+  CHECK_THAT(r.output, Contains("tikhonov or tv"));
+
+  r = test::run_flatnet("eval --gt " + q(s.dir / "empty") + " --out " + q(s.dir / "empty"));
+  CHECK(r.code == 2);
+
+  r = test::run_flatnet("frobnicate");
+  CHECK(r.code == 2);
+  CHECK_THAT(r.output, Contains("unknown command"));
+
+  std::ofstream(s.dir / "cam.yaml") << "crop: [6, 10, 600, 620]\n";
+  r = test::run_flatnet("recon --camera " + q(s.dir / "cam.yaml") + " --input " + q(golden) + " --out " + q(s.dir / "o"));
+  CHECK(r.code == 2);
+  CHECK_THAT(r.output, Contains("cam.yaml") && Contains("crop"));
+}

@@ -1,0 +1,140 @@
+// io/: .mat files, raw captures, images, dataset lists.
+#include <catch2/catch.hpp>
+#include <fstream>
+
+#include "core/error.hpp"
+#include "core/util.hpp"
+#include "helpers.hpp"
+#include "io/dataset.hpp"
+#include "io/image.hpp"
+#include "io/mat.hpp"
+#include "io/raw.hpp"
+
+using namespace flatnet;
+using Catch::Matchers::Contains;
+
+TEST_CASE(".mat round trip keeps MATLAB's indexing (column-major)", "[io][mat]") {
+  test::Scratch s("mat");
+  auto a = torch::arange(6, torch::kFloat64).reshape({2, 3});
+  auto c = torch::arange(24, torch::kFloat64).reshape({2, 3, 4});
+  write_mat(s.dir / "x.mat", {{"a", a}, {"c", c}});
+  MatReader m(s.dir / "x.mat");
+  CHECK(torch::equal(m.read("a"), a));
+  CHECK(torch::equal(m.read("c"), c));
+  CHECK(m.has("a"));
+  CHECK_FALSE(m.has("zz"));
+}
+
+TEST_CASE(".mat v7.3 round trip when matio supports HDF5", "[io][mat]") {
+  test::Scratch s("mat73");
+  auto a = torch::rand({5, 7}, torch::kFloat64);
+  try {
+    write_mat(s.dir / "x.mat", {{"a", a}}, MatVersion::v73);
+  } catch (const Error& e) {
+    WARN("v7.3 unsupported by this matio: " << e.what());
+    return;
+  }
+  CHECK(torch::equal(MatReader(s.dir / "x.mat").read("a"), a));
+}
+
+TEST_CASE("reading the reference calibration matches its known layout", "[io][mat]") {
+  MatReader m(test::calib_path());
+  auto p = m.read("P1b", {500, 256});
+  // First entries as scipy.io.loadmat gives them (row-major view of MATLAB's P1b(1,1:4)).
+  CHECK(p[0][0].item<double>() == Approx(-0.00464343).epsilon(1e-5));
+}
+
+TEST_CASE(".mat errors name the file and the problem", "[io][mat][errors]") {
+  MatReader m(test::calib_path());
+  REQUIRE_THROWS_WITH(m.read("P1x"), Contains("calib.mat") && Contains("missing variable 'P1x'"));
+  REQUIRE_THROWS_WITH(m.read("P1b", {620, 256}), Contains("'P1b' is 500x256, expected 620x256"));
+  REQUIRE_THROWS_WITH(MatReader("/nonexistent/x.mat"), Contains("no such file"));
+  test::Scratch s("badmat");
+  std::ofstream(s.dir / "bad.mat") << "not a mat file";
+  REQUIRE_THROWS_WITH(MatReader(s.dir / "bad.mat"), Contains("bad.mat") && Contains("not a readable"));
+}
+
+TEST_CASE("Bayer split takes b gb gr r from FlatNet's positions and merges back", "[io][raw]") {
+  auto raw = torch::arange(16, torch::kFloat32).reshape({4, 4});
+  auto p = bayer_split(raw);
+  REQUIRE(p.sizes() == torch::IntArrayRef({4, 2, 2}));
+  CHECK(p[0][0][0].item<float>() == 0);   // b  = raw[0::2, 0::2]
+  CHECK(p[1][0][0].item<float>() == 1);   // gb = raw[0::2, 1::2]
+  CHECK(p[2][0][0].item<float>() == 4);   // gr = raw[1::2, 0::2]
+  CHECK(p[3][0][0].item<float>() == 5);   // r  = raw[1::2, 1::2]
+  CHECK(torch::equal(bayer_merge(p), raw));
+}
+
+TEST_CASE("double centring zeroes row and column means", "[io][raw]") {
+  auto y = torch::rand({4, 10, 12}) + torch::arange(4).view({4, 1, 1});
+  auto c = double_centre(y, Centring::plane);
+  CHECK(c.mean(-1).abs().max().item<float>() < 1e-5);
+  CHECK(c.mean(-2).abs().max().item<float>() < 1e-5);
+  // FlatNet's variant adds back the mean over all planes: each plane shifts by a constant.
+  auto f = double_centre(y, Centring::flatnet);
+  auto diff = f - c;
+  CHECK((diff - diff.mean({1, 2}, true)).abs().max().item<float>() < 1e-5);
+  CHECK(diff[0].mean().item<float>() == Approx((y.mean() - y[0].mean()).item<float>()).margin(1e-5));
+}
+
+TEST_CASE("rotation matches skimage's warp convention", "[io][raw]") {
+  auto img = torch::rand({1, 20, 30});
+  CHECK(torch::equal(rotate_planes(img, 0.0), img));
+  const double a = 0.05;
+  auto r = rotate_planes(img, a);
+  // output (row 10, col 12) samples input (sin*12 + cos*10, cos*12 - sin*10) bilinearly
+  const double sr = std::sin(a) * 12 + std::cos(a) * 10, sc = std::cos(a) * 12 - std::sin(a) * 10;
+  const int r0 = static_cast<int>(std::floor(sr)), c0 = static_cast<int>(std::floor(sc));
+  const double fr = sr - r0, fc = sc - c0;
+  auto v = [&](int i, int j) { return img[0][i][j].item<double>(); };
+  const double expect = v(r0, c0) * (1 - fr) * (1 - fc) + v(r0, c0 + 1) * (1 - fr) * fc + v(r0 + 1, c0) * fr * (1 - fc) +
+                        v(r0 + 1, c0 + 1) * fr * fc;
+  CHECK(r[0][10][12].item<double>() == Approx(expect).margin(1e-5));
+  // the bottom-left corner samples left of the frame: zero fill
+  CHECK(rotate_planes(torch::ones({1, 20, 30}), 0.3)[0][19][0].item<float>() == 0.0f);
+}
+
+TEST_CASE("raw captures: 16-bit round trip and clear errors for size and bit depth", "[io][raw][errors]") {
+  test::Scratch s("raw");
+  RawGeometry g;
+  auto codes = torch::randint(0, 1024, {1024, 1280}, torch::kInt32) * 64;
+  write_gray16(s.dir / "ok.png", codes);
+  CHECK(torch::equal(read_gray16(s.dir / "ok.png"), codes));
+  auto cap = load_capture(s.dir / "ok.png", g);
+  CHECK(cap.planes.sizes() == torch::IntArrayRef({4, 500, 620}));
+  CHECK(cap.name == "ok.png");
+
+  write_gray16(s.dir / "small.png", torch::zeros({100, 120}, torch::kInt32));
+  REQUIRE_THROWS_WITH(load_capture(s.dir / "small.png", g), Contains("small.png") && Contains("120x100"));
+  write_rgb8(s.dir / "rgb.png", torch::zeros({3, 8, 8}));
+  REQUIRE_THROWS_WITH(load_capture(s.dir / "rgb.png", g), Contains("rgb.png") && Contains("single-channel"));
+  std::ofstream(s.dir / "junk.png") << "junk";
+  REQUIRE_THROWS_WITH(load_capture(s.dir / "junk.png", g), Contains("junk.png") && Contains("unreadable"));
+}
+
+TEST_CASE("sRGB transfer functions invert each other", "[io][image]") {
+  auto x = torch::linspace(0, 1, 101, torch::kFloat64);
+  CHECK(torch::allclose(linear_to_srgb(srgb_to_linear(x)), x, 1e-9, 1e-9));
+  CHECK(srgb_to_linear(torch::tensor({0.5}, torch::kFloat64)).item<double>() == Approx(0.214041).epsilon(1e-5));
+}
+
+TEST_CASE("dataset lists: pairs, FlatNet-style roots, and errors", "[io][dataset][errors]") {
+  test::Scratch s("lists");
+  std::filesystem::create_directories(s.dir / "root" / "a");
+  std::ofstream(s.dir / "root" / "a" / "m1.png") << "x";
+  std::ofstream(s.dir / "root" / "a" / "g1.png") << "x";
+  std::ofstream(s.dir / "meas.txt") << "a/m1.png\r\n\r\n";  // CRLF and blank lines are tolerated
+  std::ofstream(s.dir / "gt.txt") << "a/g1.png\n";
+  auto pairs = read_pairs({s.dir / "meas.txt", s.dir / "gt.txt", s.dir / "root"});
+  REQUIRE(pairs.size() == 1);
+  CHECK(pairs[0].meas == s.dir / "root" / "a" / "m1.png");
+
+  std::ofstream(s.dir / "gt2.txt") << "a/g1.png\na/g1.png\n";
+  REQUIRE_THROWS_WITH(read_pairs({s.dir / "meas.txt", s.dir / "gt2.txt", s.dir / "root"}),
+                      Contains("meas.txt") && Contains("has 1 entries") && Contains("has 2"));
+  std::ofstream(s.dir / "gt3.txt") << "a/missing.png\n";
+  REQUIRE_THROWS_WITH(read_pairs({s.dir / "meas.txt", s.dir / "gt3.txt", s.dir / "root"}),
+                      Contains("gt3.txt") && Contains("line 1") && Contains("missing.png"));
+  std::ofstream(s.dir / "empty.txt") << "\n";
+  REQUIRE_THROWS_WITH(read_pairs({s.dir / "empty.txt", s.dir / "gt.txt", s.dir / "root"}), Contains("list is empty"));
+}
