@@ -124,21 +124,22 @@ TEST_CASE("calibration recovers P and Q exactly from noise-free rank-1 captures"
   CHECK(err.forward < 1e-8);
 }
 
-TEST_CASE("calibrating the simulated rig through its sensor: a few per cent error", "[optics][calibrate][slow]") {
+TEST_CASE("calibrating the simulated rig through its ADC: about 1% error", "[optics][calibrate][slow]") {
+  // Noise-free, so the test is deterministic; what remains is ADC quantisation and the open-mask
+  // (vignetting) light. With noise, `flatnet calibrate --average K` reports its own error.
   const auto camera = load_camera_config(default_camera_path());
   const auto rig = load_rig(camera.rig);
   std::map<std::string, torch::Tensor> patterns;
   for (auto& p : calibration_patterns(camera.scene_size)) patterns[p.name] = p.image;
-  auto gen = at::detail::createCPUGenerator(0);
   auto capture = [&](const std::string& name) {
     auto S = expected_signal(rig, srgb_to_linear(patterns.at(name)).unsqueeze(0).unsqueeze(0).expand({1, 4, -1, -1}));
-    auto codes = sensor_readout(rig, S, true, gen)[0];
+    auto codes = sensor_readout(rig, S, false)[0];
     return preprocess_raw(adc_to_stored(bayer_merge(codes), rig.adc_bits).to(torch::kFloat32) / 65535.0f, camera.raw);
   };
   auto est = estimate_calibration(camera.scene_size, capture, kDefaultPatternLevel, false);
   auto err = calibration_error(est, ideal_calibration(rig, camera.raw));
   WARN("relative error: P " << err.p << ", Q " << err.q << ", forward " << err.forward);
-  CHECK(err.p < 0.05);
-  CHECK(err.q < 0.05);
-  CHECK(err.forward < 0.05);
+  CHECK(err.p < 0.03);
+  CHECK(err.q < 0.03);
+  CHECK(err.forward < 0.03);
 }

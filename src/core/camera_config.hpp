@@ -32,7 +32,7 @@ struct CameraConfig {
   int64_t scene_size = 256;              // scene / reconstruction side, pixels
   std::filesystem::path calibration;     // FlatNet-layout calib .mat (P1b.. Q1r); may be empty
   std::filesystem::path rig;             // true response (simulated cameras only); may be empty
-  double tikhonov_lambda = 3e-4;         // default regulariser for this calibration
+  double tikhonov_lambda = 1e-4;         // default regulariser for this calibration
   double tv_lambda = 1e-4;               // default TV weight
 };
 

@@ -36,6 +36,9 @@ torch::Tensor expected_signal(const Rig& rig, const torch::Tensor& scene_planes)
 // Sensor noise and ADC: electrons = Poisson(max(S,0) * full_well) + Normal(0, read_noise);
 // signal = electrons / full_well + dark; q = clip(round(signal * (2^bits - 1)), 0, 2^bits - 1).
 // With noise off the signal is S + dark. Returns integer ADC codes, same shape as S.
+// Photon counts: Poisson(mean), exact below 1000 electrons, normal approximation above.
+torch::Tensor photon_electrons(const torch::Tensor& mean, c10::optional<at::Generator> gen = c10::nullopt);
+
 torch::Tensor sensor_readout(const Rig& rig, const torch::Tensor& signal, bool noise,
                              c10::optional<at::Generator> gen = c10::nullopt);
 
