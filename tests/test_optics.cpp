@@ -129,13 +129,8 @@ TEST_CASE("calibrating the simulated rig through its ADC: about 1% error", "[opt
   // (vignetting) light. With noise, `flatnet calibrate --average K` reports its own error.
   const auto camera = load_camera_config(default_camera_path());
   const auto rig = load_rig(camera.rig);
-  std::map<std::string, torch::Tensor> patterns;
-  for (auto& p : calibration_patterns(camera.scene_size)) patterns[p.name] = p.image;
-  auto capture = [&](const std::string& name) {
-    auto S = expected_signal(rig, srgb_to_linear(patterns.at(name)).unsqueeze(0).unsqueeze(0).expand({1, 4, -1, -1}));
-    auto codes = sensor_readout(rig, S, false)[0];
-    return preprocess_raw(adc_to_stored(bayer_merge(codes), rig.adc_bits).to(torch::kFloat32) / 65535.0f, camera.raw);
-  };
+  auto capture = rig_pattern_capture(rig, camera.raw, kDefaultPatternLevel, /*noise=*/false, 1,
+                                     at::detail::createCPUGenerator(0));
   auto est = estimate_calibration(camera.scene_size, capture, kDefaultPatternLevel, false);
   auto err = calibration_error(est, ideal_calibration(rig, camera.raw));
   WARN("relative error: P " << err.p << ", Q " << err.q << ", forward " << err.forward);

@@ -54,21 +54,8 @@ int calibrate(int argc, char** argv) {
     const auto rig = load_rig(camera.rig);
     const bool noise = r["noise"].as<std::string>() == "on";
     const int average = std::max(1, r["average"].as<int>());
-    std::map<std::string, torch::Tensor> patterns;
-    for (auto& p : calibration_patterns(camera.scene_size, level)) patterns[p.name] = p.image;
-    auto gen = at::detail::createCPUGenerator(r["seed"].as<uint64_t>());
-    auto capture = [&](const std::string& name) {
-      // The display shows the pattern (linear 0/1 in every colour); average K raw frames.
-      auto X = srgb_to_linear(patterns.at(name)).unsqueeze(0).unsqueeze(0).expand({1, 4, -1, -1});
-      auto S = expected_signal(rig, X);
-      torch::Tensor sum;
-      for (int k = 0; k < average; ++k) {
-        auto codes = sensor_readout(rig, S, noise, gen)[0];
-        auto raw = adc_to_stored(bayer_merge(codes), rig.adc_bits).to(torch::kFloat32) / 65535.0f;
-        sum = k == 0 ? raw : sum + raw;
-      }
-      return preprocess_raw(sum / average, camera.raw);
-    };
+    auto capture = rig_pattern_capture(rig, camera.raw, level, noise, average,
+                                       at::detail::createCPUGenerator(r["seed"].as<uint64_t>()));
     est = estimate_calibration(camera.scene_size, capture, level);
     truth = ideal_calibration(rig, camera.raw);
   } else {

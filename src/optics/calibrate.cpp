@@ -2,6 +2,8 @@
 
 #include "core/error.hpp"
 #include "core/util.hpp"
+#include "io/image.hpp"
+#include "io/raw.hpp"
 #include "optics/codes.hpp"
 
 namespace flatnet {
@@ -77,6 +79,24 @@ Calibration estimate_calibration(int64_t N, const std::function<torch::Tensor(co
   }
   auto PH = torch::stack(Ph, 2), QH = torch::stack(Qh, 2);  // {4,h,N}, {4,w,N}
   return {torch::matmul(PH, H.t()) / static_cast<double>(N), torch::matmul(QH, H.t()) / static_cast<double>(N)};
+}
+
+std::function<torch::Tensor(const std::string&)> rig_pattern_capture(const Rig& rig, const RawGeometry& g,
+                                                                     int level_code, bool noise, int average,
+                                                                     at::Generator gen) {
+  auto patterns = std::make_shared<std::map<std::string, torch::Tensor>>();
+  for (auto& p : calibration_patterns(rig.scene_size(), level_code)) (*patterns)[p.name] = p.image;
+  return [&rig, g, patterns, noise, average, gen](const std::string& name) {
+    auto X = srgb_to_linear(patterns->at(name)).unsqueeze(0).unsqueeze(0).expand({1, 4, -1, -1});
+    auto S = expected_signal(rig, X);
+    torch::Tensor sum;
+    for (int k = 0; k < std::max(1, average); ++k) {
+      auto codes = sensor_readout(rig, S, noise, gen)[0];
+      auto raw = adc_to_stored(bayer_merge(codes), rig.adc_bits).to(torch::kFloat32) / 65535.0f;
+      sum = k == 0 ? raw : sum + raw;
+    }
+    return preprocess_raw(sum / std::max(1, average), g);
+  };
 }
 
 CalibrationError calibration_error(const Calibration& est, const Calibration& truth) {

@@ -38,6 +38,12 @@ Calibration estimate_calibration(int64_t scene_size,
                                  const std::function<torch::Tensor(const std::string&)>& capture,
                                  int level_code = kDefaultPatternLevel, bool show_progress = true);
 
+// Pattern captures through a rig: the display shows pattern `name` (sRGB -> linear, all colours),
+// the sensor reads `average` frames (noisy or not), and their mean is preprocessed for `g`.
+std::function<torch::Tensor(const std::string&)> rig_pattern_capture(const Rig& rig, const RawGeometry& g,
+                                                                     int level_code, bool noise, int average,
+                                                                     at::Generator gen);
+
 // Relative error of an estimate against a truth, insensitive to the scale split between P and Q
 // (P*s, Q/s is the same camera): each factor is compared after its best scalar fit.
 struct CalibrationError {
