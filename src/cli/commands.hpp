@@ -12,6 +12,10 @@ int calibrate(int argc, char** argv);
 int recon(int argc, char** argv);
 int eval(int argc, char** argv);
 int demo(int argc, char** argv);
+int train(int argc, char** argv);
+int export_model(int argc, char** argv);
+int import_model(int argc, char** argv);
+int infer(int argc, char** argv);
 
 // Shared flag handling.
 void add_common(cxxopts::Options& options);                 // --threads, --help

@@ -13,6 +13,10 @@ const std::map<std::string, std::pair<int (*)(int, char**), const char*>> kComma
     {"calibrate", {flatnet::cli::calibrate, "estimate a calibration (P, Q) from separable pattern captures"}},
     {"recon", {flatnet::cli::recon, "classical reconstruction (Tikhonov, TV) of raw captures"}},
     {"eval", {flatnet::cli::eval, "PSNR/SSIM of reconstructions against ground truth, with a contact sheet"}},
+    {"train", {flatnet::cli::train, "train a FlatNet reconstruction network (resumable)"}},
+    {"infer", {flatnet::cli::infer, "reconstruct raw captures with a trained model"}},
+    {"export", {flatnet::cli::export_model, "checkpoint -> model file, or model -> PyTorch state_dict"}},
+    {"import", {flatnet::cli::import_model, "PyTorch state_dict (FlatNet-sep names) -> model file"}},
     {"demo", {flatnet::cli::demo, "simulate, reconstruct and evaluate a few photographs end to end"}},
 };
 

@@ -40,6 +40,9 @@ void validate(const CameraConfig& c, const std::filesystem::path& path) {
 
 }  // namespace
 
+CameraConfig camera_from_node(const YAML::Node& y, const std::filesystem::path& path,
+                              const std::filesystem::path& base);
+
 CameraConfig load_camera_config(const std::filesystem::path& path) {
   require(std::filesystem::exists(path), path, "no such camera file");
   CameraConfig c;
@@ -59,8 +62,39 @@ CameraConfig load_camera_config(const std::filesystem::path& path) {
   } catch (const YAML::Exception& e) {
     throw Error(path, std::string("invalid YAML: ") + e.what());
   }
+  return camera_from_node(y, path, path.parent_path());
+}
+
+CameraConfig camera_from_yaml_text(const std::string& text, const std::filesystem::path& where) {
+  YAML::Node y;
+  try {
+    y = YAML::Load(text);
+  } catch (const YAML::Exception& e) {
+    throw Error(where, std::string("invalid camera settings: ") + e.what());
+  }
+  return camera_from_node(y, where, {});
+}
+
+std::string camera_geometry_yaml(const CameraConfig& c) {
+  const auto& g = c.raw;
+  std::ostringstream os;
+  os << "name: " << c.name << "\n"
+     << "raw_height: " << g.raw_height << "\nraw_width: " << g.raw_width << "\n"
+     << "adc_bits: " << g.adc_bits << "\n";
+  os.precision(17);
+  os << "rotation: " << g.rotation << "\n"
+     << "crop: [" << g.crop[0] << ", " << g.crop[1] << ", " << g.crop[2] << ", " << g.crop[3] << "]\n"
+     << "centring: " << (g.centring == Centring::plane ? "plane" : g.centring == Centring::flatnet ? "flatnet" : "none")
+     << "\n"
+     << "scene_size: " << c.scene_size << "\n"
+     << "tikhonov_lambda: " << c.tikhonov_lambda << "\ntv_lambda: " << c.tv_lambda << "\n";
+  return os.str();
+}
+
+CameraConfig camera_from_node(const YAML::Node& y, const std::filesystem::path& path,
+                              const std::filesystem::path& base) {
+  CameraConfig c;
   require(y.IsMap(), path, "expected a mapping of camera settings");
-  const auto base = path.parent_path();
   try {
     for (const auto& kv : y) {
       const auto key = kv.first.as<std::string>();

@@ -40,6 +40,11 @@ struct CameraConfig {
 // A `.mat` path is taken as a rig file: geometry from its `crop` and `adc_bits`, the rest default.
 CameraConfig load_camera_config(const std::filesystem::path& path);
 
+// The same settings from YAML text (as embedded in a model file); `where` names the source in errors.
+CameraConfig camera_from_yaml_text(const std::string& text, const std::filesystem::path& where);
+// The preprocessing settings (geometry, scene size, lambdas; no file paths) as YAML text.
+std::string camera_geometry_yaml(const CameraConfig& camera);
+
 // The project's reference camera (configs/cameras/sim.yaml) in the source tree.
 std::filesystem::path default_camera_path();
 

@@ -126,6 +126,11 @@ void Progress::tick(int64_t n) {
   }
 }
 
+void Progress::set_status(std::string status) {
+  std::lock_guard<std::mutex> lock(g_progress_mutex);
+  status_ = std::move(status);
+}
+
 void Progress::finish() {
   std::lock_guard<std::mutex> lock(g_progress_mutex);
   draw(true);
@@ -141,6 +146,7 @@ void Progress::draw(bool final_line) {
      << std::string(width - filled, ' ') << "] " << std::fixed << std::setprecision(1) << r << " it/s";
   if (final_line) os << " in " << format_duration(elapsed_s());
   else os << " ETA " << format_duration(r > 0 ? (total_ - done_) / r : -1);
+  if (!status_.empty()) os << "  " << status_;
   if (tty_) std::cerr << "\r" << os.str() << "\033[K" << (final_line ? "\n" : "") << std::flush;
   else std::cerr << os.str() << "\n" << std::flush;
 }

@@ -39,10 +39,11 @@ class Progress {
   void finish();
   double rate() const;  // items per second so far
   double elapsed_s() const;
+  void set_status(std::string status);  // extra text after the bar (e.g. current losses)
 
  private:
   void draw(bool final_line);
-  std::string label_;
+  std::string label_, status_;
   int64_t total_;
   int64_t done_ = 0;
   bool enabled_;

@@ -16,6 +16,18 @@ torch::Tensor display_scene(const std::filesystem::path& image, int64_t size) {
   return torch::round(rgb.clamp(0, 1) * 255.0f) / 255.0f;  // what an 8-bit display shows
 }
 
+std::pair<std::vector<std::string>, std::vector<std::string>> split_train_val(const std::vector<std::string>& names,
+                                                                           double val_fraction, uint64_t seed) {
+  std::vector<std::string> shuffled = names;
+  std::mt19937_64 rng(seed);
+  std::shuffle(shuffled.begin(), shuffled.end(), rng);
+  const auto n_val = static_cast<size_t>(std::llround(val_fraction * shuffled.size()));
+  std::vector<std::string> val(shuffled.begin(), shuffled.begin() + n_val), train(shuffled.begin() + n_val, shuffled.end());
+  std::sort(val.begin(), val.end());
+  std::sort(train.begin(), train.end());
+  return {train, val};
+}
+
 namespace {
 
 void write_lists(const std::filesystem::path& out, const std::string& split, const std::vector<std::string>& names) {
@@ -92,14 +104,7 @@ SimulateReport simulate_dataset(const Rig& rig, const SimulateOptions& opt) {
   report.simulated = simulated;
   report.skipped = skipped;
 
-  // Deterministic split for the seed.
-  std::vector<std::string> shuffled = names;
-  std::mt19937_64 rng(opt.seed);
-  std::shuffle(shuffled.begin(), shuffled.end(), rng);
-  const auto n_val = static_cast<size_t>(std::llround(opt.val_fraction * shuffled.size()));
-  std::vector<std::string> val(shuffled.begin(), shuffled.begin() + n_val), train(shuffled.begin() + n_val, shuffled.end());
-  std::sort(val.begin(), val.end());
-  std::sort(train.begin(), train.end());
+  auto [train, val] = split_train_val(names, opt.val_fraction, opt.seed);
   write_lists(opt.out, "train", train);
   write_lists(opt.out, "val", val);
   report.train = static_cast<int64_t>(train.size());

@@ -28,6 +28,10 @@ struct SimulateReport {
 // atomically), then writes the lists. Errors name the first unreadable image.
 SimulateReport simulate_dataset(const Rig& rig, const SimulateOptions& options);
 
+// The deterministic train/validation split `simulate_dataset` writes (and on-the-fly simulation
+// uses): shuffle with the seed, the first round(fraction * n) are validation; both sorted.
+std::pair<std::vector<std::string>, std::vector<std::string>> split_train_val(const std::vector<std::string>& names,
+                                                                           double val_fraction, uint64_t seed);
 // The scene a display shows for a photograph: resized to size x size, quantised to 8 bits.
 torch::Tensor display_scene(const std::filesystem::path& image, int64_t size);
 

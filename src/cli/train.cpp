@@ -1,0 +1,223 @@
+// flatnet train / export / import / infer: the FlatNet reconstruction network's commands.
+#include <csignal>
+#include <iostream>
+
+#include "cli/commands.hpp"
+#include "core/error.hpp"
+#include "core/util.hpp"
+#include "io/dataset.hpp"
+#include "optics/simulator.hpp"
+#include "recon/infer.hpp"
+#include "recon/run.hpp"
+#include "train/gan_trainer.hpp"
+
+namespace flatnet::cli {
+
+namespace {
+
+TrainOptions train_options(const Config& c, const std::filesystem::path& out) {
+  TrainOptions t;
+  t.iterations = c.integer("train.iterations");
+  t.batch = c.integer("train.batch");
+  t.lr = c.num("train.lr");
+  t.lr_discriminator = c.num("train.lr_discriminator");
+  t.lr_inversion_scale = c.num("train.lr_inversion_scale");
+  t.lr_halve_every = c.integer("train.lr_halve_every");
+  t.discriminator_warmup = c.integer("train.discriminator_warmup");
+  t.noise_augment = c.num("train.noise_augment");
+  t.seed = static_cast<uint64_t>(c.integer("train.seed"));
+  t.workers = static_cast<int>(c.integer("train.workers"));
+  t.val_every = std::max<int64_t>(1, c.integer("train.val_every"));
+  t.log_every = std::max<int64_t>(1, c.integer("train.log_every"));
+  t.w_mse = c.num("loss.mse");
+  t.w_perceptual = c.num("loss.perceptual");
+  t.w_adversarial = c.num("loss.adversarial");
+  t.real_label_min = c.num("discriminator.real_label_min");
+  t.fake_label_max = c.num("discriminator.fake_label_max");
+  require(t.real_label_min >= 0 && t.real_label_min <= 1 && t.fake_label_max >= 0 && t.fake_label_max <= 1,
+          "discriminator", "label smoothing bounds must lie within [0, 1] (BCE needs targets in [0, 1])");
+  require(t.batch >= 1 && t.iterations >= 1, "train", "batch and iterations must be positive");
+  require(t.w_mse >= 0 && t.w_perceptual >= 0 && t.w_adversarial >= 0, "loss", "weights must be non-negative");
+  t.out = out;
+  return t;
+}
+
+// Training and validation sources the config describes.
+std::pair<std::shared_ptr<const PairSource>, std::shared_ptr<const PairSource>> data_sources(const Config& c,
+                                                                                            const CameraConfig& camera) {
+  const auto source = c.str("data.source");
+  if (source == "dataset") {
+    DatasetLists train, val;
+    const auto dir = c.path("data.dataset");
+    if (!dir.empty()) {
+      train = split_lists(dir, "train");
+      val = split_lists(dir, "val");
+    } else {
+      require(!c.str("data.train_meas").empty(), "data", "set data.dataset, or data.train_meas/train_gt/val_meas/val_gt");
+      train = {c.path("data.train_meas"), c.path("data.train_gt"), c.path("data.root")};
+      val = {c.path("data.val_meas"), c.path("data.val_gt"), c.path("data.root")};
+    }
+    return {std::make_shared<DiskPairs>(read_pairs(train), camera), std::make_shared<DiskPairs>(read_pairs(val), camera)};
+  }
+  if (source == "simulate") {
+    require(!camera.rig.empty(), "data.camera", "names no rig; on-the-fly simulation needs the true response");
+    auto rig = std::make_shared<const Rig>(load_rig(camera.rig));
+    const auto images = list_images(c.path("data.images"), kImageExtensions);
+    require(!images.empty(), c.path("data.images"), "no readable images (png, jpg, tif, bmp)");
+    std::vector<std::string> names;
+    std::map<std::string, std::filesystem::path> by_name;
+    for (const auto& p : images) names.push_back(p.filename().string()), by_name[p.filename().string()] = p;
+    auto [train_names, val_names] = split_train_val(names, c.num("data.val_fraction"), c.integer("data.split_seed"));
+    auto paths = [&](const std::vector<std::string>& ns) {
+      std::vector<std::filesystem::path> out;
+      for (const auto& n : ns) out.push_back(by_name[n]);
+      return out;
+    };
+    const auto seed = static_cast<uint64_t>(c.integer("train.seed"));
+    return {std::make_shared<SimulatedPairs>(paths(train_names), rig, camera, seed),
+            std::make_shared<SimulatedPairs>(paths(val_names), rig, camera, seed + 1)};
+  }
+  throw Error("config: data.source must be dataset or simulate, got '" + source + "'");
+}
+
+CameraConfig camera_of(const Config& c) { return load_camera_config(c.path("data.camera")); }
+
+Vgg16Features vgg_if_needed(const Config& c) {
+  if (c.num("loss.perceptual") <= 0) return Vgg16Features(nullptr);
+  return load_vgg16(c.path("loss.vgg_file"), c.flag("loss.vgg_normalize"));
+}
+
+void on_interrupt(int) { GanTrainer::stop_requested = true; }
+
+}  // namespace
+
+int train(int argc, char** argv) {
+  cxxopts::Options o("flatnet train", "Train a FlatNet reconstruction network (GAN, FlatNet-sep).");
+  o.add_options()("config", "experiment config (configs/*.yaml); defaults.yaml alone when absent",
+                  cxxopts::value<std::string>())(
+      "set", "override a setting: --set train.iterations=100 (repeatable)", cxxopts::value<std::vector<std::string>>())(
+      "out", "run folder (checkpoints, logs, model.flatnet)", cxxopts::value<std::string>())(
+      "resume", "continue the run in --out from its latest checkpoint");
+  add_common(o);
+  cxxopts::ParseResult r;
+  if (!parse(o, argc, argv, r)) return 0;
+  require(r.count("out"), "train", "--out DIR is required");
+  const std::filesystem::path out = r["out"].as<std::string>();
+  const auto sets = r.count("set") ? r["set"].as<std::vector<std::string>>() : std::vector<std::string>{};
+  const auto latest = out / "latest.ckpt";
+  const bool resume = r.count("resume") > 0;
+  Config config;
+  if (resume) {
+    require(std::filesystem::exists(latest), latest, "nothing to resume (no checkpoint)");
+    config = checkpoint_settings(latest).first;
+    for (const auto& s : sets) config.set(s);
+  } else {
+    require(!std::filesystem::exists(latest), out,
+            "already holds a training run; continue it with --resume or choose another --out");
+    config = Config::load(r.count("config") ? r["config"].as<std::string>() : "", sets);
+  }
+  // Everything that can fail on bad input is checked before anything is written.
+  const auto camera = camera_of(config);
+  auto vgg = vgg_if_needed(config);
+  auto opts = train_options(config, out);
+  auto [train_src, val_src] = data_sources(config, camera);
+  torch::manual_seed(opts.seed);
+  Generator g(generator_options(config, camera, !resume));
+  Discriminator d(discriminator_options(config));
+  std::cerr << "loading " << (config.integer("train.val_count") > 0 ? std::min(config.integer("train.val_count"), val_src->size()) : val_src->size())
+            << " validation samples...\n";
+  auto val = load_all(*val_src, config.integer("train.val_count"), std::max(1, opts.workers));
+  std::filesystem::create_directories(out);
+  write_text_atomically(out / "config.yaml", config.to_yaml());
+  GanTrainer trainer(g, d, vgg, train_src, std::move(val), opts, config, camera);
+  if (resume) trainer.resume(latest);
+  std::signal(SIGINT, on_interrupt);
+  std::signal(SIGTERM, on_interrupt);
+  std::cerr << "training on " << train_src->size() << " pairs, " << opts.iterations << " steps of batch " << opts.batch
+            << " (" << config.str("model.input") << " + " << config.str("model.enhancer") << ", width "
+            << config.integer("model.unet.width") << ")\n";
+  const auto s = trainer.run();
+  std::cout << "steps " << s.first_step << ".." << s.last_step << " in " << format_duration(s.seconds) << " ("
+            << s.steps_per_s << " steps/s, data wait " << s.loader_wait_s << " s)\n"
+            << "validation: last PSNR " << s.last_psnr << " SSIM " << s.last_ssim << ", best PSNR " << s.best_psnr
+            << "\nmodel: " << (out / "model.flatnet").string() << "\n";
+  if (GanTrainer::stop_requested) {
+    std::cout << "interrupted: continue with `flatnet train --out " << out.string() << " --resume`\n";
+    return 130;
+  }
+  return 0;
+}
+
+int export_model(int argc, char** argv) {
+  cxxopts::Options o("flatnet export", "Export a trained model: a self-contained model file, or a PyTorch state_dict.");
+  o.add_options()("checkpoint", "training checkpoint (RUN/best.ckpt or latest.ckpt)", cxxopts::value<std::string>())(
+      "model", "model file (instead of --checkpoint; for --state-dict)", cxxopts::value<std::string>())(
+      "out", "file to write", cxxopts::value<std::string>())(
+      "state-dict", "write a torch.load-able dict with FlatNet-sep's parameter names instead of a model file");
+  add_common(o);
+  cxxopts::ParseResult r;
+  if (!parse(o, argc, argv, r)) return 0;
+  require(r.count("out") && (r.count("checkpoint") + r.count("model") == 1), "export",
+          "--out FILE and one of --checkpoint CKPT or --model MODEL are required");
+  auto m = r.count("checkpoint") ? model_from_checkpoint(r["checkpoint"].as<std::string>())
+                                 : load_model_file(r["model"].as<std::string>());
+  const std::filesystem::path out = r["out"].as<std::string>();
+  if (r.count("state-dict")) {
+    export_state_dict(out, m.generator);
+    std::cout << "wrote state dict " << out.string() << " (" << m.generator->named_parameters().size()
+              << " parameters; python: torch.load(path))\n";
+  } else {
+    save_model_file(out, m.generator, m.config, m.camera);
+    std::cout << "wrote model " << out.string() << "\n";
+  }
+  return 0;
+}
+
+int import_model(int argc, char** argv) {
+  cxxopts::Options o("flatnet import", "Make a model file from a PyTorch state_dict with FlatNet-sep's names.");
+  o.add_options()("state-dict", "torch.save'd state dict (or FlatNet checkpoint with gen_state_dict)",
+                  cxxopts::value<std::string>())(
+      "config", "config describing the architecture (e.g. configs/flatnet_paper.yaml)", cxxopts::value<std::string>())(
+      "set", "override a setting (repeatable)", cxxopts::value<std::vector<std::string>>())(
+      "camera", "camera the weights were trained for (default: the config's data.camera)", cxxopts::value<std::string>())(
+      "out", "model file to write", cxxopts::value<std::string>());
+  add_common(o);
+  cxxopts::ParseResult r;
+  if (!parse(o, argc, argv, r)) return 0;
+  require(r.count("state-dict") && r.count("out"), "import", "--state-dict FILE and --out MODEL are required");
+  const auto sets = r.count("set") ? r["set"].as<std::vector<std::string>>() : std::vector<std::string>{};
+  auto config = Config::load(r.count("config") ? r["config"].as<std::string>() : "", sets);
+  const auto camera = r.count("camera") ? load_camera_config(r["camera"].as<std::string>()) : camera_of(config);
+  Generator g(generator_options(config, camera, false));
+  import_state_dict(r["state-dict"].as<std::string>(), g);
+  const std::filesystem::path out = r["out"].as<std::string>();
+  save_model_file(out, g, config, camera);
+  std::cout << "wrote model " << out.string() << "\n";
+  return 0;
+}
+
+int infer(int argc, char** argv) {
+  cxxopts::Options o("flatnet infer", "Reconstruct raw captures with a trained FlatNet model.");
+  o.add_options()("model", "model file (models/*.flatnet or RUN/model.flatnet)", cxxopts::value<std::string>())(
+      "input", "raw capture PNG or folder of them", cxxopts::value<std::string>())(
+      "out", "output folder (PNGs with the captures' names)", cxxopts::value<std::string>())(
+      "camera", "camera .yaml whose preprocessing to use (default: the model's)", cxxopts::value<std::string>())(
+      "batch", "captures per batch", cxxopts::value<int>()->default_value("4"));
+  add_common(o);
+  cxxopts::ParseResult r;
+  if (!parse(o, argc, argv, r)) return 0;
+  require(r.count("model") && r.count("input") && r.count("out"), "infer",
+          "--model MODEL, --input DIR|FILE and --out DIR are required");
+  auto m = load_model_file(r["model"].as<std::string>());
+  const auto camera = r.count("camera") ? load_camera_config(r["camera"].as<std::string>()) : m.camera;
+  const auto captures = collect_captures(r["input"].as<std::string>());
+  InferOptions opt;
+  opt.out = r["out"].as<std::string>();
+  opt.batch = std::max(1, r["batch"].as<int>());
+  const auto rep = infer_files(m.generator, camera, captures, opt);
+  std::cout << "flatnet: " << rep.count << " captures -> " << opt.out.string() << " (" << rep.images_per_s
+            << " images/s, " << rep.model_ms_per_image << " ms per image in the network)\n";
+  return 0;
+}
+
+}  // namespace flatnet::cli

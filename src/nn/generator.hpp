@@ -1,0 +1,141 @@
+#pragma once
+// FlatNet-sep (Khan et al., ICCV 2019 / TPAMI 2020): a trainable inversion of the separable
+// FlatCam model followed by a perceptual-enhancement network. Module and parameter names follow
+// FlatNet's models.py (PhiL, PhiR, bn, inc, down1..4, up1..4, outc), so that, with the prefixes
+// `inversion.` and `enhancer.` dropped, a state_dict interchanges with FlatNet's own release.
+#include <string>
+
+#include <torch/torch.h>
+
+namespace flatnet {
+
+// ---- Trainable inversion ------------------------------------------------------------------------
+// Per Bayer channel c:  X_c = leaky_relu(PhiL_c^T Y_c PhiR_c)   (FlatNet eq. 3, W1 = PhiL, W2 = PhiR)
+// PhiL {rows, N, k}, PhiR {cols, N, k} with k = 1 (one pair shared by the four channels, as
+// FlatNet) or k = 4 (one pair per channel). The output channels are in FlatNet's order
+// (r, gr, gb, b): the input planes (b, gb, gr, r) reversed.
+struct InversionOptions {
+  torch::Tensor phil;  // {rows, N, k} initial W1
+  torch::Tensor phir;  // {cols, N, k} initial W2
+  double negative_slope = 0.01;
+};
+
+class FlatInversionImpl : public torch::nn::Module {
+ public:
+  explicit FlatInversionImpl(const InversionOptions& options);
+  torch::Tensor forward(const torch::Tensor& Y);  // {B,4,rows,cols} -> {B,4,N,N}
+  torch::Tensor PhiL, PhiR;
+
+ private:
+  double negative_slope_;
+};
+TORCH_MODULE(FlatInversion);
+
+// Fixed Tikhonov reconstruction as a module (the "naive" baseline's first stage): the SVD filter
+// of eq. 2.6 held as buffers, so a model file carries it. Output order (r, gr, gb, b) like the
+// inversion's.
+class TikhonovLayerImpl : public torch::nn::Module {
+ public:
+  // P {4,rows,N}, Q {4,cols,N} (a calibration), lambda the regulariser.
+  TikhonovLayerImpl(const torch::Tensor& P, const torch::Tensor& Q, double lambda);
+  // Shapes only (weights follow from a checkpoint or model file).
+  TikhonovLayerImpl(int64_t rows, int64_t cols, int64_t n);
+  torch::Tensor forward(const torch::Tensor& Y);  // {B,4,rows,cols} -> {B,4,N,N}
+
+ private:
+  torch::Tensor ULt_, UR_, VL_, VRt_, filter_;
+};
+TORCH_MODULE(TikhonovLayer);
+
+// ---- U-Net (FlatNet's models.py) ----------------------------------------------------------------
+struct UNetOptions {
+  int64_t in_channels = 4;
+  int64_t out_channels = 3;
+  int64_t width = 128;         // first level's filters; 128 is the paper
+  double bn_momentum = 0.99;   // PyTorch convention (new = (1-m) old + m batch), as FlatNet
+};
+
+class UNetImpl : public torch::nn::Module {
+ public:
+  explicit UNetImpl(const UNetOptions& options);
+  torch::Tensor forward(const torch::Tensor& x);  // {B,in,H,W} -> {B,out,H,W} logits (H, W divisible by 16)
+
+ private:
+  torch::nn::AnyModule inc_, down1_, down2_, down3_, down4_;
+  std::vector<std::shared_ptr<torch::nn::Module>> ups_;
+  torch::nn::AnyModule outc_;
+};
+TORCH_MODULE(UNet);
+
+// ---- DnCNN (Zhang et al. 2017), thesis ablation -------------------------------------------------
+struct DnCNNOptions {
+  int64_t in_channels = 4, out_channels = 3;
+  int64_t layers = 19;  // conv-ReLU, (layers-2) x conv-BN-ReLU, conv
+  int64_t width = 64;
+  double bn_momentum = 0.1;
+};
+class DnCNNImpl : public torch::nn::Module {
+ public:
+  explicit DnCNNImpl(const DnCNNOptions& options);
+  torch::Tensor forward(const torch::Tensor& x);  // {B,in,H,W} -> {B,out,H,W} logits
+ private:
+  torch::nn::Sequential body_;
+};
+TORCH_MODULE(DnCNN);
+
+// ---- RCAN (Zhang et al. 2018) without upsampling, thesis ablation -------------------------------
+struct RCANOptions {
+  int64_t in_channels = 4, out_channels = 3;
+  int64_t groups = 5, blocks = 10;  // residual groups x residual channel-attention blocks
+  int64_t width = 64;
+  int64_t reduction = 16;           // channel-attention squeeze ratio
+};
+class RCANImpl : public torch::nn::Module {
+ public:
+  explicit RCANImpl(const RCANOptions& options);
+  torch::Tensor forward(const torch::Tensor& x);  // {B,in,H,W} -> {B,out,H,W} logits
+ private:
+  torch::nn::Conv2d head_{nullptr}, body_end_{nullptr}, tail_{nullptr};
+  torch::nn::ModuleList groups_;
+};
+TORCH_MODULE(RCAN);
+
+// ---- The generator -------------------------------------------------------------------------------
+enum class InputStage { inversion, tikhonov };
+enum class Enhancer { unet, dncnn, rcan };
+
+struct GeneratorOptions {
+  InputStage input = InputStage::inversion;
+  InversionOptions inversion;              // input == inversion
+  torch::Tensor tik_P, tik_Q;              // input == tikhonov: calibration {4,rows,N},{4,cols,N}
+  double tik_lambda = 1e-4;
+  int64_t rows = 500, cols = 620, scene = 256;  // measurement and scene sizes (for shape checks)
+  Enhancer enhancer = Enhancer::unet;
+  UNetOptions unet;
+  DnCNNOptions dncnn;
+  RCANOptions rcan;
+  double bn_momentum = 0.99;  // the BatchNorm2d(4) between the stages
+};
+
+class GeneratorImpl : public torch::nn::Module {
+ public:
+  explicit GeneratorImpl(const GeneratorOptions& options);
+  // {B,4,rows,cols} measurement planes -> {B,3,N,N} sRGB image in [0,1].
+  torch::Tensor forward(const torch::Tensor& Y);
+  // The first stage alone, {B,4,N,N} (for inspection and the sample grid).
+  torch::Tensor first_stage(const torch::Tensor& Y);
+  const GeneratorOptions& options() const { return options_; }
+
+ private:
+  GeneratorOptions options_;
+  FlatInversion inversion_{nullptr};
+  TikhonovLayer tikhonov_{nullptr};
+  torch::nn::BatchNorm2d bn_{nullptr};
+  torch::nn::AnyModule enhancer_;
+};
+TORCH_MODULE(Generator);
+
+InputStage parse_input_stage(const std::string& s);
+Enhancer parse_enhancer(const std::string& s);
+
+}  // namespace flatnet

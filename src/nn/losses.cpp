@@ -1,0 +1,111 @@
+#include "nn/losses.hpp"
+
+#include <fstream>
+
+#include "core/error.hpp"
+
+namespace flatnet {
+
+namespace nn = torch::nn;
+
+DiscriminatorImpl::DiscriminatorImpl(const DiscriminatorOptions& o) {
+  const bool flatnet = o.kind == "flatnet";
+  if (!flatnet && o.kind != "thesis")
+    throw Error("config: discriminator.kind must be thesis or flatnet, got '" + o.kind + "'");
+  const int layers = flatnet ? 3 : 4;
+  convs_ = register_module("convs", nn::ModuleList());
+  norms_ = register_module("norms", nn::ModuleList());
+  int64_t in = 3, w = o.width;
+  for (int i = 0; i < layers; ++i, in = w, w *= 2) {
+    convs_->push_back(nn::Conv2d(nn::Conv2dOptions(in, w, 3).stride(2).padding(1)));
+    norms_->push_back(nn::BatchNorm2d(w));
+  }
+  out_ = register_module("out", nn::Conv2d(nn::Conv2dOptions(in, 1, 1).padding(flatnet ? 1 : 0)));
+}
+
+torch::Tensor DiscriminatorImpl::forward(const torch::Tensor& x) {
+  auto h = x;
+  for (size_t i = 0; i < convs_->size(); ++i) {
+    h = norms_[i]->as<nn::BatchNorm2dImpl>()->forward(convs_[i]->as<nn::Conv2dImpl>()->forward(h));
+    h = h * torch::sigmoid(h);  // swish
+  }
+  return out_->forward(h).mean({2, 3});  // {B,1}
+}
+
+Vgg16FeaturesImpl::Vgg16FeaturesImpl(bool normalize) : normalize_(normalize) {
+  // torchvision cfg "D" up to relu4_3: 64 64 M 128 128 M 256 256 256 M 512 512 512
+  const std::vector<int64_t> cfg = {64, 64, -1, 128, 128, -1, 256, 256, 256, -1, 512, 512, 512};
+  features_ = nn::Sequential();
+  int64_t in = 3;
+  for (const auto c : cfg) {
+    if (c < 0) {
+      features_->push_back(nn::MaxPool2d(nn::MaxPool2dOptions(2).stride(2)));
+    } else {
+      features_->push_back(nn::Conv2d(nn::Conv2dOptions(in, c, 3).padding(1)));
+      features_->push_back(nn::ReLU());
+      in = c;
+    }
+  }
+  register_module("features", features_);  // 23 modules: indices 0..22
+  for (auto& p : parameters()) p.set_requires_grad(false);
+}
+
+std::pair<torch::Tensor, torch::Tensor> Vgg16FeaturesImpl::forward(const torch::Tensor& x) {
+  auto h = x;
+  if (normalize_) {
+    const auto mean = torch::tensor({0.485f, 0.456f, 0.406f}).view({1, 3, 1, 1});
+    const auto std = torch::tensor({0.229f, 0.224f, 0.225f}).view({1, 3, 1, 1});
+    h = (h - mean) / std;
+  }
+  torch::Tensor relu2_2;
+  for (size_t i = 0; i < features_->size(); ++i) {
+    h = features_[i]->as<nn::Conv2dImpl>() ? features_[i]->as<nn::Conv2dImpl>()->forward(h)
+        : features_[i]->as<nn::ReLUImpl>() ? torch::relu(h)
+                                           : features_[i]->as<nn::MaxPool2dImpl>()->forward(h);
+    if (i == 8) relu2_2 = h;
+  }
+  return {relu2_2, h};
+}
+
+Vgg16Features load_vgg16(const std::filesystem::path& weights, bool normalize) {
+  if (weights.empty() || !std::filesystem::exists(weights))
+    throw Error(weights.empty() ? std::filesystem::path("loss.vgg_file") : weights,
+                "VGG-16 weights not found; the perceptual loss needs them. Make the file with "
+                "`python3 models/convert_vgg16.py` where torchvision can download its weights, "
+                "or train without the perceptual loss: --set loss.perceptual=0");
+  std::ifstream in(weights, std::ios::binary);
+  std::vector<char> bytes((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+  c10::IValue v;
+  try {
+    v = torch::pickle_load(bytes);
+  } catch (const c10::Error& e) {
+    throw Error(weights, "not a torch.save'd state dict of VGG-16 features (" +
+                             std::string(e.what_without_backtrace()).substr(0, 200) + ")");
+  }
+  require(v.isGenericDict(), weights, "expected a dict of tensors (features.N.weight, ...)");
+  Vgg16Features vgg(normalize);
+  auto dict = v.toGenericDict();
+  torch::NoGradGuard no_grad;
+  for (auto& p : vgg->named_parameters()) {
+    const auto it = dict.find(p.key());
+    require(it != dict.end(), weights, "missing tensor '" + p.key() + "'");
+    const auto t = it->value().toTensor();
+    require(t.sizes() == p.value().sizes(), weights,
+            "tensor '" + p.key() + "' has the wrong shape for VGG-16");
+    p.value().copy_(t);
+  }
+  vgg->eval();
+  return vgg;
+}
+
+torch::Tensor perceptual_loss(Vgg16Features& vgg, const torch::Tensor& x, const torch::Tensor& y) {
+  std::pair<torch::Tensor, torch::Tensor> fy;
+  {
+    torch::NoGradGuard no_grad;
+    fy = vgg->forward(y);
+  }
+  const auto fx = vgg->forward(x);
+  return torch::mse_loss(fx.first, fy.first) + torch::mse_loss(fx.second, fy.second);
+}
+
+}  // namespace flatnet

@@ -1,0 +1,52 @@
+#pragma once
+// The adversarial and perceptual parts of FlatNet's loss:
+//   L = l1 * MSE(x, y) + l2 * (MSE(vgg_relu2_2) + MSE(vgg_relu4_3)) + l3 * BCE(D(x), 1)
+#include <filesystem>
+#include <string>
+
+#include <torch/torch.h>
+
+namespace flatnet {
+
+// Discriminator: stride-2 conv3x3 layers, each with batch norm and swish, then a 1x1 conv to one
+// channel and a global average: one logit per image (use BCE on logits).
+//   thesis:  4 layers, widths w, 2w, 4w, 8w
+//   flatnet: 3 layers, widths w, 2w, 4w, final 1x1 conv with padding 1, as FlatNet's models.py
+struct DiscriminatorOptions {
+  std::string kind = "thesis";  // thesis | flatnet
+  int64_t width = 32;
+};
+
+class DiscriminatorImpl : public torch::nn::Module {
+ public:
+  explicit DiscriminatorImpl(const DiscriminatorOptions& options);
+  torch::Tensor forward(const torch::Tensor& x);  // {B,3,H,W} -> {B,1} logits
+
+ private:
+  torch::nn::ModuleList convs_, norms_;
+  torch::nn::Conv2d out_{nullptr};
+};
+TORCH_MODULE(Discriminator);
+
+// VGG-16 as torchvision's `vgg16().features[0:23]` (parameter names features.N.weight/bias),
+// frozen. forward returns relu2_2 (after features[8]) and relu4_3 (after features[22]).
+// FlatNet feeds it images in [0,1] without ImageNet normalisation; `normalize` adds it.
+class Vgg16FeaturesImpl : public torch::nn::Module {
+ public:
+  explicit Vgg16FeaturesImpl(bool normalize = false);
+  std::pair<torch::Tensor, torch::Tensor> forward(const torch::Tensor& x);  // {B,3,H,W}
+
+ private:
+  torch::nn::Sequential features_{nullptr};
+  bool normalize_;
+};
+TORCH_MODULE(Vgg16Features);
+
+// Loads weights written by models/convert_vgg16.py (a torch.save'd dict of features.N.* tensors).
+// Errors name the file and, when it is missing, how to make it or train without it.
+Vgg16Features load_vgg16(const std::filesystem::path& weights, bool normalize = false);
+
+// Sum of the MSEs of the two VGG feature maps of x and y (y's features need no gradient).
+torch::Tensor perceptual_loss(Vgg16Features& vgg, const torch::Tensor& x, const torch::Tensor& y);
+
+}  // namespace flatnet

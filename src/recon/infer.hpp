@@ -1,0 +1,28 @@
+#pragma once
+// FlatNet inference on raw captures: raw PNG -> preprocessing of the model's camera -> generator
+// -> 256x256 sRGB PNG with the capture's name.
+#include <filesystem>
+#include <vector>
+
+#include "core/camera_config.hpp"
+#include "nn/generator.hpp"
+
+namespace flatnet {
+
+struct InferOptions {
+  std::filesystem::path out;
+  int batch = 4;
+  bool progress = true;
+};
+
+struct InferReport {
+  int64_t count = 0;
+  double model_ms_per_image = 0;  // the network alone
+  double images_per_s = 0;        // everything, file I/O included
+};
+
+// The camera's crop and scene size must match the generator's (checked, naming `camera_source`).
+InferReport infer_files(Generator& generator, const CameraConfig& camera, const std::vector<std::filesystem::path>& captures,
+                        const InferOptions& options);
+
+}  // namespace flatnet

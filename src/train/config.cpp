@@ -1,0 +1,217 @@
+#include "train/config.hpp"
+
+#include <fstream>
+
+#include <yaml-cpp/yaml.h>
+
+#include "core/error.hpp"
+
+namespace flatnet {
+
+namespace {
+
+// Flattens a YAML mapping into dotted keys with scalar (or flow-sequence) text values.
+void flatten(const YAML::Node& node, const std::string& prefix, std::map<std::string, std::string>& out) {
+  for (const auto& kv : node) {
+    const auto key = prefix.empty() ? kv.first.as<std::string>() : prefix + "." + kv.first.as<std::string>();
+    if (kv.second.IsMap()) {
+      flatten(kv.second, key, out);
+    } else if (kv.second.IsSequence()) {
+      YAML::Emitter e;
+      e << YAML::Flow << kv.second;
+      out[key] = e.c_str();
+    } else if (kv.second.IsNull()) {
+      out[key] = "";
+    } else {
+      out[key] = kv.second.as<std::string>();
+    }
+  }
+}
+
+YAML::Node parse_yaml(const std::string& text, const std::filesystem::path& where) {
+  try {
+    YAML::Node n = YAML::Load(text);
+    require(n.IsMap() || n.IsNull(), where, "expected a mapping of settings");
+    return n;
+  } catch (const YAML::Exception& e) {
+    throw Error(where, std::string("invalid YAML: ") + e.what());
+  }
+}
+
+std::string read_file(const std::filesystem::path& p) {
+  std::ifstream in(p);
+  require(static_cast<bool>(in), p, "cannot read file");
+  std::stringstream ss;
+  ss << in.rdbuf();
+  return ss.str();
+}
+
+size_t edit_distance(const std::string& a, const std::string& b) {
+  std::vector<size_t> prev(b.size() + 1), cur(b.size() + 1);
+  for (size_t j = 0; j <= b.size(); ++j) prev[j] = j;
+  for (size_t i = 1; i <= a.size(); ++i) {
+    cur[0] = i;
+    for (size_t j = 1; j <= b.size(); ++j)
+      cur[j] = std::min({prev[j] + 1, cur[j - 1] + 1, prev[j - 1] + (a[i - 1] == b[j - 1] ? 0 : 1)});
+    std::swap(prev, cur);
+  }
+  return prev[b.size()];
+}
+
+}  // namespace
+
+std::string nearest_key(const std::string& key, const std::vector<std::string>& known) {
+  std::string best;
+  size_t best_d = SIZE_MAX;
+  const auto last = key.substr(key.rfind('.') == std::string::npos ? 0 : key.rfind('.') + 1);
+  for (const auto& k : known) {
+    // Compare whole keys and also the last component, so "lr" finds "train.lr".
+    const auto klast = k.substr(k.rfind('.') == std::string::npos ? 0 : k.rfind('.') + 1);
+    const size_t d = std::min(edit_distance(key, k), edit_distance(last, klast) + 1);
+    if (d < best_d) best_d = d, best = k;
+  }
+  return best;
+}
+
+std::filesystem::path Config::default_path() {
+  return std::filesystem::path(FLATNET_SOURCE_DIR) / "configs" / "defaults.yaml";
+}
+
+Config Config::load(const std::filesystem::path& experiment, const std::vector<std::string>& sets,
+                    const std::filesystem::path& defaults) {
+  Config c;
+  require(std::filesystem::exists(defaults), defaults, "missing defaults file");
+  flatten(parse_yaml(read_file(defaults), defaults), "", c.values_);
+  for (const auto& kv : c.values_) c.bases_[kv.first] = defaults.parent_path().parent_path();
+  if (!experiment.empty()) c.merge_file(experiment, 0);
+  for (const auto& s : sets) c.set(s);
+  return c;
+}
+
+Config Config::from_text(const std::string& yaml, const std::filesystem::path& where,
+                         const std::filesystem::path& defaults) {
+  Config c = load({}, {}, defaults);
+  c.merge_node_text(yaml, where, {});
+  return c;
+}
+
+void Config::merge_file(const std::filesystem::path& file, int depth) {
+  require(std::filesystem::exists(file), file, "no such config file");
+  require(depth < 8, file, "too many nested `base:` files");
+  const auto node = parse_yaml(read_file(file), file);
+  if (node["base"]) merge_file(file.parent_path() / node["base"].as<std::string>(), depth + 1);
+  merge_node_text(read_file(file), file, file.parent_path());
+}
+
+void Config::merge_node_text(const std::string& yaml, const std::filesystem::path& where,
+                             const std::filesystem::path& base) {
+  std::map<std::string, std::string> flat;
+  flatten(parse_yaml(yaml, where), "", flat);
+  for (const auto& kv : flat) {
+    if (kv.first == "base") continue;
+    assign(kv.first, kv.second, where.string(), base);
+  }
+}
+
+void Config::assign(const std::string& key, const std::string& value, const std::string& where,
+                    const std::filesystem::path& base) {
+  if (!values_.count(key)) {
+    std::vector<std::string> known;
+    for (const auto& kv : values_) known.push_back(kv.first);
+    throw Error(where + ": unknown setting '" + key + "' (did you mean '" + nearest_key(key, known) + "'?)");
+  }
+  values_[key] = value;
+  bases_[key] = base;
+}
+
+void Config::set(const std::string& assignment, const std::string& where) {
+  const auto eq = assignment.find('=');
+  if (eq == std::string::npos || eq == 0)
+    throw Error(where + ": expected key=value, got '" + assignment + "'");
+  assign(assignment.substr(0, eq), assignment.substr(eq + 1), where, std::filesystem::current_path());
+}
+
+const std::string& Config::lookup(const std::string& key) const {
+  const auto it = values_.find(key);
+  if (it == values_.end()) throw Error("config: no setting '" + key + "' in defaults.yaml");
+  return it->second;
+}
+
+std::string Config::str(const std::string& key) const { return lookup(key); }
+
+double Config::num(const std::string& key) const {
+  const auto& v = lookup(key);
+  try {
+    size_t used = 0;
+    const double d = std::stod(v, &used);
+    if (used == v.size()) return d;
+  } catch (const std::exception&) {
+  }
+  throw Error("config: setting '" + key + "' must be a number, got '" + v + "'");
+}
+
+int64_t Config::integer(const std::string& key) const {
+  const double d = num(key);
+  if (d != std::floor(d)) throw Error("config: setting '" + key + "' must be an integer, got '" + lookup(key) + "'");
+  return static_cast<int64_t>(d);
+}
+
+bool Config::flag(const std::string& key) const {
+  const auto& v = lookup(key);
+  if (v == "true" || v == "on" || v == "yes" || v == "1") return true;
+  if (v == "false" || v == "off" || v == "no" || v == "0") return false;
+  throw Error("config: setting '" + key + "' must be true or false, got '" + v + "'");
+}
+
+std::filesystem::path Config::path(const std::string& key) const {
+  const auto& v = lookup(key);
+  if (v.empty()) return {};
+  std::filesystem::path p(v);
+  if (p.is_absolute()) return p;
+  const auto it = bases_.find(key);
+  return it == bases_.end() || it->second.empty() ? p : it->second / p;
+}
+
+namespace {
+
+struct KeyTree {
+  std::map<std::string, KeyTree> children;
+  std::string value;
+  bool leaf = false;
+};
+
+void emit(YAML::Emitter& e, const KeyTree& t) {
+  e << YAML::BeginMap;
+  for (const auto& [k, child] : t.children) {
+    e << YAML::Key << k << YAML::Value;
+    if (!child.leaf) emit(e, child);
+    else if (!child.value.empty() && child.value.front() == '[') e << YAML::Flow << YAML::Load(child.value);
+    else e << child.value;
+  }
+  e << YAML::EndMap;
+}
+
+}  // namespace
+
+std::string Config::to_yaml() const {
+  KeyTree root;
+  for (const auto& kv : values_) {
+    KeyTree* node = &root;
+    std::stringstream ss(kv.first);
+    for (std::string part; std::getline(ss, part, '.');) node = &node->children[part];
+    // A relative value that names an existing file or folder is a path: write it resolved, so the
+    // text means the same wherever it is read.
+    std::string value = kv.second;
+    const auto base = bases_.count(kv.first) ? bases_.at(kv.first) : std::filesystem::path();
+    if (!value.empty() && value.front() != '[' && !base.empty() && std::filesystem::path(value).is_relative() &&
+        std::filesystem::exists(base / value))
+      value = std::filesystem::weakly_canonical(base / value).string();
+    node->value = value;
+    node->leaf = true;
+  }
+  YAML::Emitter e;
+  emit(e, root);
+  return std::string(e.c_str()) + "\n";
+}
+
+}  // namespace flatnet

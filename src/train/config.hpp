@@ -1,0 +1,52 @@
+#pragma once
+// Experiment configuration: configs/defaults.yaml defines every key (with comments and default
+// values); an experiment file overrides some of them (and may name a `base:` file it extends), and
+// `--set key=value` overrides last. A key that defaults.yaml does not define is an error that names
+// the nearest known key. Library code never sees this object: the CLI turns it into option structs.
+#include <filesystem>
+#include <map>
+#include <string>
+#include <vector>
+
+namespace flatnet {
+
+class Config {
+ public:
+  // defaults.yaml, then `experiment` (may be empty) and its bases, then the `sets` ("a.b=value").
+  static Config load(const std::filesystem::path& experiment, const std::vector<std::string>& sets = {},
+                     const std::filesystem::path& defaults = default_path());
+  // Defaults overridden by YAML text (the merged config a checkpoint or model file embeds).
+  static Config from_text(const std::string& yaml, const std::filesystem::path& where,
+                          const std::filesystem::path& defaults = default_path());
+  static std::filesystem::path default_path();  // <source>/configs/defaults.yaml
+
+  // Overrides one key ("a.b=value"); `where` names the source in errors.
+  void set(const std::string& assignment, const std::string& where = "--set");
+
+  std::string str(const std::string& key) const;
+  double num(const std::string& key) const;
+  int64_t integer(const std::string& key) const;
+  bool flag(const std::string& key) const;
+  // A path value, resolved against the folder of the file that set it ("" stays "").
+  std::filesystem::path path(const std::string& key) const;
+
+  // Every key with its value, as nested YAML (what checkpoints and model files embed).
+  std::string to_yaml() const;
+  const std::map<std::string, std::string>& values() const { return values_; }
+
+ private:
+  void merge_file(const std::filesystem::path& file, int depth);
+  void merge_node_text(const std::string& yaml, const std::filesystem::path& where,
+                       const std::filesystem::path& base);
+  void assign(const std::string& key, const std::string& value, const std::string& where,
+              const std::filesystem::path& base);
+  const std::string& lookup(const std::string& key) const;
+
+  std::map<std::string, std::string> values_;  // dotted key -> scalar text
+  std::map<std::string, std::filesystem::path> bases_;
+};
+
+// The known key nearest to `key` by edit distance (for "did you mean" messages).
+std::string nearest_key(const std::string& key, const std::vector<std::string>& known);
+
+}  // namespace flatnet

@@ -1,0 +1,147 @@
+#include "train/data.hpp"
+
+#include <random>
+
+#include "core/error.hpp"
+#include "core/util.hpp"
+#include "io/image.hpp"
+#include "io/raw.hpp"
+#include "optics/simulator.hpp"
+
+namespace flatnet {
+
+DiskPairs::DiskPairs(std::vector<Pair> pairs, CameraConfig camera) : pairs_(std::move(pairs)), camera_(std::move(camera)) {
+  if (pairs_.empty()) throw Error("dataset: no pairs to train on");
+}
+
+Sample DiskPairs::load(int64_t i, int64_t) const {
+  const auto& p = pairs_.at(i);
+  Sample s;
+  s.meas = load_capture(p.meas, camera_.raw).planes;
+  auto gt = read_rgb(p.gt);
+  if (gt.size(1) != camera_.scene_size || gt.size(2) != camera_.scene_size)
+    gt = resize(gt, camera_.scene_size, camera_.scene_size).clamp(0, 1);
+  s.gt = gt;
+  s.name = p.meas.filename().string();
+  return s;
+}
+
+SimulatedPairs::SimulatedPairs(std::vector<std::filesystem::path> images, std::shared_ptr<const Rig> rig,
+                               CameraConfig camera, uint64_t seed)
+    : images_(std::move(images)), rig_(std::move(rig)), camera_(std::move(camera)), seed_(seed) {
+  if (images_.empty()) throw Error("data.images: no images to simulate from");
+}
+
+Sample SimulatedPairs::load(int64_t i, int64_t epoch) const {
+  const auto& image = images_.at(i);
+  Sample s;
+  s.gt = display_scene(image, camera_.scene_size);  // {3,N,N}
+  auto gen = at::detail::createCPUGenerator(stable_hash(image.filename().string() + "#" + std::to_string(epoch), seed_));
+  const auto raw = simulate_raw(*rig_, s.gt, true, gen);  // stored 16-bit codes
+  s.meas = preprocess_raw(raw.to(torch::kFloat32) / 65535.0f, camera_.raw);
+  s.name = image.filename().string();
+  return s;
+}
+
+std::vector<int64_t> epoch_permutation(int64_t n, uint64_t seed, int64_t epoch) {
+  std::vector<int64_t> perm(n);
+  std::iota(perm.begin(), perm.end(), 0);
+  std::mt19937_64 rng(seed * 1000003ULL + static_cast<uint64_t>(epoch));
+  std::shuffle(perm.begin(), perm.end(), rng);
+  return perm;
+}
+
+BatchLoader::BatchLoader(std::shared_ptr<const PairSource> source, LoaderOptions options)
+    : source_(std::move(source)), opt_(options), next_to_build_(options.first_step), next_to_take_(options.first_step) {
+  require(source_->size() > 0, "dataset", "empty");
+  for (int t = 0; t < std::max(1, opt_.workers); ++t) threads_.emplace_back([this] { work(); });
+}
+
+BatchLoader::~BatchLoader() {
+  {
+    std::lock_guard<std::mutex> lock(mutex_);
+    stop_ = true;
+  }
+  cv_.notify_all();
+  for (auto& t : threads_) t.join();
+}
+
+Batch BatchLoader::build(int64_t step) const {
+  const int64_t n = source_->size();
+  std::vector<torch::Tensor> meas, gt;
+  int64_t cached_epoch = -1;
+  std::vector<int64_t> perm;
+  for (int64_t j = 0; j < opt_.batch; ++j) {
+    const int64_t k = step * opt_.batch + j, epoch = k / n;
+    if (epoch != cached_epoch) perm = epoch_permutation(n, opt_.seed, epoch), cached_epoch = epoch;
+    auto s = source_->load(perm[k % n], epoch);
+    if (opt_.noise_augment > 0) {
+      auto gen = at::detail::createCPUGenerator(opt_.seed * 7919ULL + static_cast<uint64_t>(k));
+      s.meas = s.meas + opt_.noise_augment * at::randn(s.meas.sizes(), gen);
+    }
+    meas.push_back(s.meas);
+    gt.push_back(s.gt);
+  }
+  return {torch::stack(meas), torch::stack(gt), step};
+}
+
+void BatchLoader::work() {
+  while (true) {
+    int64_t step;
+    {
+      std::unique_lock<std::mutex> lock(mutex_);
+      cv_.wait(lock, [&] { return stop_ || next_to_build_ < next_to_take_ + opt_.prefetch; });
+      if (stop_) return;
+      step = next_to_build_++;
+    }
+    try {
+      auto b = build(step);
+      std::lock_guard<std::mutex> lock(mutex_);
+      ready_[step] = std::move(b);
+    } catch (...) {
+      std::lock_guard<std::mutex> lock(mutex_);
+      failed_[step] = std::current_exception();
+    }
+    cv_.notify_all();
+  }
+}
+
+Batch BatchLoader::next() {
+  const auto t0 = std::chrono::steady_clock::now();
+  std::unique_lock<std::mutex> lock(mutex_);
+  const int64_t step = next_to_take_;
+  cv_.wait(lock, [&] { return ready_.count(step) || failed_.count(step); });
+  wait_s_ += std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  if (failed_.count(step)) std::rethrow_exception(failed_.at(step));
+  Batch b = std::move(ready_.at(step));
+  ready_.erase(step);
+  ++next_to_take_;
+  lock.unlock();
+  cv_.notify_all();
+  return b;
+}
+
+std::vector<Sample> load_all(const PairSource& source, int64_t count, int workers) {
+  const int64_t n = count <= 0 ? source.size() : std::min(count, source.size());
+  std::vector<Sample> out(n);
+  std::atomic<int64_t> next{0};
+  std::exception_ptr error;
+  std::mutex error_mutex;
+  std::vector<std::thread> pool;
+  for (int t = 0; t < std::max(1, workers); ++t)
+    pool.emplace_back([&] {
+      for (int64_t i; (i = next++) < n;) {
+        try {
+          out[i] = source.load(i, 0);
+        } catch (...) {
+          std::lock_guard<std::mutex> lock(error_mutex);
+          if (!error) error = std::current_exception();
+        }
+      }
+    });
+  for (auto& t : pool) t.join();
+  if (error) std::rethrow_exception(error);
+  return out;
+}
+
+}  // namespace flatnet

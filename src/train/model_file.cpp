@@ -1,0 +1,317 @@
+#include "train/model_file.hpp"
+
+#include <fstream>
+#include <regex>
+
+#include "core/error.hpp"
+#include "core/util.hpp"
+#include "optics/camera.hpp"
+#include "optics/codes.hpp"
+
+namespace flatnet {
+
+namespace {
+
+constexpr const char* kModelFormat = "flatnet-model";
+constexpr const char* kCheckpointFormat = "flatnet-checkpoint";
+constexpr int64_t kFormatVersion = 1;
+
+int channel_index(const std::string& name) {
+  for (int c = 0; c < 4; ++c)
+    if (name == kChannelNames[c]) return c;
+  throw Error("config: model.inversion.channel must be b, gb, gr or r, got '" + name + "'");
+}
+
+// Initial W1 {rows,N,k}, W2 {cols,N,k} for model.inversion.init.
+std::pair<torch::Tensor, torch::Tensor> initial_inversion(const Config& c, const CameraConfig& camera) {
+  const auto init = c.str("model.inversion.init");
+  const bool shared = c.flag("model.inversion.shared");
+  const int64_t rows = camera.raw.crop[2], cols = camera.raw.crop[3], n = camera.scene_size;
+  const int64_t k = shared ? 1 : 4;
+  const auto seed = static_cast<uint64_t>(c.integer("model.inversion.seed"));
+  if (init == "transpose") {
+    require(!camera.calibration.empty(), "data.camera", "the camera names no calibration (needed for init transpose)");
+    const auto calib = load_calibration(camera.calibration, camera);
+    if (shared) {
+      const int ch = channel_index(c.str("model.inversion.channel"));
+      return {calib.P[ch].unsqueeze(2), calib.Q[ch].unsqueeze(2)};
+    }
+    return {calib.P.permute({1, 2, 0}), calib.Q.permute({1, 2, 0})};
+  }
+  if (init == "calibfree") {
+    const double slope = c.num("model.inversion.slope");
+    std::vector<torch::Tensor> L, R;
+    for (int64_t i = 0; i < k; ++i) {
+      L.push_back(calibration_free_phi(rows, n, slope, seed + 2 * i));
+      R.push_back(calibration_free_phi(cols, n, slope, seed + 2 * i + 1));
+    }
+    return {torch::stack(L, 2), torch::stack(R, 2)};
+  }
+  if (init == "flatnet-toeplitz") {
+    const auto left = c.path("model.inversion.toeplitz_file");
+    require(!left.empty(), "model.inversion.toeplitz_file", "must name FlatNet's phil_toep_slope22.mat");
+    auto right = left.parent_path() / std::regex_replace(left.filename().string(), std::regex("phil"), "phir");
+    auto L = load_flatnet_toeplitz(left, "phil"), R = load_flatnet_toeplitz(right, "phir");  // {4,rows,N}
+    require(L.size(1) == rows && R.size(1) == cols && L.size(2) == n, left,
+            "Toeplitz matrices do not match the camera's crop and scene size");
+    if (shared) return {L[0].unsqueeze(2), R[0].unsqueeze(2)};
+    return {L.permute({1, 2, 0}), R.permute({1, 2, 0})};
+  }
+  if (init == "random") {
+    auto gen = at::detail::createCPUGenerator(seed);
+    const double scale = 1.0 / std::sqrt(static_cast<double>(rows));
+    return {at::randn({rows, n, k}, gen) * scale, at::randn({cols, n, k}, gen) * scale};
+  }
+  throw Error("config: model.inversion.init must be transpose, calibfree, flatnet-toeplitz or random, got '" + init + "'");
+}
+
+void write_string(torch::serialize::OutputArchive& a, const std::string& key, const std::string& value) {
+  a.write(key, c10::IValue(value));
+}
+
+std::string read_string(torch::serialize::InputArchive& a, const std::string& key, const std::filesystem::path& where) {
+  c10::IValue v;
+  if (!a.try_read(key, v) || !v.isString()) throw Error(where, "not a flatnet file (no '" + key + "')");
+  return v.toStringRef();
+}
+
+void save_module(torch::serialize::OutputArchive& root, const std::string& key, torch::nn::Module& m) {
+  torch::serialize::OutputArchive a(root.compilation_unit());
+  m.save(a);
+  root.write(key, a);
+}
+
+// Reads tensor `dotted` ("enhancer.inc.conv.conv.0.weight") from the nested archives Module::save writes.
+bool read_nested(torch::serialize::InputArchive& a, const std::string& dotted, torch::Tensor& t, bool buffer) {
+  const auto dot = dotted.find('.');
+  if (dot == std::string::npos) return a.try_read(dotted, t, buffer);
+  torch::serialize::InputArchive sub;
+  if (!a.try_read(dotted.substr(0, dot), sub)) return false;
+  return read_nested(sub, dotted.substr(dot + 1), t, buffer);
+}
+
+void load_module(torch::serialize::InputArchive& root, const std::string& key, torch::nn::Module& m,
+                 const std::filesystem::path& where) {
+  torch::serialize::InputArchive a;
+  if (!root.try_read(key, a)) throw Error(where, "no '" + key + "' weights in the file");
+  torch::NoGradGuard no_grad;
+  auto copy_in = [&](const std::string& name, torch::Tensor target, bool buffer) {
+    torch::Tensor t;
+    if (!read_nested(a, name, t, buffer))
+      throw Error(where, key + " weights lack '" + name + "' (the file's architecture differs from its config)");
+    if (t.sizes() != target.sizes()) {
+      std::ostringstream os;
+      os << key << " weight '" << name << "' is " << t.sizes() << ", the model needs " << target.sizes();
+      throw Error(where, os.str());
+    }
+    target.copy_(t);
+  };
+  for (auto& p : m.named_parameters()) copy_in(p.key(), p.value(), false);
+  for (auto& b : m.named_buffers()) copy_in(b.key(), b.value(), true);
+}
+
+torch::serialize::InputArchive open_archive(const std::filesystem::path& path, const std::string& expected_format) {
+  require(std::filesystem::exists(path), path, "no such file");
+  torch::serialize::InputArchive a;
+  try {
+    a.load_from(path.string());
+  } catch (const c10::Error&) {
+    throw Error(path, "not a flatnet " + std::string(expected_format == kModelFormat ? "model" : "checkpoint") +
+                          " file (not a torch archive)");
+  }
+  const auto format = read_string(a, "flatnet_format", path);
+  if (format != expected_format) {
+    if (format == kCheckpointFormat)
+      throw Error(path, "this is a training checkpoint; make a model file with `flatnet export --checkpoint " +
+                            path.string() + " --out MODEL`");
+    throw Error(path, "is a " + format + " file, expected a " + expected_format + " file");
+  }
+  c10::IValue version;
+  a.read("flatnet_version", version);
+  if (version.toInt() > kFormatVersion)
+    throw Error(path, "format version " + std::to_string(version.toInt()) + " is newer than this flatnet reads (" +
+                          std::to_string(kFormatVersion) + "); update flatnet");
+  return a;
+}
+
+void write_header(torch::serialize::OutputArchive& a, const std::string& format, const Config& config,
+                  const CameraConfig& camera) {
+  write_string(a, "flatnet_format", format);
+  a.write("flatnet_version", c10::IValue(kFormatVersion));
+  write_string(a, "config", config.to_yaml());
+  write_string(a, "camera", camera_geometry_yaml(camera));
+}
+
+std::pair<Config, CameraConfig> read_header(torch::serialize::InputArchive& a, const std::filesystem::path& path) {
+  auto config = Config::from_text(read_string(a, "config", path), path);
+  auto camera = camera_from_yaml_text(read_string(a, "camera", path), path);
+  return {config, camera};
+}
+
+std::vector<char> read_bytes(const std::filesystem::path& path) {
+  require(std::filesystem::exists(path), path, "no such file");
+  std::ifstream in(path, std::ios::binary);
+  return std::vector<char>((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+}
+
+}  // namespace
+
+GeneratorOptions generator_options(const Config& c, const CameraConfig& camera, bool initialise) {
+  GeneratorOptions o;
+  o.rows = camera.raw.crop[2];
+  o.cols = camera.raw.crop[3];
+  o.scene = camera.scene_size;
+  o.input = parse_input_stage(c.str("model.input"));
+  o.bn_momentum = c.num("model.bn_momentum");
+  if (o.input == InputStage::inversion) {
+    const int64_t k = c.flag("model.inversion.shared") ? 1 : 4;
+    if (initialise) {
+      std::tie(o.inversion.phil, o.inversion.phir) = initial_inversion(c, camera);
+    } else {
+      o.inversion.phil = torch::zeros({o.rows, o.scene, k});
+      o.inversion.phir = torch::zeros({o.cols, o.scene, k});
+    }
+  } else if (initialise) {
+    require(!camera.calibration.empty(), "data.camera", "the camera names no calibration (needed for model.input tikhonov)");
+    const auto calib = load_calibration(camera.calibration, camera);
+    o.tik_P = calib.P;
+    o.tik_Q = calib.Q;
+    o.tik_lambda = camera.tikhonov_lambda;
+  }
+  o.enhancer = parse_enhancer(c.str("model.enhancer"));
+  o.unet.width = c.integer("model.unet.width");
+  o.unet.bn_momentum = o.bn_momentum;
+  o.dncnn.layers = c.integer("model.dncnn.layers");
+  o.dncnn.width = c.integer("model.dncnn.width");
+  o.rcan.groups = c.integer("model.rcan.groups");
+  o.rcan.blocks = c.integer("model.rcan.blocks");
+  o.rcan.width = c.integer("model.rcan.width");
+  o.rcan.reduction = c.integer("model.rcan.reduction");
+  require(o.unet.width >= 1 && o.dncnn.width >= 1 && o.rcan.width >= 1, "config", "model widths must be positive");
+  require(o.scene % 16 == 0, "camera", "scene_size must be divisible by 16 for the U-Net");
+  return o;
+}
+
+DiscriminatorOptions discriminator_options(const Config& c) {
+  DiscriminatorOptions o;
+  o.kind = c.str("discriminator.kind");
+  o.width = c.integer("discriminator.width");
+  return o;
+}
+
+void save_model_file(const std::filesystem::path& path, Generator& generator, const Config& config,
+                     const CameraConfig& camera) {
+  torch::serialize::OutputArchive a;
+  write_header(a, kModelFormat, config, camera);
+  save_module(a, "generator", *generator);
+  write_atomically(path, [&](const std::filesystem::path& tmp) { a.save_to(tmp.string()); });
+}
+
+ModelFile load_model_file(const std::filesystem::path& path) {
+  auto a = open_archive(path, kModelFormat);
+  auto [config, camera] = read_header(a, path);
+  ModelFile m{Generator(generator_options(config, camera, false)), config, camera};
+  load_module(a, "generator", *m.generator, path);
+  m.generator->eval();
+  return m;
+}
+
+void save_checkpoint(const std::filesystem::path& path, Generator& g, Discriminator& d, torch::optim::Adam& opt_g,
+                     torch::optim::Adam& opt_d, const TrainState& state, const Config& config,
+                     const CameraConfig& camera) {
+  torch::serialize::OutputArchive a;
+  write_header(a, kCheckpointFormat, config, camera);
+  save_module(a, "generator", *g);
+  save_module(a, "discriminator", *d);
+  torch::serialize::OutputArchive og(a.compilation_unit()), od(a.compilation_unit());
+  opt_g.save(og);
+  opt_d.save(od);
+  a.write("optimizer_generator", og);
+  a.write("optimizer_discriminator", od);
+  a.write("step", c10::IValue(state.step));
+  a.write("best_psnr", c10::IValue(state.best_psnr));
+  a.write("rng_state", state.rng_state, /*is_buffer=*/true);
+  write_atomically(path, [&](const std::filesystem::path& tmp) { a.save_to(tmp.string()); });
+}
+
+std::pair<Config, CameraConfig> checkpoint_settings(const std::filesystem::path& path) {
+  auto a = open_archive(path, kCheckpointFormat);
+  return read_header(a, path);
+}
+
+TrainState load_checkpoint(const std::filesystem::path& path, Generator& g, Discriminator& d,
+                           torch::optim::Adam& opt_g, torch::optim::Adam& opt_d) {
+  auto a = open_archive(path, kCheckpointFormat);
+  load_module(a, "generator", *g, path);
+  load_module(a, "discriminator", *d, path);
+  torch::serialize::InputArchive og, od;
+  a.read("optimizer_generator", og);
+  a.read("optimizer_discriminator", od);
+  opt_g.load(og);
+  opt_d.load(od);
+  TrainState s;
+  c10::IValue v;
+  a.read("step", v);
+  s.step = v.toInt();
+  a.read("best_psnr", v);
+  s.best_psnr = v.toDouble();
+  a.read("rng_state", s.rng_state, true);
+  return s;
+}
+
+ModelFile model_from_checkpoint(const std::filesystem::path& path) {
+  auto a = open_archive(path, kCheckpointFormat);
+  auto [config, camera] = read_header(a, path);
+  ModelFile m{Generator(generator_options(config, camera, false)), config, camera};
+  load_module(a, "generator", *m.generator, path);
+  m.generator->eval();
+  return m;
+}
+
+std::string flatnet_name(const std::string& ours) {
+  for (const std::string prefix : {"inversion.", "enhancer."})
+    if (ours.rfind(prefix, 0) == 0) return ours.substr(prefix.size());
+  return ours;
+}
+
+void export_state_dict(const std::filesystem::path& path, Generator& generator) {
+  c10::Dict<std::string, at::Tensor> dict;
+  for (const auto& p : generator->named_parameters()) dict.insert(flatnet_name(p.key()), p.value().detach().clone());
+  for (const auto& b : generator->named_buffers()) dict.insert(flatnet_name(b.key()), b.value().clone());
+  const auto bytes = torch::pickle_save(c10::IValue(dict));
+  write_atomically(path, [&](const std::filesystem::path& tmp) {
+    std::ofstream out(tmp, std::ios::binary);
+    out.write(bytes.data(), static_cast<std::streamsize>(bytes.size()));
+    require(static_cast<bool>(out), tmp, "write failed");
+  });
+}
+
+void import_state_dict(const std::filesystem::path& path, Generator& generator) {
+  c10::IValue v;
+  try {
+    v = torch::pickle_load(read_bytes(path));
+  } catch (const c10::Error& e) {
+    throw Error(path, "not a torch.save'd state dict (" + std::string(e.what_without_backtrace()).substr(0, 160) + ")");
+  }
+  require(v.isGenericDict(), path, "expected a dict of tensors");
+  auto dict = v.toGenericDict();
+  const auto nested = dict.find(std::string("gen_state_dict"));  // FlatNet's checkpoint layout
+  if (nested != dict.end()) dict = nested->value().toGenericDict();
+  torch::NoGradGuard no_grad;
+  auto copy_in = [&](const std::string& ours, torch::Tensor target) {
+    const auto name = flatnet_name(ours);
+    const auto it = dict.find(name);
+    require(it != dict.end() && it->value().isTensor(), path, "no tensor '" + name + "'");
+    const auto t = it->value().toTensor();
+    if (t.sizes() != target.sizes()) {
+      std::ostringstream os;
+      os << "tensor '" << name << "' is " << t.sizes() << ", the model needs " << target.sizes();
+      throw Error(path, os.str());
+    }
+    target.copy_(t);
+  };
+  for (auto& p : generator->named_parameters()) copy_in(p.key(), p.value());
+  for (auto& b : generator->named_buffers()) copy_in(b.key(), b.value());
+}
+
+}  // namespace flatnet

@@ -1,0 +1,62 @@
+#pragma once
+// What a trained model is on disk.
+//  - Model file (`flatnet infer --model`): one self-contained archive with the generator's
+//    weights, the merged config that describes its architecture, and the camera preprocessing it
+//    was trained for. Format tag "flatnet-model", version 1.
+//  - Checkpoint (`flatnet train`, resumable): the same plus the discriminator, both optimisers,
+//    the step, the best validation PSNR and the RNG state. Format tag "flatnet-checkpoint".
+//  - State dict (`flatnet export --state-dict`, `flatnet import`): a torch.save-compatible dict of
+//    tensors with FlatNet-sep's parameter names (PhiL, PhiR, bn.*, inc.*, down1.*, ..., outc.*).
+#include <filesystem>
+#include <string>
+
+#include "core/camera_config.hpp"
+#include "nn/generator.hpp"
+#include "nn/losses.hpp"
+#include "train/config.hpp"
+
+namespace flatnet {
+
+// The generator a config describes for a camera. With `initialise`, the first stage gets its
+// initial weights (model.inversion.init; the calibration for transpose and naive models);
+// without, only the shapes (weights come from a file).
+GeneratorOptions generator_options(const Config& config, const CameraConfig& camera, bool initialise);
+DiscriminatorOptions discriminator_options(const Config& config);
+
+struct ModelFile {
+  Generator generator{nullptr};
+  Config config;
+  CameraConfig camera;
+};
+
+void save_model_file(const std::filesystem::path& path, Generator& generator, const Config& config,
+                     const CameraConfig& camera);
+// Errors (naming the file): not a flatnet archive, a checkpoint where a model is expected (or the
+// reverse), a newer format version, weights missing or of the wrong shape.
+ModelFile load_model_file(const std::filesystem::path& path);
+
+struct TrainState {
+  int64_t step = 0;           // optimiser steps done
+  double best_psnr = -1e9;    // best validation PSNR so far
+  torch::Tensor rng_state;    // the default CPU generator's state
+};
+
+void save_checkpoint(const std::filesystem::path& path, Generator& g, Discriminator& d, torch::optim::Adam& opt_g,
+                     torch::optim::Adam& opt_d, const TrainState& state, const Config& config,
+                     const CameraConfig& camera);
+// The config and camera a checkpoint holds (to rebuild the networks before load_checkpoint).
+std::pair<Config, CameraConfig> checkpoint_settings(const std::filesystem::path& path);
+TrainState load_checkpoint(const std::filesystem::path& path, Generator& g, Discriminator& d,
+                           torch::optim::Adam& opt_g, torch::optim::Adam& opt_d);
+// A checkpoint's generator as a model file (what `flatnet export` does).
+ModelFile model_from_checkpoint(const std::filesystem::path& path);
+
+// FlatNet-sep name of one of our parameter names ("inversion.PhiL" -> "PhiL",
+// "enhancer.inc.conv.conv.0.weight" -> "inc.conv.conv.0.weight").
+std::string flatnet_name(const std::string& ours);
+void export_state_dict(const std::filesystem::path& path, Generator& generator);
+// Reads a state dict written by torch.save (a plain dict, or a FlatNet checkpoint holding
+// 'gen_state_dict') into the generator; every tensor must be present with the right shape.
+void import_state_dict(const std::filesystem::path& path, Generator& generator);
+
+}  // namespace flatnet

@@ -1,0 +1,242 @@
+// Networks, losses, configs and model files: shapes, gradients, names, round trips, errors.
+#include <catch2/catch.hpp>
+#include <fstream>
+
+#include "core/error.hpp"
+#include "helpers.hpp"
+#include "nn/generator.hpp"
+#include "nn/losses.hpp"
+#include "train/config.hpp"
+#include "train/model_file.hpp"
+
+using namespace flatnet;
+using Catch::Matchers::Contains;
+
+namespace {
+
+// A generator small enough for unit tests: 20x24 measurements -> 16x16 scene, U-Net width 2.
+GeneratorOptions tiny_options(int64_t k = 1, Enhancer e = Enhancer::unet) {
+  GeneratorOptions o;
+  o.rows = 20, o.cols = 24, o.scene = 16;
+  o.inversion.phil = torch::randn({20, 16, k}) * 0.2;
+  o.inversion.phir = torch::randn({24, 16, k}) * 0.2;
+  o.enhancer = e;
+  o.unet.width = 2;
+  o.dncnn.layers = 4, o.dncnn.width = 4;
+  o.rcan.groups = 2, o.rcan.blocks = 2, o.rcan.width = 16, o.rcan.reduction = 2;
+  return o;
+}
+
+void check_all_gradients(torch::nn::Module& m, const torch::Tensor& loss) {
+  loss.backward();
+  for (const auto& p : m.named_parameters()) {
+    INFO(p.key());
+    REQUIRE(p.value().grad().defined());
+    CHECK(p.value().grad().abs().sum().item<double>() > 0);
+  }
+}
+
+}  // namespace
+
+TEST_CASE("U-Net has FlatNet's structure and parameter names", "[nn]") {
+  UNet net(UNetOptions{4, 3, 2, 0.99});
+  const auto out = net->forward(torch::randn({2, 4, 32, 32}));
+  CHECK(out.sizes() == torch::IntArrayRef({2, 3, 32, 32}));
+  auto params = net->named_parameters();
+  // Names as in FlatNet's models.py, so state dicts interchange.
+  for (const char* name : {"inc.conv.conv.0.weight", "inc.conv.conv.1.weight", "down1.mpconv.0.conv.0.weight",
+                           "down4.mpconv.0.conv.3.weight", "up1.up.weight", "up1.conv.conv.0.weight",
+                           "up4.conv.conv.4.bias", "outc.conv.weight"}) {
+    INFO(name);
+    CHECK(params.find(name) != nullptr);
+  }
+  // Widths: w, 2w, 4w, 8w, 8w down; up1 takes 16w channels and gives 4w.
+  CHECK(params["down3.mpconv.0.conv.0.weight"].sizes() == torch::IntArrayRef({16, 8, 3, 3}));
+  CHECK(params["down4.mpconv.0.conv.0.weight"].sizes() == torch::IntArrayRef({16, 16, 3, 3}));
+  CHECK(params["up1.up.weight"].sizes() == torch::IntArrayRef({16, 16, 2, 2}));
+  CHECK(params["up1.conv.conv.0.weight"].sizes() == torch::IntArrayRef({8, 32, 3, 3}));
+  // Stride-2 first conv in the down blocks.
+  auto bn = net->named_modules()["inc.conv.conv.1"]->as<torch::nn::BatchNorm2dImpl>();
+  REQUIRE(bn);
+  CHECK(bn->options.momentum().value() == Approx(0.99));
+}
+
+TEST_CASE("inversion computes leaky_relu(PhiL^T Y PhiR) per channel, in FlatNet's channel order", "[nn]") {
+  for (int64_t k : {1, 4}) {
+    auto o = tiny_options(k);
+    FlatInversion inv(o.inversion);
+    const auto Y = torch::randn({2, 4, 20, 24});
+    const auto X = inv->forward(Y);
+    REQUIRE(X.sizes() == torch::IntArrayRef({2, 4, 16, 16}));
+    for (int c = 0; c < 4; ++c) {
+      const int64_t j = k == 1 ? 0 : c;
+      const auto L = o.inversion.phil.select(2, j), R = o.inversion.phir.select(2, j);
+      const auto expected = torch::leaky_relu(torch::matmul(L.t(), torch::matmul(Y.select(1, c), R)), 0.01);
+      CHECK(torch::allclose(X.select(1, 3 - c), expected, 1e-4, 1e-5));  // output is (r, gr, gb, b)
+    }
+  }
+}
+
+TEST_CASE("gradients reach every parameter of every generator variant and the discriminators", "[nn]") {
+  torch::manual_seed(0);
+  for (auto e : {Enhancer::unet, Enhancer::dncnn, Enhancer::rcan}) {
+    for (int64_t k : {1, 4}) {
+      Generator g(tiny_options(k, e));
+      const auto out = g->forward(torch::randn({2, 4, 20, 24}));
+      REQUIRE(out.sizes() == torch::IntArrayRef({2, 3, 16, 16}));
+      CHECK(out.min().item<double>() >= 0);
+      CHECK(out.max().item<double>() <= 1);
+      check_all_gradients(*g, (out - 0.3).pow(2).mean());
+    }
+  }
+  for (const char* kind : {"thesis", "flatnet"}) {
+    Discriminator d(DiscriminatorOptions{kind, 4});
+    const auto logits = d->forward(torch::rand({3, 3, 32, 32}));
+    REQUIRE(logits.sizes() == torch::IntArrayRef({3, 1}));
+    check_all_gradients(*d, logits.sum());
+  }
+  CHECK_THROWS_WITH(Discriminator(DiscriminatorOptions{"patch", 4}), Contains("thesis or flatnet"));
+}
+
+TEST_CASE("naive generator: the Tikhonov stage equals the SVD closed form", "[nn]") {
+  auto o = tiny_options();
+  o.input = InputStage::tikhonov;
+  const auto P = torch::randn({4, 20, 16}, torch::kFloat64), Q = torch::randn({4, 24, 16}, torch::kFloat64);
+  o.tik_P = P, o.tik_Q = Q, o.tik_lambda = 1e-3;
+  Generator g(o);
+  // Noise-free measurement of a known scene; with a small lambda the first stage recovers it.
+  const auto X = torch::rand({1, 4, 16, 16}, torch::kFloat64);
+  const auto Y = torch::matmul(P, torch::matmul(X, Q.transpose(1, 2))).to(torch::kFloat32);
+  const auto rec = g->first_stage(Y).flip({1});
+  CHECK(torch::allclose(rec, X.to(torch::kFloat32), 1e-2, 1e-2));
+  check_all_gradients(*g, g->forward(torch::cat({Y, Y * 0.5})).mean());  // the Tikhonov stage holds buffers only
+}
+
+TEST_CASE("VGG-16 features: torchvision's layout, loader round trip, clear error without weights", "[nn]") {
+  Vgg16Features vgg;
+  auto params = vgg->named_parameters();
+  CHECK(params.size() == 20);  // 10 convolutions up to relu4_3
+  CHECK(params["features.0.weight"].sizes() == torch::IntArrayRef({64, 3, 3, 3}));
+  CHECK(params["features.21.weight"].sizes() == torch::IntArrayRef({512, 512, 3, 3}));
+  const auto [r22, r43] = vgg->forward(torch::rand({1, 3, 32, 32}));
+  CHECK(r22.sizes() == torch::IntArrayRef({1, 128, 16, 16}));
+  CHECK(r43.sizes() == torch::IntArrayRef({1, 512, 4, 4}));
+  for (const auto& p : params) CHECK_FALSE(p.value().requires_grad());
+
+  test::Scratch s("vgg");
+  c10::Dict<std::string, at::Tensor> dict;
+  for (const auto& p : params) dict.insert(p.key(), torch::randn(p.value().sizes()));
+  const auto bytes = torch::pickle_save(c10::IValue(dict));
+  std::ofstream(s.dir / "vgg.pt", std::ios::binary).write(bytes.data(), bytes.size());
+  auto loaded = load_vgg16(s.dir / "vgg.pt");
+  CHECK(torch::equal(loaded->named_parameters()["features.21.weight"], dict.at("features.21.weight")));
+  CHECK_THROWS_WITH(load_vgg16(s.dir / "missing.pt"), Contains("--set loss.perceptual=0"));
+  std::ofstream(s.dir / "junk.pt") << "not a tensor file";
+  CHECK_THROWS_WITH(load_vgg16(s.dir / "junk.pt"), Contains("junk.pt"));
+}
+
+TEST_CASE("config: defaults, base files, --set, unknown keys with a suggestion, round trip", "[config]") {
+  test::Scratch s("config");
+  std::ofstream(s.dir / "base.yaml") << "model:\n  unet:\n    width: 16\ntrain:\n  lr: 2.0e-4\n";
+  std::ofstream(s.dir / "exp.yaml") << "base: base.yaml\ntrain:\n  lr: 5.0e-4\n";
+  auto c = Config::load(s.dir / "exp.yaml", {"train.batch=2"});
+  CHECK(c.integer("model.unet.width") == 16);
+  CHECK(c.num("train.lr") == Approx(5e-4));
+  CHECK(c.integer("train.batch") == 2);
+  CHECK(c.num("loss.perceptual") == Approx(1.2));  // untouched default
+  CHECK_THROWS_WITH(Config::load(s.dir / "exp.yaml", {"train.itrations=5"}),
+                    Contains("unknown setting 'train.itrations'") && Contains("train.iterations"));
+  std::ofstream(s.dir / "bad.yaml") << "model:\n  unet:\n    widht: 3\n";
+  CHECK_THROWS_WITH(Config::load(s.dir / "bad.yaml"), Contains("bad.yaml") && Contains("model.unet.width"));
+  CHECK_THROWS_WITH(Config::load(s.dir / "exp.yaml", {"train.batch=four"}).integer("train.batch"),
+                    Contains("train.batch"));
+  const auto again = Config::from_text(c.to_yaml(), "text");
+  CHECK(again.to_yaml() == c.to_yaml());  // paths are written resolved, so the text is a fixed point
+}
+
+TEST_CASE("model files and state dicts round trip; wrong files give clear errors", "[nn][model]") {
+  test::Scratch s("model");
+  auto config = Config::load({}, {"model.unet.width=2"});
+  CameraConfig camera;
+  camera.raw.crop = {0, 0, 20, 24};
+  camera.scene_size = 16;
+  Generator g(generator_options(config, camera, false));
+  {
+    torch::NoGradGuard ng;
+    for (auto& p : g->parameters()) p.uniform_(-0.3, 0.3);
+  }
+  g->train();
+  g->forward(torch::randn({2, 4, 20, 24}));  // non-trivial running statistics
+  g->eval();
+  const auto Y = torch::randn({1, 4, 20, 24});
+  const auto expected = g->forward(Y);
+
+  save_model_file(s.dir / "m.flatnet", g, config, camera);
+  auto m = load_model_file(s.dir / "m.flatnet");
+  CHECK(torch::equal(m.generator->forward(Y), expected));
+  CHECK(m.camera.raw.crop == camera.raw.crop);
+
+  export_state_dict(s.dir / "sd.pt", g);
+  Generator h(generator_options(config, camera, false));
+  import_state_dict(s.dir / "sd.pt", h);
+  h->eval();
+  CHECK(torch::equal(h->forward(Y), expected));
+
+  // Wrong architecture, wrong kind of file, not a file at all.
+  auto wide = Config::load({}, {"model.unet.width=3"});
+  Generator w(generator_options(wide, camera, false));
+  CHECK_THROWS_WITH(import_state_dict(s.dir / "sd.pt", w), Contains("sd.pt") && Contains("the model needs"));
+  CHECK_THROWS_WITH(load_model_file(s.dir / "sd.pt"), Contains("sd.pt") && Contains("not a flatnet"));
+  std::ofstream(s.dir / "junk.flatnet") << "junk";
+  CHECK_THROWS_WITH(load_model_file(s.dir / "junk.flatnet"), Contains("junk.flatnet"));
+  CHECK_THROWS_WITH(load_model_file(s.dir / "none.flatnet"), Contains("no such file"));
+}
+
+TEST_CASE("the C++ generator equals a Python reference of FlatNet-sep on the same weights", "[nn][python]") {
+  if (std::system("/usr/bin/python3 -c 'import torch' >/dev/null 2>&1") != 0) {
+    WARN("skipped: /usr/bin/python3 has no torch");
+    return;
+  }
+  test::Scratch s("pyref");
+  const auto script = test::source_dir() / "scripts" / "flatnet_reference.py";
+  auto config = Config::load({}, {"model.unet.width=4", "model.inversion.shared=false"});
+  CameraConfig camera;  // the real sizes: 500x620 -> 256x256
+  for (int64_t k : {1, 4}) {
+    INFO("k = " << k);
+    const std::string ks = std::to_string(k);
+    // Python makes weights, input and output; C++ imports them and must agree.
+    auto cmd = "/usr/bin/python3 '" + script.string() + "' make '" + (s.dir / "sd.pt").string() + "' '" +
+               (s.dir / "in.pt").string() + "' '" + (s.dir / "out.pt").string() + "' 4 " + ks + " >/dev/null";
+    REQUIRE(std::system(cmd.c_str()) == 0);
+    auto c = Config::load({}, {"model.unet.width=4", std::string("model.inversion.shared=") + (k == 1 ? "true" : "false")});
+    Generator g(generator_options(c, camera, false));
+    import_state_dict(s.dir / "sd.pt", g);
+    g->eval();
+    auto load = [](const std::filesystem::path& p) {
+      std::ifstream f(p, std::ios::binary);
+      std::vector<char> b((std::istreambuf_iterator<char>(f)), {});
+      return torch::pickle_load(b).toTensor();
+    };
+    torch::NoGradGuard ng;
+    const auto out = g->forward(load(s.dir / "in.pt"));
+    CHECK((out - load(s.dir / "out.pt")).abs().max().item<double>() < 1e-4);
+
+    // C++ exports weights, input and output; Python checks them.
+    {
+      torch::NoGradGuard ng2;
+      for (auto& p : g->parameters()) p.add_(torch::randn(p.sizes()) * 0.01);
+    }
+    const auto Y = torch::randn({2, 4, 500, 620}) * 0.05;
+    const auto mine = g->forward(Y);
+    export_state_dict(s.dir / "sd2.pt", g);
+    auto save = [](const std::filesystem::path& p, const torch::Tensor& t) {
+      const auto b = torch::pickle_save(t);
+      std::ofstream(p, std::ios::binary).write(b.data(), b.size());
+    };
+    save(s.dir / "in2.pt", Y);
+    save(s.dir / "out2.pt", mine);
+    cmd = "/usr/bin/python3 '" + script.string() + "' check '" + (s.dir / "sd2.pt").string() + "' '" +
+          (s.dir / "in2.pt").string() + "' '" + (s.dir / "out2.pt").string() + "' 4 " + ks;
+    CHECK(std::system(cmd.c_str()) == 0);
+  }
+}
