@@ -103,3 +103,70 @@ TEST_CASE("bad input: one clear line, exit code 2", "[cli][errors]") {
   CHECK(r.code == 2);
   CHECK_THAT(r.output, Contains("cam.yaml") && Contains("crop"));
 }
+
+TEST_CASE("train, export, import and infer from the command line; bad input is refused", "[cli][train][slow]") {
+  test::Scratch s("train_cli");
+  auto photos = make_photos(s.dir / "photos");
+  REQUIRE(test::run_flatnet("simulate --images " + q(photos) + " --out " + q(s.dir / "ds") + " --val-fraction 0.5").code == 0);
+  const std::string base = "train --config " + q(test::source_dir() / "configs" / "sim_transpose.yaml") +
+                           " --set data.dataset=" + q(s.dir / "ds") + " --set model.unet.width=2";
+  auto r = test::run_flatnet(base + " --set train.iterations=2 --set train.val_every=1 --out " + q(s.dir / "run"));
+  INFO(r.output);
+  REQUIRE(r.code == 0);
+  CHECK_THAT(r.output, Contains("model: "));
+  const auto model = s.dir / "run" / "model.flatnet";
+  REQUIRE(std::filesystem::exists(model));
+
+  // A run folder is never overwritten; --resume continues it.
+  auto again = test::run_flatnet(base + " --out " + q(s.dir / "run"));
+  CHECK(again.code == 2);
+  CHECK_THAT(again.output, Contains("--resume"));
+  auto more = test::run_flatnet("train --out " + q(s.dir / "run") + " --resume --set train.iterations=3");
+  INFO(more.output);
+  CHECK(more.code == 0);
+  CHECK_THAT(more.output, Contains("steps 2..3"));
+
+  r = test::run_flatnet("infer --model " + q(model) + " --input " + q(s.dir / "ds" / "meas") + " --out " + q(s.dir / "rec"));
+  INFO(r.output);
+  REQUIRE(r.code == 0);
+  CHECK(std::filesystem::exists(s.dir / "rec" / "bsds_16052_scene.png"));
+  CHECK_THAT(r.output, Contains("images/s"));
+
+  // export -> state dict -> import -> infer gives the same images.
+  REQUIRE(test::run_flatnet("export --model " + q(model) + " --state-dict --out " + q(s.dir / "sd.pt")).code == 0);
+  r = test::run_flatnet("import --state-dict " + q(s.dir / "sd.pt") + " --config " +
+                        q(test::source_dir() / "configs" / "sim_transpose.yaml") + " --set model.unet.width=2 --out " +
+                        q(s.dir / "imported.flatnet"));
+  INFO(r.output);
+  REQUIRE(r.code == 0);
+  REQUIRE(test::run_flatnet("infer --model " + q(s.dir / "imported.flatnet") + " --input " +
+                            q(s.dir / "ds" / "val_meas.txt") + " --out " + q(s.dir / "rec2")).code == 0);
+  const auto name = read_lines(s.dir / "ds" / "val_meas.txt").at(0);
+  const auto file = std::filesystem::path(name).filename();
+  auto bytes = [](const std::filesystem::path& p) {
+    std::ifstream f(p, std::ios::binary);
+    return std::string(std::istreambuf_iterator<char>(f), {});
+  };
+  CHECK(bytes(s.dir / "rec" / file) == bytes(s.dir / "rec2" / file));
+
+  // Bad input: exit code 2, a message that says what is wrong.
+  auto bad = test::run_flatnet(base + " --set train.itrations=3 --out " + q(s.dir / "bad"));
+  CHECK(bad.code == 2);
+  CHECK_THAT(bad.output, Contains("train.itrations") && Contains("did you mean 'train.iterations'"));
+  CHECK_FALSE(std::filesystem::exists(s.dir / "bad"));
+  bad = test::run_flatnet(base + " --set loss.perceptual=1.2 --set loss.vgg_file=" + q(s.dir / "none.pt") + " --out " + q(s.dir / "bad"));
+  CHECK(bad.code == 2);
+  CHECK_THAT(bad.output, Contains("--set loss.perceptual=0"));
+  bad = test::run_flatnet("infer --model " + q(s.dir / "run" / "latest.ckpt") + " --input " + q(s.dir / "ds" / "meas") + " --out " + q(s.dir / "x"));
+  CHECK(bad.code == 2);
+  CHECK_THAT(bad.output, Contains("flatnet export --checkpoint"));
+  std::ofstream(s.dir / "small.yaml") << "name: small\ncrop: [0, 0, 400, 620]\n";
+  bad = test::run_flatnet("infer --model " + q(model) + " --camera " + q(s.dir / "small.yaml") + " --input " +
+                          q(s.dir / "ds" / "meas") + " --out " + q(s.dir / "x"));
+  CHECK(bad.code == 2);
+  CHECK_THAT(bad.output, Contains("do not match the model"));
+  std::filesystem::create_directories(s.dir / "empty");
+  bad = test::run_flatnet(base + " --set data.dataset=" + q(s.dir / "empty") + " --out " + q(s.dir / "bad"));
+  CHECK(bad.code == 2);
+  CHECK_FALSE(std::filesystem::exists(s.dir / "bad"));
+}

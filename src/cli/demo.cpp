@@ -5,7 +5,9 @@
 #include "core/util.hpp"
 #include "eval/report.hpp"
 #include "optics/simulator.hpp"
+#include "recon/infer.hpp"
 #include "recon/run.hpp"
+#include "train/model_file.hpp"
 
 namespace flatnet::cli {
 
@@ -26,6 +28,17 @@ std::filesystem::path gather_demo_images(const std::filesystem::path& src, const
   }
   require(found > 0, src, "no demo photographs here; run scripts/setup.sh (installs python3-skimage) or pass --images DIR");
   return dst;
+}
+
+// The trained models shipped in models/ (flatnet-sim-*.flatnet), by method name.
+std::vector<std::pair<std::string, std::filesystem::path>> shipped_models() {
+  std::vector<std::pair<std::string, std::filesystem::path>> out;
+  const auto dir = std::filesystem::path(FLATNET_SOURCE_DIR) / "models";
+  for (const std::string name : {"transpose", "calibfree"}) {
+    const auto p = dir / ("flatnet-sim-" + name + ".flatnet");
+    if (std::filesystem::exists(p)) out.emplace_back("flatnet-" + name, p);
+  }
+  return out;
 }
 
 }  // namespace
@@ -61,12 +74,19 @@ int demo(int argc, char** argv) {
     const auto rep = reconstruct_files(camera, calib, captures, ro);
     std::cout << "  " << method << ": " << rep.recon_ms_per_capture << " ms per capture\n";
   }
+  for (const auto& [method, path] : shipped_models()) {
+    auto model = load_model_file(path);
+    InferOptions io;
+    io.out = out / "recon" / method;
+    const auto rep = infer_files(model.generator, camera, captures, io);
+    std::cout << "  " << method << ": " << rep.model_ms_per_image << " ms per capture (" << path.filename().string() << ")\n";
+  }
 
   std::cout << "[3/3] evaluating\n";
   const auto scores = evaluate({sim.out / "gt", out / "recon", 6});
   std::cout << format_table(scores) << "\n"
             << "captures:         " << (sim.out / "meas").string() << " (" << srep.total << ")\n"
-            << "reconstructions:  " << (out / "recon").string() << "/{tikhonov,tv}\n"
+            << "reconstructions:  " << (out / "recon").string() << "/<method>\n"
             << "metrics:          " << (out / "recon" / "metrics.csv").string() << "\n"
             << "contact sheet:    " << (out / "recon" / "sheet.png").string() << "\n";
   return 0;

@@ -15,6 +15,16 @@ std::vector<std::filesystem::path> collect_captures(const std::filesystem::path&
     require(!files.empty(), input, "no .png captures in this folder");
     return files;
   }
+  if (input.extension() == ".txt") {  // a list (e.g. a dataset's val_meas.txt), relative to its folder
+    std::vector<std::filesystem::path> files;
+    for (const auto& line : read_lines(input)) {
+      const auto p = input.parent_path() / line;
+      require(std::filesystem::exists(p), input, "lists '" + line + "', which does not exist");
+      files.push_back(p);
+    }
+    require(!files.empty(), input, "an empty list");
+    return files;
+  }
   return {input};
 }
 
