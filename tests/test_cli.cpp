@@ -4,6 +4,7 @@
 
 #include "core/util.hpp"
 #include "helpers.hpp"
+#include "io/image.hpp"
 #include "io/mat.hpp"
 
 using namespace flatnet;
@@ -169,4 +170,25 @@ TEST_CASE("train, export, import and infer from the command line; bad input is r
   bad = test::run_flatnet(base + " --set data.dataset=" + q(s.dir / "empty") + " --out " + q(s.dir / "bad"));
   CHECK(bad.code == 2);
   CHECK_FALSE(std::filesystem::exists(s.dir / "bad"));
+}
+
+TEST_CASE("the shipped models run on FlatNet's real prototype captures", "[cli][flatnet-data]") {
+  const auto data = test::shared_dir() / "data" / "flatnet";
+  const auto model = test::source_dir() / "models" / "flatnet-sim-calibfree.flatnet";
+  if (!std::filesystem::exists(data / "fc_6.png") || !std::filesystem::exists(model)) {
+    WARN("skipped: no ../shared/data/flatnet captures or no shipped model");
+    return;
+  }
+  test::Scratch s("prototype");
+  auto r = test::run_flatnet("infer --model " + q(model) + " --camera " +
+                             q(test::source_dir() / "configs" / "cameras" / "flatnet_prototype.yaml") + " --input " +
+                             q(data / "fc_*.png") + " --out " + q(s.dir / "rec"));
+  INFO(r.output);
+  REQUIRE(r.code == 0);
+  CHECK_THAT(r.output, Contains("4 captures"));
+  for (const char* n : {"fc_6.png", "fc_7.png", "fc_8.png", "fc_9.png"}) {
+    const auto img = read_rgb(s.dir / "rec" / n);
+    CHECK(img.sizes() == torch::IntArrayRef({3, 256, 256}));
+    CHECK(img.std().item<double>() > 0.01);  // an image, not a constant
+  }
 }

@@ -16,6 +16,7 @@ int train(int argc, char** argv);
 int export_model(int argc, char** argv);
 int import_model(int argc, char** argv);
 int infer(int argc, char** argv);
+int mask(int argc, char** argv);
 
 // Shared flag handling.
 void add_common(cxxopts::Options& options);                 // --threads, --help

@@ -17,6 +17,7 @@ const std::map<std::string, std::pair<int (*)(int, char**), const char*>> kComma
     {"infer", {flatnet::cli::infer, "reconstruct raw captures with a trained model"}},
     {"export", {flatnet::cli::export_model, "checkpoint -> model file, or model -> PyTorch state_dict"}},
     {"import", {flatnet::cli::import_model, "PyTorch state_dict (FlatNet-sep names) -> model file"}},
+    {"mask", {flatnet::cli::mask, "learn FlatCam masks (train), score them (eval), compare them (report)"}},
     {"demo", {flatnet::cli::demo, "simulate, reconstruct and evaluate a few photographs end to end"}},
 };
 

@@ -44,6 +44,10 @@ torch::Tensor hadamard(int64_t n) {
 }
 
 torch::Tensor toeplitz_phi(const std::vector<int>& code, const MaskGeometry& g) {
+  return toeplitz_phi(std::vector<double>(code.begin(), code.end()), g);
+}
+
+torch::Tensor toeplitz_phi(const std::vector<double>& code, const MaskGeometry& g) {
   const int64_t L = static_cast<int64_t>(code.size());
   const int64_t M = g.sensor_pixels, N = g.scene_pixels;
   auto phi = torch::zeros({M, N}, torch::kFloat64);

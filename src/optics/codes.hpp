@@ -33,6 +33,7 @@ struct MaskGeometry {
 // is the code's transmittance averaged over sensor pixel i when the shadow is shifted for scene
 // pixel j (the code is centred on the sensor for the middle scene pixel), then blurred.
 torch::Tensor toeplitz_phi(const std::vector<int>& code, const MaskGeometry& g);
+torch::Tensor toeplitz_phi(const std::vector<double>& code, const MaskGeometry& g);  // graded transmittance
 
 // FlatNet's calibration-free initialisation (thesis, sec. "calibration-free FlatNet"): a
 // Toeplitz-like matrix whose column j is a random sequence shifted by j * slope sensor pixels,

@@ -1,5 +1,7 @@
 #include "recon/run.hpp"
 
+#include <fnmatch.h>
+
 #include "core/error.hpp"
 #include "core/util.hpp"
 #include "io/image.hpp"
@@ -9,6 +11,17 @@
 namespace flatnet {
 
 std::vector<std::filesystem::path> collect_captures(const std::filesystem::path& input) {
+  const auto pattern = input.filename().string();
+  if (pattern.find_first_of("*?[") != std::string::npos) {  // DIR/fc_*.png: matching files, sorted
+    const auto dir = input.parent_path().empty() ? std::filesystem::path(".") : input.parent_path();
+    require(std::filesystem::is_directory(dir), dir, "no such folder");
+    std::vector<std::filesystem::path> files;
+    for (const auto& e : std::filesystem::directory_iterator(dir))
+      if (e.is_regular_file() && ::fnmatch(pattern.c_str(), e.path().filename().c_str(), 0) == 0) files.push_back(e.path());
+    std::sort(files.begin(), files.end());
+    require(!files.empty(), input, "no file matches this pattern");
+    return files;
+  }
   require(std::filesystem::exists(input), input, "no such file or folder");
   if (std::filesystem::is_directory(input)) {
     auto files = list_images(input, {".png"});

@@ -23,7 +23,8 @@ struct ReconReport {
   double seconds = 0;               // everything, I/O included
 };
 
-// A FILE, every .png in a DIR (sorted), or the files a .txt list names (relative to the list's folder).
+// A FILE, every .png in a DIR (sorted), files matching a pattern (DIR/fc_*.png), or the files a
+// .txt list names (relative to the list's folder).
 std::vector<std::filesystem::path> collect_captures(const std::filesystem::path& input);
 
 // Linear-light planes {4,N,N} (b, gb, gr, r) -> sRGB image {3,N,N} in [0,1].

@@ -1,0 +1,175 @@
+#include "train/mask_trainer.hpp"
+
+#include <fstream>
+#include <iomanip>
+#include <random>
+#include <thread>
+
+#include "core/error.hpp"
+#include "core/util.hpp"
+#include "eval/metrics.hpp"
+#include "eval/plot.hpp"
+#include "io/image.hpp"
+#include "io/mat.hpp"
+
+namespace flatnet {
+
+torch::Tensor load_luma_scenes(const std::vector<std::filesystem::path>& images, int64_t size, int workers) {
+  require(!images.empty(), "images", "no readable images");
+  auto out = torch::empty({static_cast<int64_t>(images.size()), size, size});
+  std::atomic<size_t> next{0};
+  std::exception_ptr error;
+  std::mutex m;
+  std::vector<std::thread> pool;
+  for (int t = 0; t < std::max(1, workers); ++t)
+    pool.emplace_back([&] {
+      for (size_t i; (i = next++) < images.size();) {
+        try {
+          const auto rgb = resize(read_rgb(images[i]), size, size).clamp(0, 1);
+          out[static_cast<int64_t>(i)].copy_(0.299f * rgb[0] + 0.587f * rgb[1] + 0.114f * rgb[2]);
+        } catch (...) {
+          std::lock_guard<std::mutex> lock(m);
+          if (!error) error = std::current_exception();
+        }
+      }
+    });
+  for (auto& t : pool) t.join();
+  if (error) std::rethrow_exception(error);
+  return out;
+}
+
+namespace {
+
+double batch_psnr(const torch::Tensor& rec, const torch::Tensor& truth) {  // {B,N,N}, mean over images
+  const auto mse = (rec.clamp(0, 1) - truth).pow(2).mean({1, 2}).clamp_min(1e-12);
+  return (-10.0 * torch::log10(mse)).sum().item<double>();
+}
+
+}  // namespace
+
+double mask_psnr(const torch::Tensor& window, double gamma, const torch::Tensor& scenes, const WienerCamera& cam,
+                 uint64_t seed, int64_t batch) {
+  torch::NoGradGuard no_grad;
+  const auto P = psf_spectrum(window);
+  const auto g = torch::tensor(gamma);
+  double sum = 0;
+  for (int64_t i = 0; i < scenes.size(0); i += batch) {
+    const auto x = scenes.slice(0, i, std::min(scenes.size(0), i + batch));
+    auto gen = at::detail::createCPUGenerator(seed * 1000003ULL + static_cast<uint64_t>(i));
+    sum += batch_psnr(wiener(capture(x, P, cam, gen), P, g, cam), x);
+  }
+  return sum / scenes.size(0);
+}
+
+double tune_gamma(const torch::Tensor& window, const torch::Tensor& scenes, const WienerCamera& cam, uint64_t seed) {
+  double best = -1e9, best_log = -3;
+  for (double lg = -8; lg <= 0.01; lg += 0.5) {
+    const double p = mask_psnr(window, std::pow(10.0, lg), scenes, cam, seed);
+    if (p > best) best = p, best_log = lg;
+  }
+  const double centre = best_log;
+  for (double lg = centre - 0.4; lg <= centre + 0.41; lg += 0.1) {
+    const double p = mask_psnr(window, std::pow(10.0, lg), scenes, cam, seed);
+    if (p > best) best = p, best_log = lg;
+  }
+  return std::pow(10.0, best_log);
+}
+
+void write_mask_png(const std::filesystem::path& path, const torch::Tensor& window) {
+  write_gray16(path, torch::round(window.detach().clamp(0, 1) * 65535.0).to(torch::kInt32));
+}
+
+MaskTrainSummary train_mask(MaskModel& model, const torch::Tensor& train_scenes, const torch::Tensor& val_scenes,
+                            const WienerCamera& cam, const MaskTrainOptions& o) {
+  require(cam.noise_sigma > 0 || cam.photons > 0, "camera.noise_sigma", "must be positive (a noise-free design is degenerate)");
+  require(train_scenes.size(0) > 0 && val_scenes.size(0) > 0, "data.images", "no training or validation images");
+  std::filesystem::create_directories(o.out);
+  // gamma > 0 by construction: it is learned as its logarithm.
+  auto log_gamma = torch::tensor(std::log(o.gamma_init)).set_requires_grad(true);
+  std::vector<torch::Tensor> params = model->parameters();
+  params.push_back(log_gamma);
+  std::unique_ptr<torch::optim::Optimizer> opt;
+  if (o.optimizer == "sgd")
+    opt = std::make_unique<torch::optim::SGD>(params, torch::optim::SGDOptions(o.lr).momentum(o.momentum));
+  else if (o.optimizer == "adam")
+    opt = std::make_unique<torch::optim::Adam>(params, torch::optim::AdamOptions(o.lr));
+  else
+    throw Error("config: train.optimizer must be sgd or adam, got '" + o.optimizer + "'");
+
+  const auto n = train_scenes.size(0);
+  std::ofstream log(o.out / "log.csv");
+  log << "step,loss,psnr,gamma,throughput\n";
+  std::ofstream val_log(o.out / "val.csv");
+  val_log << "step,val_psnr,gamma,throughput\n";
+  Series train_curve{"train (batch)", {}, {}}, val_curve{"validation", {}, {}};
+  Progress progress("mask", o.iterations, o.progress);
+  const auto start = std::chrono::steady_clock::now();
+  std::mt19937_64 rng(o.seed);
+  std::uniform_int_distribution<int64_t> pick(0, n - 1);
+  double sum_loss = 0, sum_psnr = 0;
+  int64_t count = 0;
+  MaskTrainSummary s;
+  auto validate = [&](int64_t step) {
+    torch::NoGradGuard ng;
+    const auto w = model->window();
+    const double g = std::exp(log_gamma.item<double>());
+    const double p = mask_psnr(w, g, val_scenes, cam, 12345);
+    val_log << step << "," << p << "," << g << "," << throughput(w) << "\n" << std::flush;
+    val_curve.x.push_back(static_cast<double>(step));
+    val_curve.y.push_back(p);
+    s.val_psnr = p, s.gamma = g, s.throughput = throughput(w);
+  };
+  validate(0);
+  for (int64_t step = 0; step < o.iterations; ++step) {
+    std::vector<int64_t> idx(o.batch);
+    for (auto& i : idx) i = pick(rng);
+    const auto x = train_scenes.index_select(0, torch::tensor(idx));
+    auto gen = at::detail::createCPUGenerator(o.seed * 7919ULL + static_cast<uint64_t>(step));
+    const auto P = psf_spectrum(model->window());
+    const auto rec = wiener(capture(x, P, cam, gen), P, log_gamma.exp(), cam);
+    const auto loss = torch::mse_loss(rec, x);
+    const double lv = loss.item<double>();
+    if (!std::isfinite(lv)) throw Error("mask training diverged: the loss is " + std::to_string(lv) + " at step " +
+                                        std::to_string(step) + "; try a lower train.lr");
+    opt->zero_grad();
+    loss.backward();
+    opt->step();
+    sum_loss += lv;
+    sum_psnr += batch_psnr(rec.detach(), x) / o.batch;
+    ++count;
+    progress.tick();
+    if ((step + 1) % o.log_every == 0) {
+      const double g = std::exp(log_gamma.item<double>());
+      log << step + 1 << "," << sum_loss / count << "," << sum_psnr / count << "," << g << ","
+          << throughput(model->window().detach()) << "\n";
+      train_curve.x.push_back(static_cast<double>(step + 1));
+      train_curve.y.push_back(sum_psnr / count);
+      std::ostringstream st;
+      st << "psnr " << std::fixed << std::setprecision(2) << sum_psnr / count << " gamma " << std::scientific
+         << std::setprecision(2) << g;
+      progress.set_status(st.str());
+      sum_loss = sum_psnr = 0;
+      count = 0;
+    }
+    if ((step + 1) % o.val_every == 0 || step + 1 == o.iterations) validate(step + 1);
+  }
+  progress.finish();
+  s.steps = o.iterations;
+  s.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+
+  torch::NoGradGuard ng;
+  const auto window = model->window();
+  write_mask_png(o.out / "mask.png", window);
+  write_mat(o.out / "vectors.mat", {{"U", model->U.detach().to(torch::kFloat64)}, {"V", model->V.detach().to(torch::kFloat64)}});
+  std::ostringstream gs;
+  gs << std::setprecision(9) << s.gamma << "\n";
+  write_text_atomically(o.out / "gamma.txt", gs.str());
+  PlotOptions po;
+  po.title = "mask training (rank " + std::to_string(model->options().rank) + ")";
+  po.xlabel = "step";
+  po.ylabel = "PSNR dB";
+  write_line_plot(o.out / "curve.png", {train_curve, val_curve}, po);
+  return s;
+}
+
+}  // namespace flatnet

@@ -1,0 +1,47 @@
+#pragma once
+// Learning FlatCam masks end to end (FlatNet thesis, "learning the mask"): a rank-k mask, the
+// lensless capture of grayscale scenes through its PSF, Wiener deconvolution with a learned
+// regulariser gamma, and an MSE loss. Also the fair evaluation of any mask: gamma tuned on
+// validation images, PSNR on held-out ones, under the same noise.
+#include <filesystem>
+#include <string>
+#include <vector>
+
+#include "optics/mask.hpp"
+
+namespace flatnet {
+
+// Photographs -> {N,size,size} luma (Rec. 601 weights on the sRGB values) in [0,1].
+torch::Tensor load_luma_scenes(const std::vector<std::filesystem::path>& images, int64_t size, int workers);
+
+struct MaskTrainOptions {
+  int64_t iterations = 10000;
+  int64_t batch = 4;
+  std::string optimizer = "sgd";  // sgd (thesis: momentum 0.5, lr 1e-4) | adam
+  double lr = 1e-4, momentum = 0.5;
+  double gamma_init = 1e-3;
+  int64_t val_every = 500, log_every = 50;
+  uint64_t seed = 0;
+  std::filesystem::path out;  // mask.png, vectors.mat, gamma.txt, log.csv, val.csv, curve.png
+  bool progress = true;
+};
+
+struct MaskTrainSummary {
+  double gamma = 0, val_psnr = 0, throughput = 0, seconds = 0;
+  int64_t steps = 0;
+};
+
+// Mean PSNR (reconstruction clamped to [0,1]) over scenes, captured through `window` with noise
+// drawn from `seed`, reconstructed by Wiener with `gamma`.
+double mask_psnr(const torch::Tensor& window, double gamma, const torch::Tensor& scenes, const WienerCamera& cam,
+                 uint64_t seed, int64_t batch = 8);
+// The gamma (log grid, then refined) that maximises mask_psnr on `scenes`.
+double tune_gamma(const torch::Tensor& window, const torch::Tensor& scenes, const WienerCamera& cam, uint64_t seed);
+
+MaskTrainSummary train_mask(MaskModel& model, const torch::Tensor& train_scenes, const torch::Tensor& val_scenes,
+                            const WienerCamera& cam, const MaskTrainOptions& options);
+
+// Writes a mask window {rows, cols} in [0,1] as a 16-bit PNG (65535 = fully transparent).
+void write_mask_png(const std::filesystem::path& path, const torch::Tensor& window);
+
+}  // namespace flatnet

@@ -1,0 +1,132 @@
+// Mask design: baselines, the capture/Wiener pipeline's physics, the throughput rule, gradients,
+// and the mask commands' errors.
+#include <catch2/catch.hpp>
+#include <fstream>
+
+#include "core/error.hpp"
+#include "helpers.hpp"
+#include "io/image.hpp"
+#include "train/mask_trainer.hpp"
+
+using namespace flatnet;
+using Catch::Matchers::Contains;
+
+namespace {
+std::string q(const std::filesystem::path& p) { return "'" + p.string() + "'"; }
+torch::Tensor smooth_scenes(int64_t b) {  // {b,256,256} in [0,1], low-pass random
+  auto x = torch::rand({b, 1, 32, 32});
+  return torch::upsample_bilinear2d(x, {256, 256}, false).squeeze(1);
+}
+}  // namespace
+
+TEST_CASE("baseline masks: MLS passes half the light, the 02 mask about 2%", "[mask]") {
+  WienerCamera cam;
+  const auto mls = load_mask_window("mls", cam);
+  REQUIRE(mls.sizes() == torch::IntArrayRef({500, 620}));
+  CHECK(throughput(mls) == Approx(0.5).margin(0.01));
+  const auto m02 = load_mask_window("m02", cam);
+  CHECK(throughput(m02) == Approx(21.0 * 21.0 * 16.0 / (500.0 * 620.0)).epsilon(1e-6));  // 21 open of 31, squared
+  CHECK(((mls == 0) | (mls == 1)).all().item<bool>());
+}
+
+TEST_CASE("capture is a convolution with unit DC gain and Wiener inverts it", "[mask]") {
+  WienerCamera cam;
+  cam.noise_sigma = 0;
+  const auto P = psf_spectrum(load_mask_window("mls", cam));
+  // Unit DC gain for a half-open mask: P(0) = 2 * throughput.
+  CHECK(P[0][0].abs().item<double>() == Approx(2 * throughput(load_mask_window("mls", cam))).epsilon(1e-4));
+  const auto x = smooth_scenes(2);
+  const auto y = capture(x, P, cam);
+  REQUIRE(y.sizes() == torch::IntArrayRef({2, 500, 620}));
+  const auto rec = wiener(y, P, torch::tensor(1e-9), cam);
+  const auto mse = (rec - x).pow(2).mean().item<double>();
+  CHECK(-10 * std::log10(mse) > 40);  // noise-free and well conditioned: near exact
+  // Adjoint identity: with a huge gamma, Wiener is the adjoint A^T / gamma: <A x, y> = <x, A^T y>.
+  const auto r = torch::randn({2, 500, 620});
+  const double gamma = 1e6;
+  const double lhs = (capture(x, P, cam) * r).sum().item<double>();
+  const double rhs = gamma * (x * wiener(r, P, torch::tensor(gamma), cam)).sum().item<double>();
+  CHECK(lhs == Approx(rhs).epsilon(1e-3));
+}
+
+TEST_CASE("learnable mask: throughput rule, exact constraint gradient, binarisation, errors", "[mask]") {
+  for (const char* projection : {"sigmoid", "clamp"}) {
+    MaskOptions o;
+    o.rank = 3;
+    o.projection = projection;
+    MaskModel m(o);
+    const auto w = m->window();
+    CHECK(w.sizes() == torch::IntArrayRef({500, 620}));
+    CHECK(throughput(w) == Approx(0.5).margin(1e-3));
+    CHECK(w.min().item<double>() >= 0);
+    CHECK(w.max().item<double>() <= 1);
+    // The mean is held fixed, so its gradient with respect to the parameters vanishes...
+    w.mean().backward();
+    CHECK(m->U.grad().abs().max().item<double>() < 1e-6);
+    // ...while other functions of the mask still get gradients.
+    m->zero_grad();
+    m->window().pow(2).sum().backward();
+    CHECK(m->U.grad().abs().max().item<double>() > 0);
+  }
+  MaskOptions cap;
+  cap.throughput = "cap";
+  cap.target = 0.9;  // a random sigmoid mask passes ~0.5 < 0.9: left alone
+  CHECK(throughput(MaskModel(cap)->window()) < 0.6);
+  MaskOptions bin;
+  bin.binary = true;
+  const auto wb = MaskModel(bin)->window();
+  CHECK(((wb == 0) | (wb == 1)).all().item<bool>());
+  CHECK(throughput(wb) == Approx(0.5).margin(0.01));
+  MaskOptions bad;
+  bad.rank = 0;
+  CHECK_THROWS_WITH(MaskModel(bad), Contains("mask.rank"));
+}
+
+TEST_CASE("mask training: gradients reach U, V and gamma; outputs written", "[mask][slow]") {
+  test::Scratch s("masktrain");
+  MaskOptions o;
+  o.rank = 2;
+  MaskModel m(o);
+  const auto before = m->U.clone();
+  WienerCamera cam;
+  MaskTrainOptions t;
+  t.iterations = 3, t.batch = 2, t.optimizer = "adam", t.lr = 1e-2, t.val_every = 3, t.log_every = 1;
+  t.out = s.dir, t.progress = false;
+  const auto summary = train_mask(m, smooth_scenes(4), smooth_scenes(2), cam, t);
+  CHECK_FALSE(torch::equal(before, m->U));
+  CHECK(summary.gamma != Approx(1e-3));  // gamma moved from its initial value
+  for (const char* f : {"mask.png", "vectors.mat", "gamma.txt", "log.csv", "val.csv", "curve.png"})
+    CHECK(std::filesystem::exists(s.dir / f));
+  // The PNG round trip keeps the mask to 16 bits.
+  const auto back = load_mask_window((s.dir / "mask.png").string(), cam);
+  CHECK((back - m->window().detach()).abs().max().item<double>() < 1.0 / 65535 + 1e-6);
+}
+
+TEST_CASE("mask commands refuse bad input with exit code 2", "[mask][cli]") {
+  test::Scratch s("maskcli");
+  const auto photos = s.dir / "photos";
+  std::filesystem::create_directories(photos);
+  std::filesystem::copy_file(test::data_dir() / "golden" / "bsds_16052_scene.png", photos / "a.png");
+  std::filesystem::copy_file(test::data_dir() / "golden" / "inet_n02980441_castle_scene.png", photos / "b.png");
+  auto r = test::run_flatnet("mask eval --mask mls --images " + q(photos) + " --noise 0");
+  CHECK(r.code == 2);
+  CHECK_THAT(r.output, Contains("--noise"));
+  write_gray16(s.dir / "small.png", torch::full({100, 100}, 65535, torch::kInt32));
+  r = test::run_flatnet("mask eval --mask " + q(s.dir / "small.png") + " --images " + q(photos));
+  CHECK(r.code == 2);
+  CHECK_THAT(r.output, Contains("small.png") && Contains("500x620"));
+  std::filesystem::create_directories(s.dir / "empty");
+  r = test::run_flatnet("mask eval --mask mls --images " + q(s.dir / "empty"));
+  CHECK(r.code == 2);
+  CHECK_THAT(r.output, Contains("empty"));
+  r = test::run_flatnet("mask train --set mask.rank=0 --out " + q(s.dir / "o"));
+  CHECK(r.code == 2);
+  CHECK_THAT(r.output, Contains("mask.rank"));
+  r = test::run_flatnet("mask train --set camera.noise_sigma=-1 --out " + q(s.dir / "o"));
+  CHECK(r.code == 2);
+  CHECK_THAT(r.output, Contains("noise_sigma"));
+  r = test::run_flatnet("mask eval --mask m02 --images " + q(photos));
+  INFO(r.output);
+  CHECK(r.code == 0);
+  CHECK_THAT(r.output, Contains("throughput 0.02"));
+}
