@@ -2,6 +2,7 @@
 // flatnet subcommands. Each parses its flags, builds library objects, calls the library, reports.
 #include <cxxopts.hpp>
 #include <string>
+#include <vector>
 
 #include "core/camera_config.hpp"
 
@@ -22,6 +23,8 @@ int mask(int argc, char** argv);
 void add_common(cxxopts::Options& options);                 // --threads, --help
 // Parses; prints help and returns false on --help. Applies --threads.
 bool parse(cxxopts::Options& options, int argc, char** argv, cxxopts::ParseResult& result);
+// The repeated --set key=value overrides (none when absent).
+std::vector<std::string> set_overrides(const cxxopts::ParseResult& r);
 // --camera FILE (yaml or rig .mat); the reference camera when absent.
 CameraConfig camera_from(const cxxopts::ParseResult& r, const std::string& flag = "camera");
 

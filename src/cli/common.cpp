@@ -22,6 +22,10 @@ bool parse(cxxopts::Options& options, int argc, char** argv, cxxopts::ParseResul
   return true;
 }
 
+std::vector<std::string> set_overrides(const cxxopts::ParseResult& r) {
+  return r.count("set") ? r["set"].as<std::vector<std::string>>() : std::vector<std::string>{};
+}
+
 CameraConfig camera_from(const cxxopts::ParseResult& r, const std::string& flag) {
   const std::filesystem::path p = r.count(flag) ? std::filesystem::path(r[flag].as<std::string>()) : default_camera_path();
   return load_camera_config(p);

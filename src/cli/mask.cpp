@@ -35,21 +35,6 @@ WienerCamera wiener_camera(const Config& c) {
   return cam;
 }
 
-// The photographs of a folder split as `flatnet simulate` splits them: {train, held-out}.
-std::pair<std::vector<std::filesystem::path>, std::vector<std::filesystem::path>> split_images(
-    const std::filesystem::path& dir, double val_fraction, uint64_t seed) {
-  const auto images = list_images(dir, kImageExtensions);
-  require(!images.empty(), dir, "no readable images (png, jpg, tif, bmp) in this folder");
-  std::vector<std::string> names;
-  std::map<std::string, std::filesystem::path> by_name;
-  for (const auto& p : images) names.push_back(p.filename().string()), by_name[p.filename().string()] = p;
-  auto [tr, va] = split_train_val(names, val_fraction, seed);
-  std::vector<std::filesystem::path> a, b;
-  for (const auto& n : tr) a.push_back(by_name[n]);
-  for (const auto& n : va) b.push_back(by_name[n]);
-  return {a, b};
-}
-
 std::vector<std::filesystem::path> first(const std::vector<std::filesystem::path>& v, int64_t n) {
   return n <= 0 || n >= static_cast<int64_t>(v.size()) ? v : std::vector<std::filesystem::path>(v.begin(), v.begin() + n);
 }
@@ -63,7 +48,7 @@ int mask_train(int argc, char** argv) {
   cxxopts::ParseResult r;
   if (!parse(o, argc, argv, r)) return 0;
   require(r.count("out"), "mask train", "--out DIR is required");
-  const auto sets = r.count("set") ? r["set"].as<std::vector<std::string>>() : std::vector<std::string>{};
+  const auto sets = set_overrides(r);
   const auto c = Config::load(r.count("config") ? r["config"].as<std::string>() : "", sets, mask_defaults());
   MaskOptions mo;
   mo.elements = c.integer("mask.elements");
@@ -90,7 +75,7 @@ int mask_train(int argc, char** argv) {
   to.out = r["out"].as<std::string>();
   require(to.gamma_init > 0, "train.gamma_init", "must be positive");
   MaskModel model(mo);  // validates rank, projection, throughput rule
-  auto [train_imgs, val_imgs] = split_images(c.path("data.images"), c.num("data.val_fraction"), c.integer("data.split_seed"));
+  auto [train_imgs, val_imgs] = split_image_files(c.path("data.images"), c.num("data.val_fraction"), c.integer("data.split_seed"));
   std::cerr << "loading " << first(train_imgs, c.integer("data.train_limit")).size() << " training and "
             << first(val_imgs, c.integer("train.val_count")).size() << " validation photographs...\n";
   const auto train = load_luma_scenes(first(train_imgs, c.integer("data.train_limit")), cam.scene, 2);
@@ -207,7 +192,7 @@ int mask_report(int argc, char** argv) {
   const std::filesystem::path out = r["out"].as<std::string>();
   WienerCamera cam;
   cam.noise_sigma = r["noise"].as<double>();
-  const auto held_out = split_images(r["images"].as<std::string>(), 0.1, 1).second;
+  const auto held_out = split_image_files(r["images"].as<std::string>(), 0.1, 1).second;
   const int64_t n_tune = r["tune-count"].as<int>();
   require(static_cast<int64_t>(held_out.size()) > n_tune, r["images"].as<std::string>(), "too few held-out photographs");
   const auto scenes = load_luma_scenes(held_out, cam.scene, 2);

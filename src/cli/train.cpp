@@ -62,20 +62,11 @@ std::pair<std::shared_ptr<const PairSource>, std::shared_ptr<const PairSource>> 
   if (source == "simulate") {
     require(!camera.rig.empty(), "data.camera", "names no rig; on-the-fly simulation needs the true response");
     auto rig = std::make_shared<const Rig>(load_rig(camera.rig));
-    const auto images = list_images(c.path("data.images"), kImageExtensions);
-    require(!images.empty(), c.path("data.images"), "no readable images (png, jpg, tif, bmp)");
-    std::vector<std::string> names;
-    std::map<std::string, std::filesystem::path> by_name;
-    for (const auto& p : images) names.push_back(p.filename().string()), by_name[p.filename().string()] = p;
-    auto [train_names, val_names] = split_train_val(names, c.num("data.val_fraction"), c.integer("data.split_seed"));
-    auto paths = [&](const std::vector<std::string>& ns) {
-      std::vector<std::filesystem::path> out;
-      for (const auto& n : ns) out.push_back(by_name[n]);
-      return out;
-    };
+    auto [train_images, val_images] =
+        split_image_files(c.path("data.images"), c.num("data.val_fraction"), c.integer("data.split_seed"));
     const auto seed = static_cast<uint64_t>(c.integer("train.seed"));
-    return {std::make_shared<SimulatedPairs>(paths(train_names), rig, camera, seed),
-            std::make_shared<SimulatedPairs>(paths(val_names), rig, camera, seed + 1)};
+    return {std::make_shared<SimulatedPairs>(train_images, rig, camera, seed),
+            std::make_shared<SimulatedPairs>(val_images, rig, camera, seed + 1)};
   }
   throw Error("config: data.source must be dataset or simulate, got '" + source + "'");
 }
@@ -103,7 +94,7 @@ int train(int argc, char** argv) {
   if (!parse(o, argc, argv, r)) return 0;
   require(r.count("out"), "train", "--out DIR is required");
   const std::filesystem::path out = r["out"].as<std::string>();
-  const auto sets = r.count("set") ? r["set"].as<std::vector<std::string>>() : std::vector<std::string>{};
+  const auto sets = set_overrides(r);
   const auto latest = out / "latest.ckpt";
   const bool resume = r.count("resume") > 0;
   Config config;
@@ -185,7 +176,7 @@ int import_model(int argc, char** argv) {
   cxxopts::ParseResult r;
   if (!parse(o, argc, argv, r)) return 0;
   require(r.count("state-dict") && r.count("out"), "import", "--state-dict FILE and --out MODEL are required");
-  const auto sets = r.count("set") ? r["set"].as<std::vector<std::string>>() : std::vector<std::string>{};
+  const auto sets = set_overrides(r);
   auto config = Config::load(r.count("config") ? r["config"].as<std::string>() : "", sets);
   const auto camera = r.count("camera") ? load_camera_config(r["camera"].as<std::string>()) : camera_of(config);
   Generator g(generator_options(config, camera, false));

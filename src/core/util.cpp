@@ -5,6 +5,7 @@
 #include <fstream>
 #include <iomanip>
 #include <iostream>
+#include <atomic>
 #include <mutex>
 #include <sstream>
 #include <thread>
@@ -149,6 +150,32 @@ void Progress::draw(bool final_line) {
   if (!status_.empty()) os << "  " << status_;
   if (tty_) std::cerr << "\r" << os.str() << "\033[K" << (final_line ? "\n" : "") << std::flush;
   else std::cerr << os.str() << "\n" << std::flush;
+}
+
+void parallel_for_index(int64_t n, int workers, const std::function<void(int64_t)>& fn) {
+  std::atomic<int64_t> next{0};
+  std::exception_ptr error;
+  std::mutex error_mutex;
+  std::vector<std::thread> pool;
+  for (int t = 0; t < std::max(1, workers); ++t)
+    pool.emplace_back([&] {
+      for (int64_t i; (i = next++) < n;) {
+        try {
+          fn(i);
+        } catch (...) {
+          std::lock_guard<std::mutex> lock(error_mutex);
+          if (!error) error = std::current_exception();
+        }
+      }
+    });
+  for (auto& t : pool) t.join();
+  if (error) std::rethrow_exception(error);
+}
+
+std::vector<char> read_bytes(const fs::path& path) {
+  require(fs::exists(path), path, "no such file");
+  std::ifstream in(path, std::ios::binary);
+  return std::vector<char>((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
 }
 
 }  // namespace flatnet

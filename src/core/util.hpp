@@ -28,6 +28,13 @@ std::vector<fs::path> list_images(const fs::path& dir, const std::vector<std::st
 bool has_extension(const fs::path& p, const std::vector<std::string>& extensions);
 extern const std::vector<std::string> kImageExtensions;  // png jpg jpeg tif tiff bmp
 
+// Calls fn(i) for i in [0, n) on `workers` threads (at least 1); the first exception is rethrown
+// after all threads finish.
+void parallel_for_index(int64_t n, int workers, const std::function<void(int64_t)>& fn);
+
+// A whole file's bytes (e.g. for torch::pickle_load). Errors name a missing file.
+std::vector<char> read_bytes(const fs::path& path);
+
 // Stable 64-bit hash (FNV-1a) for deterministic per-item seeds.
 uint64_t stable_hash(const std::string& s, uint64_t seed = 0);
 

@@ -3,6 +3,7 @@
 #include <fstream>
 
 #include "core/error.hpp"
+#include "core/util.hpp"
 
 namespace flatnet {
 
@@ -73,11 +74,9 @@ Vgg16Features load_vgg16(const std::filesystem::path& weights, bool normalize) {
                 "VGG-16 weights not found; the perceptual loss needs them. Make the file with "
                 "`python3 models/convert_vgg16.py` where torchvision can download its weights, "
                 "or train without the perceptual loss: --set loss.perceptual=0");
-  std::ifstream in(weights, std::ios::binary);
-  std::vector<char> bytes((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
   c10::IValue v;
   try {
-    v = torch::pickle_load(bytes);
+    v = torch::pickle_load(read_bytes(weights));
   } catch (const c10::Error& e) {
     throw Error(weights, "not a torch.save'd state dict of VGG-16 features (" +
                              std::string(e.what_without_backtrace()).substr(0, 200) + ")");

@@ -56,20 +56,19 @@ torch::Tensor MaskModelImpl::transmittance() {
   const bool sigmoid = opt_.projection == "sigmoid";
   auto f = [&](const torch::Tensor& z) { return sigmoid ? torch::sigmoid(z) : z.clamp(0, 1); };
   const auto vis = visible_elements(opt_);
-  auto visible_mean = [&](const torch::Tensor& m) {
-    return m.slice(0, vis.r0, vis.r1).slice(1, vis.c0, vis.c1).mean().item<double>();
-  };
+  auto visible = [&](const torch::Tensor& m) { return m.slice(0, vis.r0, vis.r1).slice(1, vis.c0, vis.c1); };
   // Throughput rule: shift the logits by b so that the window's mean transmittance is the target.
   double b = 0;
   bool shifted = false;
   if (opt_.throughput != "free") {
     torch::NoGradGuard no_grad;
-    const auto Ad = A.detach();
-    if (opt_.throughput == "equal" || visible_mean(f(Ad)) > opt_.target) {
+    // Only the elements the sensor sees enter the mean, so bisect on those alone.
+    const auto Av = visible(A.detach()).contiguous();
+    if (opt_.throughput == "equal" || f(Av).mean().item<double>() > opt_.target) {
       double lo = -60, hi = 60;
       for (int it = 0; it < 60; ++it) {
         const double mid = 0.5 * (lo + hi);
-        (visible_mean(f(Ad + mid)) > opt_.target ? hi : lo) = mid;
+        (f(Av + mid).mean().item<double>() > opt_.target ? hi : lo) = mid;
       }
       b = 0.5 * (lo + hi);
       shifted = true;
@@ -96,9 +95,9 @@ torch::Tensor MaskModelImpl::transmittance() {
     torch::Tensor thr;
     {
       torch::NoGradGuard no_grad;
-      const auto visible = M.detach().slice(0, vis.r0, vis.r1).slice(1, vis.c0, vis.c1).flatten();
-      const double q = opt_.throughput == "free" ? 0.5 : 1.0 - std::min(opt_.target, visible_mean(M.detach()));
-      thr = torch::quantile(visible, q);
+      const auto seen = visible(M.detach()).flatten();
+      const double q = opt_.throughput == "free" ? 0.5 : 1.0 - std::min(opt_.target, seen.mean().item<double>());
+      thr = torch::quantile(seen, q);
     }
     const auto hard = (M.detach() > thr).to(M.dtype());
     M = M + (hard - M).detach();

@@ -28,6 +28,20 @@ std::pair<std::vector<std::string>, std::vector<std::string>> split_train_val(co
   return {train, val};
 }
 
+std::pair<std::vector<std::filesystem::path>, std::vector<std::filesystem::path>> split_image_files(
+    const std::filesystem::path& dir, double val_fraction, uint64_t seed) {
+  const auto images = list_images(dir, kImageExtensions);
+  require(!images.empty(), dir, "no readable images (png, jpg, tif, bmp) in this folder");
+  std::vector<std::string> names;
+  std::map<std::string, std::filesystem::path> by_name;
+  for (const auto& p : images) names.push_back(p.filename().string()), by_name[p.filename().string()] = p;
+  auto [train, val] = split_train_val(names, val_fraction, seed);
+  std::vector<std::filesystem::path> a, b;
+  for (const auto& n : train) a.push_back(by_name.at(n));
+  for (const auto& n : val) b.push_back(by_name.at(n));
+  return {a, b};
+}
+
 namespace {
 
 void write_lists(const std::filesystem::path& out, const std::string& split, const std::vector<std::string>& names) {

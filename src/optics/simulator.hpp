@@ -32,6 +32,10 @@ SimulateReport simulate_dataset(const Rig& rig, const SimulateOptions& options);
 // uses): shuffle with the seed, the first round(fraction * n) are validation; both sorted.
 std::pair<std::vector<std::string>, std::vector<std::string>> split_train_val(const std::vector<std::string>& names,
                                                                            double val_fraction, uint64_t seed);
+// The photographs of a folder (any image extension), split by split_train_val's rule:
+// {train, held-out}. Errors when the folder has no readable images.
+std::pair<std::vector<std::filesystem::path>, std::vector<std::filesystem::path>> split_image_files(
+    const std::filesystem::path& dir, double val_fraction, uint64_t seed);
 // The scene a display shows for a photograph: resized to size x size, quantised to 8 bits.
 torch::Tensor display_scene(const std::filesystem::path& image, int64_t size);
 

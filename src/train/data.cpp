@@ -124,23 +124,7 @@ Batch BatchLoader::next() {
 std::vector<Sample> load_all(const PairSource& source, int64_t count, int workers) {
   const int64_t n = count <= 0 ? source.size() : std::min(count, source.size());
   std::vector<Sample> out(n);
-  std::atomic<int64_t> next{0};
-  std::exception_ptr error;
-  std::mutex error_mutex;
-  std::vector<std::thread> pool;
-  for (int t = 0; t < std::max(1, workers); ++t)
-    pool.emplace_back([&] {
-      for (int64_t i; (i = next++) < n;) {
-        try {
-          out[i] = source.load(i, 0);
-        } catch (...) {
-          std::lock_guard<std::mutex> lock(error_mutex);
-          if (!error) error = std::current_exception();
-        }
-      }
-    });
-  for (auto& t : pool) t.join();
-  if (error) std::rethrow_exception(error);
+  parallel_for_index(n, workers, [&](int64_t i) { out[i] = source.load(i, 0); });
   return out;
 }
 

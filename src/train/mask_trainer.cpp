@@ -17,24 +17,10 @@ namespace flatnet {
 torch::Tensor load_luma_scenes(const std::vector<std::filesystem::path>& images, int64_t size, int workers) {
   require(!images.empty(), "images", "no readable images");
   auto out = torch::empty({static_cast<int64_t>(images.size()), size, size});
-  std::atomic<size_t> next{0};
-  std::exception_ptr error;
-  std::mutex m;
-  std::vector<std::thread> pool;
-  for (int t = 0; t < std::max(1, workers); ++t)
-    pool.emplace_back([&] {
-      for (size_t i; (i = next++) < images.size();) {
-        try {
-          const auto rgb = resize(read_rgb(images[i]), size, size).clamp(0, 1);
-          out[static_cast<int64_t>(i)].copy_(0.299f * rgb[0] + 0.587f * rgb[1] + 0.114f * rgb[2]);
-        } catch (...) {
-          std::lock_guard<std::mutex> lock(m);
-          if (!error) error = std::current_exception();
-        }
-      }
-    });
-  for (auto& t : pool) t.join();
-  if (error) std::rethrow_exception(error);
+  parallel_for_index(out.size(0), workers, [&](int64_t i) {
+    const auto rgb = resize(read_rgb(images[i]), size, size).clamp(0, 1);
+    out[i].copy_(0.299f * rgb[0] + 0.587f * rgb[1] + 0.114f * rgb[2]);
+  });
   return out;
 }
 

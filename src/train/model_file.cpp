@@ -90,24 +90,35 @@ bool read_nested(torch::serialize::InputArchive& a, const std::string& dotted, t
   return read_nested(sub, dotted.substr(dot + 1), t, buffer);
 }
 
-void load_module(torch::serialize::InputArchive& root, const std::string& key, torch::nn::Module& m,
-                 const std::filesystem::path& where) {
-  torch::serialize::InputArchive a;
-  if (!root.try_read(key, a)) throw Error(where, "no '" + key + "' weights in the file");
+// Fills every parameter and buffer of `m` with fetch(name, is_buffer), checking shapes; errors
+// about `where` call a tensor "<label> '<its name in the file>'".
+void fill_module(torch::nn::Module& m, const std::filesystem::path& where, const std::string& label,
+                 const std::function<torch::Tensor(const std::string&, bool)>& fetch,
+                 const std::function<std::string(const std::string&)>& name_in_file = [](const std::string& n) { return n; }) {
   torch::NoGradGuard no_grad;
   auto copy_in = [&](const std::string& name, torch::Tensor target, bool buffer) {
-    torch::Tensor t;
-    if (!read_nested(a, name, t, buffer))
-      throw Error(where, key + " weights lack '" + name + "' (the file's architecture differs from its config)");
+    const auto t = fetch(name, buffer);
     if (t.sizes() != target.sizes()) {
       std::ostringstream os;
-      os << key << " weight '" << name << "' is " << t.sizes() << ", the model needs " << target.sizes();
+      os << label << " '" << name_in_file(name) << "' is " << t.sizes() << ", the model needs " << target.sizes();
       throw Error(where, os.str());
     }
     target.copy_(t);
   };
   for (auto& p : m.named_parameters()) copy_in(p.key(), p.value(), false);
   for (auto& b : m.named_buffers()) copy_in(b.key(), b.value(), true);
+}
+
+void load_module(torch::serialize::InputArchive& root, const std::string& key, torch::nn::Module& m,
+                 const std::filesystem::path& where) {
+  torch::serialize::InputArchive a;
+  if (!root.try_read(key, a)) throw Error(where, "no '" + key + "' weights in the file");
+  fill_module(m, where, key + " weight", [&](const std::string& name, bool buffer) {
+    torch::Tensor t;
+    if (!read_nested(a, name, t, buffer))
+      throw Error(where, key + " weights lack '" + name + "' (the file's architecture differs from its config)");
+    return t;
+  });
 }
 
 torch::serialize::InputArchive open_archive(const std::filesystem::path& path, const std::string& expected_format) {
@@ -148,10 +159,14 @@ std::pair<Config, CameraConfig> read_header(torch::serialize::InputArchive& a, c
   return {config, camera};
 }
 
-std::vector<char> read_bytes(const std::filesystem::path& path) {
-  require(std::filesystem::exists(path), path, "no such file");
-  std::ifstream in(path, std::ios::binary);
-  return std::vector<char>((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+// The generator (with its config and camera) from a model file or a checkpoint.
+ModelFile read_generator(const std::filesystem::path& path, const std::string& format) {
+  auto a = open_archive(path, format);
+  auto [config, camera] = read_header(a, path);
+  ModelFile m{Generator(generator_options(config, camera, false)), config, camera};
+  load_module(a, "generator", *m.generator, path);
+  m.generator->eval();
+  return m;
 }
 
 }  // namespace
@@ -207,14 +222,7 @@ void save_model_file(const std::filesystem::path& path, Generator& generator, co
   write_atomically(path, [&](const std::filesystem::path& tmp) { a.save_to(tmp.string()); });
 }
 
-ModelFile load_model_file(const std::filesystem::path& path) {
-  auto a = open_archive(path, kModelFormat);
-  auto [config, camera] = read_header(a, path);
-  ModelFile m{Generator(generator_options(config, camera, false)), config, camera};
-  load_module(a, "generator", *m.generator, path);
-  m.generator->eval();
-  return m;
-}
+ModelFile load_model_file(const std::filesystem::path& path) { return read_generator(path, kModelFormat); }
 
 void save_checkpoint(const std::filesystem::path& path, Generator& g, Discriminator& d, torch::optim::Adam& opt_g,
                      torch::optim::Adam& opt_d, const TrainState& state, const Config& config,
@@ -260,12 +268,7 @@ TrainState load_checkpoint(const std::filesystem::path& path, Generator& g, Disc
 }
 
 ModelFile model_from_checkpoint(const std::filesystem::path& path) {
-  auto a = open_archive(path, kCheckpointFormat);
-  auto [config, camera] = read_header(a, path);
-  ModelFile m{Generator(generator_options(config, camera, false)), config, camera};
-  load_module(a, "generator", *m.generator, path);
-  m.generator->eval();
-  return m;
+  return read_generator(path, kCheckpointFormat);
 }
 
 std::string flatnet_name(const std::string& ours) {
@@ -297,21 +300,12 @@ void import_state_dict(const std::filesystem::path& path, Generator& generator) 
   auto dict = v.toGenericDict();
   const auto nested = dict.find(std::string("gen_state_dict"));  // FlatNet's checkpoint layout
   if (nested != dict.end()) dict = nested->value().toGenericDict();
-  torch::NoGradGuard no_grad;
-  auto copy_in = [&](const std::string& ours, torch::Tensor target) {
+  fill_module(*generator, path, "tensor", [&](const std::string& ours, bool) {
     const auto name = flatnet_name(ours);
     const auto it = dict.find(name);
     require(it != dict.end() && it->value().isTensor(), path, "no tensor '" + name + "'");
-    const auto t = it->value().toTensor();
-    if (t.sizes() != target.sizes()) {
-      std::ostringstream os;
-      os << "tensor '" << name << "' is " << t.sizes() << ", the model needs " << target.sizes();
-      throw Error(path, os.str());
-    }
-    target.copy_(t);
-  };
-  for (auto& p : generator->named_parameters()) copy_in(p.key(), p.value());
-  for (auto& b : generator->named_buffers()) copy_in(b.key(), b.value());
+    return it->value().toTensor();
+  }, flatnet_name);
 }
 
 }  // namespace flatnet
