@@ -6,6 +6,8 @@
 #  - libaravis-dev forgets libusb-1.0-0-dev, which its pkg-config file requires.
 #  - libgloo-dev is needed for LibTorch's c10d (distributed training).
 #  - libopenblas0-openmp: without it LibTorch falls back to reference BLAS (2-60x slower).
+#  - xvfb + xauth: the capture tests show scenes in a real (virtual) window; iproute2 and
+#    util-linux's unshare run Aravis's GigE Vision simulator in a loopback-only namespace.
 #  - python3-skimage (its data folder) provides the photographs `flatnet demo` uses on a fresh machine.
 #  - python3-torch is optional: only reference comparisons in scripts/ and a few tests use it.
 set -euo pipefail
@@ -14,7 +16,7 @@ packages=(
   build-essential cmake ninja-build pkg-config
   libtorch-dev libopenblas0-openmp libgloo-dev
   libopencv-dev libopenimageio-dev openimageio-tools
-  libaravis-dev aravis-tools libusb-1.0-0-dev
+  libaravis-dev aravis-tools libusb-1.0-0-dev xvfb xauth iproute2
   libmatio-dev libcxxopts-dev catch2 libyaml-cpp-dev nlohmann-json3-dev
   python3-skimage
 )

@@ -18,6 +18,11 @@ int export_model(int argc, char** argv);
 int import_model(int argc, char** argv);
 int infer(int argc, char** argv);
 int mask(int argc, char** argv);
+int cameras(int argc, char** argv);
+int capture(int argc, char** argv);
+int capture_dataset(int argc, char** argv);
+int capture_calibration(int argc, char** argv);
+int live(int argc, char** argv);
 
 // Shared flag handling.
 void add_common(cxxopts::Options& options);                 // --threads, --help

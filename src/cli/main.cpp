@@ -18,12 +18,17 @@ const std::map<std::string, std::pair<int (*)(int, char**), const char*>> kComma
     {"export", {flatnet::cli::export_model, "checkpoint -> model file, or model -> PyTorch state_dict"}},
     {"import", {flatnet::cli::import_model, "PyTorch state_dict (FlatNet-sep names) -> model file"}},
     {"mask", {flatnet::cli::mask, "learn FlatCam masks (train), score them (eval), compare them (report)"}},
+    {"cameras", {flatnet::cli::cameras, "list the cameras Aravis can reach (GenICam: USB3 Vision, GigE Vision)"}},
+    {"capture", {flatnet::cli::capture, "capture averaged raw frames from a camera (16-bit PNG + JSON sidecar)"}},
+    {"capture-dataset", {flatnet::cli::capture_dataset, "display-capture dataset collection (resumable)"}},
+    {"capture-calibration", {flatnet::cli::capture_calibration, "show and capture the calibration patterns, then calibrate"}},
+    {"live", {flatnet::cli::live, "live view: grab, reconstruct (Tikhonov or FlatNet), show with the frame rate"}},
     {"demo", {flatnet::cli::demo, "simulate, reconstruct and evaluate a few photographs end to end"}},
 };
 
 void usage() {
   std::cout << "flatnet " << FLATNET_VERSION << ": lensless FlatCam imaging\n\nusage: flatnet <command> [options]\n\n";
-  for (const auto& [name, entry] : kCommands) std::cout << "  " << name << std::string(12 - name.size(), ' ') << entry.second << "\n";
+  for (const auto& [name, entry] : kCommands) std::cout << "  " << name << std::string(name.size() < 21 ? 21 - name.size() : 1, ' ') << entry.second << "\n";
   std::cout << "\n'flatnet <command> --help' lists a command's options.\n";
 }
 

@@ -56,6 +56,22 @@ void write_lists(const std::filesystem::path& out, const std::string& split, con
 
 }  // namespace
 
+std::pair<int64_t, int64_t> write_dataset_lists(const std::filesystem::path& out, const std::vector<std::string>& names,
+                                                const std::vector<std::string>& complete, double val_fraction, uint64_t seed) {
+  auto [train, val] = split_train_val(names, val_fraction, seed);
+  auto done = complete;
+  std::sort(done.begin(), done.end());
+  auto keep_done = [&](std::vector<std::string>& v) {
+    v.erase(std::remove_if(v.begin(), v.end(), [&](const std::string& n) { return !std::binary_search(done.begin(), done.end(), n); }),
+            v.end());
+  };
+  keep_done(train);
+  keep_done(val);
+  write_lists(out, "train", train);
+  write_lists(out, "val", val);
+  return {static_cast<int64_t>(train.size()), static_cast<int64_t>(val.size())};
+}
+
 SimulateReport simulate_dataset(const Rig& rig, const SimulateOptions& opt) {
   require(opt.val_fraction >= 0 && opt.val_fraction <= 1, "--val-fraction", "must be within [0, 1]");
   require(opt.size == rig.scene_size(), "--size",
@@ -118,11 +134,7 @@ SimulateReport simulate_dataset(const Rig& rig, const SimulateOptions& opt) {
   report.simulated = simulated;
   report.skipped = skipped;
 
-  auto [train, val] = split_train_val(names, opt.val_fraction, opt.seed);
-  write_lists(opt.out, "train", train);
-  write_lists(opt.out, "val", val);
-  report.train = static_cast<int64_t>(train.size());
-  report.val = static_cast<int64_t>(val.size());
+  std::tie(report.train, report.val) = write_dataset_lists(opt.out, names, names, opt.val_fraction, opt.seed);
   return report;
 }
 

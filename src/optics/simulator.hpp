@@ -32,6 +32,11 @@ SimulateReport simulate_dataset(const Rig& rig, const SimulateOptions& options);
 // uses): shuffle with the seed, the first round(fraction * n) are validation; both sorted.
 std::pair<std::vector<std::string>, std::vector<std::string>> split_train_val(const std::vector<std::string>& names,
                                                                            double val_fraction, uint64_t seed);
+// Writes train_meas/gt.txt and val_meas/gt.txt: the split_train_val split of all `names`, listing
+// only the `complete` ones (a partially collected dataset is trainable, and its split is stable).
+// Returns {train, val} counts listed.
+std::pair<int64_t, int64_t> write_dataset_lists(const std::filesystem::path& out, const std::vector<std::string>& names,
+                                                const std::vector<std::string>& complete, double val_fraction, uint64_t seed);
 // The photographs of a folder (any image extension), split by split_train_val's rule:
 // {train, held-out}. Errors when the folder has no readable images.
 std::pair<std::vector<std::filesystem::path>, std::vector<std::filesystem::path>> split_image_files(
