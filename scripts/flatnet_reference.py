@@ -21,8 +21,8 @@ class double_conv(nn.Module):
     def __init__(self, cin, cout, stride=1):
         super().__init__()
         self.conv = nn.Sequential(
-            nn.Conv2d(cin, cout, 3, stride=stride, padding=1), nn.BatchNorm2d(cout, momentum=0.99), nn.ReLU(),
-            nn.Conv2d(cout, cout, 3, padding=1), nn.BatchNorm2d(cout, momentum=0.99), nn.ReLU())
+            nn.Conv2d(cin, cout, 3, stride=stride, padding=1), nn.BatchNorm2d(cout, momentum=0.99), nn.ReLU(inplace=True),
+            nn.Conv2d(cout, cout, 3, padding=1), nn.BatchNorm2d(cout, momentum=0.99), nn.ReLU(inplace=True))
 
     def forward(self, x):
         return self.conv(x)

@@ -1,6 +1,8 @@
 // The flatnet binary end to end: simulate -> recon -> eval, resumability, and bad input.
 #include <catch2/catch.hpp>
 #include <fstream>
+#include <sys/wait.h>
+#include <unistd.h>
 
 #include "core/util.hpp"
 #include "helpers.hpp"
@@ -191,4 +193,50 @@ TEST_CASE("the shipped models run on FlatNet's real prototype captures", "[cli][
     CHECK(img.sizes() == torch::IntArrayRef({3, 256, 256}));
     CHECK(img.std().item<double>() > 0.01);  // an image, not a constant
   }
+}
+
+TEST_CASE("distributed training from the command line: two local ranks, resume, and a rank that dies", "[cli][dist][slow]") {
+  test::Scratch s("dist_cli");
+  auto photos = make_photos(s.dir / "photos");
+  REQUIRE(test::run_flatnet("simulate --images " + q(photos) + " --out " + q(s.dir / "ds") + " --val-fraction 0.5").code == 0);
+  const std::string config = q(test::source_dir() / "configs" / "sim_transpose.yaml");
+  const std::string sets = " --set data.dataset=" + q(s.dir / "ds") +
+                           " --set model.unet.width=2 --set train.val_count=1 --set train.check_sync_every=1";
+  const std::string launch = "MASTER_PORT=" + std::to_string(21000 + ::getpid() % 20000) + " FLATNET_BIN=" +
+                             std::string(FLATNET_BINARY) + " bash " + q(test::source_dir() / "scripts" / "launch_local.sh") +
+                             " 2 " + config;
+  auto run = [](const std::string& cmd) {
+    test::RunResult r{0, ""};
+    FILE* pipe = ::popen((cmd + " 2>&1").c_str(), "r");
+    char buf[4096];
+    while (pipe && std::fgets(buf, sizeof buf, pipe)) r.output += buf;
+    const int status = pipe ? ::pclose(pipe) : -1;
+    r.code = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
+    return r;
+  };
+  auto r = run(launch + " --out " + q(s.dir / "run") + sets + " --set train.iterations=3 --set train.val_every=3");
+  INFO(r.output);
+  REQUIRE(r.code == 0);
+  CHECK_THAT(r.output, Contains("steps 0..3"));
+  CHECK(std::filesystem::exists(s.dir / "run" / "latest.ckpt"));
+  CHECK_THAT(read_lines(s.dir / "run.rank1.log").back(), Contains("rank 1: steps 0..3 done"));
+
+  r = run(launch + " --out " + q(s.dir / "run") + " --resume --set train.iterations=4");
+  INFO(r.output);
+  CHECK(r.code == 0);
+  CHECK_THAT(r.output, Contains("steps 3..4"));
+
+  // Rank 1 is killed mid-run: rank 0 stops with a clear error instead of waiting forever.
+  const std::string env = "WORLD_SIZE=2 MASTER_ADDR=127.0.0.1 MASTER_PORT=" + std::to_string(22000 + ::getpid() % 20000);
+  const std::string train = std::string(FLATNET_BINARY) + " train --config " + config + " --threads 1 --out " + q(s.dir / "dead") +
+                            sets + " --set train.iterations=100000 --dist-timeout 60";
+  const auto start = std::chrono::steady_clock::now();
+  r = run("bash -c " + q(env + " RANK=1 " + train + " > /dev/null 2>&1 & P=$!; " + env + " RANK=0 timeout 120 " + train +
+                         " & Q=$!; sleep 8; kill -9 $P; wait $Q"));
+  const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  INFO(r.output);
+  CHECK(r.code == 2);
+  // (If rank 1 died before the rendezvous completed, rank 0 reports the rendezvous instead.)
+  CHECK_THAT(r.output, Contains("lost contact with the others") || Contains("rendezvous"));
+  CHECK(seconds < 100);
 }

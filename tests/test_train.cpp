@@ -1,10 +1,15 @@
-// The GAN trainer and its data: deterministic batches, bit-for-bit resume, NaN handling.
+// The GAN trainer and its data: deterministic batches, bit-for-bit resume, NaN handling, and
+// data-parallel training over c10d/Gloo on 127.0.0.1.
 #include <catch2/catch.hpp>
 
 #include "core/error.hpp"
 #include "core/util.hpp"
 #include "helpers.hpp"
+#include "train/distributed.hpp"
 #include "train/gan_trainer.hpp"
+
+#include <thread>
+#include <unistd.h>
 
 using namespace flatnet;
 using Catch::Matchers::Contains;
@@ -119,4 +124,132 @@ TEST_CASE("a NaN loss stops training with a clear message and keeps the last che
   auto t = setup.trainer(s.dir / "run", 4, /*poison=*/true);
   CHECK_THROWS_WITH(t.run(), Contains("diverged") && Contains("latest.ckpt"));
   CHECK_FALSE(std::filesystem::exists(s.dir / "run" / "latest.ckpt"));  // nothing saved from a bad step
+}
+
+// ---- Data-parallel training (c10d, Gloo over 127.0.0.1) -------------------------------------------
+
+namespace {
+
+int free_port() { return 20000 + static_cast<int>((::getpid() * 7 + std::rand()) % 20000); }
+
+// Runs fn(rank, group) on `world` threads, each with its own ProcessGroup; rethrows the first error.
+void with_ranks(int world, const std::function<void(int, ProcessGroup&)>& fn) {
+  const int port = free_port();
+  std::vector<std::thread> threads;
+  std::vector<std::exception_ptr> errors(world);
+  for (int r = 0; r < world; ++r)
+    threads.emplace_back([&, r] {
+      try {
+        DistributedOptions o;
+        o.world_size = world, o.rank = r, o.master_port = port, o.timeout_s = 30;
+        ProcessGroup group(o);
+        fn(r, group);
+      } catch (...) {
+        errors[r] = std::current_exception();
+      }
+    });
+  for (auto& t : threads) t.join();
+  for (auto& e : errors)
+    if (e) std::rethrow_exception(e);
+}
+
+}  // namespace
+
+TEST_CASE("distributed: two ranks start from rank 0's weights and hold bit-identical parameters after every step", "[train][dist]") {
+  test::Scratch s("dist_sync");
+  Setup setup;
+  std::vector<Generator> gens;
+  std::vector<Discriminator> discs;
+  std::vector<std::unique_ptr<GanTrainer>> trainers;
+  for (int r = 0; r < 2; ++r) {
+    torch::manual_seed(100 + r);  // different initialisations: the broadcast must fix them
+    gens.emplace_back(generator_options(setup.config, setup.camera, true));
+    discs.emplace_back(discriminator_options(setup.config));
+    auto opt = setup.options(s.dir / ("rank" + std::to_string(r)), 3);
+    opt.check_sync_every = 1;  // the trainer compares checksums across ranks after every step
+    trainers.push_back(std::make_unique<GanTrainer>(gens[r], discs[r], Vgg16Features(nullptr), std::make_shared<MemoryPairs>(6),
+                                                    load_all(MemoryPairs(2), 0, 1), opt, setup.config, setup.camera));
+  }
+  bool differ = false;
+  for (const auto& p : gens[0]->named_parameters()) differ = differ || !torch::equal(p.value(), gens[1]->named_parameters()[p.key()]);
+  CHECK(differ);
+  with_ranks(2, [&](int r, ProcessGroup& group) {
+    trainers[r]->set_distributed(&group);
+    const auto summary = trainers[r]->run();
+    CHECK(summary.last_step == 3);
+  });
+  const auto a = gens[0]->named_parameters(), b = gens[1]->named_parameters();
+  for (const auto& p : a) {
+    INFO(p.key());
+    CHECK(torch::equal(p.value(), b[p.key()]));
+  }
+  for (const auto& p : discs[0]->named_parameters()) CHECK(torch::equal(p.value(), discs[1]->named_parameters()[p.key()]));
+  CHECK(std::filesystem::exists(s.dir / "rank0" / "latest.ckpt"));
+  CHECK_FALSE(std::filesystem::exists(s.dir / "rank1"));  // only rank 0 writes
+}
+
+TEST_CASE("distributed: with batch norm in eval mode, two ranks at batch 2 equal one process at batch 4", "[train][dist]") {
+  Setup setup;
+  torch::manual_seed(5);
+  Generator reference(generator_options(setup.config, setup.camera, true));
+  Discriminator disc(discriminator_options(setup.config));
+  auto clone = [&] {
+    Generator g(generator_options(setup.config, setup.camera, true));
+    torch::NoGradGuard no_grad;
+    for (auto& p : g->named_parameters()) p.value().copy_(reference->named_parameters()[p.key()]);
+    for (auto& b : g->named_buffers()) b.value().copy_(reference->named_buffers()[b.key()]);
+    g->eval();  // BN with running statistics: a sample's gradient does not depend on its batch mates
+    return g;
+  };
+  TrainOptions t = setup.options("", 1);
+  t.w_adversarial = 0;
+  MemoryPairs data(4);
+  Batch all;
+  std::vector<torch::Tensor> meas, gt;
+  for (int i = 0; i < 4; ++i) meas.push_back(data.load(i, 0).meas), gt.push_back(data.load(i, 0).gt);
+  all.meas = torch::stack(meas), all.gt = torch::stack(gt);
+  Vgg16Features none(nullptr);
+
+  auto single = clone();
+  torch::optim::SGD sgd_single(single->parameters(), 0.1), sgd_d(disc->parameters(), 0.1);
+  for (int step = 0; step < 2; ++step) gan_step(single, disc, none, sgd_single, sgd_d, t, all, step);
+
+  std::vector<Generator> ranks{clone(), clone()};
+  with_ranks(2, [&](int r, ProcessGroup& group) {
+    torch::optim::SGD sgd(ranks[r]->parameters(), 0.1), unused(disc->parameters(), 0.1);
+    Batch half{all.meas.slice(0, 2 * r, 2 * r + 2), all.gt.slice(0, 2 * r, 2 * r + 2), 0};
+    for (int step = 0; step < 2; ++step) gan_step(ranks[r], disc, none, sgd, unused, t, half, step, &group);
+  });
+  double worst = 0;
+  for (const auto& p : single->named_parameters())
+    for (int r = 0; r < 2; ++r) worst = std::max(worst, (p.value() - ranks[r]->named_parameters()[p.key()]).abs().max().item<double>());
+  CHECK(worst < 1e-5);
+  CHECK(worst >= 0);
+}
+
+TEST_CASE("distributed: the sampler gives each rank its slice of the global batch", "[train][dist]") {
+  auto src = std::make_shared<MemoryPairs>(7);
+  LoaderOptions one;
+  one.batch = 4, one.seed = 3;
+  BatchLoader global(src, one);
+  LoaderOptions r0 = one, r1 = one;
+  r0.batch = r1.batch = 2;
+  r0.world_size = r1.world_size = 2;
+  r1.rank = 1;
+  BatchLoader a(src, r0), b(src, r1);
+  for (int step = 0; step < 3; ++step) {  // across an epoch boundary (7 items)
+    const auto g = global.next(), x = a.next(), y = b.next();
+    CHECK(torch::equal(torch::cat({x.meas, y.meas}), g.meas));
+  }
+}
+
+TEST_CASE("distributed: bad rendezvous settings are refused clearly", "[train][dist]") {
+  setenv("WORLD_SIZE", "2", 1);
+  setenv("RANK", "2", 1);
+  CHECK_THROWS_WITH(distributed_from_env(), Contains("RANK") && Contains("outside [0, WORLD_SIZE=2)"));
+  setenv("RANK", "x", 1);
+  CHECK_THROWS_WITH(distributed_from_env(), Contains("RANK='x' is not an integer"));
+  unsetenv("WORLD_SIZE");
+  unsetenv("RANK");
+  CHECK(distributed_from_env().world_size == 1);
 }

@@ -246,7 +246,7 @@ int live(int argc, char** argv) {
   std::string method;
   if (model) {
     auto generator = model->generator;
-    generator->eval();
+    generator->prepare_inference(InferenceLevers{});
     reconstruct = [generator](const torch::Tensor& planes) mutable { return generator->forward(planes.unsqueeze(0))[0]; };
     method = "FlatNet " + r["model"].as<std::string>();
   } else {

@@ -23,6 +23,7 @@ int capture(int argc, char** argv);
 int capture_dataset(int argc, char** argv);
 int capture_calibration(int argc, char** argv);
 int live(int argc, char** argv);
+int bench(int argc, char** argv);
 
 // Shared flag handling.
 void add_common(cxxopts::Options& options);                 // --threads, --help

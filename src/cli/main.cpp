@@ -23,6 +23,7 @@ const std::map<std::string, std::pair<int (*)(int, char**), const char*>> kComma
     {"capture-dataset", {flatnet::cli::capture_dataset, "display-capture dataset collection (resumable)"}},
     {"capture-calibration", {flatnet::cli::capture_calibration, "show and capture the calibration patterns, then calibrate"}},
     {"live", {flatnet::cli::live, "live view: grab, reconstruct (Tikhonov or FlatNet), show with the frame rate"}},
+    {"bench", {flatnet::cli::bench, "time the hot paths (scripts/bench_compare.sh compares them with PyTorch)"}},
     {"demo", {flatnet::cli::demo, "simulate, reconstruct and evaluate a few photographs end to end"}},
 };
 

@@ -9,6 +9,7 @@
 #include "optics/simulator.hpp"
 #include "recon/infer.hpp"
 #include "recon/run.hpp"
+#include "train/distributed.hpp"
 #include "train/gan_trainer.hpp"
 
 namespace flatnet::cli {
@@ -38,6 +39,9 @@ TrainOptions train_options(const Config& c, const std::filesystem::path& out) {
           "discriminator", "label smoothing bounds must lie within [0, 1] (BCE needs targets in [0, 1])");
   require(t.batch >= 1 && t.iterations >= 1, "train", "batch and iterations must be positive");
   require(t.w_mse >= 0 && t.w_perceptual >= 0 && t.w_adversarial >= 0, "loss", "weights must be non-negative");
+  t.channels_last = c.flag("train.channels_last");
+  t.gemm_upsample = c.flag("train.gemm_upsample");
+  t.check_sync_every = c.integer("train.check_sync_every");
   t.out = out;
   return t;
 }
@@ -89,10 +93,24 @@ int train(int argc, char** argv) {
       "set", "override a setting: --set train.iterations=100 (repeatable)", cxxopts::value<std::vector<std::string>>())(
       "out", "run folder (checkpoints, logs, model.flatnet)", cxxopts::value<std::string>())(
       "resume", "continue the run in --out from its latest checkpoint");
+  o.add_options("distributed (defaults: torchrun's WORLD_SIZE, RANK, MASTER_ADDR, MASTER_PORT)")(
+      "world-size", "processes in the job", cxxopts::value<int>())("rank", "this process, 0..world-size-1", cxxopts::value<int>())(
+      "master-addr", "host of rank 0 (rendezvous)", cxxopts::value<std::string>())(
+      "master-port", "TCP port of the rendezvous on rank 0", cxxopts::value<int>())(
+      "dist-timeout", "seconds a collective may wait before the job fails", cxxopts::value<double>()->default_value("300"));
   add_common(o);
   cxxopts::ParseResult r;
   if (!parse(o, argc, argv, r)) return 0;
   require(r.count("out"), "train", "--out DIR is required");
+  auto dist = distributed_from_env();
+  if (r.count("world-size")) dist.world_size = r["world-size"].as<int>();
+  if (r.count("rank")) dist.rank = r["rank"].as<int>();
+  if (r.count("master-addr")) dist.master_addr = r["master-addr"].as<std::string>();
+  if (r.count("master-port")) dist.master_port = r["master-port"].as<int>();
+  dist.timeout_s = r["dist-timeout"].as<double>();
+  require(dist.world_size >= 1 && dist.rank >= 0 && dist.rank < dist.world_size, "--rank",
+          "must lie in [0, world size " + std::to_string(dist.world_size) + ")");
+  const bool writer = dist.rank == 0;
   const std::filesystem::path out = r["out"].as<std::string>();
   const auto sets = set_overrides(r);
   const auto latest = out / "latest.ckpt";
@@ -103,7 +121,7 @@ int train(int argc, char** argv) {
     config = checkpoint_settings(latest).first;
     for (const auto& s : sets) config.set(s);
   } else {
-    require(!std::filesystem::exists(latest), out,
+    require(!writer || !std::filesystem::exists(latest), out,
             "already holds a training run; continue it with --resume or choose another --out");
     config = Config::load(r.count("config") ? r["config"].as<std::string>() : "", sets);
   }
@@ -118,16 +136,30 @@ int train(int argc, char** argv) {
   std::cerr << "loading " << (config.integer("train.val_count") > 0 ? std::min(config.integer("train.val_count"), val_src->size()) : val_src->size())
             << " validation samples...\n";
   auto val = load_all(*val_src, config.integer("train.val_count"), std::max(1, opts.workers));
-  std::filesystem::create_directories(out);
-  write_text_atomically(out / "config.yaml", config.to_yaml());
+  if (writer) {
+    std::filesystem::create_directories(out);
+    write_text_atomically(out / "config.yaml", config.to_yaml());
+  }
+  std::unique_ptr<ProcessGroup> group;
+  if (dist.world_size > 1) {
+    std::cerr << "rank " << dist.rank << " of " << dist.world_size << ": joining " << dist.master_addr << ":"
+              << dist.master_port << "...\n";
+    group = std::make_unique<ProcessGroup>(dist);
+  }
   GanTrainer trainer(g, d, vgg, train_src, std::move(val), opts, config, camera);
-  if (resume) trainer.resume(latest);
+  if (resume) trainer.resume(latest);  // every rank reads rank 0's checkpoint (a shared or copied folder)
+  trainer.set_distributed(group.get());
   std::signal(SIGINT, on_interrupt);
   std::signal(SIGTERM, on_interrupt);
   std::cerr << "training on " << train_src->size() << " pairs, " << opts.iterations << " steps of batch " << opts.batch
+            << (dist.world_size > 1 ? " per rank x " + std::to_string(dist.world_size) + " ranks" : "")
             << " (" << config.str("model.input") << " + " << config.str("model.enhancer") << ", width "
             << config.integer("model.unet.width") << ")\n";
-  const auto s = trainer.run();
+ const auto s = trainer.run();
+  if (!writer) {
+    std::cout << "rank " << dist.rank << ": steps " << s.first_step << ".." << s.last_step << " done\n";
+    return GanTrainer::stop_requested ? 130 : 0;
+  }
   std::cout << "steps " << s.first_step << ".." << s.last_step << " in " << format_duration(s.seconds) << " ("
             << s.steps_per_s << " steps/s, data wait " << s.loader_wait_s << " s)\n"
             << "validation: last PSNR " << s.last_psnr << " SSIM " << s.last_ssim << ", best PSNR " << s.best_psnr
@@ -193,7 +225,9 @@ int infer(int argc, char** argv) {
       "input", "raw capture PNG or folder of them", cxxopts::value<std::string>())(
       "out", "output folder (PNGs with the captures' names)", cxxopts::value<std::string>())(
       "camera", "camera .yaml whose preprocessing to use (default: the model's)", cxxopts::value<std::string>())(
-      "batch", "captures per batch", cxxopts::value<int>()->default_value("4"));
+      "batch", "captures per batch", cxxopts::value<int>()->default_value("4"))(
+      "levers", "exact inference speed-ups: none, or a list of fold, channels-last, gemm-up (bf16: approximate)",
+      cxxopts::value<std::string>()->default_value("fold,channels-last,gemm-up"));
   add_common(o);
   cxxopts::ParseResult r;
   if (!parse(o, argc, argv, r)) return 0;
@@ -205,6 +239,7 @@ int infer(int argc, char** argv) {
   InferOptions opt;
   opt.out = r["out"].as<std::string>();
   opt.batch = std::max(1, r["batch"].as<int>());
+  opt.levers = parse_inference_levers(r["levers"].as<std::string>());
   const auto rep = infer_files(m.generator, camera, captures, opt);
   std::cout << "flatnet: " << rep.count << " captures -> " << opt.out.string() << " (" << rep.images_per_s
             << " images/s, " << rep.model_ms_per_image << " ms per image in the network)\n";

@@ -58,16 +58,50 @@ torch::Tensor TikhonovLayerImpl::forward(const torch::Tensor& Y) {
 
 namespace {
 
+// Eval-mode batch norm folded into the convolution before it (inference only):
+//   BN(W*x + b) = s (W*x + b - mean) + beta,  s = gamma / sqrt(var + eps)
+//   => W' = s W (per output channel), b' = s (b - mean) + beta.
+// ReLUs become in-place; other modules are kept as they are.
+nn::Sequential fold_sequential(nn::Sequential seq) {
+  nn::Sequential out;
+  torch::NoGradGuard no_grad;
+  const std::vector<nn::AnyModule> items(seq->begin(), seq->end());
+  for (size_t i = 0; i < items.size(); ++i) {
+    auto conv = seq[i]->as<nn::Conv2dImpl>();
+    auto bn = i + 1 < items.size() ? seq[i + 1]->as<nn::BatchNorm2dImpl>() : nullptr;
+    if (conv && bn) {
+      const auto& co = conv->options;
+      auto folded = nn::Conv2d(nn::Conv2dOptions(co.in_channels(), co.out_channels(), co.kernel_size())
+                                   .stride(co.stride()).padding(co.padding()).dilation(co.dilation())
+                                   .groups(co.groups()).bias(true));
+      const auto s = bn->weight / torch::sqrt(bn->running_var + bn->options.eps());
+      folded->weight.copy_(conv->weight * s.view({-1, 1, 1, 1}));
+      const auto b = conv->bias.defined() ? conv->bias : torch::zeros_like(bn->running_mean);
+      folded->bias.copy_(s * (b - bn->running_mean) + bn->bias);
+      out->push_back(folded);
+      ++i;
+    } else if (seq[i]->as<nn::ReLUImpl>()) {
+      out->push_back(nn::ReLU(nn::ReLUOptions().inplace(true)));
+    } else {
+      out->push_back(items[i]);
+    }
+  }
+  return out;
+}
+
 // (conv3x3 => BN => ReLU) x 2; the first conv may have stride 2 (FlatNet's double_conv2).
 struct DoubleConvImpl : nn::Module {
   DoubleConvImpl(int64_t in, int64_t out, int64_t stride, double momentum) {
     conv = register_module(
         "conv", nn::Sequential(nn::Conv2d(nn::Conv2dOptions(in, out, 3).stride(stride).padding(1)),
-                               nn::BatchNorm2d(nn::BatchNormOptions(out).momentum(momentum)), nn::ReLU(),
+                               nn::BatchNorm2d(nn::BatchNormOptions(out).momentum(momentum)),
+                               nn::ReLU(nn::ReLUOptions().inplace(true)),  // as FlatNet (BN's backward needs its input only)
                                nn::Conv2d(nn::Conv2dOptions(out, out, 3).padding(1)),
-                               nn::BatchNorm2d(nn::BatchNormOptions(out).momentum(momentum)), nn::ReLU()));
+                               nn::BatchNorm2d(nn::BatchNormOptions(out).momentum(momentum)),
+                               nn::ReLU(nn::ReLUOptions().inplace(true))));
   }
   torch::Tensor forward(const torch::Tensor& x) { return conv->forward(x); }
+  void fold_batchnorm() { conv = replace_module("conv", fold_sequential(conv)); }
   nn::Sequential conv{nullptr};
 };
 TORCH_MODULE(DoubleConv);
@@ -94,14 +128,38 @@ struct UpImpl : nn::Module {  // FlatNet's up: transposed conv on the deeper map
     conv = register_module("conv", DoubleConv(in, out, 1, m));
   }
   torch::Tensor forward(const torch::Tensor& deep, const torch::Tensor& skip) {
-    auto x1 = up->forward(deep);
+    auto x1 = gemm_up ? upsample_as_gemm(deep) : up->forward(deep);
     auto x2 = skip;
     const int64_t dy = x1.size(2) - x2.size(2), dx = x1.size(3) - x2.size(3);
     if (dy != 0 || dx != 0) x2 = torch::constant_pad_nd(x2, {dx / 2, dx - dx / 2, dy / 2, dy - dy / 2});
     return conv->forward(torch::cat({x2, x1}, 1));
   }
+  // The 2x2, stride-2 transposed convolution as one GEMM (exact: output pixels do not overlap):
+  //   out[b, o, 2i+di, 2j+dj] = sum_c x[b, c, i, j] W[c, o, di, dj] + bias[o].
+  // In NHWC, X {B*H*W, C} @ W {C, O*4} then an interleaving copy; LibTorch 1.13's own CPU kernel
+  // (slow_conv_transpose2d: im2col and NCHW only) is 2-3x slower here.
+  torch::Tensor upsample_as_gemm(const torch::Tensor& x) {  // {B,C,H,W} -> {B,O,2H,2W}
+    const int64_t B = x.size(0), C = x.size(1), H = x.size(2), W = x.size(3), O = up->weight.size(1);
+    torch::Tensor w, bias;
+    if (torch::GradMode::is_enabled()) {  // training: the live parameters, so gradients reach them
+      w = up->weight.reshape({C, O * 4});
+      bias = up->bias;
+    } else {  // inference: reshaped (and cast) once
+      if (!gemm_weight.defined() || gemm_weight.scalar_type() != x.scalar_type())
+        gemm_weight = up->weight.detach().reshape({C, O * 4}).to(x.scalar_type()).contiguous();  // [c][o][di][dj]
+      w = gemm_weight;
+      bias = up->bias.detach().to(x.scalar_type());
+    }
+    const auto nhwc = x.permute({0, 2, 3, 1}).reshape({B * H * W, C});
+    auto y = torch::mm(nhwc, w).view({B, H, W, O, 2, 2});  // [b][i][j][o][di][dj]
+    // -> [b][i][di][j][dj][o]: NHWC of the upsampled map, then viewed as channels_last NCHW.
+    y = y.permute({0, 1, 4, 2, 5, 3}).contiguous().view({B, 2 * H, 2 * W, O}).permute({0, 3, 1, 2});
+    return y + bias.view({1, O, 1, 1});
+  }
   nn::ConvTranspose2d up{nullptr};
   DoubleConv conv{nullptr};
+  bool gemm_up = false;
+  torch::Tensor gemm_weight;
 };
 TORCH_MODULE(Up);
 
@@ -241,8 +299,57 @@ torch::Tensor GeneratorImpl::first_stage(const torch::Tensor& Y) {
 }
 
 torch::Tensor GeneratorImpl::forward(const torch::Tensor& Y) {
-  const auto x = bn_->forward(first_stage(Y));          // {B,4,N,N}
-  return torch::sigmoid(enhancer_.forward<torch::Tensor>(x));  // {B,3,N,N}
+  auto x = bn_->forward(first_stage(Y));  // {B,4,N,N}
+  if (levers_.channels_last) x = x.contiguous(at::MemoryFormat::ChannelsLast);
+  if (levers_.bf16) x = x.to(torch::kBFloat16);
+  const auto y = enhancer_.forward<torch::Tensor>(x);  // {B,3,N,N} logits
+  if (!levers_.bf16 && !levers_.channels_last) return torch::sigmoid(y);
+  return torch::sigmoid(y.to(torch::kFloat32)).contiguous();
+}
+
+void GeneratorImpl::prepare_training(const InferenceLevers& levers) {
+  auto l = levers;
+  l.fold_batchnorm = false;  // batch statistics are needed while training
+  l.bf16 = false;
+  apply_levers(l);
+}
+
+void GeneratorImpl::prepare_inference(const InferenceLevers& levers) {
+  eval();
+  apply_levers(levers);
+}
+
+void GeneratorImpl::apply_levers(const InferenceLevers& levers) {
+  if (levers.fold_batchnorm && !levers_.fold_batchnorm) {
+    for (auto& m : modules(/*include_self=*/false))
+      if (auto dc = std::dynamic_pointer_cast<DoubleConvImpl>(m)) dc->fold_batchnorm();
+  }
+  for (auto& m : modules(/*include_self=*/false))
+    if (auto up = std::dynamic_pointer_cast<UpImpl>(m)) up->gemm_up = levers.gemm_upsample;
+  auto& enhancer = *named_children()["enhancer"];
+  torch::NoGradGuard no_grad;
+  if (levers.bf16) enhancer.to(torch::kBFloat16);
+  if (levers.channels_last)
+    for (auto& p : enhancer.parameters())
+      if (p.dim() == 4) p.set_data(p.contiguous(at::MemoryFormat::ChannelsLast));
+  levers_.fold_batchnorm = levers_.fold_batchnorm || levers.fold_batchnorm;
+  levers_.channels_last = levers.channels_last;
+  levers_.bf16 = levers.bf16;
+}
+
+InferenceLevers parse_inference_levers(const std::string& s) {
+  InferenceLevers l{false, false, false, false};
+  if (s == "none" || s.empty()) return l;
+  std::stringstream in(s);
+  std::string item;
+  while (std::getline(in, item, ',')) {
+    if (item == "fold") l.fold_batchnorm = true;
+    else if (item == "channels-last") l.channels_last = true;
+    else if (item == "bf16") l.bf16 = true;
+    else if (item == "gemm-up") l.gemm_upsample = true;
+    else throw Error("--levers: expected none or a list of fold, channels-last, gemm-up, bf16; got '" + item + "'");
+  }
+  return l;
 }
 
 InputStage parse_input_stage(const std::string& s) {

@@ -117,6 +117,21 @@ struct GeneratorOptions {
   double bn_momentum = 0.99;  // the BatchNorm2d(4) between the stages
 };
 
+// Inference-only speed-ups (each measured by `flatnet bench --levers`, README "Speed"):
+//  - fold_batchnorm: eval-mode BN folded into the U-Net's convolutions, ReLUs in place;
+//  - channels_last: NHWC activations and weights (oneDNN's native layout);
+//  - gemm_upsample: the U-Net's 2x2 stride-2 transposed convolutions as one GEMM each;
+//  - bf16: the enhancer in bfloat16 (AVX-512-BF16), the inversion stays float32.
+// prepare_inference changes the module in place: never train or save it afterwards.
+struct InferenceLevers {
+  bool fold_batchnorm = true;
+  bool channels_last = true;
+  bool bf16 = false;
+  bool gemm_upsample = true;
+};
+// "none" or a comma list of fold, channels-last, gemm-up, bf16.
+InferenceLevers parse_inference_levers(const std::string& s);
+
 class GeneratorImpl : public torch::nn::Module {
  public:
   explicit GeneratorImpl(const GeneratorOptions& options);
@@ -125,9 +140,15 @@ class GeneratorImpl : public torch::nn::Module {
   // The first stage alone, {B,4,N,N} (for inspection and the sample grid).
   torch::Tensor first_stage(const torch::Tensor& Y);
   const GeneratorOptions& options() const { return options_; }
+  // Applies inference levers (eval mode; see InferenceLevers). Irreversible.
+  void prepare_inference(const InferenceLevers& levers);
+  // The levers that keep training exact (channels_last, gemm_upsample); call before making the optimiser.
+  void prepare_training(const InferenceLevers& levers);
 
  private:
   GeneratorOptions options_;
+  void apply_levers(const InferenceLevers& levers);
+  InferenceLevers levers_{false, false, false, false};
   FlatInversion inversion_{nullptr};
   TikhonovLayer tikhonov_{nullptr};
   torch::nn::BatchNorm2d bn_{nullptr};

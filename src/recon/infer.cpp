@@ -17,8 +17,8 @@ InferReport infer_files(Generator& generator, const CameraConfig& camera, const 
                 std::to_string(go.scene));
   require(!captures.empty(), "--input", "no captures to reconstruct");
   std::filesystem::create_directories(opt.out);
-  generator->eval();
-  torch::NoGradGuard no_grad;
+  generator->prepare_inference(opt.levers);
+  c10::InferenceMode no_grad;
   InferReport rep;
   Progress progress("infer", static_cast<int64_t>(captures.size()), opt.progress);
   const auto start = std::chrono::steady_clock::now();

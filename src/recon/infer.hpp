@@ -13,6 +13,7 @@ struct InferOptions {
   std::filesystem::path out;
   int batch = 4;
   bool progress = true;
+  InferenceLevers levers;  // exact speed-ups applied to the generator (it is changed in place)
 };
 
 struct InferReport {

@@ -72,7 +72,8 @@ Batch BatchLoader::build(int64_t step) const {
   int64_t cached_epoch = -1;
   std::vector<int64_t> perm;
   for (int64_t j = 0; j < opt_.batch; ++j) {
-    const int64_t k = step * opt_.batch + j, epoch = k / n;
+    // Global sample index: step s's global batch is world * batch consecutive samples.
+    const int64_t k = (step * opt_.world_size + opt_.rank) * opt_.batch + j, epoch = k / n;
     if (epoch != cached_epoch) perm = epoch_permutation(n, opt_.seed, epoch), cached_epoch = epoch;
     auto s = source_->load(perm[k % n], epoch);
     if (opt_.noise_augment > 0) {

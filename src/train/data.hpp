@@ -74,9 +74,10 @@ struct LoaderOptions {
   int workers = 1;              // background threads
   int prefetch = 4;             // batches built ahead at most
   double noise_augment = 0.0;   // std of Gaussian noise added to the planes (FlatNet: 0.003)
+  int world_size = 1, rank = 0; // data-parallel: rank r takes slice r of each step's global batch
 };
 
-// Endless stream of shuffled batches. Sample k = step * batch + j is item perm_e[k mod n] of epoch
+// Endless stream of shuffled batches. Sample k = (step * world + rank) * batch + j is item perm_e[k mod n] of epoch
 // e = k / n, with perm_e a permutation drawn from (seed, e).
 class BatchLoader {
  public:

@@ -6,6 +6,7 @@
 #include "core/error.hpp"
 #include "core/util.hpp"
 #include "eval/metrics.hpp"
+#include "train/distributed.hpp"
 
 namespace flatnet {
 
@@ -39,6 +40,62 @@ torch::Tensor uniform(int64_t n, double lo, double hi, at::Generator& gen) {
 }
 
 }  // namespace
+
+StepLosses gan_step(Generator& g, Discriminator& d, Vgg16Features& vgg, torch::optim::Optimizer& opt_g,
+                    torch::optim::Optimizer& opt_d, const TrainOptions& opt, const Batch& batch, int64_t step,
+                    GradientAverager* sync) {
+  StepLosses out;
+  const bool adversarial = opt.w_adversarial > 0;
+  const bool perceptual = opt.w_perceptual > 0;
+  const bool warmup = step < opt.discriminator_warmup;
+  auto label_gen = at::detail::createCPUGenerator(opt.seed * 104729ULL + static_cast<uint64_t>(step));
+  torch::Tensor fake;
+  if (warmup) {
+    torch::NoGradGuard no_grad;
+    fake = g->forward(batch.meas);
+  } else {
+    fake = g->forward(batch.meas);  // {B,3,N,N}
+  }
+  if (adversarial) {  // discriminator step on real and detached fake images
+    const int64_t B = fake.size(0);
+    for (auto& p : d->parameters()) p.set_requires_grad(true);
+    opt_d.zero_grad();
+    const auto d_loss =
+        torch::binary_cross_entropy_with_logits(d->forward(batch.gt), uniform(B, opt.real_label_min, 1.0, label_gen)) +
+        torch::binary_cross_entropy_with_logits(d->forward(fake.detach()), uniform(B, 0.0, opt.fake_label_max, label_gen));
+    d_loss.backward();
+    if (sync) sync->average(d->parameters());
+    opt_d.step();
+    out.discriminator = d_loss.item<double>();
+  }
+  if (!warmup) {  // generator step
+    opt_g.zero_grad();
+    const auto mse = torch::mse_loss(fake, batch.gt);
+    auto loss = opt.w_mse * mse;
+    torch::Tensor perc, adv;
+    if (perceptual) loss = loss + opt.w_perceptual * (perc = perceptual_loss(vgg, fake, batch.gt));
+    if (adversarial) {
+      for (auto& p : d->parameters()) p.set_requires_grad(false);
+      adv = torch::binary_cross_entropy_with_logits(d->forward(fake), torch::ones({fake.size(0), 1}));
+      loss = loss + opt.w_adversarial * adv;
+    }
+    const double value = loss.item<double>();
+    if (!std::isfinite(value) || !std::isfinite(out.discriminator)) {
+      std::ostringstream os;
+      os << "training diverged: the loss is " << value << " at step " << step << " (mse " << mse.item<double>()
+         << ", discriminator " << out.discriminator << "); nothing was saved from this step; the last good checkpoint is "
+         << (opt.out / "latest.ckpt").string() << ". Try a lower train.lr.";
+      throw Error(os.str());
+    }
+    loss.backward();
+    if (sync) sync->average(g->parameters());
+    opt_g.step();
+    out.loss = value, out.mse = mse.item<double>();
+    if (perc.defined()) out.perceptual = perc.item<double>();
+    if (adv.defined()) out.adversarial = adv.item<double>();
+  }
+  return out;
+}
 
 ValidationResult validate(Generator& generator, const std::vector<Sample>& samples, int64_t batch,
                           const std::filesystem::path& sheet, int sheet_rows) {
@@ -74,6 +131,7 @@ GanTrainer::GanTrainer(Generator generator, Discriminator discriminator, Vgg16Fe
       val_(std::move(val)), opt_(std::move(options)), config_(std::move(config)), camera_(std::move(camera)) {
   require(opt_.iterations > 0 && opt_.batch > 0, "train", "iterations and batch must be positive");
   require(opt_.w_perceptual <= 0 || !vgg_.is_empty(), "loss.perceptual", "a perceptual weight needs VGG-16 weights");
+  g_->prepare_training({false, opt_.channels_last, false, opt_.gemm_upsample});
   // Two parameter groups: the inversion may learn at its own rate.
   std::vector<torch::Tensor> inversion, rest;
   for (const auto& p : g_->named_parameters()) (p.key().rfind("inversion.", 0) == 0 ? inversion : rest).push_back(p.value());
@@ -92,6 +150,15 @@ void GanTrainer::resume(const std::filesystem::path& checkpoint) {
   gen.set_state(state_.rng_state);
   truncate_log(opt_.out / "log.csv", state_.step);
   truncate_log(opt_.out / "val.csv", state_.step);
+}
+
+void GanTrainer::set_distributed(GradientAverager* collectives) {
+  sync_ = collectives;
+  if (!sync_ || sync_->world_size() == 1) return;
+  // Same starting point everywhere, whatever each rank initialised.
+  sync_->broadcast(parameters_and_buffers(*g_));
+  sync_->broadcast(parameters_and_buffers(*d_));
+  opt_.progress = opt_.progress && sync_->rank() == 0;
 }
 
 void GanTrainer::set_learning_rates(int64_t step) {
@@ -125,78 +192,48 @@ TrainSummary GanTrainer::run() {
   TrainSummary summary;
   summary.first_step = state_.step;
   summary.best_psnr = state_.best_psnr;
-  std::filesystem::create_directories(opt_.out);
   LoaderOptions lo;
   lo.batch = opt_.batch;
   lo.seed = opt_.seed;
   lo.first_step = state_.step;
   lo.workers = opt_.workers;
   lo.noise_augment = opt_.noise_augment;
+  if (sync_) lo.world_size = sync_->world_size(), lo.rank = sync_->rank();
   BatchLoader loader(train_, lo);
+  const bool writer = !sync_ || sync_->rank() == 0;  // only rank 0 writes logs and checkpoints
+  if (writer) std::filesystem::create_directories(opt_.out);
   const bool adversarial = opt_.w_adversarial > 0;
-  const bool perceptual = opt_.w_perceptual > 0;
   g_->train();
   d_->train();
   Progress progress("train", opt_.iterations - state_.step, opt_.progress);
   const auto start = std::chrono::steady_clock::now();
   double sum_loss = 0, sum_mse = 0, sum_perc = 0, sum_adv = 0, sum_d = 0;
   int64_t n_logged = 0;
-  while (state_.step < opt_.iterations && !stop_requested) {
+  auto stop = [&] { return sync_ ? sync_->any(stop_requested) : static_cast<bool>(stop_requested); };
+  bool stopping = false;
+  int64_t checkpointed = -1;
+  while (state_.step < opt_.iterations && !(stopping = stop())) {
     const int64_t step = state_.step;
     set_learning_rates(step);
     const auto batch = loader.next();
-    const bool warmup = step < opt_.discriminator_warmup;
-    auto label_gen = at::detail::createCPUGenerator(opt_.seed * 104729ULL + static_cast<uint64_t>(step));
-
-    torch::Tensor fake;
-    if (warmup) {
-      torch::NoGradGuard no_grad;
-      fake = g_->forward(batch.meas);
-    } else {
-      fake = g_->forward(batch.meas);  // {B,3,N,N}
-    }
-    double d_value = 0;
-    if (adversarial) {  // discriminator step on real and detached fake images
-      const int64_t B = fake.size(0);
-      for (auto& p : d_->parameters()) p.set_requires_grad(true);
-      opt_d_->zero_grad();
-      const auto d_loss =
-          torch::binary_cross_entropy_with_logits(d_->forward(batch.gt), uniform(B, opt_.real_label_min, 1.0, label_gen)) +
-          torch::binary_cross_entropy_with_logits(d_->forward(fake.detach()), uniform(B, 0.0, opt_.fake_label_max, label_gen));
-      d_loss.backward();
-      opt_d_->step();
-      d_value = d_loss.item<double>();
-    }
-    if (!warmup) {  // generator step
-      opt_g_->zero_grad();
-      const auto mse = torch::mse_loss(fake, batch.gt);
-      auto loss = opt_.w_mse * mse;
-      torch::Tensor perc, adv;
-      if (perceptual) loss = loss + opt_.w_perceptual * (perc = perceptual_loss(vgg_, fake, batch.gt));
-      if (adversarial) {
-        for (auto& p : d_->parameters()) p.set_requires_grad(false);
-        adv = torch::binary_cross_entropy_with_logits(d_->forward(fake), torch::ones({fake.size(0), 1}));
-        loss = loss + opt_.w_adversarial * adv;
+    const auto l = gan_step(g_, d_, vgg_, *opt_g_, *opt_d_, opt_, batch, step, sync_);
+    sum_loss += l.loss, sum_mse += l.mse, sum_perc += l.perceptual, sum_adv += l.adversarial;
+    const double d_value = l.discriminator;
+    if (sync_ && sync_->world_size() > 1) {
+      // Batch-norm running statistics follow rank 0's (as DistributedDataParallel's broadcast_buffers).
+      std::vector<torch::Tensor> buffers = g_->buffers(), d_buffers = d_->buffers();
+      buffers.insert(buffers.end(), d_buffers.begin(), d_buffers.end());
+      sync_->broadcast(buffers);
+      if (opt_.check_sync_every > 0 && (step + 1) % opt_.check_sync_every == 0) {
+        sync_->check_identical(g_->parameters(), "generator parameters after step " + std::to_string(step + 1));
+        sync_->check_identical(d_->parameters(), "discriminator parameters after step " + std::to_string(step + 1));
       }
-      const double value = loss.item<double>();
-      if (!std::isfinite(value) || !std::isfinite(d_value)) {
-        std::ostringstream os;
-        os << "training diverged: the loss is " << value << " at step " << step << " (mse " << mse.item<double>()
-           << ", discriminator " << d_value << "); nothing was saved from this step; the last good checkpoint is "
-           << (opt_.out / "latest.ckpt").string() << ". Try a lower train.lr.";
-        throw Error(os.str());
-      }
-      loss.backward();
-      opt_g_->step();
-      sum_loss += value, sum_mse += mse.item<double>();
-      if (perc.defined()) sum_perc += perc.item<double>();
-      if (adv.defined()) sum_adv += adv.item<double>();
     }
     sum_d += d_value;
     ++n_logged;
     state_.step = step + 1;
     progress.tick();
-    if (state_.step % opt_.log_every == 0 || state_.step == opt_.iterations) {
+    if (writer && (state_.step % opt_.log_every == 0 || state_.step == opt_.iterations)) {
       const double elapsed = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
       std::ostringstream line, status;
       line << state_.step << "," << std::setprecision(6) << sum_loss / n_logged << "," << sum_mse / n_logged << ","
@@ -211,9 +248,12 @@ TrainSummary GanTrainer::run() {
       sum_loss = sum_mse = sum_perc = sum_adv = sum_d = 0;
       n_logged = 0;
     }
-    if (state_.step % opt_.val_every == 0 || state_.step == opt_.iterations || stop_requested)
+    if (writer && (state_.step % opt_.val_every == 0 || state_.step == opt_.iterations)) {
       checkpoint_and_validate(summary);
+      checkpointed = state_.step;
+    }
   }
+  if (stopping && writer && checkpointed != state_.step) checkpoint_and_validate(summary);  // Ctrl-C loses nothing
   progress.finish();
   summary.last_step = state_.step;
   summary.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();

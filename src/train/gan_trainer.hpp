@@ -31,6 +31,9 @@ struct TrainOptions {
   int64_t val_every = 500, log_every = 10;
   double w_mse = 1.0, w_perceptual = 1.2, w_adversarial = 0.6;
   double real_label_min = 0.7, fake_label_max = 0.3;
+  bool channels_last = true;   // exact speed-ups (InferenceLevers): NHWC activations,
+  bool gemm_upsample = true;   // transposed convolutions as GEMMs
+  int64_t check_sync_every = 0;  // distributed: verify bit-identical parameters every N steps (0: never)
   std::filesystem::path out;  // run folder: latest.ckpt, best.ckpt, model.flatnet, log.csv, val.csv, samples.png
   bool progress = true;
 };
@@ -50,11 +53,41 @@ struct ValidationResult {
 ValidationResult validate(Generator& generator, const std::vector<Sample>& samples, int64_t batch,
                           const std::filesystem::path& sheet = {}, int sheet_rows = 4);
 
+struct StepLosses {
+  double loss = 0, mse = 0, perceptual = 0, adversarial = 0, discriminator = 0;
+};
+
+// Data-parallel training's collectives (implemented with c10d in train/distributed.hpp).
+class GradientAverager {
+ public:
+  virtual ~GradientAverager() = default;
+  virtual int rank() const = 0;
+  virtual int world_size() const = 0;
+  // Gradients of `params` <- their mean over all processes, in place.
+  virtual void average(const std::vector<torch::Tensor>& params) = 0;
+  // Tensors <- rank 0's values.
+  virtual void broadcast(const std::vector<torch::Tensor>& tensors) = 0;
+  // Errors (on every rank) when the ranks' tensors are not bit-identical.
+  virtual void check_identical(const std::vector<torch::Tensor>& tensors, const std::string& what) = 0;
+  // True on every rank when it is true on any.
+  virtual bool any(bool flag) = 0;
+};
+
+// One training step (see the file comment) on `batch`; `step` seeds the label smoothing. With
+// `sync`, gradients are averaged across processes before each optimiser step. Throws on a
+// non-finite loss before any parameter changes.
+StepLosses gan_step(Generator& g, Discriminator& d, Vgg16Features& vgg, torch::optim::Optimizer& opt_g,
+                    torch::optim::Optimizer& opt_d, const TrainOptions& opt, const Batch& batch, int64_t step,
+                    GradientAverager* sync = nullptr);
+
 class GanTrainer {
  public:
   GanTrainer(Generator generator, Discriminator discriminator, Vgg16Features vgg,
              std::shared_ptr<const PairSource> train, std::vector<Sample> val, TrainOptions options,
              Config config, CameraConfig camera);
+  // Data-parallel: rank 0's weights are broadcast, gradients averaged every step, batches sharded
+  // by rank; only rank 0 validates and writes files. Call before resume() and run().
+  void set_distributed(GradientAverager* collectives);
   // Continues from a checkpoint written by an earlier run with the same config.
   void resume(const std::filesystem::path& checkpoint);
   TrainSummary run();
@@ -75,6 +108,7 @@ class GanTrainer {
   CameraConfig camera_;
   std::unique_ptr<torch::optim::Adam> opt_g_, opt_d_;
   TrainState state_;
+  GradientAverager* sync_ = nullptr;
 };
 
 }  // namespace flatnet

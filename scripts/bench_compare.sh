@@ -1,0 +1,68 @@
+#!/usr/bin/env bash
+# flatnet (C++) against the same models in Python PyTorch, on this machine, interleaved:
+# for each row, ROUNDS alternations of one `flatnet bench` process and one bench_reference.py
+# process (each: warm-up, then REPEATS timed runs), so drifting machine load hits both alike.
+# Prints a table and, last, one line per row:  ratio <row> <C++ median / Python median>
+#   scripts/bench_compare.sh [ROWS] [REPEATS] [ROUNDS]     (defaults: all six rows, 3, 2)
+# Environment: THREADS (default: all cores), LEVERS (flatnet's inference levers, default
+# fold,channels-last,gemm-up), SWEEP=1 also times each inference lever alone (C++ only).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+rows=${1:-tikhonov,infer_paper,infer_cpu,train_paper,train_cpu,mask_step}
+repeats=${2:-3}
+rounds=${3:-2}
+threads=${THREADS:-$(nproc)}
+levers=${LEVERS:-fold,channels-last,gemm-up}
+py=/usr/bin/python3
+bin=build/flatnet
+[ -x "$bin" ] || bash scripts/build.sh
+"$py" -c 'import torch' 2>/dev/null || { echo "bench_compare: $py has no torch (apt install python3-torch)" >&2; exit 2; }
+tmp=$(mktemp -d)
+trap 'rm -rf "$tmp"' EXIT
+
+echo "machine: $(grep -m1 'model name' /proc/cpuinfo | cut -d: -f2 | sed 's/^ //'), $(nproc) cores, $threads threads, $(date -u +%Y-%m-%d)"
+echo "flatnet levers: $levers; $repeats timed runs after 1 warm-up, $rounds interleaved rounds per row"
+IFS=, read -ra row_list <<< "$rows"
+for row in "${row_list[@]}"; do
+  for ((k = 0; k < rounds; k++)); do
+    "$bin" bench --rows "$row" --repeats "$repeats" --threads "$threads" --levers "$levers" --json "$tmp/cpp_${row}_$k.json" > /dev/null
+    "$py" scripts/bench_reference.py --rows "$row" --repeats "$repeats" --threads "$threads" --json "$tmp/py_${row}_$k.json" > /dev/null
+  done
+done
+if [ "${SWEEP:-0}" = "1" ]; then
+  for l in none fold channels-last gemm-up fold,channels-last fold,channels-last,gemm-up fold,channels-last,gemm-up,bf16; do
+    "$bin" bench --rows infer_paper --repeats "$repeats" --threads "$threads" --levers "$l" --json "$tmp/lever_$l.json" > /dev/null
+  done
+fi
+
+"$py" - "$tmp" "$rows" "$rounds" "${SWEEP:-0}" <<'PY'
+import json, statistics, sys, glob, os
+tmp, rows, rounds, sweep = sys.argv[1], sys.argv[2].split(","), int(sys.argv[3]), sys.argv[4] == "1"
+def load(prefix, row):
+    out = []
+    for k in range(rounds):
+        with open(os.path.join(tmp, "%s_%s_%d.json" % (prefix, row, k))) as f:
+            out.append(json.load(f)["rows"][0])
+    return out
+print("%-12s %12s %12s %8s %10s %10s %8s" % ("row", "C++ ms", "Python ms", "ratio", "C++ MB", "Python MB", "memory"))
+ratios = []
+for row in rows:
+    c, p = load("cpp", row), load("py", row)
+    cm = statistics.median(r["median_ms"] for r in c)
+    pm = statistics.median(r["median_ms"] for r in p)
+    cmem = max(r["peak_rss_mb"] for r in c)
+    pmem = max(r["peak_rss_mb"] for r in p)
+    print("%-12s %12.2f %12.2f %8.3f %10.0f %10.0f %+7.1f%%" % (row, cm, pm, cm / pm, cmem, pmem, 100 * (cmem / pmem - 1)))
+    ratios.append((row, cm / pm))
+if sweep:
+    print("\ninference levers, infer_paper (C++ alone):")
+    base = None
+    for f in ["none", "fold", "channels-last", "gemm-up", "fold,channels-last", "fold,channels-last,gemm-up",
+              "fold,channels-last,gemm-up,bf16"]:
+        with open(os.path.join(tmp, "lever_%s.json" % f)) as fh:
+            ms = json.load(fh)["rows"][0]["median_ms"]
+        base = base or ms
+        print("  %-34s %10.1f ms  %5.2fx" % (f, ms, base / ms))
+for row, r in ratios:
+    print("ratio %s %.3f" % (row, r))
+PY

@@ -1,0 +1,57 @@
+#include <fstream>
+#include <iomanip>
+#include <iostream>
+
+#include <nlohmann/json.hpp>
+
+#include "cli/commands.hpp"
+#include "core/error.hpp"
+#include "core/util.hpp"
+#include "eval/bench.hpp"
+
+namespace flatnet::cli {
+
+int bench(int argc, char** argv) {
+  cxxopts::Options o("flatnet bench",
+                     "Time the hot paths (median and min of N runs after warm-up, peak memory per row).\n"
+                     "scripts/bench_compare.sh runs these rows beside their Python PyTorch twins.");
+  o.add_options()("rows", "comma list of rows (default: all)", cxxopts::value<std::string>())(
+      "repeats", "timed runs per row", cxxopts::value<int>()->default_value("5"))(
+      "warmup", "untimed runs before them", cxxopts::value<int>()->default_value("1"))(
+      "levers", "inference levers for infer_*: none, or a list of fold, channels-last, gemm-up, bf16",
+      cxxopts::value<std::string>()->default_value("fold,channels-last,gemm-up"))(
+      "json", "also write the results to this JSON file", cxxopts::value<std::string>());
+  add_common(o);
+  cxxopts::ParseResult r;
+  if (!parse(o, argc, argv, r)) return 0;
+  BenchOptions opt;
+  opt.repeats = r["repeats"].as<int>();
+  opt.warmup = r["warmup"].as<int>();
+  opt.levers = parse_inference_levers(r["levers"].as<std::string>());
+  require(opt.repeats >= 1 && opt.warmup >= 0, "bench", "--repeats must be >= 1 and --warmup >= 0");
+  std::vector<std::string> rows;
+  if (r.count("rows")) {
+    std::stringstream in(r["rows"].as<std::string>());
+    std::string item;
+    while (std::getline(in, item, ',')) rows.push_back(item);
+  } else {
+    rows = bench_row_names();
+  }
+  const int threads = at::get_num_threads();
+  std::cout << "flatnet bench: " << threads << " threads, " << opt.repeats << " runs after " << opt.warmup << " warm-up\n";
+  std::cout << std::left << std::setw(13) << "row" << std::right << std::setw(12) << "median ms" << std::setw(12) << "min ms"
+            << std::setw(12) << "peak MB" << std::setw(12) << "per s" << "  what\n";
+  nlohmann::json out = {{"tool", "flatnet"}, {"threads", threads}, {"repeats", opt.repeats}, {"rows", nlohmann::json::array()}};
+  for (const auto& name : rows) {
+    const auto row = run_bench_row(name, opt);
+    std::cout << std::left << std::setw(13) << row.name << std::right << std::fixed << std::setprecision(2) << std::setw(12)
+              << row.median_ms << std::setw(12) << row.min_ms << std::setprecision(0) << std::setw(12) << row.peak_rss_mb
+              << std::setprecision(2) << std::setw(12) << row.per_second << "  " << row.what << std::endl;
+    out["rows"].push_back({{"name", row.name}, {"what", row.what}, {"median_ms", row.median_ms}, {"min_ms", row.min_ms},
+                           {"runs_ms", row.ms}, {"peak_rss_mb", row.peak_rss_mb}, {"per_second", row.per_second}});
+  }
+  if (r.count("json")) write_text_atomically(r["json"].as<std::string>(), out.dump(2) + "\n");
+  return 0;
+}
+
+}  // namespace flatnet::cli

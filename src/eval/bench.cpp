@@ -1,0 +1,212 @@
+#include "eval/bench.hpp"
+
+#include <fstream>
+
+#include "core/camera_config.hpp"
+#include "core/error.hpp"
+#include "hw/live.hpp"
+#include "io/raw.hpp"
+#include "optics/camera.hpp"
+#include "optics/mask.hpp"
+#include "recon/run.hpp"
+#include "recon/tikhonov.hpp"
+#include "train/data.hpp"
+#include "train/gan_trainer.hpp"
+
+namespace flatnet {
+
+namespace {
+
+constexpr int64_t kRows = 500, kCols = 620, kScene = 256;
+
+double now_ms() {
+  return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now().time_since_epoch()).count();
+}
+
+// Times fn: `warmup` untimed calls, then `repeats` timed ones.
+BenchRow time_row(const std::string& name, const std::string& what, const BenchOptions& o, const std::function<void()>& fn) {
+  BenchRow row;
+  row.name = name;
+  row.what = what;
+  for (int i = 0; i < o.warmup; ++i) fn();
+  for (int i = 0; i < std::max(1, o.repeats); ++i) {
+    const double t = now_ms();
+    fn();
+    row.ms.push_back(now_ms() - t);
+  }
+  auto sorted = row.ms;
+  std::sort(sorted.begin(), sorted.end());
+  row.median_ms = sorted[sorted.size() / 2];
+  if (sorted.size() % 2 == 0) row.median_ms = 0.5 * (sorted[sorted.size() / 2 - 1] + sorted[sorted.size() / 2]);
+  row.min_ms = sorted.front();
+  return row;
+}
+
+Calibration random_calibration() {
+  auto gen = at::detail::createCPUGenerator(0);
+  Calibration c;
+  c.P = at::randn({4, kRows, kScene}, gen) / std::sqrt(static_cast<double>(kRows));
+  c.Q = at::randn({4, kCols, kScene}, gen) / std::sqrt(static_cast<double>(kCols));
+  return c;
+}
+
+GeneratorOptions generator_for(int64_t width) {
+  GeneratorOptions g;
+  g.unet.width = width;
+  g.inversion.phil = torch::randn({kRows, kScene, 1}) / std::sqrt(static_cast<double>(kRows));  // FlatNet: shared W1, W2
+  g.inversion.phir = torch::randn({kCols, kScene, 1}) / std::sqrt(static_cast<double>(kCols));
+  return g;
+}
+
+BenchRow infer_row(const std::string& name, int64_t width, const BenchOptions& o) {
+  torch::manual_seed(0);
+  Generator g(generator_for(width));
+  g->prepare_inference(o.levers);
+  const auto Y = torch::randn({1, 4, kRows, kCols}) * 0.05;
+  std::string levers = std::string(o.levers.fold_batchnorm ? " fold" : "") + (o.levers.channels_last ? " channels-last" : "") +
+                       (o.levers.gemm_upsample ? " gemm-up" : "") + (o.levers.bf16 ? " bf16" : "");
+  c10::InferenceMode guard;
+  auto row = time_row(name, "FlatNet-sep U-Net width " + std::to_string(width) + ", batch 1, levers:" +
+                                (levers.empty() ? std::string(" none") : levers),
+                      o, [&] { g->forward(Y); });
+  row.per_second = 1000.0 / row.median_ms;
+  return row;
+}
+
+BenchRow train_row(const std::string& name, int64_t width, bool paper, const BenchOptions& o) {
+  torch::manual_seed(0);
+  Generator g(generator_for(width));
+  g->prepare_training(o.levers);
+  DiscriminatorOptions dopt;
+  Discriminator d(dopt);
+  Vgg16Features vgg(false);  // random weights: the cost is what is measured
+  TrainOptions t;
+  t.batch = 4;
+  t.w_mse = 1.0;
+  t.w_perceptual = paper ? 1.2 : 0.0;
+  t.w_adversarial = paper ? 0.6 : 1e-3;
+  torch::optim::Adam opt_g(g->parameters(), torch::optim::AdamOptions(1e-4).betas({0.9, 0.999}));
+  torch::optim::Adam opt_d(d->parameters(), torch::optim::AdamOptions(1e-4).betas({0.9, 0.999}));
+  g->train();
+  d->train();
+  Batch batch;
+  batch.meas = torch::randn({4, 4, kRows, kCols}) * 0.05;
+  batch.gt = torch::rand({4, 3, kScene, kScene});
+  int64_t step = 0;
+  auto row = time_row(name,
+                      "one GAN step (D then G), batch 4, U-Net width " + std::to_string(width) + ", MSE" +
+                          (paper ? " + 1.2 VGG-16 perceptual + 0.6 adversarial" : " + 1e-3 adversarial") + ", Adam" +
+                          (o.levers.channels_last ? ", channels-last" : "") + (o.levers.gemm_upsample ? ", gemm-up" : ""),
+                      o, [&] { gan_step(g, d, vgg, opt_g, opt_d, t, batch, step++); });
+  row.per_second = 1000.0 / row.median_ms;
+  return row;
+}
+
+BenchRow mask_row(const BenchOptions& o) {
+  MaskOptions mo;
+  mo.rank = 1;
+  MaskModel model(mo);
+  WienerCamera cam;
+  auto log_gamma = torch::tensor(std::log(1e-4)).set_requires_grad(true);
+  auto params = model->parameters();
+  params.push_back(log_gamma);
+  torch::optim::Adam opt(params, torch::optim::AdamOptions(1e-2));
+  const auto scenes = torch::rand({4, kScene, kScene});
+  auto gen = at::detail::createCPUGenerator(0);
+  auto row = time_row("mask_step", "rank-1 511x511 mask: PSF, FFT capture + noise, Wiener, MSE, backward, Adam; batch 4", o, [&] {
+    const auto P = psf_spectrum(model->window());
+    const auto rec = wiener(capture(scenes, P, cam, gen), P, log_gamma.exp(), cam);
+    const auto loss = torch::mse_loss(rec, scenes);
+    opt.zero_grad();
+    loss.backward();
+    opt.step();
+  });
+  row.per_second = 1000.0 / row.median_ms;
+  return row;
+}
+
+}  // namespace
+
+const std::vector<std::string>& bench_row_names() {
+  static const std::vector<std::string> names = {"tikhonov",   "live_frame",  "simulator", "infer_paper", "infer_cpu",
+                                                 "train_paper", "train_cpu", "mask_step", "loader"};
+  return names;
+}
+
+double peak_rss_mb() {
+  std::ifstream in("/proc/self/status");
+  std::string line;
+  while (std::getline(in, line))
+    if (line.rfind("VmHWM:", 0) == 0) return std::stod(line.substr(6)) / 1024.0;
+  return 0;
+}
+
+void reset_peak_rss() {
+  std::ofstream out("/proc/self/clear_refs");
+  out << "5";
+}
+
+BenchRow run_bench_row(const std::string& name, const BenchOptions& o) {
+  reset_peak_rss();
+  BenchRow row;
+  if (name == "tikhonov") {
+    const Tikhonov tik(random_calibration(), 1e-4);
+    const auto Y = torch::randn({1, 4, kRows, kCols});
+    c10::InferenceMode guard;
+    row = time_row(name, "Tikhonov (SVD closed form) of one capture, 4 planes 500x620 -> 256x256", o, [&] { tik(Y); });
+    row.per_second = 1000.0 / row.median_ms;
+  } else if (name == "live_frame") {
+    const auto camera = load_camera_config(default_camera_path());
+    const Tikhonov tik(random_calibration(), 1e-4);
+    const auto codes = torch::randint(0, 1024, {camera.raw.raw_height, camera.raw.raw_width}, torch::kInt32);
+    c10::InferenceMode guard;
+    row = time_row(name, "live view's work per frame: 10-bit codes 1024x1280 -> planes -> Tikhonov -> sRGB", o, [&] {
+      const auto planes = preprocess_raw(codes_to_unit(codes, 10), camera.raw);
+      planes_to_srgb(tik(planes.unsqueeze(0))[0]);
+    });
+    row.per_second = 1000.0 / row.median_ms;
+  } else if (name == "simulator") {
+    const auto camera = load_camera_config(default_camera_path());
+    const auto rig = load_rig(camera.rig);
+    const auto scene = torch::rand({3, kScene, kScene});
+    auto gen = at::detail::createCPUGenerator(0);
+    c10::InferenceMode guard;
+    row = time_row(name, "one noisy raw capture of a 256x256 scene through the reference rig", o,
+                   [&] { simulate_raw(rig, scene, true, gen); });
+    row.per_second = 1000.0 / row.median_ms;
+  } else if (name == "infer_paper") {
+    row = infer_row(name, 128, o);
+  } else if (name == "infer_cpu") {
+    row = infer_row(name, 16, o);
+  } else if (name == "train_paper") {
+    row = train_row(name, 128, true, o);
+  } else if (name == "train_cpu") {
+    row = train_row(name, 16, false, o);
+  } else if (name == "mask_step") {
+    row = mask_row(o);
+  } else if (name == "loader") {
+    const auto camera = load_camera_config(default_camera_path());
+    auto rig = std::make_shared<const Rig>(load_rig(camera.rig));
+    std::vector<std::filesystem::path> images;
+    for (const auto& e : std::filesystem::directory_iterator(std::filesystem::path(FLATNET_SOURCE_DIR) / "tests" / "data" / "golden"))
+      if (e.path().string().find("_scene.png") != std::string::npos) images.push_back(e.path());
+    std::sort(images.begin(), images.end());
+    auto source = std::make_shared<SimulatedPairs>(images, rig, camera, 0);
+    LoaderOptions lo;
+    lo.batch = 4;
+    lo.workers = o.loader_workers;
+    BatchLoader loader(source, lo);
+    row = time_row(name, "on-the-fly simulated batches of 4 (decode, resize, simulate, preprocess), " +
+                             std::to_string(lo.workers) + " loader threads, consumer idle",
+                   o, [&] { loader.next(); });
+    row.per_second = 4000.0 / row.median_ms;  // samples per second
+  } else {
+    std::string names;
+    for (const auto& n : bench_row_names()) names += " " + n;
+    throw Error("bench: unknown row '" + name + "'; rows:" + names);
+  }
+  row.peak_rss_mb = peak_rss_mb();
+  return row;
+}
+
+}  // namespace flatnet

@@ -1,0 +1,37 @@
+#pragma once
+// `flatnet bench`: timings of the hot paths on this machine, the same rows that
+// scripts/bench_reference.py times in Python PyTorch (scripts/bench_compare.sh prints the ratios).
+// Each row: warm-up runs, then `repeats` timed runs; median and min in ms, and the peak resident
+// memory of the row alone (the kernel's high-water mark is reset before each row).
+#include <string>
+#include <vector>
+
+#include "nn/generator.hpp"
+
+namespace flatnet {
+
+struct BenchOptions {
+  int repeats = 5;
+  int warmup = 1;
+  InferenceLevers levers;  // for the infer_* rows
+  int loader_workers = 2;  // for the loader row
+};
+
+struct BenchRow {
+  std::string name;
+  std::string what;          // one line: the shapes and settings timed
+  std::vector<double> ms;    // the timed runs
+  double median_ms = 0, min_ms = 0;
+  double peak_rss_mb = 0;    // VmHWM after the row (reset before it)
+  double per_second = 0;     // derived throughput (items/s) where meaningful
+};
+
+// tikhonov, live_frame, simulator, infer_paper, infer_cpu, train_paper, train_cpu, mask_step, loader
+const std::vector<std::string>& bench_row_names();
+BenchRow run_bench_row(const std::string& name, const BenchOptions& options);
+
+// Peak resident set size of this process in MB (VmHWM) and its reset (Linux /proc/self/clear_refs).
+double peak_rss_mb();
+void reset_peak_rss();
+
+}  // namespace flatnet
