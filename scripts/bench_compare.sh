@@ -29,9 +29,11 @@ for row in "${row_list[@]}"; do
     "$py" scripts/bench_reference.py --rows "$row" --repeats "$repeats" --threads "$threads" --json "$tmp/py_${row}_$k.json" > /dev/null
   done
 done
-if [ "${SWEEP:-0}" = "1" ]; then
-  for l in none fold channels-last gemm-up fold,channels-last fold,channels-last,gemm-up fold,channels-last,gemm-up,bf16; do
-    "$bin" bench --rows infer_paper --repeats "$repeats" --threads "$threads" --levers "$l" --json "$tmp/lever_$l.json" > /dev/null
+if [ "${SWEEP:-0}" = "1" ]; then  # each lever set, interleaved over the rounds as well
+  for ((k = 0; k < rounds; k++)); do
+    for l in none fold channels-last,gemm-up fold,channels-last fold,channels-last,gemm-up fold,channels-last,gemm-up,bf16; do
+      "$bin" bench --rows infer_paper --repeats "$repeats" --threads "$threads" --levers "$l" --json "$tmp/lever_${l}_$k.json" > /dev/null
+    done
   done
 fi
 
@@ -57,10 +59,10 @@ for row in rows:
 if sweep:
     print("\ninference levers, infer_paper (C++ alone):")
     base = None
-    for f in ["none", "fold", "channels-last", "gemm-up", "fold,channels-last", "fold,channels-last,gemm-up",
+    for f in ["none", "fold", "channels-last,gemm-up", "fold,channels-last", "fold,channels-last,gemm-up",
               "fold,channels-last,gemm-up,bf16"]:
-        with open(os.path.join(tmp, "lever_%s.json" % f)) as fh:
-            ms = json.load(fh)["rows"][0]["median_ms"]
+        ms = statistics.median(json.load(open(os.path.join(tmp, "lever_%s_%d.json" % (f, k))))["rows"][0]["median_ms"]
+                               for k in range(rounds))
         base = base or ms
         print("  %-34s %10.1f ms  %5.2fx" % (f, ms, base / ms))
 for row, r in ratios:
