@@ -109,7 +109,7 @@ def vgg16_features():  # torchvision's vgg16().features[:23], random weights (th
         if c == "M":
             layers.append(nn.MaxPool2d(2, 2))
         else:
-            layers += [nn.Conv2d(cin, c, 3, padding=1), nn.ReLU(inplace=False)]
+            layers += [nn.Conv2d(cin, c, 3, padding=1), nn.ReLU(inplace=True)]  # as torchvision
             cin = c
     f = nn.Sequential(*layers)
     for p in f.parameters():

@@ -24,7 +24,7 @@ std::filesystem::path make_photos(const std::filesystem::path& dir) {
 }
 }  // namespace
 
-TEST_CASE("simulate, recon and eval end to end; simulate resumes and is deterministic", "[cli][e2e]") {
+TEST_CASE("simulate, recon and eval end to end, and simulate resumes deterministically", "[cli][e2e]") {
   test::Scratch s("e2e");
   auto photos = make_photos(s.dir / "photos");
   auto r = test::run_flatnet("simulate --images " + q(photos) + " --out " + q(s.dir / "ds") + " --val-fraction 0.5 --seed 3");
@@ -107,7 +107,7 @@ TEST_CASE("bad input: one clear line, exit code 2", "[cli][errors]") {
   CHECK_THAT(r.output, Contains("cam.yaml") && Contains("crop"));
 }
 
-TEST_CASE("train, export, import and infer from the command line; bad input is refused", "[cli][train][slow]") {
+TEST_CASE("train, export, import and infer from the command line, and bad input is refused", "[cli][train][slow]") {
   test::Scratch s("train_cli");
   auto photos = make_photos(s.dir / "photos");
   REQUIRE(test::run_flatnet("simulate --images " + q(photos) + " --out " + q(s.dir / "ds") + " --val-fraction 0.5").code == 0);

@@ -82,7 +82,7 @@ TEST_CASE("learnable mask: throughput rule, exact constraint gradient, binarisat
   CHECK_THROWS_WITH(MaskModel(bad), Contains("mask.rank"));
 }
 
-TEST_CASE("mask training: gradients reach U, V and gamma; outputs written", "[mask][slow]") {
+TEST_CASE("mask training: gradients reach U, V and gamma, and the outputs are written", "[mask][slow]") {
   test::Scratch s("masktrain");
   MaskOptions o;
   o.rank = 2;

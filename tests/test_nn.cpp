@@ -154,7 +154,7 @@ TEST_CASE("config: defaults, base files, --set, unknown keys with a suggestion, 
   CHECK(again.to_yaml() == c.to_yaml());  // paths are written resolved, so the text is a fixed point
 }
 
-TEST_CASE("model files and state dicts round trip; wrong files give clear errors", "[nn][model]") {
+TEST_CASE("model files and state dicts round trip, and wrong files give clear errors", "[nn][model]") {
   test::Scratch s("model");
   auto config = Config::load({}, {"model.unet.width=2"});
   CameraConfig camera;

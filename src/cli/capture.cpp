@@ -89,6 +89,28 @@ DisplayOptions display_options(const cxxopts::ParseResult& r) {
   return d;
 }
 
+// Flags and objects every display-capture command shares.
+void add_collect_flags(cxxopts::Options& o, int default_average) {
+  o.add_options("collection")("average", "frames averaged per capture", cxxopts::value<int>()->default_value(std::to_string(default_average)))(
+      "limit", "stop after this many new captures (0: all)", cxxopts::value<int64_t>()->default_value("0"));
+  add_camera_flags(o);
+  add_display_flags(o);
+  add_common(o);
+}
+
+struct CollectionSession {
+  std::unique_ptr<FrameSource> source;
+  std::unique_ptr<Display> display;
+};
+
+// Opens the camera, then the display, and starts watching for Ctrl-C.
+CollectionSession open_collection(const cxxopts::ParseResult& r, const CameraConfig& camera) {
+  CollectionSession s{open_from_flags(r, camera), nullptr};
+  s.display = make_display(display_options(r));
+  watch_interrupts();
+  return s;
+}
+
 CollectOptions collect_options(const cxxopts::ParseResult& r) {
   CollectOptions c;
   c.average = r["average"].as<int>();
@@ -158,13 +180,9 @@ int capture_dataset(int argc, char** argv) {
                      "Resumable: run the same command again after an interruption.");
   o.add_options()("images", "folder of photographs", cxxopts::value<std::string>())(
       "out", "dataset folder (meas/, gt/, train_*.txt, val_*.txt)", cxxopts::value<std::string>())(
-      "average", "frames averaged per capture", cxxopts::value<int>()->default_value("1"))(
       "val-fraction", "share of photographs in the validation lists", cxxopts::value<double>()->default_value("0.1"))(
-      "seed", "split seed", cxxopts::value<uint64_t>()->default_value("0"))(
-      "limit", "stop after this many new captures (0: all)", cxxopts::value<int64_t>()->default_value("0"));
-  add_camera_flags(o);
-  add_display_flags(o);
-  add_common(o);
+      "seed", "split seed", cxxopts::value<uint64_t>()->default_value("0"));
+  add_collect_flags(o, 1);
   cxxopts::ParseResult r;
   if (!parse(o, argc, argv, r)) return 0;
   require(r.count("images") && r.count("out"), "capture-dataset", "--images DIR and --out DIR are required");
@@ -177,10 +195,8 @@ int capture_dataset(int argc, char** argv) {
   opt.collect = collect_options(r);
   const auto images = list_images(r["images"].as<std::string>(), kImageExtensions);
   require(!images.empty(), r["images"].as<std::string>(), "no photographs (.png .jpg .tif .bmp) in this folder");
-  auto source = open_from_flags(r, camera);
-  auto display = make_display(display_options(r));
-  watch_interrupts();
-  const auto rep = collect_dataset(images, *source, *display, opt);
+  auto session = open_collection(r, camera);
+  const auto rep = collect_dataset(images, *session.source, *session.display, opt);
   print_report(rep, "capture-dataset " + opt.out.string());
   if (rep.stopped) std::cout << "run the same command again to continue\n";
   return interrupted() ? 130 : 0;
@@ -192,12 +208,8 @@ int capture_calibration(int argc, char** argv) {
                      "Resumable: run the same command again after an interruption.");
   o.add_options()("out", "folder for the pattern captures (NAME.png + NAME.json)", cxxopts::value<std::string>())(
       "calib-out", "calibration .mat to write once every pattern is captured (default: OUT/calib.mat)", cxxopts::value<std::string>())(
-      "level", "display code (sRGB, 1..255) of the patterns' bright parts", cxxopts::value<int>()->default_value(std::to_string(kDefaultPatternLevel)))(
-      "average", "frames averaged per pattern", cxxopts::value<int>()->default_value("4"))(
-      "limit", "stop after this many new captures (0: all)", cxxopts::value<int64_t>()->default_value("0"));
-  add_camera_flags(o);
-  add_display_flags(o);
-  add_common(o);
+      "level", "display code (sRGB, 1..255) of the patterns' bright parts", cxxopts::value<int>()->default_value(std::to_string(kDefaultPatternLevel)));
+  add_collect_flags(o, 4);
   cxxopts::ParseResult r;
   if (!parse(o, argc, argv, r)) return 0;
   require(r.count("out"), "capture-calibration", "--out DIR is required");
@@ -208,10 +220,8 @@ int capture_calibration(int argc, char** argv) {
   std::vector<CollectItem> items;
   for (auto& p : calibration_patterns(camera.scene_size, level)) items.push_back({p.name + ".png", [img = p.image] { return img; }});
   std::filesystem::create_directories(out);
-  auto source = open_from_flags(r, camera);
-  auto display = make_display(display_options(r));
-  watch_interrupts();
-  const auto rep = collect(items, *source, *display, collect_options(r), [&](const std::string& n) { return out / n; });
+  auto session = open_collection(r, camera);
+  const auto rep = collect(items, *session.source, *session.display, collect_options(r), [&](const std::string& n) { return out / n; });
   print_report(rep, "capture-calibration " + out.string());
   if (rep.stopped) {
     std::cout << "run the same command again to continue; the calibration is computed once all " << rep.total

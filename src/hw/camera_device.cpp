@@ -166,25 +166,24 @@ class AravisCamera final : public FrameSource {
       arv_camera_set_region(camera_, static_cast<gint>(x), static_cast<gint>(y), static_cast<gint>(w), static_cast<gint>(h), &err);
       check(err, id_, "setting the region");
     }
+    // Exposure and gain: automatic control off, the value checked against the camera's bounds.
+    auto set_bounded = [&](const char* what, const char* unit, double value, auto bounds, auto set) {
+      double lo = 0, hi = 0;
+      bounds(camera_, &lo, &hi, &err);
+      check(err, id_, std::string("reading the ") + what + " bounds");
+      require(value >= lo && value <= hi, "camera " + id_,
+              std::string(what) + " " + std::to_string(value) + " " + unit + " outside [" + std::to_string(lo) + ", " +
+                  std::to_string(hi) + "]");
+      set(camera_, value, &err);
+      check(err, id_, std::string("setting the ") + what);
+    };
     if (s.exposure_us) {
       if (arv_camera_is_exposure_auto_available(camera_, nullptr)) arv_camera_set_exposure_time_auto(camera_, ARV_AUTO_OFF, nullptr);
-      double lo = 0, hi = 0;
-      arv_camera_get_exposure_time_bounds(camera_, &lo, &hi, &err);
-      check(err, id_, "reading the exposure bounds");
-      require(*s.exposure_us >= lo && *s.exposure_us <= hi, "camera " + id_,
-              "exposure " + std::to_string(*s.exposure_us) + " us outside [" + std::to_string(lo) + ", " + std::to_string(hi) + "]");
-      arv_camera_set_exposure_time(camera_, *s.exposure_us, &err);
-      check(err, id_, "setting ExposureTime");
+      set_bounded("exposure", "us", *s.exposure_us, arv_camera_get_exposure_time_bounds, arv_camera_set_exposure_time);
     }
     if (s.gain_db) {
       if (arv_camera_is_gain_auto_available(camera_, nullptr)) arv_camera_set_gain_auto(camera_, ARV_AUTO_OFF, nullptr);
-      double lo = 0, hi = 0;
-      arv_camera_get_gain_bounds(camera_, &lo, &hi, &err);
-      check(err, id_, "reading the gain bounds");
-      require(*s.gain_db >= lo && *s.gain_db <= hi, "camera " + id_,
-              "gain " + std::to_string(*s.gain_db) + " dB outside [" + std::to_string(lo) + ", " + std::to_string(hi) + "]");
-      arv_camera_set_gain(camera_, *s.gain_db, &err);
-      check(err, id_, "setting Gain");
+      set_bounded("gain", "dB", *s.gain_db, arv_camera_get_gain_bounds, arv_camera_set_gain);
     }
     if (s.frame_rate) {
       arv_camera_set_frame_rate(camera_, *s.frame_rate, &err);

@@ -61,7 +61,7 @@ std::pair<torch::Tensor, torch::Tensor> Vgg16FeaturesImpl::forward(const torch::
   torch::Tensor relu2_2;
   for (size_t i = 0; i < features_->size(); ++i) {
     h = features_[i]->as<nn::Conv2dImpl>() ? features_[i]->as<nn::Conv2dImpl>()->forward(h)
-        : features_[i]->as<nn::ReLUImpl>() ? torch::relu(h)
+        : features_[i]->as<nn::ReLUImpl>() ? torch::relu_(h)  // in place, as torchvision's VGG
                                            : features_[i]->as<nn::MaxPool2dImpl>()->forward(h);
     if (i == 8) relu2_2 = h;
   }
