@@ -299,7 +299,9 @@ TEST_CASE("fake camera: a display-capture dataset survives an interruption and r
   const std::string base = "capture-dataset --device fake --camera " + tiny + " --pixel-format Mono16 --display none --images " +
                            q(photos) + " --out " + q(s.dir / "ds") + " --val-fraction 0.34";
   // Ctrl-C half-way: the current pair is finished, nothing half-written stays.
-  const std::string cmd = flatnet_bin() + " " + base + " --settle-ms 400 > " + q(s.dir / "log1") + " 2>&1 & P=$!; sleep 1.5; kill -INT $P; wait $P";
+  const std::string cmd = flatnet_bin() + " " + base + " --settle-ms 400 > " + q(s.dir / "log1") +
+                          " 2>&1 & P=$!; for i in $(seq 300); do ls " + q(s.dir / "ds" / "meas") +
+                          "/*.png >/dev/null 2>&1 && break; sleep 0.1; done; kill -INT $P; wait $P";
   const int status = std::system(("bash -c " + q(cmd)).c_str());
   CHECK(WEXITSTATUS(status) == 130);
   const int first = count_files(s.dir / "ds" / "meas", ".png");
@@ -394,9 +396,13 @@ TEST_CASE("GigE Vision simulator: capture, lost packets, a camera that goes and 
   CHECK_THAT(r.output, Contains("no complete frame after 3 attempts"));
   CHECK(count_files(s.dir / "lost", ".png") == 0);
 
-  // The camera disappears mid-run and comes back: the capture reconnects and finishes.
-  r = with_gv_simulator("", cap + "--frames 30 --timeout-ms 500 --retries 6 --out " + q(s.dir / "back") +
-                                " & P=$!; sleep 1.2; kill $CAM; sleep 1; start_cam; wait $P");
+  // The camera disappears mid-run (after the first frame is on disk) and comes back: the capture
+  // reconnects and finishes.
+  const auto first_frame = [&](const std::string& dir) {
+    return " & P=$!; for i in $(seq 300); do [ -e " + q(s.dir / dir / "capture_0000.png") + " ] && break; sleep 0.1; done; ";
+  };
+  r = with_gv_simulator("", cap + "--frames 30 --timeout-ms 500 --retries 6 --out " + q(s.dir / "back") + first_frame("back") +
+                                "kill $CAM; sleep 1; start_cam; wait $P");
   CHECK(r.code == 0);
   CHECK_THAT(r.output, Contains("reconnected") && Contains("wrote 30 captures"));
   CHECK(count_files(s.dir / "back", ".png") == 30);
@@ -407,10 +413,11 @@ TEST_CASE("GigE Vision simulator: capture, lost packets, a camera that goes and 
   }
 
   // The camera disappears for good: the run stops with an error; what was written is whole.
-  r = with_gv_simulator("", cap + "--frames 200 --timeout-ms 300 --retries 2 --out " + q(s.dir / "gone") +
-                                " & P=$!; sleep 1.2; kill $CAM; wait $P");
+  r = with_gv_simulator("", cap + "--frames 200 --timeout-ms 300 --retries 2 --out " + q(s.dir / "gone") + first_frame("gone") +
+                                "kill $CAM; wait $P");
   CHECK(r.code == 2);
   CHECK_THAT(r.output, Contains("no complete frame"));
+  REQUIRE(std::filesystem::exists(s.dir / "gone"));
   CHECK(!has_temporary_files(s.dir / "gone"));
   for (const auto& e : std::filesystem::directory_iterator(s.dir / "gone"))
     if (e.path().extension() == ".png") CHECK(read_gray16(e.path()).size(0) == 256);

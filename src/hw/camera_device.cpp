@@ -318,7 +318,15 @@ std::vector<DeviceInfo> list_cameras(bool include_fake) {
 }
 
 std::unique_ptr<FrameSource> open_camera(const std::string& id, const DeviceSettings& settings) {
-  return std::make_unique<AravisCamera>(resolve_device_id(id), settings);
+  // A camera just plugged in (or restarting) may not answer yet: retry opening a few times.
+  for (int attempt = 0;; ++attempt) {
+    try {
+      return std::make_unique<AravisCamera>(resolve_device_id(id), settings);
+    } catch (const Error& e) {
+      if (attempt >= settings.retries || std::string(e.what()).find("cannot open") == std::string::npos) throw;
+      std::this_thread::sleep_for(std::chrono::milliseconds(300 * (attempt + 1)));
+    }
+  }
 }
 
 #endif
