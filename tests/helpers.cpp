@@ -20,8 +20,10 @@ Scratch::~Scratch() {
   fs::remove_all(dir, ec);
 }
 
-RunResult run_flatnet(const std::string& args) {
-  const std::string cmd = std::string(FLATNET_BINARY) + " " + args + " 2>&1";
+RunResult run_flatnet(const std::string& args) { return run_shell(std::string(FLATNET_BINARY) + " " + args); }
+
+RunResult run_shell(const std::string& command) {
+  const std::string cmd = command + " 2>&1";
   FILE* pipe = ::popen(cmd.c_str(), "r");
   std::string out;
   std::array<char, 4096> buf{};

@@ -26,5 +26,7 @@ struct RunResult {
 };
 // Runs the flatnet binary with the given argument string.
 RunResult run_flatnet(const std::string& args);
+// Runs a /bin/sh command line, stdout and stderr together.
+RunResult run_shell(const std::string& command);
 
 }  // namespace test

@@ -1,7 +1,6 @@
 // The flatnet binary end to end: simulate -> recon -> eval, resumability, and bad input.
 #include <catch2/catch.hpp>
 #include <fstream>
-#include <sys/wait.h>
 #include <unistd.h>
 
 #include "core/util.hpp"
@@ -205,15 +204,7 @@ TEST_CASE("distributed training from the command line: two local ranks, resume, 
   const std::string launch = "MASTER_PORT=" + std::to_string(21000 + ::getpid() % 20000) + " FLATNET_BIN=" +
                              std::string(FLATNET_BINARY) + " bash " + q(test::source_dir() / "scripts" / "launch_local.sh") +
                              " 2 " + config;
-  auto run = [](const std::string& cmd) {
-    test::RunResult r{0, ""};
-    FILE* pipe = ::popen((cmd + " 2>&1").c_str(), "r");
-    char buf[4096];
-    while (pipe && std::fgets(buf, sizeof buf, pipe)) r.output += buf;
-    const int status = pipe ? ::pclose(pipe) : -1;
-    r.code = WIFEXITED(status) ? WEXITSTATUS(status) : -1;
-    return r;
-  };
+  const auto run = test::run_shell;
   auto r = run(launch + " --out " + q(s.dir / "run") + sets + " --set train.iterations=3 --set train.val_every=3");
   INFO(r.output);
   REQUIRE(r.code == 0);

@@ -82,13 +82,7 @@ test::RunResult with_gv_simulator(const std::string& simulator_args, const std::
                              "start_cam\n" + body + "\nrc=$?\nkill $CAM 2>/dev/null\nexit $rc\n";
   test::Scratch s("gvscript");
   std::ofstream(s.dir / "run.sh") << script;
-  const std::string cmd = "timeout 120 unshare -n sh " + q(s.dir / "run.sh") + " 2>&1";
-  FILE* pipe = ::popen(cmd.c_str(), "r");
-  std::string out;
-  char buf[4096];
-  while (pipe && std::fgets(buf, sizeof buf, pipe)) out += buf;
-  const int status = pipe ? ::pclose(pipe) : -1;
-  return {WIFEXITED(status) ? WEXITSTATUS(status) : -1, out};
+  return test::run_shell("timeout 120 unshare -n sh " + q(s.dir / "run.sh"));
 }
 
 std::string flatnet_bin() { return FLATNET_BINARY; }
@@ -302,8 +296,7 @@ TEST_CASE("fake camera: a display-capture dataset survives an interruption and r
   const std::string cmd = flatnet_bin() + " " + base + " --settle-ms 400 > " + q(s.dir / "log1") +
                           " 2>&1 & P=$!; for i in $(seq 300); do ls " + q(s.dir / "ds" / "meas") +
                           "/*.png >/dev/null 2>&1 && break; sleep 0.1; done; kill -INT $P; wait $P";
-  const int status = std::system(("bash -c " + q(cmd)).c_str());
-  CHECK(WEXITSTATUS(status) == 130);
+  CHECK(test::run_shell("bash -c " + q(cmd)).code == 130);
   const int first = count_files(s.dir / "ds" / "meas", ".png");
   CHECK(first >= 1);
   CHECK(first < 6);

@@ -1,5 +1,4 @@
 // flatnet train / export / import / infer: the FlatNet reconstruction network's commands.
-#include <csignal>
 #include <iostream>
 
 #include "cli/commands.hpp"
@@ -82,8 +81,6 @@ Vgg16Features vgg_if_needed(const Config& c) {
   return load_vgg16(c.path("loss.vgg_file"), c.flag("loss.vgg_normalize"));
 }
 
-void on_interrupt(int) { GanTrainer::stop_requested = true; }
-
 }  // namespace
 
 int train(int argc, char** argv) {
@@ -149,8 +146,7 @@ int train(int argc, char** argv) {
   GanTrainer trainer(g, d, vgg, train_src, std::move(val), opts, config, camera);
   if (resume) trainer.resume(latest);  // every rank reads rank 0's checkpoint (a shared or copied folder)
   trainer.set_distributed(group.get());
-  std::signal(SIGINT, on_interrupt);
-  std::signal(SIGTERM, on_interrupt);
+  watch_interrupts();
   std::cerr << "training on " << train_src->size() << " pairs, " << opts.iterations << " steps of batch " << opts.batch
             << (dist.world_size > 1 ? " per rank x " + std::to_string(dist.world_size) + " ranks" : "")
             << " (" << config.str("model.input") << " + " << config.str("model.enhancer") << ", width "
@@ -158,13 +154,13 @@ int train(int argc, char** argv) {
  const auto s = trainer.run();
   if (!writer) {
     std::cout << "rank " << dist.rank << ": steps " << s.first_step << ".." << s.last_step << " done\n";
-    return GanTrainer::stop_requested ? 130 : 0;
+    return interrupted() ? 130 : 0;
   }
   std::cout << "steps " << s.first_step << ".." << s.last_step << " in " << format_duration(s.seconds) << " ("
             << s.steps_per_s << " steps/s, data wait " << s.loader_wait_s << " s)\n"
             << "validation: last PSNR " << s.last_psnr << " SSIM " << s.last_ssim << ", best PSNR " << s.best_psnr
             << "\nmodel: " << (out / "model.flatnet").string() << "\n";
-  if (GanTrainer::stop_requested) {
+  if (interrupted()) {
     std::cout << "interrupted: continue with `flatnet train --out " << out.string() << " --resume`\n";
     return 130;
   }

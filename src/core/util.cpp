@@ -1,5 +1,8 @@
 #include "core/util.hpp"
 
+#include <atomic>
+#include <csignal>
+
 #include <unistd.h>
 
 #include <fstream>
@@ -80,14 +83,30 @@ std::vector<fs::path> list_images(const fs::path& dir, const std::vector<std::st
   return files;
 }
 
-uint64_t stable_hash(const std::string& s, uint64_t seed) {
+uint64_t stable_hash(const void* data, size_t size, uint64_t seed) {
   uint64_t h = 1469598103934665603ull ^ (seed * 0x9E3779B97F4A7C15ull);
-  for (unsigned char c : s) {
-    h ^= c;
+  const auto* p = static_cast<const unsigned char*>(data);
+  for (size_t i = 0; i < size; ++i) {
+    h ^= p[i];
     h *= 1099511628211ull;
   }
   return h;
 }
+
+uint64_t stable_hash(const std::string& s, uint64_t seed) { return stable_hash(s.data(), s.size(), seed); }
+
+namespace {
+std::atomic<bool> g_interrupted{false};
+void on_interrupt_signal(int) { g_interrupted = true; }
+}  // namespace
+
+void watch_interrupts() {
+  g_interrupted = false;
+  std::signal(SIGINT, on_interrupt_signal);
+  std::signal(SIGTERM, on_interrupt_signal);
+}
+
+bool interrupted() { return g_interrupted; }
 
 std::string format_duration(double seconds) {
   if (!std::isfinite(seconds) || seconds < 0) return "--:--";

@@ -35,8 +35,14 @@ void parallel_for_index(int64_t n, int workers, const std::function<void(int64_t
 // A whole file's bytes (e.g. for torch::pickle_load). Errors name a missing file.
 std::vector<char> read_bytes(const fs::path& path);
 
-// Stable 64-bit hash (FNV-1a) for deterministic per-item seeds.
+// Stable 64-bit hash (FNV-1a) for deterministic per-item seeds and content checksums.
 uint64_t stable_hash(const std::string& s, uint64_t seed = 0);
+uint64_t stable_hash(const void* data, size_t size, uint64_t seed = 0);
+
+// Ctrl-C / SIGTERM for the long loops (training, capture, collection, live view): after
+// watch_interrupts(), interrupted() turns true and the loop finishes its current item.
+void watch_interrupts();
+bool interrupted();
 
 // A one-line progress bar on stderr: "label  12/100 [#####     ] 3.2 it/s ETA 00:27".
 class Progress {

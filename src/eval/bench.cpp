@@ -4,6 +4,7 @@
 
 #include "core/camera_config.hpp"
 #include "core/error.hpp"
+#include "core/util.hpp"
 #include "hw/live.hpp"
 #include "io/raw.hpp"
 #include "optics/camera.hpp"
@@ -187,10 +188,9 @@ BenchRow run_bench_row(const std::string& name, const BenchOptions& o) {
   } else if (name == "loader") {
     const auto camera = load_camera_config(default_camera_path());
     auto rig = std::make_shared<const Rig>(load_rig(camera.rig));
-    std::vector<std::filesystem::path> images;
-    for (const auto& e : std::filesystem::directory_iterator(std::filesystem::path(FLATNET_SOURCE_DIR) / "tests" / "data" / "golden"))
-      if (e.path().string().find("_scene.png") != std::string::npos) images.push_back(e.path());
-    std::sort(images.begin(), images.end());
+    std::vector<std::filesystem::path> images;  // the golden scenes shipped with the tests
+    for (const auto& p : list_images(std::filesystem::path(FLATNET_SOURCE_DIR) / "tests" / "data" / "golden", {".png"}))
+      if (p.stem().string().find("_scene") != std::string::npos) images.push_back(p);
     auto source = std::make_shared<SimulatedPairs>(images, rig, camera, 0);
     LoaderOptions lo;
     lo.batch = 4;

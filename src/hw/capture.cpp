@@ -1,7 +1,5 @@
 #include "hw/capture.hpp"
 
-#include <atomic>
-#include <csignal>
 #include <ctime>
 #include <iomanip>
 
@@ -12,9 +10,6 @@
 namespace flatnet {
 
 namespace {
-
-std::atomic<bool> g_interrupted{false};
-void on_signal(int) { g_interrupted = true; }
 
 std::string utc_now() {
   const std::time_t t = std::time(nullptr);
@@ -41,14 +36,6 @@ int64_t next_index(const std::filesystem::path& dir, const std::string& prefix) 
 }
 
 }  // namespace
-
-void watch_interrupts() {
-  g_interrupted = false;
-  std::signal(SIGINT, on_signal);
-  std::signal(SIGTERM, on_signal);
-}
-
-bool interrupted() { return g_interrupted; }
 
 torch::Tensor average_frames(FrameSource& source, int k, FrameSource::Clock::time_point not_before, std::vector<uint64_t>* ids) {
   require(k >= 1, "--average", "must be at least 1");

@@ -6,6 +6,7 @@
 
 #include <nlohmann/json.hpp>
 
+#include "core/util.hpp"  // watch_interrupts, interrupted
 #include "hw/camera_device.hpp"
 
 namespace flatnet {
@@ -39,9 +40,5 @@ struct CaptureReport {
 };
 
 CaptureReport capture_frames(FrameSource& source, const CaptureOptions& options);
-
-// Ctrl-C / SIGTERM handling shared by the long capture loops: the loop finishes the current item.
-void watch_interrupts();
-bool interrupted();
 
 }  // namespace flatnet

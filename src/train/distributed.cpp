@@ -118,11 +118,10 @@ void ProcessGroup::broadcast(const std::vector<torch::Tensor>& tensors) {
 
 void ProcessGroup::check_identical(const std::vector<torch::Tensor>& tensors, const std::string& what) {
   if (opt_.world_size == 1) return;
-  uint64_t h = 1469598103934665603ULL;
+  uint64_t h = 0;
   for (const auto& t : tensors) {
     const auto c = t.detach().contiguous();
-    const auto* p = static_cast<const unsigned char*>(c.data_ptr());
-    for (size_t i = 0; i < c.nbytes(); ++i) h = (h ^ p[i]) * 1099511628211ULL;
+    h = stable_hash(c.data_ptr(), c.nbytes(), h);
   }
   const auto mine = torch::tensor({static_cast<int64_t>(h >> 1)}, torch::kInt64);
   std::vector<torch::Tensor> root{mine.clone()};

@@ -10,7 +10,6 @@
 
 namespace flatnet {
 
-std::atomic<bool> GanTrainer::stop_requested{false};
 
 namespace {
 
@@ -209,7 +208,7 @@ TrainSummary GanTrainer::run() {
   const auto start = std::chrono::steady_clock::now();
   double sum_loss = 0, sum_mse = 0, sum_perc = 0, sum_adv = 0, sum_d = 0;
   int64_t n_logged = 0;
-  auto stop = [&] { return sync_ ? sync_->any(stop_requested) : static_cast<bool>(stop_requested); };
+  auto stop = [&] { return sync_ ? sync_->any(interrupted()) : interrupted(); };
   bool stopping = false;
   int64_t checkpointed = -1;
   while (state_.step < opt_.iterations && !(stopping = stop())) {

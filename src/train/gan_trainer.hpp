@@ -90,9 +90,8 @@ class GanTrainer {
   void set_distributed(GradientAverager* collectives);
   // Continues from a checkpoint written by an earlier run with the same config.
   void resume(const std::filesystem::path& checkpoint);
+  // Stops after the current step and writes a checkpoint when interrupted() (core/util.hpp).
   TrainSummary run();
-  // Set from a signal handler: the run stops after the current step and writes a checkpoint.
-  static std::atomic<bool> stop_requested;
 
  private:
   void set_learning_rates(int64_t step);
