@@ -2,7 +2,10 @@
 #include <catch2/catch.hpp>
 #include <fstream>
 
+#include <ATen/autocast_mode.h>
+
 #include "core/error.hpp"
+#include "eval/metrics.hpp"
 #include "helpers.hpp"
 #include "nn/generator.hpp"
 #include "nn/losses.hpp"
@@ -305,4 +308,58 @@ TEST_CASE("training levers (channels-last, GEMM upsampling) give the same loss a
     REQUIRE(gb.defined());
     CHECK((ga - gb).abs().max().item<double>() <= 1e-4 * ga.abs().max().item<double>() + 1e-7);
   }
+}
+
+TEST_CASE("SSIM loss is 1 - the reported SSIM, differentiable, and 0 on identical images", "[nn][loss]") {
+  torch::manual_seed(8);
+  const auto y = torch::rand({2, 3, 24, 24});
+  const auto x = (y + 0.1 * torch::randn({2, 3, 24, 24})).clamp(0, 1).requires_grad_(true);
+  const auto loss = ssim_loss(x, y);
+  const double reported = 0.5 * (ssim(x[0].detach(), y[0]) + ssim(x[1].detach(), y[1]));
+  CHECK(loss.item<double>() == Approx(1.0 - reported).epsilon(1e-4));
+  CHECK(ssim_loss(y, y).item<double>() == Approx(0.0).margin(1e-6));
+  loss.backward();
+  REQUIRE(x.grad().defined());
+  CHECK(x.grad().abs().sum().item<double>() > 0);
+  CHECK_THROWS_WITH(ssim_loss(torch::rand({1, 3, 8, 8}), torch::rand({1, 3, 8, 8})), Contains("11x11"));
+}
+
+TEST_CASE("inversion crops equal the matching window of the whole first stage", "[nn]") {
+  torch::manual_seed(9);
+  const auto o = tiny_options(4);
+  FlatInversion inv(o.inversion);
+  const auto Y = torch::randn({2, 4, o.rows, o.cols});
+  torch::NoGradGuard no_grad;
+  const auto full = inv->forward(Y);  // {2,4,16,16}
+  const std::vector<std::pair<int64_t, int64_t>> corners{{0, 8}, {5, 3}};
+  const auto crops = inv->forward_crops(Y, corners, 8);
+  REQUIRE(crops.sizes() == torch::IntArrayRef({2, 4, 8, 8}));
+  CHECK(torch::allclose(crops[0], full[0].slice(1, 0, 8).slice(2, 8, 16), 1e-5, 1e-6));
+  CHECK(torch::allclose(crops[1], full[1].slice(1, 5, 13).slice(2, 3, 11), 1e-5, 1e-6));
+  Generator g(tiny_options());
+  CHECK_THROWS_WITH(g->forward_crops(Y, {{10, 0}, {0, 0}}, 16), Contains("leaves"));
+  CHECK_THROWS_WITH(g->forward_crops(Y, {{0, 0}, {0, 0}}, 12), Contains("multiple of 16"));
+}
+
+TEST_CASE("bf16 autocast: the enhancer runs in bf16, weights and gradients stay fp32, output close to fp32", "[nn][bf16]") {
+  torch::manual_seed(10);
+  auto o = tiny_options();
+  o.unet.width = 4;
+  Generator g(o);
+  g->eval();
+  const auto Y = torch::randn({2, 4, o.rows, o.cols}) * 0.1;
+  const auto fp32 = g->forward(Y);
+  g->set_autocast_bf16(true);
+  const auto bf16 = g->forward(Y);
+  CHECK(bf16.scalar_type() == torch::kFloat32);  // the sigmoid and the losses see fp32
+  CHECK((bf16 - fp32).abs().max().item<double>() < 0.03);
+  CHECK((bf16 - fp32).abs().max().item<double>() > 0);  // it did run in bf16
+  torch::mse_loss(bf16, torch::rand_like(bf16)).backward();
+  for (const auto& p : g->named_parameters()) {
+    INFO(p.key());
+    CHECK(p.value().scalar_type() == torch::kFloat32);
+    REQUIRE(p.value().grad().defined());
+    CHECK(p.value().grad().scalar_type() == torch::kFloat32);
+  }
+  CHECK_FALSE(at::autocast::is_cpu_enabled());  // the guard restored the thread's state
 }

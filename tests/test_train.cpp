@@ -111,11 +111,158 @@ TEST_CASE("training resumes bit for bit from its checkpoint", "[train]") {
     INFO(name);
     CHECK(torch::equal(t, b.at(name)));
   }
-  // The logs continue without duplicated steps.
+  // The logs continue without duplicated steps, and validation scores the same weights: the
+  // straight run's second validation must see its updated weights (channels-last + GEMM
+  // upsampling once cached a stale copy of the first validation's up-convolution weights).
   const auto lines = read_lines(s.dir / "split" / "val.csv");
   CHECK(lines.size() == 3);  // header, step 2, step 4
+  const auto straight_lines = read_lines(s.dir / "straight" / "val.csv");
+  REQUIRE(straight_lines.size() == 3);
+  auto scores = [](const std::string& line) { return line.substr(0, line.rfind(',')); };  // without the seconds column
+  CHECK(scores(straight_lines[1]) == scores(lines[1]));
+  CHECK(scores(straight_lines[2]) == scores(lines[2]));
   CHECK(std::filesystem::exists(s.dir / "split" / "model.flatnet"));
   CHECK(std::filesystem::exists(s.dir / "split" / "samples.png"));
+}
+
+TEST_CASE("validation scores the current weights, never a cached copy", "[train]") {
+  Setup setup;
+  torch::manual_seed(0);
+  Generator g(generator_options(setup.config, setup.camera, true));
+  g->prepare_training({false, true, false, true});  // channels-last + GEMM upsampling, as training uses
+  const auto val = load_all(MemoryPairs(2), 0, 1);
+  const auto before = validate(g, val, 2);
+  {
+    torch::NoGradGuard no_grad;
+    for (auto& p : g->named_parameters())
+      if (p.key().find(".up.") != std::string::npos) p.value().mul_(-3.0);  // change only the up-convolutions
+  }
+  const auto after = validate(g, val, 2);
+  CHECK(before.psnr != after.psnr);
+}
+
+TEST_CASE("the non-finite guard runs before any optimiser step, discriminator warm-up included", "[train]") {
+  Setup setup;
+  torch::manual_seed(0);
+  Generator g(generator_options(setup.config, setup.camera, true));
+  Discriminator d(discriminator_options(setup.config));
+  Vgg16Features none(nullptr);
+  torch::optim::Adam opt_g(g->parameters(), 1e-2), opt_d(d->parameters(), 1e-2);
+  MemoryPairs poisoned(2, true);
+  Batch b{torch::stack({poisoned.load(0, 0).meas, poisoned.load(1, 0).meas}),
+          torch::stack({poisoned.load(0, 0).gt, poisoned.load(1, 0).gt}), 0};
+  auto snapshot = [](torch::nn::Module& m) {
+    std::vector<torch::Tensor> out;
+    for (const auto& p : m.parameters()) out.push_back(p.detach().clone());
+    return out;
+  };
+  const auto g0 = snapshot(*g), d0 = snapshot(*d);
+  for (int64_t warmup : {0, 5}) {
+    auto t = setup.options("", 1);
+    t.w_adversarial = 0.5;
+    t.discriminator_warmup = warmup;  // 5: step 0 trains only the discriminator
+    CHECK_THROWS_WITH(gan_step(g, d, none, opt_g, opt_d, t, b, 0), Contains("diverged"));
+    const auto g1 = snapshot(*g), d1 = snapshot(*d);
+    for (size_t i = 0; i < g0.size(); ++i) CHECK(torch::equal(g0[i], g1[i]));
+    for (size_t i = 0; i < d0.size(); ++i) CHECK(torch::equal(d0[i], d1[i]));
+  }
+}
+
+TEST_CASE("schedules: halving steps down, cosine falls smoothly to 0 at the last step", "[train]") {
+  TrainOptions t;
+  t.lr_halve_every = 10;
+  CHECK(lr_factor(t, 9) == 1.0);
+  CHECK(lr_factor(t, 25) == 0.25);
+  t.schedule = LrSchedule::cosine;
+  t.iterations = 100;
+  CHECK(lr_factor(t, 0) == Approx(1.0));
+  CHECK(lr_factor(t, 50) == Approx(0.5));
+  CHECK(lr_factor(t, 100) == Approx(0.0).margin(1e-12));
+  CHECK(lr_factor(t, 75) < lr_factor(t, 74));
+  CHECK_THROWS_WITH(parse_lr_schedule("linear"), Contains("halving or cosine"));
+}
+
+TEST_CASE("crops: corners depend on (seed, step) and stay inside the scene, and crop training runs and validates at full size", "[train]") {
+  TrainOptions t;
+  t.crop = 16;
+  t.seed = 3;
+  const auto a = crop_corners(t, 4, 64, 7), b = crop_corners(t, 4, 64, 7), c = crop_corners(t, 4, 64, 8);
+  CHECK(a == b);
+  CHECK(a != c);
+  for (const auto& [r, col] : a) CHECK((r >= 0 && col >= 0 && r + 16 <= 64 && col + 16 <= 64));
+  CHECK(crop_corners(t, 4, 16, 0).empty());  // a crop of the whole scene is no crop
+  test::Scratch s("crop");
+  Setup setup;
+  setup.camera.scene_size = 32;
+  setup.camera.raw.crop = {0, 0, 36, 40};
+  torch::manual_seed(0);
+  Generator g(generator_options(setup.config, setup.camera, true));
+  Discriminator d(discriminator_options(setup.config));
+  class Pairs32 : public PairSource {
+   public:
+    int64_t size() const override { return 4; }
+    Sample load(int64_t i, int64_t) const override {
+      auto gen = at::detail::createCPUGenerator(static_cast<uint64_t>(i) + 1);
+      return {at::randn({4, 36, 40}, gen), at::rand({3, 32, 32}, gen), "p" + std::to_string(i)};
+    }
+  };
+  auto opt = setup.options(s.dir / "run", 2);
+  opt.crop = 16;
+  GanTrainer trainer(g, d, Vgg16Features(nullptr), std::make_shared<Pairs32>(), load_all(Pairs32(), 0, 1), opt, setup.config,
+                     setup.camera);
+  const auto summary = trainer.run();
+  CHECK(summary.last_step == 2);
+  CHECK(std::isfinite(summary.last_psnr));
+}
+
+TEST_CASE("EMA: the average follows the weights with the warmed-up decay, is checkpointed, resumed and exported", "[train]") {
+  test::Scratch s("ema");
+  Setup setup;
+  auto make = [&](const std::filesystem::path& out, int64_t iterations) {
+    torch::manual_seed(0);
+    Generator g(generator_options(setup.config, setup.camera, true));
+    Discriminator d(discriminator_options(setup.config));
+    auto opt = setup.options(out, iterations);
+    opt.ema_decay = 0.9;
+    return GanTrainer(g, d, Vgg16Features(nullptr), std::make_shared<MemoryPairs>(6), load_all(MemoryPairs(2), 0, 1), opt,
+                      setup.config, setup.camera);
+  };
+  {
+    auto straight = make(s.dir / "straight", 4);
+    straight.run();
+    // The exported weights are the average, which differs from the live ones.
+    bool used_average = false;
+    auto m = model_from_checkpoint(s.dir / "straight" / "latest.ckpt", &used_average);
+    CHECK(used_average);
+    auto exported = m.generator->named_parameters();
+    auto& average = straight.exported();
+    for (const auto& p : average->named_parameters()) CHECK(torch::equal(p.value(), exported[p.key()]));
+  }
+  {
+    auto first = make(s.dir / "split", 2);
+    first.run();
+  }
+  {
+    auto second = make(s.dir / "split", 4);
+    second.resume(s.dir / "split" / "latest.ckpt");
+    second.run();
+  }
+  const auto a = weights(s.dir / "straight" / "latest.ckpt"), b = weights(s.dir / "split" / "latest.ckpt");
+  for (const auto& [name, t] : a) {
+    INFO(name);
+    CHECK(torch::equal(t, b.at(name)));
+  }
+  // One update by hand: avg <- d avg + (1 - d) w with d = min(0.9, (1 + step) / (10 + step)).
+  torch::manual_seed(1);
+  Generator g(generator_options(setup.config, setup.camera, true));
+  WeightAverage ema(g, 0.9);
+  const auto w0 = g->parameters()[0].detach().clone();
+  {
+    torch::NoGradGuard no_grad;
+    g->parameters()[0].add_(1.0);
+  }
+  ema.update(0);  // d = 0.1
+  CHECK(torch::allclose(ema.average()->parameters()[0], w0 + 0.9, 1e-5, 1e-6));
 }
 
 TEST_CASE("a NaN loss stops training with a clear message and keeps the last checkpoint", "[train]") {

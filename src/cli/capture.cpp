@@ -243,6 +243,7 @@ int live(int argc, char** argv) {
       "frames", "stop after this many frames (0: until Esc, q or Ctrl-C)", cxxopts::value<int64_t>()->default_value("0"))(
       "seconds", "stop after this long (0: no limit)", cxxopts::value<double>()->default_value("0"))(
       "scale", "magnification of the reconstruction on screen", cxxopts::value<int>()->default_value("2"));
+  add_precision(o);
   add_camera_flags(o);
   add_common(o);
   cxxopts::ParseResult r;
@@ -256,8 +257,13 @@ int live(int argc, char** argv) {
   std::string method;
   if (model) {
     auto generator = model->generator;
-    generator->prepare_inference(InferenceLevers{});
-    reconstruct = [generator](const torch::Tensor& planes) mutable { return generator->forward(planes.unsqueeze(0))[0]; };
+    InferenceLevers levers;
+    levers.bf16 = precision_from(r) == Precision::bf16;
+    generator->prepare_inference(levers);
+    reconstruct = [generator](const torch::Tensor& planes) mutable {
+      c10::InferenceMode guard;
+      return generator->forward(planes.unsqueeze(0))[0];
+    };
     method = "FlatNet " + r["model"].as<std::string>();
   } else {
     const std::filesystem::path calib_path = r.count("calib") ? std::filesystem::path(r["calib"].as<std::string>()) : camera.calibration;

@@ -5,6 +5,7 @@
 #include <vector>
 
 #include "core/camera_config.hpp"
+#include "core/precision.hpp"
 
 namespace flatnet::cli {
 
@@ -31,6 +32,10 @@ void add_common(cxxopts::Options& options);                 // --threads, --help
 bool parse(cxxopts::Options& options, int argc, char** argv, cxxopts::ParseResult& result);
 // The repeated --set key=value overrides (none when absent).
 std::vector<std::string> set_overrides(const cxxopts::ParseResult& r);
+// --precision auto|fp32|bf16 (auto: bf16 where the CPU runs it natively).
+void add_precision(cxxopts::Options& options);
+// The resolved choice, printed once to stderr ("precision: bf16 (AMX)"); asks for AMX tiles when bf16.
+Precision precision_from(const cxxopts::ParseResult& r);
 // --camera FILE (yaml or rig .mat); the reference camera when absent.
 CameraConfig camera_from(const cxxopts::ParseResult& r, const std::string& flag = "camera");
 

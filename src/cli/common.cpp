@@ -26,6 +26,18 @@ std::vector<std::string> set_overrides(const cxxopts::ParseResult& r) {
   return r.count("set") ? r["set"].as<std::vector<std::string>>() : std::vector<std::string>{};
 }
 
+void add_precision(cxxopts::Options& options) {
+  options.add_options()("precision", "auto|fp32|bf16: auto is bf16 where the CPU has AMX or AVX512-BF16, else fp32",
+                        cxxopts::value<std::string>()->default_value("auto"));
+}
+
+Precision precision_from(const cxxopts::ParseResult& r) {
+  const auto p = resolve_precision(r["precision"].as<std::string>(), "--precision");
+  if (p == Precision::bf16) request_amx_permission();
+  std::cerr << "precision: " << describe_precision(p) << "\n";
+  return p;
+}
+
 CameraConfig camera_from(const cxxopts::ParseResult& r, const std::string& flag) {
   const std::filesystem::path p = r.count(flag) ? std::filesystem::path(r[flag].as<std::string>()) : default_camera_path();
   return load_camera_config(p);

@@ -1,6 +1,7 @@
 #include <iostream>
 
 #include "cli/commands.hpp"
+#include "core/precision.hpp"
 #include "core/error.hpp"
 #include "core/util.hpp"
 #include "eval/report.hpp"
@@ -74,10 +75,13 @@ int demo(int argc, char** argv) {
     const auto rep = reconstruct_files(camera, calib, captures, ro);
     std::cout << "  " << method << ": " << rep.recon_ms_per_capture << " ms per capture\n";
   }
+  const bool bf16 = resolve_precision("auto") == Precision::bf16;
+  std::cout << "  precision: " << describe_precision(bf16 ? Precision::bf16 : Precision::fp32) << "\n";
   for (const auto& [method, path] : shipped_models()) {
     auto model = load_model_file(path);
     InferOptions io;
     io.out = out / "recon" / method;
+    io.levers.bf16 = bf16;
     const auto rep = infer_files(model.generator, camera, captures, io);
     std::cout << "  " << method << ": " << rep.model_ms_per_image << " ms per capture (" << path.filename().string() << ")\n";
   }

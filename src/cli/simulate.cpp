@@ -15,7 +15,13 @@ int simulate(int argc, char** argv) {
       "noise", "on|off: photon and read noise", cxxopts::value<std::string>()->default_value("on"))(
       "size", "scene side in pixels", cxxopts::value<int64_t>()->default_value("256"))(
       "limit", "only the first N images (0: all)", cxxopts::value<int64_t>()->default_value("0"))(
-      "workers", "simulation threads (default: all cores)", cxxopts::value<int>()->default_value("0"));
+      "workers", "simulation threads (default: all cores)", cxxopts::value<int>()->default_value("0"))(
+      "only", "all|train|val: simulate only that part of the split (e.g. val: a held-out evaluation set)",
+      cxxopts::value<std::string>()->default_value("all"))(
+      "exposure", "scene light relative to the display's, in linear light (0.33: a dim set); gt/ shows the dimmed scene",
+      cxxopts::value<double>()->default_value("1"))(
+      "lamp", "add one small lamp per scene (a lamp set; position drawn per image), --lamp-gain x display white")(
+      "lamp-gain", "the lamp's radiance relative to display white", cxxopts::value<double>()->default_value("20"));
   add_common(o);
   cxxopts::ParseResult r;
   if (!parse(o, argc, argv, r)) return 0;
@@ -34,6 +40,10 @@ int simulate(int argc, char** argv) {
   opt.size = r["size"].as<int64_t>();
   opt.limit = r["limit"].as<int64_t>();
   opt.workers = r["workers"].as<int>();
+  opt.exposure = r["exposure"].as<double>();
+  opt.only = r["only"].as<std::string>();
+  opt.lamp = r.count("lamp") > 0;
+  opt.lamp_gain = r["lamp-gain"].as<double>();
   const auto rep = simulate_dataset(rig, opt);
   std::cout << "simulated " << rep.simulated << " captures (" << rep.skipped << " already done) in " << rep.seconds
             << " s: " << (rep.simulated > 0 ? rep.simulated / rep.seconds : 0.0) << " captures/s\n"

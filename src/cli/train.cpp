@@ -3,6 +3,7 @@
 
 #include "cli/commands.hpp"
 #include "core/error.hpp"
+#include "core/precision.hpp"
 #include "core/util.hpp"
 #include "io/dataset.hpp"
 #include "optics/simulator.hpp"
@@ -23,6 +24,13 @@ TrainOptions train_options(const Config& c, const std::filesystem::path& out) {
   t.lr_discriminator = c.num("train.lr_discriminator");
   t.lr_inversion_scale = c.num("train.lr_inversion_scale");
   t.lr_halve_every = c.integer("train.lr_halve_every");
+  t.schedule = parse_lr_schedule(c.str("train.schedule"));
+  t.w_ssim = c.num("loss.ssim");
+  t.ema_decay = c.num("train.ema_decay");
+  t.crop = c.integer("train.crop");
+  require(t.crop == 0 || (t.crop >= 16 && t.crop % 16 == 0), "train.crop", "must be 0 or a multiple of 16 (the U-Net halves it 4 times)");
+  require(t.ema_decay >= 0 && t.ema_decay < 1, "train.ema_decay", "must lie in [0, 1)");
+  t.bf16 = resolve_precision(c.str("train.precision"), "train.precision") == Precision::bf16;
   t.discriminator_warmup = c.integer("train.discriminator_warmup");
   t.noise_augment = c.num("train.noise_augment");
   t.seed = static_cast<uint64_t>(c.integer("train.seed"));
@@ -37,7 +45,8 @@ TrainOptions train_options(const Config& c, const std::filesystem::path& out) {
   require(t.real_label_min >= 0 && t.real_label_min <= 1 && t.fake_label_max >= 0 && t.fake_label_max <= 1,
           "discriminator", "label smoothing bounds must lie within [0, 1] (BCE needs targets in [0, 1])");
   require(t.batch >= 1 && t.iterations >= 1, "train", "batch and iterations must be positive");
-  require(t.w_mse >= 0 && t.w_perceptual >= 0 && t.w_adversarial >= 0, "loss", "weights must be non-negative");
+  require(t.w_mse >= 0 && t.w_perceptual >= 0 && t.w_adversarial >= 0 && t.w_ssim >= 0, "loss", "weights must be non-negative");
+  require(t.w_mse + t.w_perceptual + t.w_adversarial + t.w_ssim > 0, "loss", "every weight is 0: nothing to train on");
   t.channels_last = c.flag("train.channels_last");
   t.gemm_upsample = c.flag("train.gemm_upsample");
   t.check_sync_every = c.integer("train.check_sync_every");
@@ -68,10 +77,30 @@ std::pair<std::shared_ptr<const PairSource>, std::shared_ptr<const PairSource>> 
     auto [train_images, val_images] =
         split_image_files(c.path("data.images"), c.num("data.val_fraction"), c.integer("data.split_seed"));
     const auto seed = static_cast<uint64_t>(c.integer("train.seed"));
-    return {std::make_shared<SimulatedPairs>(train_images, rig, camera, seed),
+    LightAugment light;
+    light.exposure_probability = c.num("data.light.exposure_probability");
+    light.exposure_min = c.num("data.light.exposure_min");
+    light.exposure_max = c.num("data.light.exposure_max");
+    light.lamp_probability = c.num("data.light.lamp_probability");
+    light.lamp_min = c.num("data.light.lamp_min");
+    light.lamp_max = c.num("data.light.lamp_max");
+    require(light.exposure_min > 0 && light.exposure_min <= light.exposure_max && light.lamp_min > 0 &&
+                light.lamp_min <= light.lamp_max,
+            "data.light", "needs 0 < exposure_min <= exposure_max and 0 < lamp_min <= lamp_max");
+    require(light.exposure_probability >= 0 && light.exposure_probability <= 1 && light.lamp_probability >= 0 &&
+                light.lamp_probability <= 1,
+            "data.light", "probabilities must lie in [0, 1]");
+    // Validation stays on display captures (the held-out set's conditions).
+    return {std::make_shared<SimulatedPairs>(train_images, rig, camera, seed, light),
             std::make_shared<SimulatedPairs>(val_images, rig, camera, seed + 1)};
   }
   throw Error("config: data.source must be dataset or simulate, got '" + source + "'");
+}
+
+void require_no_light_augment_on_disk(const Config& c) {
+  if (c.str("data.source") == "dataset" &&
+      (c.num("data.light.exposure_probability") > 0 || c.num("data.light.lamp_probability") > 0))
+    throw Error("data.light: light augmentation simulates each sample; it needs data.source: simulate (with data.images)");
 }
 
 CameraConfig camera_of(const Config& c) { return load_camera_config(c.path("data.camera")); }
@@ -89,7 +118,11 @@ int train(int argc, char** argv) {
                   cxxopts::value<std::string>())(
       "set", "override a setting: --set train.iterations=100 (repeatable)", cxxopts::value<std::vector<std::string>>())(
       "out", "run folder (checkpoints, logs, model.flatnet)", cxxopts::value<std::string>())(
-      "resume", "continue the run in --out from its latest checkpoint");
+      "resume", "continue the run in --out from its latest checkpoint")(
+      "init-from", "start from a model file's generator weights (a shipped model, or one from another camera's run) "
+                   "with fresh optimisers; the config must describe the same architecture",
+      cxxopts::value<std::string>())(
+      "precision", "auto|fp32|bf16: overrides train.precision", cxxopts::value<std::string>());
   o.add_options("distributed (defaults: torchrun's WORLD_SIZE, RANK, MASTER_ADDR, MASTER_PORT)")(
       "world-size", "processes in the job", cxxopts::value<int>())("rank", "this process, 0..world-size-1", cxxopts::value<int>())(
       "master-addr", "host of rank 0 (rendezvous)", cxxopts::value<std::string>())(
@@ -122,13 +155,25 @@ int train(int argc, char** argv) {
             "already holds a training run; continue it with --resume or choose another --out");
     config = Config::load(r.count("config") ? r["config"].as<std::string>() : "", sets);
   }
+  require(!(resume && r.count("init-from")), "--init-from", "starts a new run; it cannot be combined with --resume");
+  if (r.count("precision")) config.set("train.precision=" + r["precision"].as<std::string>());
+  require_no_light_augment_on_disk(config);
   // Everything that can fail on bad input is checked before anything is written.
   const auto camera = camera_of(config);
   auto vgg = vgg_if_needed(config);
   auto opts = train_options(config, out);
   auto [train_src, val_src] = data_sources(config, camera);
   torch::manual_seed(opts.seed);
-  Generator g(generator_options(config, camera, !resume));
+  Generator g(generator_options(config, camera, !resume && !r.count("init-from")));
+  if (r.count("init-from")) {
+    init_generator_from(r["init-from"].as<std::string>(), g);
+    std::cerr << "initialised from " << r["init-from"].as<std::string>() << " (fresh optimisers)\n";
+  }
+  if (writer) {
+    const auto p = resolve_precision(config.str("train.precision"), "train.precision");
+    if (p == Precision::bf16) request_amx_permission();
+    std::cerr << "precision: " << describe_precision(p) << "\n";
+  }
   Discriminator d(discriminator_options(config));
   std::cerr << "loading " << (config.integer("train.val_count") > 0 ? std::min(config.integer("train.val_count"), val_src->size()) : val_src->size())
             << " validation samples...\n";
@@ -178,8 +223,10 @@ int export_model(int argc, char** argv) {
   if (!parse(o, argc, argv, r)) return 0;
   require(r.count("out") && (r.count("checkpoint") + r.count("model") == 1), "export",
           "--out FILE and one of --checkpoint CKPT or --model MODEL are required");
-  auto m = r.count("checkpoint") ? model_from_checkpoint(r["checkpoint"].as<std::string>())
+  bool average = false;
+  auto m = r.count("checkpoint") ? model_from_checkpoint(r["checkpoint"].as<std::string>(), &average)
                                  : load_model_file(r["model"].as<std::string>());
+  if (average) std::cerr << "exporting the moving average of the weights (train.ema_decay)\n";
   const std::filesystem::path out = r["out"].as<std::string>();
   if (r.count("state-dict")) {
     export_state_dict(out, m.generator);
@@ -222,8 +269,9 @@ int infer(int argc, char** argv) {
       "out", "output folder (PNGs with the captures' names)", cxxopts::value<std::string>())(
       "camera", "camera .yaml whose preprocessing to use (default: the model's)", cxxopts::value<std::string>())(
       "batch", "captures per batch", cxxopts::value<int>()->default_value("4"))(
-      "levers", "exact inference speed-ups: none, or a list of fold, channels-last, gemm-up (bf16: approximate)",
+      "levers", "exact inference speed-ups: none, or a list of fold, channels-last, gemm-up (bf16: see --precision)",
       cxxopts::value<std::string>()->default_value("fold,channels-last,gemm-up"));
+  add_precision(o);
   add_common(o);
   cxxopts::ParseResult r;
   if (!parse(o, argc, argv, r)) return 0;
@@ -236,6 +284,7 @@ int infer(int argc, char** argv) {
   opt.out = r["out"].as<std::string>();
   opt.batch = std::max(1, r["batch"].as<int>());
   opt.levers = parse_inference_levers(r["levers"].as<std::string>());
+  if (precision_from(r) == Precision::bf16) opt.levers.bf16 = true;  // the enhancer in bf16; inversion and sigmoid stay fp32
   const auto rep = infer_files(m.generator, camera, captures, opt);
   std::cout << "flatnet: " << rep.count << " captures -> " << opt.out.string() << " (" << rep.images_per_s
             << " images/s, " << rep.model_ms_per_image << " ms per image in the network)\n";

@@ -62,13 +62,15 @@ GeneratorOptions generator_for(int64_t width) {
 BenchRow infer_row(const std::string& name, int64_t width, const BenchOptions& o) {
   torch::manual_seed(0);
   Generator g(generator_for(width));
-  g->prepare_inference(o.levers);
+  auto levers = o.levers;
+  levers.bf16 = levers.bf16 || o.bf16;
+  g->prepare_inference(levers);
   const auto Y = torch::randn({1, 4, kRows, kCols}) * 0.05;
-  std::string levers = std::string(o.levers.fold_batchnorm ? " fold" : "") + (o.levers.channels_last ? " channels-last" : "") +
-                       (o.levers.gemm_upsample ? " gemm-up" : "") + (o.levers.bf16 ? " bf16" : "");
+  std::string names = std::string(levers.fold_batchnorm ? " fold" : "") + (levers.channels_last ? " channels-last" : "") +
+                      (levers.gemm_upsample ? " gemm-up" : "") + (levers.bf16 ? " bf16" : "");
   c10::InferenceMode guard;
   auto row = time_row(name, "FlatNet-sep U-Net width " + std::to_string(width) + ", batch 1, levers:" +
-                                (levers.empty() ? std::string(" none") : levers),
+                                (names.empty() ? std::string(" none") : names),
                       o, [&] { g->forward(Y); });
   row.per_second = 1000.0 / row.median_ms;
   return row;
@@ -86,6 +88,7 @@ BenchRow train_row(const std::string& name, int64_t width, bool paper, const Ben
   t.w_mse = 1.0;
   t.w_perceptual = paper ? 1.2 : 0.0;
   t.w_adversarial = paper ? 0.6 : 1e-3;
+  t.bf16 = o.bf16;
   torch::optim::Adam opt_g(g->parameters(), torch::optim::AdamOptions(1e-4).betas({0.9, 0.999}));
   torch::optim::Adam opt_d(d->parameters(), torch::optim::AdamOptions(1e-4).betas({0.9, 0.999}));
   g->train();
@@ -97,7 +100,8 @@ BenchRow train_row(const std::string& name, int64_t width, bool paper, const Ben
   auto row = time_row(name,
                       "one GAN step (D then G), batch 4, U-Net width " + std::to_string(width) + ", MSE" +
                           (paper ? " + 1.2 VGG-16 perceptual + 0.6 adversarial" : " + 1e-3 adversarial") + ", Adam" +
-                          (o.levers.channels_last ? ", channels-last" : "") + (o.levers.gemm_upsample ? ", gemm-up" : ""),
+                          (o.levers.channels_last ? ", channels-last" : "") + (o.levers.gemm_upsample ? ", gemm-up" : "") +
+                          (o.bf16 ? ", bf16 autocast" : ", fp32"),
                       o, [&] { gan_step(g, d, vgg, opt_g, opt_d, t, batch, step++); });
   row.per_second = 1000.0 / row.median_ms;
   return row;
@@ -132,6 +136,10 @@ const std::vector<std::string>& bench_row_names() {
   static const std::vector<std::string> names = {"tikhonov",   "live_frame",  "simulator", "infer_paper", "infer_cpu",
                                                  "train_paper", "train_cpu", "mask_step", "loader"};
   return names;
+}
+
+bool bench_row_has_precision(const std::string& name) {
+  return name.rfind("infer_", 0) == 0 || name.rfind("train_", 0) == 0;
 }
 
 double peak_rss_mb() {
@@ -205,6 +213,7 @@ BenchRow run_bench_row(const std::string& name, const BenchOptions& o) {
     for (const auto& n : bench_row_names()) names += " " + n;
     throw Error("bench: unknown row '" + name + "'; rows:" + names);
   }
+  if (o.bf16 && bench_row_has_precision(name)) row.name += "_bf16";
   row.peak_rss_mb = peak_rss_mb();
   return row;
 }

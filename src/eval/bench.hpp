@@ -13,7 +13,8 @@ namespace flatnet {
 struct BenchOptions {
   int repeats = 5;
   int warmup = 1;
-  InferenceLevers levers;  // for the infer_* rows
+  InferenceLevers levers;  // for the infer_* rows (levers.bf16 is set from `bf16`)
+  bool bf16 = false;       // infer_* with the enhancer in bf16, train_* with bf16 autocast
   int loader_workers = 2;  // for the loader row
 };
 
@@ -28,6 +29,8 @@ struct BenchRow {
 
 // tikhonov, live_frame, simulator, infer_paper, infer_cpu, train_paper, train_cpu, mask_step, loader
 const std::vector<std::string>& bench_row_names();
+// Rows whose cost depends on the precision (infer_*, train_*); in bf16 they are reported as NAME_bf16.
+bool bench_row_has_precision(const std::string& name);
 BenchRow run_bench_row(const std::string& name, const BenchOptions& options);
 
 // Peak resident set size of this process in MB (VmHWM) and its reset (Linux /proc/self/clear_refs).

@@ -1,6 +1,7 @@
 #include "nn/generator.hpp"
 
 #include "core/error.hpp"
+#include "core/precision.hpp"
 
 namespace flatnet {
 
@@ -23,6 +24,20 @@ torch::Tensor FlatInversionImpl::forward(const torch::Tensor& Y) {
   const auto R = PhiR.permute({2, 0, 1});                      // {k,cols,N}
   const auto X = torch::matmul(L.transpose(1, 2), torch::matmul(Y, R));  // {B,4,N,N}
   return torch::leaky_relu(X, negative_slope_).flip({1});     // (b,gb,gr,r) -> (r,gr,gb,b)
+}
+
+torch::Tensor FlatInversionImpl::forward_crops(const torch::Tensor& Y,
+                                               const std::vector<std::pair<int64_t, int64_t>>& corners, int64_t size) {
+  TORCH_CHECK(static_cast<int64_t>(corners.size()) == Y.size(0), "inversion: one crop corner per sample expected");
+  const auto L = PhiL.permute({2, 0, 1}), R = PhiR.permute({2, 0, 1});  // {k,rows,N}, {k,cols,N}
+  std::vector<torch::Tensor> out;
+  for (int64_t b = 0; b < Y.size(0); ++b) {
+    const auto [r0, c0] = corners[b];
+    // Rows r0..r0+size of X = L^T Y R need only those columns of L (and likewise for R).
+    const auto Lb = L.slice(2, r0, r0 + size), Rb = R.slice(2, c0, c0 + size);   // {k,rows,s}, {k,cols,s}
+    out.push_back(torch::matmul(Lb.transpose(1, 2), torch::matmul(Y[b], Rb)));  // {4,s,s}
+  }
+  return torch::leaky_relu(torch::stack(out), negative_slope_).flip({1});
 }
 
 // ---- Tikhonov layer ------------------------------------------------------------------------------
@@ -141,10 +156,10 @@ struct UpImpl : nn::Module {  // FlatNet's up: transposed conv on the deeper map
   torch::Tensor upsample_as_gemm(const torch::Tensor& x) {  // {B,C,H,W} -> {B,O,2H,2W}
     const int64_t B = x.size(0), C = x.size(1), H = x.size(2), W = x.size(3), O = up->weight.size(1);
     torch::Tensor w, bias;
-    if (torch::GradMode::is_enabled()) {  // training: the live parameters, so gradients reach them
+    if (!cache_weights) {  // training and validation: the live parameters (gradients reach them; never stale)
       w = up->weight.reshape({C, O * 4});
       bias = up->bias;
-    } else {  // inference: reshaped (and cast) once
+    } else {  // a module prepared for inference (weights frozen): reshaped (and cast) once
       if (!gemm_weight.defined() || gemm_weight.scalar_type() != x.scalar_type())
         gemm_weight = up->weight.detach().reshape({C, O * 4}).to(x.scalar_type()).contiguous();  // [c][o][di][dj]
       w = gemm_weight;
@@ -154,11 +169,15 @@ struct UpImpl : nn::Module {  // FlatNet's up: transposed conv on the deeper map
     auto y = torch::mm(nhwc, w).view({B, H, W, O, 2, 2});  // [b][i][j][o][di][dj]
     // -> [b][i][di][j][dj][o]: NHWC of the upsampled map, then viewed as channels_last NCHW.
     y = y.permute({0, 1, 4, 2, 5, 3}).contiguous().view({B, 2 * H, 2 * W, O}).permute({0, 3, 1, 2});
-    return y + bias.view({1, O, 1, 1});
+    return y + bias.to(y.scalar_type()).view({1, O, 1, 1});
   }
   nn::ConvTranspose2d up{nullptr};
   DoubleConv conv{nullptr};
   bool gemm_up = false;
+  // Only after prepare_inference: the weights no longer change, so their GEMM layout is kept. A
+  // cache while training would be a stale copy after the first optimiser step (channels-last
+  // weights reshape to a copy, not a view).
+  bool cache_weights = false;
   torch::Tensor gemm_weight;
 };
 TORCH_MODULE(Up);
@@ -291,41 +310,74 @@ GeneratorImpl::GeneratorImpl(const GeneratorOptions& o) : options_(o) {
   }
 }
 
-torch::Tensor GeneratorImpl::first_stage(const torch::Tensor& Y) {
+void GeneratorImpl::check_measurement(const torch::Tensor& Y) const {
   TORCH_CHECK(Y.dim() == 4 && Y.size(1) == 4 && Y.size(2) == options_.rows && Y.size(3) == options_.cols,
               "generator: measurement planes {B,4,", options_.rows, ",", options_.cols, "} expected, got ",
               Y.sizes());
+}
+
+torch::Tensor GeneratorImpl::first_stage(const torch::Tensor& Y) {
+  check_measurement(Y);
   return inversion_ ? inversion_->forward(Y) : tikhonov_->forward(Y);
 }
 
-torch::Tensor GeneratorImpl::forward(const torch::Tensor& Y) {
-  auto x = bn_->forward(first_stage(Y));  // {B,4,N,N}
-  if (levers_.channels_last) x = x.contiguous(at::MemoryFormat::ChannelsLast);
-  if (levers_.bf16) x = x.to(torch::kBFloat16);
-  const auto y = enhancer_.forward<torch::Tensor>(x);  // {B,3,N,N} logits
-  if (!levers_.bf16 && !levers_.channels_last) return torch::sigmoid(y);
-  return torch::sigmoid(y.to(torch::kFloat32)).contiguous();
+torch::Tensor GeneratorImpl::forward(const torch::Tensor& Y) { return enhance(first_stage(Y)); }
+
+torch::Tensor GeneratorImpl::forward_crops(const torch::Tensor& Y,
+                                           const std::vector<std::pair<int64_t, int64_t>>& corners, int64_t size) {
+  TORCH_CHECK(size >= 16 && size % 16 == 0 && size <= options_.scene, "generator: crop size must be a multiple of 16 in [16, ",
+              options_.scene, "], got ", size);
+  for (const auto& [r, c] : corners)
+    TORCH_CHECK(r >= 0 && c >= 0 && r + size <= options_.scene && c + size <= options_.scene, "generator: crop at (", r,
+                ",", c, ") leaves the ", options_.scene, "x", options_.scene, " scene");
+  if (inversion_) {
+    check_measurement(Y);
+    return enhance(inversion_->forward_crops(Y, corners, size));
+  }
+  const auto full = first_stage(Y);
+  std::vector<torch::Tensor> crops;
+  for (int64_t b = 0; b < Y.size(0); ++b)
+    crops.push_back(full[b].slice(1, corners[b].first, corners[b].first + size).slice(2, corners[b].second, corners[b].second + size));
+  return enhance(torch::stack(crops));
+}
+
+torch::Tensor GeneratorImpl::enhance(const torch::Tensor& first) {
+  torch::Tensor y;
+  {
+    // bf16 autocast covers BN and the enhancer only; the first stage ran in fp32 before it.
+    AutocastGuard autocast(autocast_bf16_ && !levers_.bf16);
+    auto x = bn_->forward(first);  // {B,4,H,W}
+    if (levers_.channels_last) x = x.contiguous(at::MemoryFormat::ChannelsLast);
+    if (levers_.bf16) x = x.to(torch::kBFloat16);
+    y = enhancer_.forward<torch::Tensor>(x);  // {B,3,H,W} logits
+  }
+  if (!levers_.bf16 && !levers_.channels_last && y.scalar_type() == torch::kFloat32) return torch::sigmoid(y);
+  return torch::sigmoid(y.to(torch::kFloat32)).contiguous();  // the sigmoid (and any loss after it) in fp32
 }
 
 void GeneratorImpl::prepare_training(const InferenceLevers& levers) {
   auto l = levers;
   l.fold_batchnorm = false;  // batch statistics are needed while training
-  l.bf16 = false;
-  apply_levers(l);
+  l.bf16 = false;            // bf16 training is autocast (fp32 master weights), see set_autocast_bf16
+  apply_levers(l, false);
 }
 
 void GeneratorImpl::prepare_inference(const InferenceLevers& levers) {
   eval();
-  apply_levers(levers);
+  apply_levers(levers, true);
 }
 
-void GeneratorImpl::apply_levers(const InferenceLevers& levers) {
+void GeneratorImpl::apply_levers(const InferenceLevers& levers, bool for_inference) {
   if (levers.fold_batchnorm && !levers_.fold_batchnorm) {
     for (auto& m : modules(/*include_self=*/false))
       if (auto dc = std::dynamic_pointer_cast<DoubleConvImpl>(m)) dc->fold_batchnorm();
   }
   for (auto& m : modules(/*include_self=*/false))
-    if (auto up = std::dynamic_pointer_cast<UpImpl>(m)) up->gemm_up = levers.gemm_upsample;
+    if (auto up = std::dynamic_pointer_cast<UpImpl>(m)) {
+      up->gemm_up = levers.gemm_upsample;
+      up->cache_weights = for_inference;
+      up->gemm_weight = torch::Tensor();
+    }
   auto& enhancer = *named_children()["enhancer"];
   torch::NoGradGuard no_grad;
   if (levers.bf16) enhancer.to(torch::kBFloat16);

@@ -24,6 +24,10 @@ class FlatInversionImpl : public torch::nn::Module {
  public:
   explicit FlatInversionImpl(const InversionOptions& options);
   torch::Tensor forward(const torch::Tensor& Y);  // {B,4,rows,cols} -> {B,4,N,N}
+  // Only the size x size window at corners[b] = (row, col) of sample b's output: the same numbers
+  // as forward(Y) sliced, from the matching columns of PhiL and PhiR (a fraction of the work).
+  torch::Tensor forward_crops(const torch::Tensor& Y, const std::vector<std::pair<int64_t, int64_t>>& corners,
+                              int64_t size);  // {B,4,rows,cols} -> {B,4,size,size}
   torch::Tensor PhiL, PhiR;
 
  private:
@@ -137,6 +141,10 @@ class GeneratorImpl : public torch::nn::Module {
   explicit GeneratorImpl(const GeneratorOptions& options);
   // {B,4,rows,cols} measurement planes -> {B,3,N,N} sRGB image in [0,1].
   torch::Tensor forward(const torch::Tensor& Y);
+  // Training on crops: the first stage computes only the size x size window at corners[b] of
+  // sample b (the inversion still sees the whole capture), and the enhancer runs on those windows.
+  torch::Tensor forward_crops(const torch::Tensor& Y, const std::vector<std::pair<int64_t, int64_t>>& corners,
+                              int64_t size);  // -> {B,3,size,size}
   // The first stage alone, {B,4,N,N} (for inspection and the sample grid).
   torch::Tensor first_stage(const torch::Tensor& Y);
   const GeneratorOptions& options() const { return options_; }
@@ -144,10 +152,17 @@ class GeneratorImpl : public torch::nn::Module {
   void prepare_inference(const InferenceLevers& levers);
   // The levers that keep training exact (channels_last, gemm_upsample); call before making the optimiser.
   void prepare_training(const InferenceLevers& levers);
+  // Mixed precision for training: the BN and enhancer run under bf16 autocast (weights, their
+  // gradients and Adam's state stay fp32); the inversion's matmuls and the output sigmoid stay fp32.
+  void set_autocast_bf16(bool on) { autocast_bf16_ = on; }
+  bool autocast_bf16() const { return autocast_bf16_; }
 
  private:
   GeneratorOptions options_;
-  void apply_levers(const InferenceLevers& levers);
+  void check_measurement(const torch::Tensor& Y) const;
+  torch::Tensor enhance(const torch::Tensor& first);  // {B,4,H,W} first-stage output -> {B,3,H,W} in [0,1]
+  void apply_levers(const InferenceLevers& levers, bool for_inference);
+  bool autocast_bf16_ = false;
   InferenceLevers levers_{false, false, false, false};
   FlatInversion inversion_{nullptr};
   TikhonovLayer tikhonov_{nullptr};

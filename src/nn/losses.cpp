@@ -1,5 +1,7 @@
 #include "nn/losses.hpp"
 
+#include "core/precision.hpp"
+
 #include <fstream>
 
 #include "core/error.hpp"
@@ -105,6 +107,28 @@ torch::Tensor perceptual_loss(Vgg16Features& vgg, const torch::Tensor& x, const 
   }
   const auto fx = vgg->forward(x);
   return torch::mse_loss(fx.first, fy.first) + torch::mse_loss(fx.second, fy.second);
+}
+
+torch::Tensor ssim_loss(const torch::Tensor& x_in, const torch::Tensor& y_in) {
+  TORCH_CHECK(x_in.sizes() == y_in.sizes() && x_in.dim() == 4 && x_in.size(2) >= 11 && x_in.size(3) >= 11,
+              "ssim_loss: equal {B,C,H,W} inputs of at least 11x11 expected, got ", x_in.sizes(), " and ", y_in.sizes());
+  AutocastOffGuard fp32;
+  const auto x = x_in.to(torch::kFloat32), y = y_in.to(torch::kFloat32);
+  const int64_t C = x.size(1);
+  const double sigma = 1.5;
+  auto k = torch::arange(-5, 6, torch::kFloat32);
+  k = torch::exp(-0.5 * (k / sigma).pow(2));
+  k = k / k.sum();
+  const auto kh = k.view({1, 1, 1, 11}).repeat({C, 1, 1, 1}), kv = k.view({1, 1, 11, 1}).repeat({C, 1, 1, 1});
+  auto filt = [&](const torch::Tensor& t) {  // separable Gaussian per channel, 'valid'
+    namespace F = torch::nn::functional;
+    return F::conv2d(F::conv2d(t, kh, F::Conv2dFuncOptions().groups(C)), kv, F::Conv2dFuncOptions().groups(C));
+  };
+  const auto ux = filt(x), uy = filt(y);
+  const auto vx = filt(x * x) - ux * ux, vy = filt(y * y) - uy * uy, vxy = filt(x * y) - ux * uy;
+  const double C1 = 0.01 * 0.01, C2 = 0.03 * 0.03;
+  const auto s = ((2 * ux * uy + C1) * (2 * vxy + C2)) / ((ux * ux + uy * uy + C1) * (vx + vy + C2));
+  return 1 - s.mean();
 }
 
 }  // namespace flatnet

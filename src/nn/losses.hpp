@@ -46,6 +46,12 @@ TORCH_MODULE(Vgg16Features);
 // Errors name the file and, when it is missing, how to make it or train without it.
 Vgg16Features load_vgg16(const std::filesystem::path& weights, bool normalize = false);
 
+// Structural loss 1 - SSIM(x, y) (Wang et al. 2004), differentiable: 11x11 Gaussian window with
+// sigma 1.5, C1 = 0.01^2, C2 = 0.03^2, 'valid' borders, per channel, averaged. The same definition
+// as eval's ssim() (skimage's gaussian_weights=True), so the loss optimises the reported score.
+// Computed in fp32 even inside a bf16 autocast region. {B,C,H,W} each, H and W >= 11.
+torch::Tensor ssim_loss(const torch::Tensor& x, const torch::Tensor& y);
+
 // Sum of the MSEs of the two VGG feature maps of x and y (y's features need no gradient).
 torch::Tensor perceptual_loss(Vgg16Features& vgg, const torch::Tensor& x, const torch::Tensor& y);
 

@@ -42,6 +42,9 @@ torch::Tensor photon_electrons(const torch::Tensor& mean, c10::optional<at::Gene
 torch::Tensor sensor_readout(const Rig& rig, const torch::Tensor& signal, bool noise,
                              c10::optional<at::Generator> gen = c10::nullopt);
 
+// Linear-light scene {3,N,N} (1 = display white; may exceed 1) -> stored 16-bit raw frame {2h,2w} int32.
+torch::Tensor simulate_raw_linear(const Rig& rig, const torch::Tensor& scene_linear, bool noise,
+                                  c10::optional<at::Generator> gen = c10::nullopt);
 // sRGB scene {3,N,N} in [0,1] (as shown on the monitor) -> stored 16-bit raw frame {2h,2w} int32.
 torch::Tensor simulate_raw(const Rig& rig, const torch::Tensor& scene_srgb, bool noise,
                            c10::optional<at::Generator> gen = c10::nullopt);

@@ -16,6 +16,44 @@ torch::Tensor display_scene(const std::filesystem::path& image, int64_t size) {
   return torch::round(rgb.clamp(0, 1) * 255.0f) / 255.0f;  // what an 8-bit display shows
 }
 
+torch::Tensor lit_scene(const torch::Tensor& display_srgb, const SceneLight& light) {
+  auto linear = srgb_to_linear(display_srgb.to(torch::kFloat32)) * light.exposure;  // {3,N,N}
+  if (light.lamp) {
+    const int64_t N = linear.size(-1);
+    const auto idx = torch::arange(N, torch::kFloat32) + 0.5f;
+    const auto dy = (idx - static_cast<float>(light.lamp_row)).view({N, 1}), dx = (idx - static_cast<float>(light.lamp_col)).view({1, N});
+    // A disk with a one-pixel soft edge, slightly warm (an incandescent or LED lamp, not the display's white).
+    const auto disk = (static_cast<float>(light.lamp_radius) + 0.5f - torch::sqrt(dy * dy + dx * dx)).clamp(0, 1);
+    const auto colour = torch::tensor({1.0f, 0.92f, 0.8f}).view({3, 1, 1});
+    linear = linear + static_cast<float>(light.lamp_gain) * colour * disk.unsqueeze(0);
+  }
+  return linear;
+}
+
+torch::Tensor visible_scene(const torch::Tensor& linear) {
+  return torch::round(linear_to_srgb(linear.clamp(0, 1)) * 255.0f) / 255.0f;  // as an 8-bit ground-truth image
+}
+
+void place_lamp(SceneLight& light, int64_t n, at::Generator& gen) {
+  const auto u = at::rand({3}, gen);
+  light.lamp = true;
+  light.lamp_row = 8 + u[0].item<double>() * static_cast<double>(n - 16);
+  light.lamp_col = 8 + u[1].item<double>() * static_cast<double>(n - 16);
+  light.lamp_radius = 1.5 + 2.5 * u[2].item<double>();
+}
+
+SceneLight draw_scene_light(const LightAugment& a, int64_t n, at::Generator& gen) {
+  SceneLight light;
+  const auto u = at::rand({4}, gen);
+  auto log_uniform = [](double lo, double hi, double t) { return std::exp(std::log(lo) + t * (std::log(hi) - std::log(lo))); };
+  if (u[0].item<double>() < a.exposure_probability) light.exposure = log_uniform(a.exposure_min, a.exposure_max, u[1].item<double>());
+  if (u[2].item<double>() < a.lamp_probability) {
+    place_lamp(light, n, gen);
+    light.lamp_gain = log_uniform(a.lamp_min, a.lamp_max, u[3].item<double>());
+  }
+  return light;
+}
+
 std::pair<std::vector<std::string>, std::vector<std::string>> split_train_val(const std::vector<std::string>& names,
                                                                            double val_fraction, uint64_t seed) {
   std::vector<std::string> shuffled = names;
@@ -74,6 +112,9 @@ std::pair<int64_t, int64_t> write_dataset_lists(const std::filesystem::path& out
 
 SimulateReport simulate_dataset(const Rig& rig, const SimulateOptions& opt) {
   require(opt.val_fraction >= 0 && opt.val_fraction <= 1, "--val-fraction", "must be within [0, 1]");
+  require(std::isfinite(opt.exposure) && opt.exposure > 0 && opt.exposure <= 100, "--exposure",
+          "must lie in (0, 100] (scene light relative to the display's)");
+  require(std::isfinite(opt.lamp_gain) && opt.lamp_gain > 0 && opt.lamp_gain <= 1e4, "--lamp-gain", "must lie in (0, 10000]");
   require(opt.size == rig.scene_size(), "--size",
           "the rig's matrices take " + std::to_string(rig.scene_size()) + "x" + std::to_string(rig.scene_size()) +
               " scenes, got " + std::to_string(opt.size));
@@ -84,6 +125,18 @@ SimulateReport simulate_dataset(const Rig& rig, const SimulateOptions& opt) {
   for (const auto& p : images) names.push_back(p.stem().string() + ".png");
   for (size_t i = 1; i < names.size(); ++i)
     require(names[i] != names[i - 1], images[i], "two images share the name " + names[i]);
+  const auto all_names = names;
+  require(opt.only == "all" || opt.only == "train" || opt.only == "val", "--only", "must be all, train or val");
+  if (opt.only != "all") {  // keep one side of the split; the lists below still use the split of all names
+    const auto [train, val] = split_train_val(names, opt.val_fraction, opt.seed);
+    const auto& keep = opt.only == "val" ? val : train;
+    std::vector<std::filesystem::path> kept_images;
+    std::vector<std::string> kept_names;
+    for (size_t i = 0; i < names.size(); ++i)
+      if (std::binary_search(keep.begin(), keep.end(), names[i])) kept_images.push_back(images[i]), kept_names.push_back(names[i]);
+    images = kept_images;
+    names = kept_names;
+  }
 
   std::filesystem::create_directories(opt.out / "meas");
   std::filesystem::create_directories(opt.out / "gt");
@@ -112,7 +165,19 @@ SimulateReport simulate_dataset(const Rig& rig, const SimulateOptions& opt) {
           auto scene = display_scene(images[i], opt.size);
           // Per-image generator: the noise does not depend on thread scheduling.
           auto gen = at::detail::createCPUGenerator(stable_hash(names[i], opt.seed));
-          auto raw = simulate_raw(rig, scene, opt.noise, gen);
+          torch::Tensor raw;
+          if (opt.exposure == 1.0 && !opt.lamp) {
+            raw = simulate_raw(rig, scene, opt.noise, gen);
+          } else {  // a real scene's light: the ground truth is what the scene shows, clipped at white
+            SceneLight light;
+            light.exposure = opt.exposure;
+            light.lamp_gain = opt.lamp_gain;
+            auto lamp_gen = at::detail::createCPUGenerator(stable_hash(names[i] + "#lamp", opt.seed));
+            if (opt.lamp) place_lamp(light, opt.size, lamp_gen);
+            const auto linear = lit_scene(scene, light);
+            raw = simulate_raw_linear(rig, linear, opt.noise, gen);
+            scene = visible_scene(linear);
+          }
           write_rgb8(gt_path, scene);
           write_gray16(meas_path, raw);
           ++simulated;
@@ -134,7 +199,7 @@ SimulateReport simulate_dataset(const Rig& rig, const SimulateOptions& opt) {
   report.simulated = simulated;
   report.skipped = skipped;
 
-  std::tie(report.train, report.val) = write_dataset_lists(opt.out, names, names, opt.val_fraction, opt.seed);
+  std::tie(report.train, report.val) = write_dataset_lists(opt.out, all_names, names, opt.val_fraction, opt.seed);
   return report;
 }
 

@@ -7,6 +7,32 @@
 
 namespace flatnet {
 
+// Real scenes are not display captures: their light ranges from dim rooms to lamps far brighter
+// than a display's white. A SceneLight turns a display image into such a scene, in linear light
+// (1 = display white), where the camera integrates it (camera README, "The true response").
+struct SceneLight {
+  double exposure = 1.0;        // scene radiance relative to the display's
+  bool lamp = false;            // a small bright disk added to the scene
+  double lamp_gain = 20;        // its radiance relative to display white
+  double lamp_row = 0, lamp_col = 0, lamp_radius = 2;  // centre and radius in scene pixels
+};
+// exposure * srgb_to_linear(display) + lamp: {3,N,N} linear light.
+torch::Tensor lit_scene(const torch::Tensor& display_srgb, const SceneLight& light);
+// What a reconstruction should show of a linear scene: sRGB of the scene clipped to display white.
+torch::Tensor visible_scene(const torch::Tensor& linear);
+
+// Random scene light for training (data.light.* in the config).
+struct LightAugment {
+  double exposure_probability = 0;          // share of samples whose light is redrawn
+  double exposure_min = 1, exposure_max = 1;  // drawn log-uniformly
+  double lamp_probability = 0;              // share of samples with a lamp
+  double lamp_min = 5, lamp_max = 50;       // lamp gain, log-uniform
+  bool active() const { return exposure_probability > 0 || lamp_probability > 0; }
+};
+SceneLight draw_scene_light(const LightAugment& augment, int64_t scene_size, at::Generator& gen);
+// A lamp at a random place (used by `flatnet simulate --lamp`): radius 1.5..4 px, kept 8 px from the edges.
+void place_lamp(SceneLight& light, int64_t scene_size, at::Generator& gen);
+
 struct SimulateOptions {
   std::filesystem::path images;   // folder of photographs
   std::filesystem::path out;      // dataset folder: meas/, gt/, train_*.txt, val_*.txt
@@ -17,6 +43,10 @@ struct SimulateOptions {
   int workers = 0;                // <= 0: all cores
   bool progress = true;
   int64_t limit = 0;              // > 0: only the first `limit` images (sorted by name)
+  std::string only = "all";       // all | train | val: simulate only that part of the split (lists keep the split)
+  double exposure = 1.0;          // scene light relative to the display's (dim sets: < 1)
+  bool lamp = false;              // one lamp per scene (lamp sets), lamp_gain x display white
+  double lamp_gain = 20;
 };
 
 struct SimulateReport {

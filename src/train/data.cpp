@@ -27,17 +27,37 @@ Sample DiskPairs::load(int64_t i, int64_t) const {
 }
 
 SimulatedPairs::SimulatedPairs(std::vector<std::filesystem::path> images, std::shared_ptr<const Rig> rig,
-                               CameraConfig camera, uint64_t seed)
-    : images_(std::move(images)), rig_(std::move(rig)), camera_(std::move(camera)), seed_(seed) {
+                               CameraConfig camera, uint64_t seed, LightAugment light)
+    : images_(std::move(images)), rig_(std::move(rig)), camera_(std::move(camera)), seed_(seed), light_(light),
+      cache_(images_.size()) {
   if (images_.empty()) throw Error("data.images: no images to simulate from");
+}
+
+torch::Tensor SimulatedPairs::scene(int64_t i) const {
+  {
+    std::lock_guard<std::mutex> lock(cache_mutex_);
+    if (cache_.at(i).defined()) return cache_[i].to(torch::kFloat32) / 255.0f;
+  }
+  const auto display = display_scene(images_[i], camera_.scene_size);  // exact multiples of 1/255
+  std::lock_guard<std::mutex> lock(cache_mutex_);
+  cache_[i] = torch::round(display * 255.0f).to(torch::kUInt8);
+  return display;
 }
 
 Sample SimulatedPairs::load(int64_t i, int64_t epoch) const {
   const auto& image = images_.at(i);
   Sample s;
-  s.gt = display_scene(image, camera_.scene_size);  // {3,N,N}
+  s.gt = scene(i);  // {3,N,N}
   auto gen = at::detail::createCPUGenerator(stable_hash(image.filename().string() + "#" + std::to_string(epoch), seed_));
-  const auto raw = simulate_raw(*rig_, s.gt, true, gen);  // stored 16-bit codes
+  torch::Tensor raw;  // stored 16-bit codes
+  if (light_.active()) {
+    const auto light = draw_scene_light(light_, camera_.scene_size, gen);
+    const auto linear = lit_scene(s.gt, light);
+    s.gt = visible_scene(linear);
+    raw = simulate_raw_linear(*rig_, linear, true, gen);
+  } else {
+    raw = simulate_raw(*rig_, s.gt, true, gen);
+  }
   s.meas = preprocess_raw(raw.to(torch::kFloat32) / 65535.0f, camera_.raw);
   s.name = image.filename().string();
   return s;

@@ -16,6 +16,7 @@
 #include "core/camera_config.hpp"
 #include "io/dataset.hpp"
 #include "optics/camera.hpp"
+#include "optics/simulator.hpp"
 
 namespace flatnet {
 
@@ -46,19 +47,25 @@ class DiskPairs : public PairSource {
 };
 
 // Photographs shown on a (simulated) display and captured through the rig, noise drawn from a
-// generator seeded by (seed, image, epoch).
+// generator seeded by (seed, image, epoch). With a LightAugment, each sample's scene light is
+// redrawn from the same generator (dim scenes, lamps; see optics/simulator.hpp) and the ground
+// truth is what that scene shows. Display scenes are decoded once and kept (8-bit, 192 KiB each).
 class SimulatedPairs : public PairSource {
  public:
   SimulatedPairs(std::vector<std::filesystem::path> images, std::shared_ptr<const Rig> rig, CameraConfig camera,
-                 uint64_t seed);
+                 uint64_t seed, LightAugment light = {});
   int64_t size() const override { return static_cast<int64_t>(images_.size()); }
   Sample load(int64_t i, int64_t epoch) const override;
 
  private:
+  torch::Tensor scene(int64_t i) const;  // {3,N,N} display sRGB, cached
   std::vector<std::filesystem::path> images_;
   std::shared_ptr<const Rig> rig_;
   CameraConfig camera_;
   uint64_t seed_;
+  LightAugment light_;
+  mutable std::mutex cache_mutex_;
+  mutable std::vector<torch::Tensor> cache_;  // uint8 {3,N,N}
 };
 
 struct Batch {

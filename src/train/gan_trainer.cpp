@@ -4,6 +4,7 @@
 #include <iomanip>
 
 #include "core/error.hpp"
+#include "core/precision.hpp"
 #include "core/util.hpp"
 #include "eval/metrics.hpp"
 #include "train/distributed.hpp"
@@ -40,6 +41,73 @@ torch::Tensor uniform(int64_t n, double lo, double hi, at::Generator& gen) {
 
 }  // namespace
 
+LrSchedule parse_lr_schedule(const std::string& s) {
+  if (s == "halving") return LrSchedule::halving;
+  if (s == "cosine") return LrSchedule::cosine;
+  throw Error("config: train.schedule must be halving or cosine, got '" + s + "'");
+}
+
+double lr_factor(const TrainOptions& opt, int64_t step) {
+  if (opt.schedule == LrSchedule::cosine) {
+    const double t = std::min(1.0, static_cast<double>(step) / std::max<int64_t>(1, opt.iterations));
+    return 0.5 * (1.0 + std::cos(M_PI * t));
+  }
+  return std::pow(0.5, static_cast<double>(step / std::max<int64_t>(1, opt.lr_halve_every)));
+}
+
+std::vector<std::pair<int64_t, int64_t>> crop_corners(const TrainOptions& opt, int64_t batch, int64_t scene, int64_t step) {
+  if (opt.crop <= 0 || opt.crop >= scene) return {};
+  auto gen = at::detail::createCPUGenerator(opt.seed * 15485863ULL + static_cast<uint64_t>(step));
+  const auto rc = at::randint(0, scene - opt.crop + 1, {batch, 2}, gen, torch::kLong);
+  std::vector<std::pair<int64_t, int64_t>> corners;
+  for (int64_t b = 0; b < batch; ++b) corners.emplace_back(rc[b][0].item<int64_t>(), rc[b][1].item<int64_t>());
+  return corners;
+}
+
+WeightAverage::WeightAverage(Generator& source, double decay)
+    : source_(source), average_(Generator(source->options())), decay_(decay) {
+  average_->prepare_training({false, false, false, false});
+  torch::NoGradGuard no_grad;
+  const auto dst = parameters_and_buffers(*average_), src = parameters_and_buffers(*source_);
+  for (size_t i = 0; i < dst.size(); ++i) dst[i].copy_(src[i]);
+  for (auto& p : average_->parameters()) p.set_requires_grad(false);
+  average_->eval();
+}
+
+void WeightAverage::update(int64_t step) {
+  torch::NoGradGuard no_grad;
+  const double d = std::min(decay_, (1.0 + step) / (10.0 + step));
+  const auto avg = average_->parameters(), live = source_->parameters();
+  for (size_t i = 0; i < avg.size(); ++i) avg[i].mul_(d).add_(live[i].detach(), 1.0 - d);
+  const auto avg_b = average_->buffers(), live_b = source_->buffers();
+  for (size_t i = 0; i < avg_b.size(); ++i) avg_b[i].copy_(live_b[i]);
+}
+
+namespace {
+
+[[noreturn]] void diverged(const TrainOptions& opt, int64_t step, const std::string& what, double value) {
+  std::ostringstream os;
+  os << "training diverged: the " << what << " is " << value << " at step " << step
+     << "; no optimiser stepped on it and nothing was saved from this step; the last good checkpoint is "
+     << (opt.out / "latest.ckpt").string() << ". Try a lower train.lr.";
+  throw Error(os.str());
+}
+
+torch::Tensor crop_like(const torch::Tensor& images, const std::vector<std::pair<int64_t, int64_t>>& corners, int64_t size) {
+  if (corners.empty()) return images;
+  std::vector<torch::Tensor> out;
+  for (size_t b = 0; b < corners.size(); ++b)
+    out.push_back(images[b].slice(1, corners[b].first, corners[b].first + size).slice(2, corners[b].second, corners[b].second + size));
+  return torch::stack(out);
+}
+
+torch::Tensor logits_fp32(Discriminator& d, const torch::Tensor& x, bool bf16) {
+  AutocastGuard autocast(bf16);
+  return d->forward(x).to(torch::kFloat32);
+}
+
+}  // namespace
+
 StepLosses gan_step(Generator& g, Discriminator& d, Vgg16Features& vgg, torch::optim::Optimizer& opt_g,
                     torch::optim::Optimizer& opt_d, const TrainOptions& opt, const Batch& batch, int64_t step,
                     GradientAverager* sync) {
@@ -48,48 +116,51 @@ StepLosses gan_step(Generator& g, Discriminator& d, Vgg16Features& vgg, torch::o
   const bool perceptual = opt.w_perceptual > 0;
   const bool warmup = step < opt.discriminator_warmup;
   auto label_gen = at::detail::createCPUGenerator(opt.seed * 104729ULL + static_cast<uint64_t>(step));
+  const auto corners = crop_corners(opt, batch.meas.size(0), batch.gt.size(-1), step);
+  const auto gt = crop_like(batch.gt, corners, opt.crop);  // {B,3,n,n}
+  g->set_autocast_bf16(opt.bf16);
+  auto generate = [&] { return corners.empty() ? g->forward(batch.meas) : g->forward_crops(batch.meas, corners, opt.crop); };
   torch::Tensor fake;
   if (warmup) {
     torch::NoGradGuard no_grad;
-    fake = g->forward(batch.meas);
+    fake = generate();
   } else {
-    fake = g->forward(batch.meas);  // {B,3,N,N}
+    fake = generate();  // {B,3,n,n}
   }
   if (adversarial) {  // discriminator step on real and detached fake images
     const int64_t B = fake.size(0);
     for (auto& p : d->parameters()) p.set_requires_grad(true);
     opt_d.zero_grad();
     const auto d_loss =
-        torch::binary_cross_entropy_with_logits(d->forward(batch.gt), uniform(B, opt.real_label_min, 1.0, label_gen)) +
-        torch::binary_cross_entropy_with_logits(d->forward(fake.detach()), uniform(B, 0.0, opt.fake_label_max, label_gen));
+        torch::binary_cross_entropy_with_logits(logits_fp32(d, gt, opt.bf16), uniform(B, opt.real_label_min, 1.0, label_gen)) +
+        torch::binary_cross_entropy_with_logits(logits_fp32(d, fake.detach(), opt.bf16),
+                                                uniform(B, 0.0, opt.fake_label_max, label_gen));
+    out.discriminator = d_loss.item<double>();
+    // Guard before any optimiser step: a non-finite loss must not reach the weights.
+    if (!std::isfinite(out.discriminator)) diverged(opt, step, "discriminator loss", out.discriminator);
     d_loss.backward();
     if (sync) sync->average(d->parameters());
     opt_d.step();
-    out.discriminator = d_loss.item<double>();
   }
   if (!warmup) {  // generator step
     opt_g.zero_grad();
-    const auto mse = torch::mse_loss(fake, batch.gt);
+    const auto mse = torch::mse_loss(fake, gt);
     auto loss = opt.w_mse * mse;
-    torch::Tensor perc, adv;
-    if (perceptual) loss = loss + opt.w_perceptual * (perc = perceptual_loss(vgg, fake, batch.gt));
+    torch::Tensor perc, adv, structural;
+    if (opt.w_ssim > 0) loss = loss + opt.w_ssim * (structural = ssim_loss(fake, gt));
+    if (perceptual) loss = loss + opt.w_perceptual * (perc = perceptual_loss(vgg, fake, gt));
     if (adversarial) {
       for (auto& p : d->parameters()) p.set_requires_grad(false);
-      adv = torch::binary_cross_entropy_with_logits(d->forward(fake), torch::ones({fake.size(0), 1}));
+      adv = torch::binary_cross_entropy_with_logits(logits_fp32(d, fake, opt.bf16), torch::ones({fake.size(0), 1}));
       loss = loss + opt.w_adversarial * adv;
     }
     const double value = loss.item<double>();
-    if (!std::isfinite(value) || !std::isfinite(out.discriminator)) {
-      std::ostringstream os;
-      os << "training diverged: the loss is " << value << " at step " << step << " (mse " << mse.item<double>()
-         << ", discriminator " << out.discriminator << "); nothing was saved from this step; the last good checkpoint is "
-         << (opt.out / "latest.ckpt").string() << ". Try a lower train.lr.";
-      throw Error(os.str());
-    }
+    if (!std::isfinite(value)) diverged(opt, step, "generator loss (mse " + std::to_string(mse.item<double>()) + ")", value);
     loss.backward();
     if (sync) sync->average(g->parameters());
     opt_g.step();
     out.loss = value, out.mse = mse.item<double>();
+    if (structural.defined()) out.ssim = structural.item<double>();
     if (perc.defined()) out.perceptual = perc.item<double>();
     if (adv.defined()) out.adversarial = adv.item<double>();
   }
@@ -140,11 +211,19 @@ GanTrainer::GanTrainer(Generator generator, Discriminator discriminator, Vgg16Fe
     groups.emplace_back(inversion, std::make_unique<torch::optim::AdamOptions>(opt_.lr * opt_.lr_inversion_scale));
   opt_g_ = std::make_unique<torch::optim::Adam>(groups, torch::optim::AdamOptions(opt_.lr));
   opt_d_ = std::make_unique<torch::optim::Adam>(d_->parameters(), torch::optim::AdamOptions(opt_.lr_discriminator));
+  g_->set_autocast_bf16(opt_.bf16);
+  if (opt_.ema_decay > 0) {
+    require(opt_.ema_decay < 1, "train.ema_decay", "must lie in [0, 1)");
+    ema_ = std::make_unique<WeightAverage>(g_, opt_.ema_decay);
+    ema_->average()->set_autocast_bf16(opt_.bf16);
+  }
   state_.rng_state = at::detail::getDefaultCPUGenerator().get_state();
 }
 
+Generator& GanTrainer::exported() { return ema_ ? ema_->average() : g_; }
+
 void GanTrainer::resume(const std::filesystem::path& checkpoint) {
-  state_ = load_checkpoint(checkpoint, g_, d_, *opt_g_, *opt_d_);
+  state_ = load_checkpoint(checkpoint, g_, d_, *opt_g_, *opt_d_, ema_ ? &ema_->average() : nullptr);
   auto gen = at::detail::getDefaultCPUGenerator();
   gen.set_state(state_.rng_state);
   truncate_log(opt_.out / "log.csv", state_.step);
@@ -161,7 +240,7 @@ void GanTrainer::set_distributed(GradientAverager* collectives) {
 }
 
 void GanTrainer::set_learning_rates(int64_t step) {
-  const double f = std::pow(0.5, static_cast<double>(step / std::max<int64_t>(1, opt_.lr_halve_every)));
+  const double f = lr_factor(opt_, step);
   auto& groups = opt_g_->param_groups();
   static_cast<torch::optim::AdamOptions&>(groups[0].options()).lr(opt_.lr * f);
   if (groups.size() > 1) static_cast<torch::optim::AdamOptions&>(groups[1].options()).lr(opt_.lr * opt_.lr_inversion_scale * f);
@@ -170,7 +249,7 @@ void GanTrainer::set_learning_rates(int64_t step) {
 
 void GanTrainer::checkpoint_and_validate(TrainSummary& summary) {
   const auto t0 = std::chrono::steady_clock::now();
-  const auto v = validate(g_, val_, opt_.batch, opt_.out / "samples.png");
+  const auto v = validate(exported(), val_, opt_.batch, opt_.out / "samples.png");
   const double secs = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
   summary.last_psnr = v.psnr, summary.last_ssim = v.ssim;
   std::ostringstream line;
@@ -179,11 +258,13 @@ void GanTrainer::checkpoint_and_validate(TrainSummary& summary) {
   const bool best = v.psnr > state_.best_psnr;
   if (best) state_.best_psnr = v.psnr;
   state_.rng_state = at::detail::getDefaultCPUGenerator().get_state();
-  save_checkpoint(opt_.out / "latest.ckpt", g_, d_, *opt_g_, *opt_d_, state_, config_, camera_);
+  Generator* ema = ema_ ? &ema_->average() : nullptr;
+  save_checkpoint(opt_.out / "latest.ckpt", g_, d_, *opt_g_, *opt_d_, state_, config_, camera_, ema);
+  // model.flatnet follows the latest weights (not picked on validation data); best.ckpt keeps the best.
+  save_model_file(opt_.out / "model.flatnet", exported(), config_, camera_);
   if (best) {
     summary.best_psnr = v.psnr, summary.best_ssim = v.ssim;
-    save_checkpoint(opt_.out / "best.ckpt", g_, d_, *opt_g_, *opt_d_, state_, config_, camera_);
-    save_model_file(opt_.out / "model.flatnet", g_, config_, camera_);
+    save_checkpoint(opt_.out / "best.ckpt", g_, d_, *opt_g_, *opt_d_, state_, config_, camera_, ema);
   }
 }
 
@@ -206,7 +287,7 @@ TrainSummary GanTrainer::run() {
   d_->train();
   Progress progress("train", opt_.iterations - state_.step, opt_.progress);
   const auto start = std::chrono::steady_clock::now();
-  double sum_loss = 0, sum_mse = 0, sum_perc = 0, sum_adv = 0, sum_d = 0;
+  double sum_loss = 0, sum_mse = 0, sum_ssim = 0, sum_perc = 0, sum_adv = 0, sum_d = 0;
   int64_t n_logged = 0;
   auto stop = [&] { return sync_ ? sync_->any(interrupted()) : interrupted(); };
   bool stopping = false;
@@ -216,7 +297,8 @@ TrainSummary GanTrainer::run() {
     set_learning_rates(step);
     const auto batch = loader.next();
     const auto l = gan_step(g_, d_, vgg_, *opt_g_, *opt_d_, opt_, batch, step, sync_);
-    sum_loss += l.loss, sum_mse += l.mse, sum_perc += l.perceptual, sum_adv += l.adversarial;
+    if (ema_) ema_->update(step);
+    sum_loss += l.loss, sum_mse += l.mse, sum_ssim += l.ssim, sum_perc += l.perceptual, sum_adv += l.adversarial;
     const double d_value = l.discriminator;
     if (sync_ && sync_->world_size() > 1) {
       // Batch-norm running statistics follow rank 0's (as DistributedDataParallel's broadcast_buffers).
@@ -236,15 +318,15 @@ TrainSummary GanTrainer::run() {
       const double elapsed = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
       std::ostringstream line, status;
       line << state_.step << "," << std::setprecision(6) << sum_loss / n_logged << "," << sum_mse / n_logged << ","
-           << sum_perc / n_logged << "," << sum_adv / n_logged << "," << sum_d / n_logged << ","
+           << sum_ssim / n_logged << "," << sum_perc / n_logged << "," << sum_adv / n_logged << "," << sum_d / n_logged << ","
            << static_cast<torch::optim::AdamOptions&>(opt_g_->param_groups()[0].options()).lr() << ","
            << (state_.step - summary.first_step) / elapsed;
-      append_line(opt_.out / "log.csv", "step,loss,mse,perceptual,adversarial,discriminator,lr,steps_per_s", line.str());
+      append_line(opt_.out / "log.csv", "step,loss,mse,ssim_loss,perceptual,adversarial,discriminator,lr,steps_per_s", line.str());
       status << "step " << state_.step << " loss " << std::setprecision(4) << sum_loss / n_logged << " mse "
              << sum_mse / n_logged;
       if (adversarial) status << " D " << sum_d / n_logged;
       progress.set_status(status.str());
-      sum_loss = sum_mse = sum_perc = sum_adv = sum_d = 0;
+      sum_loss = sum_mse = sum_ssim = sum_perc = sum_adv = sum_d = 0;
       n_logged = 0;
     }
     if (writer && (state_.step % opt_.val_every == 0 || state_.step == opt_.iterations)) {

@@ -19,10 +19,15 @@
 
 namespace flatnet {
 
+enum class LrSchedule { halving, cosine };
+LrSchedule parse_lr_schedule(const std::string& s);
+
 struct TrainOptions {
   int64_t iterations = 20000;
   int64_t batch = 4;
   double lr = 1e-4, lr_discriminator = 1e-4, lr_inversion_scale = 1.0;
+  // halving: lr * 0.5^floor(step / lr_halve_every) (the thesis); cosine: lr * (1 + cos(pi step / iterations)) / 2.
+  LrSchedule schedule = LrSchedule::halving;
   int64_t lr_halve_every = 5000;
   int64_t discriminator_warmup = 0;
   double noise_augment = 0.003;
@@ -30,6 +35,10 @@ struct TrainOptions {
   int workers = 1;
   int64_t val_every = 500, log_every = 10;
   double w_mse = 1.0, w_perceptual = 1.2, w_adversarial = 0.6;
+  double w_ssim = 0.0;          // weight of the structural term 1 - SSIM
+  double ema_decay = 0.0;       // exponential moving average of the generator's weights (0: off); used to validate and export
+  int64_t crop = 0;             // the enhancer trains on random crop x crop windows of the first stage (0: whole scenes)
+  bool bf16 = false;            // bf16 autocast for the enhancer and discriminator (fp32 master weights and Adam state)
   double real_label_min = 0.7, fake_label_max = 0.3;
   bool channels_last = true;   // exact speed-ups (InferenceLevers): NHWC activations,
   bool gemm_upsample = true;   // transposed convolutions as GEMMs
@@ -54,7 +63,29 @@ ValidationResult validate(Generator& generator, const std::vector<Sample>& sampl
                           const std::filesystem::path& sheet = {}, int sheet_rows = 4);
 
 struct StepLosses {
-  double loss = 0, mse = 0, perceptual = 0, adversarial = 0, discriminator = 0;
+  double loss = 0, mse = 0, ssim = 0, perceptual = 0, adversarial = 0, discriminator = 0;
+};
+
+// Learning-rate factor (relative to train.lr) at `step` under the options' schedule.
+double lr_factor(const TrainOptions& opt, int64_t step);
+
+// The crop corners of step `step`'s batch: one uniform (row, col) per sample, drawn from (seed,
+// step) so a resumed run crops as the straight one. Empty when opt.crop is 0 or the scene size.
+std::vector<std::pair<int64_t, int64_t>> crop_corners(const TrainOptions& opt, int64_t batch, int64_t scene, int64_t step);
+
+// Exponential moving average of a generator's weights (batch-norm statistics copied as they are).
+// The decay warms up as min(decay, (1 + updates) / (10 + updates)) so early averages are not
+// dominated by the random initialisation.
+class WeightAverage {
+ public:
+  WeightAverage(Generator& source, double decay);
+  void update(int64_t step);  // after the optimiser step `step`
+  Generator& average() { return average_; }
+
+ private:
+  Generator& source_;
+  Generator average_;
+  double decay_;
 };
 
 // Data-parallel training's collectives (implemented with c10d in train/distributed.hpp).
@@ -90,6 +121,8 @@ class GanTrainer {
   void set_distributed(GradientAverager* collectives);
   // Continues from a checkpoint written by an earlier run with the same config.
   void resume(const std::filesystem::path& checkpoint);
+  // The weights that are validated and exported: the moving average when train.ema_decay > 0.
+  Generator& exported();
   // Stops after the current step and writes a checkpoint when interrupted() (core/util.hpp).
   TrainSummary run();
 
@@ -106,6 +139,7 @@ class GanTrainer {
   Config config_;
   CameraConfig camera_;
   std::unique_ptr<torch::optim::Adam> opt_g_, opt_d_;
+  std::unique_ptr<WeightAverage> ema_;
   TrainState state_;
   GradientAverager* sync_ = nullptr;
 };

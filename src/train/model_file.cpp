@@ -38,6 +38,27 @@ std::pair<torch::Tensor, torch::Tensor> initial_inversion(const Config& c, const
     }
     return {calib.P.permute({1, 2, 0}), calib.Q.permute({1, 2, 0})};
   }
+  if (init == "pinv") {
+    require(!camera.calibration.empty(), "data.camera", "the camera names no calibration (needed for init pinv)");
+    const double lambda = c.num("model.inversion.lambda");
+    require(lambda > 0 && std::isfinite(lambda), "model.inversion.lambda", "must be positive");
+    const auto calib = load_calibration(camera.calibration, camera);
+    // X = W1^T Y W2 with W = U diag(s / (s^2 + lambda s_max^2)) V^T for P = U diag(s) V^T (and Q):
+    // each side's Tikhonov-regularised pseudo-inverse, so the first stage starts as a
+    // reconstruction rather than the blurred P^T P X Q^T Q of `transpose`.
+    auto regularised_pinv = [lambda](const torch::Tensor& M) {  // {m,N} -> {m,N}
+      auto [U, S, Vh] = torch::linalg::svd(M.to(torch::kFloat64), false, c10::nullopt);
+      const auto smax = S.max();
+      return torch::matmul(U * (S / (S * S + lambda * smax * smax)).unsqueeze(-2), Vh).to(torch::kFloat32);
+    };
+    std::vector<torch::Tensor> L, R;
+    const int ch = channel_index(c.str("model.inversion.channel"));
+    for (int64_t i = 0; i < k; ++i) {
+      L.push_back(regularised_pinv(calib.P[shared ? ch : i]));
+      R.push_back(regularised_pinv(calib.Q[shared ? ch : i]));
+    }
+    return {torch::stack(L, 2), torch::stack(R, 2)};
+  }
   if (init == "calibfree") {
     const double slope = c.num("model.inversion.slope");
     std::vector<torch::Tensor> L, R;
@@ -62,7 +83,7 @@ std::pair<torch::Tensor, torch::Tensor> initial_inversion(const Config& c, const
     const double scale = 1.0 / std::sqrt(static_cast<double>(rows));
     return {at::randn({rows, n, k}, gen) * scale, at::randn({cols, n, k}, gen) * scale};
   }
-  throw Error("config: model.inversion.init must be transpose, calibfree, flatnet-toeplitz or random, got '" + init + "'");
+  throw Error("config: model.inversion.init must be transpose, pinv, calibfree, flatnet-toeplitz or random, got '" + init + "'");
 }
 
 void write_string(torch::serialize::OutputArchive& a, const std::string& key, const std::string& value) {
@@ -159,12 +180,16 @@ std::pair<Config, CameraConfig> read_header(torch::serialize::InputArchive& a, c
   return {config, camera};
 }
 
-// The generator (with its config and camera) from a model file or a checkpoint.
-ModelFile read_generator(const std::filesystem::path& path, const std::string& format) {
+// The generator (with its config and camera) from a model file or a checkpoint; from a checkpoint
+// that kept a moving average of the weights, the average.
+ModelFile read_generator(const std::filesystem::path& path, const std::string& format, bool* used_average = nullptr) {
   auto a = open_archive(path, format);
   auto [config, camera] = read_header(a, path);
   ModelFile m{Generator(generator_options(config, camera, false)), config, camera};
-  load_module(a, "generator", *m.generator, path);
+  torch::serialize::InputArchive probe;
+  const bool average = format == kCheckpointFormat && a.try_read("generator_ema", probe);
+  if (used_average) *used_average = average;
+  load_module(a, average ? "generator_ema" : "generator", *m.generator, path);
   m.generator->eval();
   return m;
 }
@@ -226,10 +251,11 @@ ModelFile load_model_file(const std::filesystem::path& path) { return read_gener
 
 void save_checkpoint(const std::filesystem::path& path, Generator& g, Discriminator& d, torch::optim::Adam& opt_g,
                      torch::optim::Adam& opt_d, const TrainState& state, const Config& config,
-                     const CameraConfig& camera) {
+                     const CameraConfig& camera, Generator* ema) {
   torch::serialize::OutputArchive a;
   write_header(a, kCheckpointFormat, config, camera);
   save_module(a, "generator", *g);
+  if (ema) save_module(a, "generator_ema", **ema);
   save_module(a, "discriminator", *d);
   torch::serialize::OutputArchive og(a.compilation_unit()), od(a.compilation_unit());
   opt_g.save(og);
@@ -248,9 +274,13 @@ std::pair<Config, CameraConfig> checkpoint_settings(const std::filesystem::path&
 }
 
 TrainState load_checkpoint(const std::filesystem::path& path, Generator& g, Discriminator& d,
-                           torch::optim::Adam& opt_g, torch::optim::Adam& opt_d) {
+                           torch::optim::Adam& opt_g, torch::optim::Adam& opt_d, Generator* ema) {
   auto a = open_archive(path, kCheckpointFormat);
   load_module(a, "generator", *g, path);
+  if (ema) {
+    torch::serialize::InputArchive probe;
+    load_module(a, a.try_read("generator_ema", probe) ? "generator_ema" : "generator", **ema, path);
+  }
   load_module(a, "discriminator", *d, path);
   torch::serialize::InputArchive og, od;
   a.read("optimizer_generator", og);
@@ -267,8 +297,19 @@ TrainState load_checkpoint(const std::filesystem::path& path, Generator& g, Disc
   return s;
 }
 
-ModelFile model_from_checkpoint(const std::filesystem::path& path) {
-  return read_generator(path, kCheckpointFormat);
+ModelFile model_from_checkpoint(const std::filesystem::path& path, bool* used_average) {
+  return read_generator(path, kCheckpointFormat, used_average);
+}
+
+void init_generator_from(const std::filesystem::path& model, Generator& g) {
+  auto m = load_model_file(model);
+  const auto theirs = m.generator->named_parameters(), their_buffers = m.generator->named_buffers();
+  fill_module(*g, model, "weight", [&](const std::string& name, bool buffer) {
+    const auto* t = buffer ? their_buffers.find(name) : theirs.find(name);
+    if (!t)
+      throw Error(model, "has no '" + name + "': its architecture (model.input, model.enhancer) differs from this config's");
+    return t->detach();
+  });
 }
 
 std::string flatnet_name(const std::string& ours) {

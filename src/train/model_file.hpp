@@ -41,15 +41,22 @@ struct TrainState {
   torch::Tensor rng_state;    // the default CPU generator's state
 };
 
+// `ema`, when given, is the moving average of the generator's weights (saved as "generator_ema").
 void save_checkpoint(const std::filesystem::path& path, Generator& g, Discriminator& d, torch::optim::Adam& opt_g,
                      torch::optim::Adam& opt_d, const TrainState& state, const Config& config,
-                     const CameraConfig& camera);
+                     const CameraConfig& camera, Generator* ema = nullptr);
 // The config and camera a checkpoint holds (to rebuild the networks before load_checkpoint).
 std::pair<Config, CameraConfig> checkpoint_settings(const std::filesystem::path& path);
+// `ema` is filled from the checkpoint's average when it has one, else from its generator.
 TrainState load_checkpoint(const std::filesystem::path& path, Generator& g, Discriminator& d,
-                           torch::optim::Adam& opt_g, torch::optim::Adam& opt_d);
-// A checkpoint's generator as a model file (what `flatnet export` does).
-ModelFile model_from_checkpoint(const std::filesystem::path& path);
+                           torch::optim::Adam& opt_g, torch::optim::Adam& opt_d, Generator* ema = nullptr);
+// A checkpoint's generator as a model file (what `flatnet export` does): the moving average of
+// the weights when the run kept one, else the live weights. `used_average` tells which.
+ModelFile model_from_checkpoint(const std::filesystem::path& path, bool* used_average = nullptr);
+
+// Copies a model file's generator weights into `g` (`flatnet train --init-from`): every tensor
+// must exist with the same shape, else an error naming the file, the tensor and both shapes.
+void init_generator_from(const std::filesystem::path& model, Generator& g);
 
 // FlatNet-sep name of one of our parameter names ("inversion.PhiL" -> "PhiL",
 // "enhancer.inc.conv.conv.0.weight" -> "inc.conv.conv.0.weight").

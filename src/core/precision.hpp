@@ -1,0 +1,67 @@
+#pragma once
+// Numeric precision chosen at run time. Machines differ: Intel AMX and AVX512-BF16 run bfloat16
+// convolutions and GEMMs natively (several times faster than fp32); without them oneDNN emulates
+// bf16 and it is ~3x slower than fp32. `auto` therefore means bf16 only where it is native.
+#include <string>
+
+namespace flatnet {
+
+enum class Precision { fp32, bf16 };
+
+// What this CPU offers, read from /proc/cpuinfo's flags (Linux; elsewhere nothing).
+struct CpuFeatures {
+  std::string model;        // "Intel(R) Xeon(R) Processor"
+  bool avx512f = false;
+  bool avx512_bf16 = false; // AVX512-BF16: vdpbf16ps
+  bool amx_bf16 = false;    // AMX tiles with bf16
+  bool native_bf16() const { return avx512_bf16 || amx_bf16; }
+  // "AMX", "AVX512-BF16" or "emulated": how bf16 runs here.
+  std::string bf16_engine() const;
+  // "Intel(R) Xeon(R) Processor; avx512f avx512_bf16 amx_bf16" (for benchmark reports).
+  std::string summary() const;
+};
+const CpuFeatures& cpu_features();
+// Parses a /proc/cpuinfo text (exposed for tests).
+CpuFeatures parse_cpuinfo(const std::string& text);
+
+// "auto" | "fp32" | "bf16" -> a precision; auto is bf16 where the CPU has it natively. `what`
+// names the option in errors (--precision, train.precision).
+Precision resolve_precision(const std::string& choice, const std::string& what = "--precision");
+Precision resolve_precision(const std::string& choice, const CpuFeatures& cpu, const std::string& what);
+// "bf16 (AMX)", "bf16 (emulated: slow on this CPU)", "fp32".
+std::string describe_precision(Precision p, const CpuFeatures& cpu = cpu_features());
+
+// Asks the kernel for the AMX tile state (arch_prctl ARCH_REQ_XCOMP_PERM, Linux >= 5.16). oneDNN
+// asks too; doing it up front makes a refusal visible. Returns false where AMX is absent or refused.
+bool request_amx_permission();
+
+// bf16 autocast on the CPU for the current thread while alive (torch.autocast('cpu',
+// torch.bfloat16) in C++): convolutions and matmuls run in bf16, parameters stay fp32 and get
+// fp32 gradients. Leaving the outermost guard clears the cast cache (stale casts of updated
+// weights would otherwise be reused). Enabled = false makes it a no-op.
+class AutocastGuard {
+ public:
+  explicit AutocastGuard(bool enabled);
+  ~AutocastGuard();
+  AutocastGuard(const AutocastGuard&) = delete;
+  AutocastGuard& operator=(const AutocastGuard&) = delete;
+
+ private:
+  bool enabled_, prev_enabled_ = false;
+  int prev_dtype_ = 0;
+};
+
+// Switches autocast off for the current thread while alive (for stages that must stay fp32 inside
+// an autocast region: the inversion's wide-range matmuls, losses).
+class AutocastOffGuard {
+ public:
+  AutocastOffGuard();
+  ~AutocastOffGuard();
+  AutocastOffGuard(const AutocastOffGuard&) = delete;
+  AutocastOffGuard& operator=(const AutocastOffGuard&) = delete;
+
+ private:
+  bool prev_enabled_;
+};
+
+}  // namespace flatnet

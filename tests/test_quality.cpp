@@ -1,0 +1,147 @@
+// The quality recipe's pieces: real scenes' light (dim, lamps) through the simulator, the
+// Tikhonov-regularised pseudo-inverse initialisation, and starting training from a model file.
+#include <catch2/catch.hpp>
+
+#include "core/error.hpp"
+#include "core/util.hpp"
+#include "helpers.hpp"
+#include "io/image.hpp"
+#include "optics/simulator.hpp"
+#include "train/data.hpp"
+#include "train/model_file.hpp"
+
+using namespace flatnet;
+using Catch::Matchers::Contains;
+
+namespace {
+std::string q(const std::filesystem::path& p) { return "'" + p.string() + "'"; }
+}  // namespace
+
+TEST_CASE("scene light: exposure scales linear light, a lamp adds a bright warm disk, the truth clips at white", "[quality][light]") {
+  const auto display = torch::rand({3, 32, 32});
+  SceneLight dim;
+  dim.exposure = 0.25;
+  CHECK(torch::allclose(lit_scene(display, dim), 0.25 * srgb_to_linear(display), 1e-5, 1e-6));
+  SceneLight lamp;
+  lamp.lamp = true, lamp.lamp_gain = 30, lamp.lamp_row = 10.5, lamp.lamp_col = 20.5, lamp.lamp_radius = 2;
+  const auto lit = lit_scene(display, lamp);
+  CHECK(lit[0][10][20].item<double>() > 30);  // red at the centre: 30 x 1.0 over the scene
+  CHECK(lit[2][10][20].item<double>() < lit[0][10][20].item<double>());  // warm: less blue
+  CHECK(torch::equal(lit.slice(1, 0, 5), srgb_to_linear(display).slice(1, 0, 5)));  // far rows untouched
+  const auto truth = visible_scene(lit);
+  CHECK(truth.max().item<double>() == 1.0);
+  CHECK(truth[0][10][20].item<double>() == 1.0);
+  // Drawing: probability 0 leaves the display's light; 1 always redraws, within the range.
+  auto gen = at::detail::createCPUGenerator(4);
+  LightAugment none;
+  const auto l0 = draw_scene_light(none, 32, gen);
+  CHECK((l0.exposure == 1.0 && !l0.lamp));
+  LightAugment always;
+  always.exposure_probability = 1, always.exposure_min = 0.2, always.exposure_max = 1.5, always.lamp_probability = 1;
+  for (int i = 0; i < 20; ++i) {
+    const auto l = draw_scene_light(always, 32, gen);
+    CHECK((l.exposure >= 0.2 && l.exposure <= 1.5 && l.lamp && l.lamp_gain >= 5 && l.lamp_gain <= 50));
+    CHECK((l.lamp_row >= 8 && l.lamp_row <= 24));
+  }
+}
+
+TEST_CASE("a dim scene's capture is the bright one's scaled, through the real rig", "[quality][light]") {
+  const auto rig = load_rig(test::rig_path());
+  const auto scene = read_rgb(test::data_dir() / "golden" / "bsds_16052_scene.png");
+  SceneLight dim;
+  dim.exposure = 0.5;
+  const auto bright = simulate_raw(rig, scene, false).to(torch::kFloat64);
+  const auto half = simulate_raw_linear(rig, lit_scene(scene, dim), false).to(torch::kFloat64);
+  CHECK(torch::equal(simulate_raw_linear(rig, srgb_to_linear(scene), false), simulate_raw(rig, scene, false)));
+  // Stored codes = 64 (q); q = round((S + dark) 1023): halving S halves (q - dark code), to within a code.
+  const double dark = rig.dark * 1023 * 64;
+  CHECK(((half - dark) - 0.5 * (bright - dark)).abs().max().item<double>() <= 64 * 1.01);
+}
+
+TEST_CASE("on-the-fly simulation with light augmentation: truth follows the drawn light, deterministic per epoch", "[quality][light]") {
+  const auto camera = load_camera_config(default_camera_path());
+  auto rig = std::make_shared<const Rig>(load_rig(camera.rig));
+  std::vector<std::filesystem::path> images{test::data_dir() / "golden" / "bsds_16052_scene.png"};
+  LightAugment half;
+  half.exposure_probability = 1, half.exposure_min = 0.5, half.exposure_max = 0.5;
+  SimulatedPairs dim(images, rig, camera, 0, half), plain(images, rig, camera, 0);
+  const auto a = dim.load(0, 0), b = dim.load(0, 0), c = plain.load(0, 0);
+  CHECK(torch::equal(a.meas, b.meas));
+  CHECK(torch::allclose(a.gt, visible_scene(0.5 * srgb_to_linear(c.gt)), 0, 1e-6));
+  CHECK(a.gt.mean().item<double>() < 0.85 * c.gt.mean().item<double>());
+  CHECK_FALSE(torch::equal(a.meas, c.meas));  // (noise-free scaling: the test above; with noise the centred planes are noise-dominated)
+  CHECK_FALSE(torch::equal(dim.load(0, 1).meas, a.meas));  // another epoch, another draw of the noise
+}
+
+TEST_CASE("pinv initialisation: each side's regularised pseudo-inverse of the calibration", "[quality][init]") {
+  const auto camera = load_camera_config(default_camera_path());
+  auto config = Config::load({}, {"model.inversion.init=pinv", "model.inversion.lambda=1e-8"});
+  const auto o = generator_options(config, camera, true);
+  const auto calib = load_calibration(camera.calibration, camera);
+  const auto W1 = o.inversion.phil.squeeze(2).to(torch::kFloat64), P = calib.P[1];  // gb, as transpose uses
+  const auto eye = torch::eye(camera.scene_size, torch::kFloat64);
+  CHECK((W1.t().matmul(P) - eye).abs().max().item<double>() < 1e-3);  // W1^T P = I: an inverse on the scene
+  config.set("model.inversion.lambda=1e-2");
+  const auto W1r = generator_options(config, camera, true).inversion.phil.squeeze(2).to(torch::kFloat64);
+  CHECK(W1r.norm().item<double>() < 0.5 * W1.norm().item<double>());  // the weak directions are damped
+  config.set("model.inversion.lambda=-1");
+  CHECK_THROWS_WITH(generator_options(config, camera, true), Contains("model.inversion.lambda"));
+}
+
+TEST_CASE("simulate makes dim, lamp and held-out-only sets, and train --init-from starts from a model", "[quality][cli][slow]") {
+  test::Scratch s("quality_cli");
+  const auto photos = s.dir / "photos";
+  std::filesystem::create_directories(photos);
+  for (const char* n : {"bsds_16052_scene.png", "inet_n02980441_castle_scene.png", "inet_n02088094_Afghan_hound_scene.png",
+                        "imagen_n04356056_1392_sunglasses_scene.png"})
+    std::filesystem::copy_file(test::data_dir() / "golden" / n, photos / n);
+  auto r = test::run_flatnet("simulate --images " + q(photos) + " --out " + q(s.dir / "all") + " --val-fraction 0.5 --seed 1");
+  REQUIRE(r.code == 0);
+  r = test::run_flatnet("simulate --images " + q(photos) + " --out " + q(s.dir / "dim") +
+                        " --val-fraction 0.5 --seed 1 --only val --exposure 0.33");
+  INFO(r.output);
+  REQUIRE(r.code == 0);
+  CHECK_THAT(r.output, Contains("simulated 2 captures"));
+  const auto val = read_lines(s.dir / "dim" / "val_meas.txt");
+  REQUIRE(val.size() == 2);
+  CHECK(read_lines(s.dir / "dim" / "train_meas.txt").empty());
+  CHECK(read_lines(s.dir / "all" / "val_meas.txt") == val);  // the same held-out photographs
+  const auto name = std::filesystem::path(val[0]).filename();
+  CHECK(read_rgb(s.dir / "dim" / "gt" / name).mean().item<double>() < 0.8 * read_rgb(s.dir / "all" / "gt" / name).mean().item<double>());
+  r = test::run_flatnet("simulate --images " + q(photos) + " --out " + q(s.dir / "lamp") + " --val-fraction 0.5 --seed 1 --only val --lamp");
+  REQUIRE(r.code == 0);
+  CHECK(read_rgb(s.dir / "lamp" / "gt" / name).max().item<double>() == 1.0);
+  auto bad = test::run_flatnet("simulate --images " + q(photos) + " --out " + q(s.dir / "x") + " --exposure -1");
+  CHECK(bad.code == 2);
+  CHECK_THAT(bad.output, Contains("--exposure"));
+  bad = test::run_flatnet("simulate --images " + q(photos) + " --out " + q(s.dir / "x") + " --only test");
+  CHECK(bad.code == 2);
+
+  // --init-from: a fresh run whose step-0 weights are the model's.
+  const std::string base = "train --config " + q(test::source_dir() / "configs" / "sim_transpose.yaml") + " --set data.dataset=" +
+                           q(s.dir / "all") + " --set model.unet.width=2 --set train.val_every=1";
+  REQUIRE(test::run_flatnet(base + " --set train.iterations=2 --out " + q(s.dir / "first")).code == 0);
+  r = test::run_flatnet(base + " --set train.iterations=1 --set train.lr=0 --set train.lr_discriminator=0 --init-from " +
+                        q(s.dir / "first" / "model.flatnet") + " --out " + q(s.dir / "second"));
+  INFO(r.output);
+  REQUIRE(r.code == 0);
+  CHECK_THAT(r.output, Contains("initialised from"));
+  auto weights = [](const std::filesystem::path& model) {
+    auto m = load_model_file(model);
+    std::map<std::string, torch::Tensor> out;
+    for (const auto& p : m.generator->named_parameters()) out[p.key()] = p.value().clone();
+    return out;
+  };
+  const auto a = weights(s.dir / "first" / "model.flatnet"), b = weights(s.dir / "second" / "model.flatnet");
+  for (const auto& [k, t] : a) {
+    INFO(k);
+    CHECK(torch::equal(t, b.at(k)));  // lr 0: the weights are the model's
+  }
+  bad = test::run_flatnet(base + " --set model.unet.width=4 --init-from " + q(s.dir / "first" / "model.flatnet") + " --out " +
+                          q(s.dir / "third"));
+  CHECK(bad.code == 2);
+  CHECK_THAT(bad.output, Contains("model.flatnet") && Contains("the model needs"));
+  bad = test::run_flatnet("train --out " + q(s.dir / "first") + " --resume --init-from " + q(s.dir / "first" / "model.flatnet"));
+  CHECK(bad.code == 2);
+  CHECK_THAT(bad.output, Contains("cannot be combined with --resume"));
+}
