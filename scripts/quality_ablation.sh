@@ -21,13 +21,14 @@ declare -A variants=(
   [fp32]="$constant --set train.precision=fp32"
   [pinv]="$constant --set model.inversion.init=pinv"
   [mse-only]="$constant --set loss.ssim=0"
+  [ssim0.2]="$constant --set loss.ssim=0.2"
   [no-ema]="$constant --set train.ema_decay=0"
   [width16]="$constant --set model.unet.width=16"
   [width64]="$constant --set model.unet.width=64"
   [no-light]="$constant --set data.light.exposure_probability=0 --set data.light.lamp_probability=0"
   [cosine]="--set train.schedule=cosine --set train.iterations=${COSINE_STEPS:-300}"
 )
-order=(recipe no-crop fp32 pinv mse-only no-ema width16 width64 no-light cosine)
+order=(recipe no-crop fp32 pinv mse-only no-ema width16 width64 ssim0.2 cosine no-light)
 [ $# -gt 0 ] && order=("$@")
 mkdir -p "$out"
 run_variant() {  # name
@@ -47,6 +48,6 @@ done
 echo "variant,steps,psnr,ssim" > "$out/ablation.csv"
 for name in "${order[@]}"; do
   steps=$(tail -n 1 "$out/$name/log.csv" | cut -d, -f1)
-  scores=$(grep -E "^mean|^$name" "$out/$name/eval.txt" | tail -n 1 | awk '{print $(NF-1)","$NF}')
+  scores=$(grep "^mean,$name," "$out/$name/eval/$name/metrics.csv" | cut -d, -f3,4)
   echo "$name,$steps,$scores" | tee -a "$out/ablation.csv"
 done

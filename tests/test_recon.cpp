@@ -2,7 +2,9 @@
 #include <catch2/catch.hpp>
 
 #include "core/camera_config.hpp"
+#include "core/util.hpp"
 #include "eval/metrics.hpp"
+#include "eval/report.hpp"
 #include "helpers.hpp"
 #include "io/image.hpp"
 #include "io/raw.hpp"
@@ -81,4 +83,25 @@ TEST_CASE("PSNR and SSIM match their definitions and skimage", "[eval][metrics]"
   //   use_sample_covariance=False, data_range=1, channel_axis=2) and peak_signal_noise_ratio
   CHECK(ssim(x, y) == Approx(0.09807770334584061).epsilon(1e-5));
   CHECK(psnr(x, y) == Approx(8.51326925956448).epsilon(1e-5));
+}
+
+TEST_CASE("eval reports spread over images and brightness: a reconstruction that darkens or whitens shows", "[eval]") {
+  test::Scratch s("eval_brightness");
+  for (const auto* d : {"gt", "out/half", "out/white"}) std::filesystem::create_directories(s.dir / d);
+  auto gen = at::detail::createCPUGenerator(3);
+  for (int i = 0; i < 3; ++i) {
+    const auto gt = (at::rand({3, 32, 32}, gen) * 0.2 + 0.2 * i).clamp(0, 1);  // images of different brightness
+    const auto name = "img" + std::to_string(i) + ".png";
+    write_rgb8(s.dir / "gt" / name, gt);
+    write_rgb8(s.dir / "out/half" / name, gt * 0.5);
+    write_rgb8(s.dir / "out/white" / name, torch::ones_like(gt));
+  }
+  const auto scores = evaluate({s.dir / "gt", s.dir / "out", 2});
+  REQUIRE(scores.size() == 2);
+  CHECK(scores[0].method == "half");
+  CHECK(scores[0].brightness == Approx(0.5).margin(0.01));
+  CHECK(scores[1].brightness > 2.0);
+  CHECK(scores[0].psnr_sd > 0);  // brighter images lose more to halving: PSNR varies
+  CHECK(format_table(scores).find("+-") != std::string::npos);
+  CHECK(read_lines(s.dir / "out" / "metrics.csv").at(0) == "image,method,psnr,ssim,mean_output,mean_truth");
 }

@@ -43,11 +43,12 @@ std::vector<MethodScore> evaluate(const EvalOptions& opt) {
   require(!gt_files.empty(), opt.gt, "no ground-truth images in this folder");
   const auto methods = find_methods(opt.out);
   std::ostringstream csv;
-  csv << "image,method,psnr,ssim\n" << std::fixed << std::setprecision(4);
+  csv << "image,method,psnr,ssim,mean_output,mean_truth\n" << std::fixed << std::setprecision(4);
   std::vector<MethodScore> scores;
   std::vector<std::vector<torch::Tensor>> sheet;
   std::vector<std::string> row_labels;
   for (const auto& m : methods) scores.push_back({m.name});
+  std::vector<double> sum_sq_psnr(methods.size()), sum_sq_ssim(methods.size()), sum_out(methods.size()), sum_gt(methods.size());
   for (const auto& gt_path : gt_files) {
     const auto name = gt_path.stem().string() + ".png";
     std::vector<torch::Tensor> row;
@@ -59,10 +60,12 @@ std::vector<MethodScore> evaluate(const EvalOptions& opt) {
       if (!gt.defined()) gt = resize(read_rgb(gt_path), rec.size(1), rec.size(2));
       require(rec.sizes() == gt.sizes(), rec_path, "size differs from the other reconstructions");
       const double p = psnr(rec, gt), s = ssim(rec, gt);
-      csv << name << "," << methods[k].name << "," << p << "," << s << "\n";
+      const double mean_out = rec.mean().item<double>(), mean_gt = gt.mean().item<double>();
+      csv << name << "," << methods[k].name << "," << p << "," << s << "," << mean_out << "," << mean_gt << "\n";
       scores[k].count++;
       scores[k].psnr += p;
       scores[k].ssim += s;
+      sum_sq_psnr[k] += p * p, sum_sq_ssim[k] += s * s, sum_out[k] += mean_out, sum_gt[k] += mean_gt;
       if (static_cast<int>(sheet.size()) < opt.sheet_rows) {
         if (row.empty()) row.resize(methods.size() + 1);
         row[k + 1] = rec;
@@ -76,11 +79,16 @@ std::vector<MethodScore> evaluate(const EvalOptions& opt) {
       row_labels.push_back(gt_path.stem().string());
     }
   }
-  for (auto& s : scores) {
+  for (size_t k = 0; k < scores.size(); ++k) {
+    auto& s = scores[k];
     require(s.count > 0, opt.out / s.method, "no file matches a ground-truth name in " + opt.gt.string());
     s.psnr /= s.count;
     s.ssim /= s.count;
-    csv << "mean," << s.method << "," << s.psnr << "," << s.ssim << "\n";
+    s.psnr_sd = std::sqrt(std::max(0.0, sum_sq_psnr[k] / s.count - s.psnr * s.psnr));
+    s.ssim_sd = std::sqrt(std::max(0.0, sum_sq_ssim[k] / s.count - s.ssim * s.ssim));
+    s.brightness = sum_gt[k] > 0 ? sum_out[k] / sum_gt[k] : 0;
+    csv << "mean," << s.method << "," << s.psnr << "," << s.ssim << "," << sum_out[k] / s.count << "," << sum_gt[k] / s.count
+        << "\n";
   }
   write_text_atomically(opt.out / "metrics.csv", csv.str());
   std::vector<std::string> labels{"ground truth"};
@@ -91,11 +99,15 @@ std::vector<MethodScore> evaluate(const EvalOptions& opt) {
 
 std::string format_table(const std::vector<MethodScore>& scores) {
   std::ostringstream os;
-  os << std::left << std::setw(20) << "method" << std::right << std::setw(8) << "images" << std::setw(10) << "PSNR"
-     << std::setw(9) << "SSIM" << "\n";
-  for (const auto& s : scores)
-    os << std::left << std::setw(20) << s.method << std::right << std::setw(8) << s.count << std::fixed
-       << std::setprecision(2) << std::setw(10) << s.psnr << std::setprecision(3) << std::setw(9) << s.ssim << "\n";
+  os << std::left << std::setw(24) << "method" << std::right << std::setw(7) << "images" << std::setw(16) << "PSNR dB"
+     << std::setw(16) << "SSIM" << std::setw(12) << "brightness" << "\n";
+  for (const auto& s : scores) {
+    std::ostringstream p, q;
+    p << std::fixed << std::setprecision(2) << s.psnr << " +- " << s.psnr_sd;
+    q << std::fixed << std::setprecision(3) << s.ssim << " +- " << s.ssim_sd;
+    os << std::left << std::setw(24) << s.method << std::right << std::setw(7) << s.count << std::setw(16) << p.str()
+       << std::setw(16) << q.str() << std::fixed << std::setprecision(2) << std::setw(12) << s.brightness << "\n";
+  }
   return os.str();
 }
 
