@@ -13,6 +13,10 @@ using Catch::Matchers::Contains;
 
 namespace {
 std::string q(const std::filesystem::path& p) { return "'" + p.string() + "'"; }
+// The shipped recipes simulate their data on the fly from the shared photographs, with light
+// augmentation; the tests train them on a tiny dataset on disk instead.
+const std::string kOnDisk =
+    " --set data.source=dataset --set data.light.exposure_probability=0 --set data.light.lamp_probability=0";
 
 // Two photographs: the golden scenes.
 std::filesystem::path make_photos(const std::filesystem::path& dir) {
@@ -111,7 +115,7 @@ TEST_CASE("train, export, import and infer from the command line, and bad input 
   auto photos = make_photos(s.dir / "photos");
   REQUIRE(test::run_flatnet("simulate --images " + q(photos) + " --out " + q(s.dir / "ds") + " --val-fraction 0.5").code == 0);
   const std::string base = "train --config " + q(test::source_dir() / "configs" / "sim_transpose.yaml") +
-                           " --set data.dataset=" + q(s.dir / "ds") + " --set model.unet.width=2";
+                           " --set data.dataset=" + q(s.dir / "ds") + " --set model.unet.width=2" + kOnDisk;
   auto r = test::run_flatnet(base + " --set train.iterations=2 --set train.val_every=1 --out " + q(s.dir / "run"));
   INFO(r.output);
   REQUIRE(r.code == 0);
@@ -200,7 +204,7 @@ TEST_CASE("distributed training from the command line: two local ranks, resume, 
   REQUIRE(test::run_flatnet("simulate --images " + q(photos) + " --out " + q(s.dir / "ds") + " --val-fraction 0.5").code == 0);
   const std::string config = q(test::source_dir() / "configs" / "sim_transpose.yaml");
   const std::string sets = " --set data.dataset=" + q(s.dir / "ds") +
-                           " --set model.unet.width=2 --set train.val_count=1 --set train.check_sync_every=1";
+                           " --set model.unet.width=2 --set train.val_count=1 --set train.check_sync_every=1" + kOnDisk;
   const std::string launch = "MASTER_PORT=" + std::to_string(21000 + ::getpid() % 20000) + " FLATNET_BIN=" +
                              std::string(FLATNET_BINARY) + " bash " + q(test::source_dir() / "scripts" / "launch_local.sh") +
                              " 2 " + config;

@@ -15,6 +15,10 @@ using Catch::Matchers::Contains;
 
 namespace {
 std::string q(const std::filesystem::path& p) { return "'" + p.string() + "'"; }
+// The shipped recipes simulate their data on the fly from the shared photographs, with light
+// augmentation; the tests train them on a tiny dataset on disk instead.
+const std::string kOnDisk =
+    " --set data.source=dataset --set data.light.exposure_probability=0 --set data.light.lamp_probability=0";
 }  // namespace
 
 TEST_CASE("scene light: exposure scales linear light, a lamp adds a bright warm disk, the truth clips at white", "[quality][light]") {
@@ -116,10 +120,13 @@ TEST_CASE("simulate makes dim, lamp and held-out-only sets, and train --init-fro
   CHECK_THAT(bad.output, Contains("--exposure"));
   bad = test::run_flatnet("simulate --images " + q(photos) + " --out " + q(s.dir / "x") + " --only test");
   CHECK(bad.code == 2);
+  bad = test::run_flatnet("simulate --images " + q(photos) + " --out " + q(s.dir / "x") + " --only val --val-fraction 0");
+  CHECK(bad.code == 2);
+  CHECK_THAT(bad.output, Contains("selects no images"));
 
   // --init-from: a fresh run whose step-0 weights are the model's.
   const std::string base = "train --config " + q(test::source_dir() / "configs" / "sim_transpose.yaml") + " --set data.dataset=" +
-                           q(s.dir / "all") + " --set model.unet.width=2 --set train.val_every=1";
+                           q(s.dir / "all") + " --set model.unet.width=2 --set train.val_every=1" + kOnDisk;
   REQUIRE(test::run_flatnet(base + " --set train.iterations=2 --out " + q(s.dir / "first")).code == 0);
   r = test::run_flatnet(base + " --set train.iterations=1 --set train.lr=0 --set train.lr_discriminator=0 --init-from " +
                         q(s.dir / "first" / "model.flatnet") + " --out " + q(s.dir / "second"));
@@ -141,6 +148,9 @@ TEST_CASE("simulate makes dim, lamp and held-out-only sets, and train --init-fro
                           q(s.dir / "third"));
   CHECK(bad.code == 2);
   CHECK_THAT(bad.output, Contains("model.flatnet") && Contains("the model needs"));
+  bad = test::run_flatnet(base + " --set train.crop=512 --out " + q(s.dir / "big"));
+  CHECK(bad.code == 2);
+  CHECK_THAT(bad.output, Contains("train.crop") && Contains("exceeds"));
   bad = test::run_flatnet("train --out " + q(s.dir / "first") + " --resume --init-from " + q(s.dir / "first" / "model.flatnet"));
   CHECK(bad.code == 2);
   CHECK_THAT(bad.output, Contains("cannot be combined with --resume"));

@@ -162,6 +162,8 @@ int train(int argc, char** argv) {
   const auto camera = camera_of(config);
   auto vgg = vgg_if_needed(config);
   auto opts = train_options(config, out);
+  require(opts.crop <= camera.scene_size, "train.crop",
+          std::to_string(opts.crop) + " exceeds the camera's " + std::to_string(camera.scene_size) + "-pixel scene (0: whole scenes)");
   auto [train_src, val_src] = data_sources(config, camera);
   torch::manual_seed(opts.seed);
   Generator g(generator_options(config, camera, !resume && !r.count("init-from")));

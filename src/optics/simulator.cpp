@@ -136,6 +136,8 @@ SimulateReport simulate_dataset(const Rig& rig, const SimulateOptions& opt) {
       if (std::binary_search(keep.begin(), keep.end(), names[i])) kept_images.push_back(images[i]), kept_names.push_back(names[i]);
     images = kept_images;
     names = kept_names;
+    require(!images.empty(), "--only " + opt.only,
+            "selects no images (--val-fraction " + std::to_string(opt.val_fraction) + " of " + std::to_string(all_names.size()) + ")");
   }
 
   std::filesystem::create_directories(opt.out / "meas");
