@@ -29,4 +29,12 @@ RunResult run_flatnet(const std::string& args);
 // Runs a /bin/sh command line, stdout and stderr together.
 RunResult run_shell(const std::string& command);
 
+// A path quoted for a shell command line.
+inline std::string q(const fs::path& p) { return "'" + p.string() + "'"; }
+
+// The shipped recipes simulate their data on the fly from the shared photographs, with light
+// augmentation; tests train them on a tiny dataset on disk instead (append to `flatnet train`).
+inline const std::string kOnDisk =
+    " --set data.source=dataset --set data.light.exposure_probability=0 --set data.light.lamp_probability=0";
+
 }  // namespace test

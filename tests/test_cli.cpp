@@ -12,11 +12,8 @@ using namespace flatnet;
 using Catch::Matchers::Contains;
 
 namespace {
-std::string q(const std::filesystem::path& p) { return "'" + p.string() + "'"; }
-// The shipped recipes simulate their data on the fly from the shared photographs, with light
-// augmentation; the tests train them on a tiny dataset on disk instead.
-const std::string kOnDisk =
-    " --set data.source=dataset --set data.light.exposure_probability=0 --set data.light.lamp_probability=0";
+using test::q;
+using test::kOnDisk;
 
 // Two photographs: the golden scenes.
 std::filesystem::path make_photos(const std::filesystem::path& dir) {

@@ -24,7 +24,7 @@ using Catch::Matchers::Contains;
 
 namespace {
 
-std::string q(const std::filesystem::path& p) { return "'" + p.string() + "'"; }
+using test::q;
 
 std::vector<uint8_t> bytes_of(const torch::Tensor& codes, const std::string& format) {
   return pack_frame(codes, describe_pixel_format(format));

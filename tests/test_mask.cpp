@@ -12,7 +12,7 @@ using namespace flatnet;
 using Catch::Matchers::Contains;
 
 namespace {
-std::string q(const std::filesystem::path& p) { return "'" + p.string() + "'"; }
+using test::q;
 torch::Tensor smooth_scenes(int64_t b) {  // {b,256,256} in [0,1], low-pass random
   auto x = torch::rand({b, 1, 32, 32});
   return torch::upsample_bilinear2d(x, {256, 256}, false).squeeze(1);
