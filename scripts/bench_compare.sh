@@ -64,7 +64,7 @@ def load(prefix, row, name=None):
     return out
 def med(rs):
     return statistics.median(r["median_ms"] for r in rs)
-print("%-16s %12s %12s %8s %10s %10s %8s" % ("row", "C++ ms", "Python ms", "ratio", "C++ MB", "Python MB", "memory"))
+print("%-22s %12s %12s %8s %10s %10s %8s" % ("row", "C++ ms", "Python ms", "ratio", "C++ MB", "Python MB", "memory"))
 ratios, best_ratios = [], []
 for row in rows:
     pairs = [(row, load("cpp", row), load("py", row))]
@@ -75,7 +75,7 @@ for row in rows:
             continue
         cm, pm = med(c), med(p)
         cmem, pmem = max(r["peak_rss_mb"] for r in c), max(r["peak_rss_mb"] for r in p)
-        print("%-16s %12.2f %12.2f %8.3f %10.0f %10.0f %+7.1f%%" % (label, cm, pm, cm / pm, cmem, pmem, 100 * (cmem / pmem - 1)))
+        print("%-22s %12.2f %12.2f %8.3f %10.0f %10.0f %+7.1f%%" % (label, cm, pm, cm / pm, cmem, pmem, 100 * (cmem / pmem - 1)))
     c, p = pairs[0][1], pairs[0][2]
     ratios.append((row, med(c) / med(p)))
     if len(pairs) > 1 and pairs[1][2]:
