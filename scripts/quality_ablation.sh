@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Equal-wall-clock ablation of the FlatNet quality recipe (README "FlatNet quality"): each variant
+# Equal-wall-clock ablation of the FlatNet quality recipe (README "The quality recipe, measured at equal wall-clock time"): each variant
 # trains for MINUTES of wall time (then Ctrl-C: flatnet saves and exports), two variants at a time
 # with one thread each, and is scored on the held-out display captures (data/eval/heldout, made by
 # scripts/make_eval_sets.sh). The learning rate is held constant (plus EMA) so that runs of
