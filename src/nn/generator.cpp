@@ -334,11 +334,16 @@ torch::Tensor GeneratorImpl::forward_crops(const torch::Tensor& Y,
     check_measurement(Y);
     return enhance(inversion_->forward_crops(Y, corners, size));
   }
-  const auto full = first_stage(Y);
-  std::vector<torch::Tensor> crops;
-  for (int64_t b = 0; b < Y.size(0); ++b)
-    crops.push_back(full[b].slice(1, corners[b].first, corners[b].first + size).slice(2, corners[b].second, corners[b].second + size));
-  return enhance(torch::stack(crops));
+  return enhance(crop_windows(first_stage(Y), corners, size));
+}
+
+torch::Tensor crop_windows(const torch::Tensor& images, const std::vector<std::pair<int64_t, int64_t>>& corners,
+                           int64_t size) {
+  if (corners.empty()) return images;
+  std::vector<torch::Tensor> out;
+  for (size_t b = 0; b < corners.size(); ++b)
+    out.push_back(images[b].slice(1, corners[b].first, corners[b].first + size).slice(2, corners[b].second, corners[b].second + size));
+  return torch::stack(out);
 }
 
 torch::Tensor GeneratorImpl::enhance(const torch::Tensor& first) {

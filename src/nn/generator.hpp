@@ -171,6 +171,11 @@ class GeneratorImpl : public torch::nn::Module {
 };
 TORCH_MODULE(Generator);
 
+// The size x size window at corners[b] = (row, col) of each image b: {B,C,H,W} -> {B,C,size,size}.
+// No corners: the images as they are.
+torch::Tensor crop_windows(const torch::Tensor& images, const std::vector<std::pair<int64_t, int64_t>>& corners,
+                           int64_t size);
+
 InputStage parse_input_stage(const std::string& s);
 Enhancer parse_enhancer(const std::string& s);
 

@@ -93,14 +93,6 @@ namespace {
   throw Error(os.str());
 }
 
-torch::Tensor crop_like(const torch::Tensor& images, const std::vector<std::pair<int64_t, int64_t>>& corners, int64_t size) {
-  if (corners.empty()) return images;
-  std::vector<torch::Tensor> out;
-  for (size_t b = 0; b < corners.size(); ++b)
-    out.push_back(images[b].slice(1, corners[b].first, corners[b].first + size).slice(2, corners[b].second, corners[b].second + size));
-  return torch::stack(out);
-}
-
 torch::Tensor logits_fp32(Discriminator& d, const torch::Tensor& x, bool bf16) {
   AutocastGuard autocast(bf16);
   return d->forward(x).to(torch::kFloat32);
@@ -117,7 +109,7 @@ StepLosses gan_step(Generator& g, Discriminator& d, Vgg16Features& vgg, torch::o
   const bool warmup = step < opt.discriminator_warmup;
   auto label_gen = at::detail::createCPUGenerator(opt.seed * 104729ULL + static_cast<uint64_t>(step));
   const auto corners = crop_corners(opt, batch.meas.size(0), batch.gt.size(-1), step);
-  const auto gt = crop_like(batch.gt, corners, opt.crop);  // {B,3,n,n}
+  const auto gt = crop_windows(batch.gt, corners, opt.crop);  // {B,3,n,n}
   g->set_autocast_bf16(opt.bf16);
   auto generate = [&] { return corners.empty() ? g->forward(batch.meas) : g->forward_crops(batch.meas, corners, opt.crop); };
   torch::Tensor fake;
