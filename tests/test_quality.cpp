@@ -6,7 +6,9 @@
 #include "core/util.hpp"
 #include "helpers.hpp"
 #include "io/image.hpp"
+#include "io/raw.hpp"
 #include "optics/simulator.hpp"
+#include "train/config.hpp"
 #include "train/data.hpp"
 #include "train/model_file.hpp"
 
@@ -151,4 +153,108 @@ TEST_CASE("simulate makes dim, lamp and held-out-only sets, and train --init-fro
   bad = test::run_flatnet("train --out " + q(s.dir / "first") + " --resume --init-from " + q(s.dir / "first" / "model.flatnet"));
   CHECK(bad.code == 2);
   CHECK_THAT(bad.output, Contains("cannot be combined with --resume"));
+}
+
+// ---- The light level (model.level_input, camera centring "level") ------------------------------
+
+namespace {
+CameraConfig tiny_camera(Centring centring) {
+  CameraConfig c;
+  c.raw.crop = {0, 0, 20, 24};
+  c.scene_size = 16;
+  c.raw.centring = centring;
+  return c;
+}
+
+// A trained-looking tiny generator (random weights, eval mode with non-trivial statistics).
+Generator tiny_generator(const Config& config, const CameraConfig& camera) {
+  Generator g(generator_options(config, camera, false));
+  torch::NoGradGuard ng;
+  for (auto& p : g->parameters()) p.uniform_(-0.3, 0.3);
+  g->train();
+  g->forward(torch::randn({2, 4, 20, 24}) + 0.5);
+  g->eval();
+  return g;
+}
+}  // namespace
+
+TEST_CASE("centring 'level' is plane centring plus each plane's mean, and without_level undoes it", "[quality][level]") {
+  const auto raw = torch::rand({4, 10, 12}) + torch::arange(4).view({4, 1, 1});
+  const auto plane = double_centre(raw, Centring::plane);
+  const auto level = double_centre(raw, Centring::level);
+  CHECK(torch::allclose(level.mean({1, 2}), raw.mean({1, 2}), 1e-5, 1e-5));
+  CHECK(torch::allclose(without_level(level, Centring::level), plane, 1e-5, 1e-5));
+  CHECK(torch::equal(without_level(plane, Centring::plane), plane));  // other modes untouched
+  // The failure it fixes: a saturated frame and a black one are both flat, and both centre to zeros.
+  const auto white = torch::ones({4, 10, 12}), black = torch::zeros({4, 10, 12});
+  CHECK(torch::equal(double_centre(white, Centring::plane), double_centre(black, Centring::plane)));
+  CHECK_FALSE(torch::equal(double_centre(white, Centring::level), double_centre(black, Centring::level)));
+  CHECK(parse_centring("level", "cam.yaml") == Centring::level);
+  CHECK_THROWS_WITH(parse_centring("levels", "cam.yaml"), Contains("cam.yaml") && Contains("level"));
+}
+
+TEST_CASE("a generator with the light level tells a saturated capture from a black one; gradients reach it", "[quality][level]") {
+  const auto level_cam = tiny_camera(Centring::level), plane_cam = tiny_camera(Centring::plane);
+  const auto with = Config::load({}, {"model.unet.width=8", "model.level_input=true", "model.bn_momentum=0.1"});
+  const auto without = Config::load({}, {"model.unet.width=8", "model.bn_momentum=0.1"});
+  torch::manual_seed(0);
+  auto g = tiny_generator(with, level_cam);
+  {
+    torch::NoGradGuard ng;  // weights that read the level strongly
+    g->named_parameters()["enhancer.inc.conv.conv.0.weight"].narrow(1, 4, 4).fill_(0.5);
+  }
+  const auto probe = g->forward(torch::randn({1, 4, 20, 24}));
+  REQUIRE(probe.std().item<double>() > 1e-4);  // a live network, not a constant
+  auto plain = tiny_generator(without, plane_cam);
+  CHECK(g->named_parameters()["enhancer.inc.conv.conv.0.weight"].size(1) == 8);  // 4 first-stage + 4 level channels
+  // Two frames with the same pattern, one near black and one near saturation.
+  const auto pattern = 0.05 * torch::rand({1, 4, 20, 24});
+  const auto bright = pattern + 0.9, dark = pattern;
+  CHECK((g->forward(double_centre(bright, Centring::level)) - g->forward(double_centre(dark, Centring::level)))
+            .abs().max().item<double>() > 1e-3);
+  CHECK(torch::allclose(plain->forward(double_centre(bright, Centring::plane)),
+                        plain->forward(double_centre(dark, Centring::plane)), 1e-5, 1e-6));  // blind without it
+  // The level never enters the inversion: shifting a plane's DC leaves the first stage unchanged.
+  const auto Y = torch::randn({2, 4, 20, 24});
+  CHECK(torch::allclose(g->first_stage(Y), g->first_stage(Y + torch::rand({2, 4, 1, 1})), 1e-4, 1e-5));
+  // Training: every parameter gets a gradient, on crops too.
+  g->train();
+  auto loss = g->forward(Y + 0.5).mean() + g->forward_crops(Y + 0.5, {{0, 0}, {0, 0}}, 16).mean();
+  loss.backward();
+  for (const auto& p : g->named_parameters()) {
+    INFO(p.key());
+    REQUIRE(p.value().grad().defined());
+    CHECK(p.value().grad().abs().sum().item<double>() > 0);
+  }
+}
+
+TEST_CASE("the model and the camera must agree on the light level, with errors that say how", "[quality][level]") {
+  const auto with = Config::load({}, {"model.unet.width=2", "model.level_input=true"});
+  const auto without = Config::load({}, {"model.unet.width=2"});
+  CHECK_THROWS_WITH(generator_options(with, tiny_camera(Centring::plane), false),
+                    Contains("model.level_input") && Contains("centring: level"));
+  CHECK_THROWS_WITH(generator_options(without, tiny_camera(Centring::level), false),
+                    Contains("centring 'level'") && Contains("centring: plane"));
+  const auto o = generator_options(with, tiny_camera(Centring::level), false);
+  CHECK_THROWS_WITH(check_camera_for_model(o, tiny_camera(Centring::flatnet)), Contains("'flatnet'"));
+}
+
+TEST_CASE("train --init-from a model without the level adds it with zero weights: the same function at step 0", "[quality][level]") {
+  test::Scratch s("level_init");
+  const auto plane_cam = tiny_camera(Centring::plane), level_cam = tiny_camera(Centring::level);
+  const auto without = Config::load({}, {"model.unet.width=2", "model.bn_momentum=0.1"});
+  const auto with = Config::load({}, {"model.unet.width=2", "model.level_input=true", "model.bn_momentum=0.1"});
+  auto old_model = tiny_generator(without, plane_cam);
+  save_model_file(s.dir / "old.flatnet", old_model, without, plane_cam);
+  Generator g(generator_options(with, level_cam, false));
+  init_generator_from(s.dir / "old.flatnet", g);
+  g->eval();
+  const auto raw = torch::rand({2, 4, 20, 24});
+  CHECK(torch::allclose(g->forward(double_centre(raw, Centring::level)), old_model->forward(double_centre(raw, Centring::plane)),
+                        1e-5, 1e-6));
+  // The other way (a level model into a plain one) is a shape error naming the tensor.
+  auto level_model = tiny_generator(with, level_cam);
+  save_model_file(s.dir / "level.flatnet", level_model, with, level_cam);
+  Generator plain(generator_options(without, plane_cam, false));
+  CHECK_THROWS_WITH(init_generator_from(s.dir / "level.flatnet", plain), Contains("level.flatnet") && Contains("inc.conv.conv.0.weight"));
 }

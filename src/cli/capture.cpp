@@ -228,7 +228,8 @@ int capture_calibration(int argc, char** argv) {
               << " patterns are captured\n";
     return interrupted() ? 130 : 0;
   }
-  auto capture = [&](const std::string& name) { return load_capture(out / (name + ".png"), camera.raw).planes; };
+  auto capture = [&](const std::string& name) { return without_level(load_capture(out / (name + ".png"), camera.raw).planes, camera.raw.centring);
+  };
   save_calibration(calib_out, estimate_calibration(camera.scene_size, capture, level));
   std::cout << "wrote " << calib_out.string() << "\n";
   return 0;
@@ -256,6 +257,7 @@ int live(int argc, char** argv) {
   Reconstructor reconstruct;
   std::string method;
   if (model) {
+    check_camera_for_model(model->generator->options(), camera);
     auto generator = model->generator;
     InferenceLevers levers;
     levers.bf16 = precision_from(r) == Precision::bf16;
@@ -270,7 +272,9 @@ int live(int argc, char** argv) {
     require(!calib_path.empty(), "live", "no calibration: pass --calib, --model, or a camera file that names one");
     const double lambda = r["lambda"].as<double>() > 0 ? r["lambda"].as<double>() : camera.tikhonov_lambda;
     auto tik = std::make_shared<Tikhonov>(load_calibration(calib_path, camera), lambda);
-    reconstruct = [tik](const torch::Tensor& planes) { return planes_to_srgb((*tik)(planes.unsqueeze(0))[0]); };
+    reconstruct = [tik, centring = camera.raw.centring](const torch::Tensor& planes) {
+      return planes_to_srgb((*tik)(without_level(planes, centring).unsqueeze(0))[0]);
+    };
     method = "Tikhonov (lambda " + std::to_string(lambda) + ")";
   }
   auto source = open_from_flags(r, camera);

@@ -82,7 +82,8 @@ int demo(int argc, char** argv) {
     InferOptions io;
     io.out = out / "recon" / method;
     io.levers.bf16 = bf16;
-    const auto rep = infer_files(model.generator, camera, captures, io);
+    // The model's own preprocessing (its light-level centring, say) unless --camera names one.
+    const auto rep = infer_files(model.generator, r.count("camera") ? camera : model.camera, captures, io);
     std::cout << "  " << method << ": " << rep.model_ms_per_image << " ms per capture (" << path.filename().string() << ")\n";
   }
 

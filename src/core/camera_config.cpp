@@ -8,11 +8,22 @@
 
 namespace flatnet {
 
+std::string centring_name(Centring c) {
+  switch (c) {
+    case Centring::plane: return "plane";
+    case Centring::flatnet: return "flatnet";
+    case Centring::level: return "level";
+    case Centring::none: break;
+  }
+  return "none";
+}
+
 Centring parse_centring(const std::string& s, const std::filesystem::path& where) {
   if (s == "plane") return Centring::plane;
   if (s == "flatnet") return Centring::flatnet;
   if (s == "none") return Centring::none;
-  throw Error(where, "centring must be plane, flatnet or none, got '" + s + "'");
+  if (s == "level") return Centring::level;
+  throw Error(where, "centring must be plane, level, flatnet or none, got '" + s + "'");
 }
 
 std::filesystem::path default_camera_path() {
@@ -84,8 +95,7 @@ std::string camera_geometry_yaml(const CameraConfig& c) {
   os.precision(17);
   os << "rotation: " << g.rotation << "\n"
      << "crop: [" << g.crop[0] << ", " << g.crop[1] << ", " << g.crop[2] << ", " << g.crop[3] << "]\n"
-     << "centring: " << (g.centring == Centring::plane ? "plane" : g.centring == Centring::flatnet ? "flatnet" : "none")
-     << "\n"
+     << "centring: " << centring_name(g.centring) << "\n"
      << "scene_size: " << c.scene_size << "\n"
      << "tikhonov_lambda: " << c.tikhonov_lambda << "\ntv_lambda: " << c.tv_lambda << "\n";
   return os.str();

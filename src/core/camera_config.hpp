@@ -11,7 +11,11 @@ namespace flatnet {
 enum class Centring {
   plane,    // Y - rowmean - colmean + mean of the plane (the camera README's definition)
   flatnet,  // as FlatNet's loader: the added mean is taken over all four planes together
-  none
+  none,
+  // plane centring, then each plane's raw mean added back as its DC: the light level. Plane
+  // centring maps every flat capture (a black scene, or a saturated white one) to zeros; a model
+  // with model.level_input reads the level and removes it before its inversion.
+  level
 };
 
 // How a raw frame becomes measurement planes (FlatNet's demosaic_raw, made explicit).
@@ -49,5 +53,6 @@ std::string camera_geometry_yaml(const CameraConfig& camera);
 std::filesystem::path default_camera_path();
 
 Centring parse_centring(const std::string& s, const std::filesystem::path& where);
+std::string centring_name(Centring c);
 
 }  // namespace flatnet

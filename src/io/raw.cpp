@@ -55,9 +55,15 @@ torch::Tensor double_centre(const torch::Tensor& planes, Centring mode) {
   if (mode == Centring::none) return planes;
   auto row_means = planes.mean(-1, true);  // {..,C,H,1}
   auto col_means = planes.mean(-2, true);  // {..,C,1,W}
-  auto all_mean = mode == Centring::plane ? planes.mean({-2, -1}, true)
-                                          : planes.mean({-3, -2, -1}, true);  // FlatNet: rowMeans.mean()
-  return planes - row_means - col_means + all_mean;
+  const auto plane_mean = planes.mean({-2, -1}, true);  // {..,C,1,1}
+  const auto all_mean = mode == Centring::flatnet ? planes.mean({-3, -2, -1}, true)  // FlatNet: rowMeans.mean()
+                                                  : plane_mean;
+  const auto centred = planes - row_means - col_means + all_mean;  // plane: zero mean per plane
+  return mode == Centring::level ? centred + plane_mean : centred;
+}
+
+torch::Tensor without_level(const torch::Tensor& planes, Centring mode) {
+  return mode == Centring::level ? planes - planes.mean({-2, -1}, true) : planes;
 }
 
 torch::Tensor preprocess_raw(const torch::Tensor& raw_unit, const RawGeometry& g) {

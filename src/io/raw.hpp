@@ -27,8 +27,12 @@ torch::Tensor bayer_merge(const torch::Tensor& planes);
 // output pixel (r, c) samples input (sin*c + cos*r, cos*c - sin*r).
 torch::Tensor rotate_planes(const torch::Tensor& planes, double angle);
 
-// Y - rowmean - colmean + mean, per plane (Centring::plane) or with FlatNet's all-plane mean.
+// Y - rowmean - colmean + mean, per plane (Centring::plane) or with FlatNet's all-plane mean;
+// Centring::level adds each plane's mean once more, so the planes carry their light level as DC.
 torch::Tensor double_centre(const torch::Tensor& planes, Centring mode);
+// Planes preprocessed with `mode` -> the centred planes the separable model describes (drops the
+// DC of Centring::level; other modes unchanged). Tikhonov, TV and calibration read these.
+torch::Tensor without_level(const torch::Tensor& planes, Centring mode);
 
 // Full-scale raw frame ({H,W}, values in [0,1]) -> measurement planes {4, crop_h, crop_w}.
 torch::Tensor preprocess_raw(const torch::Tensor& raw_unit, const RawGeometry& g);

@@ -316,12 +316,38 @@ void GeneratorImpl::check_measurement(const torch::Tensor& Y) const {
               Y.sizes());
 }
 
-torch::Tensor GeneratorImpl::first_stage(const torch::Tensor& Y) {
-  check_measurement(Y);
-  return inversion_ ? inversion_->forward(Y) : tikhonov_->forward(Y);
+void check_camera_for_model(const GeneratorOptions& go, const CameraConfig& camera) {
+  if (camera.raw.crop[2] != go.rows || camera.raw.crop[3] != go.cols || camera.scene_size != go.scene)
+    throw Error("camera '" + camera.name + "': its crop " + std::to_string(camera.raw.crop[2]) + "x" +
+                std::to_string(camera.raw.crop[3]) + " and scene " + std::to_string(camera.scene_size) +
+                " do not match the model's " + std::to_string(go.rows) + "x" + std::to_string(go.cols) + " and " +
+                std::to_string(go.scene));
+  const bool level = camera.raw.centring == Centring::level;
+  if (go.level_input && !level)
+    throw Error("camera '" + camera.name + "': the model reads the light level (model.level_input) but the camera's centring is '" +
+                centring_name(camera.raw.centring) + "'; use a camera file with `centring: level`");
+  if (!go.level_input && level)
+    throw Error("camera '" + camera.name + "': centring 'level' keeps the light level in the planes, which this model does not "
+                "read (model.level_input is off); use `centring: plane`");
 }
 
-torch::Tensor GeneratorImpl::forward(const torch::Tensor& Y) { return enhance(first_stage(Y)); }
+std::pair<torch::Tensor, torch::Tensor> GeneratorImpl::split_level(const torch::Tensor& Y) const {
+  if (!options_.level_input) return {Y, torch::Tensor()};
+  const auto level = Y.mean({2, 3}, true);  // {B,4,1,1}, planes in (b, gb, gr, r) order
+  return {Y - level, level.flip({1})};     // the first stage's order (r, gr, gb, b)
+}
+
+torch::Tensor GeneratorImpl::first_stage(const torch::Tensor& Y) {
+  check_measurement(Y);
+  const auto planes = split_level(Y).first;
+  return inversion_ ? inversion_->forward(planes) : tikhonov_->forward(planes);
+}
+
+torch::Tensor GeneratorImpl::forward(const torch::Tensor& Y) {
+  check_measurement(Y);
+  const auto [planes, level] = split_level(Y);
+  return enhance(inversion_ ? inversion_->forward(planes) : tikhonov_->forward(planes), level);
+}
 
 torch::Tensor GeneratorImpl::forward_crops(const torch::Tensor& Y,
                                            const std::vector<std::pair<int64_t, int64_t>>& corners, int64_t size) {
@@ -330,11 +356,10 @@ torch::Tensor GeneratorImpl::forward_crops(const torch::Tensor& Y,
   for (const auto& [r, c] : corners)
     TORCH_CHECK(r >= 0 && c >= 0 && r + size <= options_.scene && c + size <= options_.scene, "generator: crop at (", r,
                 ",", c, ") leaves the ", options_.scene, "x", options_.scene, " scene");
-  if (inversion_) {
-    check_measurement(Y);
-    return enhance(inversion_->forward_crops(Y, corners, size));
-  }
-  return enhance(crop_windows(first_stage(Y), corners, size));
+  check_measurement(Y);
+  const auto [planes, level] = split_level(Y);
+  if (inversion_) return enhance(inversion_->forward_crops(planes, corners, size), level);
+  return enhance(crop_windows(tikhonov_->forward(planes), corners, size), level);
 }
 
 torch::Tensor crop_windows(const torch::Tensor& images, const std::vector<std::pair<int64_t, int64_t>>& corners,
@@ -346,12 +371,14 @@ torch::Tensor crop_windows(const torch::Tensor& images, const std::vector<std::p
   return torch::stack(out);
 }
 
-torch::Tensor GeneratorImpl::enhance(const torch::Tensor& first) {
+torch::Tensor GeneratorImpl::enhance(const torch::Tensor& first, const torch::Tensor& level) {
   torch::Tensor y;
   {
     // bf16 autocast covers BN and the enhancer only; the first stage ran in fp32 before it.
     AutocastGuard autocast(autocast_bf16_ && !levers_.bf16);
     auto x = bn_->forward(first);  // {B,4,H,W}
+    if (level.defined())           // {B,8,H,W}: the level as four constant channels
+      x = torch::cat({x, level.to(x.scalar_type()).expand({-1, -1, x.size(2), x.size(3)})}, 1);
     if (levers_.channels_last) x = x.contiguous(at::MemoryFormat::ChannelsLast);
     if (levers_.bf16) x = x.to(torch::kBFloat16);
     y = enhancer_.forward<torch::Tensor>(x);  // {B,3,H,W} logits

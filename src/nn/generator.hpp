@@ -7,6 +7,8 @@
 
 #include <torch/torch.h>
 
+#include "core/camera_config.hpp"
+
 namespace flatnet {
 
 // ---- Trainable inversion ------------------------------------------------------------------------
@@ -119,7 +121,16 @@ struct GeneratorOptions {
   DnCNNOptions dncnn;
   RCANOptions rcan;
   double bn_momentum = 0.99;  // the BatchNorm2d(4) between the stages
+  // Light level as an input (camera centring "level"): each measurement plane's mean is removed
+  // before the first stage and given to the enhancer as four constant channels beside the
+  // first stage's four. Without it a flat capture, black or saturated white, is all zeros after
+  // double centring, and the network cannot tell a dark scene from a bright one.
+  bool level_input = false;
 };
+
+// Throws unless the camera's preprocessing gives what the model was built for: the crop and
+// scene sizes, and the light level (centring "level") exactly when the model reads it.
+void check_camera_for_model(const GeneratorOptions& model, const CameraConfig& camera);
 
 // Inference-only speed-ups (each measured by `flatnet bench --levers`, README "Speed"):
 //  - fold_batchnorm: eval-mode BN folded into the U-Net's convolutions, ReLUs in place;
@@ -145,7 +156,7 @@ class GeneratorImpl : public torch::nn::Module {
   // sample b (the inversion still sees the whole capture), and the enhancer runs on those windows.
   torch::Tensor forward_crops(const torch::Tensor& Y, const std::vector<std::pair<int64_t, int64_t>>& corners,
                               int64_t size);  // -> {B,3,size,size}
-  // The first stage alone, {B,4,N,N} (for inspection and the sample grid).
+  // The first stage alone, {B,4,N,N} (for inspection and the sample grid; without the level).
   torch::Tensor first_stage(const torch::Tensor& Y);
   const GeneratorOptions& options() const { return options_; }
   // Applies inference levers (eval mode; see InferenceLevers). Irreversible.
@@ -160,7 +171,11 @@ class GeneratorImpl : public torch::nn::Module {
  private:
   GeneratorOptions options_;
   void check_measurement(const torch::Tensor& Y) const;
-  torch::Tensor enhance(const torch::Tensor& first);  // {B,4,H,W} first-stage output -> {B,3,H,W} in [0,1]
+  // {B,4,H,W} first-stage output (+ {B,4,1,1} light level when level_input) -> {B,3,H,W} in [0,1]
+  torch::Tensor enhance(const torch::Tensor& first, const torch::Tensor& level);
+  // {B,4,rows,cols} -> the planes without their DC and {B,4,1,1} the DC, in the first stage's
+  // channel order (r, gr, gb, b); an undefined level without level_input.
+  std::pair<torch::Tensor, torch::Tensor> split_level(const torch::Tensor& Y) const;
   void apply_levers(const InferenceLevers& levers, bool for_inference);
   bool autocast_bf16_ = false;
   InferenceLevers levers_{false, false, false, false};

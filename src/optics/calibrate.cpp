@@ -95,7 +95,7 @@ std::function<torch::Tensor(const std::string&)> rig_pattern_capture(const Rig& 
       auto raw = adc_to_stored(bayer_merge(codes), rig.adc_bits).to(torch::kFloat32) / 65535.0f;
       sum = k == 0 ? raw : sum + raw;
     }
-    return preprocess_raw(sum / std::max(1, average), g);
+    return without_level(preprocess_raw(sum / std::max(1, average), g), g.centring);
   };
 }
 

@@ -10,11 +10,7 @@ namespace flatnet {
 InferReport infer_files(Generator& generator, const CameraConfig& camera, const std::vector<std::filesystem::path>& captures,
                         const InferOptions& opt) {
   const auto& go = generator->options();
-  if (camera.raw.crop[2] != go.rows || camera.raw.crop[3] != go.cols || camera.scene_size != go.scene)
-    throw Error("camera '" + camera.name + "': its crop " + std::to_string(camera.raw.crop[2]) + "x" +
-                std::to_string(camera.raw.crop[3]) + " and scene " + std::to_string(camera.scene_size) +
-                " do not match the model's " + std::to_string(go.rows) + "x" + std::to_string(go.cols) + " and " +
-                std::to_string(go.scene));
+  check_camera_for_model(go, camera);
   require(!captures.empty(), "--input", "no captures to reconstruct");
   std::filesystem::create_directories(opt.out);
   generator->prepare_inference(opt.levers);

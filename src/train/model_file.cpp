@@ -218,6 +218,9 @@ GeneratorOptions generator_options(const Config& c, const CameraConfig& camera, 
     o.tik_Q = calib.Q;
     o.tik_lambda = camera.tikhonov_lambda;
   }
+  o.level_input = c.flag("model.level_input");
+  const int64_t enhancer_inputs = o.level_input ? 8 : 4;  // first stage (+ light level)
+  o.unet.in_channels = o.dncnn.in_channels = o.rcan.in_channels = enhancer_inputs;
   o.enhancer = parse_enhancer(c.str("model.enhancer"));
   o.unet.width = c.integer("model.unet.width");
   o.unet.bn_momentum = o.bn_momentum;
@@ -229,6 +232,7 @@ GeneratorOptions generator_options(const Config& c, const CameraConfig& camera, 
   o.rcan.reduction = c.integer("model.rcan.reduction");
   require(o.unet.width >= 1 && o.dncnn.width >= 1 && o.rcan.width >= 1, "config", "model widths must be positive");
   require(o.scene % 16 == 0, "camera", "scene_size must be divisible by 16 for the U-Net");
+  check_camera_for_model(o, camera);
   return o;
 }
 
@@ -304,10 +308,20 @@ ModelFile model_from_checkpoint(const std::filesystem::path& path, bool* used_av
 void init_generator_from(const std::filesystem::path& model, Generator& g) {
   auto m = load_model_file(model);
   const auto theirs = m.generator->named_parameters(), their_buffers = m.generator->named_buffers();
+  const bool adds_level = g->options().level_input && !m.generator->options().level_input;
+  const auto ours = g->named_parameters();
   fill_module(*g, model, "weight", [&](const std::string& name, bool buffer) {
     const auto* t = buffer ? their_buffers.find(name) : theirs.find(name);
     if (!t)
       throw Error(model, "has no '" + name + "': its architecture (model.input, model.enhancer) differs from this config's");
+    const auto* mine = buffer ? nullptr : ours.find(name);
+    if (adds_level && mine && t->dim() == 4 && mine->dim() == 4 && t->size(1) == 4 && mine->size(1) == 8) {
+      // The enhancer's first convolution gains the four level channels with zero weights: the
+      // model starts out computing exactly what the file's model computes.
+      auto padded = torch::zeros(mine->sizes(), t->options());
+      padded.narrow(1, 0, 4).copy_(*t);
+      return padded;
+    }
     return t->detach();
   });
 }

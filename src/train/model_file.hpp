@@ -56,6 +56,8 @@ ModelFile model_from_checkpoint(const std::filesystem::path& path, bool* used_av
 
 // Copies a model file's generator weights into `g` (`flatnet train --init-from`): every tensor
 // must exist with the same shape, else an error naming the file, the tensor and both shapes.
+// One exception: a model without model.level_input into a generator with it; the enhancer's first
+// convolution gets zero weights for the level channels (the same function to begin with).
 void init_generator_from(const std::filesystem::path& model, Generator& g);
 
 // FlatNet-sep name of one of our parameter names ("inversion.PhiL" -> "PhiL",
