@@ -4,6 +4,7 @@
 
 #include <array>
 #include <cstdio>
+#include <cstdlib>
 #include <random>
 #include <sys/wait.h>
 
@@ -30,6 +31,22 @@ RunResult run_shell(const std::string& command) {
   while (pipe && std::fgets(buf.data(), buf.size(), pipe)) out += buf.data();
   const int status = pipe ? ::pclose(pipe) : -1;
   return {WIFEXITED(status) ? WEXITSTATUS(status) : -1, out};
+}
+
+}  // namespace test
+
+namespace test {
+
+void skip(const std::string& why) {
+  if (std::getenv("FLATNET_CTEST") == nullptr) return;
+  std::printf("skipped: %s\n", why.c_str());
+  std::fflush(stdout);
+  std::_Exit(77);
+}
+
+bool python_has_torch() {
+  static const bool has = std::system("/usr/bin/python3 -c 'import torch' >/dev/null 2>&1") == 0;
+  return has;
 }
 
 }  // namespace test

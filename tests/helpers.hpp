@@ -29,6 +29,19 @@ RunResult run_flatnet(const std::string& args);
 // Runs a /bin/sh command line, stdout and stderr together.
 RunResult run_shell(const std::string& command);
 
+// Ends the running test as skipped. Under CTest (which sets FLATNET_CTEST) the process exits with
+// code 77, which CTest reports as "Not Run (Skipped)", never as passed; run by hand it warns and
+// returns. Use SKIP_TEST(why), which also returns from the test case.
+[[maybe_unused]] void skip(const std::string& why);
+#define SKIP_TEST(why)   \
+  do {                   \
+    ::test::skip(why);   \
+    WARN("skipped: " << (why)); \
+    return;              \
+  } while (0)
+// Whether /usr/bin/python3 has torch (the reference scripts' interpreter).
+bool python_has_torch();
+
 // A path quoted for a shell command line.
 inline std::string q(const fs::path& p) { return "'" + p.string() + "'"; }
 

@@ -178,8 +178,7 @@ TEST_CASE("the shipped models run on FlatNet's real prototype captures", "[cli][
   const auto data = test::shared_dir() / "data" / "flatnet";
   const auto model = test::source_dir() / "models" / "flatnet-sim-calibfree.flatnet";
   if (!std::filesystem::exists(data / "fc_6.png") || !std::filesystem::exists(model)) {
-    WARN("skipped: no ../shared/data/flatnet captures or no shipped model");
-    return;
+    SKIP_TEST("no ../shared/data/flatnet captures or no shipped model");
   }
   test::Scratch s("prototype");
   auto r = test::run_flatnet("infer --model " + q(model) + " --camera " +

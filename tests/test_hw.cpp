@@ -226,8 +226,7 @@ TEST_CASE("scenes are magnified by whole pixels and centred on black", "[hw][uni
 
 TEST_CASE("fake camera: formats, averaging, sidecars, refusals", "[hw][fake]") {
   if (!fake_camera_available()) {
-    WARN("built without Aravis: skipped");
-    return;
+    SKIP_TEST("built without Aravis");
   }
   test::Scratch s("hw_fake");
   const auto tiny = q(test::data_dir() / "cameras" / "tiny.yaml");
@@ -282,8 +281,7 @@ TEST_CASE("fake camera: formats, averaging, sidecars, refusals", "[hw][fake]") {
 
 TEST_CASE("fake camera: a display-capture dataset survives an interruption and reads as a training set", "[hw][fake]") {
   if (!fake_camera_available()) {
-    WARN("built without Aravis: skipped");
-    return;
+    SKIP_TEST("built without Aravis");
   }
   test::Scratch s("hw_dataset");
   const auto tiny = q(test::data_dir() / "cameras" / "tiny.yaml");
@@ -315,8 +313,7 @@ TEST_CASE("fake camera: a display-capture dataset survives an interruption and r
 
 TEST_CASE("fake camera: calibration collection, then the calibration", "[hw][fake]") {
   if (!fake_camera_available()) {
-    WARN("built without Aravis: skipped");
-    return;
+    SKIP_TEST("built without Aravis");
   }
   test::Scratch s("hw_calib");
   const auto tiny = q(test::data_dir() / "cameras" / "tiny.yaml");
@@ -335,8 +332,7 @@ TEST_CASE("fake camera: calibration collection, then the calibration", "[hw][fak
 
 TEST_CASE("fake camera: live view with Tikhonov and with a FlatNet model", "[hw][fake]") {
   if (!fake_camera_available()) {
-    WARN("built without Aravis: skipped");
-    return;
+    SKIP_TEST("built without Aravis");
   }
   auto r = test::run_flatnet("live --device fake --no-window --frames 6 --frame-rate 100");
   REQUIRE(r.code == 0);
@@ -356,8 +352,7 @@ TEST_CASE("fake camera: live view with Tikhonov and with a FlatNet model", "[hw]
 
 TEST_CASE("fake camera: scenes shown in a real window (Xvfb)", "[hw][fake][window]") {
   if (!fake_camera_available() || std::system("command -v xvfb-run >/dev/null 2>&1") != 0) {
-    WARN("Aravis or xvfb-run missing: skipped");
-    return;
+    SKIP_TEST("Aravis or xvfb-run missing");
   }
   test::Scratch s("hw_window");
   const auto photos = s.dir / "photos";
@@ -372,8 +367,7 @@ TEST_CASE("fake camera: scenes shown in a real window (Xvfb)", "[hw][fake][windo
 
 TEST_CASE("GigE Vision simulator: capture, lost packets, a camera that goes and comes back", "[hw][gv][slow]") {
   if (!gv_simulator_available()) {
-    WARN("needs Aravis, arv-fake-gv-camera-0.8, iproute2 and 'unshare -n' (root or user namespaces): skipped");
-    return;
+    SKIP_TEST("needs Aravis, arv-fake-gv-camera-0.8, iproute2 and 'unshare -n' (root or user namespaces)");
   }
   test::Scratch s("hw_gv");
   const std::string cap = flatnet_bin() + " capture --device Aravis-Fake-TST --region 320x256 --pixel-format Mono16 ";

@@ -193,7 +193,7 @@ TEST_CASE("centring 'level' is plane centring plus each plane's mean, and withou
   CHECK_THROWS_WITH(parse_centring("levels", "cam.yaml"), Contains("cam.yaml") && Contains("level"));
 }
 
-TEST_CASE("a generator with the light level tells a saturated capture from a black one; gradients reach it", "[quality][level]") {
+TEST_CASE("a generator with the light level tells a saturated capture from a black one, and gradients reach it", "[quality][level]") {
   const auto level_cam = tiny_camera(Centring::level), plane_cam = tiny_camera(Centring::plane);
   const auto with = Config::load({}, {"model.unet.width=8", "model.level_input=true", "model.bn_momentum=0.1"});
   const auto without = Config::load({}, {"model.unet.width=8", "model.bn_momentum=0.1"});

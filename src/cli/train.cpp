@@ -219,7 +219,8 @@ int export_model(int argc, char** argv) {
   o.add_options()("checkpoint", "training checkpoint (RUN/best.ckpt or latest.ckpt)", cxxopts::value<std::string>())(
       "model", "model file (instead of --checkpoint; for --state-dict)", cxxopts::value<std::string>())(
       "out", "file to write", cxxopts::value<std::string>())(
-      "state-dict", "write a torch.load-able dict with FlatNet-sep's parameter names instead of a model file");
+      "state-dict", "write torch.save(state_dict) with FlatNet-sep's parameter names instead of a model file")(
+      "flatnet-checkpoint", "write FlatNet's checkpoint layout {'gen_state_dict': state_dict} (its main.py loads it)");
   add_common(o);
   cxxopts::ParseResult r;
   if (!parse(o, argc, argv, r)) return 0;
@@ -230,10 +231,14 @@ int export_model(int argc, char** argv) {
                                  : load_model_file(r["model"].as<std::string>());
   if (average) std::cerr << "exporting the moving average of the weights (train.ema_decay)\n";
   const std::filesystem::path out = r["out"].as<std::string>();
-  if (r.count("state-dict")) {
-    export_state_dict(out, m.generator);
-    std::cout << "wrote state dict " << out.string() << " (" << m.generator->named_parameters().size()
-              << " parameters; python: torch.load(path))\n";
+  require(!(r.count("state-dict") && r.count("flatnet-checkpoint")), "export", "give --state-dict or --flatnet-checkpoint, not both");
+  if (r.count("state-dict") || r.count("flatnet-checkpoint")) {
+    const bool flatnet_layout = r.count("flatnet-checkpoint") > 0;
+    export_state_dict(out, m.generator, flatnet_layout ? StateDictLayout::flatnet_checkpoint : StateDictLayout::state_dict);
+    std::cout << "wrote " << (flatnet_layout ? "FlatNet checkpoint " : "state dict ") << out.string() << " ("
+              << m.generator->named_parameters().size() << " parameters; python: "
+              << (flatnet_layout ? "G.load_state_dict(torch.load(path)['gen_state_dict'])" : "model.load_state_dict(torch.load(path))")
+              << ")\n";
   } else {
     save_model_file(out, m.generator, m.config, m.camera);
     std::cout << "wrote model " << out.string() << "\n";
@@ -248,7 +253,8 @@ int import_model(int argc, char** argv) {
       "config", "config describing the architecture (e.g. configs/flatnet_paper.yaml)", cxxopts::value<std::string>())(
       "set", "override a setting (repeatable)", cxxopts::value<std::vector<std::string>>())(
       "camera", "camera the weights were trained for (default: the config's data.camera)", cxxopts::value<std::string>())(
-      "out", "model file to write", cxxopts::value<std::string>());
+      "out", "model file to write", cxxopts::value<std::string>())(
+      "verbose", "list the file's tensors that the model does not use");
   add_common(o);
   cxxopts::ParseResult r;
   if (!parse(o, argc, argv, r)) return 0;
@@ -257,9 +263,14 @@ int import_model(int argc, char** argv) {
   auto config = Config::load(r.count("config") ? r["config"].as<std::string>() : "", sets);
   const auto camera = r.count("camera") ? load_camera_config(r["camera"].as<std::string>()) : camera_of(config);
   Generator g(generator_options(config, camera, false));
-  import_state_dict(r["state-dict"].as<std::string>(), g);
+  const auto rep = import_state_dict(r["state-dict"].as<std::string>(), g);
   const std::filesystem::path out = r["out"].as<std::string>();
   save_model_file(out, g, config, camera);
+  std::cout << "read " << rep.used << " tensors from " << rep.source << (rep.data_parallel ? " (DataParallel names)" : "")
+            << "; " << rep.unused.size() << " unused" << (rep.unused.empty() || r.count("verbose") ? "" : " (--verbose lists them)")
+            << "\n";
+  if (r.count("verbose"))
+    for (const auto& name : rep.unused) std::cout << "  unused: " << name << "\n";
   std::cout << "wrote model " << out.string() << "\n";
   return 0;
 }

@@ -1,5 +1,9 @@
 #include "train/model_file.hpp"
 
+#include <set>
+
+#include "io/torch_file.hpp"
+
 #include <fstream>
 #include <regex>
 
@@ -332,35 +336,72 @@ std::string flatnet_name(const std::string& ours) {
   return ours;
 }
 
-void export_state_dict(const std::filesystem::path& path, Generator& generator) {
-  c10::Dict<std::string, at::Tensor> dict;
-  for (const auto& p : generator->named_parameters()) dict.insert(flatnet_name(p.key()), p.value().detach().clone());
-  for (const auto& b : generator->named_buffers()) dict.insert(flatnet_name(b.key()), b.value().clone());
-  const auto bytes = torch::pickle_save(c10::IValue(dict));
-  write_atomically(path, [&](const std::filesystem::path& tmp) {
-    std::ofstream out(tmp, std::ios::binary);
-    out.write(bytes.data(), static_cast<std::streamsize>(bytes.size()));
-    require(static_cast<bool>(out), tmp, "write failed");
-  });
+void export_state_dict(const std::filesystem::path& path, Generator& generator, StateDictLayout layout) {
+  // PyTorch's state_dict order: each module's parameters, then its buffers, depth first.
+  std::vector<std::pair<std::string, torch::Tensor>> tensors;
+  std::function<void(torch::nn::Module&, const std::string&)> visit = [&](torch::nn::Module& m, const std::string& prefix) {
+    for (const auto& p : m.named_parameters(/*recurse=*/false)) tensors.emplace_back(flatnet_name(prefix + p.key()), p.value());
+    for (const auto& b : m.named_buffers(/*recurse=*/false)) tensors.emplace_back(flatnet_name(prefix + b.key()), b.value());
+    for (const auto& c : m.named_children()) visit(*c.value(), prefix + c.key() + ".");
+  };
+  visit(*generator, "");
+  save_torch_state_dict(path, tensors, layout == StateDictLayout::flatnet_checkpoint ? "gen_state_dict" : "");
 }
 
-void import_state_dict(const std::filesystem::path& path, Generator& generator) {
-  c10::IValue v;
-  try {
-    v = torch::pickle_load(read_bytes(path));
-  } catch (const c10::Error& e) {
-    throw Error(path, "not a torch.save'd state dict (" + std::string(e.what_without_backtrace()).substr(0, 160) + ")");
+namespace {
+
+bool holds_tensors(const PyValue& v) {
+  for (const auto& e : v.entries)
+    if (e.second->kind == PyValue::Kind::tensor) return true;
+  return false;
+}
+
+// The generator's state dict within what torch.save wrote: FlatNet's checkpoint
+// ({'gen_state_dict': ..., 'optimizerG_state_dict': ...}), a plain or ordered state dict, or one
+// dict of tensors under a single well-known key.
+const PyValue& find_generator_dict(const PyValue& root, const std::filesystem::path& path, std::string& where) {
+  require(root.is_dict(), path, "holds a " + root.describe() + ", not a dict of tensors");
+  for (const char* key : {"gen_state_dict", "generator", "state_dict", "model"})
+    if (auto v = root.get(key); v && v->is_dict() && holds_tensors(*v)) {
+      where = std::string("'") + key + "'";
+      return *v;
+    }
+  if (holds_tensors(root)) {
+    where = "the top-level dict";
+    return root;
   }
-  require(v.isGenericDict(), path, "expected a dict of tensors");
-  auto dict = v.toGenericDict();
-  const auto nested = dict.find(std::string("gen_state_dict"));  // FlatNet's checkpoint layout
-  if (nested != dict.end()) dict = nested->value().toGenericDict();
+  std::string keys;
+  for (const auto& e : root.entries) keys += (keys.empty() ? "" : ", ") + (e.first->kind == PyValue::Kind::string ? e.first->text : e.first->describe());
+  throw Error(path, "holds no state dict: no tensors at the top level and no gen_state_dict (keys: " + keys + ")");
+}
+
+}  // namespace
+
+ImportReport import_state_dict(const std::filesystem::path& path, Generator& generator) {
+  const auto root = read_torch_file(path);
+  ImportReport rep;
+  const auto& dict = find_generator_dict(*root, path, rep.source);
+  std::map<std::string, torch::Tensor> tensors;
+  const auto named = tensors_in(dict);
+  // DataParallel saves every name with a "module." prefix.
+  const bool parallel = !named.empty() && std::all_of(named.begin(), named.end(), [](const auto& kv) {
+    return kv.first.rfind("module.", 0) == 0;
+  });
+  for (const auto& [name, t] : named) tensors[parallel ? name.substr(7) : name] = t;
+  rep.data_parallel = parallel;
+  std::set<std::string> used;
   fill_module(*generator, path, "tensor", [&](const std::string& ours, bool) {
     const auto name = flatnet_name(ours);
-    const auto it = dict.find(name);
-    require(it != dict.end() && it->value().isTensor(), path, "no tensor '" + name + "'");
-    return it->value().toTensor();
+    const auto it = tensors.find(name);
+    require(it != tensors.end(), path, "has no tensor '" + name + "' (in " + rep.source + ") that the model needs");
+    require(torch::isfinite(it->second.to(torch::kFloat64)).all().item<bool>(), path, "tensor '" + name + "' holds NaN or infinity");
+    used.insert(name);
+    return it->second;
   }, flatnet_name);
+  for (const auto& [name, t] : tensors)
+    if (!used.count(name)) rep.unused.push_back(name);
+  rep.used = static_cast<int64_t>(used.size());
+  return rep;
 }
 
 }  // namespace flatnet

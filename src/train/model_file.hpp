@@ -63,9 +63,22 @@ void init_generator_from(const std::filesystem::path& model, Generator& g);
 // FlatNet-sep name of one of our parameter names ("inversion.PhiL" -> "PhiL",
 // "enhancer.inc.conv.conv.0.weight" -> "inc.conv.conv.0.weight").
 std::string flatnet_name(const std::string& ours);
-void export_state_dict(const std::filesystem::path& path, Generator& generator);
-// Reads a state dict written by torch.save (a plain dict, or a FlatNet checkpoint holding
-// 'gen_state_dict') into the generator; every tensor must be present with the right shape.
-void import_state_dict(const std::filesystem::path& path, Generator& generator);
+// torch.save(generator.state_dict()) as PyTorch writes it (an OrderedDict in the zip container),
+// or FlatNet's checkpoint layout {'gen_state_dict': OrderedDict} that its main.py loads.
+enum class StateDictLayout { state_dict, flatnet_checkpoint };
+void export_state_dict(const std::filesystem::path& path, Generator& generator,
+                       StateDictLayout layout = StateDictLayout::state_dict);
+// Reads a generator state dict from any torch.save file (zip or legacy container, io/torch_file):
+// a plain dict or an OrderedDict of tensors, FlatNet's checkpoint ({'gen_state_dict': ...,
+// optimiser states, ...}), or one under 'generator', 'state_dict' or 'model'; DataParallel's
+// "module." prefixes are dropped. Every tensor the model needs must be present, finite, with the
+// right shape, else an error naming the file and the tensor.
+struct ImportReport {
+  std::string source;               // where the state dict was found ("'gen_state_dict'", ...)
+  bool data_parallel = false;       // names carried DataParallel's "module." prefix
+  int64_t used = 0;                 // tensors loaded into the model
+  std::vector<std::string> unused;  // tensors of that dict the model has no place for
+};
+ImportReport import_state_dict(const std::filesystem::path& path, Generator& generator);
 
 }  // namespace flatnet

@@ -1,0 +1,628 @@
+#include "io/torch_file.hpp"
+
+#include <caffe2/serialize/inline_container.h>
+
+#include <cstring>
+#include <fstream>
+#include <functional>
+#include <map>
+#include <sstream>
+
+#include "core/error.hpp"
+#include "core/util.hpp"
+
+namespace flatnet {
+namespace {
+
+using Kind = PyValue::Kind;
+
+PyRef make(Kind k) {
+  auto v = std::make_shared<PyValue>();
+  v->kind = k;
+  return v;
+}
+PyRef make_int(int64_t i) {
+  auto v = make(Kind::integer);
+  v->integer = i;
+  return v;
+}
+PyRef make_text(Kind k, std::string s) {
+  auto v = make(k);
+  v->text = std::move(s);
+  return v;
+}
+
+// The globals a state dict or checkpoint needs; nothing else is ever resolved.
+const std::map<std::string, c10::ScalarType>& storage_types() {
+  static const std::map<std::string, c10::ScalarType> t = {
+      {"torch.FloatStorage", torch::kFloat32},   {"torch.DoubleStorage", torch::kFloat64},
+      {"torch.HalfStorage", torch::kFloat16},    {"torch.BFloat16Storage", torch::kBFloat16},
+      {"torch.LongStorage", torch::kInt64},      {"torch.IntStorage", torch::kInt32},
+      {"torch.ShortStorage", torch::kInt16},     {"torch.CharStorage", torch::kInt8},
+      {"torch.ByteStorage", torch::kUInt8},      {"torch.BoolStorage", torch::kBool}};
+  return t;
+}
+bool allowed_global(const std::string& name) {
+  static const std::vector<std::string> callables = {
+      "collections.OrderedDict", "torch._utils._rebuild_tensor_v2", "torch._utils._rebuild_tensor",
+      "torch._utils._rebuild_parameter", "torch.Size",
+      "torch.jit._pickle.restore_type_tag"};  // LibTorch's pickle_save (flatnet's exports before 2026-11)
+  return storage_types().count(name) || std::find(callables.begin(), callables.end(), name) != callables.end();
+}
+
+// A storage named by a persistent id; its elements arrive from the container (zip record or the
+// legacy file's tail), possibly after the pickle that refers to it.
+struct Storage {
+  c10::ScalarType dtype;
+  int64_t numel = 0;
+  torch::Tensor data;  // {numel} once loaded
+};
+
+// Reads one pickle (protocols 2-5) from bytes[pos..]; `persistent` resolves BINPERSID ids.
+class Unpickler {
+ public:
+  Unpickler(const std::string& bytes, size_t pos, std::filesystem::path file,
+            std::function<PyRef(const PyRef&)> persistent)
+      : b_(bytes), pos_(pos), file_(std::move(file)), persistent_(std::move(persistent)) {}
+
+  PyRef run();
+  size_t position() const { return pos_; }
+
+ private:
+  const std::string& b_;
+  size_t pos_;
+  std::filesystem::path file_;
+  std::function<PyRef(const PyRef&)> persistent_;
+  std::vector<PyRef> stack_;
+  std::vector<size_t> marks_;
+  std::map<uint64_t, PyRef> memo_;
+
+  [[noreturn]] void fail(const std::string& what) const {
+    throw Error(file_, what + " (pickle byte " + std::to_string(pos_) + ")");
+  }
+  const char* take(size_t n) {
+    if (pos_ + n > b_.size()) fail("truncated: the pickle ends early");
+    const char* p = b_.data() + pos_;
+    pos_ += n;
+    return p;
+  }
+  uint64_t uint_le(size_t n) {
+    const auto* p = reinterpret_cast<const unsigned char*>(take(n));
+    uint64_t v = 0;
+    for (size_t i = 0; i < n; ++i) v |= static_cast<uint64_t>(p[i]) << (8 * i);
+    return v;
+  }
+  std::string line() {
+    const auto end = b_.find('\n', pos_);
+    if (end == std::string::npos) fail("truncated: a text opcode without its newline");
+    std::string s = b_.substr(pos_, end - pos_);
+    pos_ = end + 1;
+    return s;
+  }
+  PyRef pop() {
+    if (stack_.empty() || (!marks_.empty() && stack_.size() <= marks_.back())) fail("malformed: pop from an empty stack");
+    auto v = stack_.back();
+    stack_.pop_back();
+    return v;
+  }
+  PyRef& top() {
+    if (stack_.empty()) fail("malformed: empty stack");
+    return stack_.back();
+  }
+  std::vector<PyRef> pop_to_mark() {
+    if (marks_.empty()) fail("malformed: no mark");
+    const size_t m = marks_.back();
+    marks_.pop_back();
+    std::vector<PyRef> items(stack_.begin() + static_cast<std::ptrdiff_t>(m), stack_.end());
+    stack_.resize(m);
+    return items;
+  }
+  PyRef global(const std::string& module, const std::string& name) {
+    const auto full = module + "." + name;
+    if (!allowed_global(full))
+      fail("refuses the global '" + full + "': a torch.save file for flatnet may hold only tensors, storages and "
+           "containers (a pickle naming other objects can run code)");
+    return make_text(Kind::global, full);
+  }
+  PyRef tuple(std::vector<PyRef> items) {
+    auto t = make(Kind::tuple);
+    t->items = std::move(items);
+    return t;
+  }
+  void set_items(PyRef& dict, const std::vector<PyRef>& kv) {
+    if (dict->kind != Kind::dict) fail("malformed: SETITEM(S) on a " + dict->describe());
+    if (kv.size() % 2) fail("malformed: SETITEMS with an odd count");
+    for (size_t i = 0; i < kv.size(); i += 2) {
+      bool replaced = false;
+      if (kv[i]->kind == Kind::string || kv[i]->kind == Kind::integer)
+        for (auto& e : dict->entries)
+          if (e.first->kind == kv[i]->kind && e.first->text == kv[i]->text && e.first->integer == kv[i]->integer) {
+            e.second = kv[i + 1];
+            replaced = true;
+          }
+      if (!replaced) dict->entries.emplace_back(kv[i], kv[i + 1]);
+    }
+  }
+  PyRef call(const PyRef& fn, const PyRef& args);
+  PyRef rebuild_tensor(const std::vector<PyRef>& a);
+};
+
+int64_t as_int(const PyRef& v, const char* what, const std::filesystem::path& file) {
+  if (!v || (v->kind != Kind::integer && v->kind != Kind::boolean))
+    throw Error(file, std::string("malformed tensor: ") + what + " is not an integer");
+  return v->kind == Kind::boolean ? v->boolean : v->integer;
+}
+
+std::vector<int64_t> int_tuple(const PyRef& v, const char* what, const std::filesystem::path& file) {
+  if (!v || (v->kind != Kind::tuple && v->kind != Kind::list))
+    throw Error(file, std::string("malformed tensor: ") + what + " is not a tuple");
+  std::vector<int64_t> out;
+  for (const auto& i : v->items) out.push_back(as_int(i, what, file));
+  return out;
+}
+
+// _rebuild_tensor_v2(storage, storage_offset, size, stride, requires_grad, backward_hooks[, metadata])
+// and the older _rebuild_tensor(storage, storage_offset, size, stride): a strided view of the
+// storage, copied out. Floating types become float32 (flatnet's weights are float32).
+PyRef Unpickler::rebuild_tensor(const std::vector<PyRef>& a) {
+  if (a.size() < 4 || a[0]->kind != Kind::storage) fail("malformed tensor: expected (storage, offset, size, stride, ...)");
+  const auto offset = as_int(a[1], "storage offset", file_);
+  const auto size = int_tuple(a[2], "size", file_), stride = int_tuple(a[3], "stride", file_);
+  if (size.size() != stride.size()) fail("malformed tensor: size and stride differ in length");
+  auto v = make(Kind::tensor);
+  v->items = {a[0]};  // the storage; the view is taken once the storage's elements are loaded
+  v->integer = offset;
+  auto sizes = make(Kind::tuple), strides = make(Kind::tuple);
+  for (auto s : size) sizes->items.push_back(make_int(s));
+  for (auto s : stride) strides->items.push_back(make_int(s));
+  v->items.push_back(sizes);
+  v->items.push_back(strides);
+  return v;
+}
+
+PyRef Unpickler::call(const PyRef& fn, const PyRef& args) {
+  if (fn->kind != Kind::global) fail("refuses to call a " + fn->describe() + " (only allow-listed globals are called)");
+  if (args->kind != Kind::tuple) fail("malformed: REDUCE arguments are not a tuple");
+  const auto& a = args->items;
+  if (fn->text == "collections.OrderedDict") {
+    auto d = make(Kind::dict);
+    if (!a.empty() && (a[0]->kind == Kind::list || a[0]->kind == Kind::tuple))
+      for (const auto& kv : a[0]->items)
+        if (kv->kind == Kind::tuple && kv->items.size() == 2) d->entries.emplace_back(kv->items[0], kv->items[1]);
+    return d;
+  }
+  if (fn->text == "torch._utils._rebuild_tensor_v2" || fn->text == "torch._utils._rebuild_tensor") return rebuild_tensor(a);
+  if (fn->text == "torch._utils._rebuild_parameter") {  // (data, requires_grad, backward_hooks)
+    if (a.empty() || a[0]->kind != Kind::tensor) fail("malformed parameter: its data is not a tensor");
+    return a[0];
+  }
+  if (fn->text == "torch.Size") return a.empty() ? tuple({}) : tuple(a[0]->items);
+  if (fn->text == "torch.jit._pickle.restore_type_tag") {  // (value, type string): the value
+    if (a.empty()) fail("malformed restore_type_tag call");
+    return a[0];
+  }
+  fail("refuses to call '" + fn->text + "'");
+}
+
+PyRef Unpickler::run() {
+  while (true) {
+    const auto op = static_cast<unsigned char>(*take(1));
+    switch (op) {
+      case 0x80: take(1); break;                // PROTO
+      case 0x95: take(8); break;                // FRAME (the frame's bytes follow inline)
+      case '.': {                               // STOP
+        if (stack_.size() != 1 || !marks_.empty()) fail("malformed: STOP with " + std::to_string(stack_.size()) + " values");
+        return stack_.back();
+      }
+      case '(': marks_.push_back(stack_.size()); break;  // MARK
+      case '}': stack_.push_back(make(Kind::dict)); break;
+      case ']': stack_.push_back(make(Kind::list)); break;
+      case ')': stack_.push_back(tuple({})); break;
+      case 0x8f: stack_.push_back(make(Kind::list)); break;  // EMPTY_SET (kept as a list)
+      case 't': stack_.push_back(tuple(pop_to_mark())); break;
+      case 0x85: { auto a = pop(); stack_.push_back(tuple({a})); break; }
+      case 0x86: { auto b = pop(), a = pop(); stack_.push_back(tuple({a, b})); break; }
+      case 0x87: { auto c = pop(), b = pop(), a = pop(); stack_.push_back(tuple({a, b, c})); break; }
+      case 'l': { auto l = make(Kind::list); l->items = pop_to_mark(); stack_.push_back(l); break; }
+      case 'd': { auto d = make(Kind::dict); auto kv = pop_to_mark(); set_items(d, kv); stack_.push_back(d); break; }
+      case 'q': memo_[uint_le(1)] = top(); break;   // BINPUT
+      case 'r': memo_[uint_le(4)] = top(); break;   // LONG_BINPUT
+      case 0x94: memo_[memo_.size()] = top(); break;  // MEMOIZE
+      case 'h': case 'j': {                          // BINGET, LONG_BINGET
+        const auto k = uint_le(op == 'h' ? 1 : 4);
+        const auto it = memo_.find(k);
+        if (it == memo_.end()) fail("malformed: memo " + std::to_string(k) + " was never stored");
+        stack_.push_back(it->second);
+        break;
+      }
+      case 'J': stack_.push_back(make_int(static_cast<int32_t>(uint_le(4)))); break;
+      case 'K': stack_.push_back(make_int(static_cast<int64_t>(uint_le(1)))); break;
+      case 'M': stack_.push_back(make_int(static_cast<int64_t>(uint_le(2)))); break;
+      case 0x8a: case 0x8b: {  // LONG1, LONG4: little-endian two's complement
+        const auto n = uint_le(op == 0x8a ? 1 : 4);
+        if (n > 8) {  // only the legacy magic number is this long: kept as big-endian hex text
+          const auto* p = reinterpret_cast<const unsigned char*>(take(n));
+          std::ostringstream hex;
+          hex << std::hex;
+          bool leading = true;
+          for (size_t i = n; i-- > 0;) {
+            if (leading && p[i] == 0) continue;
+            hex << (leading ? "" : (p[i] < 16 ? "0" : "")) << static_cast<int>(p[i]);
+            leading = false;
+          }
+          stack_.push_back(make_text(Kind::integer, hex.str()));
+          break;
+        }
+        uint64_t v = n ? uint_le(n) : 0;
+        if (n && n < 8 && (v >> (8 * n - 1)) & 1) v |= ~uint64_t(0) << (8 * n);
+        stack_.push_back(make_int(static_cast<int64_t>(v)));
+        break;
+      }
+      case 'G': {  // BINFLOAT, big-endian
+        const auto* p = reinterpret_cast<const unsigned char*>(take(8));
+        uint64_t bits = 0;
+        for (int i = 0; i < 8; ++i) bits = (bits << 8) | p[i];
+        auto v = make(Kind::real);
+        std::memcpy(&v->real, &bits, 8);
+        stack_.push_back(v);
+        break;
+      }
+      case 'N': stack_.push_back(make(Kind::none)); break;
+      case 0x88: case 0x89: { auto v = make(Kind::boolean); v->boolean = op == 0x88; stack_.push_back(v); break; }
+      case 'X': { const auto n = uint_le(4); stack_.push_back(make_text(Kind::string, std::string(take(n), n))); break; }
+      case 0x8c: { const auto n = uint_le(1); stack_.push_back(make_text(Kind::string, std::string(take(n), n))); break; }
+      case 0x8d: { const auto n = uint_le(8); stack_.push_back(make_text(Kind::string, std::string(take(n), n))); break; }
+      case 'U': { const auto n = uint_le(1); stack_.push_back(make_text(Kind::string, std::string(take(n), n))); break; }
+      case 'T': { const auto n = uint_le(4); stack_.push_back(make_text(Kind::string, std::string(take(n), n))); break; }
+      case 'C': { const auto n = uint_le(1); stack_.push_back(make_text(Kind::bytes, std::string(take(n), n))); break; }
+      case 'B': { const auto n = uint_le(4); stack_.push_back(make_text(Kind::bytes, std::string(take(n), n))); break; }
+      case 0x8e: { const auto n = uint_le(8); stack_.push_back(make_text(Kind::bytes, std::string(take(n), n))); break; }
+      case 'c': {  // GLOBAL "module\nname\n"
+        const auto module = line();
+        stack_.push_back(global(module, line()));
+        break;
+      }
+      case 0x93: {  // STACK_GLOBAL
+        auto name = pop(), module = pop();
+        if (name->kind != Kind::string || module->kind != Kind::string) fail("malformed: STACK_GLOBAL without strings");
+        stack_.push_back(global(module->text, name->text));
+        break;
+      }
+      case 'R': { auto args = pop(), fn = pop(); stack_.push_back(call(fn, args)); break; }
+      case 0x81: fail("refuses NEWOBJ: the file constructs a class instance");
+      case 0x92: fail("refuses NEWOBJ_EX: the file constructs a class instance");
+      case 'b': {  // BUILD: an OrderedDict's attributes (state_dict's _metadata) are not needed
+        auto state = pop();
+        if (top()->kind != Kind::dict && top()->kind != Kind::tensor) fail("refuses BUILD on a " + top()->describe());
+        break;
+      }
+      case 's': { auto v = pop(), k = pop(); set_items(top(), {k, v}); break; }
+      case 'u': { auto kv = pop_to_mark(); set_items(top(), kv); break; }
+      case 'a': {
+        auto v = pop();
+        if (top()->kind != Kind::list) fail("malformed: APPEND to a " + top()->describe());
+        top()->items.push_back(v);
+        break;
+      }
+      case 'e': case 0x90: {  // APPENDS, ADDITEMS
+        auto items = pop_to_mark();
+        if (top()->kind != Kind::list) fail("malformed: APPENDS to a " + top()->describe());
+        top()->items.insert(top()->items.end(), items.begin(), items.end());
+        break;
+      }
+      case 0x91: { auto l = make(Kind::list); l->items = pop_to_mark(); stack_.push_back(l); break; }  // FROZENSET
+      case 'Q': { auto pid = pop(); stack_.push_back(persistent_(pid)); break; }  // BINPERSID
+      case '0': pop(); break;
+      case '1': pop_to_mark(); break;
+      case '2': stack_.push_back(top()); break;
+      default: {
+        std::ostringstream os;
+        os << "unknown pickle opcode 0x" << std::hex << static_cast<int>(op);
+        --pos_;
+        fail(os.str());
+      }
+    }
+  }
+}
+
+// A persistent id ('storage', storage_type, key, location, numel[, view_metadata]) -> a storage
+// value whose tensor is filled by the container.
+PyRef storage_from_id(const PyRef& pid, std::map<std::string, std::shared_ptr<Storage>>& storages,
+                      const std::filesystem::path& file) {
+  if (pid->kind != Kind::tuple || pid->items.size() < 5 || pid->items[0]->text != "storage" ||
+      pid->items[1]->kind != Kind::global || pid->items[2]->kind != Kind::string)
+    throw Error(file, "malformed persistent id (expected ('storage', type, key, location, size))");
+  const auto type = storage_types().find(pid->items[1]->text);
+  if (type == storage_types().end()) throw Error(file, "unknown storage type '" + pid->items[1]->text + "'");
+  if (pid->items.size() > 5 && pid->items[5]->kind != Kind::none)
+    throw Error(file, "uses storage views (view_metadata), a format of PyTorch before 0.4 that flatnet does not read");
+  auto& s = storages[pid->items[2]->text];
+  if (!s) {
+    s = std::make_shared<Storage>();
+    s->dtype = type->second;
+    s->numel = as_int(pid->items[4], "storage size", file);
+  }
+  auto v = make_text(Kind::storage, pid->items[2]->text);
+  return v;
+}
+
+torch::Tensor elements(const char* data, size_t bytes, c10::ScalarType dtype, int64_t numel,
+                       const std::filesystem::path& file, const std::string& key) {
+  const auto need = static_cast<size_t>(numel) * c10::elementSize(dtype);
+  if (bytes < need)
+    throw Error(file, "storage '" + key + "' is truncated: " + std::to_string(bytes) + " of " + std::to_string(need) + " bytes");
+  auto t = torch::empty({numel}, torch::TensorOptions().dtype(dtype));
+  std::memcpy(t.data_ptr(), data, need);
+  return t;
+}
+
+// Replaces every storage reference in the tree by its elements and every tensor by its view.
+void materialise(PyValue& v, const std::map<std::string, std::shared_ptr<Storage>>& storages,
+                 const std::filesystem::path& file) {
+  if (v.kind == Kind::tensor && !v.tensor.defined()) {
+    const auto& s = storages.at(v.items[0]->text);
+    if (!s->data.defined()) throw Error(file, "storage '" + v.items[0]->text + "' has no data in the file");
+    std::vector<int64_t> size, stride;
+    for (const auto& i : v.items[1]->items) size.push_back(i->integer);
+    for (const auto& i : v.items[2]->items) stride.push_back(i->integer);
+    int64_t last = v.integer;  // the highest element the view touches must lie in the storage
+    bool empty = false;
+    for (size_t d = 0; d < size.size(); ++d) {
+      if (size[d] < 0 || stride[d] < 0) throw Error(file, "malformed tensor: negative size or stride");
+      if (size[d] == 0) empty = true;
+      last += (size[d] - 1) * stride[d];
+    }
+    if (!empty && (v.integer < 0 || last >= s->numel))
+      throw Error(file, "a tensor reaches past the end of storage '" + v.items[0]->text + "'");
+    auto t = empty ? torch::empty(size, s->data.options()) : s->data.as_strided(size, stride, v.integer).clone();
+    if (t.is_floating_point()) t = t.to(torch::kFloat32);
+    v.tensor = t;
+    v.items.clear();
+    return;
+  }
+  for (auto& i : v.items) materialise(*i, storages, file);
+  for (auto& e : v.entries) {
+    materialise(*e.first, storages, file);
+    materialise(*e.second, storages, file);
+  }
+}
+
+std::string read_file_bytes(const std::filesystem::path& path) {
+  std::ifstream in(path, std::ios::binary);
+  if (!in) throw Error(path, std::filesystem::exists(path) ? "cannot be read" : "no such file");
+  std::ostringstream os;
+  os << in.rdbuf();
+  return os.str();
+}
+
+PyRef read_zip(const std::filesystem::path& path) {
+  std::unique_ptr<caffe2::serialize::PyTorchStreamReader> reader;
+  std::string pickle;
+  try {
+    reader = std::make_unique<caffe2::serialize::PyTorchStreamReader>(path.string());
+    if (!reader->hasRecord("data.pkl")) throw Error(path, "is a zip file but not a torch.save archive (no data.pkl)");
+    auto [data, size] = reader->getRecord("data.pkl");
+    pickle.assign(static_cast<const char*>(data.get()), size);
+  } catch (const c10::Error& e) {
+    throw Error(path, "damaged zip container (" + std::string(e.what_without_backtrace()).substr(0, 120) + ")");
+  }
+  std::map<std::string, std::shared_ptr<Storage>> storages;
+  Unpickler u(pickle, 0, path, [&](const PyRef& pid) { return storage_from_id(pid, storages, path); });
+  auto root = u.run();
+  for (auto& [key, s] : storages) {
+    const auto record = "data/" + key;
+    try {
+      if (!reader->hasRecord(record)) throw Error(path, "storage record '" + record + "' is missing");
+      auto [data, size] = reader->getRecord(record);
+      s->data = elements(static_cast<const char*>(data.get()), size, s->dtype, s->numel, path, key);
+    } catch (const c10::Error& e) {
+      throw Error(path, "storage '" + key + "' cannot be read (" + std::string(e.what_without_backtrace()).substr(0, 120) + ")");
+    }
+  }
+  materialise(*root, storages, path);
+  return root;
+}
+
+PyRef read_legacy(const std::filesystem::path& path, const std::string& bytes) {
+  std::map<std::string, std::shared_ptr<Storage>> storages;
+  auto no_ids = [&](const PyRef&) -> PyRef { throw Error(path, "malformed legacy header"); };
+  size_t pos = 0;
+  auto next = [&](std::function<PyRef(const PyRef&)> persistent) {
+    Unpickler u(bytes, pos, path, std::move(persistent));
+    auto v = u.run();
+    pos = u.position();
+    return v;
+  };
+  const auto magic = next(no_ids);
+  if (magic->kind != Kind::integer || magic->text != "1950a86a20f9469cfc6c")
+    throw Error(path, "not a torch.save file (no legacy magic number and not a zip archive)");
+  const auto protocol = next(no_ids);
+  if (protocol->kind != Kind::integer || protocol->integer != 1001)
+    throw Error(path, "legacy torch.save protocol " + std::to_string(protocol->integer) + ", flatnet reads 1001");
+  const auto sys_info = next(no_ids);
+  if (auto le = sys_info->get("little_endian"); le && le->kind == Kind::boolean && !le->boolean)
+    throw Error(path, "was written on a big-endian machine; flatnet reads little-endian files");
+  auto root = next([&](const PyRef& pid) { return storage_from_id(pid, storages, path); });
+  const auto keys = next(no_ids);
+  if (keys->kind != Kind::list) throw Error(path, "malformed legacy file: no storage key list");
+  for (const auto& k : keys->items) {
+    if (k->kind != Kind::string) throw Error(path, "malformed legacy file: a storage key is not a string");
+    if (pos + 8 > bytes.size()) throw Error(path, "truncated: storage '" + k->text + "' is missing");
+    int64_t numel = 0;
+    std::memcpy(&numel, bytes.data() + pos, 8);
+    pos += 8;
+    const auto it = storages.find(k->text);
+    if (it == storages.end()) throw Error(path, "malformed legacy file: storage '" + k->text + "' is never used");
+    auto& s = *it->second;
+    if (numel != s.numel)
+      throw Error(path, "storage '" + k->text + "' holds " + std::to_string(numel) + " elements, the pickle says " +
+                            std::to_string(s.numel));
+    const auto n = static_cast<size_t>(numel) * c10::elementSize(s.dtype);
+    s.data = elements(bytes.data() + pos, bytes.size() - pos, s.dtype, numel, path, k->text);
+    pos += n;
+  }
+  materialise(*root, storages, path);
+  return root;
+}
+
+void collect_tensors(const PyValue& v, const std::string& prefix, std::vector<std::pair<std::string, torch::Tensor>>& out) {
+  for (const auto& [k, val] : v.entries) {
+    const std::string key = k->kind == Kind::string ? k->text : k->kind == Kind::integer ? std::to_string(k->integer) : "?";
+    const auto name = prefix.empty() ? key : prefix + "." + key;
+    if (val->kind == Kind::tensor) out.emplace_back(name, val->tensor);
+    else if (val->kind == Kind::dict) collect_tensors(*val, name, out);
+  }
+}
+
+// A pickle (protocol 2) as Python's torch.save writes it for an OrderedDict of tensors.
+class StateDictPickler {
+ public:
+  std::string bytes;
+  void op(unsigned char c) { bytes.push_back(static_cast<char>(c)); }
+  void u32(uint32_t v) {
+    for (int i = 0; i < 4; ++i) bytes.push_back(static_cast<char>((v >> (8 * i)) & 0xff));
+  }
+  void global(const std::string& module, const std::string& name) {
+    op('c');
+    bytes += module + "\n" + name + "\n";
+  }
+  void string(const std::string& s) {
+    op('X');
+    u32(static_cast<uint32_t>(s.size()));
+    bytes += s;
+  }
+  void integer(int64_t v) {
+    if (v >= 0 && v < 256) {
+      op('K');
+      op(static_cast<unsigned char>(v));
+    } else if (v >= INT32_MIN && v <= INT32_MAX) {
+      op('J');
+      u32(static_cast<uint32_t>(static_cast<int32_t>(v)));
+    } else {
+      op(0x8a);
+      op(8);
+      for (int i = 0; i < 8; ++i) bytes.push_back(static_cast<char>((static_cast<uint64_t>(v) >> (8 * i)) & 0xff));
+    }
+  }
+  void int_tuple(c10::IntArrayRef values) {
+    op('(');
+    for (auto v : values) integer(v);
+    op('t');
+  }
+  void empty_ordered_dict() {
+    global("collections", "OrderedDict");
+    op(')');
+    op('R');
+  }
+  // torch._utils._rebuild_tensor_v2(('storage', torch.FloatStorage, key, 'cpu', numel), 0, size, stride, False, OrderedDict())
+  void tensor(const torch::Tensor& t, const std::string& storage_key, const std::string& storage_type) {
+    global("torch._utils", "_rebuild_tensor_v2");
+    op('(');
+    op('(');
+    string("storage");
+    global("torch", storage_type);
+    string(storage_key);
+    string("cpu");
+    integer(t.numel());
+    op('t');
+    op('Q');  // BINPERSID
+    integer(0);
+    int_tuple(t.sizes());
+    int_tuple(t.strides());
+    op(0x89);  // requires_grad False
+    empty_ordered_dict();
+    op('t');
+    op('R');
+  }
+};
+
+std::string storage_type_name(c10::ScalarType t) {
+  for (const auto& [name, type] : storage_types())
+    if (type == t) return name.substr(6);  // "torch.FloatStorage" -> "FloatStorage"
+  throw Error("torch.save writer: no storage type for " + std::string(c10::toString(t)));
+}
+
+}  // namespace
+
+void save_torch_state_dict(const std::filesystem::path& path, const std::vector<std::pair<std::string, torch::Tensor>>& tensors,
+                           const std::string& wrap_key) {
+  StateDictPickler p;
+  std::vector<torch::Tensor> storages;
+  p.op(0x80);
+  p.op(2);
+  if (!wrap_key.empty()) {
+    p.op('}');
+    p.string(wrap_key);
+  }
+  p.empty_ordered_dict();
+  p.op('(');
+  for (const auto& [name, t] : tensors) {
+    const auto c = t.detach().contiguous().cpu();
+    p.string(name);
+    p.tensor(c, std::to_string(storages.size()), storage_type_name(c.scalar_type()));
+    storages.push_back(c);
+  }
+  p.op('u');  // SETITEMS
+  if (!wrap_key.empty()) p.op('s');
+  p.op('.');
+  std::string zip;
+  {
+    caffe2::serialize::PyTorchStreamWriter writer([&](const void* data, size_t n) {
+      zip.append(static_cast<const char*>(data), n);
+      return n;
+    });
+    writer.writeRecord("data.pkl", p.bytes.data(), p.bytes.size());
+    for (size_t i = 0; i < storages.size(); ++i)
+      writer.writeRecord("data/" + std::to_string(i), storages[i].data_ptr(), storages[i].nbytes());
+    writer.writeEndOfFile();
+  }
+  write_atomically(path, [&](const std::filesystem::path& tmp) {
+    std::ofstream out(tmp, std::ios::binary);
+    out.write(zip.data(), static_cast<std::streamsize>(zip.size()));
+    out.close();
+    if (!out) throw Error(tmp, "write failed");
+  });
+}
+
+PyRef PyValue::get(const std::string& key) const {
+  for (const auto& [k, v] : entries)
+    if (k->kind == Kind::string && k->text == key) return v;
+  return nullptr;
+}
+
+std::string PyValue::describe() const {
+  switch (kind) {
+    case Kind::none: return "None";
+    case Kind::boolean: return "bool";
+    case Kind::integer: return "int";
+    case Kind::real: return "float";
+    case Kind::string: return "str";
+    case Kind::bytes: return "bytes";
+    case Kind::list: return "list";
+    case Kind::tuple: return "tuple";
+    case Kind::dict: return "dict";
+    case Kind::storage: return "storage";
+    case Kind::global: return "global " + text;
+    case Kind::tensor: {
+      std::ostringstream os;
+      os << "tensor " << (tensor.defined() ? tensor.sizes() : c10::IntArrayRef{});
+      return os.str();
+    }
+  }
+  return "?";
+}
+
+PyRef read_torch_file(const std::filesystem::path& path) {
+  const auto bytes = read_file_bytes(path);
+  if (bytes.size() >= 4 && bytes.compare(0, 4, "PK\x03\x04") == 0) return read_zip(path);
+  if (bytes.size() >= 2 && static_cast<unsigned char>(bytes[0]) == 0x80) return read_legacy(path, bytes);
+  throw Error(path, bytes.empty() ? "is empty" : "not a torch.save file (neither a zip archive nor a legacy pickle)");
+}
+
+std::vector<std::pair<std::string, torch::Tensor>> tensors_in(const PyValue& dict) {
+  std::vector<std::pair<std::string, torch::Tensor>> out;
+  collect_tensors(dict, "", out);
+  return out;
+}
+
+}  // namespace flatnet
