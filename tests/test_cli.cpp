@@ -182,7 +182,7 @@ TEST_CASE("the shipped models run on FlatNet's real prototype captures", "[cli][
   }
   test::Scratch s("prototype");
   auto r = test::run_flatnet("infer --model " + q(model) + " --camera " +
-                             q(test::source_dir() / "configs" / "cameras" / "flatnet_prototype.yaml") + " --input " +
+                             q(test::source_dir() / "configs" / "cameras" / "flatnet_prototype_level.yaml") + " --input " +
                              q(data / "fc_*.png") + " --out " + q(s.dir / "rec"));
   INFO(r.output);
   REQUIRE(r.code == 0);
