@@ -12,6 +12,7 @@
 #include "recon/tikhonov.hpp"
 
 using namespace flatnet;
+using Catch::Matchers::Contains;
 
 namespace {
 Calibration random_calibration(int64_t h, int64_t w, int64_t n, uint64_t seed) {
@@ -104,4 +105,29 @@ TEST_CASE("eval reports spread over images and brightness: a reconstruction that
   CHECK(scores[0].psnr_sd > 0);  // brighter images lose more to halving: PSNR varies
   CHECK(format_table(scores).find("+-") != std::string::npos);
   CHECK(read_lines(s.dir / "out" / "metrics.csv").at(0) == "image,method,psnr,ssim,mean_output,mean_truth");
+}
+
+TEST_CASE("reconstructions never overwrite a capture, and two captures of one name are refused", "[recon][outputs]") {
+  test::Scratch s("outputs");
+  const auto in = s.dir / "in", other = s.dir / "other";
+  std::filesystem::create_directories(in);
+  std::filesystem::create_directories(other);
+  const auto capture = test::data_dir() / "golden" / "bsds_16052_raw.png";
+  std::filesystem::copy_file(capture, in / "a.png");
+  std::filesystem::copy_file(capture, other / "a.png");
+  const auto before = read_bytes(in / "a.png");
+  // --out equal to the input folder, given as the folder, a pattern or a list.
+  CHECK_THROWS_WITH(check_output_names({in / "a.png"}, in), Contains("--out") && Contains("overwrite a capture"));
+  CHECK_THROWS_WITH(check_output_names({in / "a.png"}, s.dir / "in" / "." ), Contains("overwrite"));
+  // Two captures named a.png from different folders would make one output.
+  CHECK_THROWS_WITH(check_output_names({in / "a.png", other / "a.png"}, s.dir / "out"), Contains("same name") && Contains("a.png"));
+  CHECK_NOTHROW(check_output_names({in / "a.png"}, s.dir / "out"));
+  // Through the command line: exit 2, one line, the capture untouched.
+  for (const std::string& cmd : std::vector<std::string>{"recon --method tikhonov", "infer --model " + test::q(test::source_dir() / "models" / "flatnet-sim-transpose.flatnet")}) {
+    INFO(cmd);
+    const auto r = test::run_flatnet(cmd + " --input " + test::q(in) + " --out " + test::q(in));
+    CHECK(r.code == 2);
+    CHECK_THAT(r.output, Contains("overwrite a capture"));
+    CHECK(read_bytes(in / "a.png") == before);
+  }
 }

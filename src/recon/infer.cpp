@@ -4,6 +4,7 @@
 #include "core/util.hpp"
 #include "io/image.hpp"
 #include "io/raw.hpp"
+#include "recon/run.hpp"
 
 namespace flatnet {
 
@@ -12,6 +13,7 @@ InferReport infer_files(Generator& generator, const CameraConfig& camera, const 
   const auto& go = generator->options();
   check_camera_for_model(go, camera);
   require(!captures.empty(), "--input", "no captures to reconstruct");
+  check_output_names(captures, opt.out);
   std::filesystem::create_directories(opt.out);
   generator->prepare_inference(opt.levers);
   c10::InferenceMode no_grad;

@@ -2,6 +2,9 @@
 
 #include <fnmatch.h>
 
+#include <map>
+#include <set>
+
 #include "core/error.hpp"
 #include "core/util.hpp"
 #include "io/image.hpp"
@@ -41,6 +44,26 @@ std::vector<std::filesystem::path> collect_captures(const std::filesystem::path&
   return {input};
 }
 
+void check_output_names(const std::vector<std::filesystem::path>& captures, const std::filesystem::path& out) {
+  auto canonical = [](const std::filesystem::path& p) {
+    std::error_code ec;
+    auto c = std::filesystem::weakly_canonical(p, ec);
+    return ec ? std::filesystem::absolute(p).lexically_normal() : c;
+  };
+  std::set<std::filesystem::path> inputs;
+  for (const auto& c : captures) inputs.insert(canonical(c));
+  std::map<std::filesystem::path, std::filesystem::path> writer_of;  // output -> the capture that makes it
+  for (const auto& c : captures) {
+    const auto target = canonical(out / std::filesystem::path(c.filename()).replace_extension(".png"));
+    const auto [it, fresh] = writer_of.emplace(target, c);
+    if (!fresh)
+      throw Error(c, "has the same name as " + it->second.string() + ": both would be written to " + target.string() +
+                         " (reconstruct them into separate --out folders)");
+    if (inputs.count(target))
+      throw Error("--out", "writing " + target.string() + " would overwrite a capture being read; choose another --out folder");
+  }
+}
+
 torch::Tensor planes_to_srgb(const torch::Tensor& planes) {
   return linear_to_srgb(bayer_planes_to_rgb(planes).clamp(0, 1));
 }
@@ -48,6 +71,7 @@ torch::Tensor planes_to_srgb(const torch::Tensor& planes) {
 ReconReport reconstruct_files(const CameraConfig& camera, const Calibration& calib,
                               const std::vector<std::filesystem::path>& captures, const ReconOptions& opt) {
   require(opt.method == "tikhonov" || opt.method == "tv", "--method", "must be tikhonov or tv, got '" + opt.method + "'");
+  check_output_names(captures, opt.out);
   c10::InferenceMode guard;
   std::function<torch::Tensor(const torch::Tensor&)> solve;
   if (opt.method == "tikhonov") {

@@ -26,6 +26,10 @@ struct ReconReport {
 // A FILE, every .png in a DIR (sorted), files matching a pattern (DIR/fc_*.png), or the files a
 // .txt list names (relative to the list's folder).
 std::vector<std::filesystem::path> collect_captures(const std::filesystem::path& input);
+// Each capture's reconstruction is written to OUT/<capture name>.png. Throws (naming the files)
+// when two captures would write one output, or an output would replace a capture being read
+// (--out equal to the input folder).
+void check_output_names(const std::vector<std::filesystem::path>& captures, const std::filesystem::path& out);
 
 // Linear-light planes {4,N,N} (b, gb, gr, r) -> sRGB image {3,N,N} in [0,1].
 torch::Tensor planes_to_srgb(const torch::Tensor& planes);
