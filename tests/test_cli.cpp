@@ -59,6 +59,19 @@ TEST_CASE("bad input: one clear line, exit code 2", "[cli][errors]") {
   test::Scratch s("bad");
   std::filesystem::create_directories(s.dir / "empty");
 
+  // Absurd numbers are refused where flags are parsed, in every command, naming the flag.
+  const auto golden_raw = test::data_dir() / "golden" / "bsds_16052_raw.png";
+  for (const std::string& flags : std::vector<std::string>{"--threads 100000", "--batch 0", "--lambda 0", "--lambda -1", "--lambda 1e9"}) {
+    INFO(flags);
+    const auto bad = test::run_flatnet("recon --method tikhonov --input " + q(golden_raw) + " --out " + q(s.dir / "rec") + " " + flags);
+    CHECK(bad.code == 2);
+    CHECK_THAT(bad.output, Contains(flags.substr(0, flags.find(' '))) && Contains("out of range"));
+  }
+  CHECK_FALSE(std::filesystem::exists(s.dir / "rec"));
+  const auto avg = test::run_flatnet("calibrate --rig " + q(test::source_dir() / "configs" / "cameras" / "sim.yaml") + " --average 0 --out " + q(s.dir / "c.mat"));
+  CHECK(avg.code == 2);
+  CHECK_THAT(avg.output, Contains("--average"));
+
   auto r = test::run_flatnet("simulate --images " + q(s.dir / "empty") + " --out " + q(s.dir / "o"));
   CHECK(r.code == 2);
   CHECK_THAT(r.output, Contains("empty") && Contains("no images"));
@@ -137,6 +150,18 @@ TEST_CASE("train, export, import and infer from the command line, and bad input 
 
   // export -> state dict -> import -> infer gives the same images.
   REQUIRE(test::run_flatnet("export --model " + q(model) + " --state-dict --out " + q(s.dir / "sd.pt")).code == 0);
+  // Existing files are kept unless --force, and the file being read is never replaced.
+  const auto sd_bytes = read_bytes(s.dir / "sd.pt");
+  r = test::run_flatnet("export --model " + q(model) + " --state-dict --out " + q(s.dir / "sd.pt"));
+  CHECK(r.code == 2);
+  CHECK_THAT(r.output, Contains("already exists") && Contains("--force"));
+  CHECK(read_bytes(s.dir / "sd.pt") == sd_bytes);
+  CHECK(test::run_flatnet("export --model " + q(model) + " --state-dict --force --out " + q(s.dir / "sd.pt")).code == 0);
+  const auto ckpt_bytes = read_bytes(s.dir / "run" / "latest.ckpt");
+  r = test::run_flatnet("export --checkpoint " + q(s.dir / "run" / "latest.ckpt") + " --force --out " + q(s.dir / "run" / "latest.ckpt"));
+  CHECK(r.code == 2);
+  CHECK_THAT(r.output, Contains("is also the input"));
+  CHECK(read_bytes(s.dir / "run" / "latest.ckpt") == ckpt_bytes);
   r = test::run_flatnet("import --state-dict " + q(s.dir / "sd.pt") + " --config " +
                         q(test::source_dir() / "configs" / "sim_transpose.yaml") + " --set model.unet.width=2 --out " +
                         q(s.dir / "imported.flatnet"));

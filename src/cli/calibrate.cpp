@@ -20,6 +20,7 @@ int calibrate(int argc, char** argv) {
       "write-patterns", "write the pattern images for display into this folder and stop", cxxopts::value<std::string>())(
       "camera", "camera .yaml for --captures (geometry, preprocessing)", cxxopts::value<std::string>())(
       "out", "calibration .mat to write (FlatNet layout)", cxxopts::value<std::string>())(
+      "force", "replace an existing --out file")(
       "average", "frames averaged per pattern (simulated)", cxxopts::value<int>()->default_value("4"))(
       "noise", "on|off (simulated)", cxxopts::value<std::string>()->default_value("on"))(
       "seed", "noise seed (simulated)", cxxopts::value<uint64_t>()->default_value("0"))(
@@ -45,6 +46,7 @@ int calibrate(int argc, char** argv) {
   require(r.count("out"), "calibrate", "--out FILE.mat is required");
   require(r.count("rig") + r.count("captures") == 1, "calibrate", "give exactly one of --rig or --captures");
   const std::filesystem::path out = r["out"].as<std::string>();
+  require_new_output(out, r.count("force") > 0);
 
   Calibration est;
   std::optional<Calibration> truth;

@@ -1,3 +1,4 @@
+#include <cmath>
 #include <iostream>
 
 #include "cli/commands.hpp"
@@ -11,6 +12,51 @@ void add_common(cxxopts::Options& options) {
       "h,help", "show this help");
 }
 
+namespace {
+
+// The one place where numeric flags are checked: every flag of this name, in every command, that
+// the user gave. {name, lowest, highest, what the range means}.
+struct NumberRule {
+  const char* name;
+  double lo, hi;
+  const char* meaning;
+};
+const std::vector<NumberRule>& number_rules() {
+  static const std::vector<NumberRule> rules = {
+      {"threads", 0, 1024, "0 (all cores) to 1024"},
+      {"batch", 1, 4096, "1 to 4096 captures"},
+      {"workers", 1, 256, "1 to 256"},
+      {"average", 1, 100000, "at least 1 frame"},
+      {"lambda", 1e-12, 1e6, "a positive regulariser (leave it out for the camera file's)"},
+      {"repeats", 1, 1e6, "at least 1"},
+      {"warmup", 0, 1e6, "0 or more"},
+      {"frames", 0, 1e9, "0 (no limit) or more"},
+      {"seconds", 0, 1e7, "0 (no limit) or more"},
+      {"exposure", 1e-6, 1e6, "a positive factor"},
+      {"val-fraction", 0, 1, "0 to 1"},
+  };
+  return rules;
+}
+
+void check_numbers(const cxxopts::ParseResult& result) {
+  for (const auto& kv : result.arguments()) {
+    for (const auto& rule : number_rules()) {
+      if (kv.key() != rule.name) continue;
+      double v = 0;
+      size_t used = 0;
+      try {
+        v = std::stod(kv.value(), &used);
+      } catch (const std::exception&) {
+        used = 0;
+      }
+      if (used != kv.value().size() || !std::isfinite(v) || v < rule.lo || v > rule.hi)
+        throw Error("--" + kv.key(), "'" + kv.value() + "' is out of range: " + rule.meaning);
+    }
+  }
+}
+
+}  // namespace
+
 bool parse(cxxopts::Options& options, int argc, char** argv, cxxopts::ParseResult& result) {
   result = options.parse(argc, argv);
   if (result.count("help")) {
@@ -18,8 +64,18 @@ bool parse(cxxopts::Options& options, int argc, char** argv, cxxopts::ParseResul
     return false;
   }
   if (!result.unmatched().empty()) throw Error("unexpected argument '" + result.unmatched()[0] + "'");
+  check_numbers(result);
   set_threads(result["threads"].as<int>());
   return true;
+}
+
+void require_new_output(const std::filesystem::path& out, bool force, const std::vector<std::filesystem::path>& inputs) {
+  std::error_code ec;
+  for (const auto& in : inputs)
+    if (!in.empty() && std::filesystem::exists(in) && std::filesystem::equivalent(in, out, ec))
+      throw Error(out, "is also the input; write to another file (the input is never overwritten, even with --force)");
+  if (std::filesystem::is_directory(out)) throw Error(out, "is a folder; give a file name");
+  if (std::filesystem::exists(out) && !force) throw Error(out, "already exists; add --force to replace it");
 }
 
 std::vector<std::string> set_overrides(const cxxopts::ParseResult& r) {

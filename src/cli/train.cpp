@@ -220,12 +220,15 @@ int export_model(int argc, char** argv) {
       "model", "model file (instead of --checkpoint; for --state-dict)", cxxopts::value<std::string>())(
       "out", "file to write", cxxopts::value<std::string>())(
       "state-dict", "write torch.save(state_dict) with FlatNet-sep's parameter names instead of a model file")(
-      "flatnet-checkpoint", "write FlatNet's checkpoint layout {'gen_state_dict': state_dict} (its main.py loads it)");
+      "flatnet-checkpoint", "write FlatNet's checkpoint layout {'gen_state_dict': state_dict} (its main.py loads it)")(
+      "force", "replace an existing --out file");
   add_common(o);
   cxxopts::ParseResult r;
   if (!parse(o, argc, argv, r)) return 0;
   require(r.count("out") && (r.count("checkpoint") + r.count("model") == 1), "export",
           "--out FILE and one of --checkpoint CKPT or --model MODEL are required");
+  require_new_output(r["out"].as<std::string>(), r.count("force") > 0,
+                     {r.count("checkpoint") ? r["checkpoint"].as<std::string>() : r["model"].as<std::string>()});
   bool average = false;
   auto m = r.count("checkpoint") ? model_from_checkpoint(r["checkpoint"].as<std::string>(), &average)
                                  : load_model_file(r["model"].as<std::string>());
@@ -254,11 +257,13 @@ int import_model(int argc, char** argv) {
       "set", "override a setting (repeatable)", cxxopts::value<std::vector<std::string>>())(
       "camera", "camera the weights were trained for (default: the config's data.camera)", cxxopts::value<std::string>())(
       "out", "model file to write", cxxopts::value<std::string>())(
-      "verbose", "list the file's tensors that the model does not use");
+      "verbose", "list the file's tensors that the model does not use")(
+      "force", "replace an existing --out file");
   add_common(o);
   cxxopts::ParseResult r;
   if (!parse(o, argc, argv, r)) return 0;
   require(r.count("state-dict") && r.count("out"), "import", "--state-dict FILE and --out MODEL are required");
+  require_new_output(r["out"].as<std::string>(), r.count("force") > 0, {r["state-dict"].as<std::string>()});
   const auto sets = set_overrides(r);
   auto config = Config::load(r.count("config") ? r["config"].as<std::string>() : "", sets);
   const auto camera = r.count("camera") ? load_camera_config(r["camera"].as<std::string>()) : camera_of(config);
