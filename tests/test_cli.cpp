@@ -256,3 +256,32 @@ TEST_CASE("distributed training from the command line: two local ranks, resume, 
   CHECK_THAT(r.output, Contains("lost contact with the others") || Contains("rendezvous"));
   CHECK(seconds < 100);
 }
+
+TEST_CASE("a full disk: exit 2 naming the file, no temp files left, no broken file under a final name", "[cli][errors][disk]") {
+  test::Scratch s("full_disk");
+  const auto disk = s.dir / "disk";
+  std::filesystem::create_directories(disk);
+  if (test::run_shell("mount -t tmpfs -o size=200k tmpfs " + q(disk)).code != 0) SKIP_TEST("cannot mount a tmpfs here (needs root)");
+  struct Unmount {
+    std::filesystem::path dir;
+    ~Unmount() { test::run_shell("umount " + test::q(dir)); }
+  } unmount{disk};
+  const auto model = test::source_dir() / "models" / "flatnet-sim-transpose.flatnet";
+  for (const std::string& what : std::vector<std::string>{"", " --state-dict"}) {
+    INFO(what);
+    const auto r = test::run_flatnet("export --model " + q(model) + what + " --out " + q(disk / "m.out"));
+    CHECK(r.code == 2);
+    CHECK_THAT(r.output, Contains("m.out") && Contains("write failed"));
+    CHECK(std::filesystem::is_empty(disk));  // neither the final name nor a temporary file
+  }
+  // Reconstructions until the disk fills: an error, and every file left is a whole image.
+  const auto r = test::run_flatnet("recon --method tikhonov --batch 1 --input " + q(test::data_dir() / "golden" / "*_raw.png") +
+                                   " --out " + q(disk / "rec"));
+  CHECK(r.code == 2);
+  CHECK_THAT(r.output, Contains("write failed"));
+  for (const auto& e : std::filesystem::directory_iterator(disk / "rec")) {
+    INFO(e.path());
+    CHECK(e.path().filename().string()[0] != '.');
+    CHECK(read_rgb(e.path()).size(0) == 3);
+  }
+}

@@ -31,24 +31,42 @@ void write_atomically(const fs::path& path, const std::function<void(const fs::p
   const fs::path tmp = path.parent_path() /
       ("." + path.stem().string() + ".tmp" + std::to_string(::getpid()) + "_" +
        std::to_string(counter++) + path.extension().string());
+  auto remove_tmp = [&] {
+    std::error_code ec;
+    fs::remove(tmp, ec);
+  };
+  // Whatever fails (our checks, LibTorch's writer, the file system), the temporary file goes and
+  // the final name is neither created nor replaced.
   try {
     write_to(tmp);
     fs::rename(tmp, path);
+  } catch (const Error&) {
+    remove_tmp();
+    throw;
+  } catch (const c10::Error& e) {
+    remove_tmp();
+    throw Error(path, "write failed (disk full?): " + std::string(e.what_without_backtrace()).substr(0, 120));
+  } catch (const fs::filesystem_error& e) {
+    remove_tmp();
+    throw Error(path, "write failed: " + e.code().message());
   } catch (...) {
-    std::error_code ec;
-    fs::remove(tmp, ec);
+    remove_tmp();
     throw;
   }
 }
 
-void write_text_atomically(const fs::path& path, const std::string& text) {
+void write_bytes_atomically(const fs::path& path, const std::string& bytes) {
   write_atomically(path, [&](const fs::path& tmp) {
     std::ofstream out(tmp, std::ios::binary);
     require(static_cast<bool>(out), path, "cannot open for writing");
-    out << text;
+    out.write(bytes.data(), static_cast<std::streamsize>(bytes.size()));
     out.close();
     require(static_cast<bool>(out), path, "write failed (disk full?)");
   });
+}
+
+void write_text_atomically(const fs::path& path, const std::string& text) {
+  write_bytes_atomically(path, text);
 }
 
 std::vector<std::string> read_lines(const fs::path& path) {

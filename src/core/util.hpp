@@ -19,6 +19,8 @@ int set_threads(int n);
 // on failure it is removed. A reader never sees a half-written file.
 void write_atomically(const fs::path& path, const std::function<void(const fs::path&)>& write_to);
 void write_text_atomically(const fs::path& path, const std::string& text);
+// Bytes to a file, atomically; every write and the close are checked (errors name `path`).
+void write_bytes_atomically(const fs::path& path, const std::string& bytes);
 
 // Reads a list file: one entry per line, CR/LF and surrounding blanks stripped, empty lines skipped.
 std::vector<std::string> read_lines(const fs::path& path);

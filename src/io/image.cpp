@@ -1,5 +1,6 @@
 #include "io/image.hpp"
 
+#include <OpenImageIO/filesystem.h>
 #include <OpenImageIO/imageio.h>
 #include <opencv2/imgproc.hpp>
 
@@ -56,17 +57,21 @@ torch::Tensor read_gray16(const std::filesystem::path& path) {
 
 namespace {
 
+// Encodes in memory, then writes the bytes with every write checked: OIIO's file writers do not
+// report a full disk (a truncated PNG was renamed into place and the run reported success).
 void write_image(const std::filesystem::path& path, const void* data, int w, int h, int c,
                  OIIO::TypeDesc type) {
-  write_atomically(path, [&](const std::filesystem::path& tmp) {
-    auto out = OIIO::ImageOutput::create(tmp.string());
-    require(out != nullptr, path, "no image writer for this extension");
-    OIIO::ImageSpec spec(w, h, c, type);
-    require(out->open(tmp.string(), spec), path, "cannot open for writing (" + out->geterror() + ")");
-    const bool ok = out->write_image(type, data);
-    out->close();
-    require(ok, path, "write failed (" + out->geterror() + ")");
-  });
+  auto out = OIIO::ImageOutput::create(path.string());
+  require(out != nullptr, path, "no image writer for this extension");
+  std::vector<unsigned char> encoded;
+  OIIO::Filesystem::IOVecOutput memory(encoded);
+  require(out->supports("ioproxy") && out->set_ioproxy(&memory), path, "this image format cannot be written through memory");
+  OIIO::ImageSpec spec(w, h, c, type);
+  require(out->open(path.string(), spec), path, "cannot encode (" + out->geterror() + ")");
+  const bool ok = out->write_image(type, data);
+  const bool closed = out->close();
+  require(ok && closed, path, "cannot encode (" + out->geterror() + ")");
+  write_bytes_atomically(path, std::string(encoded.begin(), encoded.end()));
 }
 
 }  // namespace

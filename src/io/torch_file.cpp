@@ -576,12 +576,7 @@ void save_torch_state_dict(const std::filesystem::path& path, const std::vector<
       writer.writeRecord("data/" + std::to_string(i), storages[i].data_ptr(), storages[i].nbytes());
     writer.writeEndOfFile();
   }
-  write_atomically(path, [&](const std::filesystem::path& tmp) {
-    std::ofstream out(tmp, std::ios::binary);
-    out.write(zip.data(), static_cast<std::streamsize>(zip.size()));
-    out.close();
-    if (!out) throw Error(tmp, "write failed");
-  });
+  write_bytes_atomically(path, zip);
 }
 
 PyRef PyValue::get(const std::string& key) const {

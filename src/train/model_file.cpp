@@ -170,6 +170,17 @@ torch::serialize::InputArchive open_archive(const std::filesystem::path& path, c
   return a;
 }
 
+// The archive in memory: LibTorch's file writer aborts the process when the disk fills up (it
+// throws from a destructor); written from memory, a full disk is an ordinary, checked error.
+std::string archive_bytes(torch::serialize::OutputArchive& a) {
+  std::string bytes;
+  a.save_to([&](const void* data, size_t n) {
+    bytes.append(static_cast<const char*>(data), n);
+    return n;
+  });
+  return bytes;
+}
+
 void write_header(torch::serialize::OutputArchive& a, const std::string& format, const Config& config,
                   const CameraConfig& camera) {
   write_string(a, "flatnet_format", format);
@@ -252,7 +263,7 @@ void save_model_file(const std::filesystem::path& path, Generator& generator, co
   torch::serialize::OutputArchive a;
   write_header(a, kModelFormat, config, camera);
   save_module(a, "generator", *generator);
-  write_atomically(path, [&](const std::filesystem::path& tmp) { a.save_to(tmp.string()); });
+  write_bytes_atomically(path, archive_bytes(a));
 }
 
 ModelFile load_model_file(const std::filesystem::path& path) { return read_generator(path, kModelFormat); }
@@ -273,7 +284,7 @@ void save_checkpoint(const std::filesystem::path& path, Generator& g, Discrimina
   a.write("step", c10::IValue(state.step));
   a.write("best_psnr", c10::IValue(state.best_psnr));
   a.write("rng_state", state.rng_state, /*is_buffer=*/true);
-  write_atomically(path, [&](const std::filesystem::path& tmp) { a.save_to(tmp.string()); });
+  write_bytes_atomically(path, archive_bytes(a));
 }
 
 std::pair<Config, CameraConfig> checkpoint_settings(const std::filesystem::path& path) {
