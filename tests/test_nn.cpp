@@ -193,6 +193,13 @@ TEST_CASE("model files and state dicts round trip, and wrong files give clear er
   std::ofstream(s.dir / "junk.flatnet") << "junk";
   CHECK_THROWS_WITH(load_model_file(s.dir / "junk.flatnet"), Contains("junk.flatnet"));
   CHECK_THROWS_WITH(load_model_file(s.dir / "none.flatnet"), Contains("no such file"));
+  // A weight that is NaN (a damaged or diverged file) is refused by name, not run into black images.
+  {
+    torch::NoGradGuard ng;
+    g->named_parameters()["enhancer.outc.conv.weight"][0][0][0][0] = std::nan("");
+  }
+  save_model_file(s.dir / "nan.flatnet", g, config, camera);
+  CHECK_THROWS_WITH(load_model_file(s.dir / "nan.flatnet"), Contains("nan.flatnet") && Contains("enhancer.outc.conv.weight") && Contains("NaN"));
 }
 
 TEST_CASE("the C++ generator equals a Python reference of FlatNet-sep on the same weights", "[nn][python]") {

@@ -5,6 +5,7 @@
 #include "core/util.hpp"
 #include "helpers.hpp"
 #include "io/image.hpp"
+#include "io/mat.hpp"
 #include "io/raw.hpp"
 #include "optics/calibrate.hpp"
 #include "optics/camera.hpp"
@@ -137,4 +138,26 @@ TEST_CASE("calibrating the simulated rig through its ADC: about 1% error", "[opt
   CHECK(err.p < 0.03);
   CHECK(err.q < 0.03);
   CHECK(err.forward < 0.03);
+}
+
+TEST_CASE("a rig with NaN in its response is refused by name, never simulated", "[optics][rig]") {
+  test::Scratch s("nan_rig");
+  auto write_rig = [&](const std::filesystem::path& path, bool poison) {
+    std::map<std::string, torch::Tensor> v;
+    for (const char* c : kChannelNames) {
+      v[std::string("PhiL_") + c] = torch::rand({4, 3}, torch::kFloat64);
+      v[std::string("PhiR_") + c] = torch::rand({5, 3}, torch::kFloat64);
+      v[std::string("gain_") + c] = torch::ones({1, 1}, torch::kFloat64);
+    }
+    v["vig_rows"] = torch::ones({4, 1}, torch::kFloat64);
+    v["vig_cols"] = torch::ones({5, 1}, torch::kFloat64);
+    for (const char* k : {"full_well", "read_noise", "dark", "adc_bits"}) v[k] = torch::full({1, 1}, 10.0, torch::kFloat64);
+    if (poison) v["PhiR_gr"][2][1] = std::nan("");
+    write_mat(path, v);
+  };
+  write_rig(s.dir / "good.mat", false);
+  CHECK_NOTHROW(load_rig(s.dir / "good.mat"));
+  write_rig(s.dir / "bad.mat", true);
+  CHECK_THROWS_WITH(load_rig(s.dir / "bad.mat"), Catch::Matchers::Contains("bad.mat") && Catch::Matchers::Contains("PhiR") &&
+                                                     Catch::Matchers::Contains("NaN"));
 }

@@ -30,6 +30,9 @@ Rig load_rig(const std::filesystem::path& path) {
   rig.gain = torch::stack(G).to(torch::kFloat32);
   rig.vig_rows = mat.read("vig_rows", {H}).to(torch::kFloat32);
   rig.vig_cols = mat.read("vig_cols", {W}).to(torch::kFloat32);
+  for (const auto& [name, t] : std::vector<std::pair<std::string, torch::Tensor>>{
+           {"PhiL_*", rig.phil}, {"PhiR_*", rig.phir}, {"gain_*", rig.gain}, {"vig_rows", rig.vig_rows}, {"vig_cols", rig.vig_cols}})
+    require(torch::isfinite(t).all().item<bool>(), path, name + " contains NaN or Inf");
   rig.full_well = mat.read_scalar("full_well");
   rig.read_noise = mat.read_scalar("read_noise");
   rig.dark = mat.read_scalar("dark");

@@ -128,6 +128,8 @@ void fill_module(torch::nn::Module& m, const std::filesystem::path& where, const
       os << label << " '" << name_in_file(name) << "' is " << t.sizes() << ", the model needs " << target.sizes();
       throw Error(where, os.str());
     }
+    if (t.is_floating_point() && !torch::isfinite(t).all().item<bool>())
+      throw Error(where, label + " '" + name_in_file(name) + "' holds NaN or infinity (a damaged file?)");
     target.copy_(t);
   };
   for (auto& p : m.named_parameters()) copy_in(p.key(), p.value(), false);
