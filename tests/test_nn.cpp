@@ -7,6 +7,7 @@
 #include "core/error.hpp"
 #include "eval/metrics.hpp"
 #include "helpers.hpp"
+#include "tiny_model.hpp"
 #include "nn/generator.hpp"
 #include "nn/losses.hpp"
 #include "train/config.hpp"
@@ -160,17 +161,8 @@ TEST_CASE("config: defaults, base files, --set, unknown keys with a suggestion, 
 TEST_CASE("model files and state dicts round trip, and wrong files give clear errors", "[nn][model]") {
   test::Scratch s("model");
   auto config = Config::load({}, {"model.unet.width=2"});
-  CameraConfig camera;
-  camera.raw.crop = {0, 0, 20, 24};
-  camera.scene_size = 16;
-  Generator g(generator_options(config, camera, false));
-  {
-    torch::NoGradGuard ng;
-    for (auto& p : g->parameters()) p.uniform_(-0.3, 0.3);
-  }
-  g->train();
-  g->forward(torch::randn({2, 4, 20, 24}));  // non-trivial running statistics
-  g->eval();
+  const auto camera = test::tiny_camera();
+  auto g = test::random_generator(config, camera);  // non-trivial running statistics
   const auto Y = torch::randn({1, 4, 20, 24});
   const auto expected = g->forward(Y);
 

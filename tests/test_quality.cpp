@@ -5,6 +5,7 @@
 #include "core/error.hpp"
 #include "core/util.hpp"
 #include "helpers.hpp"
+#include "tiny_model.hpp"
 #include "io/image.hpp"
 #include "io/raw.hpp"
 #include "optics/simulator.hpp"
@@ -158,24 +159,7 @@ TEST_CASE("simulate makes dim, lamp and held-out-only sets, and train --init-fro
 // ---- The light level (model.level_input, camera centring "level") ------------------------------
 
 namespace {
-CameraConfig tiny_camera(Centring centring) {
-  CameraConfig c;
-  c.raw.crop = {0, 0, 20, 24};
-  c.scene_size = 16;
-  c.raw.centring = centring;
-  return c;
-}
-
-// A trained-looking tiny generator (random weights, eval mode with non-trivial statistics).
-Generator tiny_generator(const Config& config, const CameraConfig& camera) {
-  Generator g(generator_options(config, camera, false));
-  torch::NoGradGuard ng;
-  for (auto& p : g->parameters()) p.uniform_(-0.3, 0.3);
-  g->train();
-  g->forward(torch::randn({2, 4, 20, 24}) + 0.5);
-  g->eval();
-  return g;
-}
+using test::tiny_camera;
 }  // namespace
 
 TEST_CASE("centring 'level' is plane centring plus each plane's mean, and without_level undoes it", "[quality][level]") {
@@ -198,14 +182,14 @@ TEST_CASE("a generator with the light level tells a saturated capture from a bla
   const auto with = Config::load({}, {"model.unet.width=8", "model.level_input=true", "model.bn_momentum=0.1"});
   const auto without = Config::load({}, {"model.unet.width=8", "model.bn_momentum=0.1"});
   torch::manual_seed(0);
-  auto g = tiny_generator(with, level_cam);
+  auto g = test::random_generator(with, level_cam);
   {
     torch::NoGradGuard ng;  // weights that read the level strongly
     g->named_parameters()["enhancer.inc.conv.conv.0.weight"].narrow(1, 4, 4).fill_(0.5);
   }
   const auto probe = g->forward(torch::randn({1, 4, 20, 24}));
   REQUIRE(probe.std().item<double>() > 1e-4);  // a live network, not a constant
-  auto plain = tiny_generator(without, plane_cam);
+  auto plain = test::random_generator(without, plane_cam);
   CHECK(g->named_parameters()["enhancer.inc.conv.conv.0.weight"].size(1) == 8);  // 4 first-stage + 4 level channels
   // Two frames with the same pattern, one near black and one near saturation.
   const auto pattern = 0.05 * torch::rand({1, 4, 20, 24});
@@ -244,7 +228,7 @@ TEST_CASE("train --init-from a model without the level adds it with zero weights
   const auto plane_cam = tiny_camera(Centring::plane), level_cam = tiny_camera(Centring::level);
   const auto without = Config::load({}, {"model.unet.width=2", "model.bn_momentum=0.1"});
   const auto with = Config::load({}, {"model.unet.width=2", "model.level_input=true", "model.bn_momentum=0.1"});
-  auto old_model = tiny_generator(without, plane_cam);
+  auto old_model = test::random_generator(without, plane_cam);
   save_model_file(s.dir / "old.flatnet", old_model, without, plane_cam);
   Generator g(generator_options(with, level_cam, false));
   init_generator_from(s.dir / "old.flatnet", g);
@@ -253,7 +237,7 @@ TEST_CASE("train --init-from a model without the level adds it with zero weights
   CHECK(torch::allclose(g->forward(double_centre(raw, Centring::level)), old_model->forward(double_centre(raw, Centring::plane)),
                         1e-5, 1e-6));
   // The other way (a level model into a plain one) is a shape error naming the tensor.
-  auto level_model = tiny_generator(with, level_cam);
+  auto level_model = test::random_generator(with, level_cam);
   save_model_file(s.dir / "level.flatnet", level_model, with, level_cam);
   Generator plain(generator_options(without, plane_cam, false));
   CHECK_THROWS_WITH(init_generator_from(s.dir / "level.flatnet", plain), Contains("level.flatnet") && Contains("inc.conv.conv.0.weight"));

@@ -6,6 +6,7 @@
 
 #include "core/error.hpp"
 #include "helpers.hpp"
+#include "tiny_model.hpp"
 #include "io/torch_file.hpp"
 #include "train/config.hpp"
 #include "train/model_file.hpp"
@@ -132,16 +133,9 @@ TEST_CASE("flatnet import finds the generator in every layout people save", "[to
   test::Scratch s("torchfile_import");
   // A tiny generator's names, written by this project's exporter; then the same tensors in the
   // layouts of the fixtures, made here from the exported dict with the reader's own output.
-  auto config = Config::load({}, {"model.unet.width=2"});
-  CameraConfig camera;
-  camera.raw.crop = {0, 0, 20, 24};
-  camera.scene_size = 16;
-  Generator g(generator_options(config, camera, false));
-  {
-    torch::NoGradGuard ng;
-    for (auto& p : g->parameters()) p.uniform_(-0.3, 0.3);
-  }
-  g->eval();
+  const auto config = Config::load({}, {"model.unet.width=2"});
+  const auto camera = test::tiny_camera();
+  auto g = test::random_generator(config, camera);
   export_state_dict(s.dir / "sd.pt", g);
   Generator h(generator_options(config, camera, false));
   const auto rep = import_state_dict(s.dir / "sd.pt", h);
@@ -161,16 +155,9 @@ TEST_CASE("flatnet import finds the generator in every layout people save", "[to
 TEST_CASE("flatnet import reads what Python writes: OrderedDict, FlatNet checkpoints, DataParallel, legacy", "[torchfile][import][python]") {
   if (!test::python_has_torch()) SKIP_TEST("/usr/bin/python3 has no torch");
   test::Scratch s("torchfile_python");
-  auto config = Config::load({}, {"model.unet.width=2"});
-  CameraConfig camera;
-  camera.raw.crop = {0, 0, 20, 24};
-  camera.scene_size = 16;
-  Generator g(generator_options(config, camera, false));
-  {
-    torch::NoGradGuard ng;
-    for (auto& p : g->parameters()) p.uniform_(-0.3, 0.3);
-  }
-  g->eval();
+  const auto config = Config::load({}, {"model.unet.width=2"});
+  const auto camera = test::tiny_camera();
+  auto g = test::random_generator(config, camera);
   export_state_dict(s.dir / "ours.pt", g);
   export_state_dict(s.dir / "ours_flatnet.pt", g, StateDictLayout::flatnet_checkpoint);
   // Python loads our file and saves it back in each layout (the round trip C++ -> Python -> C++).

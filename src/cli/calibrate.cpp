@@ -64,8 +64,7 @@ int calibrate(int argc, char** argv) {
     const auto camera = camera_from(r);
     const std::filesystem::path dir = r["captures"].as<std::string>();
     require(std::filesystem::is_directory(dir), dir, "captures folder not found");
-    auto capture = [&](const std::string& name) { return without_level(load_capture(dir / (name + ".png"), camera.raw).planes, camera.raw.centring);
-    };
+    auto capture = [&](const std::string& name) { return load_centred_planes(dir / (name + ".png"), camera.raw); };
     est = estimate_calibration(camera.scene_size, capture, level);
   }
   save_calibration(out, est);

@@ -228,8 +228,7 @@ int capture_calibration(int argc, char** argv) {
               << " patterns are captured\n";
     return interrupted() ? 130 : 0;
   }
-  auto capture = [&](const std::string& name) { return without_level(load_capture(out / (name + ".png"), camera.raw).planes, camera.raw.centring);
-  };
+  auto capture = [&](const std::string& name) { return load_centred_planes(out / (name + ".png"), camera.raw); };
   save_calibration(calib_out, estimate_calibration(camera.scene_size, capture, level));
   std::cout << "wrote " << calib_out.string() << "\n";
   return 0;

@@ -227,14 +227,13 @@ int export_model(int argc, char** argv) {
   if (!parse(o, argc, argv, r)) return 0;
   require(r.count("out") && (r.count("checkpoint") + r.count("model") == 1), "export",
           "--out FILE and one of --checkpoint CKPT or --model MODEL are required");
-  require_new_output(r["out"].as<std::string>(), r.count("force") > 0,
-                     {r.count("checkpoint") ? r["checkpoint"].as<std::string>() : r["model"].as<std::string>()});
-  bool average = false;
-  auto m = r.count("checkpoint") ? model_from_checkpoint(r["checkpoint"].as<std::string>(), &average)
-                                 : load_model_file(r["model"].as<std::string>());
-  if (average) std::cerr << "exporting the moving average of the weights (train.ema_decay)\n";
-  const std::filesystem::path out = r["out"].as<std::string>();
   require(!(r.count("state-dict") && r.count("flatnet-checkpoint")), "export", "give --state-dict or --flatnet-checkpoint, not both");
+  const std::filesystem::path out = r["out"].as<std::string>();
+  const std::string input = r.count("checkpoint") ? r["checkpoint"].as<std::string>() : r["model"].as<std::string>();
+  require_new_output(out, r.count("force") > 0, {input});
+  bool average = false;
+  auto m = r.count("checkpoint") ? model_from_checkpoint(input, &average) : load_model_file(input);
+  if (average) std::cerr << "exporting the moving average of the weights (train.ema_decay)\n";
   if (r.count("state-dict") || r.count("flatnet-checkpoint")) {
     const bool flatnet_layout = r.count("flatnet-checkpoint") > 0;
     export_state_dict(out, m.generator, flatnet_layout ? StateDictLayout::flatnet_checkpoint : StateDictLayout::state_dict);
@@ -263,13 +262,13 @@ int import_model(int argc, char** argv) {
   cxxopts::ParseResult r;
   if (!parse(o, argc, argv, r)) return 0;
   require(r.count("state-dict") && r.count("out"), "import", "--state-dict FILE and --out MODEL are required");
-  require_new_output(r["out"].as<std::string>(), r.count("force") > 0, {r["state-dict"].as<std::string>()});
+  const std::filesystem::path out = r["out"].as<std::string>();
+  require_new_output(out, r.count("force") > 0, {r["state-dict"].as<std::string>()});
   const auto sets = set_overrides(r);
   auto config = Config::load(r.count("config") ? r["config"].as<std::string>() : "", sets);
   const auto camera = r.count("camera") ? load_camera_config(r["camera"].as<std::string>()) : camera_of(config);
   Generator g(generator_options(config, camera, false));
   const auto rep = import_state_dict(r["state-dict"].as<std::string>(), g);
-  const std::filesystem::path out = r["out"].as<std::string>();
   save_model_file(out, g, config, camera);
   std::cout << "read " << rep.used << " tensors from " << rep.source << (rep.data_parallel ? " (DataParallel names)" : "")
             << "; " << rep.unused.size() << " unused" << (rep.unused.empty() || r.count("verbose") ? "" : " (--verbose lists them)")

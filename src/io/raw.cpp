@@ -85,6 +85,10 @@ Capture load_capture(const std::filesystem::path& path, const RawGeometry& g) {
   return {preprocess_raw(load_raw_unit(path, g), g), path.filename().string()};
 }
 
+torch::Tensor load_centred_planes(const std::filesystem::path& path, const RawGeometry& g) {
+  return without_level(load_capture(path, g).planes, g.centring);
+}
+
 torch::Tensor adc_to_stored(const torch::Tensor& codes, int adc_bits) {
   return codes.to(torch::kInt32) * (1 << (16 - adc_bits));
 }

@@ -39,6 +39,8 @@ torch::Tensor preprocess_raw(const torch::Tensor& raw_unit, const RawGeometry& g
 
 // Reads a raw PNG, checks size and bit depth against the geometry, and preprocesses it.
 Capture load_capture(const std::filesystem::path& path, const RawGeometry& g);
+// load_capture's planes without the light level's DC: what Tikhonov, TV and calibration read.
+torch::Tensor load_centred_planes(const std::filesystem::path& path, const RawGeometry& g);
 // Reads a raw PNG as {H,W} float32 in [0,1] (codes / 65535), checking it against the geometry.
 torch::Tensor load_raw_unit(const std::filesystem::path& path, const RawGeometry& g);
 

@@ -3,7 +3,6 @@
 #include <caffe2/serialize/inline_container.h>
 
 #include <cstring>
-#include <fstream>
 #include <functional>
 #include <map>
 #include <sstream>
@@ -387,13 +386,6 @@ void materialise(PyValue& v, const std::map<std::string, std::shared_ptr<Storage
   }
 }
 
-std::string read_file_bytes(const std::filesystem::path& path) {
-  std::ifstream in(path, std::ios::binary);
-  if (!in) throw Error(path, std::filesystem::exists(path) ? "cannot be read" : "no such file");
-  std::ostringstream os;
-  os << in.rdbuf();
-  return os.str();
-}
 
 PyRef read_zip(const std::filesystem::path& path) {
   std::unique_ptr<caffe2::serialize::PyTorchStreamReader> reader;
@@ -608,7 +600,8 @@ std::string PyValue::describe() const {
 }
 
 PyRef read_torch_file(const std::filesystem::path& path) {
-  const auto bytes = read_file_bytes(path);
+  const auto raw = read_bytes(path);
+  const std::string bytes(raw.begin(), raw.end());
   if (bytes.size() >= 4 && bytes.compare(0, 4, "PK\x03\x04") == 0) return read_zip(path);
   if (bytes.size() >= 2 && static_cast<unsigned char>(bytes[0]) == 0x80) return read_legacy(path, bytes);
   throw Error(path, bytes.empty() ? "is empty" : "not a torch.save file (neither a zip archive nor a legacy pickle)");

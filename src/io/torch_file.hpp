@@ -33,7 +33,7 @@ struct PyValue {
   std::string text;                              // string, bytes, global ("module.name"), storage key
   std::vector<PyRef> items;                      // list, tuple
   std::vector<std::pair<PyRef, PyRef>> entries;  // dict, in insertion order (OrderedDict or dict)
-  torch::Tensor tensor;                          // tensor: float types as float32; storage: its elements
+  torch::Tensor tensor;                          // tensor: float types as float32 (a storage names its key in text)
 
   bool is_dict() const { return kind == Kind::dict; }
   // The value at a string key of a dict, or null.

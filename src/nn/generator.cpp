@@ -337,16 +337,19 @@ std::pair<torch::Tensor, torch::Tensor> GeneratorImpl::split_level(const torch::
   return {Y - level, level.flip({1})};     // the first stage's order (r, gr, gb, b)
 }
 
+torch::Tensor GeneratorImpl::first_stage_of(const torch::Tensor& planes) {
+  return inversion_ ? inversion_->forward(planes) : tikhonov_->forward(planes);
+}
+
 torch::Tensor GeneratorImpl::first_stage(const torch::Tensor& Y) {
   check_measurement(Y);
-  const auto planes = split_level(Y).first;
-  return inversion_ ? inversion_->forward(planes) : tikhonov_->forward(planes);
+  return first_stage_of(split_level(Y).first);
 }
 
 torch::Tensor GeneratorImpl::forward(const torch::Tensor& Y) {
   check_measurement(Y);
   const auto [planes, level] = split_level(Y);
-  return enhance(inversion_ ? inversion_->forward(planes) : tikhonov_->forward(planes), level);
+  return enhance(first_stage_of(planes), level);
 }
 
 torch::Tensor GeneratorImpl::forward_crops(const torch::Tensor& Y,
@@ -359,7 +362,7 @@ torch::Tensor GeneratorImpl::forward_crops(const torch::Tensor& Y,
   check_measurement(Y);
   const auto [planes, level] = split_level(Y);
   if (inversion_) return enhance(inversion_->forward_crops(planes, corners, size), level);
-  return enhance(crop_windows(tikhonov_->forward(planes), corners, size), level);
+  return enhance(crop_windows(first_stage_of(planes), corners, size), level);
 }
 
 torch::Tensor crop_windows(const torch::Tensor& images, const std::vector<std::pair<int64_t, int64_t>>& corners,

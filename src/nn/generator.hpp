@@ -176,6 +176,7 @@ class GeneratorImpl : public torch::nn::Module {
   // {B,4,rows,cols} -> the planes without their DC and {B,4,1,1} the DC, in the first stage's
   // channel order (r, gr, gb, b); an undefined level without level_input.
   std::pair<torch::Tensor, torch::Tensor> split_level(const torch::Tensor& Y) const;
+  torch::Tensor first_stage_of(const torch::Tensor& planes);  // inversion or Tikhonov, on planes without the level
   void apply_levers(const InferenceLevers& levers, bool for_inference);
   bool autocast_bf16_ = false;
   InferenceLevers levers_{false, false, false, false};

@@ -91,7 +91,7 @@ ReconReport reconstruct_files(const CameraConfig& camera, const Calibration& cal
   for (size_t first = 0; first < captures.size(); first += opt.batch) {
     const size_t last = std::min(captures.size(), first + static_cast<size_t>(opt.batch));
     std::vector<torch::Tensor> planes;
-    for (size_t i = first; i < last; ++i) planes.push_back(without_level(load_capture(captures[i], camera.raw).planes, camera.raw.centring));
+    for (size_t i = first; i < last; ++i) planes.push_back(load_centred_planes(captures[i], camera.raw));
     auto Y = torch::stack(planes);  // {B,4,h,w}
     const auto t0 = std::chrono::steady_clock::now();
     auto X = solve(Y);              // {B,4,N,N}
