@@ -31,14 +31,6 @@ GeneratorOptions tiny_options(int64_t k = 1, Enhancer e = Enhancer::unet) {
   return o;
 }
 
-void check_all_gradients(torch::nn::Module& m, const torch::Tensor& loss) {
-  loss.backward();
-  for (const auto& p : m.named_parameters()) {
-    INFO(p.key());
-    REQUIRE(p.value().grad().defined());
-    CHECK(p.value().grad().abs().sum().item<double>() > 0);
-  }
-}
 
 }  // namespace
 
@@ -90,14 +82,14 @@ TEST_CASE("gradients reach every parameter of every generator variant and the di
       REQUIRE(out.sizes() == torch::IntArrayRef({2, 3, 16, 16}));
       CHECK(out.min().item<double>() >= 0);
       CHECK(out.max().item<double>() <= 1);
-      check_all_gradients(*g, (out - 0.3).pow(2).mean());
+      test::check_all_gradients(*g, (out - 0.3).pow(2).mean());
     }
   }
   for (const char* kind : {"thesis", "flatnet"}) {
     Discriminator d(DiscriminatorOptions{kind, 4});
     const auto logits = d->forward(torch::rand({3, 3, 32, 32}));
     REQUIRE(logits.sizes() == torch::IntArrayRef({3, 1}));
-    check_all_gradients(*d, logits.sum());
+    test::check_all_gradients(*d, logits.sum());
   }
   CHECK_THROWS_WITH(Discriminator(DiscriminatorOptions{"patch", 4}), Contains("thesis or flatnet"));
 }
@@ -113,7 +105,7 @@ TEST_CASE("naive generator: the Tikhonov stage equals the SVD closed form", "[nn
   const auto Y = torch::matmul(P, torch::matmul(X, Q.transpose(1, 2))).to(torch::kFloat32);
   const auto rec = g->first_stage(Y).flip({1});
   CHECK(torch::allclose(rec, X.to(torch::kFloat32), 1e-2, 1e-2));
-  check_all_gradients(*g, g->forward(torch::cat({Y, Y * 0.5})).mean());  // the Tikhonov stage holds buffers only
+  test::check_all_gradients(*g, g->forward(torch::cat({Y, Y * 0.5})).mean());  // the Tikhonov stage holds buffers only
 }
 
 TEST_CASE("VGG-16 features: torchvision's layout, loader round trip, clear error without weights", "[nn]") {

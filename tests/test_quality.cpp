@@ -203,13 +203,7 @@ TEST_CASE("a generator with the light level tells a saturated capture from a bla
   CHECK(torch::allclose(g->first_stage(Y), g->first_stage(Y + torch::rand({2, 4, 1, 1})), 1e-4, 1e-5));
   // Training: every parameter gets a gradient, on crops too.
   g->train();
-  auto loss = g->forward(Y + 0.5).mean() + g->forward_crops(Y + 0.5, {{0, 0}, {0, 0}}, 16).mean();
-  loss.backward();
-  for (const auto& p : g->named_parameters()) {
-    INFO(p.key());
-    REQUIRE(p.value().grad().defined());
-    CHECK(p.value().grad().abs().sum().item<double>() > 0);
-  }
+  test::check_all_gradients(*g, g->forward(Y + 0.5).mean() + g->forward_crops(Y + 0.5, {{0, 0}, {0, 0}}, 16).mean());
 }
 
 TEST_CASE("the model and the camera must agree on the light level, with errors that say how", "[quality][level]") {
