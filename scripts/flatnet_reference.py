@@ -5,6 +5,9 @@ to check that flatnet's C++ model computes the same function on the same weights
   check STATE_DICT INPUT OUTPUT WIDTH K   load weights and input, compare with OUTPUT; exit 1 if
                                           max |diff| >= 1e-4
   make  STATE_DICT INPUT OUTPUT WIDTH K   random weights and input; write all three
+  load  STATE_DICT WIDTH K                 model.load_state_dict(torch.load(STATE_DICT), strict=True)
+  load_checkpoint CKPT WIDTH K             the same with torch.load(CKPT)['gen_state_dict'] (FlatNet's main.py)
+                                          only (e.g. at paper width, 128); exit 1 if it fails
 
 Tensors are torch.save'd (the C++ side writes them with torch::pickle_save). The model runs in
 eval mode (BatchNorm with running statistics)."""
@@ -99,6 +102,19 @@ class FlatNetSep(nn.Module):
 
 
 def main():
+    if sys.argv[1] in ("load", "load_checkpoint"):
+        sd_path, width, k = sys.argv[2:5]
+        model = FlatNetSep(int(width), int(k))
+        state = torch.load(sd_path)
+        if sys.argv[1] == "load_checkpoint":  # FlatNet's main.py layout
+            state = state["gen_state_dict"]
+        try:
+            model.load_state_dict(state, strict=True)
+        except RuntimeError as e:
+            print(e)
+            return 1
+        print("loaded", len(model.state_dict()), "tensors with strict=True")
+        return 0
     mode, sd_path, in_path, out_path, width, k = sys.argv[1:7]
     torch.manual_seed(0)
     model = FlatNetSep(int(width), int(k))

@@ -177,6 +177,25 @@ TEST_CASE("train, export, import and infer from the command line, and bad input 
   };
   CHECK(bytes(s.dir / "rec" / file) == bytes(s.dir / "rec2" / file));
 
+  // ONNX: export, then the LibTorch-free engine gives the same images (8-bit rounding aside).
+  r = test::run_flatnet("export --model " + q(model) + " --onnx " + q(s.dir / "m.onnx"));
+  INFO(r.output);
+  REQUIRE(r.code == 0);
+  CHECK_THAT(r.output, Contains("checked by ONNX's checker"));
+  r = test::run_flatnet("export --model " + q(model) + " --onnx " + q(s.dir / "m.onnx"));
+  CHECK(r.code == 2);
+  CHECK_THAT(r.output, Contains("already exists"));
+  r = test::run_flatnet("infer --engine opencv --model " + q(s.dir / "m.onnx") + " --input " + q(s.dir / "ds" / "val_meas.txt") +
+                        " --out " + q(s.dir / "rec3"));
+  INFO(r.output);
+  REQUIRE(r.code == 0);
+  CHECK_THAT(r.output, Contains("OpenCV DNN"));
+  CHECK((read_rgb(s.dir / "rec" / file) - read_rgb(s.dir / "rec3" / file)).abs().max().item<double>() <= 1.5 / 255);
+  const auto not_onnx = test::run_flatnet("infer --engine opencv --model " + q(model) + " --input " +
+                                          q(s.dir / "ds" / "meas") + " --out " + q(s.dir / "x"));
+  CHECK(not_onnx.code == 2);
+  CHECK_THAT(not_onnx.output, Contains("model.flatnet") && Contains("not an ONNX model"));
+
   // Bad input: exit code 2, a message that says what is wrong.
   auto bad = test::run_flatnet(base + " --set train.itrations=3 --out " + q(s.dir / "bad"));
   CHECK(bad.code == 2);

@@ -234,6 +234,28 @@ TEST_CASE("the C++ generator equals a Python reference of FlatNet-sep on the sam
   }
 }
 
+TEST_CASE("at paper width, the exported state dict loads into FlatNet-sep with strict=True", "[nn][python]") {
+  if (!test::python_has_torch()) SKIP_TEST("/usr/bin/python3 has no torch");
+  test::Scratch s("paper_sd");
+  const auto script = test::source_dir() / "scripts" / "flatnet_reference.py";
+  for (const char* shared : {"true", "false"}) {
+    INFO("model.inversion.shared=" << shared);
+    const auto config = Config::load({}, {"model.unet.width=128", std::string("model.inversion.shared=") + shared});
+    Generator g(generator_options(config, CameraConfig{}, false));  // 500x620 -> 256x256, 128 filters
+    for (auto layout : {StateDictLayout::state_dict, StateDictLayout::flatnet_checkpoint}) {
+      const auto file = s.dir / "paper.pt";
+      std::filesystem::remove(file);
+      export_state_dict(file, g, layout);
+      const std::string loader = layout == StateDictLayout::state_dict ? " load " : " load_checkpoint ";
+      const auto r = test::run_shell("/usr/bin/python3 " + test::q(script) + loader + test::q(file) + " 128 " +
+                                     (std::string(shared) == "true" ? "1" : "4"));
+      INFO(r.output);
+      CHECK(r.code == 0);
+      CHECK_THAT(r.output, Contains("strict=True"));
+    }
+  }
+}
+
 TEST_CASE("inference levers (BN folding, channels-last, GEMM upsampling) keep the generator's output", "[nn][levers]") {
   torch::manual_seed(3);
   auto o = tiny_options();

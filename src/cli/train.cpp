@@ -1,13 +1,17 @@
 // flatnet train / export / import / infer: the FlatNet reconstruction network's commands.
 #include <iostream>
 
+#include <opencv2/core/version.hpp>
+
 #include "cli/commands.hpp"
 #include "core/error.hpp"
 #include "core/precision.hpp"
 #include "core/util.hpp"
 #include "io/dataset.hpp"
 #include "optics/simulator.hpp"
+#include "nn/onnx_export.hpp"
 #include "recon/infer.hpp"
+#include "recon/opencv_engine.hpp"
 #include "recon/run.hpp"
 #include "train/distributed.hpp"
 #include "train/gan_trainer.hpp"
@@ -221,20 +225,29 @@ int export_model(int argc, char** argv) {
       "out", "file to write", cxxopts::value<std::string>())(
       "state-dict", "write torch.save(state_dict) with FlatNet-sep's parameter names instead of a model file")(
       "flatnet-checkpoint", "write FlatNet's checkpoint layout {'gen_state_dict': state_dict} (its main.py loads it)")(
+      "onnx", "write an ONNX graph to this file (input meas {1,4,rows,cols}, output image {1,3,N,N}; "
+              "OpenCV DNN reads it: `flatnet infer --engine opencv`)", cxxopts::value<std::string>())(
       "force", "replace an existing --out file");
   add_common(o);
   cxxopts::ParseResult r;
   if (!parse(o, argc, argv, r)) return 0;
-  require(r.count("out") && (r.count("checkpoint") + r.count("model") == 1), "export",
-          "--out FILE and one of --checkpoint CKPT or --model MODEL are required");
-  require(!(r.count("state-dict") && r.count("flatnet-checkpoint")), "export", "give --state-dict or --flatnet-checkpoint, not both");
-  const std::filesystem::path out = r["out"].as<std::string>();
+  require((r.count("out") + r.count("onnx") == 1) && (r.count("checkpoint") + r.count("model") == 1), "export",
+          "one of --checkpoint CKPT or --model MODEL, and one of --out FILE or --onnx FILE, are required");
+  require(r.count("state-dict") + r.count("flatnet-checkpoint") + r.count("onnx") <= 1, "export",
+          "give one of --state-dict, --flatnet-checkpoint and --onnx");
+  const std::filesystem::path out = r.count("onnx") ? r["onnx"].as<std::string>() : r["out"].as<std::string>();
   const std::string input = r.count("checkpoint") ? r["checkpoint"].as<std::string>() : r["model"].as<std::string>();
   require_new_output(out, r.count("force") > 0, {input});
   bool average = false;
   auto m = r.count("checkpoint") ? model_from_checkpoint(input, &average) : load_model_file(input);
   if (average) std::cerr << "exporting the moving average of the weights (train.ema_decay)\n";
-  if (r.count("state-dict") || r.count("flatnet-checkpoint")) {
+  if (r.count("onnx")) {
+    const auto rep = export_onnx(out, m.generator, m.camera);
+    std::cout << "wrote ONNX " << out.string() << " (" << rep.nodes << " nodes, " << rep.initializers << " weight tensors, "
+              << rep.bytes / 1e6 << " MB; input meas {1,4," << m.camera.raw.crop[2] << "," << m.camera.raw.crop[3]
+              << "}, output image {1,3," << m.camera.scene_size << "," << m.camera.scene_size
+              << "}; checked by ONNX's checker)\n";
+  } else if (r.count("state-dict") || r.count("flatnet-checkpoint")) {
     const bool flatnet_layout = r.count("flatnet-checkpoint") > 0;
     export_state_dict(out, m.generator, flatnet_layout ? StateDictLayout::flatnet_checkpoint : StateDictLayout::state_dict);
     std::cout << "wrote " << (flatnet_layout ? "FlatNet checkpoint " : "state dict ") << out.string() << " ("
@@ -281,7 +294,10 @@ int import_model(int argc, char** argv) {
 
 int infer(int argc, char** argv) {
   cxxopts::Options o("flatnet infer", "Reconstruct raw captures with a trained FlatNet model.");
-  o.add_options()("model", "model file (models/*.flatnet or RUN/model.flatnet)", cxxopts::value<std::string>())(
+  o.add_options()("model", "model file (models/*.flatnet or RUN/model.flatnet; an .onnx file with --engine opencv)",
+                  cxxopts::value<std::string>())(
+      "engine", "libtorch, or opencv: an ONNX file from `flatnet export --onnx` through OpenCV's DNN module",
+      cxxopts::value<std::string>()->default_value("libtorch"))(
       "input", "raw capture PNG or folder of them", cxxopts::value<std::string>())(
       "out", "output folder (PNGs with the captures' names)", cxxopts::value<std::string>())(
       "camera", "camera .yaml whose preprocessing to use (default: the model's)", cxxopts::value<std::string>())(
@@ -294,15 +310,26 @@ int infer(int argc, char** argv) {
   if (!parse(o, argc, argv, r)) return 0;
   require(r.count("model") && r.count("input") && r.count("out"), "infer",
           "--model MODEL, --input DIR|FILE and --out DIR are required");
-  auto m = load_model_file(r["model"].as<std::string>());
-  const auto camera = r.count("camera") ? load_camera_config(r["camera"].as<std::string>()) : m.camera;
-  const auto captures = collect_captures(r["input"].as<std::string>());
+  const auto engine = r["engine"].as<std::string>();
+  require(engine == "libtorch" || engine == "opencv", "--engine", "libtorch or opencv expected, got '" + engine + "'");
   InferOptions opt;
   opt.out = r["out"].as<std::string>();
   opt.batch = std::max(1, r["batch"].as<int>());
-  opt.levers = parse_inference_levers(r["levers"].as<std::string>());
-  if (precision_from(r) == Precision::bf16) opt.levers.bf16 = true;  // the enhancer in bf16; inversion and sigmoid stay fp32
-  const auto rep = infer_files(m.generator, camera, captures, opt);
+  const auto captures = collect_captures(r["input"].as<std::string>());
+  InferReport rep;
+  if (engine == "opencv") {
+    OpenCvEngine net(r["model"].as<std::string>());
+    const auto camera = r.count("camera") ? load_camera_config(r["camera"].as<std::string>()) : net.camera();
+    net.check_camera(camera);
+    std::cerr << "engine: OpenCV DNN " << CV_VERSION << " (fp32; --levers and --precision apply to libtorch)\n";
+    rep = infer_files([&](const torch::Tensor& planes) { return net.forward(planes); }, camera, captures, opt);
+  } else {
+    auto m = load_model_file(r["model"].as<std::string>());
+    const auto camera = r.count("camera") ? load_camera_config(r["camera"].as<std::string>()) : m.camera;
+    opt.levers = parse_inference_levers(r["levers"].as<std::string>());
+    if (precision_from(r) == Precision::bf16) opt.levers.bf16 = true;  // the enhancer in bf16; inversion and sigmoid stay fp32
+    rep = infer_files(m.generator, camera, captures, opt);
+  }
   std::cout << "flatnet: " << rep.count << " captures -> " << opt.out.string() << " (" << rep.images_per_s
             << " images/s, " << rep.model_ms_per_image << " ms per image in the network)\n";
   return 0;

@@ -10,12 +10,16 @@ namespace flatnet {
 
 InferReport infer_files(Generator& generator, const CameraConfig& camera, const std::vector<std::filesystem::path>& captures,
                         const InferOptions& opt) {
-  const auto& go = generator->options();
-  check_camera_for_model(go, camera);
+  check_camera_for_model(generator->options(), camera);
+  generator->prepare_inference(opt.levers);
+  return infer_files([&](const torch::Tensor& planes) { return generator->forward(planes); }, camera, captures, opt);
+}
+
+InferReport infer_files(const BatchForward& forward, const CameraConfig& camera,
+                        const std::vector<std::filesystem::path>& captures, const InferOptions& opt) {
   require(!captures.empty(), "--input", "no captures to reconstruct");
   check_output_names(captures, opt.out);
   std::filesystem::create_directories(opt.out);
-  generator->prepare_inference(opt.levers);
   c10::InferenceMode no_grad;
   InferReport rep;
   Progress progress("infer", static_cast<int64_t>(captures.size()), opt.progress);
@@ -27,7 +31,7 @@ InferReport infer_files(Generator& generator, const CameraConfig& camera, const 
     std::vector<torch::Tensor> planes;
     for (const auto& c : batch) planes.push_back(c.planes);
     const auto t0 = std::chrono::steady_clock::now();
-    const auto images = generator->forward(torch::stack(planes));  // {B,3,N,N}
+    const auto images = forward(torch::stack(planes));  // {B,3,N,N}
     model_s += std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
     for (size_t j = 0; j < batch.size(); ++j) {
       auto name = std::filesystem::path(batch[j].name).replace_extension(".png");

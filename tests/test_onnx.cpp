@@ -1,0 +1,104 @@
+// ONNX export (nn/onnx_export) and the OpenCV DNN engine (recon/opencv_engine): the graph passes
+// ONNX's checker, OpenCV 4.6 imports it, and it computes what LibTorch computes.
+#include <catch2/catch.hpp>
+#include <fstream>
+
+#include <onnx/checker.h>
+
+#include "core/error.hpp"
+#include "helpers.hpp"
+#include "nn/onnx_export.hpp"
+#include "recon/opencv_engine.hpp"
+#include "tiny_model.hpp"
+
+using namespace flatnet;
+using Catch::Matchers::Contains;
+
+namespace {
+
+// A random tiny generator; Tikhonov's fixed filter (buffers, not parameters) is randomised too.
+Generator variant(const std::vector<std::string>& sets, const CameraConfig& camera) {
+  auto g = test::random_generator(Config::load({}, sets), camera);
+  torch::NoGradGuard ng;
+  for (auto& b : g->named_buffers())
+    if (b.key().rfind("tikhonov.", 0) == 0) b.value().uniform_(-0.3, 0.3);
+  return g;
+}
+
+}  // namespace
+
+TEST_CASE("ONNX export: OpenCV DNN computes what LibTorch computes, for every first stage and enhancer", "[onnx]") {
+  test::Scratch s("onnx");
+  const auto plain = test::tiny_camera(), level = test::tiny_camera(Centring::level);
+  struct Case {
+    const char* what;
+    std::vector<std::string> sets;
+    CameraConfig camera;
+  };
+  const std::vector<Case> cases = {
+      {"inversion, one pair, U-Net", {"model.unet.width=4"}, plain},
+      {"inversion, one pair per channel, light level, U-Net",
+       {"model.unet.width=4", "model.inversion.shared=false", "model.level_input=true"}, level},
+      {"Tikhonov first stage, light level, U-Net", {"model.unet.width=4", "model.input=tikhonov", "model.level_input=true"}, level},
+      {"inversion, DnCNN", {"model.enhancer=dncnn", "model.dncnn.layers=4", "model.dncnn.width=3"}, plain},
+  };
+  for (const auto& c : cases) {
+    INFO(c.what);
+    auto g = variant(c.sets, c.camera);
+    const auto file = s.dir / "model.onnx";
+    std::filesystem::remove(file);
+    const auto rep = export_onnx(file, g, c.camera);
+    CHECK(rep.bytes == static_cast<int64_t>(std::filesystem::file_size(file)));
+    CHECK_NOTHROW(onnx::checker::check_model(file.string()));  // the file as written, read back by ONNX
+
+    OpenCvEngine engine(file);
+    CHECK(engine.info().rows == 20);
+    CHECK(engine.info().scene == 16);
+    CHECK(engine.info().level_input == g->options().level_input);
+    const auto camera = engine.camera();  // the preprocessing travels in the metadata
+    CHECK(camera.raw.centring == c.camera.raw.centring);
+    CHECK_NOTHROW(engine.check_camera(camera));
+
+    torch::manual_seed(3);
+    const auto planes = torch::randn({2, 4, 20, 24}) + (c.camera.raw.centring == Centring::level ? 0.7 : 0.0);
+    torch::Tensor expected;
+    {
+      torch::NoGradGuard ng;
+      expected = g->forward(planes);  // eval mode, batch norm not folded
+    }
+    const auto got = engine.forward(planes);
+    REQUIRE(got.sizes() == expected.sizes());
+    CHECK((got - expected).abs().max().item<double>() < 1e-4);
+    CHECK(expected.std().item<double>() > 1e-3);  // a model whose output varies, so the match means something
+  }
+}
+
+TEST_CASE("ONNX export refuses what it cannot express, and bad ONNX files are named", "[onnx][errors]") {
+  test::Scratch s("onnx");
+  const auto camera = test::tiny_camera();
+  auto rcan = variant({"model.enhancer=rcan", "model.rcan.groups=1", "model.rcan.blocks=1", "model.rcan.width=4",
+                       "model.rcan.reduction=2"},
+                      camera);
+  CHECK_THROWS_WITH(export_onnx(s.dir / "r.onnx", rcan, camera), Contains("RCAN"));
+  CHECK_FALSE(std::filesystem::exists(s.dir / "r.onnx"));
+
+  auto g = variant({"model.unet.width=2"}, camera);
+  CHECK_THROWS_WITH(export_onnx(s.dir / "l.onnx", g, test::tiny_camera(Centring::level)), Contains("level"));
+
+  const auto junk = s.dir / "junk.onnx";
+  std::ofstream(junk) << "not a protobuf at all \x01\x02\x03";
+  CHECK_THROWS_WITH(OpenCvEngine(junk), Contains("junk.onnx") && Contains("not an ONNX model"));
+
+  const auto good = s.dir / "good.onnx";
+  export_onnx(good, g, camera);
+  OpenCvEngine engine(good);
+  CHECK_THROWS_WITH(engine.check_camera(test::tiny_camera(Centring::level)), Contains("good.onnx") && Contains("level"));
+  auto wrong_size = camera;
+  wrong_size.scene_size = 32;
+  CHECK_THROWS_WITH(engine.check_camera(wrong_size), Contains("good.onnx") && Contains("16x16"));
+
+  // Truncated: half the bytes.
+  const auto bytes = std::filesystem::file_size(good);
+  std::filesystem::resize_file(good, bytes / 2);
+  CHECK_THROWS_WITH(OpenCvEngine(good), Contains("good.onnx"));
+}
