@@ -18,7 +18,7 @@ packages=(
   libopencv-dev libopenimageio-dev openimageio-tools
   libaravis-dev aravis-tools libusb-1.0-0-dev xvfb xauth iproute2
   libmatio-dev libcxxopts-dev catch2 libyaml-cpp-dev nlohmann-json3-dev
-  libonnx-dev libprotobuf-dev
+  libonnx-dev libprotobuf-dev zlib1g-dev
   python3-skimage
 )
 optional=(python3-torch)

@@ -36,6 +36,23 @@ TEST_CASE("simulate, recon and eval end to end, and simulate resumes determinist
 
   auto again = test::run_flatnet("simulate --images " + q(photos) + " --out " + q(s.dir / "ds") + " --val-fraction 0.5 --seed 3");
   CHECK_THAT(again.output, Contains("simulated 0 captures (2 already done)"));
+  // Other settings never mix into a dataset: refused by name, or rebuilt with --force.
+  const auto before = read_lines(s.dir / "ds" / "train_meas.txt");
+  auto mixed = test::run_flatnet("simulate --images " + q(photos) + " --out " + q(s.dir / "ds") + " --val-fraction 0.5 --seed 4");
+  CHECK(mixed.code == 2);
+  CHECK_THAT(mixed.output, Contains("seed 3 -> 4") && Contains("--force"));
+  std::filesystem::create_directories(s.dir / "other_photos");
+  std::filesystem::copy(photos / "bsds_16052_scene.png", s.dir / "other_photos" / "bsds_16052_scene.png");
+  mixed = test::run_flatnet("simulate --images " + q(s.dir / "other_photos") + " --out " + q(s.dir / "ds") + " --val-fraction 0.5 --seed 3");
+  CHECK(mixed.code == 2);
+  CHECK_THAT(mixed.output, Contains("images "));
+  CHECK(read_lines(s.dir / "ds" / "train_meas.txt") == before);
+  auto rebuilt = test::run_flatnet("simulate --images " + q(photos) + " --out " + q(s.dir / "ds3") + " --val-fraction 0.5 --seed 3 --noise off");
+  REQUIRE(rebuilt.code == 0);
+  rebuilt = test::run_flatnet("simulate --images " + q(photos) + " --out " + q(s.dir / "ds3") + " --val-fraction 0.5 --seed 3 --force");
+  INFO(rebuilt.output);
+  CHECK(rebuilt.code == 0);
+  CHECK_THAT(rebuilt.output, Contains("simulated 2 captures (0 already done)"));
   auto other = test::run_flatnet("simulate --images " + q(photos) + " --out " + q(s.dir / "ds2") + " --val-fraction 0.5 --seed 3 --workers 1");
   REQUIRE(other.code == 0);
   auto bytes = [](const std::filesystem::path& p) {
@@ -118,6 +135,29 @@ TEST_CASE("bad input: one clear line, exit code 2", "[cli][errors]") {
   r = test::run_flatnet("recon --camera " + q(s.dir / "cam.yaml") + " --input " + q(golden) + " --out " + q(s.dir / "o"));
   CHECK(r.code == 2);
   CHECK_THAT(r.output, Contains("cam.yaml") && Contains("crop"));
+
+  // Config numbers are checked once, where the config is loaded, before anything is written.
+  const std::string train = "train --config " + q(test::source_dir() / "configs" / "sim_transpose.yaml") + " --out " + q(s.dir / "run");
+  for (const auto& [set, message] : std::vector<std::pair<std::string, std::string>>{
+           {"train.lr=nan", "train.lr = nan is not a finite number"},
+           {"train.iterations=1e99", "train.iterations = 1e99 is out of range"},
+           {"train.workers=100000", "train.workers = 100000 is out of range"},
+           {"train.batch=0", "train.batch = 0 is out of range"},
+           {"loss.mse=-1", "loss.mse = -1 is out of range"}}) {
+    INFO(set);
+    r = test::run_flatnet(train + " --set " + set);
+    CHECK(r.code == 2);
+    CHECK_THAT(r.output, Contains(message) && Contains("--set"));
+    CHECK_FALSE(std::filesystem::exists(s.dir / "run"));
+  }
+  r = test::run_flatnet("train --config " + q(s.dir / "empty") + " --out " + q(s.dir / "run"));
+  CHECK(r.code == 2);
+  CHECK_THAT(r.output, Contains("is a folder"));
+  // A filesystem failure reads as one of flatnet's own errors: the path, then the reason.
+  r = test::run_flatnet("recon --input " + q(golden) + " --out " + q(s.dir / "cam.yaml" / "sub"));
+  CHECK(r.code == 2);
+  CHECK_THAT(r.output, Contains("cam.yaml/sub: Not a directory"));
+  CHECK(r.output.find("filesystem error") == std::string::npos);
 }
 
 TEST_CASE("train, export, import and infer from the command line, and bad input is refused", "[cli][train][slow]") {
@@ -137,10 +177,37 @@ TEST_CASE("train, export, import and infer from the command line, and bad input 
   auto again = test::run_flatnet(base + " --out " + q(s.dir / "run"));
   CHECK(again.code == 2);
   CHECK_THAT(again.output, Contains("--resume"));
+  // --resume keeps the run's own config: another --config is refused, not silently ignored.
+  auto other_config = test::run_flatnet("train --out " + q(s.dir / "run") + " --resume --config " +
+                                        q(test::source_dir() / "configs" / "sim_calibfree.yaml"));
+  CHECK(other_config.code == 2);
+  CHECK_THAT(other_config.output, Contains("--resume continues with the run's own config") && Contains("model.inversion.init"));
+  // A log row cut short (a crash while writing) does not block the resume.
+  std::ofstream(s.dir / "run" / "log.csv", std::ios::app) << "2,0.5,0.";
+  std::ofstream(s.dir / "run" / "log.csv", std::ios::app) << "\ngarbage\n";
   auto more = test::run_flatnet("train --out " + q(s.dir / "run") + " --resume --set train.iterations=3");
   INFO(more.output);
   CHECK(more.code == 0);
-  CHECK_THAT(more.output, Contains("steps 2..3"));
+  CHECK_THAT(more.output, Contains("steps 2..3") && Contains("dropped 1 malformed row(s)"));
+  for (const auto& line : read_lines(s.dir / "run" / "log.csv")) CHECK(line != "garbage");
+
+  // Ctrl-C: exit 130 after the current step, with a checkpoint to resume from.
+  const auto stopped = s.dir / "stopped";
+  const auto cmd = std::string(FLATNET_BINARY) + " " + base + " --set train.iterations=100000 --set train.log_every=1 --out " +
+                   q(stopped) + " > " + q(s.dir / "stopped.log") + " 2>&1 & P=$!; for i in $(seq 300); do [ -s " +
+                   q(stopped / "log.csv") + " ] && break; sleep 0.1; done; kill -INT $P; wait $P";
+  CHECK(test::run_shell("bash -c " + q(cmd)).code == 130);
+  const auto stop_log = read_lines(s.dir / "stopped.log");
+  CHECK_THAT(stop_log.empty() ? "" : stop_log.back(), Contains("--resume"));
+  CHECK(std::filesystem::exists(stopped / "latest.ckpt"));
+  int64_t done = -1;  // "steps 0..K in ..."
+  for (const auto& line : stop_log)
+    if (line.rfind("steps 0..", 0) == 0) done = std::stoll(line.substr(9));
+  REQUIRE(done >= 0);
+  auto resumed = test::run_flatnet("train --out " + q(stopped) + " --resume --set train.iterations=" + std::to_string(done + 1));
+  INFO(resumed.output);
+  CHECK(resumed.code == 0);
+  CHECK_THAT(resumed.output, Contains("steps " + std::to_string(done) + ".." + std::to_string(done + 1)));
 
   r = test::run_flatnet("infer --model " + q(model) + " --input " + q(s.dir / "ds" / "meas") + " --out " + q(s.dir / "rec"));
   INFO(r.output);

@@ -10,6 +10,9 @@
 #include "io/mat.hpp"
 #include "io/raw.hpp"
 
+#include <opencv2/imgcodecs.hpp>
+#include <zlib.h>
+
 using namespace flatnet;
 using Catch::Matchers::Contains;
 
@@ -110,6 +113,74 @@ TEST_CASE("raw captures: 16-bit round trip and clear errors for size and bit dep
   REQUIRE_THROWS_WITH(load_capture(s.dir / "rgb.png", g), Contains("rgb.png") && Contains("single-channel"));
   std::ofstream(s.dir / "junk.png") << "junk";
   REQUIRE_THROWS_WITH(load_capture(s.dir / "junk.png", g), Contains("junk.png") && Contains("unreadable"));
+}
+
+namespace {
+
+std::string file_bytes(const std::filesystem::path& p) {
+  std::ifstream in(p, std::ios::binary);
+  return std::string(std::istreambuf_iterator<char>(in), {});
+}
+void put_bytes(const std::filesystem::path& p, const std::string& b) { std::ofstream(p, std::ios::binary) << b; }
+
+// The PNG chunk layout: 4-byte length, 4-byte type, data, 4-byte CRC; a minimal grey image whose
+// header declares w x h (its pixel data need not be there: the size check comes first).
+std::string png_declaring(uint32_t w, uint32_t h) {
+  auto be32 = [](uint32_t v) { return std::string{char(v >> 24), char(v >> 16), char(v >> 8), char(v)}; };
+  auto chunk = [&](const std::string& type, const std::string& data) {
+    const auto body = type + data;
+    return be32(static_cast<uint32_t>(data.size())) + body +
+           be32(static_cast<uint32_t>(crc32(0, reinterpret_cast<const Bytef*>(body.data()), static_cast<uInt>(body.size()))));
+  };
+  return std::string("\x89PNG\r\n\x1a\n", 8) + chunk("IHDR", be32(w) + be32(h) + std::string("\x08\x00\x00\x00\x00", 5)) +
+         chunk("IDAT", std::string("\x78\x9c\x03\x00\x00\x00\x00\x01", 8)) + chunk("IEND", "");
+}
+
+}  // namespace
+
+TEST_CASE("damaged images are refused in one line: truncated, bad CRC, cut-off JPEG, decompression bomb", "[io][image][errors]") {
+  test::Scratch s("damaged");
+  write_rgb8(s.dir / "ok.png", torch::rand({3, 32, 32}));
+  write_gray16(s.dir / "raw.png", torch::randint(0, 65535, {64, 64}, torch::kInt32));
+  const auto png = file_bytes(s.dir / "ok.png"), raw = file_bytes(s.dir / "raw.png");
+  auto refused = [&](const std::filesystem::path& p, const std::string& what, bool gray16) {
+    INFO(p.filename().string());
+    try {
+      if (gray16) read_gray16(p);
+      else read_rgb(p);
+      FAIL("no error");
+    } catch (const Error& e) {
+      const std::string m = e.what();
+      CHECK_THAT(m, Contains(p.filename().string()) && Contains(what));
+      CHECK(m.find('\n') == std::string::npos);  // one line
+    }
+  };
+  put_bytes(s.dir / "half.png", png.substr(0, png.size() / 2));
+  refused(s.dir / "half.png", "truncated PNG", false);
+  put_bytes(s.dir / "half_raw.png", raw.substr(0, raw.size() - 20));
+  refused(s.dir / "half_raw.png", "truncated PNG", true);
+  auto flipped = png;
+  flipped[flipped.size() / 2] ^= 0x55;  // inside the image data
+  put_bytes(s.dir / "flipped.png", flipped);
+  refused(s.dir / "flipped.png", "fails its CRC", false);
+  put_bytes(s.dir / "bomb.png", png_declaring(60000, 60000));
+  refused(s.dir / "bomb.png", "decompression bomb", false);
+  refused(s.dir / "bomb.png", "decompression bomb", true);
+
+  // A JPEG cut short decodes "successfully" as grey in libjpeg: refused by its missing end marker.
+  const auto jpg_path = s.dir / "ok.jpg";
+  {
+    auto hwc = (torch::rand({32, 32, 3}) * 255).to(torch::kUInt8).contiguous();
+    cv::Mat m(32, 32, CV_8UC3, hwc.data_ptr<uint8_t>());
+    REQUIRE(cv::imwrite(jpg_path.string(), m));
+  }
+  CHECK(read_rgb(jpg_path).size(0) == 3);
+  const auto jpg = file_bytes(jpg_path);
+  put_bytes(s.dir / "cut.jpg", jpg.substr(0, jpg.size() * 2 / 3));
+  refused(s.dir / "cut.jpg", "truncated JPEG", false);
+  // The intact files still read.
+  CHECK(read_rgb(s.dir / "ok.png").size(1) == 32);
+  CHECK(read_gray16(s.dir / "raw.png").size(0) == 64);
 }
 
 TEST_CASE("sRGB transfer functions invert each other", "[io][image]") {

@@ -177,6 +177,26 @@ TEST_CASE("model files and state dicts round trip, and wrong files give clear er
   std::ofstream(s.dir / "junk.flatnet") << "junk";
   CHECK_THROWS_WITH(load_model_file(s.dir / "junk.flatnet"), Contains("junk.flatnet"));
   CHECK_THROWS_WITH(load_model_file(s.dir / "none.flatnet"), Contains("no such file"));
+  // One damaged byte inside a weight's data: found by the zip entry's CRC-32 (LibTorch's reader
+  // would load it); the same for a state dict read by `flatnet import`.
+  for (const char* name : {"m.flatnet", "sd.pt"}) {
+    INFO(name);
+    std::ifstream in(s.dir / name, std::ios::binary);
+    std::string bytes((std::istreambuf_iterator<char>(in)), {});
+    const auto phil = g->named_parameters()["inversion.PhiL"].contiguous();
+    const std::string needle(static_cast<const char*>(phil.data_ptr()), 64);
+    const auto at = bytes.find(needle);
+    REQUIRE(at != std::string::npos);
+    bytes[at + 10] ^= 0x01;
+    const auto damaged = s.dir / (std::string("damaged_") + name);
+    std::ofstream(damaged, std::ios::binary) << bytes;
+    Generator d(generator_options(config, camera, false));
+    if (std::string(name) == "m.flatnet") {
+      CHECK_THROWS_WITH(load_model_file(damaged), Contains("damaged_m.flatnet") && Contains("CRC-32"));
+    } else {
+      CHECK_THROWS_WITH(import_state_dict(damaged, d), Contains("damaged_sd.pt") && Contains("CRC-32"));
+    }
+  }
   // A weight that is NaN (a damaged or diverged file) is refused by name, not run into black images.
   {
     torch::NoGradGuard ng;

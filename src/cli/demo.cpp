@@ -63,6 +63,7 @@ int demo(int argc, char** argv) {
   sim.out = out / "dataset";
   sim.val_fraction = 0;
   sim.size = camera.scene_size;
+  sim.camera = std::filesystem::weakly_canonical(camera.rig).string();
   const auto srep = simulate_dataset(load_rig(camera.rig), sim);
 
   std::cout << "[2/3] reconstructing\n";

@@ -1,5 +1,6 @@
 // flatnet: lensless FlatCam reconstruction and mask design. This file only dispatches.
 #include <cxxopts.hpp>
+#include <filesystem>
 #include <iostream>
 #include <map>
 
@@ -56,6 +57,9 @@ int main(int argc, char** argv) {
     std::cerr << "flatnet " << command << ": error: " << e.what() << "\n";
   } catch (const cxxopts::exceptions::exception& e) {
     std::cerr << "flatnet " << command << ": error: " << e.what() << "\n";
+  } catch (const std::filesystem::filesystem_error& e) {  // "PATH: reason", as flatnet's own errors
+    std::cerr << "flatnet " << command << ": error: " << e.path1().string()
+              << (e.path2().empty() ? "" : " -> " + e.path2().string()) << ": " << e.code().message() << "\n";
   } catch (const c10::Error& e) {
     std::cerr << "flatnet " << command << ": internal error: " << e.what_without_backtrace() << "\n";
     return 1;

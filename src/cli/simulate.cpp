@@ -21,7 +21,8 @@ int simulate(int argc, char** argv) {
       "exposure", "scene light relative to the display's, in linear light (0.33: a dim set); gt/ shows the dimmed scene",
       cxxopts::value<double>()->default_value("1"))(
       "lamp", "add one small lamp per scene (a lamp set; position drawn per image), --lamp-gain x display white")(
-      "lamp-gain", "the lamp's radiance relative to display white", cxxopts::value<double>()->default_value("20"));
+      "lamp-gain", "the lamp's radiance relative to display white", cxxopts::value<double>()->default_value("20"))(
+      "force", "the folder holds captures made with other settings (simulate.yaml): delete them and rebuild");
   add_common(o);
   cxxopts::ParseResult r;
   if (!parse(o, argc, argv, r)) return 0;
@@ -44,6 +45,8 @@ int simulate(int argc, char** argv) {
   opt.only = r["only"].as<std::string>();
   opt.lamp = r.count("lamp") > 0;
   opt.lamp_gain = r["lamp-gain"].as<double>();
+  opt.camera = std::filesystem::weakly_canonical(camera.rig).string();
+  opt.force = r.count("force") > 0;
   const auto rep = simulate_dataset(rig, opt);
   std::cout << "simulated " << rep.simulated << " captures (" << rep.skipped << " already done) in " << rep.seconds
             << " s: " << (rep.simulated > 0 ? rep.simulated / rep.seconds : 0.0) << " captures/s\n"

@@ -114,6 +114,20 @@ Vgg16Features vgg_if_needed(const Config& c) {
   return load_vgg16(c.path("loss.vgg_file"), c.flag("loss.vgg_normalize"));
 }
 
+// "key (run: a, --config: b), ..." for every setting in which two configs differ (paths compared
+// resolved, as a checkpoint records them); empty when they agree.
+std::string differing_settings(const Config& run, const Config& given) {
+  const auto a = Config::from_text(run.to_yaml(), "run").values();
+  const auto b = Config::from_text(given.to_yaml(), "--config").values();
+  std::string out;
+  for (const auto& [key, value] : a) {
+    const auto it = b.find(key);
+    if (it != b.end() && it->second != value)
+      out += (out.empty() ? "" : ", ") + key + " (run: " + value + ", --config: " + it->second + ")";
+  }
+  return out;
+}
+
 }  // namespace
 
 int train(int argc, char** argv) {
@@ -146,7 +160,8 @@ int train(int argc, char** argv) {
           "must lie in [0, world size " + std::to_string(dist.world_size) + ")");
   const bool writer = dist.rank == 0;
   const std::filesystem::path out = r["out"].as<std::string>();
-  const auto sets = set_overrides(r);
+  auto sets = set_overrides(r);
+  if (r.count("precision")) sets.push_back("train.precision=" + r["precision"].as<std::string>());
   const auto latest = out / "latest.ckpt";
   const bool resume = r.count("resume") > 0;
   Config config;
@@ -154,13 +169,19 @@ int train(int argc, char** argv) {
     require(std::filesystem::exists(latest), latest, "nothing to resume (no checkpoint)");
     config = checkpoint_settings(latest).first;
     for (const auto& s : sets) config.set(s);
+    config.check_ranges("--set");
+    if (r.count("config")) {  // the same command line again is fine; another config is not silently ignored
+      const auto differences = differing_settings(config, Config::load(r["config"].as<std::string>(), sets));
+      require(differences.empty(), "--config",
+              "--resume continues with the run's own config (" + (out / "config.yaml").string() + "), which differs in " +
+                  differences + "; change single settings with --set key=value");
+    }
   } else {
     require(!writer || !std::filesystem::exists(latest), out,
             "already holds a training run; continue it with --resume or choose another --out");
     config = Config::load(r.count("config") ? r["config"].as<std::string>() : "", sets);
   }
   require(!(resume && r.count("init-from")), "--init-from", "starts a new run; it cannot be combined with --resume");
-  if (r.count("precision")) config.set("train.precision=" + r["precision"].as<std::string>());
   require_no_light_augment_on_disk(config);
   // Everything that can fail on bad input is checked before anything is written.
   const auto camera = camera_of(config);

@@ -3,6 +3,7 @@
 #include <OpenImageIO/filesystem.h>
 #include <OpenImageIO/imageio.h>
 #include <opencv2/imgproc.hpp>
+#include <zlib.h>
 
 #include "core/error.hpp"
 #include "core/util.hpp"
@@ -12,10 +13,68 @@ namespace flatnet {
 
 namespace {
 
+// Decoder messages on one line: OIIO joins libpng's and libjpeg's with newlines.
+std::string one_line(std::string text) {
+  for (auto& ch : text)
+    if (ch == '\n' || ch == '\r') ch = ';';
+  while (!text.empty() && (text.back() == ';' || text.back() == ' ')) text.pop_back();
+  return text;
+}
+
+// Far above any capture or photograph, far below what would exhaust memory: a "decompression bomb"
+// (a tiny file that declares a gigapixel image) is refused before anything is allocated.
+constexpr int64_t kMaxImageValues = int64_t{1} << 28;  // width x height x channels
+
+uint32_t big_endian32(const unsigned char* p) { return (uint32_t{p[0]} << 24) | (p[1] << 16) | (p[2] << 8) | p[3]; }
+
+// What the decoders let through silently: libjpeg fills a truncated JPEG with grey, and a PNG chunk
+// with a bad CRC, or a file cut short, reaches libpng (which prints to stderr on its own). PNG:
+// every chunk's CRC and the IEND chunk; JPEG: its start and end markers.
+void check_container(const std::filesystem::path& path) {
+  const auto bytes = read_bytes(path);
+  const auto* b = reinterpret_cast<const unsigned char*>(bytes.data());
+  const size_t n = bytes.size();
+  static const unsigned char png_magic[8] = {0x89, 'P', 'N', 'G', '\r', '\n', 0x1a, '\n'};
+  if (n >= 8 && std::equal(png_magic, png_magic + 8, b)) {
+    size_t at = 8;
+    bool ended = false;
+    while (!ended) {
+      require(at + 12 <= n, path, "truncated PNG (the file ends inside a chunk, before IEND)");
+      const uint32_t length = big_endian32(b + at);
+      require(length <= n && at + 12 + length <= n, path, "truncated PNG (the file ends inside a chunk, before IEND)");
+      const std::string type(reinterpret_cast<const char*>(b + at + 4), 4);
+      const uint32_t crc = big_endian32(b + at + 8 + length);
+      require(static_cast<uint32_t>(crc32(0, b + at + 4, length + 4)) == crc, path,
+              "damaged PNG (chunk " + type + " at byte " + std::to_string(at) + " fails its CRC)");
+      if (type == "IHDR" && length >= 8) {
+        const int64_t w = big_endian32(b + at + 8), h = big_endian32(b + at + 12);
+        require(w * h <= kMaxImageValues, path,
+                "declares a " + std::to_string(w) + "x" + std::to_string(h) + " image, beyond flatnet's limit of " +
+                    std::to_string(kMaxImageValues) + " pixels (a damaged file or a decompression bomb)");
+      }
+      ended = type == "IEND";
+      at += 12 + length;
+    }
+    return;
+  }
+  if (n >= 2 && b[0] == 0xFF && b[1] == 0xD8) {  // JPEG: SOI ... EOI (a few trailing bytes are allowed)
+    bool has_end = false;
+    const size_t search_from = n > 4096 ? n - 4096 : 2;
+    for (size_t i = search_from; i + 1 < n && !has_end; ++i) has_end = b[i] == 0xFF && b[i + 1] == 0xD9;
+    require(has_end, path, "truncated JPEG (no end-of-image marker; the decoder would fill the rest with grey)");
+  }
+}
+
 std::unique_ptr<OIIO::ImageInput> open_input(const std::filesystem::path& path) {
   require(std::filesystem::exists(path), path, "no such file");
+  require(!std::filesystem::is_directory(path), path, "is a folder, not an image");
+  check_container(path);
   auto in = OIIO::ImageInput::open(path.string());
-  require(in != nullptr, path, "unreadable image (" + OIIO::geterror() + ")");
+  require(in != nullptr, path, "unreadable image (" + one_line(OIIO::geterror()) + ")");
+  const auto& spec = in->spec();
+  require(int64_t{spec.width} * spec.height * spec.nchannels <= kMaxImageValues, path,
+          "a " + std::to_string(spec.width) + "x" + std::to_string(spec.height) + "x" + std::to_string(spec.nchannels) +
+              " image is beyond flatnet's limit (a damaged file or a decompression bomb)");
   return in;
 }
 
@@ -30,7 +89,7 @@ torch::Tensor read_rgb(const std::filesystem::path& path) {
   // Reading as FLOAT normalises integer formats to [0,1] (8-bit /255, 16-bit /65535).
   const bool ok = in->read_image(0, 0, 0, c, OIIO::TypeDesc::FLOAT, buf.data_ptr<float>());
   in->close();
-  require(ok, path, "corrupt or truncated image (" + in->geterror() + ")");
+  require(ok, path, "corrupt or truncated image (" + one_line(in->geterror()) + ")");
   auto chw = buf.permute({2, 0, 1});
   if (c == 1 || c == 2) chw = chw.slice(0, 0, 1).expand({3, h, w});
   else chw = chw.slice(0, 0, 3);
@@ -49,7 +108,7 @@ torch::Tensor read_gray16(const std::filesystem::path& path) {
   std::vector<uint16_t> raw(static_cast<size_t>(spec.height) * spec.width);
   const bool ok = in->read_image(0, 0, 0, 1, OIIO::TypeDesc::UINT16, raw.data());
   in->close();
-  require(ok, path, "corrupt or truncated image (" + in->geterror() + ")");
+  require(ok, path, "corrupt or truncated image (" + one_line(in->geterror()) + ")");
   auto* dst = buf.data_ptr<int32_t>();
   for (size_t i = 0; i < raw.size(); ++i) dst[i] = raw[i];
   return buf;

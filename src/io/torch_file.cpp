@@ -1,5 +1,7 @@
 #include "io/torch_file.hpp"
 
+#include <zlib.h>
+
 #include <caffe2/serialize/inline_container.h>
 
 #include <cstring>
@@ -388,6 +390,7 @@ void materialise(PyValue& v, const std::map<std::string, std::shared_ptr<Storage
 
 
 PyRef read_zip(const std::filesystem::path& path) {
+  verify_zip_crcs(path);
   std::unique_ptr<caffe2::serialize::PyTorchStreamReader> reader;
   std::string pickle;
   try {
@@ -611,6 +614,97 @@ std::vector<std::pair<std::string, torch::Tensor>> tensors_in(const PyValue& dic
   std::vector<std::pair<std::string, torch::Tensor>> out;
   collect_tensors(dict, "", out);
   return out;
+}
+
+namespace {
+
+uint64_t little_endian(const unsigned char* p, int bytes) {
+  uint64_t v = 0;
+  for (int i = bytes - 1; i >= 0; --i) v = (v << 8) | p[i];
+  return v;
+}
+
+}  // namespace
+
+bool verify_zip_crcs(const std::filesystem::path& path) {
+  std::ifstream in(path, std::ios::binary);
+  require(static_cast<bool>(in), path, "cannot read file");
+  in.seekg(0, std::ios::end);
+  const uint64_t size = static_cast<uint64_t>(in.tellg());
+  auto read_at = [&](uint64_t offset, size_t n) {
+    std::vector<unsigned char> buf(n);
+    if (offset + n > size) throw Error(path, "truncated zip archive (a record lies past the end of the file)");
+    in.seekg(static_cast<std::streamoff>(offset));
+    in.read(reinterpret_cast<char*>(buf.data()), static_cast<std::streamsize>(n));
+    if (!in) throw Error(path, "cannot read the zip archive");
+    return buf;
+  };
+  // End of central directory: the last "PK\5\6" within the final 64 KiB (+ its 22 bytes).
+  const uint64_t tail_size = std::min<uint64_t>(size, 65536 + 22);
+  if (size < 22) return false;
+  const auto tail = read_at(size - tail_size, tail_size);
+  int64_t eocd = -1;
+  for (int64_t i = static_cast<int64_t>(tail_size) - 22; i >= 0; --i)
+    if (little_endian(&tail[i], 4) == 0x06054b50) {
+      eocd = i;
+      break;
+    }
+  if (eocd < 0) {
+    const auto head = read_at(0, 4);
+    if (little_endian(head.data(), 4) == 0x04034b50)
+      throw Error(path, "truncated zip archive (no central directory at its end)");
+    return false;
+  }
+  uint64_t entries = little_endian(&tail[eocd + 10], 2), cd_offset = little_endian(&tail[eocd + 16], 4);
+  if ((entries == 0xFFFF || cd_offset == 0xFFFFFFFF) && eocd >= 20 &&
+      little_endian(&tail[eocd - 20], 4) == 0x07064b50) {  // zip64: locator -> zip64 end record
+    const auto record = read_at(little_endian(&tail[eocd - 20 + 8], 8), 56);
+    entries = little_endian(&record[32], 8);
+    cd_offset = little_endian(&record[48], 8);
+  }
+  uint64_t at = cd_offset;
+  std::vector<char> chunk(1 << 20);
+  for (uint64_t e = 0; e < entries; ++e) {
+    const auto header = read_at(at, 46);
+    if (little_endian(header.data(), 4) != 0x02014b50) throw Error(path, "damaged zip archive (central directory)");
+    const auto method = little_endian(&header[10], 2);
+    const auto crc = static_cast<uint32_t>(little_endian(&header[16], 4));
+    uint64_t compressed = little_endian(&header[20], 4), local = little_endian(&header[42], 4);
+    const auto name_len = little_endian(&header[28], 2), extra_len = little_endian(&header[30], 2),
+               comment_len = little_endian(&header[32], 2);
+    const auto name_extra = read_at(at + 46, name_len + extra_len);
+    const std::string name(name_extra.begin(), name_extra.begin() + static_cast<std::ptrdiff_t>(name_len));
+    // zip64 extra field: the 8-byte values of the fields saturated above, in this order.
+    const uint64_t uncompressed32 = little_endian(&header[24], 4);
+    for (size_t x = name_len; x + 4 <= name_extra.size();) {
+      const auto id = little_endian(&name_extra[x], 2), len = little_endian(&name_extra[x + 2], 2);
+      if (id == 0x0001) {
+        size_t f = x + 4;
+        if (uncompressed32 == 0xFFFFFFFF && f + 8 <= x + 4 + len) f += 8;
+        if (compressed == 0xFFFFFFFF && f + 8 <= x + 4 + len) compressed = little_endian(&name_extra[f], 8), f += 8;
+        if (local == 0xFFFFFFFF && f + 8 <= x + 4 + len) local = little_endian(&name_extra[f], 8);
+      }
+      x += 4 + len;
+    }
+    at += 46 + name_len + extra_len + comment_len;
+    if (method != 0) continue;  // compressed entries: zlib checks its own stream when they are read
+    const auto lh = read_at(local, 30);
+    if (little_endian(lh.data(), 4) != 0x04034b50) throw Error(path, "damaged zip archive (entry '" + name + "')");
+    uint64_t data = local + 30 + little_endian(&lh[26], 2) + little_endian(&lh[28], 2);
+    if (data + compressed > size) throw Error(path, "truncated zip archive (entry '" + name + "' runs past the end)");
+    uLong c = crc32(0, nullptr, 0);
+    in.seekg(static_cast<std::streamoff>(data));
+    for (uint64_t left = compressed; left > 0;) {
+      const auto n = static_cast<std::streamsize>(std::min<uint64_t>(left, chunk.size()));
+      in.read(chunk.data(), n);
+      if (!in) throw Error(path, "cannot read the zip archive");
+      c = crc32(c, reinterpret_cast<const Bytef*>(chunk.data()), static_cast<uInt>(n));
+      left -= static_cast<uint64_t>(n);
+    }
+    if (static_cast<uint32_t>(c) != crc)
+      throw Error(path, "damaged file: zip entry '" + name + "' fails its CRC-32 check (the bytes changed after it was written)");
+  }
+  return true;
 }
 
 }  // namespace flatnet

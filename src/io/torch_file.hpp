@@ -41,6 +41,12 @@ struct PyValue {
   std::string describe() const;  // "dict", "tensor {2,3}", ... for messages
 };
 
+// Checks every entry of a zip file (torch.save's container, flatnet's model files and
+// checkpoints) against the CRC-32 its central directory records: LibTorch's reader does not, so a
+// damaged block would load as wrong weights. Returns false if the file is not a zip; throws an
+// Error naming the file and the entry when one is damaged or cut short.
+bool verify_zip_crcs(const std::filesystem::path& path);
+
 // The object a torch.save file holds. Errors name the file: not a torch.save file, truncated,
 // an unknown opcode, a refused global, a missing storage record.
 PyRef read_torch_file(const std::filesystem::path& path);

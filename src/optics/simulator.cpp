@@ -1,6 +1,10 @@
 #include "optics/simulator.hpp"
 
 #include <atomic>
+#include <iomanip>
+#include <iostream>
+#include <map>
+#include <sstream>
 #include <mutex>
 #include <random>
 #include <thread>
@@ -110,6 +114,71 @@ std::pair<int64_t, int64_t> write_dataset_lists(const std::filesystem::path& out
   return {static_cast<int64_t>(train.size()), static_cast<int64_t>(val.size())};
 }
 
+namespace {
+
+// The settings a dataset's captures depend on, one "key: value" per line (OUT/simulate.yaml).
+// --limit and --only are not among them: they choose which of the same captures to make.
+std::vector<std::pair<std::string, std::string>> dataset_settings(const SimulateOptions& opt) {
+  std::error_code ec;
+  auto images = std::filesystem::weakly_canonical(opt.images, ec);
+  if (ec) images = std::filesystem::absolute(opt.images);
+  auto number = [](double v) {
+    std::ostringstream s;
+    s << std::setprecision(17) << v;
+    return s.str();
+  };
+  return {{"images", images.string()}, {"camera", opt.camera},
+          {"seed", std::to_string(opt.seed)}, {"noise", opt.noise ? "on" : "off"},
+          {"size", std::to_string(opt.size)}, {"val_fraction", number(opt.val_fraction)},
+          {"exposure", number(opt.exposure)}, {"lamp", opt.lamp ? "on" : "off"},
+          {"lamp_gain", opt.lamp ? number(opt.lamp_gain) : "-"}};
+}
+
+std::map<std::string, std::string> read_settings(const std::filesystem::path& file) {
+  std::map<std::string, std::string> out;
+  for (const auto& line : read_lines(file)) {
+    if (line.empty() || line[0] == '#') continue;
+    const auto colon = line.find(": ");
+    if (colon != std::string::npos) out[line.substr(0, colon)] = line.substr(colon + 2);
+  }
+  return out;
+}
+
+// Refuses to add captures made with other settings to a dataset (unless opt.force, which deletes
+// the old captures and lists), then records this run's settings.
+void check_and_record_settings(const SimulateOptions& opt) {
+  const auto record = opt.out / "simulate.yaml";
+  const auto settings = dataset_settings(opt);
+  if (std::filesystem::exists(record)) {
+    const auto old = read_settings(record);
+    std::string differences;
+    for (const auto& [key, value] : settings) {
+      const auto it = old.find(key);
+      const std::string was = it == old.end() ? "(not recorded)" : it->second;
+      if (was != value) differences += (differences.empty() ? "" : ", ") + key + " " + was + " -> " + value;
+    }
+    if (!differences.empty() && !opt.force)
+      throw Error(opt.out, "holds captures simulated with other settings (" + differences +
+                               "); rerun with the recorded settings to resume, choose another --out, or add --force "
+                               "to delete its captures and rebuild");
+    if (!differences.empty()) {
+      std::cerr << "simulate: --force: deleting " << opt.out.string() << "'s captures and lists (" << differences << ")\n";
+      for (const char* folder : {"meas", "gt"}) std::filesystem::remove_all(opt.out / folder);
+      for (const char* list : {"train_meas.txt", "train_gt.txt", "val_meas.txt", "val_gt.txt"})
+        std::filesystem::remove(opt.out / list);
+    }
+  } else if (std::filesystem::exists(opt.out / "meas") && !std::filesystem::is_empty(opt.out / "meas")) {
+    std::cerr << "simulate: " << opt.out.string() << " has captures but no settings record; adding to them and recording "
+              << "this run's settings in simulate.yaml\n";
+  }
+  std::string text = "# the settings of `flatnet simulate` that made this dataset (a rerun must match them)\n";
+  for (const auto& [key, value] : settings) text += key + ": " + value + "\n";
+  std::filesystem::create_directories(opt.out);
+  write_text_atomically(record, text);
+}
+
+}  // namespace
+
 SimulateReport simulate_dataset(const Rig& rig, const SimulateOptions& opt) {
   require(opt.val_fraction >= 0 && opt.val_fraction <= 1, "--val-fraction", "must be within [0, 1]");
   require(std::isfinite(opt.exposure) && opt.exposure > 0 && opt.exposure <= 100, "--exposure",
@@ -140,6 +209,7 @@ SimulateReport simulate_dataset(const Rig& rig, const SimulateOptions& opt) {
             "selects no images (--val-fraction " + std::to_string(opt.val_fraction) + " of " + std::to_string(all_names.size()) + ")");
   }
 
+  check_and_record_settings(opt);
   std::filesystem::create_directories(opt.out / "meas");
   std::filesystem::create_directories(opt.out / "gt");
   SimulateReport report;

@@ -47,6 +47,8 @@ struct SimulateOptions {
   double exposure = 1.0;          // scene light relative to the display's (dim sets: < 1)
   bool lamp = false;              // one lamp per scene (lamp sets), lamp_gain x display white
   double lamp_gain = 20;
+  std::string camera;             // what made the captures (the rig's path), recorded with the settings
+  bool force = false;             // settings differ from the folder's record: rebuild (deletes its captures)
 };
 
 struct SimulateReport {
@@ -55,7 +57,9 @@ struct SimulateReport {
 };
 
 // Simulates every image not yet done (resumable: finished pairs are skipped; files appear
-// atomically), then writes the lists. Errors name the first unreadable image.
+// atomically), then writes the lists. Errors name the first unreadable image. The settings that
+// define the captures (photographs folder, camera, seed, noise, size, split, light) are recorded in
+// OUT/simulate.yaml; a rerun with other settings is refused, naming them, unless `force`.
 SimulateReport simulate_dataset(const Rig& rig, const SimulateOptions& options);
 
 // The deterministic train/validation split `simulate_dataset` writes (and on-the-fly simulation

@@ -1,5 +1,6 @@
 #include "train/config.hpp"
 
+#include <cmath>
 #include <fstream>
 
 #include <yaml-cpp/yaml.h>
@@ -58,7 +59,89 @@ size_t edit_distance(const std::string& a, const std::string& b) {
   return prev[b.size()];
 }
 
+// The one place where config numbers are checked, for every experiment file, --set and embedded
+// config alike: {key, lowest, highest, what the range means}. Keys a config does not have (the
+// mask trainer's defaults differ from FlatNet's) are skipped. Every number must also be finite.
+struct RangeRule {
+  const char* key;
+  double lo, hi;
+  const char* meaning;
+};
+const std::vector<RangeRule>& range_rules() {
+  static const std::vector<RangeRule> rules = {
+      {"train.iterations", 1, 1e9, "1 to 1e9 steps"},
+      {"train.batch", 1, 4096, "1 to 4096 samples"},
+      {"train.lr", 0, 10, "0 (frozen) to 10"},
+      {"train.lr_discriminator", 0, 10, "0 (frozen) to 10"},
+      {"train.lr_inversion_scale", 0, 1e6, "0 (frozen inversion) or a positive factor"},
+      {"train.momentum", 0, 1, "0 to 1"},
+      {"train.lr_halve_every", 1, 1e9, "1 or more steps"},
+      {"train.ema_decay", 0, 0.999999, "0 (off) or a decay below 1"},
+      {"train.crop", 0, 65536, "0 (whole scenes) or a crop size"},
+      {"train.check_sync_every", 0, 1e9, "0 (off) or a number of steps"},
+      {"train.discriminator_warmup", 0, 1e9, "0 or more steps"},
+      {"train.noise_augment", 0, 10, "0 to 10 (a standard deviation)"},
+      {"train.workers", 1, 256, "1 to 256 data threads"},
+      {"train.val_every", 1, 1e9, "1 or more steps"},
+      {"train.val_count", 0, 1e9, "0 (all) or more images"},
+      {"train.log_every", 1, 1e9, "1 or more steps"},
+      {"train.gamma_init", 1e-30, 1e6, "a positive regulariser"},
+      {"data.val_fraction", 0, 1, "0 to 1"},
+      {"data.train_limit", 0, 1e9, "0 (all) or more photographs"},
+      {"data.light.exposure_probability", 0, 1, "a probability, 0 to 1"},
+      {"data.light.lamp_probability", 0, 1, "a probability, 0 to 1"},
+      {"data.light.exposure_min", 1e-6, 1e6, "a positive factor"},
+      {"data.light.exposure_max", 1e-6, 1e6, "a positive factor"},
+      {"data.light.lamp_min", 1e-6, 1e6, "a positive factor"},
+      {"data.light.lamp_max", 1e-6, 1e6, "a positive factor"},
+      {"model.unet.width", 1, 4096, "1 to 4096 filters"},
+      {"model.dncnn.layers", 3, 1000, "3 to 1000 layers"},
+      {"model.dncnn.width", 1, 4096, "1 to 4096 filters"},
+      {"model.rcan.groups", 1, 1000, "1 to 1000"},
+      {"model.rcan.blocks", 1, 1000, "1 to 1000"},
+      {"model.rcan.width", 1, 4096, "1 to 4096 filters"},
+      {"model.rcan.reduction", 1, 4096, "1 to 4096"},
+      {"model.bn_momentum", 0, 1, "0 to 1"},
+      {"model.inversion.lambda", 1e-12, 1e6, "a positive regulariser"},
+      {"loss.mse", 0, 1e6, "a weight, 0 or more"},
+      {"loss.ssim", 0, 1e6, "a weight, 0 or more"},
+      {"loss.perceptual", 0, 1e6, "a weight, 0 or more"},
+      {"loss.adversarial", 0, 1e6, "a weight, 0 or more"},
+      {"discriminator.width", 1, 4096, "1 to 4096 filters"},
+      {"discriminator.real_label_min", 0, 1, "0 to 1"},
+      {"discriminator.fake_label_max", 0, 1, "0 to 1"},
+      {"mask.elements", 2, 65536, "2 or more elements"},
+      {"mask.rank", 1, 511, "1 to 511"},
+      {"mask.upsample", 1, 64, "1 to 64 sensor pixels per element"},
+      {"mask.target_throughput", 1e-3, 1, "a share of light, above 0 and at most 1"},
+      {"camera.rows", 1, 1e5, "a sensor size"},
+      {"camera.cols", 1, 1e5, "a sensor size"},
+      {"camera.scene", 1, 1e5, "a scene size"},
+      {"camera.noise_sigma", 0, 10, "0 to 10"},
+      {"camera.photons", 0, 1e12, "0 (off) or a photon count"},
+  };
+  return rules;
+}
+
 }  // namespace
+
+void Config::check_ranges(const std::string& where) const {
+  for (const auto& rule : range_rules()) {
+    const auto it = values_.find(rule.key);
+    if (it == values_.end()) continue;
+    double v = 0;
+    size_t used = 0;
+    try {
+      v = std::stod(it->second, &used);
+    } catch (const std::exception&) {
+      used = 0;
+    }
+    if (used == 0 || used != it->second.size() || !std::isfinite(v))
+      throw Error(where + ": " + rule.key + " = " + it->second + " is not a finite number (" + rule.meaning + ")");
+    if (v < rule.lo || v > rule.hi)
+      throw Error(where + ": " + rule.key + " = " + it->second + " is out of range: " + rule.meaning);
+  }
+}
 
 std::string nearest_key(const std::string& key, const std::vector<std::string>& known) {
   std::string best;
@@ -85,6 +168,7 @@ Config Config::load(const std::filesystem::path& experiment, const std::vector<s
   for (const auto& kv : c.values_) c.bases_[kv.first] = defaults.parent_path().parent_path();
   if (!experiment.empty()) c.merge_file(experiment, 0);
   for (const auto& s : sets) c.set(s);
+  c.check_ranges((experiment.empty() ? std::string("config") : experiment.string()) + (sets.empty() ? "" : " with --set"));
   return c;
 }
 
@@ -92,11 +176,13 @@ Config Config::from_text(const std::string& yaml, const std::filesystem::path& w
                          const std::filesystem::path& defaults) {
   Config c = load({}, {}, defaults);
   c.merge_node_text(yaml, where, {});
+  c.check_ranges(where.string());
   return c;
 }
 
 void Config::merge_file(const std::filesystem::path& file, int depth) {
   require(std::filesystem::exists(file), file, "no such config file");
+  require(!std::filesystem::is_directory(file), file, "is a folder; give a config .yaml file");
   require(depth < 8, file, "too many nested `base:` files");
   const auto node = parse_yaml(read_file(file), file);
   if (node["base"]) merge_file(file.parent_path() / node["base"].as<std::string>(), depth + 1);
@@ -144,15 +230,16 @@ double Config::num(const std::string& key) const {
   try {
     size_t used = 0;
     const double d = std::stod(v, &used);
-    if (used == v.size()) return d;
+    if (used == v.size() && std::isfinite(d)) return d;
   } catch (const std::exception&) {
   }
-  throw Error("config: setting '" + key + "' must be a number, got '" + v + "'");
+  throw Error("config: setting '" + key + "' must be a finite number, got '" + v + "'");
 }
 
 int64_t Config::integer(const std::string& key) const {
   const double d = num(key);
-  if (d != std::floor(d)) throw Error("config: setting '" + key + "' must be an integer, got '" + lookup(key) + "'");
+  if (d != std::floor(d) || std::abs(d) > 9.0e15)
+    throw Error("config: setting '" + key + "' must be an integer, got '" + lookup(key) + "'");
   return static_cast<int64_t>(d);
 }
 

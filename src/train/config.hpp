@@ -30,6 +30,10 @@ class Config {
   // A path value, resolved against the folder of the file that set it ("" stays "").
   std::filesystem::path path(const std::string& key) const;
 
+  // Throws (naming `where`, the key and its range) unless every number is finite and in its
+  // range (config.cpp's table); load and from_text call it, and so must code that calls set().
+  void check_ranges(const std::string& where = "--set") const;
+
   // Every key with its value, as nested YAML (what checkpoints and model files embed).
   std::string to_yaml() const;
   const std::map<std::string, std::string>& values() const { return values_; }

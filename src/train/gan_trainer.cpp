@@ -15,16 +15,38 @@ namespace flatnet {
 namespace {
 
 // Keeps the rows of a CSV log whose first field (the step) is <= last_step; used on resume so
-// the log continues without duplicates.
+// the log continues without duplicates. The checkpoint, not the log, is the run's state: rows that
+// do not start with a step (a line cut short by a crash, an edit) are dropped with a warning.
 void truncate_log(const std::filesystem::path& path, int64_t last_step) {
   if (!std::filesystem::exists(path)) return;
   std::ifstream in(path);
   std::string line, kept;
   bool header = true;
+  int64_t line_number = 0, dropped = 0, first_dropped = 0;
   while (std::getline(in, line)) {
-    if (header || std::stoll(line.substr(0, line.find(','))) <= last_step) kept += line + "\n";
-    header = false;
+    ++line_number;
+    if (header) {
+      kept += line + "\n";
+      header = false;
+      continue;
+    }
+    const auto field = line.substr(0, line.find(','));
+    size_t used = 0;
+    int64_t step = -1;
+    try {
+      step = std::stoll(field, &used);
+    } catch (const std::exception&) {
+      used = 0;
+    }
+    if (used == 0 || used != field.size() || step < 0) {
+      if (dropped++ == 0) first_dropped = line_number;
+      continue;
+    }
+    if (step <= last_step) kept += line + "\n";
   }
+  if (dropped > 0)
+    std::cerr << path.string() << ": dropped " << dropped << " malformed row(s) (the first at line " << first_dropped
+              << "); training state comes from the checkpoint\n";
   write_text_atomically(path, kept);
 }
 

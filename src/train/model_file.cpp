@@ -150,6 +150,7 @@ void load_module(torch::serialize::InputArchive& root, const std::string& key, t
 
 torch::serialize::InputArchive open_archive(const std::filesystem::path& path, const std::string& expected_format) {
   require(std::filesystem::exists(path), path, "no such file");
+  verify_zip_crcs(path);  // LibTorch's reader would load a damaged block as wrong weights
   torch::serialize::InputArchive a;
   try {
     a.load_from(path.string());
