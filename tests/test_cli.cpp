@@ -150,6 +150,20 @@ TEST_CASE("bad input: one clear line, exit code 2", "[cli][errors]") {
     CHECK_THAT(r.output, Contains(message) && Contains("--set"));
     CHECK_FALSE(std::filesystem::exists(s.dir / "run"));
   }
+  // A flag value of the wrong type names the flag.
+  r = test::run_flatnet("recon --method tikhonov --lambda nan --input " + q(golden) + " --out " + q(s.dir / "o"));
+  CHECK(r.code == 2);
+  CHECK_THAT(r.output, Contains("--lambda: 'nan' is not a valid value"));
+  r = test::run_flatnet("simulate --images x --out y --val-fraction=half");
+  CHECK_THAT(r.output, Contains("--val-fraction: 'half' is not a valid value"));
+  // A folder of raw captures given to eval as reconstructions: refused, not scored.
+  std::filesystem::create_directories(s.dir / "gt_one");
+  std::filesystem::create_directories(s.dir / "raw_one");
+  std::filesystem::copy_file(test::data_dir() / "golden" / "bsds_16052_scene.png", s.dir / "gt_one" / "bsds_16052.png");
+  std::filesystem::copy_file(golden, s.dir / "raw_one" / "bsds_16052.png");
+  r = test::run_flatnet("eval --gt " + q(s.dir / "gt_one") + " --out " + q(s.dir / "raw_one"));
+  CHECK(r.code == 2);
+  CHECK_THAT(r.output, Contains("not a reconstruction of that scene"));
   r = test::run_flatnet("train --config " + q(s.dir / "empty") + " --out " + q(s.dir / "run"));
   CHECK(r.code == 2);
   CHECK_THAT(r.output, Contains("is a folder"));

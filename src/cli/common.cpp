@@ -58,7 +58,25 @@ void check_numbers(const cxxopts::ParseResult& result) {
 }  // namespace
 
 bool parse(cxxopts::Options& options, int argc, char** argv, cxxopts::ParseResult& result) {
-  result = options.parse(argc, argv);
+  try {
+    result = options.parse(argc, argv);
+  } catch (const cxxopts::exceptions::incorrect_argument_type& e) {
+    // cxxopts names the value, not the option: find the flag it was given to.
+    const std::string message = e.what();
+    auto quoted = [&](const std::string& v) {  // cxxopts quotes with ‘’ or '' depending on the platform
+      return message.find("‘" + v + "’") != std::string::npos || message.find("'" + v + "'") != std::string::npos;
+    };
+    for (int i = 1; i < argc; ++i) {
+      const std::string arg = argv[i];
+      const auto eq = arg.find('=');
+      const bool attached = arg.rfind("--", 0) == 0 && eq != std::string::npos && quoted(arg.substr(eq + 1));
+      const bool next = arg.rfind("--", 0) == 0 && i + 1 < argc && quoted(argv[i + 1]);
+      if (attached || next)
+        throw Error(arg.substr(0, attached ? eq : std::string::npos),
+                    "'" + (attached ? arg.substr(eq + 1) : std::string(argv[i + 1])) + "' is not a valid value for this option");
+    }
+    throw;
+  }
   if (result.count("help")) {
     std::cout << options.help() << std::endl;
     return false;

@@ -57,7 +57,17 @@ std::vector<MethodScore> evaluate(const EvalOptions& opt) {
       const auto rec_path = methods[k].dir / name;
       if (!std::filesystem::exists(rec_path)) continue;
       auto rec = read_rgb(rec_path);
-      if (!gt.defined()) gt = resize(read_rgb(gt_path), rec.size(1), rec.size(2));
+      if (!gt.defined()) {
+        const auto truth = read_rgb(gt_path);
+        // Reconstructions at another resolution are compared with the truth resized; another shape
+        // (a raw capture, a crop) is a wrong folder, not a score.
+        const double rec_aspect = double(rec.size(2)) / rec.size(1), gt_aspect = double(truth.size(2)) / truth.size(1);
+        require(std::abs(rec_aspect / gt_aspect - 1) < 0.01, rec_path,
+                "is " + std::to_string(rec.size(2)) + "x" + std::to_string(rec.size(1)) + ", its ground truth " +
+                    std::to_string(truth.size(2)) + "x" + std::to_string(truth.size(1)) +
+                    ": not a reconstruction of that scene (is --out a folder of reconstructions?)");
+        gt = resize(truth, rec.size(1), rec.size(2));
+      }
       require(rec.sizes() == gt.sizes(), rec_path, "size differs from the other reconstructions");
       const double p = psnr(rec, gt), s = ssim(rec, gt);
       const double mean_out = rec.mean().item<double>(), mean_gt = gt.mean().item<double>();

@@ -627,6 +627,7 @@ uint64_t little_endian(const unsigned char* p, int bytes) {
 }  // namespace
 
 bool verify_zip_crcs(const std::filesystem::path& path) {
+  require(!std::filesystem::is_directory(path), path, "is a folder, not a file");
   std::ifstream in(path, std::ios::binary);
   require(static_cast<bool>(in), path, "cannot read file");
   in.seekg(0, std::ios::end);
