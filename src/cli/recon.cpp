@@ -2,7 +2,9 @@
 
 #include "cli/commands.hpp"
 #include "core/error.hpp"
+#include "eval/niqe.hpp"
 #include "eval/report.hpp"
+#include "optics/simulator.hpp"
 #include "recon/run.hpp"
 
 namespace flatnet::cli {
@@ -36,17 +38,65 @@ int recon(int argc, char** argv) {
   return 0;
 }
 
+namespace {
+
+const std::filesystem::path kShippedNiqe = std::filesystem::path(FLATNET_SOURCE_DIR) / "models" / "niqe.mat";
+
+// flatnet eval fit-niqe: the NIQE model of pristine photographs, as a display shows them (the
+// scenes the reconstructions are compared with), from the training side of simulate's split.
+int fit_niqe_command(int argc, char** argv) {
+  cxxopts::Options o("flatnet eval fit-niqe", "Fit NIQE's pristine model on photographs (models/niqe.mat).");
+  o.add_options()("images", "folder of photographs", cxxopts::value<std::string>())(
+      "out", "model file to write (.mat)", cxxopts::value<std::string>())(
+      "patch", "patch side in pixels at full scale (the paper: 96; flatnet's 256-pixel images: 48)",
+      cxxopts::value<int64_t>()->default_value("48"))(
+      "size", "scene side the photographs are shown at", cxxopts::value<int64_t>()->default_value("256"))(
+      "val-fraction", "photographs held out (as simulate's split with --split-seed): never fitted on",
+      cxxopts::value<double>()->default_value("0.1"))(
+      "split-seed", "seed of that split", cxxopts::value<uint64_t>()->default_value("1"))(
+      "limit", "fit on the first N training photographs only (0: all)", cxxopts::value<int64_t>()->default_value("0"))(
+      "force", "replace an existing --out file");
+  add_common(o);
+  cxxopts::ParseResult r;
+  if (!parse(o, argc, argv, r)) return 0;
+  require(r.count("images") && r.count("out"), "eval fit-niqe", "--images DIR and --out FILE are required");
+  const std::filesystem::path out = r["out"].as<std::string>();
+  require_new_output(out, r.count("force") > 0, {});
+  const auto patch = r["patch"].as<int64_t>(), size = r["size"].as<int64_t>();
+  require(patch >= 8 && patch % 2 == 0 && patch <= size, "--patch", "an even size from 8 to --size");
+  auto train = split_image_files(r["images"].as<std::string>(), r["val-fraction"].as<double>(), r["split-seed"].as<uint64_t>()).first;
+  if (r["limit"].as<int64_t>() > 0 && static_cast<int64_t>(train.size()) > r["limit"].as<int64_t>()) train.resize(r["limit"].as<int64_t>());
+  const auto model = fit_niqe(train, [&](const std::filesystem::path& p) { return display_scene(p, size); }, patch);
+  save_niqe(out, model);
+  std::cout << "fitted NIQE on " << model.patches << " sharp " << patch << "-pixel patches of " << model.images
+            << " photographs shown at " << size << "x" << size << "; wrote " << out.string() << "\n";
+  return 0;
+}
+
+}  // namespace
+
 int eval(int argc, char** argv) {
-  cxxopts::Options o("flatnet eval", "PSNR and SSIM of reconstructions against ground truth.");
+  if (argc > 1 && std::string(argv[1]) == "fit-niqe") return fit_niqe_command(argc - 1, argv + 1);
+  cxxopts::Options o("flatnet eval", "PSNR, SSIM and NIQE of reconstructions against ground truth ('flatnet eval fit-niqe' fits NIQE's model).");
   o.add_options()("gt", "ground-truth folder", cxxopts::value<std::string>())(
       "out", "reconstructions: a folder of PNGs, or of one subfolder per method; reports are written here",
-      cxxopts::value<std::string>())("sheet-rows", "images in the contact sheet", cxxopts::value<int>()->default_value("6"));
+      cxxopts::value<std::string>())("sheet-rows", "images in the contact sheet", cxxopts::value<int>()->default_value("6"))(
+      "niqe", "NIQE model (.mat from `flatnet eval fit-niqe`), or none (default: the shipped models/niqe.mat)",
+      cxxopts::value<std::string>());
   add_common(o);
   cxxopts::ParseResult r;
   if (!parse(o, argc, argv, r)) return 0;
   require(r.count("gt") && r.count("out"), "eval", "--gt DIR and --out DIR are required");
   EvalOptions opt{r["gt"].as<std::string>(), r["out"].as<std::string>(), r["sheet-rows"].as<int>()};
+  if (r.count("niqe")) {
+    if (r["niqe"].as<std::string>() != "none") opt.niqe_model = r["niqe"].as<std::string>();
+  } else if (std::filesystem::exists(kShippedNiqe)) {
+    opt.niqe_model = kShippedNiqe;
+  }
   const auto scores = evaluate(opt);
+  if (!opt.niqe_model.empty())
+    std::cout << "NIQE (lower is more natural; model " << opt.niqe_model.string()
+              << "): Ma et al.'s score needs regression forests not available here, so no perceptual index PI\n";
   std::cout << format_table(scores) << "wrote " << (opt.out / "metrics.csv").string() << " and "
             << (opt.out / "sheet.png").string() << "\n";
   return 0;

@@ -5,6 +5,7 @@
 #include "core/error.hpp"
 #include "core/util.hpp"
 #include "eval/metrics.hpp"
+#include "eval/niqe.hpp"
 #include "io/image.hpp"
 
 namespace flatnet {
@@ -42,8 +43,16 @@ std::vector<MethodScore> evaluate(const EvalOptions& opt) {
   const auto gt_files = list_images(opt.gt, kImageExtensions);
   require(!gt_files.empty(), opt.gt, "no ground-truth images in this folder");
   const auto methods = find_methods(opt.out);
+  NiqeModel niqe_model;
+  const bool with_niqe = !opt.niqe_model.empty();
+  if (with_niqe) niqe_model = load_niqe(opt.niqe_model);
+  // Running sums of a NIQE column: {sum, sum of squares, count} (NaN scores, flat images, skipped).
+  struct Sums { double sum = 0, sq = 0; int64_t n = 0; };
+  auto add = [](Sums& s, double v) { if (std::isfinite(v)) s.sum += v, s.sq += v * v, ++s.n; };
+  std::vector<Sums> niqe_sums(methods.size());
+  Sums truth_niqe;
   std::ostringstream csv;
-  csv << "image,method,psnr,ssim,mean_output,mean_truth\n" << std::fixed << std::setprecision(4);
+  csv << "image,method,psnr,ssim,mean_output,mean_truth" << (with_niqe ? ",niqe" : "") << "\n" << std::fixed << std::setprecision(4);
   std::vector<MethodScore> scores;
   std::vector<std::vector<torch::Tensor>> sheet;
   std::vector<std::string> row_labels;
@@ -71,7 +80,13 @@ std::vector<MethodScore> evaluate(const EvalOptions& opt) {
       require(rec.sizes() == gt.sizes(), rec_path, "size differs from the other reconstructions");
       const double p = psnr(rec, gt), s = ssim(rec, gt);
       const double mean_out = rec.mean().item<double>(), mean_gt = gt.mean().item<double>();
-      csv << name << "," << methods[k].name << "," << p << "," << s << "," << mean_out << "," << mean_gt << "\n";
+      csv << name << "," << methods[k].name << "," << p << "," << s << "," << mean_out << "," << mean_gt;
+      if (with_niqe) {
+        const double q = niqe_score(niqe_model, rec);
+        add(niqe_sums[k], q);
+        csv << "," << q;
+      }
+      csv << "\n";
       scores[k].count++;
       scores[k].psnr += p;
       scores[k].ssim += s;
@@ -80,6 +95,11 @@ std::vector<MethodScore> evaluate(const EvalOptions& opt) {
         if (row.empty()) row.resize(methods.size() + 1);
         row[k + 1] = rec;
       }
+    }
+    if (with_niqe && gt.defined()) {
+      const double q = niqe_score(niqe_model, gt);
+      add(truth_niqe, q);
+      csv << name << ",ground truth,,,," << gt.mean().item<double>() << "," << q << "\n";
     }
     if (!row.empty() && static_cast<int>(sheet.size()) < opt.sheet_rows) {
       row[0] = gt;
@@ -97,8 +117,22 @@ std::vector<MethodScore> evaluate(const EvalOptions& opt) {
     s.psnr_sd = std::sqrt(std::max(0.0, sum_sq_psnr[k] / s.count - s.psnr * s.psnr));
     s.ssim_sd = std::sqrt(std::max(0.0, sum_sq_ssim[k] / s.count - s.ssim * s.ssim));
     s.brightness = sum_gt[k] > 0 ? sum_out[k] / sum_gt[k] : 0;
-    csv << "mean," << s.method << "," << s.psnr << "," << s.ssim << "," << sum_out[k] / s.count << "," << sum_gt[k] / s.count
-        << "\n";
+    csv << "mean," << s.method << "," << s.psnr << "," << s.ssim << "," << sum_out[k] / s.count << "," << sum_gt[k] / s.count;
+    if (with_niqe && niqe_sums[k].n > 0) {
+      s.niqe = niqe_sums[k].sum / niqe_sums[k].n;
+      s.niqe_sd = std::sqrt(std::max(0.0, niqe_sums[k].sq / niqe_sums[k].n - s.niqe * s.niqe));
+      csv << "," << s.niqe;
+    }
+    csv << "\n";
+  }
+  if (with_niqe && truth_niqe.n > 0) {
+    MethodScore truth{"ground truth"};
+    truth.count = truth_niqe.n;
+    truth.psnr = truth.ssim = truth.psnr_sd = truth.ssim_sd = truth.brightness = std::nan("");
+    truth.niqe = truth_niqe.sum / truth_niqe.n;
+    truth.niqe_sd = std::sqrt(std::max(0.0, truth_niqe.sq / truth_niqe.n - truth.niqe * truth.niqe));
+    csv << "mean,ground truth,,,,," << truth.niqe << "\n";
+    scores.push_back(truth);
   }
   write_text_atomically(opt.out / "metrics.csv", csv.str());
   std::vector<std::string> labels{"ground truth"};
@@ -108,15 +142,25 @@ std::vector<MethodScore> evaluate(const EvalOptions& opt) {
 }
 
 std::string format_table(const std::vector<MethodScore>& scores) {
+  bool any_niqe = false;
+  for (const auto& s : scores) any_niqe = any_niqe || std::isfinite(s.niqe);
+  auto pm = [](double mean, double sd, int digits) {
+    if (!std::isfinite(mean)) return std::string("-");
+    std::ostringstream o;
+    o << std::fixed << std::setprecision(digits) << mean << " +- " << sd;
+    return o.str();
+  };
   std::ostringstream os;
   os << std::left << std::setw(24) << "method" << std::right << std::setw(7) << "images" << std::setw(16) << "PSNR dB"
-     << std::setw(16) << "SSIM" << std::setw(12) << "brightness" << "\n";
+     << std::setw(16) << "SSIM" << std::setw(12) << "brightness" << (any_niqe ? "            NIQE" : "") << "\n";
   for (const auto& s : scores) {
-    std::ostringstream p, q;
-    p << std::fixed << std::setprecision(2) << s.psnr << " +- " << s.psnr_sd;
-    q << std::fixed << std::setprecision(3) << s.ssim << " +- " << s.ssim_sd;
-    os << std::left << std::setw(24) << s.method << std::right << std::setw(7) << s.count << std::setw(16) << p.str()
-       << std::setw(16) << q.str() << std::fixed << std::setprecision(2) << std::setw(12) << s.brightness << "\n";
+    std::ostringstream b;
+    if (std::isfinite(s.brightness)) b << std::fixed << std::setprecision(2) << s.brightness;
+    else b << "-";
+    os << std::left << std::setw(24) << s.method << std::right << std::setw(7) << s.count << std::setw(16)
+       << pm(s.psnr, s.psnr_sd, 2) << std::setw(16) << pm(s.ssim, s.ssim_sd, 3) << std::setw(12) << b.str();
+    if (any_niqe) os << std::setw(16) << pm(s.niqe, s.niqe_sd, 2);
+    os << "\n";
   }
   return os.str();
 }

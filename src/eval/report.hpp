@@ -1,5 +1,6 @@
 #pragma once
 // `flatnet eval`: metrics of reconstruction folders against ground truth, as CSV, table and sheet.
+#include <cmath>
 #include <filesystem>
 #include <string>
 #include <vector>
@@ -14,15 +15,19 @@ struct MethodScore {
   // Mean output value over mean ground-truth value, whole set: 1 keeps the scene's light, > 1
   // brightens (a dark scene turned white shows here), < 1 darkens.
   double brightness = 0;
+  // NIQE (eval/niqe.hpp; lower is more natural) over the images where it is defined; NaN without a model.
+  double niqe = std::nan(""), niqe_sd = std::nan("");
 };
 
 struct EvalOptions {
   std::filesystem::path gt;   // ground-truth images
   std::filesystem::path out;  // one method's outputs, or a folder with one subfolder per method
   int sheet_rows = 6;
+  std::filesystem::path niqe_model;  // a NIQE model (.mat); empty: no NIQE column
 };
 
-// Writes out/metrics.csv (per image and mean rows) and out/sheet.png; returns the means.
+// Writes out/metrics.csv (per image and mean rows) and out/sheet.png; returns the means. With a
+// NIQE model, the last entry is the ground truth itself (method "ground truth", NIQE only).
 std::vector<MethodScore> evaluate(const EvalOptions& options);
 std::string format_table(const std::vector<MethodScore>& scores);
 
