@@ -385,3 +385,41 @@ TEST_CASE("a full disk: exit 2 naming the file, no temp files left, no broken fi
     CHECK(read_rgb(e.path()).size(0) == 3);
   }
 }
+
+TEST_CASE("flatnet report: the table, the figure, timings, and it resumes from what is on disk", "[cli][report]") {
+  test::Scratch s("report");
+  for (const char* stem : {"bsds_16052", "inet_n02980441_castle"}) {
+    std::filesystem::create_directories(s.dir / "set" / "meas");
+    std::filesystem::create_directories(s.dir / "set" / "gt");
+    std::filesystem::copy_file(test::data_dir() / "golden" / (std::string(stem) + "_raw.png"), s.dir / "set" / "meas" / (std::string(stem) + ".png"));
+    std::filesystem::copy_file(test::data_dir() / "golden" / (std::string(stem) + "_scene.png"), s.dir / "set" / "gt" / (std::string(stem) + ".png"));
+  }
+  const auto model = test::source_dir() / "models" / "flatnet-sim-transpose.flatnet";
+  const std::string cmd = "report --sets display=" + q(s.dir / "set") + " --methods tikhonov,tv,transpose=" + q(model) +
+                          " --tv-count 1 --precision fp32 --out " + q(s.dir / "out");
+  auto r = test::run_flatnet(cmd);
+  INFO(r.output);
+  REQUIRE(r.code == 0);
+  const auto md = read_lines(s.dir / "out" / "report.md");
+  std::string text;
+  for (const auto& l : md) text += l + "\n";
+  CHECK_THAT(text, Contains("| method | images | PSNR dB | SSIM | NIQE | ms per image |"));
+  CHECK_THAT(text, Contains("| tikhonov | 2 |") && Contains("| tv | 1 |") && Contains("| transpose | 2 |") &&
+                       Contains("| ground truth | 2 | - | - |"));
+  CHECK(std::filesystem::exists(s.dir / "out" / "display_figure.png"));
+  CHECK(read_rgb(s.dir / "out" / "display" / "transpose" / "bsds_16052.png").size(1) == 256);
+  // Resumed: nothing is made again, and one missing reconstruction is made alone.
+  r = test::run_flatnet(cmd);
+  CHECK(r.code == 0);
+  CHECK(r.output.find("to make") == std::string::npos);
+  std::filesystem::remove(s.dir / "out" / "display" / "tikhonov" / "bsds_16052.png");
+  r = test::run_flatnet(cmd);
+  CHECK_THAT(r.output, Contains("tikhonov: 1 of 2 to make"));
+  // A set without ground truth, or a method that is not one, is named.
+  r = test::run_flatnet("report --sets " + q(s.dir / "set" / "meas") + " --out " + q(s.dir / "o2"));
+  CHECK(r.code == 2);
+  CHECK_THAT(r.output, Contains("not an evaluation set"));
+  r = test::run_flatnet("report --sets " + q(s.dir / "set") + " --methods wiener --out " + q(s.dir / "o2"));
+  CHECK(r.code == 2);
+  CHECK_THAT(r.output, Contains("'wiener': expected tikhonov, tv or NAME=MODEL.flatnet"));
+}

@@ -13,6 +13,7 @@ int simulate(int argc, char** argv);
 int calibrate(int argc, char** argv);
 int recon(int argc, char** argv);
 int eval(int argc, char** argv);
+int report(int argc, char** argv);
 int demo(int argc, char** argv);
 int train(int argc, char** argv);
 int export_model(int argc, char** argv);

@@ -8,6 +8,7 @@
 #include "core/util.hpp"
 #include "eval/metrics.hpp"
 #include "eval/plot.hpp"
+#include "eval/tables.hpp"
 #include "io/image.hpp"
 #include "io/mat.hpp"
 #include "optics/codes.hpp"
@@ -213,38 +214,36 @@ int mask_report(int argc, char** argv) {
         "centred 500x620 PSF, 256x256 luma scenes centred in the canvas, circular convolution, Gaussian noise, Wiener "
         "deconvolution with gamma tuned per mask (and per noise level) on "
      << n_tune << " held-out photographs; PSNR on " << test.size(0)
-     << " further held-out photographs (`flatnet mask report`).\n\n"
-     << "| mask | throughput | gamma | PSNR dB (sigma " << std::setprecision(2) << cam.noise_sigma << ") |\n|---|---|---|---|\n";
+     << " further held-out photographs (`flatnet mask report`).\n\n";
+  MarkdownTable main_table{{"mask", "throughput", "gamma", "PSNR dB (sigma " + scientific(cam.noise_sigma, 1) + ")"}, {}};
   std::vector<MaskScore> scores;
   for (const auto& [name, w] : masks) {
     scores.push_back(score_mask(name, w, tune, test, cam));
     const auto& s = scores.back();
-    md << "| " << name << " | " << std::fixed << std::setprecision(3) << s.throughput << " | " << std::scientific
-       << std::setprecision(2) << s.gamma << " | " << std::fixed << std::setprecision(2) << s.psnr << " |\n";
+    main_table.add({name, fixed(s.throughput, 3), scientific(s.gamma, 2), fixed(s.psnr, 2)});
     std::cerr << name << ": " << s.psnr << " dB\n";
   }
-  md << "\nThe 02 mask passes about 2% of the light, so it is compared apart (not at equal light). Its PSF "
+  md << main_table.markdown() << "\nThe 02 mask passes about 2% of the light, so it is compared apart (not at equal light). Its PSF "
         "covers only 124x124 pixels, so its deconvolution is well conditioned; with noise that does not depend "
         "on the signal, as in this protocol, that outweighs the light it loses.\n\n"
-        "## Noise sweep (PSNR dB; gamma re-tuned at each level)\n\n| sigma |";
+        "## Noise sweep (PSNR dB; gamma re-tuned at each level)\n\n";
   const std::vector<double> sigmas = {1e-4, 3e-4, 1e-3, 3e-3};
   std::vector<Series> sweep;
-  for (const auto& [name, w] : masks) md << " " << name << " |", sweep.push_back({name, {}, {}});
-  md << "\n|---|";
-  for (size_t i = 0; i < masks.size(); ++i) md << "---|";
-  md << "\n";
+  MarkdownTable sweep_table{{"sigma"}, {}};
+  for (const auto& [name, w] : masks) sweep_table.header.push_back(name), sweep.push_back({name, {}, {}});
   for (const double sg : sigmas) {
     WienerCamera c2 = cam;
     c2.noise_sigma = sg;
-    md << "| " << std::scientific << std::setprecision(0) << sg << " |";
+    std::vector<std::string> row{scientific(sg, 0)};
     for (size_t i = 0; i < masks.size(); ++i) {
       const auto s = score_mask(masks[i].first, masks[i].second, tune, test, c2);
-      md << " " << std::fixed << std::setprecision(2) << s.psnr << " |";
+      row.push_back(fixed(s.psnr, 2));
       sweep[i].x.push_back(sg);
       sweep[i].y.push_back(s.psnr);
     }
-    md << "\n";
+    sweep_table.add(row);
   }
+  md << sweep_table.markdown();
   std::filesystem::create_directories(out);
   PlotOptions po;
   po.title = "PSNR vs noise (Wiener, gamma tuned per level)";
@@ -258,12 +257,12 @@ int mask_report(int argc, char** argv) {
         "axis's code (learned vectors scaled to [0,1]; MLS (m+1)/2), Tikhonov with lambda tuned the same way, sigma "
      << std::scientific << std::setprecision(1) << cam.noise_sigma
      << ". A learned rank-1 mask is sigmoid(u v^T + b), which is not separable, so its vectors are only an "
-        "approximation of separable codes, and they were optimised for the Wiener pipeline, not for this model.\n\n| mask | cond(PhiL) | cond(PhiR) | Tikhonov PSNR dB |\n|---|---|---|---|\n";
+        "approximation of separable codes, and they were optimised for the Wiener pipeline, not for this model.\n\n";
+  MarkdownTable separable_table{{"mask", "cond(PhiL)", "cond(PhiR)", "Tikhonov PSNR dB"}, {}};
   std::vector<Series> spectra;
   auto add_separable = [&](const std::string& name, const std::vector<double>& u, const std::vector<double>& v) {
     const auto st = separable_stats(u, v, tune, test, cam);
-    md << "| " << name << " | " << std::scientific << std::setprecision(2) << st.cond_l << " | " << st.cond_r << " | "
-       << std::fixed << std::setprecision(2) << st.tik_psnr << " |\n";
+    separable_table.add({name, scientific(st.cond_l, 2), scientific(st.cond_r, 2), fixed(st.tik_psnr, 2)});
     Series s{name, {}, {}};
     const auto sv = (st.sv_l / st.sv_l.max()).to(torch::kFloat64);
     for (int64_t i = 0; i < sv.numel(); ++i) s.x.push_back(static_cast<double>(i)), s.y.push_back(std::log10(sv[i].item<double>() + 1e-12));
@@ -279,6 +278,7 @@ int mask_report(int argc, char** argv) {
     if (U.size(1) != 1) continue;
     add_separable(name, normalised(U.select(1, 0)), normalised(V.select(1, 0)));
   }
+  md << separable_table.markdown();
   PlotOptions sp;
   sp.title = "singular values of PhiL (log10 of s / s_max)";
   sp.xlabel = "index";

@@ -3,7 +3,9 @@
 #include "cli/commands.hpp"
 #include "core/error.hpp"
 #include "eval/niqe.hpp"
+#include "core/precision.hpp"
 #include "eval/report.hpp"
+#include "eval/thesis_report.hpp"
 #include "optics/simulator.hpp"
 #include "recon/run.hpp"
 
@@ -99,6 +101,53 @@ int eval(int argc, char** argv) {
               << "): Ma et al.'s score needs regression forests not available here, so no perceptual index PI\n";
   std::cout << format_table(scores) << "wrote " << (opt.out / "metrics.csv").string() << " and "
             << (opt.out / "sheet.png").string() << "\n";
+  return 0;
+}
+
+int report(int argc, char** argv) {
+  cxxopts::Options o("flatnet report",
+                     "The thesis's comparison as one command: every method on every held-out set, scored (PSNR, SSIM, NIQE), "
+                     "timed and shown; resumes from the reconstructions already in --out.");
+  o.add_options()("sets", "evaluation sets, NAME=DIR or DIR (folders from `flatnet simulate --only val`; scripts/make_eval_sets.sh)",
+                  cxxopts::value<std::vector<std::string>>())(
+      "methods", "tikhonov, tv, and NAME=MODEL.flatnet (default: tikhonov, tv and the two shipped models)",
+      cxxopts::value<std::vector<std::string>>())(
+      "camera", "camera .yaml for Tikhonov and TV (default: the reference camera)", cxxopts::value<std::string>())(
+      "out", "report folder (report.md, figures, reconstructions)", cxxopts::value<std::string>())(
+      "niqe", "NIQE model, or none (default: models/niqe.mat)", cxxopts::value<std::string>())(
+      "tv-count", "TV on the first N captures of each set (0: all; FISTA takes seconds per capture)",
+      cxxopts::value<int64_t>()->default_value("30"))(
+      "rows", "scenes per figure", cxxopts::value<int>()->default_value("4"));
+  add_precision(o);
+  add_common(o);
+  cxxopts::ParseResult r;
+  if (!parse(o, argc, argv, r)) return 0;
+  require(r.count("sets") && r.count("out"), "report", "--sets NAME=DIR,... and --out DIR are required");
+  ReportOptions opt;
+  opt.camera = camera_from(r);
+  opt.out = r["out"].as<std::string>();
+  const auto models = std::filesystem::path(FLATNET_SOURCE_DIR) / "models";
+  const std::vector<std::string> default_methods = {"tikhonov", "tv",
+                                                    "flatnet-transpose=" + (models / "flatnet-sim-transpose.flatnet").string(),
+                                                    "flatnet-calibfree=" + (models / "flatnet-sim-calibfree.flatnet").string()};
+  for (const auto& m : r.count("methods") ? r["methods"].as<std::vector<std::string>>() : default_methods)
+    opt.methods.push_back(parse_report_method(m));
+  for (const auto& s : r["sets"].as<std::vector<std::string>>()) opt.sets.push_back(parse_report_set(s));
+  if (r.count("niqe")) {
+    if (r["niqe"].as<std::string>() != "none") opt.niqe_model = r["niqe"].as<std::string>();
+  } else if (std::filesystem::exists(kShippedNiqe)) {
+    opt.niqe_model = kShippedNiqe;
+  }
+  opt.tv_count = r["tv-count"].as<int64_t>();
+  require(opt.tv_count >= 0, "--tv-count", "0 (all) or more");
+  opt.figure_rows = std::max(1, r["rows"].as<int>());
+  const auto precision = precision_from(r);
+  opt.levers.bf16 = precision == Precision::bf16;
+  opt.machine = cpu_features().summary() + ", " + std::to_string(at::get_num_threads()) + " threads, models in " +
+                describe_precision(precision);
+  opt.command = "flatnet report";
+  for (int i = 1; i < argc; ++i) opt.command += std::string(" ") + argv[i];
+  std::cout << make_report(opt) << "wrote " << (opt.out / "report.md").string() << "\n";
   return 0;
 }
 

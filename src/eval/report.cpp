@@ -42,7 +42,12 @@ std::vector<Method> find_methods(const std::filesystem::path& out) {
 std::vector<MethodScore> evaluate(const EvalOptions& opt) {
   const auto gt_files = list_images(opt.gt, kImageExtensions);
   require(!gt_files.empty(), opt.gt, "no ground-truth images in this folder");
-  const auto methods = find_methods(opt.out);
+  std::vector<Method> methods;
+  for (const auto& name : opt.methods) {
+    require(std::filesystem::is_directory(opt.out / name), opt.out / name, "no reconstructions of this method");
+    methods.push_back({name, opt.out / name});
+  }
+  if (methods.empty()) methods = find_methods(opt.out);
   NiqeModel niqe_model;
   const bool with_niqe = !opt.niqe_model.empty();
   if (with_niqe) niqe_model = load_niqe(opt.niqe_model);

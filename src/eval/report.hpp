@@ -24,6 +24,7 @@ struct EvalOptions {
   std::filesystem::path out;  // one method's outputs, or a folder with one subfolder per method
   int sheet_rows = 6;
   std::filesystem::path niqe_model;  // a NIQE model (.mat); empty: no NIQE column
+  std::vector<std::string> methods;  // subfolders of `out` to score, in this order (empty: every one, by name)
 };
 
 // Writes out/metrics.csv (per image and mean rows) and out/sheet.png; returns the means. With a

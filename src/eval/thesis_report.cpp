@@ -1,0 +1,178 @@
+#include "eval/thesis_report.hpp"
+
+#include <fstream>
+#include <iostream>
+
+#include "core/error.hpp"
+#include "core/util.hpp"
+#include "eval/metrics.hpp"
+#include "eval/report.hpp"
+#include "eval/tables.hpp"
+#include "io/image.hpp"
+#include "optics/camera.hpp"
+#include "recon/infer.hpp"
+#include "recon/run.hpp"
+#include "train/model_file.hpp"
+
+namespace flatnet {
+
+namespace {
+
+namespace fs = std::filesystem;
+
+std::vector<fs::path> set_captures(const ReportSet& set) {
+  const auto list = set.dir / "val_meas.txt";
+  return collect_captures(fs::exists(list) ? list : set.dir / "meas");
+}
+
+fs::path output_of(const fs::path& dir, const fs::path& capture) {
+  return dir / fs::path(capture.filename()).replace_extension(".png");
+}
+
+// Milliseconds per image in the method itself, as measured when its reconstructions were made
+// (kept in timing.txt beside them, so that a resumed report still reports it): {ms, images timed}.
+std::pair<double, int64_t> read_timing(const fs::path& dir) {
+  std::ifstream in(dir / "timing.txt");
+  double ms = std::nan("");
+  int64_t n = 0;
+  if (in) in >> ms >> n;
+  return {in ? ms : std::nan(""), n};
+}
+
+void record_timing(const fs::path& dir, double ms, int64_t count) {
+  const auto [old_ms, old_n] = read_timing(dir);
+  double total_ms = ms * count;
+  int64_t total_n = count;
+  if (std::isfinite(old_ms) && old_n > 0) total_ms += old_ms * old_n, total_n += old_n;
+  write_text_atomically(dir / "timing.txt", std::to_string(total_ms / total_n) + " " + std::to_string(total_n) +
+                                                "\n# ms per image in the method (no file I/O), images timed\n");
+}
+
+// Makes the method's reconstructions of `captures` that are not on disk yet.
+void reconstruct_missing(const ReportOptions& o, const ReportMethod& m, const std::vector<fs::path>& captures,
+                         const fs::path& dir, const Calibration* calib) {
+  std::vector<fs::path> missing;
+  for (const auto& c : captures)
+    if (!fs::exists(output_of(dir, c))) missing.push_back(c);
+  if (missing.empty()) return;
+  std::cerr << "  " << m.name << ": " << missing.size() << " of " << captures.size() << " to make\n";
+  if (m.kind == "model") {
+    auto model = load_model_file(m.model);
+    InferOptions io;
+    io.out = dir;
+    io.progress = o.progress;
+    io.levers = o.levers;
+    const auto rep = infer_files(model.generator, model.camera, missing, io);
+    record_timing(dir, rep.model_ms_per_image, rep.count);
+  } else {
+    ReconOptions ro;
+    ro.method = m.kind;
+    ro.out = dir;
+    ro.progress = o.progress;
+    const auto rep = reconstruct_files(o.camera, *calib, missing, ro);
+    record_timing(dir, rep.recon_ms_per_capture, rep.count);
+  }
+}
+
+// Rows of scenes, a column per method, each with a magnified detail (thesis Figure 5.1).
+void write_figure(const fs::path& path, const ReportSet& set, const std::vector<ReportMethod>& methods,
+                  const std::vector<fs::path>& captures, const fs::path& set_out, int rows) {
+  std::vector<std::vector<torch::Tensor>> images;
+  std::vector<std::string> row_labels, labels{"ground truth"};
+  for (const auto& m : methods) labels.push_back(m.name);
+  for (const auto& c : captures) {
+    if (static_cast<int>(images.size()) >= rows) break;
+    const auto gt_path = set.dir / "gt" / fs::path(c.filename()).replace_extension(".png");
+    bool complete = fs::exists(gt_path);
+    for (const auto& m : methods) complete = complete && fs::exists(output_of(set_out / m.name, c));
+    if (!complete) continue;  // TV covers only the first captures; figures show scenes every method has
+    const auto gt = read_rgb(gt_path);
+    const int64_t n = gt.size(1), detail = n / 6;
+    const int64_t r0 = n / 2 - detail / 2, c0 = n / 2 - detail;  // a detail left of the centre
+    std::vector<torch::Tensor> row{with_inset(gt, r0, c0, detail)};
+    for (const auto& m : methods) row.push_back(with_inset(resize(read_rgb(output_of(set_out / m.name, c)), n, n), r0, c0, detail));
+    images.push_back(row);
+    row_labels.push_back(c.stem().string());
+  }
+  if (!images.empty()) write_contact_sheet(path, labels, row_labels, images);
+}
+
+}  // namespace
+
+ReportMethod parse_report_method(const std::string& spec) {
+  if (spec == "tikhonov" || spec == "tv") return {spec, spec, {}};
+  const auto eq = spec.find('=');
+  require(eq != std::string::npos && eq > 0 && eq + 1 < spec.size(), "--methods",
+          "'" + spec + "': expected tikhonov, tv or NAME=MODEL.flatnet");
+  ReportMethod m{spec.substr(0, eq), "model", spec.substr(eq + 1)};
+  require(fs::exists(m.model), m.model, "no such model file");
+  return m;
+}
+
+ReportSet parse_report_set(const std::string& spec) {
+  const auto eq = spec.find('=');
+  ReportSet s = eq == std::string::npos ? ReportSet{fs::path(spec).filename().string(), spec}
+                                        : ReportSet{spec.substr(0, eq), spec.substr(eq + 1)};
+  require(fs::is_directory(s.dir / "gt"), s.dir, "not an evaluation set (no gt/ folder; make one with `flatnet simulate --only val`)");
+  return s;
+}
+
+std::string make_report(const ReportOptions& o) {
+  require(!o.methods.empty() && !o.sets.empty(), "report", "at least one method and one set are needed");
+  for (size_t i = 0; i < o.methods.size(); ++i)
+    for (size_t j = 0; j < i; ++j)
+      require(o.methods[i].name != o.methods[j].name, "--methods", "two methods are named '" + o.methods[i].name + "'");
+  fs::create_directories(o.out);
+  std::unique_ptr<Calibration> calib;
+  for (const auto& m : o.methods)
+    if (m.kind != "model" && !calib) {
+      require(!o.camera.calibration.empty(), o.camera.name, "this camera names no calibration (needed for Tikhonov and TV)");
+      calib = std::make_unique<Calibration>(load_calibration(o.camera.calibration, o.camera));
+    }
+
+  std::ostringstream md;
+  md << "# Reconstruction report\n\nMade by `" << o.command << "` (`flatnet report`): every method on every set, scored "
+     << "against the ground truth. PSNR in dB and SSIM (11x11 Gaussian window) on the 256x256 sRGB images; NIQE "
+     << "(Mittal et al. 2013; lower is more natural) with the model " << (o.niqe_model.empty() ? "(none)" : o.niqe_model.string())
+     << ". Values are mean ± standard deviation over the images. Ma et al.'s score needs regression forests that are "
+     << "not available here, so there is no perceptual index (PI); NIQE is reported alone. Time: milliseconds per image "
+     << "in the method itself, no file I/O, on " << o.machine << ".\n\n";
+  for (size_t si = 0; si < o.sets.size(); ++si) {
+    const auto& set = o.sets[si];
+    std::cerr << "[" << si + 1 << "/" << o.sets.size() << "] " << set.name << " (" << set.dir.string() << ")\n";
+    const auto captures = set_captures(set);
+    const auto set_out = o.out / set.name;
+    std::vector<std::string> names;
+    for (const auto& m : o.methods) {
+      auto subset = captures;
+      if (m.kind == "tv" && o.tv_count > 0 && static_cast<int64_t>(subset.size()) > o.tv_count) subset.resize(o.tv_count);
+      fs::create_directories(set_out / m.name);
+      reconstruct_missing(o, m, subset, set_out / m.name, calib.get());
+      names.push_back(m.name);
+    }
+    EvalOptions eo;
+    eo.gt = set.dir / "gt";
+    eo.out = set_out;
+    eo.niqe_model = o.niqe_model;
+    eo.methods = names;
+    const auto scores = evaluate(eo);
+    MarkdownTable table{{"method", "images", "PSNR dB", "SSIM", "NIQE", "ms per image"}, {}};
+    for (const auto& s : scores) {
+      const auto [ms, timed] = s.method == "ground truth" ? std::pair<double, int64_t>{std::nan(""), 0} : read_timing(set_out / s.method);
+      table.add({s.method, std::to_string(s.count), plus_minus(s.psnr, s.psnr_sd, 2), plus_minus(s.ssim, s.ssim_sd, 3),
+                 plus_minus(s.niqe, s.niqe_sd, 2), fixed(ms, 1)});
+    }
+    const bool lamp = set.name.find("lamp") != std::string::npos;
+    md << "## " << set.name << (lamp ? ": dynamic range (thesis Figure 5.3)" : "") << "\n\n"
+       << captures.size() << " captures from `" << set.dir.string() << "`"
+       << (o.tv_count > 0 ? "; TV on the first " + std::to_string(std::min<int64_t>(o.tv_count, captures.size())) : std::string())
+       << ".\n\n" << table.markdown() << "\n";
+    const auto figure = set.name + "_figure.png";
+    write_figure(o.out / figure, set, o.methods, captures, set_out, o.figure_rows);
+    md << "![" << set.name << "](" << figure << ")\n\n";
+  }
+  write_text_atomically(o.out / "report.md", md.str());
+  return md.str();
+}
+
+}  // namespace flatnet
