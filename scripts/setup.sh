@@ -2,14 +2,15 @@
 # Installs every Debian package flatnet needs. Idempotent and non-interactive:
 # packages already present are skipped, so a second run costs a few seconds.
 #
-# Traps this script takes care of (see DEVELOPERS.md):
+# Traps this script takes care of (README "Quick start"):
 #  - libaravis-dev forgets libusb-1.0-0-dev, which its pkg-config file requires.
 #  - libgloo-dev is needed for LibTorch's c10d (distributed training).
 #  - libopenblas0-openmp: without it LibTorch falls back to reference BLAS (2-60x slower).
 #  - xvfb + xauth: the capture tests show scenes in a real (virtual) window; iproute2 and
 #    util-linux's unshare run Aravis's GigE Vision simulator in a loopback-only namespace.
 #  - python3-skimage (its data folder) provides the photographs `flatnet demo` uses on a fresh machine.
-#  - python3-torch is optional: only reference comparisons in scripts/ and a few tests use it.
+#  - python3-torch is optional: only reference comparisons in scripts/ and a few tests use it;
+#    FLATNET_SKIP_OPTIONAL=1 leaves the optional packages out (those tests then show as skipped).
 set -euo pipefail
 
 packages=(
@@ -22,12 +23,13 @@ packages=(
   python3-skimage
 )
 optional=(python3-torch)
+if [ -n "${FLATNET_SKIP_OPTIONAL:-}" ]; then optional=(); fi
 
 SUDO=""
 if [ "$(id -u)" -ne 0 ]; then SUDO="sudo"; fi
 
 missing=()
-for p in "${packages[@]}" ${FLATNET_SKIP_OPTIONAL:+} "${optional[@]}"; do
+for p in "${packages[@]}" "${optional[@]}"; do
   if ! dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed"; then
     missing+=("$p")
   fi
