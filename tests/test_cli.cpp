@@ -7,6 +7,7 @@
 #include "helpers.hpp"
 #include "io/image.hpp"
 #include "io/mat.hpp"
+#include "optics/camera.hpp"
 
 using namespace flatnet;
 using Catch::Matchers::Contains;
@@ -422,4 +423,36 @@ TEST_CASE("flatnet report: the table, the figure, timings, and it resumes from w
   r = test::run_flatnet("report --sets " + q(s.dir / "set") + " --methods wiener --out " + q(s.dir / "o2"));
   CHECK(r.code == 2);
   CHECK_THAT(r.output, Contains("'wiener': expected tikhonov, tv or NAME=MODEL.flatnet"));
+}
+
+TEST_CASE("mask camera: a camera from codes works downstream (simulate, recon), and bad codes are named", "[cli][separable]") {
+  test::Scratch s("codes_camera");
+  const auto mls_codes = test::source_dir() / "models" / "camera" / "codes_mls.mat";
+  auto r = test::run_flatnet("mask camera --codes " + q(mls_codes) + " --out " + q(s.dir / "mls"));
+  INFO(r.output);
+  REQUIRE(r.code == 0);
+  CHECK_THAT(r.output, Contains("mean transmittance 0.5"));
+  // With the MLS codes it is the reference camera: the same noise-free golden capture.
+  const auto rig = load_rig(s.dir / "mls" / "rig.mat"), shipped = load_rig(test::rig_path());
+  CHECK((rig.phil - shipped.phil).abs().max().item<double>() < 1e-6);
+  auto photos = make_photos(s.dir / "photos");
+  r = test::run_flatnet("simulate --camera " + q(s.dir / "mls" / "camera.yaml") + " --images " + q(photos) + " --out " +
+                        q(s.dir / "ds") + " --noise off --val-fraction 0.5");
+  INFO(r.output);
+  REQUIRE(r.code == 0);
+  const auto mine = read_gray16(s.dir / "ds" / "meas" / "bsds_16052_scene.png");
+  const auto golden = read_gray16(test::data_dir() / "golden" / "bsds_16052_raw.png");
+  CHECK((mine - golden).abs().max().item<int>() <= 64);  // within one ADC code
+  r = test::run_flatnet("recon --camera " + q(s.dir / "mls" / "camera.yaml") + " --input " + q(s.dir / "ds" / "meas") +
+                        " --out " + q(s.dir / "rec"));
+  CHECK(r.code == 0);
+  // Existing camera files are kept unless --force; codes out of range are refused by name.
+  r = test::run_flatnet("mask camera --codes " + q(mls_codes) + " --out " + q(s.dir / "mls"));
+  CHECK(r.code == 2);
+  CHECK_THAT(r.output, Contains("already exists"));
+  write_mat(s.dir / "bad.mat", {{"code_rows", torch::full({511, 1}, 2.0, torch::kFloat64)},
+                                {"code_cols", torch::ones({511, 1}, torch::kFloat64)}});
+  r = test::run_flatnet("mask camera --codes " + q(s.dir / "bad.mat") + " --out " + q(s.dir / "bad"));
+  CHECK(r.code == 2);
+  CHECK_THAT(r.output, Contains("bad.mat") && Contains("code_rows") && Contains("[-1, 1]"));
 }

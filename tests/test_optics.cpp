@@ -10,6 +10,7 @@
 #include "optics/calibrate.hpp"
 #include "optics/camera.hpp"
 #include "optics/codes.hpp"
+#include "optics/separable_camera.hpp"
 
 using namespace flatnet;
 using Catch::Matchers::Contains;
@@ -160,4 +161,39 @@ TEST_CASE("a rig with NaN in its response is refused by name, never simulated", 
   write_rig(s.dir / "bad.mat", true);
   CHECK_THROWS_WITH(load_rig(s.dir / "bad.mat"), Catch::Matchers::Contains("bad.mat") && Catch::Matchers::Contains("PhiR") &&
                                                      Catch::Matchers::Contains("NaN"));
+}
+
+TEST_CASE("a camera from codes: the MLS pair rebuilds rig.mat, and gradients reach both codes", "[optics][separable]") {
+  MatReader codes(test::source_dir() / "models" / "camera" / "codes_mls.mat");
+  const auto u = codes.read("code_rows").flatten(), v = codes.read("code_cols").flatten();
+  REQUIRE(u.numel() == 511);
+  const auto rig = separable_rig(u, v);
+  const auto shipped = load_rig(test::rig_path());
+  CHECK((rig.phil.to(torch::kFloat32) - shipped.phil).abs().max().item<double>() < 1e-6);
+  CHECK((rig.phir.to(torch::kFloat32) - shipped.phir).abs().max().item<double>() < 1e-6);
+  CHECK(torch::allclose(rig.gain.to(torch::kFloat32), shipped.gain, 1e-6, 0));
+  // The pedestal: rig.mat rounds the MLS pair's mean transmittance (1 + 1/511^2) / 2 to 0.5.
+  CHECK(torch::allclose(rig.vig_rows.to(torch::kFloat32), shipped.vig_rows, 1e-5, 0));
+  CHECK(torch::allclose(rig.vig_cols.to(torch::kFloat32), shipped.vig_cols, 1e-5, 0));
+
+  // Another pair changes the camera, and the construction is differentiable in both codes.
+  auto a = (torch::rand({511}, torch::kFloat64) * 2 - 1).requires_grad_(), b = (torch::rand({511}, torch::kFloat64) * 2 - 1).requires_grad_();
+  const auto other = separable_rig(a, b);
+  CHECK((other.phil - rig.phil).abs().max().item<double>() > 0.1);
+  (other.phil.pow(2).sum() + other.phir.pow(2).sum() + other.vig_rows.sum()).backward();
+  CHECK(a.grad().abs().sum().item<double>() > 0);
+  CHECK(b.grad().abs().sum().item<double>() > 0);
+
+  // Its calibration: the centred window with the requested relative error (the shipped calib.mat: 3 %).
+  const CameraConfig camera;
+  const auto exact = calibration_of(rig, camera.raw.crop, 0.0, 0);
+  const auto noisy = calibration_of(rig, camera.raw.crop, 0.03, 0);
+  const auto shipped_calib = load_calibration(test::calib_path(), camera);
+  for (int c = 0; c < 4; ++c) {
+    INFO("channel " << c);
+    CHECK((noisy.P[c] - exact.P[c]).norm().item<double>() / exact.P[c].norm().item<double>() == Approx(0.03).epsilon(1e-6));
+    CHECK((shipped_calib.P[c] - exact.P[c]).norm().item<double>() / exact.P[c].norm().item<double>() == Approx(0.03).epsilon(0.02));
+    CHECK((shipped_calib.Q[c] - exact.Q[c]).norm().item<double>() / exact.Q[c].norm().item<double>() == Approx(0.03).epsilon(0.02));
+    CHECK(exact.P[c].mean(0).abs().max().item<double>() < 1e-12);  // centred columns
+  }
 }

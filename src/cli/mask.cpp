@@ -9,6 +9,7 @@
 #include "eval/metrics.hpp"
 #include "eval/plot.hpp"
 #include "eval/tables.hpp"
+#include "optics/separable_camera.hpp"
 #include "io/image.hpp"
 #include "io/mat.hpp"
 #include "optics/codes.hpp"
@@ -307,16 +308,63 @@ int mask_report(int argc, char** argv) {
   return 0;
 }
 
+// flatnet mask camera: the reference camera with another separable code pair.
+int mask_camera(int argc, char** argv) {
+  cxxopts::Options o("flatnet mask camera",
+                     "Build the reference camera with a separable code pair: rig.mat, calib.mat (with estimation error) "
+                     "and camera.yaml, for simulate, calibrate, recon and train.");
+  o.add_options()("codes", ".mat with code_rows and code_cols (vectors, values in [-1, 1]); models/camera/codes_mls.mat is MLS",
+                  cxxopts::value<std::string>())("out", "folder to write", cxxopts::value<std::string>())(
+      "calib-error", "relative (Frobenius) error of the calibration, as a real one has", cxxopts::value<double>()->default_value("0.03"))(
+      "seed", "seed of that error", cxxopts::value<uint64_t>()->default_value("0"))(
+      "force", "replace the files of an existing camera in --out");
+  add_common(o);
+  cxxopts::ParseResult r;
+  if (!parse(o, argc, argv, r)) return 0;
+  require(r.count("codes") && r.count("out"), "mask camera", "--codes FILE and --out DIR are required");
+  const std::filesystem::path codes_path = r["codes"].as<std::string>(), out = r["out"].as<std::string>();
+  const double error = r["calib-error"].as<double>();
+  require(std::isfinite(error) && error >= 0 && error <= 1, "--calib-error", "0 to 1 (0.03: 3 %)");
+  MatReader codes(codes_path);
+  auto vector_of = [&](const char* name) {
+    const auto t = codes.read(name);
+    require(t.dim() <= 2 && t.numel() >= 2 && t.numel() == t.size(0) * (t.dim() == 2 ? t.size(1) : 1) &&
+                (t.dim() < 2 || t.size(0) == 1 || t.size(1) == 1),
+            codes_path, std::string("variable '") + name + "' must be a vector");
+    const auto v = t.flatten();
+    require(torch::isfinite(v).all().item<bool>() && v.abs().max().item<double>() <= 1.0 + 1e-9, codes_path,
+            std::string("variable '") + name + "' must hold values in [-1, 1]");
+    return v;
+  };
+  const auto u = vector_of("code_rows"), v = vector_of("code_cols");
+  std::filesystem::create_directories(out);
+  for (const char* f : {"rig.mat", "calib.mat", "camera.yaml"}) require_new_output(out / f, r.count("force") > 0, {codes_path});
+  const auto rig = separable_rig(u, v);
+  auto camera = load_camera_config(default_camera_path());
+  camera.name = out.filename().string();
+  const auto calib = calibration_of(rig, camera.raw.crop, error, r["seed"].as<uint64_t>());
+  save_rig(out / "rig.mat", rig);
+  save_calibration(out / "calib.mat", calib);
+  write_text_atomically(out / "camera.yaml",
+                        "# The reference camera with the codes of " + codes_path.string() + " (`flatnet mask camera`)\n" +
+                            camera_geometry_yaml(camera) + "calibration: calib.mat\nrig: rig.mat\n");
+  std::cout << "camera with codes " << codes_path.string() << " (" << u.numel() << " x " << v.numel() << " features, mean "
+            << "transmittance " << (1 + u.mean().item<double>() * v.mean().item<double>()) / 2 << "): "
+            << (out / "camera.yaml").string() << ", rig.mat, calib.mat (" << error * 100 << " % error)\n";
+  return 0;
+}
+
 }  // namespace
 
 int mask(int argc, char** argv) {
   const std::string usage =
-      "usage: flatnet mask train|eval|report [options]  ('flatnet mask <sub> --help' lists them)";
+      "usage: flatnet mask train|eval|report|camera [options]  ('flatnet mask <sub> --help' lists them)";
   if (argc < 2) throw Error(usage);
   const std::string sub = argv[1];
   if (sub == "train") return mask_train(argc - 1, argv + 1);
   if (sub == "eval") return mask_eval(argc - 1, argv + 1);
   if (sub == "report") return mask_report(argc - 1, argv + 1);
+  if (sub == "camera") return mask_camera(argc - 1, argv + 1);
   if (sub == "-h" || sub == "--help") {
     std::cout << usage << "\n";
     return 0;

@@ -1,0 +1,51 @@
+#pragma once
+// The reference camera built from any separable code pair (models/camera/README.md, "Building this
+// camera from any separable code pair"): the mask (1 + u v^T) / 2 over the same sensor, with the
+// same sub-pixel sampling, diffraction blur, vignetting and gains. With the MLS code for both axes
+// it is rig.mat. Everything is a differentiable function of the codes (index gathers, a blur
+// convolution, products), so a mask trainer can learn u and v through it.
+#include <array>
+#include <cstdint>
+
+#include <torch/torch.h>
+
+#include "optics/camera.hpp"
+
+namespace flatnet {
+
+struct SeparableCameraOptions {
+  int64_t scene = 256;                     // N: scene pixels per side
+  int64_t plane_rows = 512, plane_cols = 640;
+  double pixels_per_feature = 20.0 / 10.6;  // R: sensor-plane pixels per mask feature
+  int subsamples = 16;                     // sub-positions per pixel
+  double offset_rows = 0.3, offset_cols = 137.6;            // shadow offset, in features
+  std::array<double, 4> blur_sigma{0.70, 0.85, 0.85, 1.00};  // b, gb, gr, r; plane pixels, along the sensor axis
+  double vignette_rows = 0.25, vignette_cols = 0.2;         // 1 / (1 + f x^2)^2
+  std::array<double, 4> channel_gain{0.85, 1.00, 1.00, 0.90};
+  double full_well = 40000, read_noise = 4, dark = 0.02;
+  int adc_bits = 10;
+};
+
+// One axis: the {rows, N} matrix whose entry (i, j) is the mean of code[floor(s) mod K] over the
+// pixel's sub-positions t = (16 i + k + 0.5) / 16 / R, s = t + (N - 1 - j) + offset (no blur or
+// vignette). `code` {K} in [-1, 1]; the result keeps its autograd graph.
+torch::Tensor code_matrix(const torch::Tensor& code, int64_t rows, int64_t scene, double offset, double pixels_per_feature,
+                          int subsamples);
+
+// A Gaussian blur along dim 0 with scipy.ndimage.gaussian_filter1d's kernel (radius
+// int(4 sigma + 0.5)) and edges extended with the nearest value. {rows, N} -> {rows, N}.
+torch::Tensor blur_rows(const torch::Tensor& m, double sigma);
+
+// The rig of the code pair u (rows) and v (columns), each {K} in [-1, 1] (float64 for an exact
+// rig.mat; any float type keeps gradients).
+Rig separable_rig(const torch::Tensor& u, const torch::Tensor& v, const SeparableCameraOptions& options = {});
+
+// What a calibration of that rig measures: the centred window C_h sqrt(gain_c) PhiL_c[window rows]
+// (and likewise Q), plus i.i.d. Gaussian error of `relative_error` (Frobenius, per matrix; the
+// shipped calib.mat has 3 %), seeded.
+Calibration calibration_of(const Rig& rig, const std::array<int64_t, 4>& crop, double relative_error, uint64_t seed);
+
+// rig.mat's variables (PhiL_b.., PhiR_b.., gain_b.., vig_rows, vig_cols, full_well, read_noise, dark, adc_bits).
+void save_rig(const std::filesystem::path& path, const Rig& rig);
+
+}  // namespace flatnet
