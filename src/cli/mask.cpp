@@ -16,6 +16,7 @@
 #include "optics/simulator.hpp"
 #include "train/config.hpp"
 #include "train/mask_trainer.hpp"
+#include "train/separable_trainer.hpp"
 
 namespace flatnet::cli {
 
@@ -308,6 +309,53 @@ int mask_report(int argc, char** argv) {
   return 0;
 }
 
+// flatnet mask separable: learns the code pair of the separable camera through Tikhonov.
+int mask_separable(int argc, char** argv) {
+  cxxopts::Options o("flatnet mask separable",
+                     "Learn a separable FlatCam's codes end to end: codes -> PhiL/PhiR -> noisy capture -> Tikhonov.");
+  o.add_options()("images", "photographs (the training side of simulate's split is used)", cxxopts::value<std::string>())(
+      "out", "folder for codes.mat, lambda.txt, log.csv, curve.png", cxxopts::value<std::string>())(
+      "init", "mls (models/camera/codes_mls.mat), random, or a codes .mat", cxxopts::value<std::string>()->default_value("mls"))(
+      "binary", "sign(u), sign(v) forward, straight-through gradients (a fabricable 0/1 mask)")(
+      "iterations", "steps", cxxopts::value<int64_t>()->default_value("1000"))(
+      "batch", "scenes per step", cxxopts::value<int64_t>()->default_value("8"))(
+      "lr", "Adam learning rate", cxxopts::value<double>()->default_value("0.02"))(
+      "lambda", "initial Tikhonov regulariser", cxxopts::value<double>()->default_value("1e-4"))(
+      "train-limit", "training photographs loaded (0: all)", cxxopts::value<int64_t>()->default_value("400"))(
+      "val-count", "held-out photographs for validation", cxxopts::value<int64_t>()->default_value("32"))(
+      "seed", "seed", cxxopts::value<uint64_t>()->default_value("0"));
+  add_common(o);
+  cxxopts::ParseResult r;
+  if (!parse(o, argc, argv, r)) return 0;
+  require(r.count("images") && r.count("out"), "mask separable", "--images DIR and --out DIR are required");
+  SeparableTrainOptions opt;
+  opt.images = r["images"].as<std::string>();
+  opt.out = r["out"].as<std::string>();
+  require(!std::filesystem::exists(opt.out / "codes.mat"), opt.out, "already holds learned codes; choose another --out");
+  const auto init = r["init"].as<std::string>();
+  if (init == "mls") opt.init_codes = std::filesystem::path(FLATNET_SOURCE_DIR) / "models" / "camera" / "codes_mls.mat";
+  else if (init != "random") opt.init_codes = init;
+  opt.binary = r.count("binary") > 0;
+  opt.iterations = r["iterations"].as<int64_t>();
+  opt.batch = r["batch"].as<int64_t>();
+  opt.lr = r["lr"].as<double>();
+  opt.lambda_init = r["lambda"].as<double>();
+  opt.train_limit = r["train-limit"].as<int64_t>();
+  opt.val_count = r["val-count"].as<int64_t>();
+  opt.seed = r["seed"].as<uint64_t>();
+  require(opt.iterations >= 1 && opt.iterations <= 1000000, "--iterations", "1 to 1e6");
+  require(opt.batch >= 1 && opt.batch <= 256, "--batch", "1 to 256");
+  require(std::isfinite(opt.lr) && opt.lr > 0 && opt.lr <= 10, "--lr", "a positive rate");
+  require(std::isfinite(opt.lambda_init) && opt.lambda_init > 0, "--lambda", "a positive regulariser");
+  require(opt.val_count >= 1, "--val-count", "at least 1");
+  watch_interrupts();
+  const auto s = train_separable_codes(opt);
+  std::cout << "separable codes: " << s.steps << " steps in " << format_duration(s.seconds) << "; validation PSNR "
+            << s.val_psnr_start << " -> " << s.val_psnr << " dB (Tikhonov, linear light), lambda " << s.lambda
+            << ", throughput " << s.throughput << "; wrote " << (opt.out / "codes.mat").string() << "\n";
+  return interrupted() ? 130 : 0;
+}
+
 // flatnet mask camera: the reference camera with another separable code pair.
 int mask_camera(int argc, char** argv) {
   cxxopts::Options o("flatnet mask camera",
@@ -358,13 +406,14 @@ int mask_camera(int argc, char** argv) {
 
 int mask(int argc, char** argv) {
   const std::string usage =
-      "usage: flatnet mask train|eval|report|camera [options]  ('flatnet mask <sub> --help' lists them)";
+      "usage: flatnet mask train|eval|report|camera|separable [options]  ('flatnet mask <sub> --help' lists them)";
   if (argc < 2) throw Error(usage);
   const std::string sub = argv[1];
   if (sub == "train") return mask_train(argc - 1, argv + 1);
   if (sub == "eval") return mask_eval(argc - 1, argv + 1);
   if (sub == "report") return mask_report(argc - 1, argv + 1);
   if (sub == "camera") return mask_camera(argc - 1, argv + 1);
+  if (sub == "separable") return mask_separable(argc - 1, argv + 1);
   if (sub == "-h" || sub == "--help") {
     std::cout << usage << "\n";
     return 0;

@@ -1,0 +1,174 @@
+#include "train/separable_trainer.hpp"
+
+#include <cmath>
+#include <iostream>
+#include <sstream>
+#include <thread>
+
+#include "core/error.hpp"
+#include "core/util.hpp"
+#include "eval/plot.hpp"
+#include "io/image.hpp"
+#include "io/mat.hpp"
+#include "optics/separable_camera.hpp"
+#include "optics/simulator.hpp"
+#include "train/mask_trainer.hpp"
+
+namespace flatnet {
+
+namespace {
+
+constexpr int kChannel = 1;                       // gb: the channel FlatNet's transpose init uses
+constexpr int64_t kTop = 6, kLeft = 10, kH = 500, kW = 620;  // the reference camera's window
+
+torch::Tensor centre_columns(const torch::Tensor& m) { return m - m.mean(0, true); }  // C_n m
+
+// Linear-light scenes {B,N,N} -> Tikhonov reconstructions {B,N,N} through the separable camera of
+// (u, v). `noise_gen` draws the sensor noise (training: fresh; validation: fixed).
+torch::Tensor capture_and_reconstruct(const torch::Tensor& u, const torch::Tensor& v, const torch::Tensor& lambda,
+                                      const torch::Tensor& X, at::Generator& noise_gen) {
+  const auto rig = separable_rig(u, v);
+  const auto L = rig.phil[kChannel], R = rig.phir[kChannel], g = rig.gain[kChannel];
+  // Expected signal on the whole plane: gain (PhiL X PhiR^T + the open mask's pedestal), + dark.
+  auto S = g * (torch::matmul(torch::matmul(L, X), R.t()) +
+                torch::outer(rig.vig_rows, rig.vig_cols) * X.sum({1, 2}, true)) + rig.dark;
+  // Shot noise (Gaussian approximation of Poisson, reparameterised) and read noise, full-scale units.
+  const auto e1 = at::normal(0.0, 1.0, S.sizes(), noise_gen, S.options());
+  const auto e2 = at::normal(0.0, 1.0, S.sizes(), noise_gen, S.options());
+  S = S + torch::sqrt(S.clamp_min(0) / rig.full_well + 1e-12) * e1 + (rig.read_noise / rig.full_well) * e2;
+  auto Y = S.slice(1, kTop, kTop + kH).slice(2, kLeft, kLeft + kW);
+  Y = Y - Y.mean(1, true) - Y.mean(2, true) + Y.mean({1, 2}, true);  // double centring
+  // The exact calibration of this camera: centred windows of sqrt(gain) Phi.
+  const auto P = centre_columns(L.slice(0, kTop, kTop + kH)) * torch::sqrt(g);
+  const auto Q = centre_columns(R.slice(0, kLeft, kLeft + kW)) * torch::sqrt(g);
+  auto [UL, sL, VLt] = torch::linalg::svd(P, false, c10::nullopt);
+  auto [UR, sR, VRt] = torch::linalg::svd(Q, false, c10::nullopt);
+  const auto s = sL.unsqueeze(1) * sR.unsqueeze(0);  // eq. 2.6's filter
+  const auto filter = s / (s * s + lambda);
+  const auto core = torch::matmul(torch::matmul(UL.t(), Y), UR) * filter;
+  return torch::matmul(torch::matmul(VLt.t(), core), VRt);
+}
+
+torch::Tensor throughput_of(const torch::Tensor& u, const torch::Tensor& v) { return (1 + u.mean() * v.mean()) / 2; }
+
+torch::Tensor binarised(const torch::Tensor& x) { return x + (torch::sign(x) - x).detach(); }  // straight-through
+
+double mean_psnr(const torch::Tensor& rec, const torch::Tensor& truth) {
+  const auto mse = (rec.clamp(0, 1) - truth).pow(2).mean({1, 2}).clamp_min(1e-12);
+  return (-10.0 * torch::log10(mse)).mean().item<double>();
+}
+
+std::pair<torch::Tensor, torch::Tensor> read_codes(const std::filesystem::path& path) {
+  MatReader mat(path);
+  return {mat.read("code_rows").flatten().to(torch::kFloat32), mat.read("code_cols").flatten().to(torch::kFloat32)};
+}
+
+}  // namespace
+
+double separable_psnr(const torch::Tensor& u, const torch::Tensor& v, double lambda, const torch::Tensor& scenes, uint64_t seed) {
+  torch::NoGradGuard no_grad;
+  auto gen = at::detail::createCPUGenerator(seed);
+  const auto X = srgb_to_linear(scenes);
+  double sum = 0;
+  for (int64_t i = 0; i < X.size(0); i += 8) {
+    const auto batch = X.slice(0, i, std::min(X.size(0), i + 8));
+    const auto rec = capture_and_reconstruct(u.to(torch::kFloat32), v.to(torch::kFloat32), torch::tensor(lambda), batch, gen);
+    sum += mean_psnr(rec, batch) * batch.size(0);
+  }
+  return sum / X.size(0);
+}
+
+SeparableTrainSummary train_separable_codes(const SeparableTrainOptions& o) {
+  require(o.iterations >= 1 && o.batch >= 1, "separable training", "iterations and batch must be positive");
+  require(!o.out.empty(), "separable training", "an output folder is needed");
+  const auto [train_files, val_files] = split_image_files(o.images, 0.1, 1);
+  auto train_list = train_files;
+  if (o.train_limit > 0 && static_cast<int64_t>(train_list.size()) > o.train_limit) train_list.resize(o.train_limit);
+  auto val_list = val_files;
+  if (static_cast<int64_t>(val_list.size()) > o.val_count) val_list.resize(o.val_count);
+  const int workers = static_cast<int>(std::max(1u, std::thread::hardware_concurrency()));
+  const auto train = load_luma_scenes(train_list, 256, workers), val = load_luma_scenes(val_list, 256, workers);
+  const auto train_linear = srgb_to_linear(train);
+
+  torch::manual_seed(o.seed);
+  torch::Tensor a, b;  // pre-activations: u = tanh(a)
+  if (!o.init_codes.empty()) {
+    const auto [u0, v0] = read_codes(o.init_codes);
+    a = torch::atanh(u0.clamp(-0.95, 0.95));
+    b = torch::atanh(v0.clamp(-0.95, 0.95));
+  } else {
+    a = torch::randn({511}) * 0.5;
+    b = torch::randn({511}) * 0.5;
+  }
+  a.requires_grad_();
+  b.requires_grad_();
+  auto log_lambda = torch::tensor(std::log(o.lambda_init)).requires_grad_();
+  torch::optim::Adam opt({a, b, log_lambda}, torch::optim::AdamOptions(o.lr));
+  auto codes = [&]() {
+    auto u = torch::tanh(a), v = torch::tanh(b);
+    if (o.binary) u = binarised(u), v = binarised(v);
+    return std::pair<torch::Tensor, torch::Tensor>{u, v};
+  };
+
+  std::filesystem::create_directories(o.out);
+  std::ostringstream log;
+  log << "step,loss,throughput,lambda,val_psnr\n";
+  SeparableTrainSummary summary;
+  {
+    const auto [u, v] = codes();
+    summary.val_psnr_start = separable_psnr(u.detach(), v.detach(), std::exp(log_lambda.item<double>()), val, 99);
+  }
+  std::cerr << "separable codes: validation PSNR at the start " << summary.val_psnr_start << " dB\n";
+  Series train_curve{"train (batch)", {}, {}}, val_curve{"validation", {}, {}};
+  auto gen = at::detail::createCPUGenerator(o.seed + 1);
+  Progress progress("codes", o.iterations, o.progress);
+  const auto start = std::chrono::steady_clock::now();
+  for (int64_t step = 1; step <= o.iterations && !interrupted(); ++step) {
+    const auto idx = torch::randint(train_linear.size(0), {o.batch}, gen, torch::kLong);
+    const auto X = train_linear.index_select(0, idx);
+    const auto [u, v] = codes();
+    const auto rec = capture_and_reconstruct(u, v, torch::exp(log_lambda), X, gen);
+    const auto t = throughput_of(u, v);
+    const auto excess = torch::relu(torch::abs(t - o.target_throughput) - o.throughput_tolerance);
+    const auto loss = (rec - X).pow(2).mean() + 100.0 * excess.pow(2);
+    opt.zero_grad();
+    loss.backward();
+    bool finite = std::isfinite(loss.item<double>());
+    for (const auto& p : {a, b, log_lambda}) finite = finite && torch::isfinite(p.grad()).all().item<bool>();
+    if (finite) opt.step();  // an SVD with nearly equal singular values can give a non-finite gradient: skip that step
+    progress.tick();
+    if (step % o.log_every == 0 || step == o.iterations) {
+      double val_psnr = std::nan("");
+      if (step % o.val_every == 0 || step == o.iterations) {
+        const auto [uv, vv] = codes();
+        val_psnr = separable_psnr(uv.detach(), vv.detach(), std::exp(log_lambda.item<double>()), val, 99);
+        val_curve.x.push_back(static_cast<double>(step));
+        val_curve.y.push_back(val_psnr);
+      }
+      train_curve.x.push_back(static_cast<double>(step));
+      train_curve.y.push_back(-10 * std::log10(std::max(1e-12, loss.item<double>())));
+      log << step << "," << loss.item<double>() << "," << t.item<double>() << "," << std::exp(log_lambda.item<double>()) << ","
+          << val_psnr << "\n";
+      progress.set_status("loss " + std::to_string(loss.item<double>()) + " t " + std::to_string(t.item<double>()));
+    }
+    summary.steps = step;
+  }
+  progress.finish();
+  const auto [u, v] = codes();
+  summary.lambda = std::exp(log_lambda.item<double>());
+  summary.throughput = throughput_of(u, v).item<double>();
+  summary.val_psnr = separable_psnr(u.detach(), v.detach(), summary.lambda, val, 99);
+  summary.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  write_mat(o.out / "codes.mat", {{"code_rows", u.detach().to(torch::kFloat64).view({-1, 1})},
+                                  {"code_cols", v.detach().to(torch::kFloat64).view({-1, 1})}});
+  write_text_atomically(o.out / "lambda.txt", std::to_string(summary.lambda) + "\n");
+  write_text_atomically(o.out / "log.csv", log.str());
+  PlotOptions po;
+  po.title = "separable codes: PSNR (Tikhonov, linear light)";
+  po.xlabel = "step";
+  po.ylabel = "PSNR dB";
+  write_line_plot(o.out / "curve.png", {train_curve, val_curve}, po);
+  return summary;
+}
+
+}  // namespace flatnet

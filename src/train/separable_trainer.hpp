@@ -1,0 +1,46 @@
+#pragma once
+// Learning the separable FlatCam's codes end to end (issue: masks that make the FlatCam better).
+// The Wiener-protocol trainer (mask_trainer) learns a mask for circular convolution; this one
+// learns the code pair u (rows), v (columns) of the real, separable camera:
+//   codes -> PhiL, PhiR (sub-pixel sampling, blur, vignette; optics/separable_camera)
+//         -> capture with Poisson (Gaussian approximation) and read noise, the open-mask pedestal
+//         -> the 500x620 window, double-centred
+//         -> Tikhonov with the exact centred calibration, through the SVDs (eq. 2.6), learnable lambda
+//         -> MSE against the linear-light scene.
+// Throughput (1 + mean(u) mean(v)) / 2 is held within target +- tolerance by a penalty; the binary
+// variant uses sign(u), sign(v) forward with a straight-through gradient (for fabrication).
+#include <filesystem>
+#include <string>
+
+#include <torch/torch.h>
+
+namespace flatnet {
+
+struct SeparableTrainOptions {
+  std::filesystem::path images;       // photographs; the training side of simulate's split (val 0.1, seed 1)
+  std::filesystem::path init_codes;   // .mat with code_rows, code_cols to start from (MLS); empty: random
+  int64_t train_limit = 400;          // photographs loaded for training (0: all)
+  int64_t val_count = 32;             // held-out-split photographs for validation
+  int64_t iterations = 1000, batch = 8;
+  double lr = 0.02;                   // Adam, on the codes' pre-activations
+  double lambda_init = 1e-4;          // Tikhonov regulariser (absolute, as recon's), learned as its log
+  double target_throughput = 0.5, throughput_tolerance = 0.05;
+  bool binary = false;
+  uint64_t seed = 0;
+  int64_t log_every = 25, val_every = 100;
+  std::filesystem::path out;          // codes.mat, lambda.txt, log.csv, curve.png
+  bool progress = true;
+};
+
+struct SeparableTrainSummary {
+  double val_psnr_start = 0, val_psnr = 0, lambda = 0, throughput = 0, seconds = 0;
+  int64_t steps = 0;
+};
+
+SeparableTrainSummary train_separable_codes(const SeparableTrainOptions& options);
+
+// Validation PSNR (linear light, clamped to [0,1]) of a code pair with Tikhonov at `lambda`, on
+// scenes {N,S,S} (sRGB luma in [0,1]) with the noise of `seed`.
+double separable_psnr(const torch::Tensor& u, const torch::Tensor& v, double lambda, const torch::Tensor& scenes, uint64_t seed);
+
+}  // namespace flatnet
