@@ -365,6 +365,8 @@ int mask_camera(int argc, char** argv) {
                   cxxopts::value<std::string>())("out", "folder to write", cxxopts::value<std::string>())(
       "calib-error", "relative (Frobenius) error of the calibration, as a real one has", cxxopts::value<double>()->default_value("0.03"))(
       "seed", "seed of that error", cxxopts::value<uint64_t>()->default_value("0"))(
+      "centring", "plane, or level (for models that read the light level, as the shipped ones)",
+      cxxopts::value<std::string>()->default_value("plane"))(
       "force", "replace the files of an existing camera in --out");
   add_common(o);
   cxxopts::ParseResult r;
@@ -390,6 +392,7 @@ int mask_camera(int argc, char** argv) {
   const auto rig = separable_rig(u, v);
   auto camera = load_camera_config(default_camera_path());
   camera.name = out.filename().string();
+  camera.raw.centring = parse_centring(r["centring"].as<std::string>(), "--centring");
   const auto calib = calibration_of(rig, camera.raw.crop, error, r["seed"].as<uint64_t>());
   save_rig(out / "rig.mat", rig);
   save_calibration(out / "calib.mat", calib);
