@@ -15,12 +15,7 @@ void add_common(cxxopts::Options& options) {
 namespace {
 
 // The one place where numeric flags are checked: every flag of this name, in every command, that
-// the user gave. {name, lowest, highest, what the range means}.
-struct NumberRule {
-  const char* name;
-  double lo, hi;
-  const char* meaning;
-};
+// the user gave.
 const std::vector<NumberRule>& number_rules() {
   static const std::vector<NumberRule> rules = {
       {"threads", 0, 1024, "0 (all cores) to 1024"},
@@ -42,15 +37,8 @@ void check_numbers(const cxxopts::ParseResult& result) {
   for (const auto& kv : result.arguments()) {
     for (const auto& rule : number_rules()) {
       if (kv.key() != rule.name) continue;
-      double v = 0;
-      size_t used = 0;
-      try {
-        v = std::stod(kv.value(), &used);
-      } catch (const std::exception&) {
-        used = 0;
-      }
-      if (used != kv.value().size() || !std::isfinite(v) || v < rule.lo || v > rule.hi)
-        throw Error("--" + kv.key(), "'" + kv.value() + "' is out of range: " + rule.meaning);
+      const auto problem = number_problem(kv.value(), rule);
+      if (!problem.empty()) throw Error("--" + kv.key(), "'" + kv.value() + "' " + problem + ": " + rule.meaning);
     }
   }
 }

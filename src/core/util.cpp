@@ -1,5 +1,7 @@
 #include "core/util.hpp"
 
+#include <cmath>
+
 #include <atomic>
 #include <csignal>
 
@@ -213,6 +215,19 @@ std::vector<char> read_bytes(const fs::path& path) {
   require(fs::exists(path), path, "no such file");
   std::ifstream in(path, std::ios::binary);
   return std::vector<char>((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+}
+
+std::string number_problem(const std::string& text, const NumberRule& rule) {
+  double v = 0;
+  size_t used = 0;
+  try {
+    v = std::stod(text, &used);
+  } catch (const std::exception&) {
+    used = 0;
+  }
+  if (used == 0 || used != text.size() || !std::isfinite(v)) return "is not a finite number";
+  if (v < rule.lo || v > rule.hi) return "is out of range";
+  return "";
 }
 
 }  // namespace flatnet

@@ -22,6 +22,17 @@ void write_text_atomically(const fs::path& path, const std::string& text);
 // Bytes to a file, atomically; every write and the close are checked (errors name `path`).
 void write_bytes_atomically(const fs::path& path, const std::string& bytes);
 
+// A number's allowed range, for the tables that check flags (cli/common) and config keys
+// (train/config) in one place each: {name, lowest, highest, what the range means}.
+struct NumberRule {
+  const char* name;
+  double lo, hi;
+  const char* meaning;
+};
+// "" when `text` is a finite number within the rule's range, else what is wrong
+// ("is not a finite number" or "is out of range").
+std::string number_problem(const std::string& text, const NumberRule& rule);
+
 // Reads a list file: one entry per line, CR/LF and surrounding blanks stripped, empty lines skipped.
 std::vector<std::string> read_lines(const fs::path& path);
 

@@ -6,6 +6,7 @@
 #include <yaml-cpp/yaml.h>
 
 #include "core/error.hpp"
+#include "core/util.hpp"
 
 namespace flatnet {
 
@@ -60,15 +61,10 @@ size_t edit_distance(const std::string& a, const std::string& b) {
 }
 
 // The one place where config numbers are checked, for every experiment file, --set and embedded
-// config alike: {key, lowest, highest, what the range means}. Keys a config does not have (the
-// mask trainer's defaults differ from FlatNet's) are skipped. Every number must also be finite.
-struct RangeRule {
-  const char* key;
-  double lo, hi;
-  const char* meaning;
-};
-const std::vector<RangeRule>& range_rules() {
-  static const std::vector<RangeRule> rules = {
+// config alike. Keys a config does not have (the mask trainer's defaults differ from FlatNet's)
+// are skipped. Every number must also be finite.
+const std::vector<NumberRule>& range_rules() {
+  static const std::vector<NumberRule> rules = {
       {"train.iterations", 1, 1e9, "1 to 1e9 steps"},
       {"train.batch", 1, 4096, "1 to 4096 samples"},
       {"train.lr", 0, 10, "0 (frozen) to 10"},
@@ -127,19 +123,10 @@ const std::vector<RangeRule>& range_rules() {
 
 void Config::check_ranges(const std::string& where) const {
   for (const auto& rule : range_rules()) {
-    const auto it = values_.find(rule.key);
+    const auto it = values_.find(rule.name);
     if (it == values_.end()) continue;
-    double v = 0;
-    size_t used = 0;
-    try {
-      v = std::stod(it->second, &used);
-    } catch (const std::exception&) {
-      used = 0;
-    }
-    if (used == 0 || used != it->second.size() || !std::isfinite(v))
-      throw Error(where + ": " + rule.key + " = " + it->second + " is not a finite number (" + rule.meaning + ")");
-    if (v < rule.lo || v > rule.hi)
-      throw Error(where + ": " + rule.key + " = " + it->second + " is out of range: " + rule.meaning);
+    const auto problem = number_problem(it->second, rule);
+    if (!problem.empty()) throw Error(where + ": " + rule.name + " = " + it->second + " " + problem + ": " + rule.meaning);
   }
 }
 
