@@ -70,7 +70,13 @@ TEST_CASE("simulate, recon and eval end to end, and simulate resumes determinist
   INFO(r.output);
   REQUIRE(r.code == 0);
   CHECK(std::filesystem::exists(s.dir / "rec" / "sheet.png"));
+  // header; per image the method's row and the ground truth's NIQE; the two means
+  CHECK(read_lines(s.dir / "rec" / "metrics.csv").size() == 7);
+  CHECK_THAT(r.output, Contains("NIQE") && Contains("ground truth"));
+  r = test::run_flatnet("eval --niqe none --gt " + q(s.dir / "ds" / "gt") + " --out " + q(s.dir / "rec"));
+  REQUIRE(r.code == 0);
   CHECK(read_lines(s.dir / "rec" / "metrics.csv").size() == 4);  // header, 2 images, mean
+  CHECK(r.output.find("NIQE") == std::string::npos);
 }
 
 TEST_CASE("bad input: one clear line, exit code 2", "[cli][errors]") {
