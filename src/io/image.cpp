@@ -30,8 +30,7 @@ uint32_t big_endian32(const unsigned char* p) { return (uint32_t{p[0]} << 24) | 
 // What the decoders let through silently: libjpeg fills a truncated JPEG with grey, and a PNG chunk
 // with a bad CRC, or a file cut short, reaches libpng (which prints to stderr on its own). PNG:
 // every chunk's CRC and the IEND chunk; JPEG: its start and end markers.
-void check_container(const std::filesystem::path& path) {
-  const auto bytes = read_bytes(path);
+void check_container(const std::filesystem::path& path, const std::vector<char>& bytes) {
   const auto* b = reinterpret_cast<const unsigned char*>(bytes.data());
   const size_t n = bytes.size();
   static const unsigned char png_magic[8] = {0x89, 'P', 'N', 'G', '\r', '\n', 0x1a, '\n'};
@@ -65,17 +64,30 @@ void check_container(const std::filesystem::path& path) {
   }
 }
 
-std::unique_ptr<OIIO::ImageInput> open_input(const std::filesystem::path& path) {
+// An image file read once: its bytes are checked (check_container), then decoded from memory.
+struct OpenedImage {
+  std::vector<char> bytes;
+  std::unique_ptr<OIIO::Filesystem::IOMemReader> memory;  // must outlive `in`
+  std::unique_ptr<OIIO::ImageInput> in;
+  OIIO::ImageInput* operator->() const { return in.get(); }
+};
+
+OpenedImage open_input(const std::filesystem::path& path) {
   require(std::filesystem::exists(path), path, "no such file");
   require(!std::filesystem::is_directory(path), path, "is a folder, not an image");
-  check_container(path);
-  auto in = OIIO::ImageInput::open(path.string());
+  OpenedImage image;
+  image.bytes = read_bytes(path);
+  check_container(path, image.bytes);
+  image.memory = std::make_unique<OIIO::Filesystem::IOMemReader>(image.bytes.data(), image.bytes.size());
+  image.in = OIIO::ImageInput::open(path.string(), nullptr, image.memory.get());
+  if (!image.in) image.in = OIIO::ImageInput::open(path.string());  // a reader without memory input
+  auto& in = image.in;
   require(in != nullptr, path, "unreadable image (" + one_line(OIIO::geterror()) + ")");
   const auto& spec = in->spec();
   require(int64_t{spec.width} * spec.height * spec.nchannels <= kMaxImageValues, path,
           "a " + std::to_string(spec.width) + "x" + std::to_string(spec.height) + "x" + std::to_string(spec.nchannels) +
               " image is beyond flatnet's limit (a damaged file or a decompression bomb)");
-  return in;
+  return image;
 }
 
 }  // namespace
