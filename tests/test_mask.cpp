@@ -4,9 +4,12 @@
 #include <fstream>
 
 #include "core/error.hpp"
+#include "eval/mask_report.hpp"
+#include "eval/metrics.hpp"
 #include "helpers.hpp"
 #include "io/image.hpp"
 #include "io/mat.hpp"
+#include "optics/simulator.hpp"
 #include "train/mask_trainer.hpp"
 #include "train/separable_trainer.hpp"
 
@@ -171,4 +174,93 @@ TEST_CASE("separable code training: gradients move both codes and lambda, throug
   torch::manual_seed(5);
   const auto random = torch::rand({511}, torch::kFloat64) * 2 - 1;
   CHECK(separable_psnr(u0, v0, 1e-4, scenes, 1) > separable_psnr(random, random.flip(0), 1e-4, scenes, 1));
+}
+
+TEST_CASE("separable camera comparison: learned codes beat MLS under Tikhonov, less light costs PSNR, FlatNet is scored on the same captures", "[mask][separable][report]") {
+  const auto golden = test::data_dir() / "golden";
+  const std::vector<std::filesystem::path> photos = {
+      golden / "bsds_16052_scene.png", golden / "inet_n02980441_castle_scene.png",
+      golden / "inet_n02088094_Afghan_hound_scene.png", golden / "imagen_n04356056_1392_sunglasses_scene.png"};
+  const auto mls = load_code_pair(test::source_dir() / "models" / "camera" / "codes_mls.mat");
+  const auto learned = load_code_pair(test::source_dir() / "models" / "masks" / "separable" / "codes.mat");
+  SeparableReportOptions o;
+  o.geometry = load_camera_config(test::source_dir() / "configs" / "cameras" / "sim.yaml").raw;
+  o.lambdas = {1e-4, 1e-3};
+  o.light = {1.0, 1.0 / 16};
+  o.tune_count = 1;
+  o.progress = false;
+  // FlatNet's place: a "model" that shows mid grey whatever it sees; its score must be grey's.
+  CameraModel grey{[](const torch::Tensor& planes) { return torch::full({planes.size(0), 3, 256, 256}, 0.5f); }, o.geometry, "grey"};
+  const auto scores = score_separable_cameras(
+      {{"MLS", mls, "shipped", grey}, {"learned", learned, "shipped", std::nullopt}, {"MLS again", mls, "shipped", std::nullopt}},
+      photos, o);
+  REQUIRE(scores.size() == 3);
+  const auto &m = scores[0], &l = scores[1];
+  INFO("MLS " << m.psnr[0] << " dB, learned " << l.psnr[0] << " dB");
+  CHECK(l.psnr[0] > m.psnr[0] + 1.0);  // the issue's target, on the golden photographs
+  CHECK(l.ssim[0] > m.ssim[0]);
+  for (const auto& s : scores) CHECK(s.psnr[1] < s.psnr[0]);  // 1/16 of the photons: more shot noise
+  CHECK(scores[2].psnr == m.psnr);                            // the same captures for every camera: deterministic
+  CHECK(scores[2].lambda_sweep_psnr == m.lambda_sweep_psnr);
+  CHECK(m.lambda_sweep_psnr.size() == 2);
+  CHECK(std::abs(m.throughput - 0.5) < 0.01);
+  CHECK(std::abs(m.low_share_rows - 0.125) < 0.03);  // MLS: a flat spectrum
+  CHECK(l.low_share_rows > 0.4);                     // the learned codes favour low frequencies
+  CHECK(l.cond_p > m.cond_p);
+  double grey_psnr = 0;
+  for (size_t i = 1; i < photos.size(); ++i) grey_psnr += psnr(torch::full({3, 256, 256}, 128.0f / 255), display_scene(photos[i], 256));
+  CHECK(m.flatnet_psnr == Approx(grey_psnr / 3).margin(1e-4));
+  CHECK(std::isnan(l.flatnet_psnr));
+  const auto md = separable_section(scores, o, 3);
+  CHECK_THAT(md, Contains("| learned |") && Contains("not trained") && Contains("Light sweep") && Contains("cond(P1gb)"));
+
+  o.geometry.crop[0] += 2;  // a model trained for another crop is refused, by name
+  CameraModel other{grey.forward, o.geometry, "other.flatnet"};
+  o.geometry.crop[0] -= 2;
+  CHECK_THROWS_WITH(score_separable_cameras({{"MLS", mls, "", other}}, photos, o), Contains("other.flatnet") && Contains("crop"));
+}
+
+TEST_CASE("Wiener rank-1 masks map to separable codes by the signs of their vectors", "[mask][separable]") {
+  const auto mapped = codes_from_wiener_mask(test::source_dir() / "models" / "masks" / "rank1");
+  CHECK(torch::all(mapped.codes.rows.abs() == 1).item<bool>());
+  CHECK(mapped.codes.rows.numel() == 511);
+  CHECK(mapped.agreement > 0.9);
+  CHECK(mapped.agreement <= 1.0);
+  CHECK_THROWS_WITH(codes_from_wiener_mask(test::source_dir() / "models" / "masks" / "rank10"), Contains("rank-1"));
+}
+
+TEST_CASE("mask report refuses bad code and model lists", "[mask][cli][report]") {
+  test::Scratch s("maskreport");
+  const auto photos = s.dir / "photos";
+  std::filesystem::create_directories(photos);
+  std::filesystem::copy_file(test::data_dir() / "golden" / "bsds_16052_scene.png", photos / "a.png");
+  auto r = test::run_flatnet("mask report --images " + q(photos) + " --out " + q(s.dir / "o") + " --codes mls.mat");
+  CHECK(r.code == 2);
+  CHECK_THAT(r.output, Contains("--codes") && Contains("NAME=FILE"));
+  r = test::run_flatnet("mask report --images " + q(photos) + " --out " + q(s.dir / "o") + " --codes MLS=" + q(s.dir / "none.mat"));
+  CHECK(r.code == 2);
+  CHECK_THAT(r.output, Contains("none.mat"));
+  r = test::run_flatnet("mask report --images " + q(photos) + " --out " + q(s.dir / "o") + " --flatnet nope=x.flatnet");
+  CHECK(r.code == 2);
+  CHECK_THAT(r.output, Contains("'nope' names no code pair"));
+  r = test::run_flatnet("mask report --images " + q(photos) + " --out " + q(s.dir / "o") + " --codes none --flatnet MLS=x.flatnet");
+  CHECK(r.code == 2);
+  CHECK_THAT(r.output, Contains("--flatnet"));
+  r = test::run_flatnet("mask report --images " + q(photos) + " --out " + q(s.dir / "o") + " --sections lens");
+  CHECK(r.code == 2);
+  CHECK_THAT(r.output, Contains("--sections"));
+
+  // One short run of the separable section with the shipped codes: 20 photographs, 2 held out.
+  const char* stems[] = {"bsds_16052", "inet_n02980441_castle", "inet_n02088094_Afghan_hound", "imagen_n04356056_1392_sunglasses"};
+  for (int i = 0; i < 20; ++i)
+    if (i > 0)
+      std::filesystem::copy_file(test::data_dir() / "golden" / (std::string(stems[i % 4]) + "_scene.png"),
+                                 photos / ("p" + std::to_string(i) + ".png"));
+  r = test::run_flatnet("mask report --images " + q(photos) + " --out " + q(s.dir / "o") + " --sections separable --tune-count 1");
+  INFO(r.output);
+  REQUIRE(r.code == 0);
+  CHECK_THAT(r.output, Contains("| MLS | 0.500 |") && Contains("| separable-learned |") && Contains("separable-learned binary"));
+  CHECK(std::filesystem::exists(s.dir / "o" / "report.md"));
+  CHECK(std::filesystem::exists(s.dir / "o" / "separable_sweep.png"));
+  CHECK_FALSE(std::filesystem::exists(s.dir / "o" / "sweep.png"));  // the Wiener sections were left out
 }

@@ -6,6 +6,8 @@
 #include "cli/commands.hpp"
 #include "core/error.hpp"
 #include "core/util.hpp"
+#include "core/precision.hpp"
+#include "eval/mask_report.hpp"
 #include "eval/metrics.hpp"
 #include "eval/plot.hpp"
 #include "eval/tables.hpp"
@@ -16,6 +18,7 @@
 #include "optics/simulator.hpp"
 #include "train/config.hpp"
 #include "train/mask_trainer.hpp"
+#include "train/model_file.hpp"
 #include "train/separable_trainer.hpp"
 
 namespace flatnet::cli {
@@ -93,20 +96,7 @@ int mask_train(int argc, char** argv) {
   return 0;
 }
 
-struct MaskScore {
-  std::string name;
-  double throughput = 0, gamma = 0, psnr = 0;
-};
-
-// gamma tuned on `tune`, PSNR on `test`.
-MaskScore score_mask(const std::string& name, const torch::Tensor& window, const torch::Tensor& tune,
-                     const torch::Tensor& test, const WienerCamera& cam) {
-  MaskScore s{name, throughput(window), 0, 0};
-  s.gamma = tune_gamma(window, tune, cam, 777);
-  s.psnr = mask_psnr(window, s.gamma, test, cam, 4242);
-  return s;
-}
-
+// gamma tuned on the first quarter, PSNR on the rest.
 int mask_eval(int argc, char** argv) {
   cxxopts::Options o("flatnet mask eval", "Throughput, tuned gamma and mean PSNR of a mask under the Wiener protocol.");
   o.add_options()("mask", "mask.png (16-bit, 65535 = transparent), mls or m02", cxxopts::value<std::string>())(
@@ -127,185 +117,112 @@ int mask_eval(int argc, char** argv) {
   require(images.size() >= 2, r["images"].as<std::string>(), "needs at least 2 readable images");
   const auto scenes = load_luma_scenes(images, cam.scene, 2);
   const int64_t n_tune = std::max<int64_t>(1, scenes.size(0) / 4);
-  const auto s = score_mask(r["mask"].as<std::string>(), window, scenes.slice(0, 0, n_tune), scenes.slice(0, n_tune), cam);
-  std::cout << "mask " << s.name << ": throughput " << std::setprecision(4) << s.throughput << ", gamma "
-            << std::scientific << std::setprecision(3) << s.gamma << std::defaultfloat << " (tuned on " << n_tune
-            << " images), PSNR " << std::fixed << std::setprecision(2) << s.psnr << " dB on " << scenes.size(0) - n_tune
+  const double gamma = tune_gamma(window, scenes.slice(0, 0, n_tune), cam, 777);
+  const double psnr = mask_psnr(window, gamma, scenes.slice(n_tune), cam, 4242);
+  std::cout << "mask " << r["mask"].as<std::string>() << ": throughput " << std::setprecision(4) << throughput(window) << ", gamma "
+            << std::scientific << std::setprecision(3) << gamma << std::defaultfloat << " (tuned on " << n_tune
+            << " images), PSNR " << std::fixed << std::setprecision(2) << psnr << " dB on " << scenes.size(0) - n_tune
             << " images at sigma " << std::scientific << std::setprecision(1) << cam.noise_sigma << "\n";
   return 0;
 }
 
-// Separable model of a rank-1 mask: PhiL/PhiR from per-axis codes (4 sensor pixels per element,
-// one sensor pixel of shadow shift per scene pixel), scaled to the convolution model's DC gain.
-struct SeparableStats {
-  double cond_l = 0, cond_r = 0, tik_psnr = 0, lambda = 0;
-  torch::Tensor sv_l;
-};
+std::filesystem::path shipped(const std::string& relative) { return std::filesystem::path(FLATNET_SOURCE_DIR) / relative; }
 
-SeparableStats separable_stats(const std::vector<double>& code_u, const std::vector<double>& code_v,
-                               const torch::Tensor& tune, const torch::Tensor& test, const WienerCamera& cam) {
-  MaskGeometry g;
-  g.feature_um = 4, g.pixel_pitch_um = 1, g.shift_features_per_pixel = 0.25, g.scene_pixels = cam.scene;
-  g.sensor_pixels = cam.rows;
-  const auto L = toeplitz_phi(code_u, g).to(torch::kFloat32) / (0.5 * cam.rows);
-  g.sensor_pixels = cam.cols;
-  const auto R = toeplitz_phi(code_v, g).to(torch::kFloat32) / (0.5 * cam.cols);
-  auto [UL, sL, VLt] = torch::linalg::svd(L, false, c10::nullopt);
-  auto [UR, sR, VRt] = torch::linalg::svd(R, false, c10::nullopt);
-  SeparableStats st;
-  st.cond_l = (sL.max() / sL.min()).item<double>();
-  st.cond_r = (sR.max() / sR.min()).item<double>();
-  st.sv_l = sL;
-  const auto s = torch::outer(sL, sR);
-  auto run = [&](const torch::Tensor& X, double lambda, uint64_t seed) {
-    auto gen = at::detail::createCPUGenerator(seed);
-    auto Y = torch::matmul(L, torch::matmul(X, R.t()));
-    Y = Y + cam.noise_sigma * at::randn(Y.sizes(), gen);
-    const auto core = torch::matmul(UL.t(), torch::matmul(Y, UR)) * (s / (s * s + lambda));
-    const auto rec = torch::matmul(VLt.t(), torch::matmul(core, VRt)).clamp(0, 1);
-    return (-10.0 * torch::log10((rec - X).pow(2).mean({1, 2}).clamp_min(1e-12))).mean().item<double>();
-  };
-  double best = -1e9;
-  for (double lg = -10; lg <= -1; lg += 0.5) {
-    const double p = run(tune, std::pow(10.0, lg), 1);
-    if (p > best) best = p, st.lambda = std::pow(10.0, lg);
-  }
-  st.tik_psnr = run(test, st.lambda, 2);
-  return st;
+// A path as a report shows it: relative to the source tree when inside it.
+std::string shown(const std::filesystem::path& p) {
+  const auto rel = std::filesystem::weakly_canonical(p).lexically_relative(std::filesystem::weakly_canonical(FLATNET_SOURCE_DIR));
+  return !rel.empty() && *rel.begin() != ".." ? rel.string() : p.string();
 }
 
-std::vector<double> normalised(const torch::Tensor& v) {
-  const auto t = v.to(torch::kFloat64);
-  const auto n = (t - t.min()) / (t.max() - t.min() + 1e-12);
-  return std::vector<double>(n.data_ptr<double>(), n.data_ptr<double>() + n.numel());
+// NAME=PATH,NAME=PATH -> pairs; errors name the flag.
+std::vector<std::pair<std::string, std::string>> named_paths(const std::vector<std::string>& items, const std::string& flag) {
+  std::vector<std::pair<std::string, std::string>> out;
+  for (const auto& item : items) {
+    const auto eq = item.find('=');
+    require(eq != std::string::npos && eq > 0 && eq + 1 < item.size(), flag, "expects NAME=FILE items, got '" + item + "'");
+    out.emplace_back(item.substr(0, eq), item.substr(eq + 1));
+  }
+  return out;
 }
 
 int mask_report(int argc, char** argv) {
-  cxxopts::Options o("flatnet mask report", "Compare learned masks with MLS and the 02 mask: table, noise sweep, figures.");
+  cxxopts::Options o("flatnet mask report",
+                     "Compare masks: the Wiener protocol (learned masks, MLS, 02; noise sweep), then code pairs built into the "
+                     "separable reference camera (Tikhonov and FlatNet on held-out captures; light sweep).");
   o.add_options()("masks", "folders written by `flatnet mask train` (comma-separated)", cxxopts::value<std::vector<std::string>>())(
-      "images", "photographs; the held-out split (as training's) is used", cxxopts::value<std::string>())(
-      "out", "folder for report.md, masks.png, sweep.png, spectra.png", cxxopts::value<std::string>())(
-      "noise", "noise sigma of the main table", cxxopts::value<double>()->default_value("3e-4"))(
-      "tune-count", "held-out photographs used to tune gamma", cxxopts::value<int>()->default_value("50"))(
-      "count", "held-out photographs scored after those (0: the rest)", cxxopts::value<int>()->default_value("0"));
+      "images", "photographs; the held-out split (as training's and simulate's) is used", cxxopts::value<std::string>())(
+      "out", "folder for report.md, masks.png, sweep.png, separable_sweep.png", cxxopts::value<std::string>())(
+      "noise", "Wiener protocol: noise sigma of the main table", cxxopts::value<double>()->default_value("3e-4"))(
+      "tune-count", "held-out photographs that tune gamma and lambda", cxxopts::value<int>()->default_value("50"))(
+      "count", "held-out photographs scored after those (0: the rest)", cxxopts::value<int>()->default_value("0"))(
+      "codes",
+      "separable code pairs NAME=codes.mat (comma-separated; 'none': no separable section). Default: MLS, the shipped "
+      "separable-learned codes and their binary variant; rank-1 --masks are added as sign(u), sign(v)",
+      cxxopts::value<std::vector<std::string>>())(
+      "sections", "wiener, separable, or both (comma-separated)", cxxopts::value<std::vector<std::string>>()->default_value("wiener,separable"))(
+      "flatnet", "FlatNet models trained on a code pair's camera, NAME=model.flatnet (NAME as in --codes)",
+      cxxopts::value<std::vector<std::string>>());
   add_common(o);
+  add_precision(o);
   cxxopts::ParseResult r;
   if (!parse(o, argc, argv, r)) return 0;
-  require(r.count("masks") && r.count("images") && r.count("out"), "mask report", "--masks, --images and --out are required");
-  const std::filesystem::path out = r["out"].as<std::string>();
-  WienerCamera cam;
-  cam.noise_sigma = r["noise"].as<double>();
-  const auto held_out = split_image_files(r["images"].as<std::string>(), 0.1, 1).second;
-  const int64_t n_tune = r["tune-count"].as<int>();
-  require(static_cast<int64_t>(held_out.size()) > n_tune, r["images"].as<std::string>(), "too few held-out photographs");
-  const auto scenes = load_luma_scenes(held_out, cam.scene, 2);
-  const auto tune = scenes.slice(0, 0, n_tune);
-  const auto test = r["count"].as<int>() > 0 ? scenes.slice(0, n_tune, n_tune + r["count"].as<int>()) : scenes.slice(0, n_tune);
+  require(r.count("images") && r.count("out"), "mask report", "--images and --out are required");
+  MaskReportOptions opt;
+  opt.images = r["images"].as<std::string>();
+  opt.out = r["out"].as<std::string>();
+  opt.noise = r["noise"].as<double>();
+  opt.tune_count = r["tune-count"].as<int>();
+  opt.count = r["count"].as<int>();
+  require(opt.count >= 0, "--count", "must be 0 (all) or positive");
+  bool separable = false;
+  opt.wiener = false;
+  for (const auto& section : r["sections"].as<std::vector<std::string>>()) {
+    require(section == "wiener" || section == "separable", "--sections", "takes wiener and/or separable, got '" + section + "'");
+    (section == "wiener" ? opt.wiener : separable) = true;
+  }
+  if (r.count("masks"))
+    for (const auto& d : r["masks"].as<std::vector<std::string>>()) opt.mask_dirs.emplace_back(d);
 
-  // Masks: baselines, then each learned one.
-  std::vector<std::pair<std::string, torch::Tensor>> masks = {{"MLS", load_mask_window("mls", cam)},
-                                                              {"02 (FlatNet)", load_mask_window("m02", cam)}};
-  std::vector<std::pair<std::string, std::filesystem::path>> learned;
-  for (const auto& d : r["masks"].as<std::vector<std::string>>()) {
-    const std::filesystem::path dir(d);
-    masks.emplace_back("learned " + dir.filename().string(), load_mask_window((dir / "mask.png").string(), cam));
-    learned.emplace_back(masks.back().first, dir);
-  }
-  std::ostringstream md;
-  md << "# Learned masks vs MLS and FlatNet's 02 mask\n\nProtocol: 511-element masks, 4x4 sensor pixels per element, "
-        "centred 500x620 PSF, 256x256 luma scenes centred in the canvas, circular convolution, Gaussian noise, Wiener "
-        "deconvolution with gamma tuned per mask (and per noise level) on "
-     << n_tune << " held-out photographs; PSNR on " << test.size(0)
-     << " further held-out photographs (`flatnet mask report`).\n\n";
-  MarkdownTable main_table{{"mask", "throughput", "gamma", "PSNR dB (sigma " + scientific(cam.noise_sigma, 1) + ")"}, {}};
-  std::vector<MaskScore> scores;
-  for (const auto& [name, w] : masks) {
-    scores.push_back(score_mask(name, w, tune, test, cam));
-    const auto& s = scores.back();
-    main_table.add({name, fixed(s.throughput, 3), scientific(s.gamma, 2), fixed(s.psnr, 2)});
-    std::cerr << name << ": " << s.psnr << " dB\n";
-  }
-  md << main_table.markdown() << "\nThe 02 mask passes about 2% of the light, so it is compared apart (not at equal light). Its PSF "
-        "covers only 124x124 pixels, so its deconvolution is well conditioned; with noise that does not depend "
-        "on the signal, as in this protocol, that outweighs the light it loses.\n\n"
-        "## Noise sweep (PSNR dB; gamma re-tuned at each level)\n\n";
-  const std::vector<double> sigmas = {1e-4, 3e-4, 1e-3, 3e-3};
-  std::vector<Series> sweep;
-  MarkdownTable sweep_table{{"sigma"}, {}};
-  for (const auto& [name, w] : masks) sweep_table.header.push_back(name), sweep.push_back({name, {}, {}});
-  for (const double sg : sigmas) {
-    WienerCamera c2 = cam;
-    c2.noise_sigma = sg;
-    std::vector<std::string> row{scientific(sg, 0)};
-    for (size_t i = 0; i < masks.size(); ++i) {
-      const auto s = score_mask(masks[i].first, masks[i].second, tune, test, c2);
-      row.push_back(fixed(s.psnr, 2));
-      sweep[i].x.push_back(sg);
-      sweep[i].y.push_back(s.psnr);
+  std::vector<std::pair<std::string, std::string>> codes = {
+      {"MLS", shipped("models/camera/codes_mls.mat").string()},
+      {"separable-learned", shipped("models/masks/separable/codes.mat").string()},
+      {"separable-learned binary", shipped("models/masks/separable/binary/codes.mat").string()}};
+  const bool no_codes = r.count("codes") && r["codes"].as<std::vector<std::string>>() == std::vector<std::string>{"none"};
+  if (r.count("codes") && !no_codes) codes = named_paths(r["codes"].as<std::vector<std::string>>(), "--codes");
+  if (separable && !no_codes) {
+    for (const auto& [name, path] : codes)
+      opt.separable.push_back({name, load_code_pair(path), shown(path), std::nullopt});
+    for (const auto& dir : opt.mask_dirs) {
+      MatReader vectors(dir / "vectors.mat");
+      if (vectors.read("U").size(1) != 1) continue;  // only rank-1 masks have a separable counterpart
+      const auto mapped = codes_from_wiener_mask(dir);
+      opt.separable.push_back({"Wiener " + dir.filename().string(), mapped.codes,
+                               "sign of the Wiener-learned vectors in " + shown(dir / "vectors.mat") + " (the mask agrees on " +
+                                   fixed(100 * mapped.agreement, 1) + " % of the window's pixels)",
+                               std::nullopt});
     }
-    sweep_table.add(row);
   }
-  md << sweep_table.markdown();
-  std::filesystem::create_directories(out);
-  PlotOptions po;
-  po.title = "PSNR vs noise (Wiener, gamma tuned per level)";
-  po.xlabel = "noise sigma";
-  po.ylabel = "PSNR dB";
-  po.log_x = true;
-  write_line_plot(out / "sweep.png", sweep, po);
-
-  // Rank-1 masks on the separable FlatCam model.
-  md << "\n## Rank-1 masks as separable FlatCam matrices\n\nPhiL (500x256) and PhiR (620x256) built from each "
-        "axis's code (learned vectors scaled to [0,1]; MLS (m+1)/2), Tikhonov with lambda tuned the same way, sigma "
-     << std::scientific << std::setprecision(1) << cam.noise_sigma
-     << ". A learned rank-1 mask is sigmoid(u v^T + b), which is not separable, so its vectors are only an "
-        "approximation of separable codes, and they were optimised for the Wiener pipeline, not for this model.\n\n";
-  MarkdownTable separable_table{{"mask", "cond(PhiL)", "cond(PhiR)", "Tikhonov PSNR dB"}, {}};
-  std::vector<Series> spectra;
-  auto add_separable = [&](const std::string& name, const std::vector<double>& u, const std::vector<double>& v) {
-    const auto st = separable_stats(u, v, tune, test, cam);
-    separable_table.add({name, scientific(st.cond_l, 2), scientific(st.cond_r, 2), fixed(st.tik_psnr, 2)});
-    Series s{name, {}, {}};
-    const auto sv = (st.sv_l / st.sv_l.max()).to(torch::kFloat64);
-    for (int64_t i = 0; i < sv.numel(); ++i) s.x.push_back(static_cast<double>(i)), s.y.push_back(std::log10(sv[i].item<double>() + 1e-12));
-    spectra.push_back(s);
-  };
-  const auto code = mls(9);
-  std::vector<double> mcode;
-  for (int c : code) mcode.push_back((c + 1) / 2.0);
-  add_separable("MLS", mcode, mcode);
-  for (const auto& [name, dir] : learned) {
-    MatReader vec(dir / "vectors.mat");
-    const auto U = vec.read("U"), V = vec.read("V");
-    if (U.size(1) != 1) continue;
-    add_separable(name, normalised(U.select(1, 0)), normalised(V.select(1, 0)));
+  if (r.count("flatnet")) {
+    require(!opt.separable.empty(), "--flatnet", "needs code pairs (--codes is none, or --sections leaves out separable)");
+    const auto precision = precision_from(r);
+    for (const auto& [name, path] : named_paths(r["flatnet"].as<std::vector<std::string>>(), "--flatnet")) {
+      auto it = std::find_if(opt.separable.begin(), opt.separable.end(), [&](const auto& c) { return c.name == name; });
+      require(it != opt.separable.end(), "--flatnet", "'" + name + "' names no code pair (--codes names them)");
+      auto model = load_model_file(path);
+      InferenceLevers levers;
+      levers.bf16 = precision == Precision::bf16;
+      model.generator->prepare_inference(levers);
+      auto generator = model.generator;
+      it->flatnet = CameraModel{[generator](const torch::Tensor& planes) mutable { return generator->forward(planes); },
+                                model.camera.raw,
+                                shown(path) + " (" + model.config.str("train.iterations") + " steps)"};
+    }
   }
-  md << separable_table.markdown();
-  PlotOptions sp;
-  sp.title = "singular values of PhiL (log10 of s / s_max)";
-  sp.xlabel = "index";
-  sp.ylabel = "log10";
-  write_line_plot(out / "spectra.png", spectra, sp);
-
-  // Figure: each mask's window and its reconstruction of one held-out photograph.
-  std::vector<std::string> labels;
-  std::vector<torch::Tensor> row_masks, row_recs;
-  const auto x = test.slice(0, 0, 1);
-  for (size_t i = 0; i < masks.size(); ++i) {
-    labels.push_back(masks[i].first.substr(0, 22));
-    row_masks.push_back(masks[i].second.unsqueeze(0).repeat({3, 1, 1}));
-    const auto P = psf_spectrum(masks[i].second);
-    auto gen = at::detail::createCPUGenerator(99);
-    const auto rec = wiener(capture(x, P, cam, gen), P, torch::tensor(scores[i].gamma), cam)[0].clamp(0, 1);
-    row_recs.push_back(rec.unsqueeze(0).repeat({3, 1, 1}));
-  }
-  labels.insert(labels.begin(), "truth");
-  row_masks.insert(row_masks.begin(), torch::ones({3, cam.scene, cam.scene}));
-  row_recs.insert(row_recs.begin(), x[0].unsqueeze(0).repeat({3, 1, 1}));
-  write_contact_sheet(out / "masks.png", labels, {"mask window", "reconstruction"}, {row_masks, row_recs});
-  md << "\n![masks and reconstructions](masks.png)\n\n![noise sweep](sweep.png)\n\n![PhiL spectra](spectra.png)\n";
-  write_text_atomically(out / "report.md", md.str());
-  std::cout << md.str();
+  opt.separable_options.geometry = load_camera_config(default_camera_path()).raw;
+  opt.separable_options.geometry.centring = Centring::plane;
+  opt.separable_options.tune_count = opt.tune_count;
+  opt.separable_options.count = opt.count;
+  std::cout << write_mask_report(opt);
   return 0;
 }
 
@@ -375,18 +292,9 @@ int mask_camera(int argc, char** argv) {
   const std::filesystem::path codes_path = r["codes"].as<std::string>(), out = r["out"].as<std::string>();
   const double error = r["calib-error"].as<double>();
   require(std::isfinite(error) && error >= 0 && error <= 1, "--calib-error", "0 to 1 (0.03: 3 %)");
-  MatReader codes(codes_path);
-  auto vector_of = [&](const char* name) {
-    const auto t = codes.read(name);
-    require(t.dim() <= 2 && t.numel() >= 2 && t.numel() == t.size(0) * (t.dim() == 2 ? t.size(1) : 1) &&
-                (t.dim() < 2 || t.size(0) == 1 || t.size(1) == 1),
-            codes_path, std::string("variable '") + name + "' must be a vector");
-    const auto v = t.flatten();
-    require(torch::isfinite(v).all().item<bool>() && v.abs().max().item<double>() <= 1.0 + 1e-9, codes_path,
-            std::string("variable '") + name + "' must hold values in [-1, 1]");
-    return v;
-  };
-  const auto u = vector_of("code_rows"), v = vector_of("code_cols");
+  const auto codes = load_code_pair(codes_path);
+  const auto& u = codes.rows;
+  const auto& v = codes.cols;
   std::filesystem::create_directories(out);
   for (const char* f : {"rig.mat", "calib.mat", "camera.yaml"}) require_new_output(out / f, r.count("force") > 0, {codes_path});
   const auto rig = separable_rig(u, v);
@@ -400,7 +308,7 @@ int mask_camera(int argc, char** argv) {
                         "# The reference camera with the codes of " + codes_path.string() + " (`flatnet mask camera`)\n" +
                             camera_geometry_yaml(camera) + "calibration: calib.mat\nrig: rig.mat\n");
   std::cout << "camera with codes " << codes_path.string() << " (" << u.numel() << " x " << v.numel() << " features, mean "
-            << "transmittance " << (1 + u.mean().item<double>() * v.mean().item<double>()) / 2 << "): "
+            << "transmittance " << codes.throughput() << "): "
             << (out / "camera.yaml").string() << ", rig.mat, calib.mat (" << error * 100 << " % error)\n";
   return 0;
 }

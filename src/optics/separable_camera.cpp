@@ -90,6 +90,24 @@ Calibration calibration_of(const Rig& rig, const std::array<int64_t, 4>& crop, d
   return {torch::stack(P), torch::stack(Q)};
 }
 
+double CodePair::throughput() const {
+  return (1 + rows.mean().item<double>() * cols.mean().item<double>()) / 2;
+}
+
+CodePair load_code_pair(const std::filesystem::path& path) {
+  MatReader codes(path);
+  auto vector_of = [&](const char* name) {
+    const auto t = codes.read(name);
+    require(t.dim() <= 2 && t.numel() >= 2 && (t.dim() < 2 || t.size(0) == 1 || t.size(1) == 1), path,
+            std::string("variable '") + name + "' must be a vector");
+    const auto v = t.flatten().to(torch::kFloat64);
+    require(torch::isfinite(v).all().item<bool>() && v.abs().max().item<double>() <= 1.0 + 1e-9, path,
+            std::string("variable '") + name + "' must hold values in [-1, 1]");
+    return v;
+  };
+  return {vector_of("code_rows"), vector_of("code_cols")};
+}
+
 void save_rig(const std::filesystem::path& path, const Rig& rig) {
   auto scalar = [](double v) { return torch::full({1, 1}, v, torch::kFloat64); };
   std::map<std::string, torch::Tensor> vars;

@@ -45,6 +45,15 @@ Rig separable_rig(const torch::Tensor& u, const torch::Tensor& v, const Separabl
 // shipped calib.mat has 3 %), seeded.
 Calibration calibration_of(const Rig& rig, const std::array<int64_t, 4>& crop, double relative_error, uint64_t seed);
 
+// A separable mask's code pair: the mask is (1 + rows cols^T) / 2.
+struct CodePair {
+  torch::Tensor rows, cols;  // {K} float64, values in [-1, 1]
+  double throughput() const;  // mean transmittance (1 + mean(rows) mean(cols)) / 2
+};
+// Reads code_rows and code_cols (vectors) from a .mat; errors name the file and the variable
+// (missing, not a vector, non-finite, values outside [-1, 1]).
+CodePair load_code_pair(const std::filesystem::path& path);
+
 // rig.mat's variables (PhiL_b.., PhiR_b.., gain_b.., vig_rows, vig_cols, full_well, read_noise, dark, adc_bits).
 void save_rig(const std::filesystem::path& path, const Rig& rig);
 

@@ -59,8 +59,8 @@ double mean_psnr(const torch::Tensor& rec, const torch::Tensor& truth) {
 }
 
 std::pair<torch::Tensor, torch::Tensor> read_codes(const std::filesystem::path& path) {
-  MatReader mat(path);
-  return {mat.read("code_rows").flatten().to(torch::kFloat32), mat.read("code_cols").flatten().to(torch::kFloat32)};
+  const auto codes = load_code_pair(path);
+  return {codes.rows.to(torch::kFloat32), codes.cols.to(torch::kFloat32)};
 }
 
 }  // namespace
