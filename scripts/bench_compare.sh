@@ -9,7 +9,7 @@
 #   ratio_best <row> <C++ best median (fp32 or bf16) / Python best median>   (infer_*/train_* rows)
 #   scripts/bench_compare.sh [ROWS] [REPEATS] [ROUNDS]     (defaults: all six rows, 3, 2)
 # Environment: THREADS (default: all cores), LEVERS (flatnet's inference levers, default
-# fold,channels-last,gemm-up), PRECISION (flatnet's, default both), SWEEP=1 also times each
+# fold,channels-last,gemm-up,onednn), PRECISION (flatnet's, default both), SWEEP=1 also times each
 # inference lever alone (C++ only).
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -17,7 +17,7 @@ rows=${1:-tikhonov,infer_paper,infer_cpu,train_paper,train_cpu,mask_step}
 repeats=${2:-3}
 rounds=${3:-2}
 threads=${THREADS:-$(nproc)}
-levers=${LEVERS:-fold,channels-last,gemm-up}
+levers=${LEVERS:-fold,channels-last,gemm-up,onednn}
 precision=${PRECISION:-both}
 py=/usr/bin/python3
 bin=build/flatnet
@@ -43,7 +43,7 @@ for row in "${row_list[@]}"; do
 done
 if [ "${SWEEP:-0}" = "1" ]; then  # each lever set, interleaved over the rounds as well
   for ((k = 0; k < rounds; k++)); do
-    for l in none fold channels-last,gemm-up fold,channels-last fold,channels-last,gemm-up fold,channels-last,gemm-up,bf16; do
+    for l in none fold channels-last,gemm-up fold,channels-last fold,channels-last,gemm-up fold,channels-last,gemm-up,bf16 fold,channels-last,gemm-up,bf16,onednn; do
       "$bin" bench --rows infer_paper --repeats "$repeats" --threads "$threads" --levers "$l" --json "$tmp/lever_${l}_$k.json" > /dev/null
     done
   done
@@ -85,7 +85,7 @@ if sweep:
     print("\ninference levers, infer_paper (C++ alone):")
     base = None
     for f in ["none", "fold", "channels-last,gemm-up", "fold,channels-last", "fold,channels-last,gemm-up",
-              "fold,channels-last,gemm-up,bf16"]:
+              "fold,channels-last,gemm-up,bf16", "fold,channels-last,gemm-up,bf16,onednn"]:
         ms = statistics.median(json.load(open(os.path.join(tmp, "lever_%s_%d.json" % (f, k))))["rows"][0]["median_ms"]
                                for k in range(rounds))
         base = base or ms

@@ -304,7 +304,7 @@ TEST_CASE("inference levers (BN folding, channels-last, GEMM upsampling) keep th
     for (auto& p : fast->named_parameters()) p.value().copy_(plain->named_parameters()[p.key()]);
     for (auto& b : fast->named_buffers()) b.value().copy_(plain->named_buffers()[b.key()]);
   }
-  fast->prepare_inference(parse_inference_levers("fold,channels-last,gemm-up"));
+  fast->prepare_inference(parse_inference_levers("fold,channels-last,gemm-up,onednn"));
   torch::NoGradGuard no_grad;
   const auto got = fast->forward(Y);
   CHECK(got.sizes() == expected.sizes());

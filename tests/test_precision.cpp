@@ -7,6 +7,7 @@
 #include "core/error.hpp"
 #include "core/precision.hpp"
 #include "nn/generator.hpp"
+#include "nn/onednn_conv.hpp"
 
 using namespace flatnet;
 using Catch::Matchers::Contains;
@@ -82,4 +83,61 @@ TEST_CASE("a short bf16 autocast training run tracks the fp32 loss curve", "[pre
     INFO("step " << i << ": fp32 " << fp32[i] << ", bf16 " << bf16[i]);
     CHECK(std::abs(bf16[i] - fp32[i]) <= 0.05 * fp32[i]);
   }
+}
+
+TEST_CASE("oneDNN convolutions (prepacked weights, fused bias and ReLU) compute the convolution", "[precision][bf16][onednn]") {
+  // bf16 inputs and weights, so the reference sees exactly the values oneDNN sees; only the
+  // accumulation and the output's rounding to bf16 differ.
+  torch::manual_seed(3);
+  for (const int64_t stride : {1, 2})
+    for (const bool relu : {false, true}) {
+      const auto x = torch::randn({2, 8, 12, 10}).to(torch::kBFloat16);
+      const auto w = (torch::randn({16, 8, 3, 3}) * 0.2).to(torch::kBFloat16), b = torch::randn({16});
+      OneDnnConv conv(w, b, {stride, 1, relu});
+      const auto got = conv(x);
+      auto expected = torch::conv2d(x.to(torch::kFloat32), w.to(torch::kFloat32), b, stride, 1);
+      if (relu) expected = torch::relu(expected);
+      INFO("stride " << stride << " relu " << relu);
+      CHECK(got.sizes() == expected.sizes());
+      CHECK(got.scalar_type() == torch::kBFloat16);
+      CHECK(got.is_contiguous(at::MemoryFormat::ChannelsLast));
+      CHECK((got.to(torch::kFloat32) - expected).abs().max().item<double>() <= 0.01 * expected.abs().max().item<double>());
+      if (relu) CHECK(got.min().item<double>() >= 0);
+      CHECK(torch::equal(conv(x), got));  // the cached plan gives the same answer
+    }
+  OneDnnConv conv(torch::randn({4, 3, 3, 3}), torch::Tensor(), {1, 1, false});
+  CHECK_THROWS_WITH(conv(torch::randn({1, 5, 8, 8})), Contains("{B,3,H,W}"));
+}
+
+TEST_CASE("bf16 inference with the onednn lever agrees with LibTorch's bf16 path and with fp32", "[precision][bf16][onednn]") {
+  auto make = [] {
+    torch::manual_seed(8);
+    GeneratorOptions o;
+    o.rows = 20, o.cols = 24, o.scene = 16;
+    o.inversion.phil = torch::randn({20, 16, 1}) * 0.2;
+    o.inversion.phir = torch::randn({24, 16, 1}) * 0.2;
+    o.unet.width = 8;
+    Generator g(o);
+    g->train();
+    torch::NoGradGuard no_grad;
+    g->forward(torch::randn({2, 4, 20, 24}) * 0.1);  // batch-norm statistics
+    return g;
+  };
+  auto fp32 = make(), libtorch_bf16 = make(), onednn_bf16 = make();
+  fp32->prepare_inference(parse_inference_levers("fold,channels-last,gemm-up"));
+  const auto before = OneDnnConv::built();
+  libtorch_bf16->prepare_inference(parse_inference_levers("fold,channels-last,gemm-up,bf16"));
+  CHECK(OneDnnConv::built() == before);
+  onednn_bf16->prepare_inference(parse_inference_levers("fold,channels-last,gemm-up,bf16,onednn"));
+  CHECK(OneDnnConv::built() == before + 19);  // 9 double convolutions and the output convolution
+  c10::InferenceMode guard;
+  const auto Y = torch::randn({2, 4, 20, 24}) * 0.1;
+  const auto a = fp32->forward(Y), b = libtorch_bf16->forward(Y), c = onednn_bf16->forward(Y);
+  CHECK(c.sizes() == a.sizes());
+  CHECK(c.scalar_type() == torch::kFloat32);
+  // The same kernels and the same bf16 bias: the fused ReLU commutes with the rounding, so the
+  // result is LibTorch's bf16 result to the bit; against fp32 it differs by bf16's rounding.
+  CHECK(torch::equal(b, c));
+  CHECK((c - a).abs().max().item<double>() < 0.03);
+  CHECK((c - a).abs().mean().item<double>() < 0.005);
 }

@@ -19,8 +19,8 @@ int bench(int argc, char** argv) {
   o.add_options()("rows", "comma list of rows (default: all)", cxxopts::value<std::string>())(
       "repeats", "timed runs per row", cxxopts::value<int>()->default_value("5"))(
       "warmup", "untimed runs before them", cxxopts::value<int>()->default_value("1"))(
-      "levers", "inference levers for infer_*: none, or a list of fold, channels-last, gemm-up, bf16",
-      cxxopts::value<std::string>()->default_value("fold,channels-last,gemm-up"))(
+      "levers", "inference levers for infer_*: none, or a list of fold, channels-last, gemm-up, bf16, onednn (onednn: with bf16)",
+      cxxopts::value<std::string>()->default_value("fold,channels-last,gemm-up,onednn"))(
       "json", "also write the results to this JSON file", cxxopts::value<std::string>())(
       "precision", "auto|fp32|bf16|both: precision of the infer_* and train_* rows (both: each row twice, the bf16 "
                    "one named ROW_bf16); auto is bf16 where the CPU has it natively",

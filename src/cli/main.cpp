@@ -6,6 +6,7 @@
 
 #include "cli/commands.hpp"
 #include "core/error.hpp"
+#include "core/util.hpp"
 
 namespace {
 
@@ -52,6 +53,7 @@ int main(int argc, char** argv) {
     std::cerr << "flatnet: unknown command '" << command << "' (run 'flatnet --help')\n";
     return 2;
   }
+  flatnet::keep_freed_memory();
   try {
     return it->second.first(argc - 1, argv + 1);
   } catch (const flatnet::Error& e) {

@@ -323,8 +323,8 @@ int infer(int argc, char** argv) {
       "out", "output folder (PNGs with the captures' names)", cxxopts::value<std::string>())(
       "camera", "camera .yaml whose preprocessing to use (default: the model's)", cxxopts::value<std::string>())(
       "batch", "captures per batch", cxxopts::value<int>()->default_value("4"))(
-      "levers", "exact inference speed-ups: none, or a list of fold, channels-last, gemm-up (bf16: see --precision)",
-      cxxopts::value<std::string>()->default_value("fold,channels-last,gemm-up"));
+      "levers", "exact inference speed-ups: none, or a list of fold, channels-last, gemm-up, onednn (bf16 and onednn: see --precision)",
+      cxxopts::value<std::string>()->default_value("fold,channels-last,gemm-up,onednn"));
   add_precision(o);
   add_common(o);
   cxxopts::ParseResult r;

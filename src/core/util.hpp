@@ -11,6 +11,10 @@ namespace flatnet {
 
 namespace fs = std::filesystem;
 
+// Keeps freed memory in the process (glibc: no mmap for blocks below 1 GiB, no heap trimming):
+// called once by the CLI; every forward pass then reuses its buffers instead of page-faulting.
+void keep_freed_memory();
+
 // Sets LibTorch's intra-op threads; n <= 0 means all hardware threads. Returns the count used.
 int set_threads(int n);
 

@@ -67,7 +67,8 @@ BenchRow infer_row(const std::string& name, int64_t width, const BenchOptions& o
   g->prepare_inference(levers);
   const auto Y = torch::randn({1, 4, kRows, kCols}) * 0.05;
   std::string names = std::string(levers.fold_batchnorm ? " fold" : "") + (levers.channels_last ? " channels-last" : "") +
-                      (levers.gemm_upsample ? " gemm-up" : "") + (levers.bf16 ? " bf16" : "");
+                      (levers.gemm_upsample ? " gemm-up" : "") + (levers.bf16 ? " bf16" : "") +
+                      (levers.bf16 && levers.onednn && levers.fold_batchnorm ? " onednn" : "");
   c10::InferenceMode guard;
   auto row = time_row(name, "FlatNet-sep U-Net width " + std::to_string(width) + ", batch 1, levers:" +
                                 (names.empty() ? std::string(" none") : names),

@@ -136,15 +136,18 @@ void check_camera_for_model(const GeneratorOptions& model, const CameraConfig& c
 //  - fold_batchnorm: eval-mode BN folded into the U-Net's convolutions, ReLUs in place;
 //  - channels_last: NHWC activations and weights (oneDNN's native layout);
 //  - gemm_upsample: the U-Net's 2x2 stride-2 transposed convolutions as one GEMM each;
-//  - bf16: the enhancer in bfloat16 (AVX-512-BF16), the inversion stays float32.
+//  - bf16: the enhancer in bfloat16 (AVX-512-BF16), the inversion stays float32;
+//  - onednn (with bf16 and fold): the U-Net's convolutions run by oneDNN directly, weights
+//    prepacked once and bias + ReLU fused (nn/onednn_conv.hpp).
 // prepare_inference changes the module in place: never train or save it afterwards.
 struct InferenceLevers {
   bool fold_batchnorm = true;
   bool channels_last = true;
   bool bf16 = false;
   bool gemm_upsample = true;
+  bool onednn = true;
 };
-// "none" or a comma list of fold, channels-last, gemm-up, bf16.
+// "none" or a comma list of fold, channels-last, gemm-up, bf16, onednn.
 InferenceLevers parse_inference_levers(const std::string& s);
 
 class GeneratorImpl : public torch::nn::Module {
@@ -179,7 +182,7 @@ class GeneratorImpl : public torch::nn::Module {
   torch::Tensor first_stage_of(const torch::Tensor& planes);  // inversion or Tikhonov, on planes without the level
   void apply_levers(const InferenceLevers& levers, bool for_inference);
   bool autocast_bf16_ = false;
-  InferenceLevers levers_{false, false, false, false};
+  InferenceLevers levers_{false, false, false, false, false};
   FlatInversion inversion_{nullptr};
   TikhonovLayer tikhonov_{nullptr};
   torch::nn::BatchNorm2d bn_{nullptr};

@@ -1,0 +1,90 @@
+#include "nn/onednn_conv.hpp"
+
+#include <oneapi/dnnl/dnnl.hpp>
+
+#include "core/error.hpp"
+
+namespace flatnet {
+
+namespace {
+
+using dt = dnnl::memory::data_type;
+using tag = dnnl::memory::format_tag;
+
+std::atomic<int64_t> built_count{0};
+
+dnnl::engine& cpu_engine() {
+  static dnnl::engine engine(dnnl::engine::kind::cpu, 0);
+  return engine;
+}
+
+}  // namespace
+
+struct OneDnnConv::Plan {
+  dnnl::convolution_forward primitive;
+  dnnl::memory::desc src, dst;
+  dnnl::memory weights, bias;  // weights in the kernel's own layout (reordered once)
+  std::array<int64_t, 4> out_shape;
+};
+
+OneDnnConv::OneDnnConv(const torch::Tensor& weight, const torch::Tensor& bias, const OneDnnConvOptions& options)
+    : weight_(weight.detach().to(torch::kBFloat16).contiguous(at::MemoryFormat::ChannelsLast)),  // no copy after the levers
+      opt_(options) {
+  TORCH_CHECK(weight_.dim() == 4, "OneDnnConv: a 4-D weight expected");
+  in_channels_ = weight_.size(1), out_channels_ = weight_.size(0);
+  bias_ = bias.defined() ? bias.detach().to(torch::kFloat32).contiguous() : torch::zeros({out_channels_});
+  TORCH_CHECK(bias_.numel() == out_channels_, "OneDnnConv: one bias per output channel expected");
+  ++built_count;
+}
+
+int64_t OneDnnConv::built() { return built_count; }
+
+OneDnnConv::~OneDnnConv() = default;
+
+OneDnnConv::Plan& OneDnnConv::plan_for(int64_t b, int64_t h, int64_t w) {
+  auto& slot = plans_[{b, h, w}];
+  if (slot) return *slot;
+  const int64_t o = out_channels_, i = in_channels_, kh = weight_.size(2), kw = weight_.size(3);
+  const int64_t s = opt_.stride, p = opt_.padding;
+  const int64_t oh = (h + 2 * p - kh) / s + 1, ow = (w + 2 * p - kw) / s + 1;
+  auto plan = std::make_unique<Plan>();
+  plan->src = dnnl::memory::desc({b, i, h, w}, dt::bf16, tag::nhwc);
+  plan->dst = dnnl::memory::desc({b, o, oh, ow}, dt::bf16, tag::nhwc);
+  const dnnl::memory::desc any_weights({o, i, kh, kw}, dt::bf16, tag::any), bias_desc({o}, dt::f32, tag::a);
+  dnnl::primitive_attr attr;
+  if (opt_.relu) {
+    dnnl::post_ops ops;
+    ops.append_eltwise(1.0f, dnnl::algorithm::eltwise_relu, 0.0f, 0.0f);
+    attr.set_post_ops(ops);
+  }
+  const dnnl::convolution_forward::desc desc(dnnl::prop_kind::forward_inference, dnnl::algorithm::convolution_direct,
+                                             plan->src, any_weights, bias_desc, plan->dst, {s, s}, {p, p}, {p, p});
+  const dnnl::convolution_forward::primitive_desc pd(desc, attr, cpu_engine());
+  plan->primitive = dnnl::convolution_forward(pd);
+  dnnl::stream stream(cpu_engine());
+  // The module's weights as they lie in memory: {O,kh,kw,I} (channels-last).
+  dnnl::memory user_weights({{o, i, kh, kw}, dt::bf16, tag::ohwi}, cpu_engine(), weight_.data_ptr());
+  plan->weights = dnnl::memory(pd.weights_desc(), cpu_engine());
+  dnnl::reorder(user_weights, plan->weights).execute(stream, user_weights, plan->weights);  // -> the kernel's blocked layout
+  plan->bias = dnnl::memory(bias_desc, cpu_engine(), bias_.data_ptr());
+  stream.wait();
+  plan->out_shape = {b, o, oh, ow};
+  slot = std::move(plan);
+  return *slot;
+}
+
+torch::Tensor OneDnnConv::operator()(const torch::Tensor& input) {
+  TORCH_CHECK(input.dim() == 4 && input.size(1) == in_channels_, "OneDnnConv: {B,", in_channels_,
+              ",H,W} input expected, got ", input.sizes());
+  const auto x = input.to(torch::kBFloat16).contiguous(at::MemoryFormat::ChannelsLast);
+  Plan& plan = plan_for(x.size(0), x.size(2), x.size(3));
+  auto y = torch::empty({plan.out_shape[0], plan.out_shape[1], plan.out_shape[2], plan.out_shape[3]},
+                        x.options().memory_format(at::MemoryFormat::ChannelsLast));
+  dnnl::memory src(plan.src, cpu_engine(), x.data_ptr()), dst(plan.dst, cpu_engine(), y.data_ptr());
+  dnnl::stream stream(cpu_engine());
+  plan.primitive.execute(stream, {{DNNL_ARG_SRC, src}, {DNNL_ARG_WEIGHTS, plan.weights}, {DNNL_ARG_BIAS, plan.bias}, {DNNL_ARG_DST, dst}});
+  stream.wait();
+  return y;
+}
+
+}  // namespace flatnet

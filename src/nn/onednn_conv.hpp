@@ -1,0 +1,42 @@
+#pragma once
+// A 2-D convolution for bf16 inference, run by oneDNN directly (the same libdnnl LibTorch uses).
+// LibTorch 1.13 hands oneDNN plain weights on every call, and oneDNN reorders them into its AMX
+// kernel's blocked layout each time (14.5 ms of a 190 ms paper-width pass, most of it in the deep
+// 1024-channel layers); its ReLU is a second pass over every output. Here the weights are reordered
+// once per input shape, and bias and ReLU are fused into the convolution (oneDNN post-op).
+// Activations stay LibTorch tensors in channels-last bf16 (NHWC), so no activation is reordered.
+#include <array>
+#include <atomic>
+#include <map>
+#include <memory>
+
+#include <torch/torch.h>
+
+namespace flatnet {
+
+struct OneDnnConvOptions {
+  int64_t stride = 1, padding = 0;
+  bool relu = false;  // max(0, .) fused after the bias
+};
+
+class OneDnnConv {
+ public:
+  // weight {O,I,kh,kw} (shared when already bf16 channels-last, as after the bf16 and channels-last
+  // levers), bias {O} or undefined (kept in fp32).
+  OneDnnConv(const torch::Tensor& weight, const torch::Tensor& bias, const OneDnnConvOptions& options);
+  ~OneDnnConv();
+  // {B,I,H,W} bf16 (any memory format; made channels-last) -> {B,O,H',W'} bf16 channels-last.
+  torch::Tensor operator()(const torch::Tensor& x);
+  // Convolutions built so far in this process (tests check that a lever took effect).
+  static int64_t built();
+
+ private:
+  struct Plan;
+  Plan& plan_for(int64_t batch, int64_t height, int64_t width);
+  torch::Tensor weight_, bias_;  // bf16 {O,I,kh,kw} channels-last, fp32 {O}
+  int64_t in_channels_, out_channels_;
+  OneDnnConvOptions opt_;
+  std::map<std::array<int64_t, 3>, std::unique_ptr<Plan>> plans_;  // by input (B, H, W)
+};
+
+}  // namespace flatnet
