@@ -6,6 +6,8 @@ cd "$(dirname "$0")/.."
 bash scripts/setup.sh
 bash scripts/build.sh
 cd build
+# Two test processes at a time, one intra-op thread each (tests/test_main.cpp).
+export FLATNET_TEST_THREADS=${FLATNET_TEST_THREADS:-1}
 if [ $# -gt 0 ]; then
   ctest --output-on-failure -j 2 -L "$1"
 else

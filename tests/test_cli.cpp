@@ -462,3 +462,42 @@ TEST_CASE("mask camera: a camera from codes works downstream (simulate, recon), 
   CHECK(r.code == 2);
   CHECK_THAT(r.output, Contains("bad.mat") && Contains("code_rows") && Contains("[-1, 1]"));
 }
+
+TEST_CASE("cmake --install gives a binary that finds its files from any folder, without the source tree", "[cli][install]") {
+  test::Scratch s("install");
+  const auto prefix = s.dir / "prefix";
+  auto r = test::run_shell("cmake --install " + q(FLATNET_BUILD_DIR) + " --prefix " + q(prefix));
+  INFO(r.output);
+  REQUIRE(r.code == 0);
+  const auto bin = prefix / "bin" / "flatnet";
+  const auto share = prefix / "share" / "flatnet";
+  REQUIRE(std::filesystem::exists(bin));
+  CHECK(std::filesystem::exists(share / "configs" / "defaults.yaml"));
+  CHECK(std::filesystem::exists(share / "configs" / "cameras" / "sim.yaml"));
+  CHECK(std::filesystem::exists(share / "models" / "camera" / "calib.mat"));
+  CHECK(std::filesystem::exists(share / "models" / "flatnet-sim-transpose.flatnet"));
+  // From another folder, FLATNET_DATA_DIR unset: the default camera (configs/cameras/sim.yaml, whose
+  // calibration is ../../models/camera/calib.mat) comes from the installed share folder.
+  std::filesystem::create_directories(s.dir / "elsewhere");
+  const auto capture = test::data_dir() / "golden" / "bsds_16052_raw.png";
+  r = test::run_shell("cd " + q(s.dir / "elsewhere") + " && env -u FLATNET_DATA_DIR " + q(bin) + " recon --input " + q(capture) +
+                      " --out rec");
+  INFO(r.output);
+  CHECK(r.code == 0);
+  CHECK(std::filesystem::exists(s.dir / "elsewhere" / "rec" / "bsds_16052_raw.png"));
+  r = test::run_shell("cd " + q(s.dir / "elsewhere") + " && env -u FLATNET_DATA_DIR " + q(bin) + " infer --model " +
+                      q(share / "models" / "flatnet-sim-transpose.flatnet") + " --input " + q(capture) + " --out inf");
+  INFO(r.output);
+  CHECK(r.code == 0);
+  // A copy of the binary with no share folder next to it says where it looked and what to set.
+  std::filesystem::create_directories(s.dir / "lonely" / "bin");
+  std::filesystem::copy_file(bin, s.dir / "lonely" / "bin" / "flatnet");
+  r = test::run_shell("env -u FLATNET_DATA_DIR " + q(s.dir / "lonely" / "bin" / "flatnet") + " recon --input " + q(capture) +
+                      " --out " + q(s.dir / "lonely" / "rec"));
+  CHECK(r.code == 2);
+  CHECK_THAT(r.output, Contains("FLATNET_DATA_DIR"));
+  r = test::run_shell("FLATNET_DATA_DIR=" + q(share) + " " + q(s.dir / "lonely" / "bin" / "flatnet") + " recon --input " +
+                      q(capture) + " --out " + q(s.dir / "lonely" / "rec"));
+  INFO(r.output);
+  CHECK(r.code == 0);
+}

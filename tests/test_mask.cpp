@@ -55,7 +55,7 @@ TEST_CASE("capture is a convolution with unit DC gain and Wiener inverts it", "[
 }
 
 TEST_CASE("learnable mask: throughput rule, exact constraint gradient, binarisation, errors", "[mask]") {
-  for (const char* projection : {"sigmoid", "clamp"}) {
+  for (const auto projection : {MaskProjection::sigmoid, MaskProjection::clamp}) {
     MaskOptions o;
     o.rank = 3;
     o.projection = projection;
@@ -74,7 +74,7 @@ TEST_CASE("learnable mask: throughput rule, exact constraint gradient, binarisat
     CHECK(m->U.grad().abs().max().item<double>() > 0);
   }
   MaskOptions cap;
-  cap.throughput = "cap";
+  cap.throughput = ThroughputRule::cap;
   cap.target = 0.9;  // a random sigmoid mask passes ~0.5 < 0.9: left alone
   CHECK(throughput(MaskModel(cap)->window()) < 0.6);
   MaskOptions bin;
@@ -85,6 +85,10 @@ TEST_CASE("learnable mask: throughput rule, exact constraint gradient, binarisat
   MaskOptions bad;
   bad.rank = 0;
   CHECK_THROWS_WITH(MaskModel(bad), Contains("mask.rank"));
+  CHECK_THROWS_WITH(parse_mask_projection("tanh"), Contains("mask.projection") && Contains("tanh"));
+  CHECK_THROWS_WITH(parse_throughput_rule("half"), Contains("mask.throughput"));
+  CHECK_THROWS_WITH(parse_mask_init("lena"), Contains("mask.init"));
+  CHECK(parse_throughput_rule("free") == ThroughputRule::free);
 }
 
 TEST_CASE("mask training: gradients reach U, V and gamma, and the outputs are written", "[mask][slow]") {

@@ -97,7 +97,9 @@ TEST_CASE("eval reports spread over images and brightness: a reconstruction that
     write_rgb8(s.dir / "out/half" / name, gt * 0.5);
     write_rgb8(s.dir / "out/white" / name, torch::ones_like(gt));
   }
-  const auto scores = evaluate({s.dir / "gt", s.dir / "out", 2});
+  EvalOptions eval_options;
+  eval_options.gt = s.dir / "gt", eval_options.out = s.dir / "out", eval_options.sheet_rows = 2;
+  const auto scores = evaluate(eval_options);
   REQUIRE(scores.size() == 2);
   CHECK(scores[0].method == "half");
   CHECK(scores[0].brightness == Approx(0.5).margin(0.01));

@@ -34,7 +34,7 @@ std::filesystem::path gather_demo_images(const std::filesystem::path& src, const
 // The trained models shipped in models/ (flatnet-sim-*.flatnet), by method name.
 std::vector<std::pair<std::string, std::filesystem::path>> shipped_models() {
   std::vector<std::pair<std::string, std::filesystem::path>> out;
-  const auto dir = std::filesystem::path(FLATNET_SOURCE_DIR) / "models";
+  const auto dir = data_dir() / "models";
   for (const std::string name : {"transpose", "calibfree"}) {
     const auto p = dir / ("flatnet-sim-" + name + ".flatnet");
     if (std::filesystem::exists(p)) out.emplace_back("flatnet-" + name, p);
@@ -89,7 +89,9 @@ int demo(int argc, char** argv) {
   }
 
   std::cout << "[3/3] evaluating\n";
-  const auto scores = evaluate({sim.out / "gt", out / "recon", 6});
+  EvalOptions eval_options;
+  eval_options.gt = sim.out / "gt", eval_options.out = out / "recon", eval_options.sheet_rows = 6;
+  const auto scores = evaluate(eval_options);
   std::cout << format_table(scores) << "\n"
             << "captures:         " << (sim.out / "meas").string() << " (" << srep.total << ")\n"
             << "reconstructions:  " << (out / "recon").string() << "/<method>\n"

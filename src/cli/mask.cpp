@@ -26,7 +26,7 @@ namespace flatnet::cli {
 namespace {
 
 std::filesystem::path mask_defaults() {
-  return std::filesystem::path(FLATNET_SOURCE_DIR) / "configs" / "mask_defaults.yaml";
+  return data_dir() / "configs" / "mask_defaults.yaml";
 }
 
 WienerCamera wiener_camera(const Config& c) {
@@ -60,11 +60,11 @@ int mask_train(int argc, char** argv) {
   mo.elements = c.integer("mask.elements");
   mo.rank = c.integer("mask.rank");
   mo.upsample = c.integer("mask.upsample");
-  mo.projection = c.str("mask.projection");
-  mo.throughput = c.str("mask.throughput");
+  mo.projection = parse_mask_projection(c.str("mask.projection"));
+  mo.throughput = parse_throughput_rule(c.str("mask.throughput"));
   mo.target = c.num("mask.target_throughput");
   mo.binary = c.flag("mask.binary");
-  mo.init = c.str("mask.init");
+  mo.init = parse_mask_init(c.str("mask.init"));
   mo.seed = static_cast<uint64_t>(c.integer("train.seed"));
   const auto cam = wiener_camera(c);
   mo.rows = cam.rows, mo.cols = cam.cols;
@@ -126,11 +126,11 @@ int mask_eval(int argc, char** argv) {
   return 0;
 }
 
-std::filesystem::path shipped(const std::string& relative) { return std::filesystem::path(FLATNET_SOURCE_DIR) / relative; }
+std::filesystem::path shipped(const std::string& relative) { return data_dir() / relative; }
 
 // A path as a report shows it: relative to the source tree when inside it.
 std::string shown(const std::filesystem::path& p) {
-  const auto rel = std::filesystem::weakly_canonical(p).lexically_relative(std::filesystem::weakly_canonical(FLATNET_SOURCE_DIR));
+  const auto rel = std::filesystem::weakly_canonical(p).lexically_relative(std::filesystem::weakly_canonical(data_dir()));
   return !rel.empty() && *rel.begin() != ".." ? rel.string() : p.string();
 }
 
@@ -250,7 +250,7 @@ int mask_separable(int argc, char** argv) {
   opt.out = r["out"].as<std::string>();
   require(!std::filesystem::exists(opt.out / "codes.mat"), opt.out, "already holds learned codes; choose another --out");
   const auto init = r["init"].as<std::string>();
-  if (init == "mls") opt.init_codes = std::filesystem::path(FLATNET_SOURCE_DIR) / "models" / "camera" / "codes_mls.mat";
+  if (init == "mls") opt.init_codes = data_dir() / "models" / "camera" / "codes_mls.mat";
   else if (init != "random") opt.init_codes = init;
   opt.binary = r.count("binary") > 0;
   opt.iterations = r["iterations"].as<int64_t>();

@@ -2,6 +2,7 @@
 
 #include "cli/commands.hpp"
 #include "core/error.hpp"
+#include "core/util.hpp"
 #include "eval/niqe.hpp"
 #include "core/precision.hpp"
 #include "eval/report.hpp"
@@ -42,7 +43,7 @@ int recon(int argc, char** argv) {
 
 namespace {
 
-const std::filesystem::path kShippedNiqe = std::filesystem::path(FLATNET_SOURCE_DIR) / "models" / "niqe.mat";
+std::filesystem::path shipped_niqe() { return data_dir() / "models" / "niqe.mat"; }
 
 // flatnet eval fit-niqe: the NIQE model of pristine photographs, as a display shows them (the
 // scenes the reconstructions are compared with), from the training side of simulate's split.
@@ -89,11 +90,12 @@ int eval(int argc, char** argv) {
   cxxopts::ParseResult r;
   if (!parse(o, argc, argv, r)) return 0;
   require(r.count("gt") && r.count("out"), "eval", "--gt DIR and --out DIR are required");
-  EvalOptions opt{r["gt"].as<std::string>(), r["out"].as<std::string>(), r["sheet-rows"].as<int>()};
+  EvalOptions opt;
+  opt.gt = r["gt"].as<std::string>(), opt.out = r["out"].as<std::string>(), opt.sheet_rows = r["sheet-rows"].as<int>();
   if (r.count("niqe")) {
     if (r["niqe"].as<std::string>() != "none") opt.niqe_model = r["niqe"].as<std::string>();
-  } else if (std::filesystem::exists(kShippedNiqe)) {
-    opt.niqe_model = kShippedNiqe;
+  } else if (std::filesystem::exists(shipped_niqe())) {
+    opt.niqe_model = shipped_niqe();
   }
   const auto scores = evaluate(opt);
   if (!opt.niqe_model.empty())
@@ -126,7 +128,7 @@ int report(int argc, char** argv) {
   ReportOptions opt;
   opt.camera = camera_from(r);
   opt.out = r["out"].as<std::string>();
-  const auto models = std::filesystem::path(FLATNET_SOURCE_DIR) / "models";
+  const auto models = data_dir() / "models";
   const std::vector<std::string> default_methods = {"tikhonov", "tv",
                                                     "flatnet-transpose=" + (models / "flatnet-sim-transpose.flatnet").string(),
                                                     "flatnet-calibfree=" + (models / "flatnet-sim-calibfree.flatnet").string()};
@@ -135,8 +137,8 @@ int report(int argc, char** argv) {
   for (const auto& s : r["sets"].as<std::vector<std::string>>()) opt.sets.push_back(parse_report_set(s));
   if (r.count("niqe")) {
     if (r["niqe"].as<std::string>() != "none") opt.niqe_model = r["niqe"].as<std::string>();
-  } else if (std::filesystem::exists(kShippedNiqe)) {
-    opt.niqe_model = kShippedNiqe;
+  } else if (std::filesystem::exists(shipped_niqe())) {
+    opt.niqe_model = shipped_niqe();
   }
   opt.tv_count = r["tv-count"].as<int64_t>();
   require(opt.tv_count >= 0, "--tv-count", "0 (all) or more");

@@ -27,7 +27,7 @@ Centring parse_centring(const std::string& s, const std::filesystem::path& where
 }
 
 std::filesystem::path default_camera_path() {
-  return std::filesystem::path(FLATNET_SOURCE_DIR) / "configs" / "cameras" / "sim.yaml";
+  return data_dir() / "configs" / "cameras" / "sim.yaml";
 }
 
 namespace {

@@ -23,6 +23,24 @@ namespace flatnet {
 
 const std::vector<std::string> kImageExtensions = {".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp"};
 
+std::filesystem::path data_dir() {
+  static const std::filesystem::path dir = [] {
+    const auto has_files = [](const std::filesystem::path& d) { return std::filesystem::exists(d / "configs" / "defaults.yaml"); };
+    if (const char* env = std::getenv("FLATNET_DATA_DIR"); env && *env) {
+      require(has_files(env), std::string("FLATNET_DATA_DIR=") + env, "holds no configs/defaults.yaml (it must name flatnet's share folder)");
+      return std::filesystem::path(env);
+    }
+    std::error_code ec;
+    const auto exe = std::filesystem::read_symlink("/proc/self/exe", ec);
+    const auto bin = ec ? std::filesystem::path(".") : exe.parent_path();
+    for (const auto& candidate : {bin.parent_path() / "share" / "flatnet", bin.parent_path()})
+      if (has_files(candidate)) return candidate.lexically_normal();
+    throw Error("flatnet's data files (configs/, models/) are neither in " + (bin.parent_path() / "share" / "flatnet").string() +
+                " nor in " + bin.parent_path().string() + "; set FLATNET_DATA_DIR to the folder that holds them");
+  }();
+  return dir;
+}
+
 void keep_freed_memory() {
   // Tensors of 1-32 MB are allocated and freed on every forward pass. By default glibc serves them
   // with mmap and unmaps them on free, so each pass page-faults and zeroes its ~200 MB afresh:

@@ -11,6 +11,12 @@ namespace flatnet {
 
 namespace fs = std::filesystem;
 
+// Where flatnet's shipped files are (configs/, models/, tests/data/golden): $FLATNET_DATA_DIR if
+// set; else <executable>/../share/flatnet (an installed binary, `cmake --install`); else the
+// folder above the executable when it holds configs/defaults.yaml (a build folder inside the source
+// tree, as build/flatnet). Throws naming the places looked at when none holds the files.
+std::filesystem::path data_dir();
+
 // Keeps freed memory in the process (glibc: no mmap for blocks below 1 GiB, no heap trimming):
 // called once by the CLI; every forward pass then reuses its buffers instead of page-faulting.
 void keep_freed_memory();

@@ -1,5 +1,7 @@
 #include "eval/bench.hpp"
 
+#include <malloc.h>
+
 #include <fstream>
 
 #include "core/camera_config.hpp"
@@ -152,6 +154,7 @@ double peak_rss_mb() {
 }
 
 void reset_peak_rss() {
+  malloc_trim(0);  // the memory earlier rows freed (kept by keep_freed_memory) is not this row's
   std::ofstream out("/proc/self/clear_refs");
   out << "5";
 }
@@ -198,7 +201,7 @@ BenchRow run_bench_row(const std::string& name, const BenchOptions& o) {
     const auto camera = load_camera_config(default_camera_path());
     auto rig = std::make_shared<const Rig>(load_rig(camera.rig));
     std::vector<std::filesystem::path> images;  // the golden scenes shipped with the tests
-    for (const auto& p : list_images(std::filesystem::path(FLATNET_SOURCE_DIR) / "tests" / "data" / "golden", {".png"}))
+    for (const auto& p : list_images(data_dir() / "tests" / "data" / "golden", {".png"}))
       if (p.stem().string().find("_scene") != std::string::npos) images.push_back(p);
     auto source = std::make_shared<SimulatedPairs>(images, rig, camera, 0);
     LoaderOptions lo;

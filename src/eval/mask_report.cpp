@@ -360,7 +360,6 @@ std::string write_mask_report(const MaskReportOptions& opt) {
   require(opt.wiener || !opt.separable.empty(), "mask report", "has nothing to report (no Wiener sections, no code pairs)");
   require(std::isfinite(opt.noise) && opt.noise > 0, "--noise", "must be positive");
   const auto held_out = split_image_files(opt.images, 0.1, 1).second;
-  const int64_t n_tune = opt.tune_count;
   require(opt.tune_count >= 1 && static_cast<int64_t>(held_out.size()) > opt.tune_count, opt.images,
           "too few held-out photographs (" + std::to_string(held_out.size()) + ") for " + std::to_string(opt.tune_count) +
               " to tune");

@@ -22,30 +22,45 @@ Visible visible_elements(const MaskOptions& o) {
 
 }  // namespace
 
+MaskProjection parse_mask_projection(const std::string& s, const std::string& key) {
+  if (s == "sigmoid") return MaskProjection::sigmoid;
+  if (s == "clamp") return MaskProjection::clamp;
+  throw Error(key, "must be sigmoid or clamp, got '" + s + "'");
+}
+
+ThroughputRule parse_throughput_rule(const std::string& s, const std::string& key) {
+  if (s == "equal") return ThroughputRule::equal;
+  if (s == "cap") return ThroughputRule::cap;
+  if (s == "free") return ThroughputRule::free;
+  throw Error(key, "must be equal, cap or free, got '" + s + "'");
+}
+
+MaskInit parse_mask_init(const std::string& s, const std::string& key) {
+  if (s == "random") return MaskInit::random;
+  if (s == "mls") return MaskInit::mls;
+  throw Error(key, "must be random or mls, got '" + s + "'");
+}
+
 MaskModelImpl::MaskModelImpl(const MaskOptions& o) : opt_(o) {
   require(o.rank >= 1, "mask.rank", "must be at least 1, got " + std::to_string(o.rank));
   require(o.elements >= 1 && o.upsample >= 1, "mask", "elements and upsample must be positive");
-  require(o.projection == "sigmoid" || o.projection == "clamp", "mask.projection", "must be sigmoid or clamp");
-  require(o.throughput == "equal" || o.throughput == "cap" || o.throughput == "free", "mask.throughput",
-          "must be equal, cap or free");
   require(o.target > 0 && o.target < 1, "mask.target_throughput", "must lie in (0, 1)");
   auto gen = at::detail::createCPUGenerator(o.seed);
   // Random init: U V^T entries ~ N(0, 1) (sigmoid logits), or a centred transmittance for clamp.
   auto u = at::randn({o.elements, o.rank}, gen) / std::pow(static_cast<double>(o.rank), 0.25);
   auto v = at::randn({o.elements, o.rank}, gen) / std::pow(static_cast<double>(o.rank), 0.25);
-  if (o.init == "mls") {
+  if (o.init == MaskInit::mls) {
     // The MLS mask: (m m^T + 1) / 2 is 0/1; as logits, +-4 (sigmoid) or the values (clamp, + shift).
     const auto code = mls(9);
     require(static_cast<int64_t>(code.size()) == o.elements, "mask.init", "mls needs 511 elements");
     auto m = torch::tensor(std::vector<float>(code.begin(), code.end()));
-    const float scale = o.projection == "sigmoid" ? 2.0f : 0.7071f;
+    const float scale = o.projection == MaskProjection::sigmoid ? 2.0f : 0.7071f;
     u = u * 0.05;
     v = v * 0.05;
     u.select(1, 0).copy_(m * scale);
     v.select(1, 0).copy_(m * scale);
   } else {
-    require(o.init == "random", "mask.init", "must be random or mls");
-    if (o.projection == "clamp") u = u * 0.5, v = v * 0.5;
+    if (o.projection == MaskProjection::clamp) u = u * 0.5, v = v * 0.5;
   }
   U = register_parameter("U", u);
   V = register_parameter("V", v);
@@ -53,18 +68,18 @@ MaskModelImpl::MaskModelImpl(const MaskOptions& o) : opt_(o) {
 
 torch::Tensor MaskModelImpl::transmittance() {
   const auto A = torch::matmul(U, V.t());  // {E,E}
-  const bool sigmoid = opt_.projection == "sigmoid";
+  const bool sigmoid = opt_.projection == MaskProjection::sigmoid;
   auto f = [&](const torch::Tensor& z) { return sigmoid ? torch::sigmoid(z) : z.clamp(0, 1); };
   const auto vis = visible_elements(opt_);
   auto visible = [&](const torch::Tensor& m) { return m.slice(0, vis.r0, vis.r1).slice(1, vis.c0, vis.c1); };
   // Throughput rule: shift the logits by b so that the window's mean transmittance is the target.
   double b = 0;
   bool shifted = false;
-  if (opt_.throughput != "free") {
+  if (opt_.throughput != ThroughputRule::free) {
     torch::NoGradGuard no_grad;
     // Only the elements the sensor sees enter the mean, so bisect on those alone.
     const auto Av = visible(A.detach()).contiguous();
-    if (opt_.throughput == "equal" || f(Av).mean().item<double>() > opt_.target) {
+    if (opt_.throughput == ThroughputRule::equal || f(Av).mean().item<double>() > opt_.target) {
       double lo = -60, hi = 60;
       for (int it = 0; it < 60; ++it) {
         const double mid = 0.5 * (lo + hi);
@@ -96,7 +111,7 @@ torch::Tensor MaskModelImpl::transmittance() {
     {
       torch::NoGradGuard no_grad;
       const auto seen = visible(M.detach()).flatten();
-      const double q = opt_.throughput == "free" ? 0.5 : 1.0 - std::min(opt_.target, seen.mean().item<double>());
+      const double q = opt_.throughput == ThroughputRule::free ? 0.5 : 1.0 - std::min(opt_.target, seen.mean().item<double>());
       thr = torch::quantile(seen, q);
     }
     const auto hard = (M.detach() > thr).to(M.dtype());

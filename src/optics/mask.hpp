@@ -11,16 +11,24 @@
 
 namespace flatnet {
 
+enum class MaskProjection { sigmoid, clamp };  // how U V^T becomes a transmittance
+enum class ThroughputRule { equal, cap, free };  // mean transmittance held at, capped at, or free of the target
+enum class MaskInit { random, mls };
+// Config strings -> enums, once, where configs are read; errors name `key`.
+MaskProjection parse_mask_projection(const std::string& s, const std::string& key = "mask.projection");
+ThroughputRule parse_throughput_rule(const std::string& s, const std::string& key = "mask.throughput");
+MaskInit parse_mask_init(const std::string& s, const std::string& key = "mask.init");
+
 struct MaskOptions {
   int64_t elements = 511;       // mask elements per side
   int64_t rank = 1;             // M = project(U V^T), U and V {elements, rank}
   int64_t upsample = 4;         // sensor pixels per mask element (nearest)
   int64_t rows = 500, cols = 620;  // sensor
-  std::string projection = "sigmoid";  // sigmoid | clamp: how U V^T becomes a transmittance
-  std::string throughput = "equal";    // equal: mean transmittance held at target; cap: <= target; free
+  MaskProjection projection = MaskProjection::sigmoid;
+  ThroughputRule throughput = ThroughputRule::equal;  // equal: held at target; cap: <= target; free
   double target = 0.5;
   bool binary = false;          // straight-through binarisation (open where M > its median)
-  std::string init = "random";  // random | mls (start from the MLS mask's vectors)
+  MaskInit init = MaskInit::random;  // random, or the MLS mask's vectors
   uint64_t seed = 0;
 };
 

@@ -144,7 +144,7 @@ std::string nearest_key(const std::string& key, const std::vector<std::string>& 
 }
 
 std::filesystem::path Config::default_path() {
-  return std::filesystem::path(FLATNET_SOURCE_DIR) / "configs" / "defaults.yaml";
+  return data_dir() / "configs" / "defaults.yaml";
 }
 
 Config Config::load(const std::filesystem::path& experiment, const std::vector<std::string>& sets,
