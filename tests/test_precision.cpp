@@ -49,17 +49,24 @@ TEST_CASE("autocast guards nest and restore the thread's state", "[precision]") 
   CHECK_FALSE(at::autocast::is_cpu_enabled());
 }
 
+namespace {
+// A tiny inversion + U-Net generator (20x24 planes -> 16x16), seeded.
+Generator tiny_generator(uint64_t seed, int64_t width) {
+  torch::manual_seed(seed);
+  GeneratorOptions o;
+  o.rows = 20, o.cols = 24, o.scene = 16;
+  o.inversion.phil = torch::randn({20, 16, 1}) * 0.2;
+  o.inversion.phir = torch::randn({24, 16, 1}) * 0.2;
+  o.unet.width = width;
+  return Generator(o);
+}
+}  // namespace
+
 TEST_CASE("a short bf16 autocast training run tracks the fp32 loss curve", "[precision][bf16]") {
   // The same tiny generator, data and optimiser, once in fp32 and once with the enhancer under
   // bf16 autocast (master weights and Adam in fp32): the curves must agree within bf16's noise.
   auto run = [](bool bf16) {
-    torch::manual_seed(21);
-    GeneratorOptions o;
-    o.rows = 20, o.cols = 24, o.scene = 16;
-    o.inversion.phil = torch::randn({20, 16, 1}) * 0.2;
-    o.inversion.phir = torch::randn({24, 16, 1}) * 0.2;
-    o.unet.width = 4;
-    Generator g(o);
+    auto g = tiny_generator(21, 4);
     g->prepare_training({false, true, false, true});
     g->set_autocast_bf16(bf16);
     torch::optim::Adam opt(g->parameters(), 3e-3);
@@ -111,13 +118,7 @@ TEST_CASE("oneDNN convolutions (prepacked weights, fused bias and ReLU) compute 
 
 TEST_CASE("bf16 inference with the onednn lever agrees with LibTorch's bf16 path and with fp32", "[precision][bf16][onednn]") {
   auto make = [] {
-    torch::manual_seed(8);
-    GeneratorOptions o;
-    o.rows = 20, o.cols = 24, o.scene = 16;
-    o.inversion.phil = torch::randn({20, 16, 1}) * 0.2;
-    o.inversion.phir = torch::randn({24, 16, 1}) * 0.2;
-    o.unet.width = 8;
-    Generator g(o);
+    auto g = tiny_generator(8, 8);
     g->train();
     torch::NoGradGuard no_grad;
     g->forward(torch::randn({2, 4, 20, 24}) * 0.1);  // batch-norm statistics

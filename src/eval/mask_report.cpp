@@ -262,6 +262,13 @@ MappedCodes codes_from_wiener_mask(const std::filesystem::path& dir) {
 
 namespace {
 
+// PSNR against a logarithmic x axis (both sweeps).
+PlotOptions psnr_plot(const std::string& title, const std::string& xlabel) {
+  PlotOptions p;
+  p.title = title, p.xlabel = xlabel, p.ylabel = "PSNR dB", p.log_x = true;
+  return p;
+}
+
 struct MaskScore {
   std::string name;
   double throughput = 0, gamma = 0, psnr = 0;
@@ -326,12 +333,7 @@ std::string wiener_sections(const MaskReportOptions& opt, const std::vector<std:
   }
   md << sweep_table.markdown();
   std::filesystem::create_directories(opt.out);
-  PlotOptions po;
-  po.title = "PSNR vs noise (Wiener, gamma tuned per level)";
-  po.xlabel = "noise sigma";
-  po.ylabel = "PSNR dB";
-  po.log_x = true;
-  write_line_plot(opt.out / "sweep.png", sweep, po);
+  write_line_plot(opt.out / "sweep.png", sweep, psnr_plot("PSNR vs noise (Wiener, gamma tuned per level)", "noise sigma"));
 
   // Figure: each mask's window and its reconstruction of one held-out photograph.
   std::vector<std::string> labels;
@@ -376,12 +378,8 @@ std::string write_mask_report(const MaskReportOptions& opt) {
       light.push_back({s.name, {}, s.psnr});
       for (double l : opt.separable_options.light) light.back().x.push_back(l * opt.separable_options.camera.full_well);
     }
-    PlotOptions lp;
-    lp.title = "separable camera: Tikhonov PSNR vs light";
-    lp.xlabel = "electrons at full scale";
-    lp.ylabel = "PSNR dB";
-    lp.log_x = true;
-    write_line_plot(opt.out / "separable_sweep.png", light, lp);
+    write_line_plot(opt.out / "separable_sweep.png", light,
+                    psnr_plot("separable camera: Tikhonov PSNR vs light", "electrons at full scale"));
     md << "\n![separable cameras: light sweep](separable_sweep.png)\n";
   }
   write_text_atomically(opt.out / "report.md", md.str());
