@@ -247,9 +247,16 @@ TEST_CASE("mask report refuses bad code and model lists", "[mask][cli][report]")
   r = test::run_flatnet("mask report --images " + q(photos) + " --out " + q(s.dir / "o") + " --flatnet nope=x.flatnet");
   CHECK(r.code == 2);
   CHECK_THAT(r.output, Contains("'nope' names no code pair"));
+  const auto mls = test::source_dir() / "models" / "camera" / "codes_mls.mat";
+  r = test::run_flatnet("mask report --images " + q(photos) + " --out " + q(s.dir / "o") + " --codes A=" + q(mls) + ",A=" + q(mls));
+  CHECK(r.code == 2);
+  CHECK_THAT(r.output, Contains("names 'A' twice"));
   r = test::run_flatnet("mask report --images " + q(photos) + " --out " + q(s.dir / "o") + " --codes none --flatnet MLS=x.flatnet");
   CHECK(r.code == 2);
   CHECK_THAT(r.output, Contains("--flatnet"));
+  r = test::run_flatnet("mask report --images " + q(photos) + " --out " + q(photos) + " --sections separable");
+  CHECK(r.code == 2);
+  CHECK_THAT(r.output, Contains("--out") && Contains("photographs folder"));
   r = test::run_flatnet("mask report --images " + q(photos) + " --out " + q(s.dir / "o") + " --sections lens");
   CHECK(r.code == 2);
   CHECK_THAT(r.output, Contains("--sections"));

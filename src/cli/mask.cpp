@@ -190,8 +190,10 @@ int mask_report(int argc, char** argv) {
   const bool no_codes = r.count("codes") && r["codes"].as<std::vector<std::string>>() == std::vector<std::string>{"none"};
   if (r.count("codes") && !no_codes) codes = named_paths(r["codes"].as<std::vector<std::string>>(), "--codes");
   if (separable && !no_codes) {
-    for (const auto& [name, path] : codes)
+    for (const auto& [name, path] : codes) {
+      for (const auto& c : opt.separable) require(c.name != name, "--codes", "names '" + name + "' twice");
       opt.separable.push_back({name, load_code_pair(path), shown(path), std::nullopt});
+    }
     for (const auto& dir : opt.mask_dirs) {
       MatReader vectors(dir / "vectors.mat");
       if (vectors.read("U").size(1) != 1) continue;  // only rank-1 masks have a separable counterpart
