@@ -22,7 +22,7 @@ packages=(
   libonnx-dev libprotobuf-dev zlib1g-dev libdnnl-dev
   python3-skimage
 )
-optional=(python3-torch)
+optional=(python3-torch clang-format)
 if [ -n "${FLATNET_SKIP_OPTIONAL:-}" ]; then optional=(); fi
 
 SUDO=""
