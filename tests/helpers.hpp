@@ -33,11 +33,11 @@ RunResult run_shell(const std::string& command);
 // code 77, which CTest reports as "Not Run (Skipped)", never as passed; run by hand it warns and
 // returns. Use SKIP_TEST(why), which also returns from the test case.
 [[maybe_unused]] void skip(const std::string& why);
-#define SKIP_TEST(why)   \
-  do {                   \
-    ::test::skip(why);   \
+#define SKIP_TEST(why)          \
+  do {                          \
+    ::test::skip(why);          \
     WARN("skipped: " << (why)); \
-    return;              \
+    return;                     \
   } while (0)
 // Whether /usr/bin/python3 has torch (the reference scripts' interpreter).
 bool python_has_torch();

@@ -13,8 +13,8 @@ using namespace flatnet;
 using Catch::Matchers::Contains;
 
 namespace {
-using test::q;
 using test::kOnDisk;
+using test::q;
 
 // Two photographs: the golden scenes.
 std::filesystem::path make_photos(const std::filesystem::path& dir) {
@@ -28,41 +28,50 @@ std::filesystem::path make_photos(const std::filesystem::path& dir) {
 TEST_CASE("simulate, recon and eval end to end, and simulate resumes deterministically", "[cli][e2e]") {
   test::Scratch s("e2e");
   auto photos = make_photos(s.dir / "photos");
-  auto r = test::run_flatnet("simulate --images " + q(photos) + " --out " + q(s.dir / "ds") + " --val-fraction 0.5 --seed 3");
+  auto r = test::run_flatnet("simulate --images " + q(photos) + " --out " + q(s.dir / "ds") +
+                             " --val-fraction 0.5 --seed 3");
   INFO(r.output);
   REQUIRE(r.code == 0);
   CHECK(read_lines(s.dir / "ds" / "train_meas.txt").size() == 1);
   CHECK(read_lines(s.dir / "ds" / "val_gt.txt").size() == 1);
   REQUIRE(std::filesystem::exists(s.dir / "ds" / "meas" / "bsds_16052_scene.png"));
 
-  auto again = test::run_flatnet("simulate --images " + q(photos) + " --out " + q(s.dir / "ds") + " --val-fraction 0.5 --seed 3");
+  auto again = test::run_flatnet("simulate --images " + q(photos) + " --out " + q(s.dir / "ds") +
+                                 " --val-fraction 0.5 --seed 3");
   CHECK_THAT(again.output, Contains("simulated 0 captures (2 already done)"));
   // Other settings never mix into a dataset: refused by name, or rebuilt with --force.
   const auto before = read_lines(s.dir / "ds" / "train_meas.txt");
-  auto mixed = test::run_flatnet("simulate --images " + q(photos) + " --out " + q(s.dir / "ds") + " --val-fraction 0.5 --seed 4");
+  auto mixed = test::run_flatnet("simulate --images " + q(photos) + " --out " + q(s.dir / "ds") +
+                                 " --val-fraction 0.5 --seed 4");
   CHECK(mixed.code == 2);
   CHECK_THAT(mixed.output, Contains("seed 3 -> 4") && Contains("--force"));
   std::filesystem::create_directories(s.dir / "other_photos");
   std::filesystem::copy(photos / "bsds_16052_scene.png", s.dir / "other_photos" / "bsds_16052_scene.png");
-  mixed = test::run_flatnet("simulate --images " + q(s.dir / "other_photos") + " --out " + q(s.dir / "ds") + " --val-fraction 0.5 --seed 3");
+  mixed = test::run_flatnet("simulate --images " + q(s.dir / "other_photos") + " --out " + q(s.dir / "ds") +
+                            " --val-fraction 0.5 --seed 3");
   CHECK(mixed.code == 2);
   CHECK_THAT(mixed.output, Contains("images "));
   CHECK(read_lines(s.dir / "ds" / "train_meas.txt") == before);
-  auto rebuilt = test::run_flatnet("simulate --images " + q(photos) + " --out " + q(s.dir / "ds3") + " --val-fraction 0.5 --seed 3 --noise off");
+  auto rebuilt = test::run_flatnet("simulate --images " + q(photos) + " --out " + q(s.dir / "ds3") +
+                                   " --val-fraction 0.5 --seed 3 --noise off");
   REQUIRE(rebuilt.code == 0);
-  rebuilt = test::run_flatnet("simulate --images " + q(photos) + " --out " + q(s.dir / "ds3") + " --val-fraction 0.5 --seed 3 --force");
+  rebuilt = test::run_flatnet("simulate --images " + q(photos) + " --out " + q(s.dir / "ds3") +
+                              " --val-fraction 0.5 --seed 3 --force");
   INFO(rebuilt.output);
   CHECK(rebuilt.code == 0);
   CHECK_THAT(rebuilt.output, Contains("simulated 2 captures (0 already done)"));
-  auto other = test::run_flatnet("simulate --images " + q(photos) + " --out " + q(s.dir / "ds2") + " --val-fraction 0.5 --seed 3 --workers 1");
+  auto other = test::run_flatnet("simulate --images " + q(photos) + " --out " + q(s.dir / "ds2") +
+                                 " --val-fraction 0.5 --seed 3 --workers 1");
   REQUIRE(other.code == 0);
   auto bytes = [](const std::filesystem::path& p) {
     std::ifstream f(p, std::ios::binary);
     return std::string(std::istreambuf_iterator<char>(f), {});
   };
-  CHECK(bytes(s.dir / "ds" / "meas" / "bsds_16052_scene.png") == bytes(s.dir / "ds2" / "meas" / "bsds_16052_scene.png"));
+  CHECK(bytes(s.dir / "ds" / "meas" / "bsds_16052_scene.png") ==
+        bytes(s.dir / "ds2" / "meas" / "bsds_16052_scene.png"));
 
-  r = test::run_flatnet("recon --method tikhonov --input " + q(s.dir / "ds" / "meas") + " --out " + q(s.dir / "rec" / "tikhonov"));
+  r = test::run_flatnet("recon --method tikhonov --input " + q(s.dir / "ds" / "meas") + " --out " +
+                        q(s.dir / "rec" / "tikhonov"));
   INFO(r.output);
   REQUIRE(r.code == 0);
   CHECK_THAT(r.output, Contains("ms per capture"));
@@ -85,14 +94,17 @@ TEST_CASE("bad input: one clear line, exit code 2", "[cli][errors]") {
 
   // Absurd numbers are refused where flags are parsed, in every command, naming the flag.
   const auto golden_raw = test::data_dir() / "golden" / "bsds_16052_raw.png";
-  for (const std::string& flags : std::vector<std::string>{"--threads 100000", "--batch 0", "--lambda 0", "--lambda -1", "--lambda 1e9"}) {
+  for (const std::string& flags :
+       std::vector<std::string>{"--threads 100000", "--batch 0", "--lambda 0", "--lambda -1", "--lambda 1e9"}) {
     INFO(flags);
-    const auto bad = test::run_flatnet("recon --method tikhonov --input " + q(golden_raw) + " --out " + q(s.dir / "rec") + " " + flags);
+    const auto bad = test::run_flatnet("recon --method tikhonov --input " + q(golden_raw) + " --out " +
+                                       q(s.dir / "rec") + " " + flags);
     CHECK(bad.code == 2);
     CHECK_THAT(bad.output, Contains(flags.substr(0, flags.find(' '))) && Contains("out of range"));
   }
   CHECK_FALSE(std::filesystem::exists(s.dir / "rec"));
-  const auto avg = test::run_flatnet("calibrate --rig " + q(test::source_dir() / "configs" / "cameras" / "sim.yaml") + " --average 0 --out " + q(s.dir / "c.mat"));
+  const auto avg = test::run_flatnet("calibrate --rig " + q(test::source_dir() / "configs" / "cameras" / "sim.yaml") +
+                                     " --average 0 --out " + q(s.dir / "c.mat"));
   CHECK(avg.code == 2);
   CHECK_THAT(avg.output, Contains("--average"));
 
@@ -117,12 +129,14 @@ TEST_CASE("bad input: one clear line, exit code 2", "[cli][errors]") {
   vars["P1r"] = torch::zeros({480, 256}, torch::kFloat64);
   vars["Q1r"] = torch::zeros({620, 256}, torch::kFloat64);
   write_mat(s.dir / "shape.mat", vars);
-  r = test::run_flatnet("recon --calib " + q(s.dir / "shape.mat") + " --input " + q(golden) + " --out " + q(s.dir / "o"));
+  r = test::run_flatnet("recon --calib " + q(s.dir / "shape.mat") + " --input " + q(golden) + " --out " +
+                        q(s.dir / "o"));
   CHECK(r.code == 2);
   CHECK_THAT(r.output, Contains("P1b is 500x256") || Contains("P1r is 480x256"));
 
   // an 8-bit RGB image where a raw capture is expected
-  r = test::run_flatnet("recon --input " + q(test::data_dir() / "golden" / "bsds_16052_scene.png") + " --out " + q(s.dir / "o"));
+  r = test::run_flatnet("recon --input " + q(test::data_dir() / "golden" / "bsds_16052_scene.png") + " --out " +
+                        q(s.dir / "o"));
   CHECK(r.code == 2);
   CHECK_THAT(r.output, Contains("bsds_16052_scene.png") && Contains("single-channel"));
   CHECK_FALSE(std::filesystem::exists(s.dir / "o" / "bsds_16052_scene.png"));
@@ -139,12 +153,14 @@ TEST_CASE("bad input: one clear line, exit code 2", "[cli][errors]") {
   CHECK_THAT(r.output, Contains("unknown command"));
 
   std::ofstream(s.dir / "cam.yaml") << "crop: [6, 10, 600, 620]\n";
-  r = test::run_flatnet("recon --camera " + q(s.dir / "cam.yaml") + " --input " + q(golden) + " --out " + q(s.dir / "o"));
+  r = test::run_flatnet("recon --camera " + q(s.dir / "cam.yaml") + " --input " + q(golden) + " --out " +
+                        q(s.dir / "o"));
   CHECK(r.code == 2);
   CHECK_THAT(r.output, Contains("cam.yaml") && Contains("crop"));
 
   // Config numbers are checked once, where the config is loaded, before anything is written.
-  const std::string train = "train --config " + q(test::source_dir() / "configs" / "sim_transpose.yaml") + " --out " + q(s.dir / "run");
+  const std::string train =
+      "train --config " + q(test::source_dir() / "configs" / "sim_transpose.yaml") + " --out " + q(s.dir / "run");
   for (const auto& [set, message] : std::vector<std::pair<std::string, std::string>>{
            {"train.lr=nan", "train.lr = nan is not a finite number"},
            {"train.iterations=1e99", "train.iterations = 1e99 is out of range"},
@@ -184,7 +200,9 @@ TEST_CASE("bad input: one clear line, exit code 2", "[cli][errors]") {
 TEST_CASE("train, export, import and infer from the command line, and bad input is refused", "[cli][train][slow]") {
   test::Scratch s("train_cli");
   auto photos = make_photos(s.dir / "photos");
-  REQUIRE(test::run_flatnet("simulate --images " + q(photos) + " --out " + q(s.dir / "ds") + " --val-fraction 0.5").code == 0);
+  REQUIRE(
+      test::run_flatnet("simulate --images " + q(photos) + " --out " + q(s.dir / "ds") + " --val-fraction 0.5").code ==
+      0);
   const std::string base = "train --config " + q(test::source_dir() / "configs" / "sim_transpose.yaml") +
                            " --set data.dataset=" + q(s.dir / "ds") + " --set model.unet.width=2" + kOnDisk;
   auto r = test::run_flatnet(base + " --set train.iterations=2 --set train.val_every=1 --out " + q(s.dir / "run"));
@@ -202,7 +220,8 @@ TEST_CASE("train, export, import and infer from the command line, and bad input 
   auto other_config = test::run_flatnet("train --out " + q(s.dir / "run") + " --resume --config " +
                                         q(test::source_dir() / "configs" / "sim_calibfree.yaml"));
   CHECK(other_config.code == 2);
-  CHECK_THAT(other_config.output, Contains("--resume continues with the run's own config") && Contains("model.inversion.init"));
+  CHECK_THAT(other_config.output,
+             Contains("--resume continues with the run's own config") && Contains("model.inversion.init"));
   // A log row cut short (a crash while writing) does not block the resume.
   std::ofstream(s.dir / "run" / "log.csv", std::ios::app) << "2,0.5,0.";
   std::ofstream(s.dir / "run" / "log.csv", std::ios::app) << "\ngarbage\n";
@@ -214,9 +233,10 @@ TEST_CASE("train, export, import and infer from the command line, and bad input 
 
   // Ctrl-C: exit 130 after the current step, with a checkpoint to resume from.
   const auto stopped = s.dir / "stopped";
-  const auto cmd = std::string(FLATNET_BINARY) + " " + base + " --set train.iterations=100000 --set train.log_every=1 --out " +
-                   q(stopped) + " > " + q(s.dir / "stopped.log") + " 2>&1 & P=$!; for i in $(seq 300); do [ -s " +
-                   q(stopped / "log.csv") + " ] && break; sleep 0.1; done; kill -INT $P; wait $P";
+  const auto cmd = std::string(FLATNET_BINARY) + " " + base +
+                   " --set train.iterations=100000 --set train.log_every=1 --out " + q(stopped) + " > " +
+                   q(s.dir / "stopped.log") + " 2>&1 & P=$!; for i in $(seq 300); do [ -s " + q(stopped / "log.csv") +
+                   " ] && break; sleep 0.1; done; kill -INT $P; wait $P";
   CHECK(test::run_shell("bash -c " + q(cmd)).code == 130);
   const auto stop_log = read_lines(s.dir / "stopped.log");
   CHECK_THAT(stop_log.empty() ? "" : stop_log.back(), Contains("--resume"));
@@ -225,12 +245,14 @@ TEST_CASE("train, export, import and infer from the command line, and bad input 
   for (const auto& line : stop_log)
     if (line.rfind("steps 0..", 0) == 0) done = std::stoll(line.substr(9));
   REQUIRE(done >= 0);
-  auto resumed = test::run_flatnet("train --out " + q(stopped) + " --resume --set train.iterations=" + std::to_string(done + 1));
+  auto resumed =
+      test::run_flatnet("train --out " + q(stopped) + " --resume --set train.iterations=" + std::to_string(done + 1));
   INFO(resumed.output);
   CHECK(resumed.code == 0);
   CHECK_THAT(resumed.output, Contains("steps " + std::to_string(done) + ".." + std::to_string(done + 1)));
 
-  r = test::run_flatnet("infer --model " + q(model) + " --input " + q(s.dir / "ds" / "meas") + " --out " + q(s.dir / "rec"));
+  r = test::run_flatnet("infer --model " + q(model) + " --input " + q(s.dir / "ds" / "meas") + " --out " +
+                        q(s.dir / "rec"));
   INFO(r.output);
   REQUIRE(r.code == 0);
   CHECK(std::filesystem::exists(s.dir / "rec" / "bsds_16052_scene.png"));
@@ -244,9 +266,11 @@ TEST_CASE("train, export, import and infer from the command line, and bad input 
   CHECK(r.code == 2);
   CHECK_THAT(r.output, Contains("already exists") && Contains("--force"));
   CHECK(read_bytes(s.dir / "sd.pt") == sd_bytes);
-  CHECK(test::run_flatnet("export --model " + q(model) + " --state-dict --force --out " + q(s.dir / "sd.pt")).code == 0);
+  CHECK(test::run_flatnet("export --model " + q(model) + " --state-dict --force --out " + q(s.dir / "sd.pt")).code ==
+        0);
   const auto ckpt_bytes = read_bytes(s.dir / "run" / "latest.ckpt");
-  r = test::run_flatnet("export --checkpoint " + q(s.dir / "run" / "latest.ckpt") + " --force --out " + q(s.dir / "run" / "latest.ckpt"));
+  r = test::run_flatnet("export --checkpoint " + q(s.dir / "run" / "latest.ckpt") + " --force --out " +
+                        q(s.dir / "run" / "latest.ckpt"));
   CHECK(r.code == 2);
   CHECK_THAT(r.output, Contains("is also the input"));
   CHECK(read_bytes(s.dir / "run" / "latest.ckpt") == ckpt_bytes);
@@ -256,7 +280,8 @@ TEST_CASE("train, export, import and infer from the command line, and bad input 
   INFO(r.output);
   REQUIRE(r.code == 0);
   REQUIRE(test::run_flatnet("infer --model " + q(s.dir / "imported.flatnet") + " --input " +
-                            q(s.dir / "ds" / "val_meas.txt") + " --out " + q(s.dir / "rec2")).code == 0);
+                            q(s.dir / "ds" / "val_meas.txt") + " --out " + q(s.dir / "rec2"))
+              .code == 0);
   const auto name = read_lines(s.dir / "ds" / "val_meas.txt").at(0);
   const auto file = std::filesystem::path(name).filename();
   auto bytes = [](const std::filesystem::path& p) {
@@ -273,8 +298,8 @@ TEST_CASE("train, export, import and infer from the command line, and bad input 
   r = test::run_flatnet("export --model " + q(model) + " --onnx " + q(s.dir / "m.onnx"));
   CHECK(r.code == 2);
   CHECK_THAT(r.output, Contains("already exists"));
-  r = test::run_flatnet("infer --engine opencv --model " + q(s.dir / "m.onnx") + " --input " + q(s.dir / "ds" / "val_meas.txt") +
-                        " --out " + q(s.dir / "rec3"));
+  r = test::run_flatnet("infer --engine opencv --model " + q(s.dir / "m.onnx") + " --input " +
+                        q(s.dir / "ds" / "val_meas.txt") + " --out " + q(s.dir / "rec3"));
   INFO(r.output);
   REQUIRE(r.code == 0);
   CHECK_THAT(r.output, Contains("OpenCV DNN"));
@@ -289,10 +314,12 @@ TEST_CASE("train, export, import and infer from the command line, and bad input 
   CHECK(bad.code == 2);
   CHECK_THAT(bad.output, Contains("train.itrations") && Contains("did you mean 'train.iterations'"));
   CHECK_FALSE(std::filesystem::exists(s.dir / "bad"));
-  bad = test::run_flatnet(base + " --set loss.perceptual=1.2 --set loss.vgg_file=" + q(s.dir / "none.pt") + " --out " + q(s.dir / "bad"));
+  bad = test::run_flatnet(base + " --set loss.perceptual=1.2 --set loss.vgg_file=" + q(s.dir / "none.pt") + " --out " +
+                          q(s.dir / "bad"));
   CHECK(bad.code == 2);
   CHECK_THAT(bad.output, Contains("--set loss.perceptual=0"));
-  bad = test::run_flatnet("infer --model " + q(s.dir / "run" / "latest.ckpt") + " --input " + q(s.dir / "ds" / "meas") + " --out " + q(s.dir / "x"));
+  bad = test::run_flatnet("infer --model " + q(s.dir / "run" / "latest.ckpt") + " --input " + q(s.dir / "ds" / "meas") +
+                          " --out " + q(s.dir / "x"));
   CHECK(bad.code == 2);
   CHECK_THAT(bad.output, Contains("flatnet export --checkpoint"));
   std::ofstream(s.dir / "small.yaml") << "name: small\ncrop: [0, 0, 400, 620]\n";
@@ -314,8 +341,8 @@ TEST_CASE("the shipped models run on FlatNet's real prototype captures", "[cli][
   }
   test::Scratch s("prototype");
   auto r = test::run_flatnet("infer --model " + q(model) + " --camera " +
-                             q(test::source_dir() / "configs" / "cameras" / "flatnet_prototype_level.yaml") + " --input " +
-                             q(data / "fc_*.png") + " --out " + q(s.dir / "rec"));
+                             q(test::source_dir() / "configs" / "cameras" / "flatnet_prototype_level.yaml") +
+                             " --input " + q(data / "fc_*.png") + " --out " + q(s.dir / "rec"));
   INFO(r.output);
   REQUIRE(r.code == 0);
   CHECK_THAT(r.output, Contains("4 captures"));
@@ -326,16 +353,19 @@ TEST_CASE("the shipped models run on FlatNet's real prototype captures", "[cli][
   }
 }
 
-TEST_CASE("distributed training from the command line: two local ranks, resume, and a rank that dies", "[cli][dist][slow]") {
+TEST_CASE("distributed training from the command line: two local ranks, resume, and a rank that dies",
+          "[cli][dist][slow]") {
   test::Scratch s("dist_cli");
   auto photos = make_photos(s.dir / "photos");
-  REQUIRE(test::run_flatnet("simulate --images " + q(photos) + " --out " + q(s.dir / "ds") + " --val-fraction 0.5").code == 0);
+  REQUIRE(
+      test::run_flatnet("simulate --images " + q(photos) + " --out " + q(s.dir / "ds") + " --val-fraction 0.5").code ==
+      0);
   const std::string config = q(test::source_dir() / "configs" / "sim_transpose.yaml");
   const std::string sets = " --set data.dataset=" + q(s.dir / "ds") +
                            " --set model.unet.width=2 --set train.val_count=1 --set train.check_sync_every=1" + kOnDisk;
-  const std::string launch = "MASTER_PORT=" + std::to_string(21000 + ::getpid() % 20000) + " FLATNET_BIN=" +
-                             std::string(FLATNET_BINARY) + " bash " + q(test::source_dir() / "scripts" / "launch_local.sh") +
-                             " 2 " + config;
+  const std::string launch = "MASTER_PORT=" + std::to_string(21000 + ::getpid() % 20000) +
+                             " FLATNET_BIN=" + std::string(FLATNET_BINARY) + " bash " +
+                             q(test::source_dir() / "scripts" / "launch_local.sh") + " 2 " + config;
   const auto run = test::run_shell;
   auto r = run(launch + " --out " + q(s.dir / "run") + sets + " --set train.iterations=3 --set train.val_every=3");
   INFO(r.output);
@@ -350,12 +380,13 @@ TEST_CASE("distributed training from the command line: two local ranks, resume, 
   CHECK_THAT(r.output, Contains("steps 3..4"));
 
   // Rank 1 is killed mid-run: rank 0 stops with a clear error instead of waiting forever.
-  const std::string env = "WORLD_SIZE=2 MASTER_ADDR=127.0.0.1 MASTER_PORT=" + std::to_string(22000 + ::getpid() % 20000);
-  const std::string train = std::string(FLATNET_BINARY) + " train --config " + config + " --threads 1 --out " + q(s.dir / "dead") +
-                            sets + " --set train.iterations=100000 --dist-timeout 60";
+  const std::string env =
+      "WORLD_SIZE=2 MASTER_ADDR=127.0.0.1 MASTER_PORT=" + std::to_string(22000 + ::getpid() % 20000);
+  const std::string train = std::string(FLATNET_BINARY) + " train --config " + config + " --threads 1 --out " +
+                            q(s.dir / "dead") + sets + " --set train.iterations=100000 --dist-timeout 60";
   const auto start = std::chrono::steady_clock::now();
-  r = run("bash -c " + q(env + " RANK=1 " + train + " > /dev/null 2>&1 & P=$!; " + env + " RANK=0 timeout 120 " + train +
-                         " & Q=$!; sleep 8; kill -9 $P; wait $Q"));
+  r = run("bash -c " + q(env + " RANK=1 " + train + " > /dev/null 2>&1 & P=$!; " + env + " RANK=0 timeout 120 " +
+                         train + " & Q=$!; sleep 8; kill -9 $P; wait $Q"));
   const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
   INFO(r.output);
   CHECK(r.code == 2);
@@ -364,11 +395,13 @@ TEST_CASE("distributed training from the command line: two local ranks, resume, 
   CHECK(seconds < 100);
 }
 
-TEST_CASE("a full disk: exit 2 naming the file, no temp files left, no broken file under a final name", "[cli][errors][disk]") {
+TEST_CASE("a full disk: exit 2 naming the file, no temp files left, no broken file under a final name",
+          "[cli][errors][disk]") {
   test::Scratch s("full_disk");
   const auto disk = s.dir / "disk";
   std::filesystem::create_directories(disk);
-  if (test::run_shell("mount -t tmpfs -o size=200k tmpfs " + q(disk)).code != 0) SKIP_TEST("cannot mount a tmpfs here (needs root)");
+  if (test::run_shell("mount -t tmpfs -o size=200k tmpfs " + q(disk)).code != 0)
+    SKIP_TEST("cannot mount a tmpfs here (needs root)");
   struct Unmount {
     std::filesystem::path dir;
     ~Unmount() { test::run_shell("umount " + test::q(dir)); }
@@ -382,8 +415,8 @@ TEST_CASE("a full disk: exit 2 naming the file, no temp files left, no broken fi
     CHECK(std::filesystem::is_empty(disk));  // neither the final name nor a temporary file
   }
   // Reconstructions until the disk fills: an error, and every file left is a whole image.
-  const auto r = test::run_flatnet("recon --method tikhonov --batch 1 --input " + q(test::data_dir() / "golden" / "*_raw.png") +
-                                   " --out " + q(disk / "rec"));
+  const auto r = test::run_flatnet("recon --method tikhonov --batch 1 --input " +
+                                   q(test::data_dir() / "golden" / "*_raw.png") + " --out " + q(disk / "rec"));
   CHECK(r.code == 2);
   CHECK_THAT(r.output, Contains("write failed"));
   for (const auto& e : std::filesystem::directory_iterator(disk / "rec")) {
@@ -398,8 +431,10 @@ TEST_CASE("flatnet report: the table, the figure, timings, and it resumes from w
   for (const char* stem : {"bsds_16052", "inet_n02980441_castle"}) {
     std::filesystem::create_directories(s.dir / "set" / "meas");
     std::filesystem::create_directories(s.dir / "set" / "gt");
-    std::filesystem::copy_file(test::data_dir() / "golden" / (std::string(stem) + "_raw.png"), s.dir / "set" / "meas" / (std::string(stem) + ".png"));
-    std::filesystem::copy_file(test::data_dir() / "golden" / (std::string(stem) + "_scene.png"), s.dir / "set" / "gt" / (std::string(stem) + ".png"));
+    std::filesystem::copy_file(test::data_dir() / "golden" / (std::string(stem) + "_raw.png"),
+                               s.dir / "set" / "meas" / (std::string(stem) + ".png"));
+    std::filesystem::copy_file(test::data_dir() / "golden" / (std::string(stem) + "_scene.png"),
+                               s.dir / "set" / "gt" / (std::string(stem) + ".png"));
   }
   const auto model = test::source_dir() / "models" / "flatnet-sim-transpose.flatnet";
   const std::string cmd = "report --sets display=" + q(s.dir / "set") + " --methods tikhonov,tv,transpose=" + q(model) +
@@ -431,7 +466,8 @@ TEST_CASE("flatnet report: the table, the figure, timings, and it resumes from w
   CHECK_THAT(r.output, Contains("'wiener': expected tikhonov, tv or NAME=MODEL.flatnet"));
 }
 
-TEST_CASE("mask camera: a camera from codes works downstream (simulate, recon), and bad codes are named", "[cli][separable]") {
+TEST_CASE("mask camera: a camera from codes works downstream (simulate, recon), and bad codes are named",
+          "[cli][separable]") {
   test::Scratch s("codes_camera");
   const auto mls_codes = test::source_dir() / "models" / "camera" / "codes_mls.mat";
   auto r = test::run_flatnet("mask camera --codes " + q(mls_codes) + " --out " + q(s.dir / "mls"));
@@ -463,7 +499,8 @@ TEST_CASE("mask camera: a camera from codes works downstream (simulate, recon), 
   CHECK_THAT(r.output, Contains("bad.mat") && Contains("code_rows") && Contains("[-1, 1]"));
 }
 
-TEST_CASE("cmake --install gives a binary that finds its files from any folder, without the source tree", "[cli][install]") {
+TEST_CASE("cmake --install gives a binary that finds its files from any folder, without the source tree",
+          "[cli][install]") {
   test::Scratch s("install");
   const auto prefix = s.dir / "prefix";
   auto r = test::run_shell("cmake --install " + q(FLATNET_BUILD_DIR) + " --prefix " + q(prefix));
@@ -480,8 +517,8 @@ TEST_CASE("cmake --install gives a binary that finds its files from any folder, 
   // calibration is ../../models/camera/calib.mat) comes from the installed share folder.
   std::filesystem::create_directories(s.dir / "elsewhere");
   const auto capture = test::data_dir() / "golden" / "bsds_16052_raw.png";
-  r = test::run_shell("cd " + q(s.dir / "elsewhere") + " && env -u FLATNET_DATA_DIR " + q(bin) + " recon --input " + q(capture) +
-                      " --out rec");
+  r = test::run_shell("cd " + q(s.dir / "elsewhere") + " && env -u FLATNET_DATA_DIR " + q(bin) + " recon --input " +
+                      q(capture) + " --out rec");
   INFO(r.output);
   CHECK(r.code == 0);
   CHECK(std::filesystem::exists(s.dir / "elsewhere" / "rec" / "bsds_16052_raw.png"));
@@ -492,12 +529,12 @@ TEST_CASE("cmake --install gives a binary that finds its files from any folder, 
   // A copy of the binary with no share folder next to it says where it looked and what to set.
   std::filesystem::create_directories(s.dir / "lonely" / "bin");
   std::filesystem::copy_file(bin, s.dir / "lonely" / "bin" / "flatnet");
-  r = test::run_shell("env -u FLATNET_DATA_DIR " + q(s.dir / "lonely" / "bin" / "flatnet") + " recon --input " + q(capture) +
-                      " --out " + q(s.dir / "lonely" / "rec"));
+  r = test::run_shell("env -u FLATNET_DATA_DIR " + q(s.dir / "lonely" / "bin" / "flatnet") + " recon --input " +
+                      q(capture) + " --out " + q(s.dir / "lonely" / "rec"));
   CHECK(r.code == 2);
   CHECK_THAT(r.output, Contains("FLATNET_DATA_DIR"));
-  r = test::run_shell("FLATNET_DATA_DIR=" + q(share) + " " + q(s.dir / "lonely" / "bin" / "flatnet") + " recon --input " +
-                      q(capture) + " --out " + q(s.dir / "lonely" / "rec"));
+  r = test::run_shell("FLATNET_DATA_DIR=" + q(share) + " " + q(s.dir / "lonely" / "bin" / "flatnet") +
+                      " recon --input " + q(capture) + " --out " + q(s.dir / "lonely" / "rec"));
   INFO(r.output);
   CHECK(r.code == 0);
 }

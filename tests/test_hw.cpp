@@ -66,9 +66,10 @@ bool fake_camera_available() { return have_aravis(); }
 // machine with other interfaces, Aravis streams to the address discovery answered on, which the
 // simulator (bound to 127.0.0.1) cannot reach.
 bool gv_simulator_available() {
-  static const bool ok = have_aravis() &&
-                         std::system("command -v arv-fake-gv-camera-0.8 >/dev/null 2>&1 && command -v ip >/dev/null 2>&1 && "
-                                     "unshare -n true >/dev/null 2>&1") == 0;
+  static const bool ok =
+      have_aravis() && std::system(
+                           "command -v arv-fake-gv-camera-0.8 >/dev/null 2>&1 && command -v ip >/dev/null 2>&1 && "
+                           "unshare -n true >/dev/null 2>&1") == 0;
   return ok;
 }
 
@@ -76,10 +77,13 @@ bool gv_simulator_available() {
 // simulator (serial TST, so the device is "Aravis-Fake-TST") started first; `$CAM` is its pid and
 // `start_cam` (re)starts it. Returns the exit code and the output.
 test::RunResult with_gv_simulator(const std::string& simulator_args, const std::string& body) {
-  const std::string script = "ip link set lo up\n"
-                             "start_cam() { arv-fake-gv-camera-0.8 -i 127.0.0.1 -s TST " + simulator_args +
-                             " >/dev/null 2>&1 & CAM=$!; sleep 1; }\n"
-                             "start_cam\n" + body + "\nrc=$?\nkill $CAM 2>/dev/null\nexit $rc\n";
+  const std::string script =
+      "ip link set lo up\n"
+      "start_cam() { arv-fake-gv-camera-0.8 -i 127.0.0.1 -s TST " +
+      simulator_args +
+      " >/dev/null 2>&1 & CAM=$!; sleep 1; }\n"
+      "start_cam\n" +
+      body + "\nrc=$?\nkill $CAM 2>/dev/null\nexit $rc\n";
   test::Scratch s("gvscript");
   std::ofstream(s.dir / "run.sh") << script;
   return test::run_shell("timeout 120 unshare -n sh " + q(s.dir / "run.sh"));
@@ -117,7 +121,7 @@ TEST_CASE("pixel formats: what flatnet can store, and why not", "[hw][unit]") {
   CHECK(rg12p.bayer == "RG");
   CHECK(describe_pixel_format("Mono12Packed").packing == Packing::gev_packed);
   CHECK(describe_pixel_format("BayerGB10").packing == Packing::u16);
-  CHECK(describe_pixel_format("Mono10p").frame_bytes(5, 3) == 19);  // ceil(15 * 10 / 8)
+  CHECK(describe_pixel_format("Mono10p").frame_bytes(5, 3) == 19);       // ceil(15 * 10 / 8)
   CHECK(describe_pixel_format("Mono12Packed").frame_bytes(5, 3) == 24);  // 8 pairs of 3 bytes
   CHECK_THROWS_WITH(describe_pixel_format("RGB8"), Contains("not a raw mosaic"));
   CHECK_THROWS_WITH(describe_pixel_format("YUV422_8"), Contains("not a raw mosaic"));
@@ -169,7 +173,7 @@ TEST_CASE("averaging is the exact mean of K frames, and the capture and its side
   CHECK(ids == std::vector<uint64_t>{0, 1, 2});
   test::Scratch s("hw_avg");
   write_raw_capture(s.dir / "c.png", mean, source.format(), capture_sidecar(source, 3, ids));
-  const auto stored = read_gray16(s.dir / "c.png");  // {H,W}
+  const auto stored = read_gray16(s.dir / "c.png");                 // {H,W}
   CHECK(stored[2][3].item<float>() == std::round(304.0 / 3 * 16));  // 12-bit codes << 4
   const auto j = read_json(s.dir / "c.json");
   CHECK(j["frames_averaged"] == 3);
@@ -215,7 +219,7 @@ TEST_CASE("the collector resumes: done items are not captured again, lists name 
 
 TEST_CASE("scenes are magnified by whole pixels and centred on black", "[hw][unit]") {
   auto img = torch::zeros({3, 2, 2});
-  img[0][0][0] = 1;  // red top-left pixel
+  img[0][0][0] = 1;                                    // red top-left pixel
   const auto canvas = compose_canvas(img, 10, 12, 0);  // scale 5 fits 10 rows; 1 column of black each side
   CHECK(canvas.sizes() == torch::IntArrayRef({10, 12, 3}));
   CHECK(canvas[0][1][2].item<int>() == 255);  // BGR: red is channel 2
@@ -234,7 +238,8 @@ TEST_CASE("fake camera: formats, averaging, sidecars, refusals", "[hw][fake]") {
   CHECK(r.code == 0);
   CHECK_THAT(r.output, Contains("Fake_1"));
 
-  r = test::run_flatnet("capture --device fake --camera " + tiny + " --pixel-format Mono8 --frames 2 --average 3 --out " + q(s.dir / "m8"));
+  r = test::run_flatnet("capture --device fake --camera " + tiny +
+                        " --pixel-format Mono8 --frames 2 --average 3 --out " + q(s.dir / "m8"));
   REQUIRE(r.code == 0);
   CHECK_THAT(r.output, Contains("wrote 2 captures (Mono8, 8-bit, mean of 3)"));
   const auto j = read_json(s.dir / "m8" / "capture_0001.json");
@@ -288,8 +293,9 @@ TEST_CASE("fake camera: a display-capture dataset survives an interruption and r
   const auto photos = s.dir / "photos";
   std::filesystem::create_directories(photos);
   for (int i = 0; i < 6; ++i) write_rgb8(photos / ("img" + std::to_string(i) + ".png"), torch::rand({3, 40, 40}));
-  const std::string base = "capture-dataset --device fake --camera " + tiny + " --pixel-format Mono16 --display none --images " +
-                           q(photos) + " --out " + q(s.dir / "ds") + " --val-fraction 0.34";
+  const std::string base = "capture-dataset --device fake --camera " + tiny +
+                           " --pixel-format Mono16 --display none --images " + q(photos) + " --out " + q(s.dir / "ds") +
+                           " --val-fraction 0.34";
   // Ctrl-C half-way: the current pair is finished, nothing half-written stays.
   const std::string cmd = flatnet_bin() + " " + base + " --settle-ms 400 > " + q(s.dir / "log1") +
                           " 2>&1 & P=$!; for i in $(seq 300); do ls " + q(s.dir / "ds" / "meas") +
@@ -305,7 +311,8 @@ TEST_CASE("fake camera: a display-capture dataset survives an interruption and r
 
   auto r = test::run_flatnet(base + " --settle-ms 0");
   REQUIRE(r.code == 0);
-  CHECK_THAT(r.output, Contains(std::to_string(6 - first) + " captured, " + std::to_string(first) + " already there, 0 to go"));
+  CHECK_THAT(r.output,
+             Contains(std::to_string(6 - first) + " captured, " + std::to_string(first) + " already there, 0 to go"));
   for (const auto& [name, j] : before) CHECK(read_json(s.dir / "ds" / "meas" / name) == j);  // not captured again
   CHECK(read_pairs(split_lists(s.dir / "ds", "train")).size() == 4);
   CHECK(read_pairs(split_lists(s.dir / "ds", "val")).size() == 2);
@@ -318,7 +325,8 @@ TEST_CASE("fake camera: calibration collection, then the calibration", "[hw][fak
   test::Scratch s("hw_calib");
   const auto tiny = q(test::data_dir() / "cameras" / "tiny.yaml");
   const std::string base = "capture-calibration --device fake --camera " + tiny +
-                           " --pixel-format Mono16 --display none --settle-ms 0 --average 1 --frame-rate 200 --out " + q(s.dir / "cal");
+                           " --pixel-format Mono16 --display none --settle-ms 0 --average 1 --frame-rate 200 --out " +
+                           q(s.dir / "cal");
   auto r = test::run_flatnet(base + " --limit 10");
   REQUIRE(r.code == 0);
   CHECK_THAT(r.output, Contains("10 captured, 0 already there, 118 to go"));
@@ -337,7 +345,8 @@ TEST_CASE("fake camera: live view with Tikhonov and with a FlatNet model", "[hw]
   auto r = test::run_flatnet("live --device fake --no-window --frames 6 --frame-rate 100");
   REQUIRE(r.code == 0);
   CHECK_THAT(r.output, Contains("Tikhonov") && Contains("live: 6 frames"));
-  r = test::run_flatnet("live --device fake --no-window --frames 2 --model " + q(test::source_dir() / "models" / "flatnet-sim-transpose.flatnet"));
+  r = test::run_flatnet("live --device fake --no-window --frames 2 --model " +
+                        q(test::source_dir() / "models" / "flatnet-sim-transpose.flatnet"));
   REQUIRE(r.code == 0);
   CHECK_THAT(r.output, Contains("FlatNet") && Contains("live: 2 frames"));
   r = test::run_flatnet("live --device fake --no-window --frames 2 --region 640x480");
@@ -358,9 +367,10 @@ TEST_CASE("fake camera: scenes shown in a real window (Xvfb)", "[hw][fake][windo
   const auto photos = s.dir / "photos";
   std::filesystem::create_directories(photos);
   for (int i = 0; i < 2; ++i) write_rgb8(photos / ("w" + std::to_string(i) + ".png"), torch::rand({3, 30, 30}));
-  const std::string cmd = "xvfb-run -a -s '-screen 0 800x600x24' " + flatnet_bin() + " capture-dataset --device fake --camera " +
-                          q(test::data_dir() / "cameras" / "tiny.yaml") + " --settle-ms 50 --images " + q(photos) +
-                          " --out " + q(s.dir / "ds") + " > " + q(s.dir / "log") + " 2>&1";
+  const std::string cmd = "xvfb-run -a -s '-screen 0 800x600x24' " + flatnet_bin() +
+                          " capture-dataset --device fake --camera " + q(test::data_dir() / "cameras" / "tiny.yaml") +
+                          " --settle-ms 50 --images " + q(photos) + " --out " + q(s.dir / "ds") + " > " +
+                          q(s.dir / "log") + " 2>&1";
   CHECK(std::system(cmd.c_str()) == 0);
   CHECK(count_files(s.dir / "ds" / "meas", ".png") == 2);
 }
@@ -371,7 +381,8 @@ TEST_CASE("GigE Vision simulator: capture, lost packets, a camera that goes and 
   }
   test::Scratch s("hw_gv");
   const std::string cap = flatnet_bin() + " capture --device Aravis-Fake-TST --region 320x256 --pixel-format Mono16 ";
-  auto r = with_gv_simulator("", flatnet_bin() + " cameras && " + cap + "--frames 2 --average 2 --out " + q(s.dir / "ok"));
+  auto r =
+      with_gv_simulator("", flatnet_bin() + " cameras && " + cap + "--frames 2 --average 2 --out " + q(s.dir / "ok"));
   REQUIRE(r.code == 0);
   CHECK_THAT(r.output, Contains("Aravis-Fake-TST") && Contains("GigEVision 127.0.0.1"));
   CHECK(count_files(s.dir / "ok", ".png") == 2);
@@ -386,10 +397,11 @@ TEST_CASE("GigE Vision simulator: capture, lost packets, a camera that goes and 
   // The camera disappears mid-run (after the first frame is on disk) and comes back: the capture
   // reconnects and finishes.
   const auto first_frame = [&](const std::string& dir) {
-    return " & P=$!; for i in $(seq 300); do [ -e " + q(s.dir / dir / "capture_0000.png") + " ] && break; sleep 0.1; done; ";
+    return " & P=$!; for i in $(seq 300); do [ -e " + q(s.dir / dir / "capture_0000.png") +
+           " ] && break; sleep 0.1; done; ";
   };
-  r = with_gv_simulator("", cap + "--frames 30 --timeout-ms 500 --retries 6 --out " + q(s.dir / "back") + first_frame("back") +
-                                "kill $CAM; sleep 1; start_cam; wait $P");
+  r = with_gv_simulator("", cap + "--frames 30 --timeout-ms 500 --retries 6 --out " + q(s.dir / "back") +
+                                first_frame("back") + "kill $CAM; sleep 1; start_cam; wait $P");
   CHECK(r.code == 0);
   CHECK_THAT(r.output, Contains("reconnected") && Contains("wrote 30 captures"));
   CHECK(count_files(s.dir / "back", ".png") == 30);
@@ -400,8 +412,8 @@ TEST_CASE("GigE Vision simulator: capture, lost packets, a camera that goes and 
   }
 
   // The camera disappears for good: the run stops with an error; what was written is whole.
-  r = with_gv_simulator("", cap + "--frames 200 --timeout-ms 300 --retries 2 --out " + q(s.dir / "gone") + first_frame("gone") +
-                                "kill $CAM; wait $P");
+  r = with_gv_simulator("", cap + "--frames 200 --timeout-ms 300 --retries 2 --out " + q(s.dir / "gone") +
+                                first_frame("gone") + "kill $CAM; wait $P");
   CHECK(r.code == 2);
   CHECK_THAT(r.output, Contains("no complete frame"));
   REQUIRE(std::filesystem::exists(s.dir / "gone"));

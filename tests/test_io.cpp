@@ -61,10 +61,10 @@ TEST_CASE("Bayer split takes b gb gr r from FlatNet's positions and merges back"
   auto raw = torch::arange(16, torch::kFloat32).reshape({4, 4});
   auto p = bayer_split(raw);
   REQUIRE(p.sizes() == torch::IntArrayRef({4, 2, 2}));
-  CHECK(p[0][0][0].item<float>() == 0);   // b  = raw[0::2, 0::2]
-  CHECK(p[1][0][0].item<float>() == 1);   // gb = raw[0::2, 1::2]
-  CHECK(p[2][0][0].item<float>() == 4);   // gr = raw[1::2, 0::2]
-  CHECK(p[3][0][0].item<float>() == 5);   // r  = raw[1::2, 1::2]
+  CHECK(p[0][0][0].item<float>() == 0);  // b  = raw[0::2, 0::2]
+  CHECK(p[1][0][0].item<float>() == 1);  // gb = raw[0::2, 1::2]
+  CHECK(p[2][0][0].item<float>() == 4);  // gr = raw[1::2, 0::2]
+  CHECK(p[3][0][0].item<float>() == 5);  // r  = raw[1::2, 1::2]
   CHECK(torch::equal(bayer_merge(p), raw));
 }
 
@@ -90,8 +90,8 @@ TEST_CASE("rotation matches skimage's warp convention", "[io][raw]") {
   const int r0 = static_cast<int>(std::floor(sr)), c0 = static_cast<int>(std::floor(sc));
   const double fr = sr - r0, fc = sc - c0;
   auto v = [&](int i, int j) { return img[0][i][j].item<double>(); };
-  const double expect = v(r0, c0) * (1 - fr) * (1 - fc) + v(r0, c0 + 1) * (1 - fr) * fc + v(r0 + 1, c0) * fr * (1 - fc) +
-                        v(r0 + 1, c0 + 1) * fr * fc;
+  const double expect = v(r0, c0) * (1 - fr) * (1 - fc) + v(r0, c0 + 1) * (1 - fr) * fc +
+                        v(r0 + 1, c0) * fr * (1 - fc) + v(r0 + 1, c0 + 1) * fr * fc;
   CHECK(r[0][10][12].item<double>() == Approx(expect).margin(1e-5));
   // the bottom-left corner samples left of the frame: zero fill
   CHECK(rotate_planes(torch::ones({1, 20, 30}), 0.3)[0][19][0].item<float>() == 0.0f);
@@ -130,15 +130,18 @@ std::string png_declaring(uint32_t w, uint32_t h) {
   auto chunk = [&](const std::string& type, const std::string& data) {
     const auto body = type + data;
     return be32(static_cast<uint32_t>(data.size())) + body +
-           be32(static_cast<uint32_t>(crc32(0, reinterpret_cast<const Bytef*>(body.data()), static_cast<uInt>(body.size()))));
+           be32(static_cast<uint32_t>(
+               crc32(0, reinterpret_cast<const Bytef*>(body.data()), static_cast<uInt>(body.size()))));
   };
-  return std::string("\x89PNG\r\n\x1a\n", 8) + chunk("IHDR", be32(w) + be32(h) + std::string("\x08\x00\x00\x00\x00", 5)) +
+  return std::string("\x89PNG\r\n\x1a\n", 8) +
+         chunk("IHDR", be32(w) + be32(h) + std::string("\x08\x00\x00\x00\x00", 5)) +
          chunk("IDAT", std::string("\x78\x9c\x03\x00\x00\x00\x00\x01", 8)) + chunk("IEND", "");
 }
 
 }  // namespace
 
-TEST_CASE("damaged images are refused in one line: truncated, bad CRC, cut-off JPEG, decompression bomb", "[io][image][errors]") {
+TEST_CASE("damaged images are refused in one line: truncated, bad CRC, cut-off JPEG, decompression bomb",
+          "[io][image][errors]") {
   test::Scratch s("damaged");
   write_rgb8(s.dir / "ok.png", torch::rand({3, 32, 32}));
   write_gray16(s.dir / "raw.png", torch::randint(0, 65535, {64, 64}, torch::kInt32));
@@ -146,8 +149,10 @@ TEST_CASE("damaged images are refused in one line: truncated, bad CRC, cut-off J
   auto refused = [&](const std::filesystem::path& p, const std::string& what, bool gray16) {
     INFO(p.filename().string());
     try {
-      if (gray16) read_gray16(p);
-      else read_rgb(p);
+      if (gray16)
+        read_gray16(p);
+      else
+        read_rgb(p);
       FAIL("no error");
     } catch (const Error& e) {
       const std::string m = e.what();

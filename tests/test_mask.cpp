@@ -140,11 +140,13 @@ TEST_CASE("mask commands refuse bad input with exit code 2", "[mask][cli]") {
   CHECK_THAT(r.output, Contains("throughput 0.02"));
 }
 
-TEST_CASE("separable code training: gradients move both codes and lambda, throughput held, binary codes are +-1", "[mask][separable]") {
+TEST_CASE("separable code training: gradients move both codes and lambda, throughput held, binary codes are +-1",
+          "[mask][separable]") {
   test::Scratch s("separable");
   std::filesystem::create_directories(s.dir / "photos");
   int n = 0;
-  for (const char* stem : {"bsds_16052", "inet_n02980441_castle", "inet_n02088094_Afghan_hound", "imagen_n04356056_1392_sunglasses"})
+  for (const char* stem :
+       {"bsds_16052", "inet_n02980441_castle", "inet_n02088094_Afghan_hound", "imagen_n04356056_1392_sunglasses"})
     for (int copy = 0; copy < 3; ++copy)
       std::filesystem::copy_file(test::data_dir() / "golden" / (std::string(stem) + "_scene.png"),
                                  s.dir / "photos" / ("p" + std::to_string(n++) + ".png"));
@@ -180,7 +182,10 @@ TEST_CASE("separable code training: gradients move both codes and lambda, throug
   CHECK(separable_psnr(u0, v0, 1e-4, scenes, 1) > separable_psnr(random, random.flip(0), 1e-4, scenes, 1));
 }
 
-TEST_CASE("separable camera comparison: learned codes beat MLS under Tikhonov, less light costs PSNR, FlatNet is scored on the same captures", "[mask][separable][report]") {
+TEST_CASE(
+    "separable camera comparison: learned codes beat MLS under Tikhonov, less light costs PSNR, FlatNet is scored on "
+    "the same captures",
+    "[mask][separable][report]") {
   const auto golden = test::data_dir() / "golden";
   const std::vector<std::filesystem::path> photos = {
       golden / "bsds_16052_scene.png", golden / "inet_n02980441_castle_scene.png",
@@ -194,10 +199,14 @@ TEST_CASE("separable camera comparison: learned codes beat MLS under Tikhonov, l
   o.tune_count = 1;
   o.progress = false;
   // FlatNet's place: a "model" that shows mid grey whatever it sees; its score must be grey's.
-  CameraModel grey{[](const torch::Tensor& planes) { return torch::full({planes.size(0), 3, 256, 256}, 0.5f); }, o.geometry, "grey"};
-  const auto scores = score_separable_cameras(
-      {{"MLS", mls, "shipped", grey}, {"learned", learned, "shipped", std::nullopt}, {"MLS again", mls, "shipped", std::nullopt}},
-      photos, o);
+  CameraModel grey{[](const torch::Tensor& planes) {
+                     return torch::full({planes.size(0), 3, 256, 256}, 0.5f);
+                   },
+                   o.geometry, "grey"};
+  const auto scores = score_separable_cameras({{"MLS", mls, "shipped", grey},
+                                               {"learned", learned, "shipped", std::nullopt},
+                                               {"MLS again", mls, "shipped", std::nullopt}},
+                                              photos, o);
   REQUIRE(scores.size() == 3);
   const auto &m = scores[0], &l = scores[1];
   INFO("MLS " << m.psnr[0] << " dB, learned " << l.psnr[0] << " dB");
@@ -212,16 +221,19 @@ TEST_CASE("separable camera comparison: learned codes beat MLS under Tikhonov, l
   CHECK(l.low_share_rows > 0.4);                     // the learned codes favour low frequencies
   CHECK(l.cond_p > m.cond_p);
   double grey_psnr = 0;
-  for (size_t i = 1; i < photos.size(); ++i) grey_psnr += psnr(torch::full({3, 256, 256}, 128.0f / 255), display_scene(photos[i], 256));
+  for (size_t i = 1; i < photos.size(); ++i)
+    grey_psnr += psnr(torch::full({3, 256, 256}, 128.0f / 255), display_scene(photos[i], 256));
   CHECK(m.flatnet_psnr == Approx(grey_psnr / 3).margin(1e-4));
   CHECK(std::isnan(l.flatnet_psnr));
   const auto md = separable_section(scores, o, 3);
-  CHECK_THAT(md, Contains("| learned |") && Contains("not trained") && Contains("Light sweep") && Contains("cond(P1gb)"));
+  CHECK_THAT(md,
+             Contains("| learned |") && Contains("not trained") && Contains("Light sweep") && Contains("cond(P1gb)"));
 
   o.geometry.crop[0] += 2;  // a model trained for another crop is refused, by name
   CameraModel other{grey.forward, o.geometry, "other.flatnet"};
   o.geometry.crop[0] -= 2;
-  CHECK_THROWS_WITH(score_separable_cameras({{"MLS", mls, "", other}}, photos, o), Contains("other.flatnet") && Contains("crop"));
+  CHECK_THROWS_WITH(score_separable_cameras({{"MLS", mls, "", other}}, photos, o),
+                    Contains("other.flatnet") && Contains("crop"));
 }
 
 TEST_CASE("Wiener rank-1 masks map to separable codes by the signs of their vectors", "[mask][separable]") {
@@ -241,17 +253,20 @@ TEST_CASE("mask report refuses bad code and model lists", "[mask][cli][report]")
   auto r = test::run_flatnet("mask report --images " + q(photos) + " --out " + q(s.dir / "o") + " --codes mls.mat");
   CHECK(r.code == 2);
   CHECK_THAT(r.output, Contains("--codes") && Contains("NAME=FILE"));
-  r = test::run_flatnet("mask report --images " + q(photos) + " --out " + q(s.dir / "o") + " --codes MLS=" + q(s.dir / "none.mat"));
+  r = test::run_flatnet("mask report --images " + q(photos) + " --out " + q(s.dir / "o") +
+                        " --codes MLS=" + q(s.dir / "none.mat"));
   CHECK(r.code == 2);
   CHECK_THAT(r.output, Contains("none.mat"));
   r = test::run_flatnet("mask report --images " + q(photos) + " --out " + q(s.dir / "o") + " --flatnet nope=x.flatnet");
   CHECK(r.code == 2);
   CHECK_THAT(r.output, Contains("'nope' names no code pair"));
   const auto mls = test::source_dir() / "models" / "camera" / "codes_mls.mat";
-  r = test::run_flatnet("mask report --images " + q(photos) + " --out " + q(s.dir / "o") + " --codes A=" + q(mls) + ",A=" + q(mls));
+  r = test::run_flatnet("mask report --images " + q(photos) + " --out " + q(s.dir / "o") + " --codes A=" + q(mls) +
+                        ",A=" + q(mls));
   CHECK(r.code == 2);
   CHECK_THAT(r.output, Contains("names 'A' twice"));
-  r = test::run_flatnet("mask report --images " + q(photos) + " --out " + q(s.dir / "o") + " --codes none --flatnet MLS=x.flatnet");
+  r = test::run_flatnet("mask report --images " + q(photos) + " --out " + q(s.dir / "o") +
+                        " --codes none --flatnet MLS=x.flatnet");
   CHECK(r.code == 2);
   CHECK_THAT(r.output, Contains("--flatnet"));
   r = test::run_flatnet("mask report --images " + q(photos) + " --out " + q(photos) + " --sections separable");
@@ -262,15 +277,18 @@ TEST_CASE("mask report refuses bad code and model lists", "[mask][cli][report]")
   CHECK_THAT(r.output, Contains("--sections"));
 
   // One short run of the separable section with the shipped codes: 20 photographs, 2 held out.
-  const char* stems[] = {"bsds_16052", "inet_n02980441_castle", "inet_n02088094_Afghan_hound", "imagen_n04356056_1392_sunglasses"};
+  const char* stems[] = {"bsds_16052", "inet_n02980441_castle", "inet_n02088094_Afghan_hound",
+                         "imagen_n04356056_1392_sunglasses"};
   for (int i = 0; i < 20; ++i)
     if (i > 0)
       std::filesystem::copy_file(test::data_dir() / "golden" / (std::string(stems[i % 4]) + "_scene.png"),
                                  photos / ("p" + std::to_string(i) + ".png"));
-  r = test::run_flatnet("mask report --images " + q(photos) + " --out " + q(s.dir / "o") + " --sections separable --tune-count 1");
+  r = test::run_flatnet("mask report --images " + q(photos) + " --out " + q(s.dir / "o") +
+                        " --sections separable --tune-count 1");
   INFO(r.output);
   REQUIRE(r.code == 0);
-  CHECK_THAT(r.output, Contains("| MLS | 0.500 |") && Contains("| separable-learned |") && Contains("separable-learned binary"));
+  CHECK_THAT(r.output,
+             Contains("| MLS | 0.500 |") && Contains("| separable-learned |") && Contains("separable-learned binary"));
   CHECK(std::filesystem::exists(s.dir / "o" / "report.md"));
   CHECK(std::filesystem::exists(s.dir / "o" / "separable_sweep.png"));
   CHECK_FALSE(std::filesystem::exists(s.dir / "o" / "sweep.png"));  // the Wiener sections were left out

@@ -68,8 +68,8 @@ TEST_CASE("NIQE rises steadily with Gaussian blur and with noise (the shipped mo
   const auto model = load_niqe(kModel);
   CHECK(model.patch == 48);
   CHECK(model.images > 1000);
-  for (const char* name : {"bsds_16052_scene.png", "inet_n02980441_castle_scene.png", "inet_n02088094_Afghan_hound_scene.png",
-                           "imagen_n04356056_1392_sunglasses_scene.png"}) {
+  for (const char* name : {"bsds_16052_scene.png", "inet_n02980441_castle_scene.png",
+                           "inet_n02088094_Afghan_hound_scene.png", "imagen_n04356056_1392_sunglasses_scene.png"}) {
     INFO(name);
     const auto image = read_rgb(test::data_dir() / "golden" / name);
     const double clean = niqe_score(model, image);
@@ -110,6 +110,7 @@ TEST_CASE("NIQE model files round trip, and a wrong file is named", "[eval][niqe
   CHECK_THROWS_WITH(load_niqe(s.dir / "other.mat"), Contains("other.mat") && Contains("cov_prisparam"));
   // A fit on too little is refused, not returned as a singular model.
   const auto golden = test::data_dir() / "golden" / "bsds_16052_scene.png";
-  CHECK_THROWS_WITH(fit_niqe({golden}, [](const std::filesystem::path& p) { return read_rgb(p); }, 48, false),
+  CHECK_THROWS_WITH(fit_niqe(
+                        {golden}, [](const std::filesystem::path& p) { return read_rgb(p); }, 48, false),
                     Contains("sharp patches"));
 }

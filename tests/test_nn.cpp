@@ -31,7 +31,6 @@ GeneratorOptions tiny_options(int64_t k = 1, Enhancer e = Enhancer::unet) {
   return o;
 }
 
-
 }  // namespace
 
 TEST_CASE("U-Net has FlatNet's structure and parameter names", "[nn]") {
@@ -203,7 +202,8 @@ TEST_CASE("model files and state dicts round trip, and wrong files give clear er
     g->named_parameters()["enhancer.outc.conv.weight"][0][0][0][0] = std::nan("");
   }
   save_model_file(s.dir / "nan.flatnet", g, config, camera);
-  CHECK_THROWS_WITH(load_model_file(s.dir / "nan.flatnet"), Contains("nan.flatnet") && Contains("enhancer.outc.conv.weight") && Contains("NaN"));
+  CHECK_THROWS_WITH(load_model_file(s.dir / "nan.flatnet"),
+                    Contains("nan.flatnet") && Contains("enhancer.outc.conv.weight") && Contains("NaN"));
 }
 
 TEST_CASE("the C++ generator equals a Python reference of FlatNet-sep on the same weights", "[nn][python]") {
@@ -221,7 +221,8 @@ TEST_CASE("the C++ generator equals a Python reference of FlatNet-sep on the sam
     auto cmd = "/usr/bin/python3 '" + script.string() + "' make '" + (s.dir / "sd.pt").string() + "' '" +
                (s.dir / "in.pt").string() + "' '" + (s.dir / "out.pt").string() + "' 4 " + ks + " >/dev/null";
     REQUIRE(std::system(cmd.c_str()) == 0);
-    auto c = Config::load({}, {"model.unet.width=4", std::string("model.inversion.shared=") + (k == 1 ? "true" : "false")});
+    auto c =
+        Config::load({}, {"model.unet.width=4", std::string("model.inversion.shared=") + (k == 1 ? "true" : "false")});
     Generator g(generator_options(c, camera, false));
     import_state_dict(s.dir / "sd.pt", g);
     g->eval();
@@ -284,8 +285,10 @@ TEST_CASE("inference levers (BN folding, channels-last, GEMM upsampling) keep th
   {  // non-trivial batch-norm statistics, so folding has something to fold
     torch::NoGradGuard no_grad;
     for (auto& b : plain->named_buffers())
-      if (b.key().find("running_var") != std::string::npos) b.value().uniform_(0.5, 1.5);
-      else if (b.key().find("running_mean") != std::string::npos) b.value().uniform_(-0.2, 0.2);
+      if (b.key().find("running_var") != std::string::npos)
+        b.value().uniform_(0.5, 1.5);
+      else if (b.key().find("running_mean") != std::string::npos)
+        b.value().uniform_(-0.2, 0.2);
     for (auto& p : plain->named_parameters())
       if (p.key().find("conv.1.weight") != std::string::npos) p.value().uniform_(0.5, 1.5);
   }
@@ -373,7 +376,8 @@ TEST_CASE("inversion crops equal the matching window of the whole first stage", 
   CHECK_THROWS_WITH(g->forward_crops(Y, {{0, 0}, {0, 0}}, 12), Contains("multiple of 16"));
 }
 
-TEST_CASE("bf16 autocast: the enhancer runs in bf16, weights and gradients stay fp32, output close to fp32", "[nn][bf16]") {
+TEST_CASE("bf16 autocast: the enhancer runs in bf16, weights and gradients stay fp32, output close to fp32",
+          "[nn][bf16]") {
   torch::manual_seed(10);
   auto o = tiny_options();
   o.unet.width = 4;

@@ -38,8 +38,11 @@ TEST_CASE("ONNX export: OpenCV DNN computes what LibTorch computes, for every fi
   const std::vector<Case> cases = {
       {"inversion, one pair, U-Net", {"model.unet.width=4"}, plain},
       {"inversion, one pair per channel, light level, U-Net",
-       {"model.unet.width=4", "model.inversion.shared=false", "model.level_input=true"}, level},
-      {"Tikhonov first stage, light level, U-Net", {"model.unet.width=4", "model.input=tikhonov", "model.level_input=true"}, level},
+       {"model.unet.width=4", "model.inversion.shared=false", "model.level_input=true"},
+       level},
+      {"Tikhonov first stage, light level, U-Net",
+       {"model.unet.width=4", "model.input=tikhonov", "model.level_input=true"},
+       level},
       {"inversion, DnCNN", {"model.enhancer=dncnn", "model.dncnn.layers=4", "model.dncnn.width=3"}, plain},
   };
   for (const auto& c : cases) {
@@ -92,7 +95,8 @@ TEST_CASE("ONNX export refuses what it cannot express, and bad ONNX files are na
   const auto good = s.dir / "good.onnx";
   export_onnx(good, g, camera);
   OpenCvEngine engine(good);
-  CHECK_THROWS_WITH(engine.check_camera(test::tiny_camera(Centring::level)), Contains("good.onnx") && Contains("level"));
+  CHECK_THROWS_WITH(engine.check_camera(test::tiny_camera(Centring::level)),
+                    Contains("good.onnx") && Contains("level"));
   auto wrong_size = camera;
   wrong_size.scene_size = 32;
   CHECK_THROWS_WITH(engine.check_camera(wrong_size), Contains("good.onnx") && Contains("16x16"));

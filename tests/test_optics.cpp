@@ -131,8 +131,8 @@ TEST_CASE("calibrating the simulated rig through its ADC: about 1% error", "[opt
   // (vignetting) light. With noise, `flatnet calibrate --average K` reports its own error.
   const auto camera = load_camera_config(default_camera_path());
   const auto rig = load_rig(camera.rig);
-  auto capture = rig_pattern_capture(rig, camera.raw, kDefaultPatternLevel, /*noise=*/false, 1,
-                                     at::detail::createCPUGenerator(0));
+  auto capture =
+      rig_pattern_capture(rig, camera.raw, kDefaultPatternLevel, /*noise=*/false, 1, at::detail::createCPUGenerator(0));
   auto est = estimate_calibration(camera.scene_size, capture, kDefaultPatternLevel, false);
   auto err = calibration_error(est, ideal_calibration(rig, camera.raw));
   WARN("relative error: P " << err.p << ", Q " << err.q << ", forward " << err.forward);
@@ -152,14 +152,16 @@ TEST_CASE("a rig with NaN in its response is refused by name, never simulated", 
     }
     v["vig_rows"] = torch::ones({4, 1}, torch::kFloat64);
     v["vig_cols"] = torch::ones({5, 1}, torch::kFloat64);
-    for (const char* k : {"full_well", "read_noise", "dark", "adc_bits"}) v[k] = torch::full({1, 1}, 10.0, torch::kFloat64);
+    for (const char* k : {"full_well", "read_noise", "dark", "adc_bits"})
+      v[k] = torch::full({1, 1}, 10.0, torch::kFloat64);
     if (poison) v["PhiR_gr"][2][1] = std::nan("");
     write_mat(path, v);
   };
   write_rig(s.dir / "good.mat", false);
   CHECK_NOTHROW(load_rig(s.dir / "good.mat"));
   write_rig(s.dir / "bad.mat", true);
-  CHECK_THROWS_WITH(load_rig(s.dir / "bad.mat"), Catch::Matchers::Contains("bad.mat") && Catch::Matchers::Contains("PhiR") &&
+  CHECK_THROWS_WITH(load_rig(s.dir / "bad.mat"), Catch::Matchers::Contains("bad.mat") &&
+                                                     Catch::Matchers::Contains("PhiR") &&
                                                      Catch::Matchers::Contains("NaN"));
 }
 
@@ -177,7 +179,8 @@ TEST_CASE("a camera from codes: the MLS pair rebuilds rig.mat, and gradients rea
   CHECK(torch::allclose(rig.vig_cols.to(torch::kFloat32), shipped.vig_cols, 1e-5, 0));
 
   // Another pair changes the camera, and the construction is differentiable in both codes.
-  auto a = (torch::rand({511}, torch::kFloat64) * 2 - 1).requires_grad_(), b = (torch::rand({511}, torch::kFloat64) * 2 - 1).requires_grad_();
+  auto a = (torch::rand({511}, torch::kFloat64) * 2 - 1).requires_grad_(),
+       b = (torch::rand({511}, torch::kFloat64) * 2 - 1).requires_grad_();
   const auto other = separable_rig(a, b);
   CHECK((other.phil - rig.phil).abs().max().item<double>() > 0.1);
   (other.phil.pow(2).sum() + other.phir.pow(2).sum() + other.vig_rows.sum()).backward();
@@ -191,9 +194,12 @@ TEST_CASE("a camera from codes: the MLS pair rebuilds rig.mat, and gradients rea
   const auto shipped_calib = load_calibration(test::calib_path(), camera);
   for (int c = 0; c < 4; ++c) {
     INFO("channel " << c);
-    CHECK((noisy.P[c] - exact.P[c]).norm().item<double>() / exact.P[c].norm().item<double>() == Approx(0.03).epsilon(1e-6));
-    CHECK((shipped_calib.P[c] - exact.P[c]).norm().item<double>() / exact.P[c].norm().item<double>() == Approx(0.03).epsilon(0.02));
-    CHECK((shipped_calib.Q[c] - exact.Q[c]).norm().item<double>() / exact.Q[c].norm().item<double>() == Approx(0.03).epsilon(0.02));
+    CHECK((noisy.P[c] - exact.P[c]).norm().item<double>() / exact.P[c].norm().item<double>() ==
+          Approx(0.03).epsilon(1e-6));
+    CHECK((shipped_calib.P[c] - exact.P[c]).norm().item<double>() / exact.P[c].norm().item<double>() ==
+          Approx(0.03).epsilon(0.02));
+    CHECK((shipped_calib.Q[c] - exact.Q[c]).norm().item<double>() / exact.Q[c].norm().item<double>() ==
+          Approx(0.03).epsilon(0.02));
     CHECK(exact.P[c].mean(0).abs().max().item<double>() < 1e-12);  // centred columns
   }
 }

@@ -13,8 +13,9 @@ using namespace flatnet;
 using Catch::Matchers::Contains;
 
 TEST_CASE("cpuinfo flags decide whether bf16 is native", "[precision]") {
-  const std::string amx = "processor\t: 0\nmodel name\t: Intel(R) Xeon(R) Platinum 8480+\n"
-                          "flags\t\t: fpu avx2 avx512f avx512_bf16 amx_bf16 amx_tile\n\nprocessor\t: 1\nflags\t\t: fpu\n";
+  const std::string amx =
+      "processor\t: 0\nmodel name\t: Intel(R) Xeon(R) Platinum 8480+\n"
+      "flags\t\t: fpu avx2 avx512f avx512_bf16 amx_bf16 amx_tile\n\nprocessor\t: 1\nflags\t\t: fpu\n";
   const auto a = parse_cpuinfo(amx);
   CHECK(a.model == "Intel(R) Xeon(R) Platinum 8480+");
   CHECK((a.avx512f && a.avx512_bf16 && a.amx_bf16));
@@ -27,7 +28,8 @@ TEST_CASE("cpuinfo flags decide whether bf16 is native", "[precision]") {
   CHECK(resolve_precision("bf16", b, "--precision") == Precision::bf16);  // asked for: allowed, but said to be slow
   CHECK_THAT(describe_precision(Precision::bf16, b), Contains("emulated"));
   CHECK(parse_cpuinfo("model name : X\nflags : avx512_bf16\n").bf16_engine() == "AVX512-BF16");
-  CHECK_THROWS_WITH(resolve_precision("fp16", a, "train.precision"), Contains("train.precision") && Contains("auto, fp32 or bf16"));
+  CHECK_THROWS_WITH(resolve_precision("fp16", a, "train.precision"),
+                    Contains("train.precision") && Contains("auto, fp32 or bf16"));
   CHECK_FALSE(cpu_features().summary().empty());
 }
 
@@ -44,7 +46,10 @@ TEST_CASE("autocast guards nest and restore the thread's state", "[precision]") 
       CHECK(torch::mm(a, b).scalar_type() == torch::kFloat32);
     }
     CHECK(at::autocast::is_cpu_enabled());
-    { AutocastGuard inner(false); CHECK(at::autocast::is_cpu_enabled()); }
+    {
+      AutocastGuard inner(false);
+      CHECK(at::autocast::is_cpu_enabled());
+    }
   }
   CHECK_FALSE(at::autocast::is_cpu_enabled());
 }
@@ -92,7 +97,8 @@ TEST_CASE("a short bf16 autocast training run tracks the fp32 loss curve", "[pre
   }
 }
 
-TEST_CASE("oneDNN convolutions (prepacked weights, fused bias and ReLU) compute the convolution", "[precision][bf16][onednn]") {
+TEST_CASE("oneDNN convolutions (prepacked weights, fused bias and ReLU) compute the convolution",
+          "[precision][bf16][onednn]") {
   // bf16 inputs and weights, so the reference sees exactly the values oneDNN sees; only the
   // accumulation and the output's rounding to bf16 differ.
   torch::manual_seed(3);
@@ -108,7 +114,8 @@ TEST_CASE("oneDNN convolutions (prepacked weights, fused bias and ReLU) compute 
       CHECK(got.sizes() == expected.sizes());
       CHECK(got.scalar_type() == torch::kBFloat16);
       CHECK(got.is_contiguous(at::MemoryFormat::ChannelsLast));
-      CHECK((got.to(torch::kFloat32) - expected).abs().max().item<double>() <= 0.01 * expected.abs().max().item<double>());
+      CHECK((got.to(torch::kFloat32) - expected).abs().max().item<double>() <=
+            0.01 * expected.abs().max().item<double>());
       if (relu) CHECK(got.min().item<double>() >= 0);
       CHECK(torch::equal(conv(x), got));  // the cached plan gives the same answer
     }
@@ -116,7 +123,8 @@ TEST_CASE("oneDNN convolutions (prepacked weights, fused bias and ReLU) compute 
   CHECK_THROWS_WITH(conv(torch::randn({1, 5, 8, 8})), Contains("{B,3,H,W}"));
 }
 
-TEST_CASE("bf16 inference with the onednn lever agrees with LibTorch's bf16 path and with fp32", "[precision][bf16][onednn]") {
+TEST_CASE("bf16 inference with the onednn lever agrees with LibTorch's bf16 path and with fp32",
+          "[precision][bf16][onednn]") {
   auto make = [] {
     auto g = tiny_generator(8, 8);
     g->train();

@@ -17,11 +17,12 @@ using namespace flatnet;
 using Catch::Matchers::Contains;
 
 namespace {
-using test::q;
 using test::kOnDisk;
+using test::q;
 }  // namespace
 
-TEST_CASE("scene light: exposure scales linear light, a lamp adds a bright warm disk, the truth clips at white", "[quality][light]") {
+TEST_CASE("scene light: exposure scales linear light, a lamp adds a bright warm disk, the truth clips at white",
+          "[quality][light]") {
   const auto display = torch::rand({3, 32, 32});
   SceneLight dim;
   dim.exposure = 0.25;
@@ -29,7 +30,7 @@ TEST_CASE("scene light: exposure scales linear light, a lamp adds a bright warm 
   SceneLight lamp;
   lamp.lamp = true, lamp.lamp_gain = 30, lamp.lamp_row = 10.5, lamp.lamp_col = 20.5, lamp.lamp_radius = 2;
   const auto lit = lit_scene(display, lamp);
-  CHECK(lit[0][10][20].item<double>() > 30);  // red at the centre: 30 x 1.0 over the scene
+  CHECK(lit[0][10][20].item<double>() > 30);                             // red at the centre: 30 x 1.0 over the scene
   CHECK(lit[2][10][20].item<double>() < lit[0][10][20].item<double>());  // warm: less blue
   CHECK(torch::equal(lit.slice(1, 0, 5), srgb_to_linear(display).slice(1, 0, 5)));  // far rows untouched
   const auto truth = visible_scene(lit);
@@ -62,7 +63,8 @@ TEST_CASE("a dim scene's capture is the bright one's scaled, through the real ri
   CHECK(((half - dark) - 0.5 * (bright - dark)).abs().max().item<double>() <= 64 * 1.01);
 }
 
-TEST_CASE("on-the-fly simulation with light augmentation: truth follows the drawn light, deterministic per epoch", "[quality][light]") {
+TEST_CASE("on-the-fly simulation with light augmentation: truth follows the drawn light, deterministic per epoch",
+          "[quality][light]") {
   const auto camera = load_camera_config(default_camera_path());
   auto rig = std::make_shared<const Rig>(load_rig(camera.rig));
   std::vector<std::filesystem::path> images{test::data_dir() / "golden" / "bsds_16052_scene.png"};
@@ -73,7 +75,8 @@ TEST_CASE("on-the-fly simulation with light augmentation: truth follows the draw
   CHECK(torch::equal(a.meas, b.meas));
   CHECK(torch::allclose(a.gt, visible_scene(0.5 * srgb_to_linear(c.gt)), 0, 1e-6));
   CHECK(a.gt.mean().item<double>() < 0.85 * c.gt.mean().item<double>());
-  CHECK_FALSE(torch::equal(a.meas, c.meas));  // (noise-free scaling: the test above; with noise the centred planes are noise-dominated)
+  CHECK_FALSE(torch::equal(
+      a.meas, c.meas));  // (noise-free scaling: the test above; with noise the centred planes are noise-dominated)
   CHECK_FALSE(torch::equal(dim.load(0, 1).meas, a.meas));  // another epoch, another draw of the noise
 }
 
@@ -92,14 +95,16 @@ TEST_CASE("pinv initialisation: each side's regularised pseudo-inverse of the ca
   CHECK_THROWS_WITH(generator_options(config, camera, true), Contains("model.inversion.lambda"));
 }
 
-TEST_CASE("simulate makes dim, lamp and held-out-only sets, and train --init-from starts from a model", "[quality][cli][slow]") {
+TEST_CASE("simulate makes dim, lamp and held-out-only sets, and train --init-from starts from a model",
+          "[quality][cli][slow]") {
   test::Scratch s("quality_cli");
   const auto photos = s.dir / "photos";
   std::filesystem::create_directories(photos);
-  for (const char* n : {"bsds_16052_scene.png", "inet_n02980441_castle_scene.png", "inet_n02088094_Afghan_hound_scene.png",
-                        "imagen_n04356056_1392_sunglasses_scene.png"})
+  for (const char* n : {"bsds_16052_scene.png", "inet_n02980441_castle_scene.png",
+                        "inet_n02088094_Afghan_hound_scene.png", "imagen_n04356056_1392_sunglasses_scene.png"})
     std::filesystem::copy_file(test::data_dir() / "golden" / n, photos / n);
-  auto r = test::run_flatnet("simulate --images " + q(photos) + " --out " + q(s.dir / "all") + " --val-fraction 0.5 --seed 1");
+  auto r = test::run_flatnet("simulate --images " + q(photos) + " --out " + q(s.dir / "all") +
+                             " --val-fraction 0.5 --seed 1");
   REQUIRE(r.code == 0);
   r = test::run_flatnet("simulate --images " + q(photos) + " --out " + q(s.dir / "dim") +
                         " --val-fraction 0.5 --seed 1 --only val --exposure 0.33");
@@ -111,8 +116,10 @@ TEST_CASE("simulate makes dim, lamp and held-out-only sets, and train --init-fro
   CHECK(read_lines(s.dir / "dim" / "train_meas.txt").empty());
   CHECK(read_lines(s.dir / "all" / "val_meas.txt") == val);  // the same held-out photographs
   const auto name = std::filesystem::path(val[0]).filename();
-  CHECK(read_rgb(s.dir / "dim" / "gt" / name).mean().item<double>() < 0.8 * read_rgb(s.dir / "all" / "gt" / name).mean().item<double>());
-  r = test::run_flatnet("simulate --images " + q(photos) + " --out " + q(s.dir / "lamp") + " --val-fraction 0.5 --seed 1 --only val --lamp");
+  CHECK(read_rgb(s.dir / "dim" / "gt" / name).mean().item<double>() <
+        0.8 * read_rgb(s.dir / "all" / "gt" / name).mean().item<double>());
+  r = test::run_flatnet("simulate --images " + q(photos) + " --out " + q(s.dir / "lamp") +
+                        " --val-fraction 0.5 --seed 1 --only val --lamp");
   REQUIRE(r.code == 0);
   CHECK(read_rgb(s.dir / "lamp" / "gt" / name).max().item<double>() == 1.0);
   auto bad = test::run_flatnet("simulate --images " + q(photos) + " --out " + q(s.dir / "x") + " --exposure -1");
@@ -120,15 +127,18 @@ TEST_CASE("simulate makes dim, lamp and held-out-only sets, and train --init-fro
   CHECK_THAT(bad.output, Contains("--exposure"));
   bad = test::run_flatnet("simulate --images " + q(photos) + " --out " + q(s.dir / "x") + " --only test");
   CHECK(bad.code == 2);
-  bad = test::run_flatnet("simulate --images " + q(photos) + " --out " + q(s.dir / "x") + " --only val --val-fraction 0");
+  bad =
+      test::run_flatnet("simulate --images " + q(photos) + " --out " + q(s.dir / "x") + " --only val --val-fraction 0");
   CHECK(bad.code == 2);
   CHECK_THAT(bad.output, Contains("selects no images"));
 
   // --init-from: a fresh run whose step-0 weights are the model's.
-  const std::string base = "train --config " + q(test::source_dir() / "configs" / "sim_transpose.yaml") + " --set data.dataset=" +
-                           q(s.dir / "all") + " --set model.unet.width=2 --set train.val_every=1" + kOnDisk;
+  const std::string base = "train --config " + q(test::source_dir() / "configs" / "sim_transpose.yaml") +
+                           " --set data.dataset=" + q(s.dir / "all") +
+                           " --set model.unet.width=2 --set train.val_every=1" + kOnDisk;
   REQUIRE(test::run_flatnet(base + " --set train.iterations=2 --out " + q(s.dir / "first")).code == 0);
-  r = test::run_flatnet(base + " --set train.iterations=1 --set train.lr=0 --set train.lr_discriminator=0 --init-from " +
+  r = test::run_flatnet(base +
+                        " --set train.iterations=1 --set train.lr=0 --set train.lr_discriminator=0 --init-from " +
                         q(s.dir / "first" / "model.flatnet") + " --out " + q(s.dir / "second"));
   INFO(r.output);
   REQUIRE(r.code == 0);
@@ -144,14 +154,15 @@ TEST_CASE("simulate makes dim, lamp and held-out-only sets, and train --init-fro
     INFO(k);
     CHECK(torch::equal(t, b.at(k)));  // lr 0: the weights are the model's
   }
-  bad = test::run_flatnet(base + " --set model.unet.width=4 --init-from " + q(s.dir / "first" / "model.flatnet") + " --out " +
-                          q(s.dir / "third"));
+  bad = test::run_flatnet(base + " --set model.unet.width=4 --init-from " + q(s.dir / "first" / "model.flatnet") +
+                          " --out " + q(s.dir / "third"));
   CHECK(bad.code == 2);
   CHECK_THAT(bad.output, Contains("model.flatnet") && Contains("the model needs"));
   bad = test::run_flatnet(base + " --set train.crop=512 --out " + q(s.dir / "big"));
   CHECK(bad.code == 2);
   CHECK_THAT(bad.output, Contains("train.crop") && Contains("exceeds"));
-  bad = test::run_flatnet("train --out " + q(s.dir / "first") + " --resume --init-from " + q(s.dir / "first" / "model.flatnet"));
+  bad = test::run_flatnet("train --out " + q(s.dir / "first") + " --resume --init-from " +
+                          q(s.dir / "first" / "model.flatnet"));
   CHECK(bad.code == 2);
   CHECK_THAT(bad.output, Contains("cannot be combined with --resume"));
 }
@@ -162,7 +173,8 @@ namespace {
 using test::tiny_camera;
 }  // namespace
 
-TEST_CASE("centring 'level' is plane centring plus each plane's mean, and without_level undoes it", "[quality][level]") {
+TEST_CASE("centring 'level' is plane centring plus each plane's mean, and without_level undoes it",
+          "[quality][level]") {
   const auto raw = torch::rand({4, 10, 12}) + torch::arange(4).view({4, 1, 1});
   const auto plane = double_centre(raw, Centring::plane);
   const auto level = double_centre(raw, Centring::level);
@@ -177,7 +189,8 @@ TEST_CASE("centring 'level' is plane centring plus each plane's mean, and withou
   CHECK_THROWS_WITH(parse_centring("levels", "cam.yaml"), Contains("cam.yaml") && Contains("level"));
 }
 
-TEST_CASE("a generator with the light level tells a saturated capture from a black one, and gradients reach it", "[quality][level]") {
+TEST_CASE("a generator with the light level tells a saturated capture from a black one, and gradients reach it",
+          "[quality][level]") {
   const auto level_cam = tiny_camera(Centring::level), plane_cam = tiny_camera(Centring::plane);
   const auto with = Config::load({}, {"model.unet.width=8", "model.level_input=true", "model.bn_momentum=0.1"});
   const auto without = Config::load({}, {"model.unet.width=8", "model.bn_momentum=0.1"});
@@ -195,7 +208,9 @@ TEST_CASE("a generator with the light level tells a saturated capture from a bla
   const auto pattern = 0.05 * torch::rand({1, 4, 20, 24});
   const auto bright = pattern + 0.9, dark = pattern;
   CHECK((g->forward(double_centre(bright, Centring::level)) - g->forward(double_centre(dark, Centring::level)))
-            .abs().max().item<double>() > 1e-3);
+            .abs()
+            .max()
+            .item<double>() > 1e-3);
   CHECK(torch::allclose(plain->forward(double_centre(bright, Centring::plane)),
                         plain->forward(double_centre(dark, Centring::plane)), 1e-5, 1e-6));  // blind without it
   // The level never enters the inversion: shifting a plane's DC leaves the first stage unchanged.
@@ -217,7 +232,8 @@ TEST_CASE("the model and the camera must agree on the light level, with errors t
   CHECK_THROWS_WITH(check_camera_for_model(o, tiny_camera(Centring::flatnet)), Contains("'flatnet'"));
 }
 
-TEST_CASE("train --init-from a model without the level adds it with zero weights: the same function at step 0", "[quality][level]") {
+TEST_CASE("train --init-from a model without the level adds it with zero weights: the same function at step 0",
+          "[quality][level]") {
   test::Scratch s("level_init");
   const auto plane_cam = tiny_camera(Centring::plane), level_cam = tiny_camera(Centring::level);
   const auto without = Config::load({}, {"model.unet.width=2", "model.bn_momentum=0.1"});
@@ -228,11 +244,12 @@ TEST_CASE("train --init-from a model without the level adds it with zero weights
   init_generator_from(s.dir / "old.flatnet", g);
   g->eval();
   const auto raw = torch::rand({2, 4, 20, 24});
-  CHECK(torch::allclose(g->forward(double_centre(raw, Centring::level)), old_model->forward(double_centre(raw, Centring::plane)),
-                        1e-5, 1e-6));
+  CHECK(torch::allclose(g->forward(double_centre(raw, Centring::level)),
+                        old_model->forward(double_centre(raw, Centring::plane)), 1e-5, 1e-6));
   // The other way (a level model into a plain one) is a shape error naming the tensor.
   auto level_model = test::random_generator(with, level_cam);
   save_model_file(s.dir / "level.flatnet", level_model, with, level_cam);
   Generator plain(generator_options(without, plane_cam, false));
-  CHECK_THROWS_WITH(init_generator_from(s.dir / "level.flatnet", plain), Contains("level.flatnet") && Contains("inc.conv.conv.0.weight"));
+  CHECK_THROWS_WITH(init_generator_from(s.dir / "level.flatnet", plain),
+                    Contains("level.flatnet") && Contains("inc.conv.conv.0.weight"));
 }

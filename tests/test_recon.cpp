@@ -120,12 +120,15 @@ TEST_CASE("reconstructions never overwrite a capture, and two captures of one na
   const auto before = read_bytes(in / "a.png");
   // --out equal to the input folder, given as the folder, a pattern or a list.
   CHECK_THROWS_WITH(check_output_names({in / "a.png"}, in), Contains("--out") && Contains("overwrite a capture"));
-  CHECK_THROWS_WITH(check_output_names({in / "a.png"}, s.dir / "in" / "." ), Contains("overwrite"));
+  CHECK_THROWS_WITH(check_output_names({in / "a.png"}, s.dir / "in" / "."), Contains("overwrite"));
   // Two captures named a.png from different folders would make one output.
-  CHECK_THROWS_WITH(check_output_names({in / "a.png", other / "a.png"}, s.dir / "out"), Contains("same name") && Contains("a.png"));
+  CHECK_THROWS_WITH(check_output_names({in / "a.png", other / "a.png"}, s.dir / "out"),
+                    Contains("same name") && Contains("a.png"));
   CHECK_NOTHROW(check_output_names({in / "a.png"}, s.dir / "out"));
   // Through the command line: exit 2, one line, the capture untouched.
-  for (const std::string& cmd : std::vector<std::string>{"recon --method tikhonov", "infer --model " + test::q(test::source_dir() / "models" / "flatnet-sim-transpose.flatnet")}) {
+  for (const std::string& cmd : std::vector<std::string>{
+           "recon --method tikhonov",
+           "infer --model " + test::q(test::source_dir() / "models" / "flatnet-sim-transpose.flatnet")}) {
     INFO(cmd);
     const auto r = test::run_flatnet(cmd + " --input " + test::q(in) + " --out " + test::q(in));
     CHECK(r.code == 2);

@@ -71,7 +71,8 @@ TEST_CASE("views of one storage keep their offsets and strides, and other dtypes
     CHECK(torch::equal(tensor_at(*root, "col"), base.select(1, 2)));
   }
   const auto d = read_torch_file(fixture("dtypes.pt"));
-  for (const auto& [key, shape] : std::vector<std::pair<std::string, std::vector<int64_t>>>{{"f64", {2, 3}}, {"f16", {4}}, {"bf16", {4}}}) {
+  for (const auto& [key, shape] :
+       std::vector<std::pair<std::string, std::vector<int64_t>>>{{"f64", {2, 3}}, {"f16", {4}}, {"bf16", {4}}}) {
     INFO(key);
     const auto t = tensor_at(*d, key);
     CHECK(t.scalar_type() == torch::kFloat32);
@@ -122,7 +123,12 @@ TEST_CASE("bad torch.save files: one clear error naming the file, and no code is
   write_bytes(s.dir / "cut.zip.pt", zip.substr(0, zip.size() / 2));
   CHECK_THROWS_WITH(read_torch_file(s.dir / "cut.zip.pt"), Contains("cut.zip.pt"));
   // A pickle that would run a shell command (pickle's classic exploit): refused, with the global's name.
-  write_bytes(s.dir / "evil.pt", std::string("\x80\x02" "cos\nsystem\n" "X\x05\x00\x00\x00" "touch" "\x85R.", 27));
+  write_bytes(s.dir / "evil.pt", std::string("\x80\x02"
+                                             "cos\nsystem\n"
+                                             "X\x05\x00\x00\x00"
+                                             "touch"
+                                             "\x85R.",
+                                             27));
   CHECK_THROWS_WITH(read_torch_file(s.dir / "evil.pt"), Contains("evil.pt") && Contains("os.system"));
   // An unknown opcode, named in hex.
   write_bytes(s.dir / "op.pt", std::string("\x80\x02\xff.", 4));
@@ -145,14 +151,16 @@ TEST_CASE("flatnet import finds the generator in every layout people save", "[to
   const auto Y = torch::randn({1, 4, 20, 24});
   CHECK(torch::equal(h->forward(Y), g->forward(Y)));
   // The fixtures hold other networks' names: the error names the first tensor the model misses.
-  for (const char* name : {"ordered_dict_zip.pt", "ordered_dict_legacy.pt", "single_key.pt", "data_parallel.pt", "checkpoint_legacy.pt"}) {
+  for (const char* name :
+       {"ordered_dict_zip.pt", "ordered_dict_legacy.pt", "single_key.pt", "data_parallel.pt", "checkpoint_legacy.pt"}) {
     INFO(name);
     CHECK_THROWS_WITH(import_state_dict(fixture(name), h), Contains(name) && Contains("'PhiL'"));
   }
   CHECK_THROWS_WITH(import_state_dict(fixture("views.pt"), h), Contains("views.pt"));
 }
 
-TEST_CASE("flatnet import reads what Python writes: OrderedDict, FlatNet checkpoints, DataParallel, legacy", "[torchfile][import][python]") {
+TEST_CASE("flatnet import reads what Python writes: OrderedDict, FlatNet checkpoints, DataParallel, legacy",
+          "[torchfile][import][python]") {
   if (!test::python_has_torch()) SKIP_TEST("/usr/bin/python3 has no torch");
   test::Scratch s("torchfile_python");
   const auto config = Config::load({}, {"model.unet.width=2"});
@@ -181,18 +189,21 @@ torch.save(collections.OrderedDict(('module.' + k, v) for k, v in od.items()), d
 torch.save(collections.OrderedDict((k, v.double() if v.is_floating_point() else v) for k, v in od.items()), d + '/double.pt')
 torch.save(collections.OrderedDict(list(od.items()) + [('extra.weight', torch.ones(2))]), d + '/extra.pt')
 )";
-  const auto r = test::run_shell("/usr/bin/python3 " + test::q(script) + " " + test::q(s.dir / "ours.pt") + " " + test::q(s.dir));
+  const auto r =
+      test::run_shell("/usr/bin/python3 " + test::q(script) + " " + test::q(s.dir / "ours.pt") + " " + test::q(s.dir));
   INFO(r.output);
   REQUIRE(r.code == 0);
   const auto Y = torch::randn({1, 4, 20, 24});
   const auto expected = g->forward(Y);
-  for (const char* name : {"ordered.pt", "ordered_legacy.pt", "single.pt", "flatnet_ckpt.pt", "parallel.pt", "double.pt", "extra.pt"}) {
+  for (const char* name :
+       {"ordered.pt", "ordered_legacy.pt", "single.pt", "flatnet_ckpt.pt", "parallel.pt", "double.pt", "extra.pt"}) {
     INFO(name);
     Generator h(generator_options(config, camera, false));
     const auto rep = import_state_dict(s.dir / name, h);
     h->eval();
     CHECK(torch::allclose(h->forward(Y), expected, 1e-6, 1e-7));
     CHECK(rep.data_parallel == (std::string(name) == "parallel.pt"));
-    CHECK(rep.unused == (std::string(name) == "extra.pt" ? std::vector<std::string>{"extra.weight"} : std::vector<std::string>{}));
+    CHECK(rep.unused ==
+          (std::string(name) == "extra.pt" ? std::vector<std::string>{"extra.weight"} : std::vector<std::string>{}));
   }
 }

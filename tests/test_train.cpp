@@ -39,8 +39,8 @@ class MemoryPairs : public PairSource {
 };
 
 struct Setup {
-  Config config = Config::load({}, {"model.unet.width=2", "model.inversion.init=random", "discriminator.width=4",
-                                    "loss.perceptual=0"});
+  Config config = Config::load(
+      {}, {"model.unet.width=2", "model.inversion.init=random", "discriminator.width=4", "loss.perceptual=0"});
   CameraConfig camera;
   Setup() {
     camera.raw.crop = {0, 0, 20, 24};
@@ -187,7 +187,10 @@ TEST_CASE("schedules: halving steps down, cosine falls smoothly to 0 at the last
   CHECK_THROWS_WITH(parse_lr_schedule("linear"), Contains("halving or cosine"));
 }
 
-TEST_CASE("crops: corners depend on (seed, step) and stay inside the scene, and crop training runs and validates at full size", "[train]") {
+TEST_CASE(
+    "crops: corners depend on (seed, step) and stay inside the scene, and crop training runs and validates at full "
+    "size",
+    "[train]") {
   TrainOptions t;
   t.crop = 16;
   t.seed = 3;
@@ -213,14 +216,15 @@ TEST_CASE("crops: corners depend on (seed, step) and stay inside the scene, and 
   };
   auto opt = setup.options(s.dir / "run", 2);
   opt.crop = 16;
-  GanTrainer trainer(g, d, Vgg16Features(nullptr), std::make_shared<Pairs32>(), load_all(Pairs32(), 0, 1), opt, setup.config,
-                     setup.camera);
+  GanTrainer trainer(g, d, Vgg16Features(nullptr), std::make_shared<Pairs32>(), load_all(Pairs32(), 0, 1), opt,
+                     setup.config, setup.camera);
   const auto summary = trainer.run();
   CHECK(summary.last_step == 2);
   CHECK(std::isfinite(summary.last_psnr));
 }
 
-TEST_CASE("EMA: the average follows the weights with the warmed-up decay, is checkpointed, resumed and exported", "[train]") {
+TEST_CASE("EMA: the average follows the weights with the warmed-up decay, is checkpointed, resumed and exported",
+          "[train]") {
   test::Scratch s("ema");
   Setup setup;
   auto make = [&](const std::filesystem::path& out, int64_t iterations) {
@@ -229,8 +233,8 @@ TEST_CASE("EMA: the average follows the weights with the warmed-up decay, is che
     Discriminator d(discriminator_options(setup.config));
     auto opt = setup.options(out, iterations);
     opt.ema_decay = 0.9;
-    return GanTrainer(g, d, Vgg16Features(nullptr), std::make_shared<MemoryPairs>(6), load_all(MemoryPairs(2), 0, 1), opt,
-                      setup.config, setup.camera);
+    return GanTrainer(g, d, Vgg16Features(nullptr), std::make_shared<MemoryPairs>(6), load_all(MemoryPairs(2), 0, 1),
+                      opt, setup.config, setup.camera);
   };
   {
     auto straight = make(s.dir / "straight", 4);
@@ -321,7 +325,8 @@ void with_ranks(int world, const std::function<void(int, ProcessGroup&)>& fn) {
 
 }  // namespace
 
-TEST_CASE("distributed: two ranks start from rank 0's weights and hold bit-identical parameters after every step", "[train][dist]") {
+TEST_CASE("distributed: two ranks start from rank 0's weights and hold bit-identical parameters after every step",
+          "[train][dist]") {
   test::Scratch s("dist_sync");
   Setup setup;
   std::vector<Generator> gens;
@@ -333,11 +338,13 @@ TEST_CASE("distributed: two ranks start from rank 0's weights and hold bit-ident
     discs.emplace_back(discriminator_options(setup.config));
     auto opt = setup.options(s.dir / ("rank" + std::to_string(r)), 3);
     opt.check_sync_every = 1;  // the trainer compares checksums across ranks after every step
-    trainers.push_back(std::make_unique<GanTrainer>(gens[r], discs[r], Vgg16Features(nullptr), std::make_shared<MemoryPairs>(6),
-                                                    load_all(MemoryPairs(2), 0, 1), opt, setup.config, setup.camera));
+    trainers.push_back(std::make_unique<GanTrainer>(gens[r], discs[r], Vgg16Features(nullptr),
+                                                    std::make_shared<MemoryPairs>(6), load_all(MemoryPairs(2), 0, 1),
+                                                    opt, setup.config, setup.camera));
   }
   bool differ = false;
-  for (const auto& p : gens[0]->named_parameters()) differ = differ || !torch::equal(p.value(), gens[1]->named_parameters()[p.key()]);
+  for (const auto& p : gens[0]->named_parameters())
+    differ = differ || !torch::equal(p.value(), gens[1]->named_parameters()[p.key()]);
   CHECK(differ);
   with_ranks(2, [&](int r, ProcessGroup& group) {
     trainers[r]->set_distributed(&group);
@@ -349,12 +356,14 @@ TEST_CASE("distributed: two ranks start from rank 0's weights and hold bit-ident
     INFO(p.key());
     CHECK(torch::equal(p.value(), b[p.key()]));
   }
-  for (const auto& p : discs[0]->named_parameters()) CHECK(torch::equal(p.value(), discs[1]->named_parameters()[p.key()]));
+  for (const auto& p : discs[0]->named_parameters())
+    CHECK(torch::equal(p.value(), discs[1]->named_parameters()[p.key()]));
   CHECK(std::filesystem::exists(s.dir / "rank0" / "latest.ckpt"));
   CHECK_FALSE(std::filesystem::exists(s.dir / "rank1"));  // only rank 0 writes
 }
 
-TEST_CASE("distributed: with batch norm in eval mode, two ranks at batch 2 equal one process at batch 4", "[train][dist]") {
+TEST_CASE("distributed: with batch norm in eval mode, two ranks at batch 2 equal one process at batch 4",
+          "[train][dist]") {
   Setup setup;
   torch::manual_seed(5);
   Generator reference(generator_options(setup.config, setup.camera, true));
@@ -388,7 +397,8 @@ TEST_CASE("distributed: with batch norm in eval mode, two ranks at batch 2 equal
   });
   double worst = 0;
   for (const auto& p : single->named_parameters())
-    for (int r = 0; r < 2; ++r) worst = std::max(worst, (p.value() - ranks[r]->named_parameters()[p.key()]).abs().max().item<double>());
+    for (int r = 0; r < 2; ++r)
+      worst = std::max(worst, (p.value() - ranks[r]->named_parameters()[p.key()]).abs().max().item<double>());
   CHECK(worst < 1e-5);
   // ... and the steps did change the weights, so the agreement is not that of untouched copies.
   const auto before = clone();

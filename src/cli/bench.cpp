@@ -19,11 +19,13 @@ int bench(int argc, char** argv) {
   o.add_options()("rows", "comma list of rows (default: all)", cxxopts::value<std::string>())(
       "repeats", "timed runs per row", cxxopts::value<int>()->default_value("5"))(
       "warmup", "untimed runs before them", cxxopts::value<int>()->default_value("1"))(
-      "levers", "inference levers for infer_*: none, or a list of fold, channels-last, gemm-up, bf16, onednn (onednn: with bf16)",
+      "levers",
+      "inference levers for infer_*: none, or a list of fold, channels-last, gemm-up, bf16, onednn (onednn: with bf16)",
       cxxopts::value<std::string>()->default_value("fold,channels-last,gemm-up,onednn"))(
       "json", "also write the results to this JSON file", cxxopts::value<std::string>())(
-      "precision", "auto|fp32|bf16|both: precision of the infer_* and train_* rows (both: each row twice, the bf16 "
-                   "one named ROW_bf16); auto is bf16 where the CPU has it natively",
+      "precision",
+      "auto|fp32|bf16|both: precision of the infer_* and train_* rows (both: each row twice, the bf16 "
+      "one named ROW_bf16); auto is bf16 where the CPU has it natively",
       cxxopts::value<std::string>()->default_value("auto"));
   add_common(o);
   cxxopts::ParseResult r;
@@ -43,30 +45,45 @@ int bench(int argc, char** argv) {
   }
   const auto choice = r["precision"].as<std::string>();
   std::vector<bool> precisions;  // bf16 or not, per pass over a precision-dependent row
-  if (choice == "both") precisions = {false, true};
-  else precisions = {resolve_precision(choice, "--precision") == Precision::bf16};
+  if (choice == "both")
+    precisions = {false, true};
+  else
+    precisions = {resolve_precision(choice, "--precision") == Precision::bf16};
   if (precisions.back()) request_amx_permission();
   const int threads = at::get_num_threads();
   const auto& cpu = cpu_features();
-  std::cout << "flatnet bench: " << threads << " threads, " << opt.repeats << " runs after " << opt.warmup << " warm-up\n"
+  std::cout << "flatnet bench: " << threads << " threads, " << opt.repeats << " runs after " << opt.warmup
+            << " warm-up\n"
             << "cpu: " << cpu.summary() << "; bf16: " << cpu.bf16_engine() << "\n";
-  std::cout << std::left << std::setw(13) << "row" << std::right << std::setw(12) << "median ms" << std::setw(12) << "min ms"
-            << std::setw(12) << "peak MB" << std::setw(12) << "per s" << "  what\n";
-  nlohmann::json out = {{"tool", "flatnet"}, {"threads", threads}, {"repeats", opt.repeats}, {"cpu", cpu.summary()},
+  std::cout << std::left << std::setw(13) << "row" << std::right << std::setw(12) << "median ms" << std::setw(12)
+            << "min ms" << std::setw(12) << "peak MB" << std::setw(12) << "per s"
+            << "  what\n";
+  nlohmann::json out = {{"tool", "flatnet"},
+                        {"threads", threads},
+                        {"repeats", opt.repeats},
+                        {"cpu", cpu.summary()},
                         {"rows", nlohmann::json::array()}};
   std::vector<std::pair<std::string, bool>> plan;
   for (const auto& name : rows) {
-    if (!bench_row_has_precision(name)) plan.emplace_back(name, false);
-    else for (bool bf16 : precisions) plan.emplace_back(name, bf16);
+    if (!bench_row_has_precision(name))
+      plan.emplace_back(name, false);
+    else
+      for (bool bf16 : precisions) plan.emplace_back(name, bf16);
   }
   for (const auto& [name, bf16] : plan) {
     opt.bf16 = bf16;
     const auto row = run_bench_row(name, opt);
-    std::cout << std::left << std::setw(13) << row.name << std::right << std::fixed << std::setprecision(2) << std::setw(12)
-              << row.median_ms << std::setw(12) << row.min_ms << std::setprecision(0) << std::setw(12) << row.peak_rss_mb
-              << std::setprecision(2) << std::setw(12) << row.per_second << "  " << row.what << std::endl;
-    out["rows"].push_back({{"name", row.name}, {"what", row.what}, {"median_ms", row.median_ms}, {"min_ms", row.min_ms},
-                           {"runs_ms", row.ms}, {"peak_rss_mb", row.peak_rss_mb}, {"per_second", row.per_second}});
+    std::cout << std::left << std::setw(13) << row.name << std::right << std::fixed << std::setprecision(2)
+              << std::setw(12) << row.median_ms << std::setw(12) << row.min_ms << std::setprecision(0) << std::setw(12)
+              << row.peak_rss_mb << std::setprecision(2) << std::setw(12) << row.per_second << "  " << row.what
+              << std::endl;
+    out["rows"].push_back({{"name", row.name},
+                           {"what", row.what},
+                           {"median_ms", row.median_ms},
+                           {"min_ms", row.min_ms},
+                           {"runs_ms", row.ms},
+                           {"peak_rss_mb", row.peak_rss_mb},
+                           {"per_second", row.per_second}});
   }
   if (r.count("json")) write_text_atomically(r["json"].as<std::string>(), out.dump(2) + "\n");
   return 0;

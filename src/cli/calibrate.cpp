@@ -17,14 +17,16 @@ int calibrate(int argc, char** argv) {
                      "              flatnet calibrate --captures DIR2 --camera CAMERA.yaml --out calib.mat");
   o.add_options()("rig", "simulate the captures with this rig (.mat) or camera (.yaml)", cxxopts::value<std::string>())(
       "captures", "folder of real captures, one PNG per pattern name", cxxopts::value<std::string>())(
-      "write-patterns", "write the pattern images for display into this folder and stop", cxxopts::value<std::string>())(
-      "camera", "camera .yaml for --captures (geometry, preprocessing)", cxxopts::value<std::string>())(
-      "out", "calibration .mat to write (FlatNet layout)", cxxopts::value<std::string>())(
-      "force", "replace an existing --out file")(
-      "average", "frames averaged per pattern (simulated)", cxxopts::value<int>()->default_value("4"))(
+      "write-patterns", "write the pattern images for display into this folder and stop",
+      cxxopts::value<std::string>())("camera", "camera .yaml for --captures (geometry, preprocessing)",
+                                     cxxopts::value<std::string>())("out", "calibration .mat to write (FlatNet layout)",
+                                                                    cxxopts::value<std::string>())(
+      "force", "replace an existing --out file")("average", "frames averaged per pattern (simulated)",
+                                                 cxxopts::value<int>()->default_value("4"))(
       "noise", "on|off (simulated)", cxxopts::value<std::string>()->default_value("on"))(
       "seed", "noise seed (simulated)", cxxopts::value<uint64_t>()->default_value("0"))(
-      "level", "display code (sRGB, 1..255) of the patterns' bright parts", cxxopts::value<int>()->default_value(std::to_string(kDefaultPatternLevel)));
+      "level", "display code (sRGB, 1..255) of the patterns' bright parts",
+      cxxopts::value<int>()->default_value(std::to_string(kDefaultPatternLevel)));
   add_common(o);
   cxxopts::ParseResult r;
   if (!parse(o, argc, argv, r)) return 0;

@@ -26,10 +26,12 @@ void add_camera_flags(cxxopts::Options& o) {
       "exposure", "exposure time, microseconds (auto exposure is switched off)", cxxopts::value<double>())(
       "gain", "gain, dB (auto gain is switched off)", cxxopts::value<double>())(
       "frame-rate", "acquisition frame rate, Hz", cxxopts::value<double>())(
-      "region", "sensor region WxH+X+Y, or 'keep' (default: the camera file's raw size at +0+0)", cxxopts::value<std::string>())(
-      "packet-size", "GigE Vision packet size, bytes (default: negotiated)", cxxopts::value<int64_t>()->default_value("0"))(
+      "region", "sensor region WxH+X+Y, or 'keep' (default: the camera file's raw size at +0+0)",
+      cxxopts::value<std::string>())("packet-size", "GigE Vision packet size, bytes (default: negotiated)",
+                                     cxxopts::value<int64_t>()->default_value("0"))(
       "timeout-ms", "wait per frame before it counts as failed", cxxopts::value<int>()->default_value("2000"))(
-      "retries", "failed frames (timeout, incomplete, disconnect) retried before giving up", cxxopts::value<int>()->default_value("3"));
+      "retries", "failed frames (timeout, incomplete, disconnect) retried before giving up",
+      cxxopts::value<int>()->default_value("3"));
 }
 
 std::array<int64_t, 4> parse_region(const std::string& s) {
@@ -37,7 +39,8 @@ std::array<int64_t, 4> parse_region(const std::string& s) {
   char sep1 = 0;
   std::istringstream in(s);
   in >> w >> sep1 >> h;
-  require(!in.fail() && (sep1 == 'x' || sep1 == 'X') && w > 0 && h > 0, "--region", "expected WxH or WxH+X+Y, got '" + s + "'");
+  require(!in.fail() && (sep1 == 'x' || sep1 == 'X') && w > 0 && h > 0, "--region",
+          "expected WxH or WxH+X+Y, got '" + s + "'");
   if (in.peek() == '+') {
     char p1 = 0, p2 = 0;
     in >> p1 >> x >> p2 >> y;
@@ -65,16 +68,19 @@ DeviceSettings device_settings(const cxxopts::ParseResult& r, const CameraConfig
 }
 
 std::unique_ptr<FrameSource> open_from_flags(const cxxopts::ParseResult& r, const CameraConfig& camera) {
-  require(r.count("device"), "--device", "required ('flatnet cameras' lists the connected cameras; 'fake' is Aravis's simulator)");
+  require(r.count("device"), "--device",
+          "required ('flatnet cameras' lists the connected cameras; 'fake' is Aravis's simulator)");
   return open_camera(r["device"].as<std::string>(), device_settings(r, camera));
 }
 
 void add_display_flags(cxxopts::Options& o) {
   o.add_options("display")("display", "window | none (headless: nothing is shown)",
                            cxxopts::value<std::string>()->default_value("window"))(
-      "monitor", "X,Y: top-left of the monitor to use in the desktop (see xrandr)", cxxopts::value<std::string>()->default_value("0,0"))(
-      "scale", "integer magnification of the scene on screen (0: largest that fits)", cxxopts::value<int>()->default_value("0"))(
-      "settle-ms", "wait after showing a scene before the frames that count", cxxopts::value<int>()->default_value("500"));
+      "monitor", "X,Y: top-left of the monitor to use in the desktop (see xrandr)",
+      cxxopts::value<std::string>()->default_value("0,0"))(
+      "scale", "integer magnification of the scene on screen (0: largest that fits)",
+      cxxopts::value<int>()->default_value("0"))("settle-ms", "wait after showing a scene before the frames that count",
+                                                 cxxopts::value<int>()->default_value("500"));
 }
 
 DisplayOptions display_options(const cxxopts::ParseResult& r) {
@@ -91,7 +97,8 @@ DisplayOptions display_options(const cxxopts::ParseResult& r) {
 
 // Flags and objects every display-capture command shares.
 void add_collect_flags(cxxopts::Options& o, int default_average) {
-  o.add_options("collection")("average", "frames averaged per capture", cxxopts::value<int>()->default_value(std::to_string(default_average)))(
+  o.add_options("collection")("average", "frames averaged per capture",
+                              cxxopts::value<int>()->default_value(std::to_string(default_average)))(
       "limit", "stop after this many new captures (0: all)", cxxopts::value<int64_t>()->default_value("0"));
   add_camera_flags(o);
   add_display_flags(o);
@@ -136,7 +143,8 @@ int cameras(int argc, char** argv) {
   if (!parse(o, argc, argv, r)) return 0;
   const auto list = list_cameras(r.count("fake") > 0);
   if (list.empty()) {
-    std::cout << "no cameras found (USB: check the udev rules and permissions; GigE: same subnet, firewall; see README)\n";
+    std::cout
+        << "no cameras found (USB: check the udev rules and permissions; GigE: same subnet, firewall; see README)\n";
     return 0;
   }
   for (const auto& d : list)
@@ -147,10 +155,11 @@ int cameras(int argc, char** argv) {
 
 int capture(int argc, char** argv) {
   cxxopts::Options o("flatnet capture", "Capture raw frames (16-bit PNG + JSON sidecar) from a camera.");
-  o.add_options()("out", "output folder", cxxopts::value<std::string>())(
-      "frames", "captures to write", cxxopts::value<int>()->default_value("1"))(
+  o.add_options()("out", "output folder", cxxopts::value<std::string>())("frames", "captures to write",
+                                                                         cxxopts::value<int>()->default_value("1"))(
       "average", "frames averaged into each capture", cxxopts::value<int>()->default_value("1"))(
-      "prefix", "file name prefix (PREFIX_0000.png, after any already there)", cxxopts::value<std::string>()->default_value("capture"));
+      "prefix", "file name prefix (PREFIX_0000.png, after any already there)",
+      cxxopts::value<std::string>()->default_value("capture"));
   add_camera_flags(o);
   add_common(o);
   cxxopts::ParseResult r;
@@ -167,17 +176,19 @@ int capture(int argc, char** argv) {
   watch_interrupts();
   const auto rep = capture_frames(*source, opt);
   std::cout << "wrote " << rep.written << " captures (" << source->format().name << ", " << source->format().bits
-            << "-bit, mean of " << opt.average << ") to " << opt.out.string() << " from index " << rep.first_index << "; "
-            << rep.frames_per_s << " frames/s";
-  if (source->recovered_failures() > 0) std::cout << "; recovered from " << source->recovered_failures() << " failed frames";
+            << "-bit, mean of " << opt.average << ") to " << opt.out.string() << " from index " << rep.first_index
+            << "; " << rep.frames_per_s << " frames/s";
+  if (source->recovered_failures() > 0)
+    std::cout << "; recovered from " << source->recovered_failures() << " failed frames";
   std::cout << "\n";
   return interrupted() ? 130 : 0;
 }
 
 int capture_dataset(int argc, char** argv) {
-  cxxopts::Options o("flatnet capture-dataset",
-                     "Display-capture dataset: show each photograph full screen, capture, write a FlatNet-layout pair.\n"
-                     "Resumable: run the same command again after an interruption.");
+  cxxopts::Options o(
+      "flatnet capture-dataset",
+      "Display-capture dataset: show each photograph full screen, capture, write a FlatNet-layout pair.\n"
+      "Resumable: run the same command again after an interruption.");
   o.add_options()("images", "folder of photographs", cxxopts::value<std::string>())(
       "out", "dataset folder (meas/, gt/, train_*.txt, val_*.txt)", cxxopts::value<std::string>())(
       "val-fraction", "share of photographs in the validation lists", cxxopts::value<double>()->default_value("0.1"))(
@@ -203,25 +214,30 @@ int capture_dataset(int argc, char** argv) {
 }
 
 int capture_calibration(int argc, char** argv) {
-  cxxopts::Options o("flatnet capture-calibration",
-                     "Show the separable Hadamard calibration patterns, capture each, then calibrate (Asif et al. 2017).\n"
-                     "Resumable: run the same command again after an interruption.");
+  cxxopts::Options o(
+      "flatnet capture-calibration",
+      "Show the separable Hadamard calibration patterns, capture each, then calibrate (Asif et al. 2017).\n"
+      "Resumable: run the same command again after an interruption.");
   o.add_options()("out", "folder for the pattern captures (NAME.png + NAME.json)", cxxopts::value<std::string>())(
-      "calib-out", "calibration .mat to write once every pattern is captured (default: OUT/calib.mat)", cxxopts::value<std::string>())(
-      "level", "display code (sRGB, 1..255) of the patterns' bright parts", cxxopts::value<int>()->default_value(std::to_string(kDefaultPatternLevel)));
+      "calib-out", "calibration .mat to write once every pattern is captured (default: OUT/calib.mat)",
+      cxxopts::value<std::string>())("level", "display code (sRGB, 1..255) of the patterns' bright parts",
+                                     cxxopts::value<int>()->default_value(std::to_string(kDefaultPatternLevel)));
   add_collect_flags(o, 4);
   cxxopts::ParseResult r;
   if (!parse(o, argc, argv, r)) return 0;
   require(r.count("out"), "capture-calibration", "--out DIR is required");
   const auto camera = camera_from(r);
   const std::filesystem::path out = r["out"].as<std::string>();
-  const std::filesystem::path calib_out = r.count("calib-out") ? std::filesystem::path(r["calib-out"].as<std::string>()) : out / "calib.mat";
+  const std::filesystem::path calib_out =
+      r.count("calib-out") ? std::filesystem::path(r["calib-out"].as<std::string>()) : out / "calib.mat";
   const int level = r["level"].as<int>();
   std::vector<CollectItem> items;
-  for (auto& p : calibration_patterns(camera.scene_size, level)) items.push_back({p.name + ".png", [img = p.image] { return img; }});
+  for (auto& p : calibration_patterns(camera.scene_size, level))
+    items.push_back({p.name + ".png", [img = p.image] { return img; }});
   std::filesystem::create_directories(out);
   auto session = open_collection(r, camera);
-  const auto rep = collect(items, *session.source, *session.display, collect_options(r), [&](const std::string& n) { return out / n; });
+  const auto rep = collect(items, *session.source, *session.display, collect_options(r),
+                           [&](const std::string& n) { return out / n; });
   print_report(rep, "capture-calibration " + out.string());
   if (rep.stopped) {
     std::cout << "run the same command again to continue; the calibration is computed once all " << rep.total
@@ -240,8 +256,9 @@ int live(int argc, char** argv) {
       "calib", "calibration .mat for Tikhonov (default: the camera file's)", cxxopts::value<std::string>())(
       "lambda", "Tikhonov regulariser (default: the camera file's)", cxxopts::value<double>()->default_value("0"))(
       "no-window", "print the frame rate instead of showing the reconstruction")(
-      "frames", "stop after this many frames (0: until Esc, q or Ctrl-C)", cxxopts::value<int64_t>()->default_value("0"))(
-      "seconds", "stop after this long (0: no limit)", cxxopts::value<double>()->default_value("0"))(
+      "frames", "stop after this many frames (0: until Esc, q or Ctrl-C)",
+      cxxopts::value<int64_t>()->default_value("0"))("seconds", "stop after this long (0: no limit)",
+                                                     cxxopts::value<double>()->default_value("0"))(
       "scale", "magnification of the reconstruction on screen", cxxopts::value<int>()->default_value("2"));
   add_precision(o);
   add_camera_flags(o);
@@ -267,7 +284,8 @@ int live(int argc, char** argv) {
     };
     method = "FlatNet " + r["model"].as<std::string>();
   } else {
-    const std::filesystem::path calib_path = r.count("calib") ? std::filesystem::path(r["calib"].as<std::string>()) : camera.calibration;
+    const std::filesystem::path calib_path =
+        r.count("calib") ? std::filesystem::path(r["calib"].as<std::string>()) : camera.calibration;
     require(!calib_path.empty(), "live", "no calibration: pass --calib, --model, or a camera file that names one");
     const double lambda = r["lambda"].as<double>() > 0 ? r["lambda"].as<double>() : camera.tikhonov_lambda;
     auto tik = std::make_shared<Tikhonov>(load_calibration(calib_path, camera), lambda);
@@ -294,8 +312,9 @@ int live(int argc, char** argv) {
   std::cout << "live: " << method << ", camera " << source->describe()["device"].get<std::string>() << " ("
             << source->format().name << "); Esc, q or Ctrl-C stops\n";
   const auto s = run_live(*source, reconstruct, display.get(), opt);
-  std::cout << "live: " << s.frames << " frames, " << s.fps << " fps (per frame: grab " << s.grab_ms << " ms, preprocess "
-            << s.preprocess_ms << " ms, reconstruct " << s.reconstruct_ms << " ms, show " << s.show_ms << " ms)\n";
+  std::cout << "live: " << s.frames << " frames, " << s.fps << " fps (per frame: grab " << s.grab_ms
+            << " ms, preprocess " << s.preprocess_ms << " ms, reconstruct " << s.reconstruct_ms << " ms, show "
+            << s.show_ms << " ms)\n";
   return 0;
 }
 

@@ -8,8 +8,8 @@
 namespace flatnet::cli {
 
 void add_common(cxxopts::Options& options) {
-  options.add_options("common")("threads", "CPU threads (default: all cores)", cxxopts::value<int>()->default_value("0"))(
-      "h,help", "show this help");
+  options.add_options("common")("threads", "CPU threads (default: all cores)",
+                                cxxopts::value<int>()->default_value("0"))("h,help", "show this help");
 }
 
 namespace {
@@ -61,7 +61,8 @@ bool parse(cxxopts::Options& options, int argc, char** argv, cxxopts::ParseResul
       const bool next = arg.rfind("--", 0) == 0 && i + 1 < argc && quoted(argv[i + 1]);
       if (attached || next)
         throw Error(arg.substr(0, attached ? eq : std::string::npos),
-                    "'" + (attached ? arg.substr(eq + 1) : std::string(argv[i + 1])) + "' is not a valid value for this option");
+                    "'" + (attached ? arg.substr(eq + 1) : std::string(argv[i + 1])) +
+                        "' is not a valid value for this option");
     }
     throw;
   }
@@ -75,7 +76,8 @@ bool parse(cxxopts::Options& options, int argc, char** argv, cxxopts::ParseResul
   return true;
 }
 
-void require_new_output(const std::filesystem::path& out, bool force, const std::vector<std::filesystem::path>& inputs) {
+void require_new_output(const std::filesystem::path& out, bool force,
+                        const std::vector<std::filesystem::path>& inputs) {
   std::error_code ec;
   for (const auto& in : inputs)
     if (!in.empty() && std::filesystem::exists(in) && std::filesystem::equivalent(in, out, ec))
@@ -101,7 +103,8 @@ Precision precision_from(const cxxopts::ParseResult& r) {
 }
 
 CameraConfig camera_from(const cxxopts::ParseResult& r, const std::string& flag) {
-  const std::filesystem::path p = r.count(flag) ? std::filesystem::path(r[flag].as<std::string>()) : default_camera_path();
+  const std::filesystem::path p =
+      r.count(flag) ? std::filesystem::path(r[flag].as<std::string>()) : default_camera_path();
   return load_camera_config(p);
 }
 

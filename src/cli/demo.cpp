@@ -16,8 +16,8 @@ namespace {
 
 // Photographs that Debian's python3-skimage ships (installed by scripts/setup.sh).
 const char* kDemoImageDir = "/usr/lib/python3/dist-packages/skimage/data";
-const std::vector<std::string> kDemoImages = {"astronaut.png", "chelsea.png", "coffee.png",
-                                              "rocket.jpg", "motorcycle_left.png", "hubble_deep_field.jpg"};
+const std::vector<std::string> kDemoImages = {"astronaut.png", "chelsea.png",         "coffee.png",
+                                              "rocket.jpg",    "motorcycle_left.png", "hubble_deep_field.jpg"};
 
 std::filesystem::path gather_demo_images(const std::filesystem::path& src, const std::filesystem::path& dst) {
   std::filesystem::create_directories(dst);
@@ -27,7 +27,8 @@ std::filesystem::path gather_demo_images(const std::filesystem::path& src, const
     std::filesystem::copy_file(src / name, dst / name, std::filesystem::copy_options::skip_existing);
     ++found;
   }
-  require(found > 0, src, "no demo photographs here; run scripts/setup.sh (installs python3-skimage) or pass --images DIR");
+  require(found > 0, src,
+          "no demo photographs here; run scripts/setup.sh (installs python3-skimage) or pass --images DIR");
   return dst;
 }
 
@@ -85,7 +86,8 @@ int demo(int argc, char** argv) {
     io.levers.bf16 = bf16;
     // The model's own preprocessing (its light-level centring, say) unless --camera names one.
     const auto rep = infer_files(model.generator, r.count("camera") ? camera : model.camera, captures, io);
-    std::cout << "  " << method << ": " << rep.model_ms_per_image << " ms per capture (" << path.filename().string() << ")\n";
+    std::cout << "  " << method << ": " << rep.model_ms_per_image << " ms per capture (" << path.filename().string()
+              << ")\n";
   }
 
   std::cout << "[3/3] evaluating\n";

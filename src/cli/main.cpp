@@ -15,7 +15,8 @@ const std::map<std::string, std::pair<int (*)(int, char**), const char*>> kComma
     {"calibrate", {flatnet::cli::calibrate, "estimate a calibration (P, Q) from separable pattern captures"}},
     {"recon", {flatnet::cli::recon, "classical reconstruction (Tikhonov, TV) of raw captures"}},
     {"eval", {flatnet::cli::eval, "PSNR/SSIM/NIQE of reconstructions against ground truth, with a contact sheet"}},
-    {"report", {flatnet::cli::report, "every method on every held-out set: the thesis's table and figures (report.md)"}},
+    {"report",
+     {flatnet::cli::report, "every method on every held-out set: the thesis's table and figures (report.md)"}},
     {"train", {flatnet::cli::train, "train a FlatNet reconstruction network (resumable)"}},
     {"infer", {flatnet::cli::infer, "reconstruct raw captures with a trained model"}},
     {"export", {flatnet::cli::export_model, "checkpoint -> model file, or model -> PyTorch state_dict"}},
@@ -24,7 +25,8 @@ const std::map<std::string, std::pair<int (*)(int, char**), const char*>> kComma
     {"cameras", {flatnet::cli::cameras, "list the cameras Aravis can reach (GenICam: USB3 Vision, GigE Vision)"}},
     {"capture", {flatnet::cli::capture, "capture averaged raw frames from a camera (16-bit PNG + JSON sidecar)"}},
     {"capture-dataset", {flatnet::cli::capture_dataset, "display-capture dataset collection (resumable)"}},
-    {"capture-calibration", {flatnet::cli::capture_calibration, "show and capture the calibration patterns, then calibrate"}},
+    {"capture-calibration",
+     {flatnet::cli::capture_calibration, "show and capture the calibration patterns, then calibrate"}},
     {"live", {flatnet::cli::live, "live view: grab, reconstruct (Tikhonov or FlatNet), show with the frame rate"}},
     {"bench", {flatnet::cli::bench, "time the hot paths (scripts/bench_compare.sh compares them with PyTorch)"}},
     {"demo", {flatnet::cli::demo, "simulate, reconstruct and evaluate a few photographs end to end"}},
@@ -32,7 +34,8 @@ const std::map<std::string, std::pair<int (*)(int, char**), const char*>> kComma
 
 void usage() {
   std::cout << "flatnet " << FLATNET_VERSION << ": lensless FlatCam imaging\n\nusage: flatnet <command> [options]\n\n";
-  for (const auto& [name, entry] : kCommands) std::cout << "  " << name << std::string(name.size() < 21 ? 21 - name.size() : 1, ' ') << entry.second << "\n";
+  for (const auto& [name, entry] : kCommands)
+    std::cout << "  " << name << std::string(name.size() < 21 ? 21 - name.size() : 1, ' ') << entry.second << "\n";
   std::cout << "\n'flatnet <command> --help' lists a command's options.\n";
 }
 

@@ -25,9 +25,7 @@ namespace flatnet::cli {
 
 namespace {
 
-std::filesystem::path mask_defaults() {
-  return data_dir() / "configs" / "mask_defaults.yaml";
-}
+std::filesystem::path mask_defaults() { return data_dir() / "configs" / "mask_defaults.yaml"; }
 
 WienerCamera wiener_camera(const Config& c) {
   WienerCamera cam;
@@ -42,7 +40,8 @@ WienerCamera wiener_camera(const Config& c) {
 }
 
 std::vector<std::filesystem::path> first(const std::vector<std::filesystem::path>& v, int64_t n) {
-  return n <= 0 || n >= static_cast<int64_t>(v.size()) ? v : std::vector<std::filesystem::path>(v.begin(), v.begin() + n);
+  return n <= 0 || n >= static_cast<int64_t>(v.size()) ? v
+                                                       : std::vector<std::filesystem::path>(v.begin(), v.begin() + n);
 }
 
 int mask_train(int argc, char** argv) {
@@ -81,7 +80,8 @@ int mask_train(int argc, char** argv) {
   to.out = r["out"].as<std::string>();
   require(to.gamma_init > 0, "train.gamma_init", "must be positive");
   MaskModel model(mo);  // validates rank, projection, throughput rule
-  auto [train_imgs, val_imgs] = split_image_files(c.path("data.images"), c.num("data.val_fraction"), c.integer("data.split_seed"));
+  auto [train_imgs, val_imgs] =
+      split_image_files(c.path("data.images"), c.num("data.val_fraction"), c.integer("data.split_seed"));
   std::cerr << "loading " << first(train_imgs, c.integer("data.train_limit")).size() << " training and "
             << first(val_imgs, c.integer("train.val_count")).size() << " validation photographs...\n";
   const auto train = load_luma_scenes(first(train_imgs, c.integer("data.train_limit")), cam.scene, 2);
@@ -92,7 +92,8 @@ int mask_train(int argc, char** argv) {
   std::cout << "rank " << mo.rank << " mask: validation PSNR " << std::fixed << std::setprecision(2) << s.val_psnr
             << " dB, throughput " << std::setprecision(3) << s.throughput << ", gamma " << std::scientific
             << std::setprecision(3) << s.gamma << std::defaultfloat << " after " << s.steps << " steps in "
-            << format_duration(s.seconds) << "\nwrote " << (to.out / "mask.png").string() << ", vectors.mat, gamma.txt, log.csv, curve.png\n";
+            << format_duration(s.seconds) << "\nwrote " << (to.out / "mask.png").string()
+            << ", vectors.mat, gamma.txt, log.csv, curve.png\n";
   return 0;
 }
 
@@ -100,8 +101,8 @@ int mask_train(int argc, char** argv) {
 int mask_eval(int argc, char** argv) {
   cxxopts::Options o("flatnet mask eval", "Throughput, tuned gamma and mean PSNR of a mask under the Wiener protocol.");
   o.add_options()("mask", "mask.png (16-bit, 65535 = transparent), mls or m02", cxxopts::value<std::string>())(
-      "images", "photographs: gamma is tuned on the first quarter, PSNR measured on the rest", cxxopts::value<std::string>())(
-      "noise", "Gaussian noise sigma", cxxopts::value<double>()->default_value("3e-4"))(
+      "images", "photographs: gamma is tuned on the first quarter, PSNR measured on the rest",
+      cxxopts::value<std::string>())("noise", "Gaussian noise sigma", cxxopts::value<double>()->default_value("3e-4"))(
       "count", "use at most this many photographs (0: all)", cxxopts::value<int>()->default_value("0"));
   add_common(o);
   cxxopts::ParseResult r;
@@ -119,10 +120,11 @@ int mask_eval(int argc, char** argv) {
   const int64_t n_tune = std::max<int64_t>(1, scenes.size(0) / 4);
   const double gamma = tune_gamma(window, scenes.slice(0, 0, n_tune), cam, 777);
   const double psnr = mask_psnr(window, gamma, scenes.slice(n_tune), cam, 4242);
-  std::cout << "mask " << r["mask"].as<std::string>() << ": throughput " << std::setprecision(4) << throughput(window) << ", gamma "
-            << std::scientific << std::setprecision(3) << gamma << std::defaultfloat << " (tuned on " << n_tune
-            << " images), PSNR " << std::fixed << std::setprecision(2) << psnr << " dB on " << scenes.size(0) - n_tune
-            << " images at sigma " << std::scientific << std::setprecision(1) << cam.noise_sigma << "\n";
+  std::cout << "mask " << r["mask"].as<std::string>() << ": throughput " << std::setprecision(4) << throughput(window)
+            << ", gamma " << std::scientific << std::setprecision(3) << gamma << std::defaultfloat << " (tuned on "
+            << n_tune << " images), PSNR " << std::fixed << std::setprecision(2) << psnr << " dB on "
+            << scenes.size(0) - n_tune << " images at sigma " << std::scientific << std::setprecision(1)
+            << cam.noise_sigma << "\n";
   return 0;
 }
 
@@ -130,28 +132,34 @@ std::filesystem::path shipped(const std::string& relative) { return data_dir() /
 
 // A path as a report shows it: relative to the source tree when inside it.
 std::string shown(const std::filesystem::path& p) {
-  const auto rel = std::filesystem::weakly_canonical(p).lexically_relative(std::filesystem::weakly_canonical(data_dir()));
+  const auto rel =
+      std::filesystem::weakly_canonical(p).lexically_relative(std::filesystem::weakly_canonical(data_dir()));
   return !rel.empty() && *rel.begin() != ".." ? rel.string() : p.string();
 }
 
 // NAME=PATH,NAME=PATH -> pairs; errors name the flag.
-std::vector<std::pair<std::string, std::string>> named_paths(const std::vector<std::string>& items, const std::string& flag) {
+std::vector<std::pair<std::string, std::string>> named_paths(const std::vector<std::string>& items,
+                                                             const std::string& flag) {
   std::vector<std::pair<std::string, std::string>> out;
   for (const auto& item : items) {
     const auto eq = item.find('=');
-    require(eq != std::string::npos && eq > 0 && eq + 1 < item.size(), flag, "expects NAME=FILE items, got '" + item + "'");
+    require(eq != std::string::npos && eq > 0 && eq + 1 < item.size(), flag,
+            "expects NAME=FILE items, got '" + item + "'");
     out.emplace_back(item.substr(0, eq), item.substr(eq + 1));
   }
   return out;
 }
 
 int mask_report(int argc, char** argv) {
-  cxxopts::Options o("flatnet mask report",
-                     "Compare masks: the Wiener protocol (learned masks, MLS, 02; noise sweep), then code pairs built into the "
-                     "separable reference camera (Tikhonov and FlatNet on held-out captures; light sweep).");
-  o.add_options()("masks", "folders written by `flatnet mask train` (comma-separated)", cxxopts::value<std::vector<std::string>>())(
-      "images", "photographs; the held-out split (as training's and simulate's) is used", cxxopts::value<std::string>())(
-      "out", "folder for report.md, masks.png, sweep.png, separable_sweep.png", cxxopts::value<std::string>())(
+  cxxopts::Options o(
+      "flatnet mask report",
+      "Compare masks: the Wiener protocol (learned masks, MLS, 02; noise sweep), then code pairs built into the "
+      "separable reference camera (Tikhonov and FlatNet on held-out captures; light sweep).");
+  o.add_options()("masks", "folders written by `flatnet mask train` (comma-separated)",
+                  cxxopts::value<std::vector<std::string>>())(
+      "images", "photographs; the held-out split (as training's and simulate's) is used",
+      cxxopts::value<std::string>())("out", "folder for report.md, masks.png, sweep.png, separable_sweep.png",
+                                     cxxopts::value<std::string>())(
       "noise", "Wiener protocol: noise sigma of the main table", cxxopts::value<double>()->default_value("3e-4"))(
       "tune-count", "held-out photographs that tune gamma and lambda", cxxopts::value<int>()->default_value("50"))(
       "count", "held-out photographs scored after those (0: the rest)", cxxopts::value<int>()->default_value("0"))(
@@ -159,7 +167,8 @@ int mask_report(int argc, char** argv) {
       "separable code pairs NAME=codes.mat (comma-separated; 'none': no separable section). Default: MLS, the shipped "
       "separable-learned codes and their binary variant; rank-1 --masks are added as sign(u), sign(v)",
       cxxopts::value<std::vector<std::string>>())(
-      "sections", "wiener, separable, or both (comma-separated)", cxxopts::value<std::vector<std::string>>()->default_value("wiener,separable"))(
+      "sections", "wiener, separable, or both (comma-separated)",
+      cxxopts::value<std::vector<std::string>>()->default_value("wiener,separable"))(
       "flatnet", "FlatNet models trained on a code pair's camera, NAME=model.flatnet (NAME as in --codes)",
       cxxopts::value<std::vector<std::string>>());
   add_common(o);
@@ -177,7 +186,8 @@ int mask_report(int argc, char** argv) {
   bool separable = false;
   opt.wiener = false;
   for (const auto& section : r["sections"].as<std::vector<std::string>>()) {
-    require(section == "wiener" || section == "separable", "--sections", "takes wiener and/or separable, got '" + section + "'");
+    require(section == "wiener" || section == "separable", "--sections",
+            "takes wiener and/or separable, got '" + section + "'");
     (section == "wiener" ? opt.wiener : separable) = true;
   }
   if (r.count("masks"))
@@ -187,7 +197,8 @@ int mask_report(int argc, char** argv) {
       {"MLS", shipped("models/camera/codes_mls.mat").string()},
       {"separable-learned", shipped("models/masks/separable/codes.mat").string()},
       {"separable-learned binary", shipped("models/masks/separable/binary/codes.mat").string()}};
-  const bool no_codes = r.count("codes") && r["codes"].as<std::vector<std::string>>() == std::vector<std::string>{"none"};
+  const bool no_codes =
+      r.count("codes") && r["codes"].as<std::vector<std::string>>() == std::vector<std::string>{"none"};
   if (r.count("codes") && !no_codes) codes = named_paths(r["codes"].as<std::vector<std::string>>(), "--codes");
   if (separable && !no_codes) {
     for (const auto& [name, path] : codes) {
@@ -199,13 +210,15 @@ int mask_report(int argc, char** argv) {
       if (vectors.read("U").size(1) != 1) continue;  // only rank-1 masks have a separable counterpart
       const auto mapped = codes_from_wiener_mask(dir);
       opt.separable.push_back({"Wiener " + dir.filename().string(), mapped.codes,
-                               "sign of the Wiener-learned vectors in " + shown(dir / "vectors.mat") + " (the mask agrees on " +
-                                   fixed(100 * mapped.agreement, 1) + " % of the window's pixels)",
+                               "sign of the Wiener-learned vectors in " + shown(dir / "vectors.mat") +
+                                   " (the mask agrees on " + fixed(100 * mapped.agreement, 1) +
+                                   " % of the window's pixels)",
                                std::nullopt});
     }
   }
   if (r.count("flatnet")) {
-    require(!opt.separable.empty(), "--flatnet", "needs code pairs (--codes is none, or --sections leaves out separable)");
+    require(!opt.separable.empty(), "--flatnet",
+            "needs code pairs (--codes is none, or --sections leaves out separable)");
     const auto precision = precision_from(r);
     for (const auto& [name, path] : named_paths(r["flatnet"].as<std::vector<std::string>>(), "--flatnet")) {
       auto it = std::find_if(opt.separable.begin(), opt.separable.end(), [&](const auto& c) { return c.name == name; });
@@ -215,9 +228,9 @@ int mask_report(int argc, char** argv) {
       levers.bf16 = precision == Precision::bf16;
       model.generator->prepare_inference(levers);
       auto generator = model.generator;
-      it->flatnet = CameraModel{[generator](const torch::Tensor& planes) mutable { return generator->forward(planes); },
-                                model.camera.raw,
-                                shown(path) + " (" + model.config.str("train.iterations") + " steps)"};
+      it->flatnet =
+          CameraModel{[generator](const torch::Tensor& planes) mutable { return generator->forward(planes); },
+                      model.camera.raw, shown(path) + " (" + model.config.str("train.iterations") + " steps)"};
     }
   }
   opt.separable_options.geometry = load_camera_config(default_camera_path()).raw;
@@ -232,9 +245,11 @@ int mask_report(int argc, char** argv) {
 int mask_separable(int argc, char** argv) {
   cxxopts::Options o("flatnet mask separable",
                      "Learn a separable FlatCam's codes end to end: codes -> PhiL/PhiR -> noisy capture -> Tikhonov.");
-  o.add_options()("images", "photographs (the training side of simulate's split is used)", cxxopts::value<std::string>())(
-      "out", "folder for codes.mat, lambda.txt, log.csv, curve.png", cxxopts::value<std::string>())(
-      "init", "mls (models/camera/codes_mls.mat), random, or a codes .mat", cxxopts::value<std::string>()->default_value("mls"))(
+  o.add_options()("images", "photographs (the training side of simulate's split is used)",
+                  cxxopts::value<std::string>())("out", "folder for codes.mat, lambda.txt, log.csv, curve.png",
+                                                 cxxopts::value<std::string>())(
+      "init", "mls (models/camera/codes_mls.mat), random, or a codes .mat",
+      cxxopts::value<std::string>()->default_value("mls"))(
       "binary", "sign(u), sign(v) forward, straight-through gradients (a fabricable 0/1 mask)")(
       "iterations", "steps", cxxopts::value<int64_t>()->default_value("1000"))(
       "batch", "scenes per step", cxxopts::value<int64_t>()->default_value("8"))(
@@ -250,10 +265,13 @@ int mask_separable(int argc, char** argv) {
   SeparableTrainOptions opt;
   opt.images = r["images"].as<std::string>();
   opt.out = r["out"].as<std::string>();
-  require(!std::filesystem::exists(opt.out / "codes.mat"), opt.out, "already holds learned codes; choose another --out");
+  require(!std::filesystem::exists(opt.out / "codes.mat"), opt.out,
+          "already holds learned codes; choose another --out");
   const auto init = r["init"].as<std::string>();
-  if (init == "mls") opt.init_codes = data_dir() / "models" / "camera" / "codes_mls.mat";
-  else if (init != "random") opt.init_codes = init;
+  if (init == "mls")
+    opt.init_codes = data_dir() / "models" / "camera" / "codes_mls.mat";
+  else if (init != "random")
+    opt.init_codes = init;
   opt.binary = r.count("binary") > 0;
   opt.iterations = r["iterations"].as<int64_t>();
   opt.batch = r["batch"].as<int64_t>();
@@ -277,16 +295,19 @@ int mask_separable(int argc, char** argv) {
 
 // flatnet mask camera: the reference camera with another separable code pair.
 int mask_camera(int argc, char** argv) {
-  cxxopts::Options o("flatnet mask camera",
-                     "Build the reference camera with a separable code pair: rig.mat, calib.mat (with estimation error) "
-                     "and camera.yaml, for simulate, calibrate, recon and train.");
-  o.add_options()("codes", ".mat with code_rows and code_cols (vectors, values in [-1, 1]); models/camera/codes_mls.mat is MLS",
+  cxxopts::Options o(
+      "flatnet mask camera",
+      "Build the reference camera with a separable code pair: rig.mat, calib.mat (with estimation error) "
+      "and camera.yaml, for simulate, calibrate, recon and train.");
+  o.add_options()("codes",
+                  ".mat with code_rows and code_cols (vectors, values in [-1, 1]); models/camera/codes_mls.mat is MLS",
                   cxxopts::value<std::string>())("out", "folder to write", cxxopts::value<std::string>())(
-      "calib-error", "relative (Frobenius) error of the calibration, as a real one has", cxxopts::value<double>()->default_value("0.03"))(
-      "seed", "seed of that error", cxxopts::value<uint64_t>()->default_value("0"))(
+      "calib-error", "relative (Frobenius) error of the calibration, as a real one has",
+      cxxopts::value<double>()->default_value("0.03"))("seed", "seed of that error",
+                                                       cxxopts::value<uint64_t>()->default_value("0"))(
       "centring", "plane, or level (for models that read the light level, as the shipped ones)",
-      cxxopts::value<std::string>()->default_value("plane"))(
-      "force", "replace the files of an existing camera in --out");
+      cxxopts::value<std::string>()->default_value("plane"))("force",
+                                                             "replace the files of an existing camera in --out");
   add_common(o);
   cxxopts::ParseResult r;
   if (!parse(o, argc, argv, r)) return 0;
@@ -298,7 +319,8 @@ int mask_camera(int argc, char** argv) {
   const auto& u = codes.rows;
   const auto& v = codes.cols;
   std::filesystem::create_directories(out);
-  for (const char* f : {"rig.mat", "calib.mat", "camera.yaml"}) require_new_output(out / f, r.count("force") > 0, {codes_path});
+  for (const char* f : {"rig.mat", "calib.mat", "camera.yaml"})
+    require_new_output(out / f, r.count("force") > 0, {codes_path});
   const auto rig = separable_rig(u, v);
   auto camera = load_camera_config(default_camera_path());
   camera.name = out.filename().string();
@@ -306,12 +328,13 @@ int mask_camera(int argc, char** argv) {
   const auto calib = calibration_of(rig, camera.raw.crop, error, r["seed"].as<uint64_t>());
   save_rig(out / "rig.mat", rig);
   save_calibration(out / "calib.mat", calib);
-  write_text_atomically(out / "camera.yaml",
-                        "# The reference camera with the codes of " + codes_path.string() + " (`flatnet mask camera`)\n" +
-                            camera_geometry_yaml(camera) + "calibration: calib.mat\nrig: rig.mat\n");
-  std::cout << "camera with codes " << codes_path.string() << " (" << u.numel() << " x " << v.numel() << " features, mean "
-            << "transmittance " << codes.throughput() << "): "
-            << (out / "camera.yaml").string() << ", rig.mat, calib.mat (" << error * 100 << " % error)\n";
+  write_text_atomically(out / "camera.yaml", "# The reference camera with the codes of " + codes_path.string() +
+                                                 " (`flatnet mask camera`)\n" + camera_geometry_yaml(camera) +
+                                                 "calibration: calib.mat\nrig: rig.mat\n");
+  std::cout << "camera with codes " << codes_path.string() << " (" << u.numel() << " x " << v.numel()
+            << " features, mean "
+            << "transmittance " << codes.throughput() << "): " << (out / "camera.yaml").string()
+            << ", rig.mat, calib.mat (" << error * 100 << " % error)\n";
   return 0;
 }
 

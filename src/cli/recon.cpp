@@ -17,8 +17,8 @@ int recon(int argc, char** argv) {
   o.add_options()("method", "tikhonov | tv", cxxopts::value<std::string>()->default_value("tikhonov"))(
       "camera", "camera .yaml (default: the reference camera)", cxxopts::value<std::string>())(
       "calib", "calibration .mat (default: the camera's)", cxxopts::value<std::string>())(
-      "input", "raw capture PNG or folder of them", cxxopts::value<std::string>())(
-      "out", "output folder", cxxopts::value<std::string>())(
+      "input", "raw capture PNG or folder of them", cxxopts::value<std::string>())("out", "output folder",
+                                                                                   cxxopts::value<std::string>())(
       "lambda", "regularisation weight (default: the camera file's)", cxxopts::value<double>()->default_value("0"))(
       "batch", "captures per batch", cxxopts::value<int>()->default_value("8"));
   add_common(o);
@@ -26,7 +26,8 @@ int recon(int argc, char** argv) {
   if (!parse(o, argc, argv, r)) return 0;
   require(r.count("input") && r.count("out"), "recon", "--input DIR|FILE and --out DIR are required");
   const auto camera = camera_from(r);
-  const std::filesystem::path calib_path = r.count("calib") ? std::filesystem::path(r["calib"].as<std::string>()) : camera.calibration;
+  const std::filesystem::path calib_path =
+      r.count("calib") ? std::filesystem::path(r["calib"].as<std::string>()) : camera.calibration;
   require(!calib_path.empty(), "recon", "no calibration: pass --calib or use a camera file that names one");
   const auto calib = load_calibration(calib_path, camera);
   ReconOptions opt;
@@ -49,14 +50,14 @@ std::filesystem::path shipped_niqe() { return data_dir() / "models" / "niqe.mat"
 // scenes the reconstructions are compared with), from the training side of simulate's split.
 int fit_niqe_command(int argc, char** argv) {
   cxxopts::Options o("flatnet eval fit-niqe", "Fit NIQE's pristine model on photographs (models/niqe.mat).");
-  o.add_options()("images", "folder of photographs", cxxopts::value<std::string>())(
-      "out", "model file to write (.mat)", cxxopts::value<std::string>())(
+  o.add_options()("images", "folder of photographs", cxxopts::value<std::string>())("out", "model file to write (.mat)",
+                                                                                    cxxopts::value<std::string>())(
       "patch", "patch side in pixels at full scale (the paper: 96; flatnet's 256-pixel images: 48)",
-      cxxopts::value<int64_t>()->default_value("48"))(
-      "size", "scene side the photographs are shown at", cxxopts::value<int64_t>()->default_value("256"))(
+      cxxopts::value<int64_t>()->default_value("48"))("size", "scene side the photographs are shown at",
+                                                      cxxopts::value<int64_t>()->default_value("256"))(
       "val-fraction", "photographs held out (as simulate's split with --split-seed): never fitted on",
-      cxxopts::value<double>()->default_value("0.1"))(
-      "split-seed", "seed of that split", cxxopts::value<uint64_t>()->default_value("1"))(
+      cxxopts::value<double>()->default_value("0.1"))("split-seed", "seed of that split",
+                                                      cxxopts::value<uint64_t>()->default_value("1"))(
       "limit", "fit on the first N training photographs only (0: all)", cxxopts::value<int64_t>()->default_value("0"))(
       "force", "replace an existing --out file");
   add_common(o);
@@ -67,9 +68,13 @@ int fit_niqe_command(int argc, char** argv) {
   require_new_output(out, r.count("force") > 0, {});
   const auto patch = r["patch"].as<int64_t>(), size = r["size"].as<int64_t>();
   require(patch >= 8 && patch % 2 == 0 && patch <= size, "--patch", "an even size from 8 to --size");
-  auto train = split_image_files(r["images"].as<std::string>(), r["val-fraction"].as<double>(), r["split-seed"].as<uint64_t>()).first;
-  if (r["limit"].as<int64_t>() > 0 && static_cast<int64_t>(train.size()) > r["limit"].as<int64_t>()) train.resize(r["limit"].as<int64_t>());
-  const auto model = fit_niqe(train, [&](const std::filesystem::path& p) { return display_scene(p, size); }, patch);
+  auto train =
+      split_image_files(r["images"].as<std::string>(), r["val-fraction"].as<double>(), r["split-seed"].as<uint64_t>())
+          .first;
+  if (r["limit"].as<int64_t>() > 0 && static_cast<int64_t>(train.size()) > r["limit"].as<int64_t>())
+    train.resize(r["limit"].as<int64_t>());
+  const auto model = fit_niqe(
+      train, [&](const std::filesystem::path& p) { return display_scene(p, size); }, patch);
   save_niqe(out, model);
   std::cout << "fitted NIQE on " << model.patches << " sharp " << patch << "-pixel patches of " << model.images
             << " photographs shown at " << size << "x" << size << "; wrote " << out.string() << "\n";
@@ -80,10 +85,13 @@ int fit_niqe_command(int argc, char** argv) {
 
 int eval(int argc, char** argv) {
   if (argc > 1 && std::string(argv[1]) == "fit-niqe") return fit_niqe_command(argc - 1, argv + 1);
-  cxxopts::Options o("flatnet eval", "PSNR, SSIM and NIQE of reconstructions against ground truth ('flatnet eval fit-niqe' fits NIQE's model).");
+  cxxopts::Options o(
+      "flatnet eval",
+      "PSNR, SSIM and NIQE of reconstructions against ground truth ('flatnet eval fit-niqe' fits NIQE's model).");
   o.add_options()("gt", "ground-truth folder", cxxopts::value<std::string>())(
       "out", "reconstructions: a folder of PNGs, or of one subfolder per method; reports are written here",
-      cxxopts::value<std::string>())("sheet-rows", "images in the contact sheet", cxxopts::value<int>()->default_value("6"))(
+      cxxopts::value<std::string>())("sheet-rows", "images in the contact sheet",
+                                     cxxopts::value<int>()->default_value("6"))(
       "niqe", "NIQE model (.mat from `flatnet eval fit-niqe`), or none (default: the shipped models/niqe.mat)",
       cxxopts::value<std::string>());
   add_common(o);
@@ -107,19 +115,22 @@ int eval(int argc, char** argv) {
 }
 
 int report(int argc, char** argv) {
-  cxxopts::Options o("flatnet report",
-                     "The thesis's comparison as one command: every method on every held-out set, scored (PSNR, SSIM, NIQE), "
-                     "timed and shown; resumes from the reconstructions already in --out.");
-  o.add_options()("sets", "evaluation sets, NAME=DIR or DIR (folders from `flatnet simulate --only val`; scripts/make_eval_sets.sh)",
-                  cxxopts::value<std::vector<std::string>>())(
+  cxxopts::Options o(
+      "flatnet report",
+      "The thesis's comparison as one command: every method on every held-out set, scored (PSNR, SSIM, NIQE), "
+      "timed and shown; resumes from the reconstructions already in --out.");
+  o.add_options()(
+      "sets",
+      "evaluation sets, NAME=DIR or DIR (folders from `flatnet simulate --only val`; scripts/make_eval_sets.sh)",
+      cxxopts::value<std::vector<std::string>>())(
       "methods", "tikhonov, tv, and NAME=MODEL.flatnet (default: tikhonov, tv and the two shipped models)",
       cxxopts::value<std::vector<std::string>>())(
       "camera", "camera .yaml for Tikhonov and TV (default: the reference camera)", cxxopts::value<std::string>())(
       "out", "report folder (report.md, figures, reconstructions)", cxxopts::value<std::string>())(
       "niqe", "NIQE model, or none (default: models/niqe.mat)", cxxopts::value<std::string>())(
       "tv-count", "TV on the first N captures of each set (0: all; FISTA takes seconds per capture)",
-      cxxopts::value<int64_t>()->default_value("30"))(
-      "rows", "scenes per figure", cxxopts::value<int>()->default_value("4"));
+      cxxopts::value<int64_t>()->default_value("30"))("rows", "scenes per figure",
+                                                      cxxopts::value<int>()->default_value("4"));
   add_precision(o);
   add_common(o);
   cxxopts::ParseResult r;
@@ -129,9 +140,9 @@ int report(int argc, char** argv) {
   opt.camera = camera_from(r);
   opt.out = r["out"].as<std::string>();
   const auto models = data_dir() / "models";
-  const std::vector<std::string> default_methods = {"tikhonov", "tv",
-                                                    "flatnet-transpose=" + (models / "flatnet-sim-transpose.flatnet").string(),
-                                                    "flatnet-calibfree=" + (models / "flatnet-sim-calibfree.flatnet").string()};
+  const std::vector<std::string> default_methods = {
+      "tikhonov", "tv", "flatnet-transpose=" + (models / "flatnet-sim-transpose.flatnet").string(),
+      "flatnet-calibfree=" + (models / "flatnet-sim-calibfree.flatnet").string()};
   for (const auto& m : r.count("methods") ? r["methods"].as<std::vector<std::string>>() : default_methods)
     opt.methods.push_back(parse_report_method(m));
   for (const auto& s : r["sets"].as<std::vector<std::string>>()) opt.sets.push_back(parse_report_set(s));

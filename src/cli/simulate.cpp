@@ -8,8 +8,9 @@ namespace flatnet::cli {
 
 int simulate(int argc, char** argv) {
   cxxopts::Options o("flatnet simulate", "Simulate the captures a FlatCam gives of photographs shown on a display.");
-  o.add_options()("camera", "rig .mat or camera .yaml naming one (default: the reference camera)", cxxopts::value<std::string>())(
-      "images", "folder of photographs", cxxopts::value<std::string>())("out", "dataset folder to write", cxxopts::value<std::string>())(
+  o.add_options()("camera", "rig .mat or camera .yaml naming one (default: the reference camera)",
+                  cxxopts::value<std::string>())("images", "folder of photographs", cxxopts::value<std::string>())(
+      "out", "dataset folder to write", cxxopts::value<std::string>())(
       "val-fraction", "share of images in the validation lists", cxxopts::value<double>()->default_value("0.1"))(
       "seed", "seed for the split and the noise", cxxopts::value<uint64_t>()->default_value("0"))(
       "noise", "on|off: photon and read noise", cxxopts::value<std::string>()->default_value("on"))(
@@ -18,7 +19,8 @@ int simulate(int argc, char** argv) {
       "workers", "simulation threads (default: all cores)", cxxopts::value<int>()->default_value("0"))(
       "only", "all|train|val: simulate only that part of the split (e.g. val: a held-out evaluation set)",
       cxxopts::value<std::string>()->default_value("all"))(
-      "exposure", "scene light relative to the display's, in linear light (0.33: a dim set); gt/ shows the dimmed scene",
+      "exposure",
+      "scene light relative to the display's, in linear light (0.33: a dim set); gt/ shows the dimmed scene",
       cxxopts::value<double>()->default_value("1"))(
       "lamp", "add one small lamp per scene (a lamp set; position drawn per image), --lamp-gain x display white")(
       "lamp-gain", "the lamp's radiance relative to display white", cxxopts::value<double>()->default_value("20"))(

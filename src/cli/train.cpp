@@ -32,7 +32,8 @@ TrainOptions train_options(const Config& c, const std::filesystem::path& out) {
   t.w_ssim = c.num("loss.ssim");
   t.ema_decay = c.num("train.ema_decay");
   t.crop = c.integer("train.crop");
-  require(t.crop == 0 || (t.crop >= 16 && t.crop % 16 == 0), "train.crop", "must be 0 or a multiple of 16 (the U-Net halves it 4 times)");
+  require(t.crop == 0 || (t.crop >= 16 && t.crop % 16 == 0), "train.crop",
+          "must be 0 or a multiple of 16 (the U-Net halves it 4 times)");
   require(t.ema_decay >= 0 && t.ema_decay < 1, "train.ema_decay", "must lie in [0, 1)");
   t.bf16 = resolve_precision(c.str("train.precision"), "train.precision") == Precision::bf16;
   t.discriminator_warmup = c.integer("train.discriminator_warmup");
@@ -49,7 +50,8 @@ TrainOptions train_options(const Config& c, const std::filesystem::path& out) {
   require(t.real_label_min >= 0 && t.real_label_min <= 1 && t.fake_label_max >= 0 && t.fake_label_max <= 1,
           "discriminator", "label smoothing bounds must lie within [0, 1] (BCE needs targets in [0, 1])");
   require(t.batch >= 1 && t.iterations >= 1, "train", "batch and iterations must be positive");
-  require(t.w_mse >= 0 && t.w_perceptual >= 0 && t.w_adversarial >= 0 && t.w_ssim >= 0, "loss", "weights must be non-negative");
+  require(t.w_mse >= 0 && t.w_perceptual >= 0 && t.w_adversarial >= 0 && t.w_ssim >= 0, "loss",
+          "weights must be non-negative");
   require(t.w_mse + t.w_perceptual + t.w_adversarial + t.w_ssim > 0, "loss", "every weight is 0: nothing to train on");
   t.channels_last = c.flag("train.channels_last");
   t.gemm_upsample = c.flag("train.gemm_upsample");
@@ -59,8 +61,8 @@ TrainOptions train_options(const Config& c, const std::filesystem::path& out) {
 }
 
 // Training and validation sources the config describes.
-std::pair<std::shared_ptr<const PairSource>, std::shared_ptr<const PairSource>> data_sources(const Config& c,
-                                                                                            const CameraConfig& camera) {
+std::pair<std::shared_ptr<const PairSource>, std::shared_ptr<const PairSource>> data_sources(
+    const Config& c, const CameraConfig& camera) {
   const auto source = c.str("data.source");
   if (source == "dataset") {
     DatasetLists train, val;
@@ -69,11 +71,13 @@ std::pair<std::shared_ptr<const PairSource>, std::shared_ptr<const PairSource>> 
       train = split_lists(dir, "train");
       val = split_lists(dir, "val");
     } else {
-      require(!c.str("data.train_meas").empty(), "data", "set data.dataset, or data.train_meas/train_gt/val_meas/val_gt");
+      require(!c.str("data.train_meas").empty(), "data",
+              "set data.dataset, or data.train_meas/train_gt/val_meas/val_gt");
       train = {c.path("data.train_meas"), c.path("data.train_gt"), c.path("data.root")};
       val = {c.path("data.val_meas"), c.path("data.val_gt"), c.path("data.root")};
     }
-    return {std::make_shared<DiskPairs>(read_pairs(train), camera), std::make_shared<DiskPairs>(read_pairs(val), camera)};
+    return {std::make_shared<DiskPairs>(read_pairs(train), camera),
+            std::make_shared<DiskPairs>(read_pairs(val), camera)};
   }
   if (source == "simulate") {
     require(!camera.rig.empty(), "data.camera", "names no rig; on-the-fly simulation needs the true response");
@@ -104,7 +108,8 @@ std::pair<std::shared_ptr<const PairSource>, std::shared_ptr<const PairSource>> 
 void require_no_light_augment_on_disk(const Config& c) {
   if (c.str("data.source") == "dataset" &&
       (c.num("data.light.exposure_probability") > 0 || c.num("data.light.lamp_probability") > 0))
-    throw Error("data.light: light augmentation simulates each sample; it needs data.source: simulate (with data.images)");
+    throw Error(
+        "data.light: light augmentation simulates each sample; it needs data.source: simulate (with data.images)");
 }
 
 CameraConfig camera_of(const Config& c) { return load_camera_config(c.path("data.camera")); }
@@ -133,19 +138,22 @@ std::string differing_settings(const Config& run, const Config& given) {
 int train(int argc, char** argv) {
   cxxopts::Options o("flatnet train", "Train a FlatNet reconstruction network (GAN, FlatNet-sep).");
   o.add_options()("config", "experiment config (configs/*.yaml); defaults.yaml alone when absent",
-                  cxxopts::value<std::string>())(
-      "set", "override a setting: --set train.iterations=100 (repeatable)", cxxopts::value<std::vector<std::string>>())(
+                  cxxopts::value<std::string>())("set", "override a setting: --set train.iterations=100 (repeatable)",
+                                                 cxxopts::value<std::vector<std::string>>())(
       "out", "run folder (checkpoints, logs, model.flatnet)", cxxopts::value<std::string>())(
       "resume", "continue the run in --out from its latest checkpoint")(
-      "init-from", "start from a model file's generator weights (a shipped model, or one from another camera's run) "
-                   "with fresh optimisers; the config must describe the same architecture",
-      cxxopts::value<std::string>())(
-      "precision", "auto|fp32|bf16: overrides train.precision", cxxopts::value<std::string>());
+      "init-from",
+      "start from a model file's generator weights (a shipped model, or one from another camera's run) "
+      "with fresh optimisers; the config must describe the same architecture",
+      cxxopts::value<std::string>())("precision", "auto|fp32|bf16: overrides train.precision",
+                                     cxxopts::value<std::string>());
   o.add_options("distributed (defaults: torchrun's WORLD_SIZE, RANK, MASTER_ADDR, MASTER_PORT)")(
-      "world-size", "processes in the job", cxxopts::value<int>())("rank", "this process, 0..world-size-1", cxxopts::value<int>())(
-      "master-addr", "host of rank 0 (rendezvous)", cxxopts::value<std::string>())(
+      "world-size", "processes in the job", cxxopts::value<int>())(
+      "rank", "this process, 0..world-size-1", cxxopts::value<int>())("master-addr", "host of rank 0 (rendezvous)",
+                                                                      cxxopts::value<std::string>())(
       "master-port", "TCP port of the rendezvous on rank 0", cxxopts::value<int>())(
-      "dist-timeout", "seconds a collective may wait before the job fails", cxxopts::value<double>()->default_value("300"));
+      "dist-timeout", "seconds a collective may wait before the job fails",
+      cxxopts::value<double>()->default_value("300"));
   add_common(o);
   cxxopts::ParseResult r;
   if (!parse(o, argc, argv, r)) return 0;
@@ -173,8 +181,8 @@ int train(int argc, char** argv) {
     if (r.count("config")) {  // the same command line again is fine; another config is not silently ignored
       const auto differences = differing_settings(config, Config::load(r["config"].as<std::string>(), sets));
       require(differences.empty(), "--config",
-              "--resume continues with the run's own config (" + (out / "config.yaml").string() + "), which differs in " +
-                  differences + "; change single settings with --set key=value");
+              "--resume continues with the run's own config (" + (out / "config.yaml").string() +
+                  "), which differs in " + differences + "; change single settings with --set key=value");
     }
   } else {
     require(!writer || !std::filesystem::exists(latest), out,
@@ -188,7 +196,8 @@ int train(int argc, char** argv) {
   auto vgg = vgg_if_needed(config);
   auto opts = train_options(config, out);
   require(opts.crop <= camera.scene_size, "train.crop",
-          std::to_string(opts.crop) + " exceeds the camera's " + std::to_string(camera.scene_size) + "-pixel scene (0: whole scenes)");
+          std::to_string(opts.crop) + " exceeds the camera's " + std::to_string(camera.scene_size) +
+              "-pixel scene (0: whole scenes)");
   auto [train_src, val_src] = data_sources(config, camera);
   torch::manual_seed(opts.seed);
   Generator g(generator_options(config, camera, !resume && !r.count("init-from")));
@@ -202,7 +211,9 @@ int train(int argc, char** argv) {
     std::cerr << "precision: " << describe_precision(p) << "\n";
   }
   Discriminator d(discriminator_options(config));
-  std::cerr << "loading " << (config.integer("train.val_count") > 0 ? std::min(config.integer("train.val_count"), val_src->size()) : val_src->size())
+  std::cerr << "loading "
+            << (config.integer("train.val_count") > 0 ? std::min(config.integer("train.val_count"), val_src->size())
+                                                      : val_src->size())
             << " validation samples...\n";
   auto val = load_all(*val_src, config.integer("train.val_count"), std::max(1, opts.workers));
   if (writer) {
@@ -220,10 +231,10 @@ int train(int argc, char** argv) {
   trainer.set_distributed(group.get());
   watch_interrupts();
   std::cerr << "training on " << train_src->size() << " pairs, " << opts.iterations << " steps of batch " << opts.batch
-            << (dist.world_size > 1 ? " per rank x " + std::to_string(dist.world_size) + " ranks" : "")
-            << " (" << config.str("model.input") << " + " << config.str("model.enhancer") << ", width "
+            << (dist.world_size > 1 ? " per rank x " + std::to_string(dist.world_size) + " ranks" : "") << " ("
+            << config.str("model.input") << " + " << config.str("model.enhancer") << ", width "
             << config.integer("model.unet.width") << ")\n";
- const auto s = trainer.run();
+  const auto s = trainer.run();
   if (!writer) {
     std::cout << "rank " << dist.rank << ": steps " << s.first_step << ".." << s.last_step << " done\n";
     return interrupted() ? 130 : 0;
@@ -246,9 +257,10 @@ int export_model(int argc, char** argv) {
       "out", "file to write", cxxopts::value<std::string>())(
       "state-dict", "write torch.save(state_dict) with FlatNet-sep's parameter names instead of a model file")(
       "flatnet-checkpoint", "write FlatNet's checkpoint layout {'gen_state_dict': state_dict} (its main.py loads it)")(
-      "onnx", "write an ONNX graph to this file (input meas {1,4,rows,cols}, output image {1,3,N,N}; "
-              "OpenCV DNN reads it: `flatnet infer --engine opencv`)", cxxopts::value<std::string>())(
-      "force", "replace an existing --out file");
+      "onnx",
+      "write an ONNX graph to this file (input meas {1,4,rows,cols}, output image {1,3,N,N}; "
+      "OpenCV DNN reads it: `flatnet infer --engine opencv`)",
+      cxxopts::value<std::string>())("force", "replace an existing --out file");
   add_common(o);
   cxxopts::ParseResult r;
   if (!parse(o, argc, argv, r)) return 0;
@@ -264,16 +276,18 @@ int export_model(int argc, char** argv) {
   if (average) std::cerr << "exporting the moving average of the weights (train.ema_decay)\n";
   if (r.count("onnx")) {
     const auto rep = export_onnx(out, m.generator, m.camera);
-    std::cout << "wrote ONNX " << out.string() << " (" << rep.nodes << " nodes, " << rep.initializers << " weight tensors, "
-              << rep.bytes / 1e6 << " MB; input meas {1,4," << m.camera.raw.crop[2] << "," << m.camera.raw.crop[3]
-              << "}, output image {1,3," << m.camera.scene_size << "," << m.camera.scene_size
+    std::cout << "wrote ONNX " << out.string() << " (" << rep.nodes << " nodes, " << rep.initializers
+              << " weight tensors, " << rep.bytes / 1e6 << " MB; input meas {1,4," << m.camera.raw.crop[2] << ","
+              << m.camera.raw.crop[3] << "}, output image {1,3," << m.camera.scene_size << "," << m.camera.scene_size
               << "}; checked by ONNX's checker)\n";
   } else if (r.count("state-dict") || r.count("flatnet-checkpoint")) {
     const bool flatnet_layout = r.count("flatnet-checkpoint") > 0;
-    export_state_dict(out, m.generator, flatnet_layout ? StateDictLayout::flatnet_checkpoint : StateDictLayout::state_dict);
+    export_state_dict(out, m.generator,
+                      flatnet_layout ? StateDictLayout::flatnet_checkpoint : StateDictLayout::state_dict);
     std::cout << "wrote " << (flatnet_layout ? "FlatNet checkpoint " : "state dict ") << out.string() << " ("
               << m.generator->named_parameters().size() << " parameters; python: "
-              << (flatnet_layout ? "G.load_state_dict(torch.load(path)['gen_state_dict'])" : "model.load_state_dict(torch.load(path))")
+              << (flatnet_layout ? "G.load_state_dict(torch.load(path)['gen_state_dict'])"
+                                 : "model.load_state_dict(torch.load(path))")
               << ")\n";
   } else {
     save_model_file(out, m.generator, m.config, m.camera);
@@ -288,10 +302,9 @@ int import_model(int argc, char** argv) {
                   cxxopts::value<std::string>())(
       "config", "config describing the architecture (e.g. configs/flatnet_paper.yaml)", cxxopts::value<std::string>())(
       "set", "override a setting (repeatable)", cxxopts::value<std::vector<std::string>>())(
-      "camera", "camera the weights were trained for (default: the config's data.camera)", cxxopts::value<std::string>())(
-      "out", "model file to write", cxxopts::value<std::string>())(
-      "verbose", "list the file's tensors that the model does not use")(
-      "force", "replace an existing --out file");
+      "camera", "camera the weights were trained for (default: the config's data.camera)",
+      cxxopts::value<std::string>())("out", "model file to write", cxxopts::value<std::string>())(
+      "verbose", "list the file's tensors that the model does not use")("force", "replace an existing --out file");
   add_common(o);
   cxxopts::ParseResult r;
   if (!parse(o, argc, argv, r)) return 0;
@@ -304,9 +317,9 @@ int import_model(int argc, char** argv) {
   Generator g(generator_options(config, camera, false));
   const auto rep = import_state_dict(r["state-dict"].as<std::string>(), g);
   save_model_file(out, g, config, camera);
-  std::cout << "read " << rep.used << " tensors from " << rep.source << (rep.data_parallel ? " (DataParallel names)" : "")
-            << "; " << rep.unused.size() << " unused" << (rep.unused.empty() || r.count("verbose") ? "" : " (--verbose lists them)")
-            << "\n";
+  std::cout << "read " << rep.used << " tensors from " << rep.source
+            << (rep.data_parallel ? " (DataParallel names)" : "") << "; " << rep.unused.size() << " unused"
+            << (rep.unused.empty() || r.count("verbose") ? "" : " (--verbose lists them)") << "\n";
   if (r.count("verbose"))
     for (const auto& name : rep.unused) std::cout << "  unused: " << name << "\n";
   std::cout << "wrote model " << out.string() << "\n";
@@ -318,12 +331,14 @@ int infer(int argc, char** argv) {
   o.add_options()("model", "model file (models/*.flatnet or RUN/model.flatnet; an .onnx file with --engine opencv)",
                   cxxopts::value<std::string>())(
       "engine", "libtorch, or opencv: an ONNX file from `flatnet export --onnx` through OpenCV's DNN module",
-      cxxopts::value<std::string>()->default_value("libtorch"))(
-      "input", "raw capture PNG or folder of them", cxxopts::value<std::string>())(
+      cxxopts::value<std::string>()->default_value("libtorch"))("input", "raw capture PNG or folder of them",
+                                                                cxxopts::value<std::string>())(
       "out", "output folder (PNGs with the captures' names)", cxxopts::value<std::string>())(
       "camera", "camera .yaml whose preprocessing to use (default: the model's)", cxxopts::value<std::string>())(
       "batch", "captures per batch", cxxopts::value<int>()->default_value("4"))(
-      "levers", "exact inference speed-ups: none, or a list of fold, channels-last, gemm-up, onednn (bf16 and onednn: see --precision)",
+      "levers",
+      "exact inference speed-ups: none, or a list of fold, channels-last, gemm-up, onednn (bf16 and onednn: see "
+      "--precision)",
       cxxopts::value<std::string>()->default_value("fold,channels-last,gemm-up,onednn"));
   add_precision(o);
   add_common(o);
@@ -348,7 +363,8 @@ int infer(int argc, char** argv) {
     auto m = load_model_file(r["model"].as<std::string>());
     const auto camera = r.count("camera") ? load_camera_config(r["camera"].as<std::string>()) : m.camera;
     opt.levers = parse_inference_levers(r["levers"].as<std::string>());
-    if (precision_from(r) == Precision::bf16) opt.levers.bf16 = true;  // the enhancer in bf16; inversion and sigmoid stay fp32
+    if (precision_from(r) == Precision::bf16)
+      opt.levers.bf16 = true;  // the enhancer in bf16; inversion and sigmoid stay fp32
     rep = infer_files(m.generator, camera, captures, opt);
   }
   std::cout << "flatnet: " << rep.count << " captures -> " << opt.out.string() << " (" << rep.images_per_s

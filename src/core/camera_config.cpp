@@ -10,10 +10,14 @@ namespace flatnet {
 
 std::string centring_name(Centring c) {
   switch (c) {
-    case Centring::plane: return "plane";
-    case Centring::flatnet: return "flatnet";
-    case Centring::level: return "level";
-    case Centring::none: break;
+    case Centring::plane:
+      return "plane";
+    case Centring::flatnet:
+      return "flatnet";
+    case Centring::level:
+      return "level";
+    case Centring::none:
+      break;
   }
   return "none";
 }
@@ -26,15 +30,13 @@ Centring parse_centring(const std::string& s, const std::filesystem::path& where
   throw Error(where, "centring must be plane, level, flatnet or none, got '" + s + "'");
 }
 
-std::filesystem::path default_camera_path() {
-  return data_dir() / "configs" / "cameras" / "sim.yaml";
-}
+std::filesystem::path default_camera_path() { return data_dir() / "configs" / "cameras" / "sim.yaml"; }
 
 namespace {
 
-const std::vector<std::string> kKnownKeys = {"name",  "raw_height", "raw_width", "adc_bits",
-                                             "rotation", "crop", "centring", "scene_size",
-                                             "calibration", "rig", "tikhonov_lambda", "tv_lambda"};
+const std::vector<std::string> kKnownKeys = {"name",        "raw_height", "raw_width",       "adc_bits",
+                                             "rotation",    "crop",       "centring",        "scene_size",
+                                             "calibration", "rig",        "tikhonov_lambda", "tv_lambda"};
 
 void validate(const CameraConfig& c, const std::filesystem::path& path) {
   const auto& g = c.raw;
@@ -43,8 +45,9 @@ void validate(const CameraConfig& c, const std::filesystem::path& path) {
   require(g.adc_bits >= 1 && g.adc_bits <= 16, path, "adc_bits must be within 1..16");
   require(g.crop[0] >= 0 && g.crop[1] >= 0 && g.crop[2] > 0 && g.crop[3] > 0 &&
               g.crop[0] + g.crop[2] <= g.plane_height() && g.crop[1] + g.crop[3] <= g.plane_width(),
-          path, "crop [top, left, height, width] must lie inside the " + std::to_string(g.plane_height()) +
-                    "x" + std::to_string(g.plane_width()) + " Bayer plane");
+          path,
+          "crop [top, left, height, width] must lie inside the " + std::to_string(g.plane_height()) + "x" +
+              std::to_string(g.plane_width()) + " Bayer plane");
   require(c.scene_size > 0, path, "scene_size must be positive");
   require(c.tikhonov_lambda > 0 && c.tv_lambda > 0, path, "regularisation weights must be positive");
 }

@@ -20,10 +20,10 @@ enum class Centring {
 
 // How a raw frame becomes measurement planes (FlatNet's demosaic_raw, made explicit).
 struct RawGeometry {
-  int64_t raw_height = 1024;  // raw frame, rows
-  int64_t raw_width = 1280;   // raw frame, columns
-  int adc_bits = 10;          // ADC resolution; codes stored as q * 2^(16-adc_bits)
-  double rotation = 0.0;      // radians, applied to each Bayer plane about its top-left corner
+  int64_t raw_height = 1024;                        // raw frame, rows
+  int64_t raw_width = 1280;                         // raw frame, columns
+  int adc_bits = 10;                                // ADC resolution; codes stored as q * 2^(16-adc_bits)
+  double rotation = 0.0;                            // radians, applied to each Bayer plane about its top-left corner
   std::array<int64_t, 4> crop = {6, 10, 500, 620};  // top, left, height, width within a plane
   Centring centring = Centring::plane;
   int64_t plane_height() const { return raw_height / 2; }
@@ -33,11 +33,11 @@ struct RawGeometry {
 struct CameraConfig {
   std::string name = "sim";
   RawGeometry raw;
-  int64_t scene_size = 256;              // scene / reconstruction side, pixels
-  std::filesystem::path calibration;     // FlatNet-layout calib .mat (P1b.. Q1r); may be empty
-  std::filesystem::path rig;             // true response (simulated cameras only); may be empty
-  double tikhonov_lambda = 1e-4;         // default regulariser for this calibration
-  double tv_lambda = 1e-4;               // default TV weight
+  int64_t scene_size = 256;           // scene / reconstruction side, pixels
+  std::filesystem::path calibration;  // FlatNet-layout calib .mat (P1b.. Q1r); may be empty
+  std::filesystem::path rig;          // true response (simulated cameras only); may be empty
+  double tikhonov_lambda = 1e-4;      // default regulariser for this calibration
+  double tv_lambda = 1e-4;            // default TV weight
 };
 
 // Reads a camera YAML file; relative paths inside it are resolved against the file's folder.

@@ -10,10 +10,10 @@ enum class Precision { fp32, bf16 };
 
 // What this CPU offers, read from /proc/cpuinfo's flags (Linux; elsewhere nothing).
 struct CpuFeatures {
-  std::string model;        // "Intel(R) Xeon(R) Processor"
+  std::string model;  // "Intel(R) Xeon(R) Processor"
   bool avx512f = false;
-  bool avx512_bf16 = false; // AVX512-BF16: vdpbf16ps
-  bool amx_bf16 = false;    // AMX tiles with bf16
+  bool avx512_bf16 = false;  // AVX512-BF16: vdpbf16ps
+  bool amx_bf16 = false;     // AMX tiles with bf16
   bool native_bf16() const { return avx512_bf16 || amx_bf16; }
   // "AMX", "AVX512-BF16" or "emulated": how bf16 runs here.
   std::string bf16_engine() const;

@@ -25,9 +25,12 @@ const std::vector<std::string> kImageExtensions = {".png", ".jpg", ".jpeg", ".ti
 
 std::filesystem::path data_dir() {
   static const std::filesystem::path dir = [] {
-    const auto has_files = [](const std::filesystem::path& d) { return std::filesystem::exists(d / "configs" / "defaults.yaml"); };
+    const auto has_files = [](const std::filesystem::path& d) {
+      return std::filesystem::exists(d / "configs" / "defaults.yaml");
+    };
     if (const char* env = std::getenv("FLATNET_DATA_DIR"); env && *env) {
-      require(has_files(env), std::string("FLATNET_DATA_DIR=") + env, "holds no configs/defaults.yaml (it must name flatnet's share folder)");
+      require(has_files(env), std::string("FLATNET_DATA_DIR=") + env,
+              "holds no configs/defaults.yaml (it must name flatnet's share folder)");
       return std::filesystem::path(env);
     }
     std::error_code ec;
@@ -35,8 +38,9 @@ std::filesystem::path data_dir() {
     const auto bin = ec ? std::filesystem::path(".") : exe.parent_path();
     for (const auto& candidate : {bin.parent_path() / "share" / "flatnet", bin.parent_path()})
       if (has_files(candidate)) return candidate.lexically_normal();
-    throw Error("flatnet's data files (configs/, models/) are neither in " + (bin.parent_path() / "share" / "flatnet").string() +
-                " nor in " + bin.parent_path().string() + "; set FLATNET_DATA_DIR to the folder that holds them");
+    throw Error("flatnet's data files (configs/, models/) are neither in " +
+                (bin.parent_path() / "share" / "flatnet").string() + " nor in " + bin.parent_path().string() +
+                "; set FLATNET_DATA_DIR to the folder that holds them");
   }();
   return dir;
 }
@@ -60,9 +64,8 @@ int set_threads(int n) {
 void write_atomically(const fs::path& path, const std::function<void(const fs::path&)>& write_to) {
   if (path.has_parent_path()) fs::create_directories(path.parent_path());
   static std::atomic<uint64_t> counter{0};
-  const fs::path tmp = path.parent_path() /
-      ("." + path.stem().string() + ".tmp" + std::to_string(::getpid()) + "_" +
-       std::to_string(counter++) + path.extension().string());
+  const fs::path tmp = path.parent_path() / ("." + path.stem().string() + ".tmp" + std::to_string(::getpid()) + "_" +
+                                             std::to_string(counter++) + path.extension().string());
   auto remove_tmp = [&] {
     std::error_code ec;
     fs::remove(tmp, ec);
@@ -97,9 +100,7 @@ void write_bytes_atomically(const fs::path& path, const std::string& bytes) {
   });
 }
 
-void write_text_atomically(const fs::path& path, const std::string& text) {
-  write_bytes_atomically(path, text);
-}
+void write_text_atomically(const fs::path& path, const std::string& text) { write_bytes_atomically(path, text); }
 
 std::vector<std::string> read_lines(const fs::path& path) {
   std::ifstream in(path);
@@ -172,8 +173,12 @@ std::mutex g_progress_mutex;
 }
 
 Progress::Progress(std::string label, int64_t total, bool enabled)
-    : label_(std::move(label)), total_(total), enabled_(enabled), tty_(::isatty(2) != 0),
-      start_(std::chrono::steady_clock::now()), last_draw_(start_) {}
+    : label_(std::move(label)),
+      total_(total),
+      enabled_(enabled),
+      tty_(::isatty(2) != 0),
+      start_(std::chrono::steady_clock::now()),
+      last_draw_(start_) {}
 
 double Progress::elapsed_s() const {
   return std::chrono::duration<double>(std::chrono::steady_clock::now() - start_).count();
@@ -212,13 +217,17 @@ void Progress::draw(bool final_line) {
   const int width = 24;
   const int filled = total_ > 0 ? static_cast<int>(width * std::min<int64_t>(done_, total_) / total_) : 0;
   std::ostringstream os;
-  os << label_ << " " << done_ << "/" << total_ << " [" << std::string(filled, '#')
-     << std::string(width - filled, ' ') << "] " << std::fixed << std::setprecision(1) << r << " it/s";
-  if (final_line) os << " in " << format_duration(elapsed_s());
-  else os << " ETA " << format_duration(r > 0 ? (total_ - done_) / r : -1);
+  os << label_ << " " << done_ << "/" << total_ << " [" << std::string(filled, '#') << std::string(width - filled, ' ')
+     << "] " << std::fixed << std::setprecision(1) << r << " it/s";
+  if (final_line)
+    os << " in " << format_duration(elapsed_s());
+  else
+    os << " ETA " << format_duration(r > 0 ? (total_ - done_) / r : -1);
   if (!status_.empty()) os << "  " << status_;
-  if (tty_) std::cerr << "\r" << os.str() << "\033[K" << (final_line ? "\n" : "") << std::flush;
-  else std::cerr << os.str() << "\n" << std::flush;
+  if (tty_)
+    std::cerr << "\r" << os.str() << "\033[K" << (final_line ? "\n" : "") << std::flush;
+  else
+    std::cerr << os.str() << "\n" << std::flush;
 }
 
 void parallel_for_index(int64_t n, int workers, const std::function<void(int64_t)>& fn) {

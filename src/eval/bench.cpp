@@ -27,7 +27,8 @@ double now_ms() {
 }
 
 // Times fn: `warmup` untimed calls, then `repeats` timed ones.
-BenchRow time_row(const std::string& name, const std::string& what, const BenchOptions& o, const std::function<void()>& fn) {
+BenchRow time_row(const std::string& name, const std::string& what, const BenchOptions& o,
+                  const std::function<void()>& fn) {
   BenchRow row;
   row.name = name;
   row.what = what;
@@ -56,7 +57,8 @@ Calibration random_calibration() {
 GeneratorOptions generator_for(int64_t width) {
   GeneratorOptions g;
   g.unet.width = width;
-  g.inversion.phil = torch::randn({kRows, kScene, 1}) / std::sqrt(static_cast<double>(kRows));  // FlatNet: shared W1, W2
+  g.inversion.phil =
+      torch::randn({kRows, kScene, 1}) / std::sqrt(static_cast<double>(kRows));  // FlatNet: shared W1, W2
   g.inversion.phir = torch::randn({kCols, kScene, 1}) / std::sqrt(static_cast<double>(kCols));
   return g;
 }
@@ -68,12 +70,14 @@ BenchRow infer_row(const std::string& name, int64_t width, const BenchOptions& o
   levers.bf16 = levers.bf16 || o.bf16;
   g->prepare_inference(levers);
   const auto Y = torch::randn({1, 4, kRows, kCols}) * 0.05;
-  std::string names = std::string(levers.fold_batchnorm ? " fold" : "") + (levers.channels_last ? " channels-last" : "") +
-                      (levers.gemm_upsample ? " gemm-up" : "") + (levers.bf16 ? " bf16" : "") +
+  std::string names = std::string(levers.fold_batchnorm ? " fold" : "") +
+                      (levers.channels_last ? " channels-last" : "") + (levers.gemm_upsample ? " gemm-up" : "") +
+                      (levers.bf16 ? " bf16" : "") +
                       (levers.bf16 && levers.onednn && levers.fold_batchnorm ? " onednn" : "");
   c10::InferenceMode guard;
-  auto row = time_row(name, "FlatNet-sep U-Net width " + std::to_string(width) + ", batch 1, levers:" +
-                                (names.empty() ? std::string(" none") : names),
+  auto row = time_row(name,
+                      "FlatNet-sep U-Net width " + std::to_string(width) +
+                          ", batch 1, levers:" + (names.empty() ? std::string(" none") : names),
                       o, [&] { g->forward(Y); });
   row.per_second = 1000.0 / row.median_ms;
   return row;
@@ -103,8 +107,8 @@ BenchRow train_row(const std::string& name, int64_t width, bool paper, const Ben
   auto row = time_row(name,
                       "one GAN step (D then G), batch 4, U-Net width " + std::to_string(width) + ", MSE" +
                           (paper ? " + 1.2 VGG-16 perceptual + 0.6 adversarial" : " + 1e-3 adversarial") + ", Adam" +
-                          (o.levers.channels_last ? ", channels-last" : "") + (o.levers.gemm_upsample ? ", gemm-up" : "") +
-                          (o.bf16 ? ", bf16 autocast" : ", fp32"),
+                          (o.levers.channels_last ? ", channels-last" : "") +
+                          (o.levers.gemm_upsample ? ", gemm-up" : "") + (o.bf16 ? ", bf16 autocast" : ", fp32"),
                       o, [&] { gan_step(g, d, vgg, opt_g, opt_d, t, batch, step++); });
   row.per_second = 1000.0 / row.median_ms;
   return row;
@@ -121,14 +125,15 @@ BenchRow mask_row(const BenchOptions& o) {
   torch::optim::Adam opt(params, torch::optim::AdamOptions(1e-2));
   const auto scenes = torch::rand({4, kScene, kScene});
   auto gen = at::detail::createCPUGenerator(0);
-  auto row = time_row("mask_step", "rank-1 511x511 mask: PSF, FFT capture + noise, Wiener, MSE, backward, Adam; batch 4", o, [&] {
-    const auto P = psf_spectrum(model->window());
-    const auto rec = wiener(capture(scenes, P, cam, gen), P, log_gamma.exp(), cam);
-    const auto loss = torch::mse_loss(rec, scenes);
-    opt.zero_grad();
-    loss.backward();
-    opt.step();
-  });
+  auto row = time_row("mask_step",
+                      "rank-1 511x511 mask: PSF, FFT capture + noise, Wiener, MSE, backward, Adam; batch 4", o, [&] {
+                        const auto P = psf_spectrum(model->window());
+                        const auto rec = wiener(capture(scenes, P, cam, gen), P, log_gamma.exp(), cam);
+                        const auto loss = torch::mse_loss(rec, scenes);
+                        opt.zero_grad();
+                        loss.backward();
+                        opt.step();
+                      });
   row.per_second = 1000.0 / row.median_ms;
   return row;
 }
@@ -136,8 +141,8 @@ BenchRow mask_row(const BenchOptions& o) {
 }  // namespace
 
 const std::vector<std::string>& bench_row_names() {
-  static const std::vector<std::string> names = {"tikhonov",   "live_frame",  "simulator", "infer_paper", "infer_cpu",
-                                                 "train_paper", "train_cpu", "mask_step", "loader"};
+  static const std::vector<std::string> names = {"tikhonov",    "live_frame", "simulator", "infer_paper", "infer_cpu",
+                                                 "train_paper", "train_cpu",  "mask_step", "loader"};
   return names;
 }
 
@@ -208,8 +213,9 @@ BenchRow run_bench_row(const std::string& name, const BenchOptions& o) {
     lo.batch = 4;
     lo.workers = o.loader_workers;
     BatchLoader loader(source, lo);
-    row = time_row(name, "on-the-fly simulated batches of 4 (decode, resize, simulate, preprocess), " +
-                             std::to_string(lo.workers) + " loader threads, consumer idle",
+    row = time_row(name,
+                   "on-the-fly simulated batches of 4 (decode, resize, simulate, preprocess), " +
+                       std::to_string(lo.workers) + " loader threads, consumer idle",
                    o, [&] { loader.next(); });
     row.per_second = 4000.0 / row.median_ms;  // samples per second
   } else {

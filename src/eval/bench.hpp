@@ -20,11 +20,11 @@ struct BenchOptions {
 
 struct BenchRow {
   std::string name;
-  std::string what;          // one line: the shapes and settings timed
-  std::vector<double> ms;    // the timed runs
+  std::string what;        // one line: the shapes and settings timed
+  std::vector<double> ms;  // the timed runs
   double median_ms = 0, min_ms = 0;
-  double peak_rss_mb = 0;    // VmHWM after the row (reset before it)
-  double per_second = 0;     // derived throughput (items/s) where meaningful
+  double peak_rss_mb = 0;  // VmHWM after the row (reset before it)
+  double per_second = 0;   // derived throughput (items/s) where meaningful
 };
 
 // tikhonov, live_frame, simulator, infer_paper, infer_cpu, train_paper, train_cpu, mask_step, loader

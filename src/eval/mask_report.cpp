@@ -152,8 +152,8 @@ std::vector<SeparableScore> score_separable_cameras(const std::vector<SeparableC
     }
     if (c.flatnet) {  // at the camera's light, on the scored photographs, preprocessed as the model was trained
       const auto& model = *c.flatnet;
-      require(model.geometry.raw_height == opt.geometry.raw_height && model.geometry.raw_width == opt.geometry.raw_width &&
-                  model.geometry.crop == opt.geometry.crop,
+      require(model.geometry.raw_height == opt.geometry.raw_height &&
+                  model.geometry.raw_width == opt.geometry.raw_width && model.geometry.crop == opt.geometry.crop,
               model.label, "was trained for another sensor crop than the reference camera's");
       Scored fs;
       Progress progress(c.name + " FlatNet", n - tune, opt.progress);
@@ -197,15 +197,17 @@ std::string separable_section(const std::vector<SeparableScore>& scores, const S
      << opt.tune_count << " held-out photographs; PSNR / SSIM are on the " << scored_count
      << " after them. FlatNet: a model trained on that camera (`flatnet train` with `data.camera` set to it), on the "
         "same captures.\n\n";
-  MarkdownTable main{{"codes", "throughput", "Tikhonov lambda", "Tikhonov PSNR / SSIM", "vs " + scores.front().name + " (dB)",
-                      "FlatNet PSNR / SSIM"},
+  MarkdownTable main{{"codes", "throughput", "Tikhonov lambda", "Tikhonov PSNR / SSIM",
+                      "vs " + scores.front().name + " (dB)", "FlatNet PSNR / SSIM"},
                      {}};
   for (const auto& s : scores)
-    main.add({s.name, fixed(s.throughput, 3), scientific(s.lambda[0], 0), fixed(s.psnr[0], 2) + " / " + fixed(s.ssim[0], 3),
-              (s.psnr[0] >= scores.front().psnr[0] ? "+" : "") + fixed(s.psnr[0] - scores.front().psnr[0], 2),
-              std::isnan(s.flatnet_psnr) ? "not trained" : fixed(s.flatnet_psnr, 2) + " / " + fixed(s.flatnet_ssim, 3)});
+    main.add(
+        {s.name, fixed(s.throughput, 3), scientific(s.lambda[0], 0), fixed(s.psnr[0], 2) + " / " + fixed(s.ssim[0], 3),
+         (s.psnr[0] >= scores.front().psnr[0] ? "+" : "") + fixed(s.psnr[0] - scores.front().psnr[0], 2),
+         std::isnan(s.flatnet_psnr) ? "not trained" : fixed(s.flatnet_psnr, 2) + " / " + fixed(s.flatnet_ssim, 3)});
   md << main.markdown() << "\n";
-  for (const auto& s : scores) md << "- " << s.name << ": " << s.origin << (s.flatnet_label.empty() ? "" : "; FlatNet " + s.flatnet_label) << "\n";
+  for (const auto& s : scores)
+    md << "- " << s.name << ": " << s.origin << (s.flatnet_label.empty() ? "" : "; FlatNet " + s.flatnet_label) << "\n";
 
   md << "\n### Tikhonov PSNR at each lambda (every held-out photograph, the camera's light)\n\n";
   MarkdownTable sweep{{"codes"}, {}};
@@ -235,9 +237,11 @@ std::string separable_section(const std::vector<SeparableScore>& scores, const S
     codes.add({s.name, fixed(s.low_share_rows, 2) + " / " + fixed(s.low_share_cols, 2),
                fixed(s.cond_p, 0) + " / " + fixed(s.cond_q, 0)});
   md << codes.markdown()
-     << "\nA flat spectrum (MLS: about an eighth of the power in an eighth of the frequencies) conditions the matrices best; codes that put their power into the "
+     << "\nA flat spectrum (MLS: about an eighth of the power in an eighth of the frequencies) conditions the matrices "
+        "best; codes that put their power into the "
         "low frequencies, where natural scenes keep most of their energy and the sensor's blur and pixel integration "
-        "lose least, give those modes the light, at the price of a worse condition number that Tikhonov's larger lambda "
+        "lose least, give those modes the light, at the price of a worse condition number that Tikhonov's larger "
+        "lambda "
         "absorbs.\n";
   return md.str();
 }
@@ -252,7 +256,7 @@ MappedCodes codes_from_wiener_mask(const std::filesystem::path& dir) {
   m.codes.cols = torch::where(V.flatten() >= 0, 1.0, -1.0).to(torch::kFloat64);
   WienerCamera cam;
   const auto learned = load_mask_window((dir / "mask.png").string(), cam) > 0.5;  // {rows, cols}
-  const auto mask = (1 + torch::outer(m.codes.rows, m.codes.cols)) / 2;       // {K,K}
+  const auto mask = (1 + torch::outer(m.codes.rows, m.codes.cols)) / 2;           // {K,K}
   const auto mapped = mask_window(mask.to(torch::kFloat32), 4, cam.rows, cam.cols) > 0.5;
   m.agreement = (learned == mapped).to(torch::kFloat64).mean().item<double>();
   return m;
@@ -303,7 +307,8 @@ std::string wiener_sections(const MaskReportOptions& opt, const std::vector<std:
         "deconvolution with gamma tuned per mask (and per noise level) on "
      << n_tune << " held-out photographs; PSNR on " << test.size(0)
      << " further held-out photographs (`flatnet mask report`).\n\n";
-  MarkdownTable main_table{{"mask", "throughput", "gamma", "PSNR dB (sigma " + scientific(cam.noise_sigma, 1) + ")"}, {}};
+  MarkdownTable main_table{{"mask", "throughput", "gamma", "PSNR dB (sigma " + scientific(cam.noise_sigma, 1) + ")"},
+                           {}};
   std::vector<MaskScore> scores;
   for (const auto& [name, w] : masks) {
     scores.push_back(score_mask(name, w, tune, test, cam));
@@ -311,7 +316,8 @@ std::string wiener_sections(const MaskReportOptions& opt, const std::vector<std:
     main_table.add({name, fixed(s.throughput, 3), scientific(s.gamma, 2), fixed(s.psnr, 2)});
     std::cerr << name << ": " << s.psnr << " dB\n";
   }
-  md << main_table.markdown() << "\nThe 02 mask passes about 2% of the light, so it is compared apart (not at equal light). Its PSF "
+  md << main_table.markdown()
+     << "\nThe 02 mask passes about 2% of the light, so it is compared apart (not at equal light). Its PSF "
         "covers only 124x124 pixels, so its deconvolution is well conditioned; with noise that does not depend "
         "on the signal, as in this protocol, that outweighs the light it loses.\n\n"
         "## Noise sweep (PSNR dB; gamma re-tuned at each level)\n\n";
@@ -333,7 +339,8 @@ std::string wiener_sections(const MaskReportOptions& opt, const std::vector<std:
   }
   md << sweep_table.markdown();
   std::filesystem::create_directories(opt.out);
-  write_line_plot(opt.out / "sweep.png", sweep, psnr_plot("PSNR vs noise (Wiener, gamma tuned per level)", "noise sigma"));
+  write_line_plot(opt.out / "sweep.png", sweep,
+                  psnr_plot("PSNR vs noise (Wiener, gamma tuned per level)", "noise sigma"));
 
   // Figure: each mask's window and its reconstruction of one held-out photograph.
   std::vector<std::string> labels;
@@ -359,7 +366,8 @@ std::string wiener_sections(const MaskReportOptions& opt, const std::vector<std:
 }  // namespace
 
 std::string write_mask_report(const MaskReportOptions& opt) {
-  require(opt.wiener || !opt.separable.empty(), "mask report", "has nothing to report (no Wiener sections, no code pairs)");
+  require(opt.wiener || !opt.separable.empty(), "mask report",
+          "has nothing to report (no Wiener sections, no code pairs)");
   {  // its figures are PNGs: written among the photographs, they would become photographs next time
     std::error_code a, b;
     require(std::filesystem::weakly_canonical(opt.out, a) != std::filesystem::weakly_canonical(opt.images, b), "--out",
@@ -368,8 +376,8 @@ std::string write_mask_report(const MaskReportOptions& opt) {
   require(std::isfinite(opt.noise) && opt.noise > 0, "--noise", "must be positive");
   const auto held_out = split_image_files(opt.images, 0.1, 1).second;
   require(opt.tune_count >= 1 && static_cast<int64_t>(held_out.size()) > opt.tune_count, opt.images,
-          "too few held-out photographs (" + std::to_string(held_out.size()) + ") for " + std::to_string(opt.tune_count) +
-              " to tune");
+          "too few held-out photographs (" + std::to_string(held_out.size()) + ") for " +
+              std::to_string(opt.tune_count) + " to tune");
   std::ostringstream md;
   std::filesystem::create_directories(opt.out);
   if (opt.wiener) md << wiener_sections(opt, held_out);
@@ -377,7 +385,8 @@ std::string write_mask_report(const MaskReportOptions& opt) {
     const auto sep = score_separable_cameras(opt.separable, held_out, opt.separable_options);
     const int64_t scored = std::min<int64_t>(static_cast<int64_t>(held_out.size()) - opt.separable_options.tune_count,
                                              opt.separable_options.count > 0 ? opt.separable_options.count : INT64_MAX);
-    md << (opt.wiener ? "\n" : "# Separable cameras from code pairs\n\n") << separable_section(sep, opt.separable_options, scored);
+    md << (opt.wiener ? "\n" : "# Separable cameras from code pairs\n\n")
+       << separable_section(sep, opt.separable_options, scored);
     std::vector<Series> light;
     for (const auto& s : sep) {
       light.push_back({s.name, {}, s.psnr});

@@ -30,29 +30,29 @@ struct CameraModel {
 };
 
 struct SeparableCandidate {
-  std::string name;    // row label
+  std::string name;  // row label
   CodePair codes;
   std::string origin;  // one line: where the codes come from
   std::optional<CameraModel> flatnet;
 };
 
 struct SeparableReportOptions {
-  RawGeometry geometry;                 // the reference camera's preprocessing (crop); Tikhonov reads centred planes
-  SeparableCameraOptions camera;        // the construction (sensor, blur, gains, full well)
-  double calib_error = 0.03;            // as `flatnet mask camera` and the shipped calib.mat
+  RawGeometry geometry;           // the reference camera's preprocessing (crop); Tikhonov reads centred planes
+  SeparableCameraOptions camera;  // the construction (sensor, blur, gains, full well)
+  double calib_error = 0.03;      // as `flatnet mask camera` and the shipped calib.mat
   uint64_t calib_seed = 0;
-  uint64_t noise_seed = 1;              // the noise of `flatnet simulate --seed 1`
+  uint64_t noise_seed = 1;  // the noise of `flatnet simulate --seed 1`
   std::vector<double> lambdas = {1e-5, 3e-5, 1e-4, 3e-4, 1e-3, 3e-3, 1e-2};
   std::vector<double> light = {1.0, 0.25, 1.0 / 16, 1.0 / 64};  // photons per full scale, relative to the camera's
-  int64_t tune_count = 50;              // held-out photographs that choose lambda; the rest are scored
-  int64_t count = 0;                    // > 0: score at most this many after those
+  int64_t tune_count = 50;  // held-out photographs that choose lambda; the rest are scored
+  int64_t count = 0;        // > 0: score at most this many after those
   bool progress = true;
 };
 
 struct SeparableScore {
   std::string name, origin, flatnet_label;
   double throughput = 0;
-  double cond_p = 0, cond_q = 0;                 // of the gb channel's calibration matrices
+  double cond_p = 0, cond_q = 0;                  // of the gb channel's calibration matrices
   double low_share_rows = 0, low_share_cols = 0;  // share of each code's AC power in the lowest eighth of frequencies
   std::vector<double> lambda_sweep_psnr;          // at full light, every held-out photograph, per options.lambdas
   std::vector<double> lambda, psnr, ssim;         // per light level: tuned lambda, scored PSNR / SSIM

@@ -51,8 +51,9 @@ void write_contact_sheet(const std::filesystem::path& path, const std::vector<st
     cv::putText(m, column_labels[c], cv::Point(static_cast<int>(c * (tile + gap) + gap + 4), 20),
                 cv::FONT_HERSHEY_SIMPLEX, 0.55, cv::Scalar(0, 0, 0), 1, cv::LINE_AA);
   for (int64_t r = 0; r < rows && r < static_cast<int64_t>(row_labels.size()); ++r)
-    cv::putText(m, row_labels[r].substr(0, 30), cv::Point(gap + 4, static_cast<int>(header + r * (tile + gap) + tile - 6)),
-                cv::FONT_HERSHEY_SIMPLEX, 0.4, cv::Scalar(255, 255, 0), 1, cv::LINE_AA);
+    cv::putText(m, row_labels[r].substr(0, 30),
+                cv::Point(gap + 4, static_cast<int>(header + r * (tile + gap) + tile - 6)), cv::FONT_HERSHEY_SIMPLEX,
+                0.4, cv::Scalar(255, 255, 0), 1, cv::LINE_AA);
   auto out = torch::from_blob(m.data, {H, W, 3}, torch::kUInt8).permute({2, 0, 1}).to(torch::kFloat32) / 255.0f;
   write_rgb8(path, out);
 }

@@ -43,8 +43,10 @@ size_t nearest(const std::vector<double>& values, double target) {
   size_t lo = 0, hi = values.size() - 1;
   while (hi - lo > 1) {
     const size_t mid = (lo + hi) / 2;
-    if ((values[mid] < target) == increasing) lo = mid;
-    else hi = mid;
+    if ((values[mid] < target) == increasing)
+      lo = mid;
+    else
+      hi = mid;
   }
   return std::abs(values[lo] - target) <= std::abs(values[hi] - target) ? lo : hi;
 }
@@ -170,7 +172,8 @@ torch::Tensor niqe_features(const torch::Tensor& gray255, int64_t patch, bool sh
 }
 
 NiqeModel fit_niqe(const std::vector<std::filesystem::path>& images,
-                   const std::function<torch::Tensor(const std::filesystem::path&)>& load, int64_t patch, bool progress) {
+                   const std::function<torch::Tensor(const std::filesystem::path&)>& load, int64_t patch,
+                   bool progress) {
   require(!images.empty(), "fit-niqe", "no images to fit on");
   NiqeModel m;
   m.patch = patch;

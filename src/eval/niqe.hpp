@@ -24,11 +24,11 @@
 namespace flatnet {
 
 struct NiqeModel {
-  int64_t patch = 48;                // patch side at full scale (half at the second scale)
+  int64_t patch = 48;                 // patch side at full scale (half at the second scale)
   double sharpness_threshold = 0.75;  // pristine patches kept: mean sigma > threshold x the sharpest
-  torch::Tensor mean;                // {36} float64: the pristine features' mean
-  torch::Tensor cov;                 // {36,36} float64: their covariance
-  int64_t images = 0, patches = 0;   // what the fit saw
+  torch::Tensor mean;                 // {36} float64: the pristine features' mean
+  torch::Tensor cov;                  // {36,36} float64: their covariance
+  int64_t images = 0, patches = 0;    // what the fit saw
 };
 
 // {3,H,W} or {1,H,W} in [0,1] -> {H,W} grey levels 0..255 (ITU-R BT.601 luma, as MATLAB's rgb2gray).

@@ -39,7 +39,7 @@ void write_line_plot(const std::filesystem::path& path, const std::vector<Series
     cv::putText(img, buf, {xx - 15, top + ph + 18}, cv::FONT_HERSHEY_SIMPLEX, 0.4, black, 1, cv::LINE_AA);
   }
   cv::rectangle(img, {left, top}, {left + pw, top + ph}, black);
-  const std::vector<cv::Scalar> colours = {{200, 80, 0},  {0, 120, 230}, {40, 160, 40}, {30, 30, 200},
+  const std::vector<cv::Scalar> colours = {{200, 80, 0},   {0, 120, 230}, {40, 160, 40}, {30, 30, 200},
                                            {150, 50, 150}, {0, 170, 170}, {90, 90, 90}};
   for (size_t s = 0; s < series.size(); ++s) {
     const auto& c = colours[s % colours.size()];
@@ -48,12 +48,14 @@ void write_line_plot(const std::filesystem::path& path, const std::vector<Series
       if (std::isfinite(series[s].y[i])) pts.emplace_back(px(series[s].x[i]), py(series[s].y[i]));
     if (pts.size() > 1) cv::polylines(img, pts, false, c, 2, cv::LINE_AA);
     for (const auto& p : pts) cv::circle(img, p, 3, c, -1, cv::LINE_AA);
-    cv::line(img, {left + pw + 10, top + 12 + 20 * static_cast<int>(s)}, {left + pw + 30, top + 12 + 20 * static_cast<int>(s)}, c, 2);
+    cv::line(img, {left + pw + 10, top + 12 + 20 * static_cast<int>(s)},
+             {left + pw + 30, top + 12 + 20 * static_cast<int>(s)}, c, 2);
     cv::putText(img, series[s].name.substr(0, 18), {left + pw + 35, top + 16 + 20 * static_cast<int>(s)},
                 cv::FONT_HERSHEY_SIMPLEX, 0.42, black, 1, cv::LINE_AA);
   }
   cv::putText(img, o.title, {left, 24}, cv::FONT_HERSHEY_SIMPLEX, 0.55, black, 1, cv::LINE_AA);
-  cv::putText(img, o.xlabel, {left + pw / 2 - 40, o.height - 10}, cv::FONT_HERSHEY_SIMPLEX, 0.45, black, 1, cv::LINE_AA);
+  cv::putText(img, o.xlabel, {left + pw / 2 - 40, o.height - 10}, cv::FONT_HERSHEY_SIMPLEX, 0.45, black, 1,
+              cv::LINE_AA);
   cv::putText(img, o.ylabel, {5, top - 10}, cv::FONT_HERSHEY_SIMPLEX, 0.45, black, 1, cv::LINE_AA);
   // OpenCV draws BGR; the image writer takes RGB {3,H,W} in [0,1].
   auto bgr = torch::from_blob(img.data, {o.height, o.width, 3}, torch::kUInt8);

@@ -29,7 +29,10 @@ std::vector<Method> find_methods(const std::filesystem::path& out) {
     if (e.is_directory()) {
       bool any = false;
       for (const auto& f : std::filesystem::directory_iterator(e.path()))
-        if (has_extension(f.path(), {".png"})) { any = true; break; }
+        if (has_extension(f.path(), {".png"})) {
+          any = true;
+          break;
+        }
       if (any) methods.push_back({e.path().filename().string(), e.path()});
     }
   std::sort(methods.begin(), methods.end(), [](const Method& a, const Method& b) { return a.name < b.name; });
@@ -52,17 +55,24 @@ std::vector<MethodScore> evaluate(const EvalOptions& opt) {
   const bool with_niqe = !opt.niqe_model.empty();
   if (with_niqe) niqe_model = load_niqe(opt.niqe_model);
   // Running sums of a NIQE column: {sum, sum of squares, count} (NaN scores, flat images, skipped).
-  struct Sums { double sum = 0, sq = 0; int64_t n = 0; };
-  auto add = [](Sums& s, double v) { if (std::isfinite(v)) s.sum += v, s.sq += v * v, ++s.n; };
+  struct Sums {
+    double sum = 0, sq = 0;
+    int64_t n = 0;
+  };
+  auto add = [](Sums& s, double v) {
+    if (std::isfinite(v)) s.sum += v, s.sq += v * v, ++s.n;
+  };
   std::vector<Sums> niqe_sums(methods.size());
   Sums truth_niqe;
   std::ostringstream csv;
-  csv << "image,method,psnr,ssim,mean_output,mean_truth" << (with_niqe ? ",niqe" : "") << "\n" << std::fixed << std::setprecision(4);
+  csv << "image,method,psnr,ssim,mean_output,mean_truth" << (with_niqe ? ",niqe" : "") << "\n"
+      << std::fixed << std::setprecision(4);
   std::vector<MethodScore> scores;
   std::vector<std::vector<torch::Tensor>> sheet;
   std::vector<std::string> row_labels;
   for (const auto& m : methods) scores.push_back({m.name});
-  std::vector<double> sum_sq_psnr(methods.size()), sum_sq_ssim(methods.size()), sum_out(methods.size()), sum_gt(methods.size());
+  std::vector<double> sum_sq_psnr(methods.size()), sum_sq_ssim(methods.size()), sum_out(methods.size()),
+      sum_gt(methods.size());
   for (const auto& gt_path : gt_files) {
     const auto name = gt_path.stem().string() + ".png";
     std::vector<torch::Tensor> row;
@@ -122,7 +132,8 @@ std::vector<MethodScore> evaluate(const EvalOptions& opt) {
     s.psnr_sd = std::sqrt(std::max(0.0, sum_sq_psnr[k] / s.count - s.psnr * s.psnr));
     s.ssim_sd = std::sqrt(std::max(0.0, sum_sq_ssim[k] / s.count - s.ssim * s.ssim));
     s.brightness = sum_gt[k] > 0 ? sum_out[k] / sum_gt[k] : 0;
-    csv << "mean," << s.method << "," << s.psnr << "," << s.ssim << "," << sum_out[k] / s.count << "," << sum_gt[k] / s.count;
+    csv << "mean," << s.method << "," << s.psnr << "," << s.ssim << "," << sum_out[k] / s.count << ","
+        << sum_gt[k] / s.count;
     if (with_niqe && niqe_sums[k].n > 0) {
       s.niqe = niqe_sums[k].sum / niqe_sums[k].n;
       s.niqe_sd = std::sqrt(std::max(0.0, niqe_sums[k].sq / niqe_sums[k].n - s.niqe * s.niqe));
@@ -160,8 +171,10 @@ std::string format_table(const std::vector<MethodScore>& scores) {
      << std::setw(16) << "SSIM" << std::setw(12) << "brightness" << (any_niqe ? "            NIQE" : "") << "\n";
   for (const auto& s : scores) {
     std::ostringstream b;
-    if (std::isfinite(s.brightness)) b << std::fixed << std::setprecision(2) << s.brightness;
-    else b << "-";
+    if (std::isfinite(s.brightness))
+      b << std::fixed << std::setprecision(2) << s.brightness;
+    else
+      b << "-";
     os << std::left << std::setw(24) << s.method << std::right << std::setw(7) << s.count << std::setw(16)
        << pm(s.psnr, s.psnr_sd, 2) << std::setw(16) << pm(s.ssim, s.ssim_sd, 3) << std::setw(12) << b.str();
     if (any_niqe) os << std::setw(16) << pm(s.niqe, s.niqe_sd, 2);

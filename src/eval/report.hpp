@@ -10,8 +10,8 @@ namespace flatnet {
 struct MethodScore {
   std::string method;
   int64_t count = 0;
-  double psnr = 0, ssim = 0;          // means over images
-  double psnr_sd = 0, ssim_sd = 0;    // standard deviations over images
+  double psnr = 0, ssim = 0;        // means over images
+  double psnr_sd = 0, ssim_sd = 0;  // standard deviations over images
   // Mean output value over mean ground-truth value, whole set: 1 keeps the scene's light, > 1
   // brightens (a dark scene turned white shows here), < 1 darkens.
   double brightness = 0;

@@ -15,9 +15,9 @@ struct MarkdownTable {
   std::string markdown() const;  // "| a | b |\n|---|---|\n| ... |\n"
 };
 
-std::string fixed(double value, int digits);                   // "-" for NaN
-std::string scientific(double value, int digits);              // "1.00e-06"
-std::string plus_minus(double mean, double sd, int digits);    // "19.66 ± 3.33", "-" for NaN
+std::string fixed(double value, int digits);                 // "-" for NaN
+std::string scientific(double value, int digits);            // "1.00e-06"
+std::string plus_minus(double mean, double sd, int digits);  // "19.66 ± 3.33", "-" for NaN
 
 // {3,H,W} image with the size x size detail at (row, col) magnified `zoom` times into its
 // bottom-right corner, framed in yellow; the detail's place is framed too (thesis Figure 5.1's insets).

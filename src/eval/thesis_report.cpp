@@ -90,7 +90,8 @@ void write_figure(const fs::path& path, const ReportSet& set, const std::vector<
     const int64_t n = gt.size(1), detail = n / 6;
     const int64_t r0 = n / 2 - detail / 2, c0 = n / 2 - detail;  // a detail left of the centre
     std::vector<torch::Tensor> row{with_inset(gt, r0, c0, detail)};
-    for (const auto& m : methods) row.push_back(with_inset(resize(read_rgb(output_of(set_out / m.name, c)), n, n), r0, c0, detail));
+    for (const auto& m : methods)
+      row.push_back(with_inset(resize(read_rgb(output_of(set_out / m.name, c)), n, n), r0, c0, detail));
     images.push_back(row);
     row_labels.push_back(c.stem().string());
   }
@@ -113,7 +114,8 @@ ReportSet parse_report_set(const std::string& spec) {
   const auto eq = spec.find('=');
   ReportSet s = eq == std::string::npos ? ReportSet{fs::path(spec).filename().string(), spec}
                                         : ReportSet{spec.substr(0, eq), spec.substr(eq + 1)};
-  require(fs::is_directory(s.dir / "gt"), s.dir, "not an evaluation set (no gt/ folder; make one with `flatnet simulate --only val`)");
+  require(fs::is_directory(s.dir / "gt"), s.dir,
+          "not an evaluation set (no gt/ folder; make one with `flatnet simulate --only val`)");
   return s;
 }
 
@@ -126,16 +128,20 @@ std::string make_report(const ReportOptions& o) {
   std::unique_ptr<Calibration> calib;
   for (const auto& m : o.methods)
     if (m.kind != "model" && !calib) {
-      require(!o.camera.calibration.empty(), o.camera.name, "this camera names no calibration (needed for Tikhonov and TV)");
+      require(!o.camera.calibration.empty(), o.camera.name,
+              "this camera names no calibration (needed for Tikhonov and TV)");
       calib = std::make_unique<Calibration>(load_calibration(o.camera.calibration, o.camera));
     }
 
   std::ostringstream md;
-  md << "# Reconstruction report\n\nMade by `" << o.command << "` (`flatnet report`): every method on every set, scored "
+  md << "# Reconstruction report\n\nMade by `" << o.command
+     << "` (`flatnet report`): every method on every set, scored "
      << "against the ground truth. PSNR in dB and SSIM (11x11 Gaussian window) on the 256x256 sRGB images; NIQE "
-     << "(Mittal et al. 2013; lower is more natural) with the model " << (o.niqe_model.empty() ? "(none)" : o.niqe_model.string())
+     << "(Mittal et al. 2013; lower is more natural) with the model "
+     << (o.niqe_model.empty() ? "(none)" : o.niqe_model.string())
      << ". Values are mean ± standard deviation over the images. Ma et al.'s score needs regression forests that are "
-     << "not available here, so there is no perceptual index (PI); NIQE is reported alone. Time: milliseconds per image "
+     << "not available here, so there is no perceptual index (PI); NIQE is reported alone. Time: milliseconds per "
+        "image "
      << "in the method itself, no file I/O, on " << o.machine << ".\n\n";
   for (size_t si = 0; si < o.sets.size(); ++si) {
     const auto& set = o.sets[si];
@@ -145,7 +151,8 @@ std::string make_report(const ReportOptions& o) {
     std::vector<std::string> names;
     for (const auto& m : o.methods) {
       auto subset = captures;
-      if (m.kind == "tv" && o.tv_count > 0 && static_cast<int64_t>(subset.size()) > o.tv_count) subset.resize(o.tv_count);
+      if (m.kind == "tv" && o.tv_count > 0 && static_cast<int64_t>(subset.size()) > o.tv_count)
+        subset.resize(o.tv_count);
       fs::create_directories(set_out / m.name);
       reconstruct_missing(o, m, subset, set_out / m.name, calib.get());
       names.push_back(m.name);
@@ -158,15 +165,18 @@ std::string make_report(const ReportOptions& o) {
     const auto scores = evaluate(eo);
     MarkdownTable table{{"method", "images", "PSNR dB", "SSIM", "NIQE", "ms per image"}, {}};
     for (const auto& s : scores) {
-      const auto [ms, timed] = s.method == "ground truth" ? std::pair<double, int64_t>{std::nan(""), 0} : read_timing(set_out / s.method);
+      const auto [ms, timed] =
+          s.method == "ground truth" ? std::pair<double, int64_t>{std::nan(""), 0} : read_timing(set_out / s.method);
       table.add({s.method, std::to_string(s.count), plus_minus(s.psnr, s.psnr_sd, 2), plus_minus(s.ssim, s.ssim_sd, 3),
                  plus_minus(s.niqe, s.niqe_sd, 2), fixed(ms, 1)});
     }
     const bool lamp = set.name.find("lamp") != std::string::npos;
     md << "## " << set.name << (lamp ? ": dynamic range (thesis Figure 5.3)" : "") << "\n\n"
        << captures.size() << " captures from `" << set.dir.string() << "`"
-       << (o.tv_count > 0 ? "; TV on the first " + std::to_string(std::min<int64_t>(o.tv_count, captures.size())) : std::string())
-       << ".\n\n" << table.markdown() << "\n";
+       << (o.tv_count > 0 ? "; TV on the first " + std::to_string(std::min<int64_t>(o.tv_count, captures.size()))
+                          : std::string())
+       << ".\n\n"
+       << table.markdown() << "\n";
     const auto figure = set.name + "_figure.png";
     write_figure(o.out / figure, set, o.methods, captures, set_out, o.figure_rows);
     md << "![" << set.name << "](" << figure << ")\n\n";

@@ -13,27 +13,27 @@
 namespace flatnet {
 
 struct ReportMethod {
-  std::string name;                 // column and folder name
-  std::string kind;                 // tikhonov | tv | model
-  std::filesystem::path model;      // kind == model: a .flatnet file
+  std::string name;             // column and folder name
+  std::string kind;             // tikhonov | tv | model
+  std::filesystem::path model;  // kind == model: a .flatnet file
 };
 
 struct ReportSet {
-  std::string name;                 // e.g. heldout, dim, lamp
-  std::filesystem::path dir;        // a dataset folder: val_meas.txt (or meas/) and gt/
+  std::string name;           // e.g. heldout, dim, lamp
+  std::filesystem::path dir;  // a dataset folder: val_meas.txt (or meas/) and gt/
 };
 
 struct ReportOptions {
-  CameraConfig camera;              // preprocessing and calibration for Tikhonov and TV
+  CameraConfig camera;  // preprocessing and calibration for Tikhonov and TV
   std::vector<ReportMethod> methods;
   std::vector<ReportSet> sets;
   std::filesystem::path out;
-  std::filesystem::path niqe_model; // empty: no NIQE column
-  int64_t tv_count = 30;            // TV (FISTA, seconds per capture) on the first N captures of a set (0: all)
-  int figure_rows = 4;              // scenes in each set's figure
-  InferenceLevers levers;           // for the model methods (bf16 where chosen)
-  std::string machine;              // printed beside the timings (CPU model, flags, threads, precision)
-  std::string command;              // the command line, printed in the report
+  std::filesystem::path niqe_model;  // empty: no NIQE column
+  int64_t tv_count = 30;             // TV (FISTA, seconds per capture) on the first N captures of a set (0: all)
+  int figure_rows = 4;               // scenes in each set's figure
+  InferenceLevers levers;            // for the model methods (bf16 where chosen)
+  std::string machine;               // printed beside the timings (CPU model, flags, threads, precision)
+  std::string command;               // the command line, printed in the report
   bool progress = true;
 };
 

@@ -50,15 +50,24 @@ void check(GError*& err, const std::string& device, const std::string& what) {
 
 const char* buffer_status_name(ArvBufferStatus s) {
   switch (s) {
-    case ARV_BUFFER_STATUS_SUCCESS: return "success";
-    case ARV_BUFFER_STATUS_CLEARED: return "buffer cleared";
-    case ARV_BUFFER_STATUS_TIMEOUT: return "incomplete buffer (timeout before all packets arrived)";
-    case ARV_BUFFER_STATUS_MISSING_PACKETS: return "incomplete buffer (missing packets)";
-    case ARV_BUFFER_STATUS_WRONG_PACKET_ID: return "corrupt buffer (wrong packet id)";
-    case ARV_BUFFER_STATUS_SIZE_MISMATCH: return "image larger than the buffer (size mismatch)";
-    case ARV_BUFFER_STATUS_FILLING: return "buffer still filling";
-    case ARV_BUFFER_STATUS_ABORTED: return "acquisition aborted";
-    default: return "unknown buffer status";
+    case ARV_BUFFER_STATUS_SUCCESS:
+      return "success";
+    case ARV_BUFFER_STATUS_CLEARED:
+      return "buffer cleared";
+    case ARV_BUFFER_STATUS_TIMEOUT:
+      return "incomplete buffer (timeout before all packets arrived)";
+    case ARV_BUFFER_STATUS_MISSING_PACKETS:
+      return "incomplete buffer (missing packets)";
+    case ARV_BUFFER_STATUS_WRONG_PACKET_ID:
+      return "corrupt buffer (wrong packet id)";
+    case ARV_BUFFER_STATUS_SIZE_MISMATCH:
+      return "image larger than the buffer (size mismatch)";
+    case ARV_BUFFER_STATUS_FILLING:
+      return "buffer still filling";
+    case ARV_BUFFER_STATUS_ABORTED:
+      return "acquisition aborted";
+    default:
+      return "unknown buffer status";
   }
 }
 
@@ -82,7 +91,8 @@ class AravisCamera final : public FrameSource {
       }
     }
     throw Error("camera " + id_ + ": no complete frame after " + std::to_string(settings_.retries + 1) +
-                " attempts (last: " + last_failure + "); check the connection, that --timeout-ms exceeds the exposure, "
+                " attempts (last: " + last_failure +
+                "); check the connection, that --timeout-ms exceeds the exposure, "
                 "and for GigE Vision the packet size");
   }
 
@@ -146,7 +156,8 @@ class AravisCamera final : public FrameSource {
       g_free(available);
       if (std::find(names.begin(), names.end(), s.pixel_format) == names.end()) {
         std::string list;
-        for (const auto& name : names) list += (list.empty() ? "" : ", ") + name + (is_storable_pixel_format(name) ? "" : " (not storable)");
+        for (const auto& name : names)
+          list += (list.empty() ? "" : ", ") + name + (is_storable_pixel_format(name) ? "" : " (not storable)");
         throw Error("camera " + id_ + ": pixel format " + s.pixel_format + " not offered; it offers " + list);
       }
       arv_camera_set_pixel_format_from_string(camera_, s.pixel_format.c_str(), &err);
@@ -161,9 +172,10 @@ class AravisCamera final : public FrameSource {
       arv_camera_get_height_bounds(camera_, &hmin, &hmax, &err);
       check(err, id_, "reading the sensor size");
       require(x + w <= wmax && y + h <= hmax, "camera " + id_,
-              "region " + std::to_string(w) + "x" + std::to_string(h) + "+" + std::to_string(x) + "+" + std::to_string(y) +
-                  " exceeds the sensor's " + std::to_string(wmax) + "x" + std::to_string(hmax));
-      arv_camera_set_region(camera_, static_cast<gint>(x), static_cast<gint>(y), static_cast<gint>(w), static_cast<gint>(h), &err);
+              "region " + std::to_string(w) + "x" + std::to_string(h) + "+" + std::to_string(x) + "+" +
+                  std::to_string(y) + " exceeds the sensor's " + std::to_string(wmax) + "x" + std::to_string(hmax));
+      arv_camera_set_region(camera_, static_cast<gint>(x), static_cast<gint>(y), static_cast<gint>(w),
+                            static_cast<gint>(h), &err);
       check(err, id_, "setting the region");
     }
     // Exposure and gain: automatic control off, the value checked against the camera's bounds.
@@ -178,7 +190,8 @@ class AravisCamera final : public FrameSource {
       check(err, id_, std::string("setting the ") + what);
     };
     if (s.exposure_us) {
-      if (arv_camera_is_exposure_auto_available(camera_, nullptr)) arv_camera_set_exposure_time_auto(camera_, ARV_AUTO_OFF, nullptr);
+      if (arv_camera_is_exposure_auto_available(camera_, nullptr))
+        arv_camera_set_exposure_time_auto(camera_, ARV_AUTO_OFF, nullptr);
       set_bounded("exposure", "us", *s.exposure_us, arv_camera_get_exposure_time_bounds, arv_camera_set_exposure_time);
     }
     if (s.gain_db) {
@@ -206,7 +219,8 @@ class AravisCamera final : public FrameSource {
     check(err, id_, "reading the payload size");
     stream_ = arv_camera_create_stream(camera_, nullptr, nullptr, &err);
     check(err, id_, "creating the stream");
-    for (int i = 0; i < std::max(2, settings_.buffers); ++i) arv_stream_push_buffer(stream_, arv_buffer_new(payload_, nullptr));
+    for (int i = 0; i < std::max(2, settings_.buffers); ++i)
+      arv_stream_push_buffer(stream_, arv_buffer_new(payload_, nullptr));
     arv_camera_start_acquisition(camera_, &err);
     check(err, id_, "starting the acquisition");
   }
@@ -222,14 +236,19 @@ class AravisCamera final : public FrameSource {
     d["vendor"] = str(arv_camera_get_vendor_name(camera_, nullptr));
     d["model"] = str(arv_camera_get_model_name(camera_, nullptr));
     d["serial"] = str(arv_camera_get_device_serial_number(camera_, nullptr));
-    d["protocol"] = arv_camera_is_gv_device(camera_) ? "GigEVision" : arv_camera_is_uv_device(camera_) ? "USB3Vision" : id_.rfind("Fake", 0) == 0 ? "Fake" : "other";
+    d["protocol"] = arv_camera_is_gv_device(camera_)   ? "GigEVision"
+                    : arv_camera_is_uv_device(camera_) ? "USB3Vision"
+                    : id_.rfind("Fake", 0) == 0        ? "Fake"
+                                                       : "other";
     d["pixel_format"] = format_.name;
     d["adc_bits"] = format_.bits;
     d["bayer"] = format_.bayer.empty() ? "none" : format_.bayer;
     d["region"] = {{"x", x}, {"y", y}, {"width", w}, {"height", h}};
-    if (arv_camera_is_exposure_time_available(camera_, nullptr)) d["exposure_us"] = arv_camera_get_exposure_time(camera_, nullptr);
+    if (arv_camera_is_exposure_time_available(camera_, nullptr))
+      d["exposure_us"] = arv_camera_get_exposure_time(camera_, nullptr);
     if (arv_camera_is_gain_available(camera_, nullptr)) d["gain_db"] = arv_camera_get_gain(camera_, nullptr);
-    if (arv_camera_is_frame_rate_available(camera_, nullptr)) d["frame_rate"] = arv_camera_get_frame_rate(camera_, nullptr);
+    if (arv_camera_is_frame_rate_available(camera_, nullptr))
+      d["frame_rate"] = arv_camera_get_frame_rate(camera_, nullptr);
     if (arv_camera_is_gv_device(camera_)) d["packet_size"] = arv_camera_gv_get_packet_size(camera_, nullptr);
     description_ = d;
   }
@@ -238,7 +257,8 @@ class AravisCamera final : public FrameSource {
   Frame to_frame(ArvBuffer* b) {
     const int w = arv_buffer_get_image_width(b), h = arv_buffer_get_image_height(b);
     require(w == width_ && h == height_, "camera " + id_,
-            "frame is " + std::to_string(w) + "x" + std::to_string(h) + ", expected " + std::to_string(width_) + "x" + std::to_string(height_));
+            "frame is " + std::to_string(w) + "x" + std::to_string(h) + ", expected " + std::to_string(width_) + "x" +
+                std::to_string(height_));
     size_t size = 0;
     const auto* data = static_cast<const uint8_t*>(arv_buffer_get_data(b, &size));
     Frame f;
@@ -251,9 +271,11 @@ class AravisCamera final : public FrameSource {
   // One attempt: a complete frame newer than not_before, or nullopt with the reason in `failure`.
   std::optional<Frame> pop_frame(Clock::time_point not_before, std::string& failure) {
     const auto deadline = std::chrono::steady_clock::now() + std::chrono::milliseconds(settings_.timeout_ms);
-    const int64_t not_before_ns = std::chrono::duration_cast<std::chrono::nanoseconds>(not_before.time_since_epoch()).count();
+    const int64_t not_before_ns =
+        std::chrono::duration_cast<std::chrono::nanoseconds>(not_before.time_since_epoch()).count();
     while (true) {
-      const auto left = std::chrono::duration_cast<std::chrono::microseconds>(deadline - std::chrono::steady_clock::now()).count();
+      const auto left =
+          std::chrono::duration_cast<std::chrono::microseconds>(deadline - std::chrono::steady_clock::now()).count();
       if (left <= 0 || control_lost_) {
         failure = control_lost_ ? "connection lost" : "no frame within " + std::to_string(settings_.timeout_ms) + " ms";
         return std::nullopt;
@@ -271,7 +293,7 @@ class AravisCamera final : public FrameSource {
         } catch (const Error& e) {
           why = e.what();
         }
-      }  // else: exposed before not_before, dropped
+      }                                    // else: exposed before not_before, dropped
       arv_stream_push_buffer(stream_, b);  // back to the driver, whatever it held
       if (frame) return frame;
       if (!why.empty()) {

@@ -26,21 +26,21 @@ std::vector<DeviceInfo> list_cameras(bool include_fake);
 std::string resolve_device_id(const std::string& id);
 
 struct DeviceSettings {
-  std::string pixel_format;                 // empty: keep the camera's (checked storable)
-  std::optional<double> exposure_us;        // ExposureTime
-  std::optional<double> gain_db;            // Gain
-  std::optional<double> frame_rate;         // AcquisitionFrameRate
+  std::string pixel_format;                      // empty: keep the camera's (checked storable)
+  std::optional<double> exposure_us;             // ExposureTime
+  std::optional<double> gain_db;                 // Gain
+  std::optional<double> frame_rate;              // AcquisitionFrameRate
   std::optional<std::array<int64_t, 4>> region;  // x, y, width, height (sensor pixels)
-  int64_t packet_size = 0;                  // GigE Vision: 0 = negotiate the largest that passes
-  int timeout_ms = 2000;                    // per frame
-  int retries = 3;                          // failed frames (timeout, incomplete) before giving up
-  int buffers = 8;                          // stream buffers queued in the driver
+  int64_t packet_size = 0;                       // GigE Vision: 0 = negotiate the largest that passes
+  int timeout_ms = 2000;                         // per frame
+  int retries = 3;                               // failed frames (timeout, incomplete) before giving up
+  int buffers = 8;                               // stream buffers queued in the driver
 };
 
 struct Frame {
-  torch::Tensor codes;        // {H,W} int32 ADC codes
+  torch::Tensor codes;  // {H,W} int32 ADC codes
   uint64_t frame_id = 0;
-  int64_t timestamp_ns = 0;   // host (wall-clock) time the frame arrived
+  int64_t timestamp_ns = 0;  // host (wall-clock) time the frame arrived
 };
 
 class FrameSource {

@@ -37,7 +37,8 @@ int64_t next_index(const std::filesystem::path& dir, const std::string& prefix) 
 
 }  // namespace
 
-torch::Tensor average_frames(FrameSource& source, int k, FrameSource::Clock::time_point not_before, std::vector<uint64_t>* ids) {
+torch::Tensor average_frames(FrameSource& source, int k, FrameSource::Clock::time_point not_before,
+                             std::vector<uint64_t>* ids) {
   require(k >= 1, "--average", "must be at least 1");
   torch::Tensor sum;
   for (int i = 0; i < k; ++i) {

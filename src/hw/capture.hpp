@@ -25,10 +25,10 @@ void write_raw_capture(const std::filesystem::path& png, const torch::Tensor& me
 nlohmann::json capture_sidecar(const FrameSource& source, int average, const std::vector<uint64_t>& ids);
 
 struct CaptureOptions {
-  std::filesystem::path out;   // folder; files are PREFIX_0000.png, numbering after existing ones
+  std::filesystem::path out;  // folder; files are PREFIX_0000.png, numbering after existing ones
   std::string prefix = "capture";
-  int frames = 1;              // captures to write
-  int average = 1;             // frames averaged into each capture
+  int frames = 1;   // captures to write
+  int average = 1;  // frames averaged into each capture
   bool progress = true;
 };
 

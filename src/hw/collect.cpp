@@ -9,7 +9,8 @@
 namespace flatnet {
 
 CollectReport collect(const std::vector<CollectItem>& items, FrameSource& source, Display& display,
-                      const CollectOptions& opt, const std::function<std::filesystem::path(const std::string&)>& meas_path,
+                      const CollectOptions& opt,
+                      const std::function<std::filesystem::path(const std::string&)>& meas_path,
                       const std::function<void(const std::string&, const torch::Tensor&)>& before_write) {
   CollectReport rep;
   rep.total = static_cast<int64_t>(items.size());
@@ -62,7 +63,9 @@ CollectReport collect_dataset(const std::vector<std::filesystem::path>& images, 
   std::filesystem::create_directories(opt.out / "gt");
   auto meas = [&](const std::string& name) { return opt.out / "meas" / name; };
   // The ground truth is exactly what was shown (8-bit, scene_size square).
-  auto write_gt = [&](const std::string& name, const torch::Tensor& scene) { write_rgb8(opt.out / "gt" / name, scene); };
+  auto write_gt = [&](const std::string& name, const torch::Tensor& scene) {
+    write_rgb8(opt.out / "gt" / name, scene);
+  };
   const auto rep = collect(items, source, display, opt.collect, meas, write_gt);
 
   std::vector<std::string> complete;

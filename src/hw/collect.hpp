@@ -14,32 +14,33 @@
 namespace flatnet {
 
 struct CollectOptions {
-  int average = 1;        // frames averaged per capture
-  int settle_ms = 500;    // wait after showing a scene (display response, auto-brightness)
-  int64_t limit = 0;      // > 0: stop after this many new captures (a partial run; resumable)
+  int average = 1;      // frames averaged per capture
+  int settle_ms = 500;  // wait after showing a scene (display response, auto-brightness)
+  int64_t limit = 0;    // > 0: stop after this many new captures (a partial run; resumable)
   bool progress = true;
 };
 
 struct CollectReport {
   int64_t total = 0, captured = 0, skipped = 0;
   double seconds = 0;
-  bool stopped = false;   // interrupted (Ctrl-C, Esc/q in the window) or limit reached before the end
+  bool stopped = false;  // interrupted (Ctrl-C, Esc/q in the window) or limit reached before the end
 };
 
 struct CollectItem {
-  std::string name;                     // output file name (NAME.png)
-  std::function<torch::Tensor()> scene; // what the display shows: {3,N,N} or {N,N} in [0,1]
+  std::string name;                      // output file name (NAME.png)
+  std::function<torch::Tensor()> scene;  // what the display shows: {3,N,N} or {N,N} in [0,1]
 };
 
 // The shared loop. `meas_path(name)`: where the capture goes; `before_write(name, scene)`: writes
 // anything that must exist before the capture counts as done (e.g. the ground truth).
 CollectReport collect(const std::vector<CollectItem>& items, FrameSource& source, Display& display,
-                      const CollectOptions& options, const std::function<std::filesystem::path(const std::string&)>& meas_path,
+                      const CollectOptions& options,
+                      const std::function<std::filesystem::path(const std::string&)>& meas_path,
                       const std::function<void(const std::string&, const torch::Tensor&)>& before_write = {});
 
 struct DatasetCollectOptions {
-  std::filesystem::path out;    // meas/, gt/, train_*.txt, val_*.txt (as `flatnet simulate`)
-  int64_t scene_size = 256;     // ground truth and displayed scene side
+  std::filesystem::path out;  // meas/, gt/, train_*.txt, val_*.txt (as `flatnet simulate`)
+  int64_t scene_size = 256;   // ground truth and displayed scene side
   double val_fraction = 0.1;
   uint64_t seed = 0;
   CollectOptions collect;

@@ -46,7 +46,8 @@ class WindowDisplay final : public Display {
     const char* x11 = std::getenv("DISPLAY");
     const char* wayland = std::getenv("WAYLAND_DISPLAY");
     require((x11 && *x11) || (wayland && *wayland), "display",
-            "no display server (DISPLAY is not set); run under a desktop session, xvfb-run, or use --display none / --no-window");
+            "no display server (DISPLAY is not set); run under a desktop session, xvfb-run, or use --display none / "
+            "--no-window");
     cv::namedWindow(opt_.title, opt_.fullscreen ? cv::WINDOW_NORMAL : cv::WINDOW_AUTOSIZE);
     cv::moveWindow(opt_.title, opt_.x, opt_.y);
     if (opt_.fullscreen) cv::setWindowProperty(opt_.title, cv::WND_PROP_FULLSCREEN, cv::WINDOW_FULLSCREEN);
@@ -61,9 +62,9 @@ class WindowDisplay final : public Display {
       h = std::max(rect.height, 1), w = std::max(rect.width, 1);
     }
     auto canvas = compose_canvas(image, h, w, opt_.fullscreen ? opt_.scale : std::max(1, opt_.scale)).contiguous();
-    cv::Mat mat(static_cast<int>(canvas.size(0)), static_cast<int>(canvas.size(1)), CV_8UC3, canvas.data_ptr<uint8_t>());
-    if (!text.empty())
-      cv::putText(mat, text, {10, 30}, cv::FONT_HERSHEY_SIMPLEX, 0.8, {0, 255, 0}, 2);
+    cv::Mat mat(static_cast<int>(canvas.size(0)), static_cast<int>(canvas.size(1)), CV_8UC3,
+                canvas.data_ptr<uint8_t>());
+    if (!text.empty()) cv::putText(mat, text, {10, 30}, cv::FONT_HERSHEY_SIMPLEX, 0.8, {0, 255, 0}, 2);
     cv::imshow(opt_.title, mat);
     ++shown_;
   }

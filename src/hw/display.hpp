@@ -11,9 +11,9 @@ namespace flatnet {
 struct DisplayOptions {
   std::string kind = "window";  // window | none
   std::string title = "flatnet";
-  int x = 0, y = 0;             // window origin: the chosen monitor's top-left in the desktop (xrandr)
-  bool fullscreen = true;       // scenes: full screen on that monitor, black around the image
-  int scale = 0;                // integer magnification (nearest); 0 = the largest that fits the window
+  int x = 0, y = 0;        // window origin: the chosen monitor's top-left in the desktop (xrandr)
+  bool fullscreen = true;  // scenes: full screen on that monitor, black around the image
+  int scale = 0;           // integer magnification (nearest); 0 = the largest that fits the window
 };
 
 class Display {

@@ -65,7 +65,8 @@ LiveStats run_live(FrameSource& source, const Reconstructor& reconstruct, Displa
   const double total = std::chrono::duration<double>(Clock::now() - start).count();
   if (s.frames > 0) {
     s.fps = s.frames / total;
-    s.grab_ms = grab / s.frames, s.preprocess_ms = prep / s.frames, s.reconstruct_ms = recon / s.frames, s.show_ms = show / s.frames;
+    s.grab_ms = grab / s.frames, s.preprocess_ms = prep / s.frames, s.reconstruct_ms = recon / s.frames,
+    s.show_ms = show / s.frames;
   }
   return s;
 }

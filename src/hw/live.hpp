@@ -14,15 +14,15 @@ namespace flatnet {
 using Reconstructor = std::function<torch::Tensor(const torch::Tensor& planes)>;
 
 struct LiveOptions {
-  RawGeometry geometry;     // the camera's preprocessing (frame size checked against it)
-  int64_t frames = 0;       // stop after this many frames (0: until Esc/q/Ctrl-C or `seconds`)
-  double seconds = 0;       // stop after this long (0: no limit)
+  RawGeometry geometry;         // the camera's preprocessing (frame size checked against it)
+  int64_t frames = 0;           // stop after this many frames (0: until Esc/q/Ctrl-C or `seconds`)
+  double seconds = 0;           // stop after this long (0: no limit)
   std::ostream* log = nullptr;  // where to print the rate once a second (e.g. --no-window)
 };
 
 struct LiveStats {
   int64_t frames = 0;
-  double fps = 0;           // frames shown per second of wall time, end to end
+  double fps = 0;  // frames shown per second of wall time, end to end
   double grab_ms = 0, preprocess_ms = 0, reconstruct_ms = 0, show_ms = 0;  // means per frame
 };
 

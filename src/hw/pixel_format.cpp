@@ -8,7 +8,8 @@ namespace {
 
 const char* kStorableHint =
     "flatnet stores the raw sensor mosaic; choose a Mono or Bayer format of 8 to 16 bits "
-    "(Mono8, Mono10/12/14/16, Mono10p/12p, Mono10Packed/12Packed, Bayer??8, Bayer??10/12/16, Bayer??10p/12p, Bayer??12Packed)";
+    "(Mono8, Mono10/12/14/16, Mono10p/12p, Mono10Packed/12Packed, Bayer??8, Bayer??10/12/16, Bayer??10p/12p, "
+    "Bayer??12Packed)";
 
 bool starts_with(const std::string& s, const std::string& prefix) { return s.rfind(prefix, 0) == 0; }
 
@@ -17,10 +18,14 @@ bool starts_with(const std::string& s, const std::string& prefix) { return s.rfi
 int64_t PixelFormatInfo::frame_bytes(int64_t width, int64_t height) const {
   const int64_t n = width * height;
   switch (packing) {
-    case Packing::u8: return n;
-    case Packing::u16: return 2 * n;
-    case Packing::lsb_packed: return (n * bits + 7) / 8;
-    case Packing::gev_packed: return (n + 1) / 2 * 3;
+    case Packing::u8:
+      return n;
+    case Packing::u16:
+      return 2 * n;
+    case Packing::lsb_packed:
+      return (n * bits + 7) / 8;
+    case Packing::gev_packed:
+      return (n + 1) / 2 * 3;
   }
   return 0;
 }
@@ -37,8 +42,10 @@ PixelFormatInfo describe_pixel_format(const std::string& name) {
             std::string("unknown Bayer pattern; ") + kStorableHint);
     rest = name.substr(7);
   } else {
-    throw Error(name + ": not a raw mosaic format (colour-interpolated, YUV or packed colour images lose the "
-                       "Bayer planes the calibration refers to); " + kStorableHint);
+    throw Error(name +
+                ": not a raw mosaic format (colour-interpolated, YUV or packed colour images lose the "
+                "Bayer planes the calibration refers to); " +
+                kStorableHint);
   }
   // rest: "8", "10", "12", "14", "16", "10p", "12p", "10Packed", "12Packed"
   size_t digits = 0;

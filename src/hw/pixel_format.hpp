@@ -19,10 +19,10 @@ enum class Packing {
 };
 
 struct PixelFormatInfo {
-  std::string name;    // e.g. "BayerRG12p"
-  int bits = 8;        // significant bits per pixel (the ADC's resolution)
+  std::string name;  // e.g. "BayerRG12p"
+  int bits = 8;      // significant bits per pixel (the ADC's resolution)
   Packing packing = Packing::u8;
-  std::string bayer;   // "BG", "GB", "GR", "RG", or "" for monochrome
+  std::string bayer;  // "BG", "GB", "GR", "RG", or "" for monochrome
   // Bytes a width x height frame occupies.
   int64_t frame_bytes(int64_t width, int64_t height) const;
 };

@@ -10,7 +10,6 @@
 
 namespace flatnet {
 
-
 namespace {
 
 // Decoder messages on one line: OIIO joins libpng's and libjpeg's with newlines.
@@ -103,8 +102,10 @@ torch::Tensor read_rgb(const std::filesystem::path& path) {
   in->close();
   require(ok, path, "corrupt or truncated image (" + one_line(in->geterror()) + ")");
   auto chw = buf.permute({2, 0, 1});
-  if (c == 1 || c == 2) chw = chw.slice(0, 0, 1).expand({3, h, w});
-  else chw = chw.slice(0, 0, 3);
+  if (c == 1 || c == 2)
+    chw = chw.slice(0, 0, 1).expand({3, h, w});
+  else
+    chw = chw.slice(0, 0, 3);
   return chw.contiguous().clamp(0.0, 1.0);
 }
 
@@ -112,8 +113,7 @@ torch::Tensor read_gray16(const std::filesystem::path& path) {
   auto in = open_input(path);
   const auto& spec = in->spec();
   require(spec.nchannels == 1, path,
-          "raw capture must be single-channel (Bayer mosaic), found " + std::to_string(spec.nchannels) +
-              " channels");
+          "raw capture must be single-channel (Bayer mosaic), found " + std::to_string(spec.nchannels) + " channels");
   require(spec.format == OIIO::TypeDesc::UINT16, path,
           "raw capture must be 16-bit, found " + std::string(spec.format.c_str()));
   auto buf = torch::empty({spec.height, spec.width}, torch::kInt32);
@@ -130,13 +130,13 @@ namespace {
 
 // Encodes in memory, then writes the bytes with every write checked: OIIO's file writers do not
 // report a full disk (a truncated PNG was renamed into place and the run reported success).
-void write_image(const std::filesystem::path& path, const void* data, int w, int h, int c,
-                 OIIO::TypeDesc type) {
+void write_image(const std::filesystem::path& path, const void* data, int w, int h, int c, OIIO::TypeDesc type) {
   auto out = OIIO::ImageOutput::create(path.string());
   require(out != nullptr, path, "no image writer for this extension");
   std::vector<unsigned char> encoded;
   OIIO::Filesystem::IOVecOutput memory(encoded);
-  require(out->supports("ioproxy") && out->set_ioproxy(&memory), path, "this image format cannot be written through memory");
+  require(out->supports("ioproxy") && out->set_ioproxy(&memory), path,
+          "this image format cannot be written through memory");
   OIIO::ImageSpec spec(w, h, c, type);
   require(out->open(path.string(), spec), path, "cannot encode (" + out->geterror() + ")");
   const bool ok = out->write_image(type, data);
@@ -149,11 +149,8 @@ void write_image(const std::filesystem::path& path, const void* data, int w, int
 
 void write_rgb8(const std::filesystem::path& path, const torch::Tensor& rgb) {
   TORCH_CHECK(rgb.dim() == 3 && rgb.size(0) == 3, "write_rgb8 expects {3,H,W}, got ", rgb.sizes());
-  auto hwc = (rgb.detach().to(torch::kFloat32).clamp(0, 1) * 255.0f)
-                 .round()
-                 .to(torch::kUInt8)
-                 .permute({1, 2, 0})
-                 .contiguous();
+  auto hwc =
+      (rgb.detach().to(torch::kFloat32).clamp(0, 1) * 255.0f).round().to(torch::kUInt8).permute({1, 2, 0}).contiguous();
   write_image(path, hwc.data_ptr<uint8_t>(), static_cast<int>(rgb.size(2)), static_cast<int>(rgb.size(1)), 3,
               OIIO::TypeDesc::UINT8);
 }
@@ -164,8 +161,7 @@ void write_gray16(const std::filesystem::path& path, const torch::Tensor& codes)
   std::vector<uint16_t> data(c.numel());
   const auto* src = c.data_ptr<int32_t>();
   for (size_t i = 0; i < data.size(); ++i) data[i] = static_cast<uint16_t>(src[i]);
-  write_image(path, data.data(), static_cast<int>(c.size(1)), static_cast<int>(c.size(0)), 1,
-              OIIO::TypeDesc::UINT16);
+  write_image(path, data.data(), static_cast<int>(c.size(1)), static_cast<int>(c.size(0)), 1, OIIO::TypeDesc::UINT16);
 }
 
 torch::Tensor resize(const torch::Tensor& chw, int64_t h, int64_t w) {

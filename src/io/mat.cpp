@@ -32,20 +32,28 @@ torch::Tensor to_column_major(const torch::Tensor& t) {
 
 torch::ScalarType torch_type(matio_classes c) {
   switch (c) {
-    case MAT_C_DOUBLE: return torch::kFloat64;
-    case MAT_C_SINGLE: return torch::kFloat32;
-    case MAT_C_INT8: return torch::kInt8;
-    case MAT_C_UINT8: return torch::kUInt8;
-    case MAT_C_INT16: return torch::kInt16;
-    case MAT_C_INT32: return torch::kInt32;
-    case MAT_C_INT64: return torch::kInt64;
-    default: return torch::kUInt8;  // unreachable for numeric classes checked below
+    case MAT_C_DOUBLE:
+      return torch::kFloat64;
+    case MAT_C_SINGLE:
+      return torch::kFloat32;
+    case MAT_C_INT8:
+      return torch::kInt8;
+    case MAT_C_UINT8:
+      return torch::kUInt8;
+    case MAT_C_INT16:
+      return torch::kInt16;
+    case MAT_C_INT32:
+      return torch::kInt32;
+    case MAT_C_INT64:
+      return torch::kInt64;
+    default:
+      return torch::kUInt8;  // unreachable for numeric classes checked below
   }
 }
 
 bool is_supported_numeric(matio_classes c) {
-  return c == MAT_C_DOUBLE || c == MAT_C_SINGLE || c == MAT_C_INT8 || c == MAT_C_UINT8 ||
-         c == MAT_C_INT16 || c == MAT_C_INT32 || c == MAT_C_INT64;
+  return c == MAT_C_DOUBLE || c == MAT_C_SINGLE || c == MAT_C_INT8 || c == MAT_C_UINT8 || c == MAT_C_INT16 ||
+         c == MAT_C_INT32 || c == MAT_C_INT64;
 }
 
 }  // namespace
@@ -130,8 +138,8 @@ void write_mat(const std::filesystem::path& path, const std::map<std::string, to
       std::vector<size_t> dims(tensor.sizes().begin(), tensor.sizes().end());
       if (dims.size() == 1) dims.push_back(1);  // MATLAB vectors are Nx1
       if (dims.empty()) dims = {1, 1};
-      matvar_t* v = Mat_VarCreate(name.c_str(), MAT_C_DOUBLE, MAT_T_DOUBLE, static_cast<int>(dims.size()),
-                                  dims.data(), data.data_ptr<double>(), MAT_F_DONT_COPY_DATA);
+      matvar_t* v = Mat_VarCreate(name.c_str(), MAT_C_DOUBLE, MAT_T_DOUBLE, static_cast<int>(dims.size()), dims.data(),
+                                  data.data_ptr<double>(), MAT_F_DONT_COPY_DATA);
       require(v != nullptr, path, "cannot create variable '" + name + "'");
       const int rc = Mat_VarWrite(mat, v, MAT_COMPRESSION_ZLIB);
       Mat_VarFree(v);

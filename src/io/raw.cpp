@@ -10,10 +10,10 @@ using torch::indexing::Slice;
 
 torch::Tensor bayer_split(const torch::Tensor& raw) {
   TORCH_CHECK(raw.dim() == 2 && raw.size(0) % 2 == 0 && raw.size(1) % 2 == 0, "bayer_split expects even {H,W}");
-  return torch::stack({raw.index({Slice(0, None, 2), Slice(0, None, 2)}),   // b
-                       raw.index({Slice(0, None, 2), Slice(1, None, 2)}),   // gb
-                       raw.index({Slice(1, None, 2), Slice(0, None, 2)}),   // gr
-                       raw.index({Slice(1, None, 2), Slice(1, None, 2)})}); // r
+  return torch::stack({raw.index({Slice(0, None, 2), Slice(0, None, 2)}),    // b
+                       raw.index({Slice(0, None, 2), Slice(1, None, 2)}),    // gb
+                       raw.index({Slice(1, None, 2), Slice(0, None, 2)}),    // gr
+                       raw.index({Slice(1, None, 2), Slice(1, None, 2)})});  // r
 }
 
 torch::Tensor bayer_merge(const torch::Tensor& planes) {
@@ -53,9 +53,9 @@ torch::Tensor rotate_planes(const torch::Tensor& planes, double angle) {
 
 torch::Tensor double_centre(const torch::Tensor& planes, Centring mode) {
   if (mode == Centring::none) return planes;
-  auto row_means = planes.mean(-1, true);  // {..,C,H,1}
-  auto col_means = planes.mean(-2, true);  // {..,C,1,W}
-  const auto plane_mean = planes.mean({-2, -1}, true);  // {..,C,1,1}
+  auto row_means = planes.mean(-1, true);                                            // {..,C,H,1}
+  auto col_means = planes.mean(-2, true);                                            // {..,C,1,W}
+  const auto plane_mean = planes.mean({-2, -1}, true);                               // {..,C,1,1}
   const auto all_mean = mode == Centring::flatnet ? planes.mean({-3, -2, -1}, true)  // FlatNet: rowMeans.mean()
                                                   : plane_mean;
   const auto centred = planes - row_means - col_means + all_mean;  // plane: zero mean per plane

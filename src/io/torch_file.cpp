@@ -36,17 +36,20 @@ PyRef make_text(Kind k, std::string s) {
 // The globals a state dict or checkpoint needs; nothing else is ever resolved.
 const std::map<std::string, c10::ScalarType>& storage_types() {
   static const std::map<std::string, c10::ScalarType> t = {
-      {"torch.FloatStorage", torch::kFloat32},   {"torch.DoubleStorage", torch::kFloat64},
-      {"torch.HalfStorage", torch::kFloat16},    {"torch.BFloat16Storage", torch::kBFloat16},
-      {"torch.LongStorage", torch::kInt64},      {"torch.IntStorage", torch::kInt32},
-      {"torch.ShortStorage", torch::kInt16},     {"torch.CharStorage", torch::kInt8},
-      {"torch.ByteStorage", torch::kUInt8},      {"torch.BoolStorage", torch::kBool}};
+      {"torch.FloatStorage", torch::kFloat32}, {"torch.DoubleStorage", torch::kFloat64},
+      {"torch.HalfStorage", torch::kFloat16},  {"torch.BFloat16Storage", torch::kBFloat16},
+      {"torch.LongStorage", torch::kInt64},    {"torch.IntStorage", torch::kInt32},
+      {"torch.ShortStorage", torch::kInt16},   {"torch.CharStorage", torch::kInt8},
+      {"torch.ByteStorage", torch::kUInt8},    {"torch.BoolStorage", torch::kBool}};
   return t;
 }
 bool allowed_global(const std::string& name) {
   static const std::vector<std::string> callables = {
-      "collections.OrderedDict", "torch._utils._rebuild_tensor_v2", "torch._utils._rebuild_tensor",
-      "torch._utils._rebuild_parameter", "torch.Size",
+      "collections.OrderedDict",
+      "torch._utils._rebuild_tensor_v2",
+      "torch._utils._rebuild_tensor",
+      "torch._utils._rebuild_parameter",
+      "torch.Size",
       "torch.jit._pickle.restore_type_tag"};  // LibTorch's pickle_save (flatnet's exports before 2026-11)
   return storage_types().count(name) || std::find(callables.begin(), callables.end(), name) != callables.end();
 }
@@ -101,7 +104,8 @@ class Unpickler {
     return s;
   }
   PyRef pop() {
-    if (stack_.empty() || (!marks_.empty() && stack_.size() <= marks_.back())) fail("malformed: pop from an empty stack");
+    if (stack_.empty() || (!marks_.empty() && stack_.size() <= marks_.back()))
+      fail("malformed: pop from an empty stack");
     auto v = stack_.back();
     stack_.pop_back();
     return v;
@@ -121,7 +125,8 @@ class Unpickler {
   PyRef global(const std::string& module, const std::string& name) {
     const auto full = module + "." + name;
     if (!allowed_global(full))
-      fail("refuses the global '" + full + "': a torch.save file for flatnet may hold only tensors, storages and "
+      fail("refuses the global '" + full +
+           "': a torch.save file for flatnet may hold only tensors, storages and "
            "containers (a pickle naming other objects can run code)");
     return make_text(Kind::global, full);
   }
@@ -166,7 +171,8 @@ std::vector<int64_t> int_tuple(const PyRef& v, const char* what, const std::file
 // and the older _rebuild_tensor(storage, storage_offset, size, stride): a strided view of the
 // storage, copied out. Floating types become float32 (flatnet's weights are float32).
 PyRef Unpickler::rebuild_tensor(const std::vector<PyRef>& a) {
-  if (a.size() < 4 || a[0]->kind != Kind::storage) fail("malformed tensor: expected (storage, offset, size, stride, ...)");
+  if (a.size() < 4 || a[0]->kind != Kind::storage)
+    fail("malformed tensor: expected (storage, offset, size, stride, ...)");
   const auto offset = as_int(a[1], "storage offset", file_);
   const auto size = int_tuple(a[2], "size", file_), stride = int_tuple(a[3], "stride", file_);
   if (size.size() != stride.size()) fail("malformed tensor: size and stride differ in length");
@@ -192,7 +198,8 @@ PyRef Unpickler::call(const PyRef& fn, const PyRef& args) {
         if (kv->kind == Kind::tuple && kv->items.size() == 2) d->entries.emplace_back(kv->items[0], kv->items[1]);
     return d;
   }
-  if (fn->text == "torch._utils._rebuild_tensor_v2" || fn->text == "torch._utils._rebuild_tensor") return rebuild_tensor(a);
+  if (fn->text == "torch._utils._rebuild_tensor_v2" || fn->text == "torch._utils._rebuild_tensor")
+    return rebuild_tensor(a);
   if (fn->text == "torch._utils._rebuild_parameter") {  // (data, requires_grad, backward_hooks)
     if (a.empty() || a[0]->kind != Kind::tensor) fail("malformed parameter: its data is not a tensor");
     return a[0];
@@ -209,37 +216,91 @@ PyRef Unpickler::run() {
   while (true) {
     const auto op = static_cast<unsigned char>(*take(1));
     switch (op) {
-      case 0x80: take(1); break;                // PROTO
-      case 0x95: take(8); break;                // FRAME (the frame's bytes follow inline)
-      case '.': {                               // STOP
-        if (stack_.size() != 1 || !marks_.empty()) fail("malformed: STOP with " + std::to_string(stack_.size()) + " values");
+      case 0x80:
+        take(1);
+        break;  // PROTO
+      case 0x95:
+        take(8);
+        break;     // FRAME (the frame's bytes follow inline)
+      case '.': {  // STOP
+        if (stack_.size() != 1 || !marks_.empty())
+          fail("malformed: STOP with " + std::to_string(stack_.size()) + " values");
         return stack_.back();
       }
-      case '(': marks_.push_back(stack_.size()); break;  // MARK
-      case '}': stack_.push_back(make(Kind::dict)); break;
-      case ']': stack_.push_back(make(Kind::list)); break;
-      case ')': stack_.push_back(tuple({})); break;
-      case 0x8f: stack_.push_back(make(Kind::list)); break;  // EMPTY_SET (kept as a list)
-      case 't': stack_.push_back(tuple(pop_to_mark())); break;
-      case 0x85: { auto a = pop(); stack_.push_back(tuple({a})); break; }
-      case 0x86: { auto b = pop(), a = pop(); stack_.push_back(tuple({a, b})); break; }
-      case 0x87: { auto c = pop(), b = pop(), a = pop(); stack_.push_back(tuple({a, b, c})); break; }
-      case 'l': { auto l = make(Kind::list); l->items = pop_to_mark(); stack_.push_back(l); break; }
-      case 'd': { auto d = make(Kind::dict); auto kv = pop_to_mark(); set_items(d, kv); stack_.push_back(d); break; }
-      case 'q': memo_[uint_le(1)] = top(); break;   // BINPUT
-      case 'r': memo_[uint_le(4)] = top(); break;   // LONG_BINPUT
-      case 0x94: memo_[memo_.size()] = top(); break;  // MEMOIZE
-      case 'h': case 'j': {                          // BINGET, LONG_BINGET
+      case '(':
+        marks_.push_back(stack_.size());
+        break;  // MARK
+      case '}':
+        stack_.push_back(make(Kind::dict));
+        break;
+      case ']':
+        stack_.push_back(make(Kind::list));
+        break;
+      case ')':
+        stack_.push_back(tuple({}));
+        break;
+      case 0x8f:
+        stack_.push_back(make(Kind::list));
+        break;  // EMPTY_SET (kept as a list)
+      case 't':
+        stack_.push_back(tuple(pop_to_mark()));
+        break;
+      case 0x85: {
+        auto a = pop();
+        stack_.push_back(tuple({a}));
+        break;
+      }
+      case 0x86: {
+        auto b = pop(), a = pop();
+        stack_.push_back(tuple({a, b}));
+        break;
+      }
+      case 0x87: {
+        auto c = pop(), b = pop(), a = pop();
+        stack_.push_back(tuple({a, b, c}));
+        break;
+      }
+      case 'l': {
+        auto l = make(Kind::list);
+        l->items = pop_to_mark();
+        stack_.push_back(l);
+        break;
+      }
+      case 'd': {
+        auto d = make(Kind::dict);
+        auto kv = pop_to_mark();
+        set_items(d, kv);
+        stack_.push_back(d);
+        break;
+      }
+      case 'q':
+        memo_[uint_le(1)] = top();
+        break;  // BINPUT
+      case 'r':
+        memo_[uint_le(4)] = top();
+        break;  // LONG_BINPUT
+      case 0x94:
+        memo_[memo_.size()] = top();
+        break;  // MEMOIZE
+      case 'h':
+      case 'j': {  // BINGET, LONG_BINGET
         const auto k = uint_le(op == 'h' ? 1 : 4);
         const auto it = memo_.find(k);
         if (it == memo_.end()) fail("malformed: memo " + std::to_string(k) + " was never stored");
         stack_.push_back(it->second);
         break;
       }
-      case 'J': stack_.push_back(make_int(static_cast<int32_t>(uint_le(4)))); break;
-      case 'K': stack_.push_back(make_int(static_cast<int64_t>(uint_le(1)))); break;
-      case 'M': stack_.push_back(make_int(static_cast<int64_t>(uint_le(2)))); break;
-      case 0x8a: case 0x8b: {  // LONG1, LONG4: little-endian two's complement
+      case 'J':
+        stack_.push_back(make_int(static_cast<int32_t>(uint_le(4))));
+        break;
+      case 'K':
+        stack_.push_back(make_int(static_cast<int64_t>(uint_le(1))));
+        break;
+      case 'M':
+        stack_.push_back(make_int(static_cast<int64_t>(uint_le(2))));
+        break;
+      case 0x8a:
+      case 0x8b: {  // LONG1, LONG4: little-endian two's complement
         const auto n = uint_le(op == 0x8a ? 1 : 4);
         if (n > 8) {  // only the legacy magic number is this long: kept as big-endian hex text
           const auto* p = reinterpret_cast<const unsigned char*>(take(n));
@@ -268,16 +329,56 @@ PyRef Unpickler::run() {
         stack_.push_back(v);
         break;
       }
-      case 'N': stack_.push_back(make(Kind::none)); break;
-      case 0x88: case 0x89: { auto v = make(Kind::boolean); v->boolean = op == 0x88; stack_.push_back(v); break; }
-      case 'X': { const auto n = uint_le(4); stack_.push_back(make_text(Kind::string, std::string(take(n), n))); break; }
-      case 0x8c: { const auto n = uint_le(1); stack_.push_back(make_text(Kind::string, std::string(take(n), n))); break; }
-      case 0x8d: { const auto n = uint_le(8); stack_.push_back(make_text(Kind::string, std::string(take(n), n))); break; }
-      case 'U': { const auto n = uint_le(1); stack_.push_back(make_text(Kind::string, std::string(take(n), n))); break; }
-      case 'T': { const auto n = uint_le(4); stack_.push_back(make_text(Kind::string, std::string(take(n), n))); break; }
-      case 'C': { const auto n = uint_le(1); stack_.push_back(make_text(Kind::bytes, std::string(take(n), n))); break; }
-      case 'B': { const auto n = uint_le(4); stack_.push_back(make_text(Kind::bytes, std::string(take(n), n))); break; }
-      case 0x8e: { const auto n = uint_le(8); stack_.push_back(make_text(Kind::bytes, std::string(take(n), n))); break; }
+      case 'N':
+        stack_.push_back(make(Kind::none));
+        break;
+      case 0x88:
+      case 0x89: {
+        auto v = make(Kind::boolean);
+        v->boolean = op == 0x88;
+        stack_.push_back(v);
+        break;
+      }
+      case 'X': {
+        const auto n = uint_le(4);
+        stack_.push_back(make_text(Kind::string, std::string(take(n), n)));
+        break;
+      }
+      case 0x8c: {
+        const auto n = uint_le(1);
+        stack_.push_back(make_text(Kind::string, std::string(take(n), n)));
+        break;
+      }
+      case 0x8d: {
+        const auto n = uint_le(8);
+        stack_.push_back(make_text(Kind::string, std::string(take(n), n)));
+        break;
+      }
+      case 'U': {
+        const auto n = uint_le(1);
+        stack_.push_back(make_text(Kind::string, std::string(take(n), n)));
+        break;
+      }
+      case 'T': {
+        const auto n = uint_le(4);
+        stack_.push_back(make_text(Kind::string, std::string(take(n), n)));
+        break;
+      }
+      case 'C': {
+        const auto n = uint_le(1);
+        stack_.push_back(make_text(Kind::bytes, std::string(take(n), n)));
+        break;
+      }
+      case 'B': {
+        const auto n = uint_le(4);
+        stack_.push_back(make_text(Kind::bytes, std::string(take(n), n)));
+        break;
+      }
+      case 0x8e: {
+        const auto n = uint_le(8);
+        stack_.push_back(make_text(Kind::bytes, std::string(take(n), n)));
+        break;
+      }
       case 'c': {  // GLOBAL "module\nname\n"
         const auto module = line();
         stack_.push_back(global(module, line()));
@@ -289,33 +390,63 @@ PyRef Unpickler::run() {
         stack_.push_back(global(module->text, name->text));
         break;
       }
-      case 'R': { auto args = pop(), fn = pop(); stack_.push_back(call(fn, args)); break; }
-      case 0x81: fail("refuses NEWOBJ: the file constructs a class instance");
-      case 0x92: fail("refuses NEWOBJ_EX: the file constructs a class instance");
+      case 'R': {
+        auto args = pop(), fn = pop();
+        stack_.push_back(call(fn, args));
+        break;
+      }
+      case 0x81:
+        fail("refuses NEWOBJ: the file constructs a class instance");
+      case 0x92:
+        fail("refuses NEWOBJ_EX: the file constructs a class instance");
       case 'b': {  // BUILD: an OrderedDict's attributes (state_dict's _metadata) are not needed
         auto state = pop();
         if (top()->kind != Kind::dict && top()->kind != Kind::tensor) fail("refuses BUILD on a " + top()->describe());
         break;
       }
-      case 's': { auto v = pop(), k = pop(); set_items(top(), {k, v}); break; }
-      case 'u': { auto kv = pop_to_mark(); set_items(top(), kv); break; }
+      case 's': {
+        auto v = pop(), k = pop();
+        set_items(top(), {k, v});
+        break;
+      }
+      case 'u': {
+        auto kv = pop_to_mark();
+        set_items(top(), kv);
+        break;
+      }
       case 'a': {
         auto v = pop();
         if (top()->kind != Kind::list) fail("malformed: APPEND to a " + top()->describe());
         top()->items.push_back(v);
         break;
       }
-      case 'e': case 0x90: {  // APPENDS, ADDITEMS
+      case 'e':
+      case 0x90: {  // APPENDS, ADDITEMS
         auto items = pop_to_mark();
         if (top()->kind != Kind::list) fail("malformed: APPENDS to a " + top()->describe());
         top()->items.insert(top()->items.end(), items.begin(), items.end());
         break;
       }
-      case 0x91: { auto l = make(Kind::list); l->items = pop_to_mark(); stack_.push_back(l); break; }  // FROZENSET
-      case 'Q': { auto pid = pop(); stack_.push_back(persistent_(pid)); break; }  // BINPERSID
-      case '0': pop(); break;
-      case '1': pop_to_mark(); break;
-      case '2': stack_.push_back(top()); break;
+      case 0x91: {
+        auto l = make(Kind::list);
+        l->items = pop_to_mark();
+        stack_.push_back(l);
+        break;
+      }  // FROZENSET
+      case 'Q': {
+        auto pid = pop();
+        stack_.push_back(persistent_(pid));
+        break;
+      }  // BINPERSID
+      case '0':
+        pop();
+        break;
+      case '1':
+        pop_to_mark();
+        break;
+      case '2':
+        stack_.push_back(top());
+        break;
       default: {
         std::ostringstream os;
         os << "unknown pickle opcode 0x" << std::hex << static_cast<int>(op);
@@ -351,7 +482,8 @@ torch::Tensor elements(const char* data, size_t bytes, c10::ScalarType dtype, in
                        const std::filesystem::path& file, const std::string& key) {
   const auto need = static_cast<size_t>(numel) * c10::elementSize(dtype);
   if (bytes < need)
-    throw Error(file, "storage '" + key + "' is truncated: " + std::to_string(bytes) + " of " + std::to_string(need) + " bytes");
+    throw Error(file, "storage '" + key + "' is truncated: " + std::to_string(bytes) + " of " + std::to_string(need) +
+                          " bytes");
   auto t = torch::empty({numel}, torch::TensorOptions().dtype(dtype));
   std::memcpy(t.data_ptr(), data, need);
   return t;
@@ -388,7 +520,6 @@ void materialise(PyValue& v, const std::map<std::string, std::shared_ptr<Storage
   }
 }
 
-
 PyRef read_zip(const std::filesystem::path& path) {
   verify_zip_crcs(path);
   std::unique_ptr<caffe2::serialize::PyTorchStreamReader> reader;
@@ -411,7 +542,8 @@ PyRef read_zip(const std::filesystem::path& path) {
       auto [data, size] = reader->getRecord(record);
       s->data = elements(static_cast<const char*>(data.get()), size, s->dtype, s->numel, path, key);
     } catch (const c10::Error& e) {
-      throw Error(path, "storage '" + key + "' cannot be read (" + std::string(e.what_without_backtrace()).substr(0, 120) + ")");
+      throw Error(path, "storage '" + key + "' cannot be read (" +
+                            std::string(e.what_without_backtrace()).substr(0, 120) + ")");
     }
   }
   materialise(*root, storages, path);
@@ -460,12 +592,17 @@ PyRef read_legacy(const std::filesystem::path& path, const std::string& bytes) {
   return root;
 }
 
-void collect_tensors(const PyValue& v, const std::string& prefix, std::vector<std::pair<std::string, torch::Tensor>>& out) {
+void collect_tensors(const PyValue& v, const std::string& prefix,
+                     std::vector<std::pair<std::string, torch::Tensor>>& out) {
   for (const auto& [k, val] : v.entries) {
-    const std::string key = k->kind == Kind::string ? k->text : k->kind == Kind::integer ? std::to_string(k->integer) : "?";
+    const std::string key = k->kind == Kind::string    ? k->text
+                            : k->kind == Kind::integer ? std::to_string(k->integer)
+                                                       : "?";
     const auto name = prefix.empty() ? key : prefix + "." + key;
-    if (val->kind == Kind::tensor) out.emplace_back(name, val->tensor);
-    else if (val->kind == Kind::dict) collect_tensors(*val, name, out);
+    if (val->kind == Kind::tensor)
+      out.emplace_back(name, val->tensor);
+    else if (val->kind == Kind::dict)
+      collect_tensors(*val, name, out);
   }
 }
 
@@ -509,7 +646,8 @@ class StateDictPickler {
     op(')');
     op('R');
   }
-  // torch._utils._rebuild_tensor_v2(('storage', torch.FloatStorage, key, 'cpu', numel), 0, size, stride, False, OrderedDict())
+  // torch._utils._rebuild_tensor_v2(('storage', torch.FloatStorage, key, 'cpu', numel), 0, size, stride, False,
+  // OrderedDict())
   void tensor(const torch::Tensor& t, const std::string& storage_key, const std::string& storage_type) {
     global("torch._utils", "_rebuild_tensor_v2");
     op('(');
@@ -539,7 +677,8 @@ std::string storage_type_name(c10::ScalarType t) {
 
 }  // namespace
 
-void save_torch_state_dict(const std::filesystem::path& path, const std::vector<std::pair<std::string, torch::Tensor>>& tensors,
+void save_torch_state_dict(const std::filesystem::path& path,
+                           const std::vector<std::pair<std::string, torch::Tensor>>& tensors,
                            const std::string& wrap_key) {
   StateDictPickler p;
   std::vector<torch::Tensor> storages;
@@ -582,17 +721,28 @@ PyRef PyValue::get(const std::string& key) const {
 
 std::string PyValue::describe() const {
   switch (kind) {
-    case Kind::none: return "None";
-    case Kind::boolean: return "bool";
-    case Kind::integer: return "int";
-    case Kind::real: return "float";
-    case Kind::string: return "str";
-    case Kind::bytes: return "bytes";
-    case Kind::list: return "list";
-    case Kind::tuple: return "tuple";
-    case Kind::dict: return "dict";
-    case Kind::storage: return "storage";
-    case Kind::global: return "global " + text;
+    case Kind::none:
+      return "None";
+    case Kind::boolean:
+      return "bool";
+    case Kind::integer:
+      return "int";
+    case Kind::real:
+      return "float";
+    case Kind::string:
+      return "str";
+    case Kind::bytes:
+      return "bytes";
+    case Kind::list:
+      return "list";
+    case Kind::tuple:
+      return "tuple";
+    case Kind::dict:
+      return "dict";
+    case Kind::storage:
+      return "storage";
+    case Kind::global:
+      return "global " + text;
     case Kind::tensor: {
       std::ostringstream os;
       os << "tensor " << (tensor.defined() ? tensor.sizes() : c10::IntArrayRef{});
@@ -703,7 +853,8 @@ bool verify_zip_crcs(const std::filesystem::path& path) {
       left -= static_cast<uint64_t>(n);
     }
     if (static_cast<uint32_t>(c) != crc)
-      throw Error(path, "damaged file: zip entry '" + name + "' fails its CRC-32 check (the bytes changed after it was written)");
+      throw Error(path, "damaged file: zip entry '" + name +
+                            "' fails its CRC-32 check (the bytes changed after it was written)");
   }
   return true;
 }

@@ -54,7 +54,8 @@ PyRef read_torch_file(const std::filesystem::path& path);
 // Writes tensors as Python's torch.save(OrderedDict) does (zip container, pickle protocol 2,
 // _rebuild_tensor_v2 over one storage per tensor), so torch.load and load_state_dict read it.
 // With `wrap_key`, the OrderedDict sits in a dict under that key (FlatNet's {'gen_state_dict': ...}).
-void save_torch_state_dict(const std::filesystem::path& path, const std::vector<std::pair<std::string, torch::Tensor>>& tensors,
+void save_torch_state_dict(const std::filesystem::path& path,
+                           const std::vector<std::pair<std::string, torch::Tensor>>& tensors,
                            const std::string& wrap_key = "");
 
 // The tensors of a (nested) dict, with keys joined by "." (a nested dict's own key first).

@@ -13,18 +13,18 @@ namespace nn = torch::nn;
 FlatInversionImpl::FlatInversionImpl(const InversionOptions& o) : negative_slope_(o.negative_slope) {
   TORCH_CHECK(o.phil.dim() == 3 && o.phir.dim() == 3 && o.phil.size(1) == o.phir.size(1) &&
                   o.phil.size(2) == o.phir.size(2) && (o.phil.size(2) == 1 || o.phil.size(2) == 4),
-              "inversion: PhiL {rows,N,k} and PhiR {cols,N,k} with k 1 or 4 expected, got ", o.phil.sizes(),
-              " and ", o.phir.sizes());
+              "inversion: PhiL {rows,N,k} and PhiR {cols,N,k} with k 1 or 4 expected, got ", o.phil.sizes(), " and ",
+              o.phir.sizes());
   PhiL = register_parameter("PhiL", o.phil.to(torch::kFloat32).clone());
   PhiR = register_parameter("PhiR", o.phir.to(torch::kFloat32).clone());
 }
 
 torch::Tensor FlatInversionImpl::forward(const torch::Tensor& Y) {
   // Y {B,4,rows,cols}. Weights as {k,rows,N} / {k,cols,N}; k = 1 broadcasts over the channels.
-  const auto L = PhiL.permute({2, 0, 1});                      // {k,rows,N}
-  const auto R = PhiR.permute({2, 0, 1});                      // {k,cols,N}
+  const auto L = PhiL.permute({2, 0, 1});                                // {k,rows,N}
+  const auto R = PhiR.permute({2, 0, 1});                                // {k,cols,N}
   const auto X = torch::matmul(L.transpose(1, 2), torch::matmul(Y, R));  // {B,4,N,N}
-  return torch::leaky_relu(X, negative_slope_).flip({1});     // (b,gb,gr,r) -> (r,gr,gb,b)
+  return torch::leaky_relu(X, negative_slope_).flip({1});                // (b,gb,gr,r) -> (r,gr,gb,b)
 }
 
 torch::Tensor FlatInversionImpl::forward_crops(const torch::Tensor& Y,
@@ -35,7 +35,7 @@ torch::Tensor FlatInversionImpl::forward_crops(const torch::Tensor& Y,
   for (int64_t b = 0; b < Y.size(0); ++b) {
     const auto [r0, c0] = corners[b];
     // Rows r0..r0+size of X = L^T Y R need only those columns of L (and likewise for R).
-    const auto Lb = L.slice(2, r0, r0 + size), Rb = R.slice(2, c0, c0 + size);   // {k,rows,s}, {k,cols,s}
+    const auto Lb = L.slice(2, r0, r0 + size), Rb = R.slice(2, c0, c0 + size);  // {k,rows,s}, {k,cols,s}
     out.push_back(torch::matmul(Lb.transpose(1, 2), torch::matmul(Y[b], Rb)));  // {4,s,s}
   }
   return torch::leaky_relu(torch::stack(out), negative_slope_).flip({1});
@@ -88,8 +88,11 @@ nn::Sequential fold_sequential(nn::Sequential seq) {
     if (conv && bn) {
       const auto& co = conv->options;
       auto folded = nn::Conv2d(nn::Conv2dOptions(co.in_channels(), co.out_channels(), co.kernel_size())
-                                   .stride(co.stride()).padding(co.padding()).dilation(co.dilation())
-                                   .groups(co.groups()).bias(true));
+                                   .stride(co.stride())
+                                   .padding(co.padding())
+                                   .dilation(co.dilation())
+                                   .groups(co.groups())
+                                   .bias(true));
       const auto s = bn->weight / torch::sqrt(bn->running_var + bn->options.eps());
       folded->weight.copy_(conv->weight * s.view({-1, 1, 1, 1}));
       const auto b = conv->bias.defined() ? conv->bias : torch::zeros_like(bn->running_mean);
@@ -109,12 +112,13 @@ nn::Sequential fold_sequential(nn::Sequential seq) {
 struct DoubleConvImpl : nn::Module {
   DoubleConvImpl(int64_t in, int64_t out, int64_t stride, double momentum) {
     conv = register_module(
-        "conv", nn::Sequential(nn::Conv2d(nn::Conv2dOptions(in, out, 3).stride(stride).padding(1)),
-                               nn::BatchNorm2d(nn::BatchNormOptions(out).momentum(momentum)),
-                               nn::ReLU(nn::ReLUOptions().inplace(true)),  // as FlatNet (BN's backward needs its input only)
-                               nn::Conv2d(nn::Conv2dOptions(out, out, 3).padding(1)),
-                               nn::BatchNorm2d(nn::BatchNormOptions(out).momentum(momentum)),
-                               nn::ReLU(nn::ReLUOptions().inplace(true))));
+        "conv",
+        nn::Sequential(nn::Conv2d(nn::Conv2dOptions(in, out, 3).stride(stride).padding(1)),
+                       nn::BatchNorm2d(nn::BatchNormOptions(out).momentum(momentum)),
+                       nn::ReLU(nn::ReLUOptions().inplace(true)),  // as FlatNet (BN's backward needs its input only)
+                       nn::Conv2d(nn::Conv2dOptions(out, out, 3).padding(1)),
+                       nn::BatchNorm2d(nn::BatchNormOptions(out).momentum(momentum)),
+                       nn::ReLU(nn::ReLUOptions().inplace(true))));
   }
   torch::Tensor forward(const torch::Tensor& x) {
     if (fused.empty()) return conv->forward(x);
@@ -128,7 +132,8 @@ struct DoubleConvImpl : nn::Module {
       const auto c = conv[i]->as<nn::Conv2dImpl>();
       TORCH_CHECK(c && conv[i + 1]->as<nn::ReLUImpl>(), "use_onednn: fold the batch norm first");
       OneDnnConvOptions o;
-      o.stride = c->options.stride()->at(0), o.padding = c10::get<torch::ExpandingArray<2>>(c->options.padding())->at(0);
+      o.stride = c->options.stride()->at(0),
+      o.padding = c10::get<torch::ExpandingArray<2>>(c->options.padding())->at(0);
       o.relu = true;
       fused.push_back(std::make_shared<OneDnnConv>(c->weight, c->bias, o));
     }
@@ -161,8 +166,8 @@ struct UpImpl : nn::Module {  // FlatNet's up: transposed conv on the deeper map
   }
   torch::Tensor forward(const torch::Tensor& deep, const torch::Tensor& skip) {
     const auto cl = at::MemoryFormat::ChannelsLast;
-    if (gemm_up && cache_weights && deep.is_contiguous(cl) && skip.is_contiguous(cl) && skip.size(2) == 2 * deep.size(2) &&
-        skip.size(3) == 2 * deep.size(3))
+    if (gemm_up && cache_weights && deep.is_contiguous(cl) && skip.is_contiguous(cl) &&
+        skip.size(2) == 2 * deep.size(2) && skip.size(3) == 2 * deep.size(3))
       return conv->forward(upsample_into_concat(deep, skip));
     auto x1 = gemm_up ? upsample_as_gemm(deep) : up->forward(deep);
     auto x2 = skip;
@@ -176,14 +181,19 @@ struct UpImpl : nn::Module {  // FlatNet's up: transposed conv on the deeper map
   torch::Tensor upsample_into_concat(const torch::Tensor& x, const torch::Tensor& skip) {  // {B,C,H,W}, {B,S,2H,2W}
     const int64_t B = x.size(0), C = x.size(1), H = x.size(2), W = x.size(3), O = up->weight.size(1), S = skip.size(1);
     if (!concat_weight.defined() || concat_weight.scalar_type() != x.scalar_type()) {
-      concat_weight = up->weight.detach().permute({0, 2, 3, 1}).reshape({C, 4 * O}).to(x.scalar_type()).contiguous();  // [c][di][dj][o]
+      concat_weight = up->weight.detach()
+                          .permute({0, 2, 3, 1})
+                          .reshape({C, 4 * O})
+                          .to(x.scalar_type())
+                          .contiguous();  // [c][di][dj][o]
       concat_bias = up->bias.detach().repeat({4}).to(x.scalar_type());
     }
     const auto y = torch::addmm(concat_bias, x.permute({0, 2, 3, 1}).reshape({B * H * W, C}), concat_weight)
                        .view({B, H, W, 2, 2, O})
                        .permute({0, 1, 3, 2, 4, 5});  // [b][i][di][j][dj][o]
-    auto out = torch::empty({B, S + O, 2 * H, 2 * W}, x.options().dtype(at::promote_types(x.scalar_type(), skip.scalar_type()))
-                                                         .memory_format(at::MemoryFormat::ChannelsLast));
+    auto out = torch::empty({B, S + O, 2 * H, 2 * W}, x.options()
+                                                          .dtype(at::promote_types(x.scalar_type(), skip.scalar_type()))
+                                                          .memory_format(at::MemoryFormat::ChannelsLast));
     out.narrow(1, 0, S).copy_(skip);
     out.narrow(1, S, O).permute({0, 2, 3, 1}).view({B, H, 2, W, 2, O}).copy_(y);
     return out;
@@ -234,7 +244,9 @@ struct UpImpl : nn::Module {  // FlatNet's up: transposed conv on the deeper map
 TORCH_MODULE(Up);
 
 struct OutConvImpl : nn::Module {
-  OutConvImpl(int64_t in, int64_t out) { conv = register_module("conv", nn::Conv2d(nn::Conv2dOptions(in, out, 3).padding(1))); }
+  OutConvImpl(int64_t in, int64_t out) {
+    conv = register_module("conv", nn::Conv2d(nn::Conv2dOptions(in, out, 3).padding(1)));
+  }
   torch::Tensor forward(const torch::Tensor& x) { return fused ? (*fused)(x) : conv->forward(x); }
   void use_onednn() {
     OneDnnConvOptions o;
@@ -265,11 +277,11 @@ UNetImpl::UNetImpl(const UNetOptions& o) {
 }
 
 torch::Tensor UNetImpl::forward(const torch::Tensor& x) {
-  const auto x1 = inc_.forward(x);    // {B,w,H,W}
-  const auto x2 = down1_.forward(x1); // {B,2w,H/2,W/2}
-  const auto x3 = down2_.forward(x2); // {B,4w,H/4,W/4}
-  const auto x4 = down3_.forward(x3); // {B,8w,H/8,W/8}
-  const auto x5 = down4_.forward(x4); // {B,8w,H/16,W/16}
+  const auto x1 = inc_.forward(x);     // {B,w,H,W}
+  const auto x2 = down1_.forward(x1);  // {B,2w,H/2,W/2}
+  const auto x3 = down2_.forward(x2);  // {B,4w,H/4,W/4}
+  const auto x4 = down3_.forward(x3);  // {B,8w,H/8,W/8}
+  const auto x5 = down4_.forward(x4);  // {B,8w,H/16,W/16}
   auto up = [&](int i, const torch::Tensor& deep, const torch::Tensor& skip) {
     return std::static_pointer_cast<UpImpl>(ups_[i])->forward(deep, skip);
   };
@@ -361,16 +373,21 @@ GeneratorImpl::GeneratorImpl(const GeneratorOptions& o) : options_(o) {
   }
   bn_ = register_module("bn", nn::BatchNorm2d(nn::BatchNormOptions(4).momentum(o.bn_momentum)));
   switch (o.enhancer) {
-    case Enhancer::unet: enhancer_ = nn::AnyModule(register_module("enhancer", UNet(o.unet))); break;
-    case Enhancer::dncnn: enhancer_ = nn::AnyModule(register_module("enhancer", DnCNN(o.dncnn))); break;
-    case Enhancer::rcan: enhancer_ = nn::AnyModule(register_module("enhancer", RCAN(o.rcan))); break;
+    case Enhancer::unet:
+      enhancer_ = nn::AnyModule(register_module("enhancer", UNet(o.unet)));
+      break;
+    case Enhancer::dncnn:
+      enhancer_ = nn::AnyModule(register_module("enhancer", DnCNN(o.dncnn)));
+      break;
+    case Enhancer::rcan:
+      enhancer_ = nn::AnyModule(register_module("enhancer", RCAN(o.rcan)));
+      break;
   }
 }
 
 void GeneratorImpl::check_measurement(const torch::Tensor& Y) const {
   TORCH_CHECK(Y.dim() == 4 && Y.size(1) == 4 && Y.size(2) == options_.rows && Y.size(3) == options_.cols,
-              "generator: measurement planes {B,4,", options_.rows, ",", options_.cols, "} expected, got ",
-              Y.sizes());
+              "generator: measurement planes {B,4,", options_.rows, ",", options_.cols, "} expected, got ", Y.sizes());
 }
 
 void check_camera_for_model(const GeneratorOptions& go, const CameraConfig& camera) {
@@ -381,17 +398,19 @@ void check_camera_for_model(const GeneratorOptions& go, const CameraConfig& came
                 std::to_string(go.scene));
   const bool level = camera.raw.centring == Centring::level;
   if (go.level_input && !level)
-    throw Error("camera '" + camera.name + "': the model reads the light level (model.level_input) but the camera's centring is '" +
+    throw Error("camera '" + camera.name +
+                "': the model reads the light level (model.level_input) but the camera's centring is '" +
                 centring_name(camera.raw.centring) + "'; use a camera file with `centring: level`");
   if (!go.level_input && level)
-    throw Error("camera '" + camera.name + "': centring 'level' keeps the light level in the planes, which this model does not "
+    throw Error("camera '" + camera.name +
+                "': centring 'level' keeps the light level in the planes, which this model does not "
                 "read (model.level_input is off); use `centring: plane`");
 }
 
 std::pair<torch::Tensor, torch::Tensor> GeneratorImpl::split_level(const torch::Tensor& Y) const {
   if (!options_.level_input) return {Y, torch::Tensor()};
   const auto level = Y.mean({2, 3}, true);  // {B,4,1,1}, planes in (b, gb, gr, r) order
-  return {Y - level, level.flip({1})};     // the first stage's order (r, gr, gb, b)
+  return {Y - level, level.flip({1})};      // the first stage's order (r, gr, gb, b)
 }
 
 torch::Tensor GeneratorImpl::first_stage_of(const torch::Tensor& planes) {
@@ -411,8 +430,8 @@ torch::Tensor GeneratorImpl::forward(const torch::Tensor& Y) {
 
 torch::Tensor GeneratorImpl::forward_crops(const torch::Tensor& Y,
                                            const std::vector<std::pair<int64_t, int64_t>>& corners, int64_t size) {
-  TORCH_CHECK(size >= 16 && size % 16 == 0 && size <= options_.scene, "generator: crop size must be a multiple of 16 in [16, ",
-              options_.scene, "], got ", size);
+  TORCH_CHECK(size >= 16 && size % 16 == 0 && size <= options_.scene,
+              "generator: crop size must be a multiple of 16 in [16, ", options_.scene, "], got ", size);
   for (const auto& [r, c] : corners)
     TORCH_CHECK(r >= 0 && c >= 0 && r + size <= options_.scene && c + size <= options_.scene, "generator: crop at (", r,
                 ",", c, ") leaves the ", options_.scene, "x", options_.scene, " scene");
@@ -427,7 +446,9 @@ torch::Tensor crop_windows(const torch::Tensor& images, const std::vector<std::p
   if (corners.empty()) return images;
   std::vector<torch::Tensor> out;
   for (size_t b = 0; b < corners.size(); ++b)
-    out.push_back(images[b].slice(1, corners[b].first, corners[b].first + size).slice(2, corners[b].second, corners[b].second + size));
+    out.push_back(images[b]
+                      .slice(1, corners[b].first, corners[b].first + size)
+                      .slice(2, corners[b].second, corners[b].second + size));
   return torch::stack(out);
 }
 
@@ -492,12 +513,19 @@ InferenceLevers parse_inference_levers(const std::string& s) {
   std::stringstream in(s);
   std::string item;
   while (std::getline(in, item, ',')) {
-    if (item == "fold") l.fold_batchnorm = true;
-    else if (item == "channels-last") l.channels_last = true;
-    else if (item == "bf16") l.bf16 = true;
-    else if (item == "gemm-up") l.gemm_upsample = true;
-    else if (item == "onednn") l.onednn = true;
-    else throw Error("--levers: expected none or a list of fold, channels-last, gemm-up, bf16, onednn; got '" + item + "'");
+    if (item == "fold")
+      l.fold_batchnorm = true;
+    else if (item == "channels-last")
+      l.channels_last = true;
+    else if (item == "bf16")
+      l.bf16 = true;
+    else if (item == "gemm-up")
+      l.gemm_upsample = true;
+    else if (item == "onednn")
+      l.onednn = true;
+    else
+      throw Error("--levers: expected none or a list of fold, channels-last, gemm-up, bf16, onednn; got '" + item +
+                  "'");
   }
   return l;
 }

@@ -57,8 +57,8 @@ TORCH_MODULE(TikhonovLayer);
 struct UNetOptions {
   int64_t in_channels = 4;
   int64_t out_channels = 3;
-  int64_t width = 128;         // first level's filters; 128 is the paper
-  double bn_momentum = 0.99;   // PyTorch convention (new = (1-m) old + m batch), as FlatNet
+  int64_t width = 128;        // first level's filters; 128 is the paper
+  double bn_momentum = 0.99;  // PyTorch convention (new = (1-m) old + m batch), as FlatNet
 };
 
 class UNetImpl : public torch::nn::Module {
@@ -94,7 +94,7 @@ struct RCANOptions {
   int64_t in_channels = 4, out_channels = 3;
   int64_t groups = 5, blocks = 10;  // residual groups x residual channel-attention blocks
   int64_t width = 64;
-  int64_t reduction = 16;           // channel-attention squeeze ratio
+  int64_t reduction = 16;  // channel-attention squeeze ratio
 };
 class RCANImpl : public torch::nn::Module {
  public:
@@ -112,8 +112,8 @@ enum class Enhancer { unet, dncnn, rcan };
 
 struct GeneratorOptions {
   InputStage input = InputStage::inversion;
-  InversionOptions inversion;              // input == inversion
-  torch::Tensor tik_P, tik_Q;              // input == tikhonov: calibration {4,rows,N},{4,cols,N}
+  InversionOptions inversion;  // input == inversion
+  torch::Tensor tik_P, tik_Q;  // input == tikhonov: calibration {4,rows,N},{4,cols,N}
   double tik_lambda = 1e-4;
   int64_t rows = 500, cols = 620, scene = 256;  // measurement and scene sizes (for shape checks)
   Enhancer enhancer = Enhancer::unet;

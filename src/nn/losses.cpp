@@ -91,8 +91,7 @@ Vgg16Features load_vgg16(const std::filesystem::path& weights, bool normalize) {
     const auto it = dict.find(p.key());
     require(it != dict.end(), weights, "missing tensor '" + p.key() + "'");
     const auto t = it->value().toTensor();
-    require(t.sizes() == p.value().sizes(), weights,
-            "tensor '" + p.key() + "' has the wrong shape for VGG-16");
+    require(t.sizes() == p.value().sizes(), weights, "tensor '" + p.key() + "' has the wrong shape for VGG-16");
     p.value().copy_(t);
   }
   vgg->eval();
@@ -111,7 +110,8 @@ torch::Tensor perceptual_loss(Vgg16Features& vgg, const torch::Tensor& x, const 
 
 torch::Tensor ssim_loss(const torch::Tensor& x_in, const torch::Tensor& y_in) {
   TORCH_CHECK(x_in.sizes() == y_in.sizes() && x_in.dim() == 4 && x_in.size(2) >= 11 && x_in.size(3) >= 11,
-              "ssim_loss: equal {B,C,H,W} inputs of at least 11x11 expected, got ", x_in.sizes(), " and ", y_in.sizes());
+              "ssim_loss: equal {B,C,H,W} inputs of at least 11x11 expected, got ", x_in.sizes(), " and ",
+              y_in.sizes());
   AutocastOffGuard fp32;
   const auto x = x_in.to(torch::kFloat32), y = y_in.to(torch::kFloat32);
   const int64_t C = x.size(1);

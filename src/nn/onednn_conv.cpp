@@ -28,7 +28,8 @@ struct OneDnnConv::Plan {
 };
 
 OneDnnConv::OneDnnConv(const torch::Tensor& weight, const torch::Tensor& bias, const OneDnnConvOptions& options)
-    : weight_(weight.detach().to(torch::kBFloat16).contiguous(at::MemoryFormat::ChannelsLast)),  // no copy after the levers
+    : weight_(
+          weight.detach().to(torch::kBFloat16).contiguous(at::MemoryFormat::ChannelsLast)),  // no copy after the levers
       opt_(options) {
   TORCH_CHECK(weight_.dim() == 4, "OneDnnConv: a 4-D weight expected");
   in_channels_ = weight_.size(1), out_channels_ = weight_.size(0);
@@ -65,7 +66,8 @@ OneDnnConv::Plan& OneDnnConv::plan_for(int64_t b, int64_t h, int64_t w) {
   // The module's weights as they lie in memory: {O,kh,kw,I} (channels-last).
   dnnl::memory user_weights({{o, i, kh, kw}, dt::bf16, tag::ohwi}, cpu_engine(), weight_.data_ptr());
   plan->weights = dnnl::memory(pd.weights_desc(), cpu_engine());
-  dnnl::reorder(user_weights, plan->weights).execute(stream, user_weights, plan->weights);  // -> the kernel's blocked layout
+  dnnl::reorder(user_weights, plan->weights)
+      .execute(stream, user_weights, plan->weights);  // -> the kernel's blocked layout
   plan->bias = dnnl::memory(bias_desc, cpu_engine(), bias_.data_ptr());
   stream.wait();
   plan->out_shape = {b, o, oh, ow};
@@ -82,7 +84,8 @@ torch::Tensor OneDnnConv::operator()(const torch::Tensor& input) {
                         x.options().memory_format(at::MemoryFormat::ChannelsLast));
   dnnl::memory src(plan.src, cpu_engine(), x.data_ptr()), dst(plan.dst, cpu_engine(), y.data_ptr());
   dnnl::stream stream(cpu_engine());
-  plan.primitive.execute(stream, {{DNNL_ARG_SRC, src}, {DNNL_ARG_WEIGHTS, plan.weights}, {DNNL_ARG_BIAS, plan.bias}, {DNNL_ARG_DST, dst}});
+  plan.primitive.execute(
+      stream, {{DNNL_ARG_SRC, src}, {DNNL_ARG_WEIGHTS, plan.weights}, {DNNL_ARG_BIAS, plan.bias}, {DNNL_ARG_DST, dst}});
   stream.wait();
   return y;
 }

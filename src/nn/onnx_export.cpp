@@ -137,19 +137,23 @@ class GeneratorGraph {
       auto* mean = b_.node("ReduceMean", {meas}, "level");
       GraphBuilder::attr_ints(mean, "axes", {2, 3});
       GraphBuilder::attr_int(mean, "keepdims", 1);
-      level = mean->output(0);                                      // {1,4,1,1}
-      planes = b_.op("Sub", {meas, level}, "planes");              // {1,4,rows,cols}
+      level = mean->output(0);                         // {1,4,1,1}
+      planes = b_.op("Sub", {meas, level}, "planes");  // {1,4,rows,cols}
     }
-    auto x = reversed_channels(first_stage(planes));               // {1,4,N,N}
+    auto x = reversed_channels(first_stage(planes));  // {1,4,N,N}
     x = batch_norm(x, "bn");
-    if (o.level_input) {                                           // {1,8,N,N}
+    if (o.level_input) {  // {1,8,N,N}
       const auto shape = b_.constant_i64("level_shape", {1, 4, o.scene, o.scene});
       const auto level_map = b_.op("Expand", {reversed_channels(level), shape}, "level_map");
       x = b_.concat_channels({x, level_map}, "with_level");
     }
     switch (o.enhancer) {
-      case Enhancer::unet: x = unet(x); break;
-      case Enhancer::dncnn: x = sequential(x, "enhancer.body"); break;
+      case Enhancer::unet:
+        x = unet(x);
+        break;
+      case Enhancer::dncnn:
+        x = sequential(x, "enhancer.body");
+        break;
       case Enhancer::rcan:
         throw Error("ONNX export covers the U-Net and DnCNN enhancers; this model's is RCAN (model.enhancer: rcan)");
     }
@@ -246,7 +250,8 @@ class GeneratorGraph {
     for (size_t i = 0; i < children.size(); ++i) {
       const auto item = name + "." + std::to_string(i);
       if (auto c = std::dynamic_pointer_cast<torch::nn::Conv2dImpl>(children[i])) {
-        auto bn = i + 1 < children.size() ? std::dynamic_pointer_cast<torch::nn::BatchNorm2dImpl>(children[i + 1]) : nullptr;
+        auto bn =
+            i + 1 < children.size() ? std::dynamic_pointer_cast<torch::nn::BatchNorm2dImpl>(children[i + 1]) : nullptr;
         x = conv(x, *c, bn.get(), item);
         if (bn) ++i;
       } else if (std::dynamic_pointer_cast<torch::nn::ReLUImpl>(children[i])) {
@@ -267,7 +272,8 @@ class GeneratorGraph {
     for (int i = 1; i <= 4; ++i) {
       const auto prefix = "enhancer.up" + std::to_string(i);
       auto up = module_as<torch::nn::ConvTranspose2dImpl>(prefix + ".up");
-      auto* n = b_.node("ConvTranspose", {x, b_.constant(prefix + "_up_w", up->weight), b_.constant(prefix + "_up_b", up->bias)},
+      auto* n = b_.node("ConvTranspose",
+                        {x, b_.constant(prefix + "_up_w", up->weight), b_.constant(prefix + "_up_b", up->bias)},
                         prefix + "_up");
       GraphBuilder::attr_ints(n, "kernel_shape", {2, 2});
       GraphBuilder::attr_ints(n, "strides", {2, 2});
@@ -302,8 +308,9 @@ OnnxExportReport export_onnx(const std::filesystem::path& path, Generator& gener
   model.set_ir_version(onnx::IR_VERSION);
   model.set_producer_name("flatnet");
   model.set_producer_version(FLATNET_VERSION);
-  model.set_doc_string("FlatNet reconstruction: meas {1,4,rows,cols} (planes b, gb, gr, r as the camera's "
-                       "preprocessing makes them) -> image {1,3,N,N} sRGB in [0,1]");
+  model.set_doc_string(
+      "FlatNet reconstruction: meas {1,4,rows,cols} (planes b, gb, gr, r as the camera's "
+      "preprocessing makes them) -> image {1,3,N,N} sRGB in [0,1]");
   auto* opset = model.add_opset_import();
   opset->set_domain("");
   opset->set_version(kOpset);
@@ -344,8 +351,10 @@ OnnxModelInfo read_onnx_info(const std::filesystem::path& path) {
     throw Error(path, "not an ONNX model (the protobuf does not parse; truncated or another format?)");
   OnnxModelInfo info;
   for (const auto& p : model.metadata_props())
-    if (p.key() == kCameraKey) info.camera_yaml = p.value();
-    else if (p.key() == kLevelKey) info.level_input = p.value() == "1";
+    if (p.key() == kCameraKey)
+      info.camera_yaml = p.value();
+    else if (p.key() == kLevelKey)
+      info.level_input = p.value() == "1";
   const auto& g = model.graph();
   auto dims = [](const onnx::ValueInfoProto& v) {
     std::vector<int64_t> d;

@@ -42,7 +42,7 @@ std::vector<CalibrationPattern> calibration_patterns(int64_t N, int level_code) 
 Calibration estimate_calibration(int64_t N, const std::function<torch::Tensor(const std::string&)>& capture,
                                  int level_code, bool show_progress) {
   const double level = pattern_level_linear(level_code);
-  const auto H = hadamard(N);  // {N,N} float64
+  const auto H = hadamard(N);             // {N,N} float64
   std::vector<torch::Tensor> drow, dcol;  // N each, {4,h,w} float64
   Progress progress("calibrate", 4 * N, show_progress);
   for (const char* axis : {"row", "col"}) {

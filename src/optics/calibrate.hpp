@@ -34,8 +34,7 @@ std::vector<CalibrationPattern> calibration_patterns(int64_t scene_size, int lev
 
 // `capture(name)` returns the preprocessed planes {4,h,w} of the capture of pattern `name`, shown
 // at `level_code`; the estimate is scaled to a unit (linear 1.0) scene, as FlatNet's calibration is.
-Calibration estimate_calibration(int64_t scene_size,
-                                 const std::function<torch::Tensor(const std::string&)>& capture,
+Calibration estimate_calibration(int64_t scene_size, const std::function<torch::Tensor(const std::string&)>& capture,
                                  int level_code = kDefaultPatternLevel, bool show_progress = true);
 
 // Pattern captures through a rig: the display shows pattern `name` (sRGB -> linear, all colours),
@@ -47,8 +46,8 @@ std::function<torch::Tensor(const std::string&)> rig_pattern_capture(const Rig& 
 // Relative error of an estimate against a truth, insensitive to the scale split between P and Q
 // (P*s, Q/s is the same camera): each factor is compared after its best scalar fit.
 struct CalibrationError {
-  double p = 0, q = 0;    // ||a P_est - P|| / ||P||, averaged over channels
-  double forward = 0;     // ||P_e X Q_e^T - P X Q^T|| / ||P X Q^T|| on random scenes
+  double p = 0, q = 0;  // ||a P_est - P|| / ||P||, averaged over channels
+  double forward = 0;   // ||P_e X Q_e^T - P X Q^T|| / ||P X Q^T|| on random scenes
 };
 CalibrationError calibration_error(const Calibration& estimate, const Calibration& truth);
 

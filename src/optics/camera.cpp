@@ -30,8 +30,11 @@ Rig load_rig(const std::filesystem::path& path) {
   rig.gain = torch::stack(G).to(torch::kFloat32);
   rig.vig_rows = mat.read("vig_rows", {H}).to(torch::kFloat32);
   rig.vig_cols = mat.read("vig_cols", {W}).to(torch::kFloat32);
-  for (const auto& [name, t] : std::vector<std::pair<std::string, torch::Tensor>>{
-           {"PhiL_*", rig.phil}, {"PhiR_*", rig.phir}, {"gain_*", rig.gain}, {"vig_rows", rig.vig_rows}, {"vig_cols", rig.vig_cols}})
+  for (const auto& [name, t] : std::vector<std::pair<std::string, torch::Tensor>>{{"PhiL_*", rig.phil},
+                                                                                  {"PhiR_*", rig.phir},
+                                                                                  {"gain_*", rig.gain},
+                                                                                  {"vig_rows", rig.vig_rows},
+                                                                                  {"vig_cols", rig.vig_cols}})
     require(torch::isfinite(t).all().item<bool>(), path, name + " contains NaN or Inf");
   rig.full_well = mat.read_scalar("full_well");
   rig.read_noise = mat.read_scalar("read_noise");
@@ -99,11 +102,13 @@ Calibration load_calibration(const std::filesystem::path& path, const CameraConf
     auto p = mat.read(pname);
     auto q = mat.read(qname);
     require(p.dim() == 2 && p.size(0) == h && p.size(1) == n, path,
-            pname + " is " + std::to_string(p.size(0)) + "x" + std::to_string(p.size(1)) + " but the camera's crop gives " +
-                std::to_string(h) + " rows and the scene is " + std::to_string(n) + " pixels");
+            pname + " is " + std::to_string(p.size(0)) + "x" + std::to_string(p.size(1)) +
+                " but the camera's crop gives " + std::to_string(h) + " rows and the scene is " + std::to_string(n) +
+                " pixels");
     require(q.dim() == 2 && q.size(0) == w && q.size(1) == n, path,
-            qname + " is " + std::to_string(q.size(0)) + "x" + std::to_string(q.size(1)) + " but the camera's crop gives " +
-                std::to_string(w) + " columns and the scene is " + std::to_string(n) + " pixels");
+            qname + " is " + std::to_string(q.size(0)) + "x" + std::to_string(q.size(1)) +
+                " but the camera's crop gives " + std::to_string(w) + " columns and the scene is " + std::to_string(n) +
+                " pixels");
     require(torch::isfinite(p).all().item<bool>() && torch::isfinite(q).all().item<bool>(), path,
             pname + "/" + qname + " contain NaN or Inf");
     P.push_back(p);

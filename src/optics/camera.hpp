@@ -15,11 +15,11 @@ namespace flatnet {
 //   S_c = gain_c * ( PhiL_c X_c PhiR_c^T + vig_rows vig_cols^T * sum(X_c) )      (full-scale units)
 // The second term is the light through the open half of the mask, which carries no code.
 struct Rig {
-  torch::Tensor phil;      // {4, plane_h, N} float32
-  torch::Tensor phir;      // {4, plane_w, N}
-  torch::Tensor gain;      // {4}
-  torch::Tensor vig_rows;  // {plane_h}
-  torch::Tensor vig_cols;  // {plane_w}
+  torch::Tensor phil;        // {4, plane_h, N} float32
+  torch::Tensor phir;        // {4, plane_w, N}
+  torch::Tensor gain;        // {4}
+  torch::Tensor vig_rows;    // {plane_h}
+  torch::Tensor vig_cols;    // {plane_w}
   double full_well = 40000;  // electrons at full scale
   double read_noise = 4;     // electrons, standard deviation
   double dark = 0.02;        // full-scale units

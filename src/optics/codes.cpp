@@ -8,12 +8,11 @@ namespace flatnet {
 std::vector<int> mls(int n) {
   // Taps of primitive polynomials (Xilinx XAPP052 table), 1-based bit positions.
   static const std::map<int, std::vector<int>> taps = {
-      {2, {2, 1}},         {3, {3, 2}},          {4, {4, 3}},          {5, {5, 3}},
-      {6, {6, 5}},         {7, {7, 6}},          {8, {8, 6, 5, 4}},    {9, {9, 5}},
-      {10, {10, 7}},       {11, {11, 9}},        {12, {12, 6, 4, 1}},  {13, {13, 4, 3, 1}},
-      {14, {14, 5, 3, 1}}, {15, {15, 14}},       {16, {16, 15, 13, 4}}, {17, {17, 14}},
-      {18, {18, 11}},      {19, {19, 6, 2, 1}},  {20, {20, 17}},       {21, {21, 19}},
-      {22, {22, 21}},      {23, {23, 18}},       {24, {24, 23, 22, 17}}};
+      {2, {2, 1}},         {3, {3, 2}},         {4, {4, 3}},           {5, {5, 3}},    {6, {6, 5}},
+      {7, {7, 6}},         {8, {8, 6, 5, 4}},   {9, {9, 5}},           {10, {10, 7}},  {11, {11, 9}},
+      {12, {12, 6, 4, 1}}, {13, {13, 4, 3, 1}}, {14, {14, 5, 3, 1}},   {15, {15, 14}}, {16, {16, 15, 13, 4}},
+      {17, {17, 14}},      {18, {18, 11}},      {19, {19, 6, 2, 1}},   {20, {20, 17}}, {21, {21, 19}},
+      {22, {22, 21}},      {23, {23, 18}},      {24, {24, 23, 22, 17}}};
   auto it = taps.find(n);
   if (it == taps.end()) throw Error("mls: order n must be within 2..24 (length 2^n - 1), got " + std::to_string(n));
   const uint32_t length = (1u << n) - 1;
@@ -55,8 +54,8 @@ torch::Tensor toeplitz_phi(const std::vector<double>& code, const MaskGeometry& 
   const int sub = 16;  // sub-samples per pixel for the area average
   for (int64_t j = 0; j < N; ++j) {
     // Mask position (in features) seen at sensor coordinate x (features): shifted per scene pixel.
-    const double offset = (L - M * g.pixel_pitch_um / g.feature_um) / 2.0 +
-                          (j - (N - 1) / 2.0) * g.shift_features_per_pixel;
+    const double offset =
+        (L - M * g.pixel_pitch_um / g.feature_um) / 2.0 + (j - (N - 1) / 2.0) * g.shift_features_per_pixel;
     for (int64_t i = 0; i < M; ++i) {
       double sum = 0;
       for (int s = 0; s < sub; ++s) {

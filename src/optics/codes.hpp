@@ -21,11 +21,11 @@ torch::Tensor hadamard(int64_t n);
 
 // Geometry of a separable amplitude mask over a sensor (one axis).
 struct MaskGeometry {
-  double feature_um = 20.0;          // mask feature (code element) size
-  double pixel_pitch_um = 10.6;      // sensor pixel pitch (of one Bayer plane)
+  double feature_um = 20.0;               // mask feature (code element) size
+  double pixel_pitch_um = 10.6;           // sensor pixel pitch (of one Bayer plane)
   double shift_features_per_pixel = 1.0;  // shadow shift per scene pixel, in mask features
-  double blur_px = 0.0;              // Gaussian blur sigma, sensor pixels (diffraction)
-  int64_t sensor_pixels = 500;       // rows (PhiL) or columns (PhiR)
+  double blur_px = 0.0;                   // Gaussian blur sigma, sensor pixels (diffraction)
+  int64_t sensor_pixels = 500;            // rows (PhiL) or columns (PhiR)
   int64_t scene_pixels = 256;
 };
 

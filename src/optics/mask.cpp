@@ -111,7 +111,8 @@ torch::Tensor MaskModelImpl::transmittance() {
     {
       torch::NoGradGuard no_grad;
       const auto seen = visible(M.detach()).flatten();
-      const double q = opt_.throughput == ThroughputRule::free ? 0.5 : 1.0 - std::min(opt_.target, seen.mean().item<double>());
+      const double q =
+          opt_.throughput == ThroughputRule::free ? 0.5 : 1.0 - std::min(opt_.target, seen.mean().item<double>());
       thr = torch::quantile(seen, q);
     }
     const auto hard = (M.detach() > thr).to(M.dtype());
@@ -120,9 +121,7 @@ torch::Tensor MaskModelImpl::transmittance() {
   return M;
 }
 
-torch::Tensor MaskModelImpl::window() {
-  return mask_window(transmittance(), opt_.upsample, opt_.rows, opt_.cols);
-}
+torch::Tensor MaskModelImpl::window() { return mask_window(transmittance(), opt_.upsample, opt_.rows, opt_.cols); }
 
 torch::Tensor mask_window(const torch::Tensor& mask, int64_t up, int64_t rows, int64_t cols) {
   auto m = mask.repeat_interleave(up, 0).repeat_interleave(up, 1);  // {E*up, E*up}
@@ -161,7 +160,9 @@ int64_t scene_left(const WienerCamera& c) { return (c.cols - c.scene) / 2; }
 torch::Tensor capture(const torch::Tensor& scenes, const torch::Tensor& P, const WienerCamera& cam,
                       c10::optional<at::Generator> gen) {
   auto canvas = torch::zeros({scenes.size(0), cam.rows, cam.cols}, scenes.options());
-  canvas.slice(1, scene_top(cam), scene_top(cam) + cam.scene).slice(2, scene_left(cam), scene_left(cam) + cam.scene).copy_(scenes);
+  canvas.slice(1, scene_top(cam), scene_top(cam) + cam.scene)
+      .slice(2, scene_left(cam), scene_left(cam) + cam.scene)
+      .copy_(scenes);
   auto y = torch::fft::irfft2(torch::fft::rfft2(canvas) * P, c10::IntArrayRef({cam.rows, cam.cols}));
   if (cam.photons > 0) {
     torch::NoGradGuard no_grad;
@@ -172,7 +173,8 @@ torch::Tensor capture(const torch::Tensor& scenes, const torch::Tensor& P, const
   return y;
 }
 
-torch::Tensor wiener(const torch::Tensor& y, const torch::Tensor& P, const torch::Tensor& gamma, const WienerCamera& cam) {
+torch::Tensor wiener(const torch::Tensor& y, const torch::Tensor& P, const torch::Tensor& gamma,
+                     const WienerCamera& cam) {
   const auto filter = P.conj() / (P.abs().pow(2) + gamma);
   const auto x = torch::fft::irfft2(torch::fft::rfft2(y) * filter, c10::IntArrayRef({cam.rows, cam.cols}));
   return x.slice(1, scene_top(cam), scene_top(cam) + cam.scene).slice(2, scene_left(cam), scene_left(cam) + cam.scene);

@@ -11,7 +11,7 @@
 
 namespace flatnet {
 
-enum class MaskProjection { sigmoid, clamp };  // how U V^T becomes a transmittance
+enum class MaskProjection { sigmoid, clamp };    // how U V^T becomes a transmittance
 enum class ThroughputRule { equal, cap, free };  // mean transmittance held at, capped at, or free of the target
 enum class MaskInit { random, mls };
 // Config strings -> enums, once, where configs are read; errors name `key`.
@@ -20,14 +20,14 @@ ThroughputRule parse_throughput_rule(const std::string& s, const std::string& ke
 MaskInit parse_mask_init(const std::string& s, const std::string& key = "mask.init");
 
 struct MaskOptions {
-  int64_t elements = 511;       // mask elements per side
-  int64_t rank = 1;             // M = project(U V^T), U and V {elements, rank}
-  int64_t upsample = 4;         // sensor pixels per mask element (nearest)
+  int64_t elements = 511;          // mask elements per side
+  int64_t rank = 1;                // M = project(U V^T), U and V {elements, rank}
+  int64_t upsample = 4;            // sensor pixels per mask element (nearest)
   int64_t rows = 500, cols = 620;  // sensor
   MaskProjection projection = MaskProjection::sigmoid;
   ThroughputRule throughput = ThroughputRule::equal;  // equal: held at target; cap: <= target; free
   double target = 0.5;
-  bool binary = false;          // straight-through binarisation (open where M > its median)
+  bool binary = false;               // straight-through binarisation (open where M > its median)
   MaskInit init = MaskInit::random;  // random, or the MLS mask's vectors
   uint64_t seed = 0;
 };
@@ -75,7 +75,8 @@ torch::Tensor psf_spectrum(const torch::Tensor& window);  // {rows, cols/2+1} co
 torch::Tensor capture(const torch::Tensor& scenes, const torch::Tensor& P, const WienerCamera& cam,
                       c10::optional<at::Generator> gen = c10::nullopt);
 // Wiener: x = F^-1{ conj(P) / (|P|^2 + gamma) F{y} }, centred N x N crop. {B,rows,cols} -> {B,N,N}.
-torch::Tensor wiener(const torch::Tensor& y, const torch::Tensor& P, const torch::Tensor& gamma, const WienerCamera& cam);
+torch::Tensor wiener(const torch::Tensor& y, const torch::Tensor& P, const torch::Tensor& gamma,
+                     const WienerCamera& cam);
 
 // Mask for a name: "mls", "m02", or a 16-bit PNG (65535 = fully transparent) of the sensor window.
 // Errors name the file: wrong size, values outside [0,1], not 16-bit.

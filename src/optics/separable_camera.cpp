@@ -7,8 +7,8 @@
 
 namespace flatnet {
 
-torch::Tensor code_matrix(const torch::Tensor& code, int64_t rows, int64_t scene, double offset, double pixels_per_feature,
-                          int subsamples) {
+torch::Tensor code_matrix(const torch::Tensor& code, int64_t rows, int64_t scene, double offset,
+                          double pixels_per_feature, int subsamples) {
   TORCH_CHECK(code.dim() == 1 && code.numel() > 0, "code_matrix: a 1-D code expected");
   const auto f64 = torch::TensorOptions().dtype(torch::kFloat64);
   const auto i = torch::arange(rows, f64).view({rows, 1, 1});
@@ -27,8 +27,8 @@ torch::Tensor blur_rows(const torch::Tensor& m, double sigma) {
   std::vector<double> w(2 * radius + 1);
   double total = 0;
   for (int64_t x = -radius; x <= radius; ++x) total += w[x + radius] = std::exp(-0.5 * x * x / (sigma * sigma));
-  const auto padded = torch::cat({m.slice(0, 0, 1).expand({radius, m.size(1)}), m,
-                                  m.slice(0, rows - 1, rows).expand({radius, m.size(1)})});
+  const auto padded = torch::cat(
+      {m.slice(0, 0, 1).expand({radius, m.size(1)}), m, m.slice(0, rows - 1, rows).expand({radius, m.size(1)})});
   torch::Tensor out = torch::zeros_like(m);
   for (int64_t x = 0; x <= 2 * radius; ++x) out = out + (w[x] / total) * padded.slice(0, x, x + rows);
   return out;
@@ -74,7 +74,8 @@ Rig separable_rig(const torch::Tensor& u, const torch::Tensor& v, const Separabl
 
 Calibration calibration_of(const Rig& rig, const std::array<int64_t, 4>& crop, double relative_error, uint64_t seed) {
   const int64_t top = crop[0], left = crop[1], h = crop[2], w = crop[3];
-  TORCH_CHECK(top + h <= rig.phil.size(1) && left + w <= rig.phir.size(1), "calibration_of: the crop leaves the sensor plane");
+  TORCH_CHECK(top + h <= rig.phil.size(1) && left + w <= rig.phir.size(1),
+              "calibration_of: the crop leaves the sensor plane");
   auto gen = at::detail::createCPUGenerator(seed);
   auto measure = [&](const torch::Tensor& phi, int64_t start, int64_t n, const torch::Tensor& gain) {
     auto window = phi.detach().to(torch::kFloat64).slice(0, start, start + n) * std::sqrt(gain.item<double>());
@@ -90,9 +91,7 @@ Calibration calibration_of(const Rig& rig, const std::array<int64_t, 4>& crop, d
   return {torch::stack(P), torch::stack(Q)};
 }
 
-double CodePair::throughput() const {
-  return (1 + rows.mean().item<double>() * cols.mean().item<double>()) / 2;
-}
+double CodePair::throughput() const { return (1 + rows.mean().item<double>() * cols.mean().item<double>()) / 2; }
 
 CodePair load_code_pair(const std::filesystem::path& path) {
   MatReader codes(path);

@@ -14,13 +14,13 @@
 namespace flatnet {
 
 struct SeparableCameraOptions {
-  int64_t scene = 256;                     // N: scene pixels per side
+  int64_t scene = 256;  // N: scene pixels per side
   int64_t plane_rows = 512, plane_cols = 640;
-  double pixels_per_feature = 20.0 / 10.6;  // R: sensor-plane pixels per mask feature
-  int subsamples = 16;                     // sub-positions per pixel
-  double offset_rows = 0.3, offset_cols = 137.6;            // shadow offset, in features
+  double pixels_per_feature = 20.0 / 10.6;                   // R: sensor-plane pixels per mask feature
+  int subsamples = 16;                                       // sub-positions per pixel
+  double offset_rows = 0.3, offset_cols = 137.6;             // shadow offset, in features
   std::array<double, 4> blur_sigma{0.70, 0.85, 0.85, 1.00};  // b, gb, gr, r; plane pixels, along the sensor axis
-  double vignette_rows = 0.25, vignette_cols = 0.2;         // 1 / (1 + f x^2)^2
+  double vignette_rows = 0.25, vignette_cols = 0.2;          // 1 / (1 + f x^2)^2
   std::array<double, 4> channel_gain{0.85, 1.00, 1.00, 0.90};
   double full_well = 40000, read_noise = 4, dark = 0.02;
   int adc_bits = 10;
@@ -29,8 +29,8 @@ struct SeparableCameraOptions {
 // One axis: the {rows, N} matrix whose entry (i, j) is the mean of code[floor(s) mod K] over the
 // pixel's sub-positions t = (16 i + k + 0.5) / 16 / R, s = t + (N - 1 - j) + offset (no blur or
 // vignette). `code` {K} in [-1, 1]; the result keeps its autograd graph.
-torch::Tensor code_matrix(const torch::Tensor& code, int64_t rows, int64_t scene, double offset, double pixels_per_feature,
-                          int subsamples);
+torch::Tensor code_matrix(const torch::Tensor& code, int64_t rows, int64_t scene, double offset,
+                          double pixels_per_feature, int subsamples);
 
 // A Gaussian blur along dim 0 with scipy.ndimage.gaussian_filter1d's kernel (radius
 // int(4 sigma + 0.5)) and edges extended with the nearest value. {rows, N} -> {rows, N}.
@@ -47,7 +47,7 @@ Calibration calibration_of(const Rig& rig, const std::array<int64_t, 4>& crop, d
 
 // A separable mask's code pair: the mask is (1 + rows cols^T) / 2.
 struct CodePair {
-  torch::Tensor rows, cols;  // {K} float64, values in [-1, 1]
+  torch::Tensor rows, cols;   // {K} float64, values in [-1, 1]
   double throughput() const;  // mean transmittance (1 + mean(rows) mean(cols)) / 2
 };
 // Reads code_rows and code_cols (vectors) from a .mat; errors name the file and the variable

@@ -25,7 +25,8 @@ torch::Tensor lit_scene(const torch::Tensor& display_srgb, const SceneLight& lig
   if (light.lamp) {
     const int64_t N = linear.size(-1);
     const auto idx = torch::arange(N, torch::kFloat32) + 0.5f;
-    const auto dy = (idx - static_cast<float>(light.lamp_row)).view({N, 1}), dx = (idx - static_cast<float>(light.lamp_col)).view({1, N});
+    const auto dy = (idx - static_cast<float>(light.lamp_row)).view({N, 1}),
+               dx = (idx - static_cast<float>(light.lamp_col)).view({1, N});
     // A disk with a one-pixel soft edge, slightly warm (an incandescent or LED lamp, not the display's white).
     const auto disk = (static_cast<float>(light.lamp_radius) + 0.5f - torch::sqrt(dy * dy + dx * dx)).clamp(0, 1);
     const auto colour = torch::tensor({1.0f, 0.92f, 0.8f}).view({3, 1, 1});
@@ -49,8 +50,11 @@ void place_lamp(SceneLight& light, int64_t n, at::Generator& gen) {
 SceneLight draw_scene_light(const LightAugment& a, int64_t n, at::Generator& gen) {
   SceneLight light;
   const auto u = at::rand({4}, gen);
-  auto log_uniform = [](double lo, double hi, double t) { return std::exp(std::log(lo) + t * (std::log(hi) - std::log(lo))); };
-  if (u[0].item<double>() < a.exposure_probability) light.exposure = log_uniform(a.exposure_min, a.exposure_max, u[1].item<double>());
+  auto log_uniform = [](double lo, double hi, double t) {
+    return std::exp(std::log(lo) + t * (std::log(hi) - std::log(lo)));
+  };
+  if (u[0].item<double>() < a.exposure_probability)
+    light.exposure = log_uniform(a.exposure_min, a.exposure_max, u[1].item<double>());
   if (u[2].item<double>() < a.lamp_probability) {
     place_lamp(light, n, gen);
     light.lamp_gain = log_uniform(a.lamp_min, a.lamp_max, u[3].item<double>());
@@ -59,12 +63,13 @@ SceneLight draw_scene_light(const LightAugment& a, int64_t n, at::Generator& gen
 }
 
 std::pair<std::vector<std::string>, std::vector<std::string>> split_train_val(const std::vector<std::string>& names,
-                                                                           double val_fraction, uint64_t seed) {
+                                                                              double val_fraction, uint64_t seed) {
   std::vector<std::string> shuffled = names;
   std::mt19937_64 rng(seed);
   std::shuffle(shuffled.begin(), shuffled.end(), rng);
   const auto n_val = static_cast<size_t>(std::llround(val_fraction * shuffled.size()));
-  std::vector<std::string> val(shuffled.begin(), shuffled.begin() + n_val), train(shuffled.begin() + n_val, shuffled.end());
+  std::vector<std::string> val(shuffled.begin(), shuffled.begin() + n_val),
+      train(shuffled.begin() + n_val, shuffled.end());
   std::sort(val.begin(), val.end());
   std::sort(train.begin(), train.end());
   return {train, val};
@@ -99,12 +104,14 @@ void write_lists(const std::filesystem::path& out, const std::string& split, con
 }  // namespace
 
 std::pair<int64_t, int64_t> write_dataset_lists(const std::filesystem::path& out, const std::vector<std::string>& names,
-                                                const std::vector<std::string>& complete, double val_fraction, uint64_t seed) {
+                                                const std::vector<std::string>& complete, double val_fraction,
+                                                uint64_t seed) {
   auto [train, val] = split_train_val(names, val_fraction, seed);
   auto done = complete;
   std::sort(done.begin(), done.end());
   auto keep_done = [&](std::vector<std::string>& v) {
-    v.erase(std::remove_if(v.begin(), v.end(), [&](const std::string& n) { return !std::binary_search(done.begin(), done.end(), n); }),
+    v.erase(std::remove_if(v.begin(), v.end(),
+                           [&](const std::string& n) { return !std::binary_search(done.begin(), done.end(), n); }),
             v.end());
   };
   keep_done(train);
@@ -127,10 +134,14 @@ std::vector<std::pair<std::string, std::string>> dataset_settings(const Simulate
     s << std::setprecision(17) << v;
     return s.str();
   };
-  return {{"images", images.string()}, {"camera", opt.camera},
-          {"seed", std::to_string(opt.seed)}, {"noise", opt.noise ? "on" : "off"},
-          {"size", std::to_string(opt.size)}, {"val_fraction", number(opt.val_fraction)},
-          {"exposure", number(opt.exposure)}, {"lamp", opt.lamp ? "on" : "off"},
+  return {{"images", images.string()},
+          {"camera", opt.camera},
+          {"seed", std::to_string(opt.seed)},
+          {"noise", opt.noise ? "on" : "off"},
+          {"size", std::to_string(opt.size)},
+          {"val_fraction", number(opt.val_fraction)},
+          {"exposure", number(opt.exposure)},
+          {"lamp", opt.lamp ? "on" : "off"},
           {"lamp_gain", opt.lamp ? number(opt.lamp_gain) : "-"}};
 }
 
@@ -162,13 +173,15 @@ void check_and_record_settings(const SimulateOptions& opt) {
                                "); rerun with the recorded settings to resume, choose another --out, or add --force "
                                "to delete its captures and rebuild");
     if (!differences.empty()) {
-      std::cerr << "simulate: --force: deleting " << opt.out.string() << "'s captures and lists (" << differences << ")\n";
+      std::cerr << "simulate: --force: deleting " << opt.out.string() << "'s captures and lists (" << differences
+                << ")\n";
       for (const char* folder : {"meas", "gt"}) std::filesystem::remove_all(opt.out / folder);
       for (const char* list : {"train_meas.txt", "train_gt.txt", "val_meas.txt", "val_gt.txt"})
         std::filesystem::remove(opt.out / list);
     }
   } else if (std::filesystem::exists(opt.out / "meas") && !std::filesystem::is_empty(opt.out / "meas")) {
-    std::cerr << "simulate: " << opt.out.string() << " has captures but no settings record; adding to them and recording "
+    std::cerr << "simulate: " << opt.out.string()
+              << " has captures but no settings record; adding to them and recording "
               << "this run's settings in simulate.yaml\n";
   }
   std::string text = "# the settings of `flatnet simulate` that made this dataset (a rerun must match them)\n";
@@ -183,7 +196,8 @@ SimulateReport simulate_dataset(const Rig& rig, const SimulateOptions& opt) {
   require(opt.val_fraction >= 0 && opt.val_fraction <= 1, "--val-fraction", "must be within [0, 1]");
   require(std::isfinite(opt.exposure) && opt.exposure > 0 && opt.exposure <= 100, "--exposure",
           "must lie in (0, 100] (scene light relative to the display's)");
-  require(std::isfinite(opt.lamp_gain) && opt.lamp_gain > 0 && opt.lamp_gain <= 1e4, "--lamp-gain", "must lie in (0, 10000]");
+  require(std::isfinite(opt.lamp_gain) && opt.lamp_gain > 0 && opt.lamp_gain <= 1e4, "--lamp-gain",
+          "must lie in (0, 10000]");
   require(opt.size == rig.scene_size(), "--size",
           "the rig's matrices take " + std::to_string(rig.scene_size()) + "x" + std::to_string(rig.scene_size()) +
               " scenes, got " + std::to_string(opt.size));
@@ -202,11 +216,13 @@ SimulateReport simulate_dataset(const Rig& rig, const SimulateOptions& opt) {
     std::vector<std::filesystem::path> kept_images;
     std::vector<std::string> kept_names;
     for (size_t i = 0; i < names.size(); ++i)
-      if (std::binary_search(keep.begin(), keep.end(), names[i])) kept_images.push_back(images[i]), kept_names.push_back(names[i]);
+      if (std::binary_search(keep.begin(), keep.end(), names[i]))
+        kept_images.push_back(images[i]), kept_names.push_back(names[i]);
     images = kept_images;
     names = kept_names;
     require(!images.empty(), "--only " + opt.only,
-            "selects no images (--val-fraction " + std::to_string(opt.val_fraction) + " of " + std::to_string(all_names.size()) + ")");
+            "selects no images (--val-fraction " + std::to_string(opt.val_fraction) + " of " +
+                std::to_string(all_names.size()) + ")");
   }
 
   check_and_record_settings(opt);
@@ -215,7 +231,8 @@ SimulateReport simulate_dataset(const Rig& rig, const SimulateOptions& opt) {
   SimulateReport report;
   report.total = static_cast<int64_t>(images.size());
 
-  const int workers = opt.workers > 0 ? opt.workers : static_cast<int>(std::max(1u, std::thread::hardware_concurrency()));
+  const int workers =
+      opt.workers > 0 ? opt.workers : static_cast<int>(std::max(1u, std::thread::hardware_concurrency()));
   std::atomic<size_t> next{0};
   std::atomic<int64_t> simulated{0}, skipped{0};
   std::mutex error_mutex;

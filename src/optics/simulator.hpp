@@ -11,9 +11,9 @@ namespace flatnet {
 // than a display's white. A SceneLight turns a display image into such a scene, in linear light
 // (1 = display white), where the camera integrates it (camera README, "The true response").
 struct SceneLight {
-  double exposure = 1.0;        // scene radiance relative to the display's
-  bool lamp = false;            // a small bright disk added to the scene
-  double lamp_gain = 20;        // its radiance relative to display white
+  double exposure = 1.0;                               // scene radiance relative to the display's
+  bool lamp = false;                                   // a small bright disk added to the scene
+  double lamp_gain = 20;                               // its radiance relative to display white
   double lamp_row = 0, lamp_col = 0, lamp_radius = 2;  // centre and radius in scene pixels
 };
 // exposure * srgb_to_linear(display) + lamp: {3,N,N} linear light.
@@ -23,10 +23,10 @@ torch::Tensor visible_scene(const torch::Tensor& linear);
 
 // Random scene light for training (data.light.* in the config).
 struct LightAugment {
-  double exposure_probability = 0;          // share of samples whose light is redrawn
+  double exposure_probability = 0;            // share of samples whose light is redrawn
   double exposure_min = 1, exposure_max = 1;  // drawn log-uniformly
-  double lamp_probability = 0;              // share of samples with a lamp
-  double lamp_min = 5, lamp_max = 50;       // lamp gain, log-uniform
+  double lamp_probability = 0;                // share of samples with a lamp
+  double lamp_min = 5, lamp_max = 50;         // lamp gain, log-uniform
   bool active() const { return exposure_probability > 0 || lamp_probability > 0; }
 };
 SceneLight draw_scene_light(const LightAugment& augment, int64_t scene_size, at::Generator& gen);
@@ -34,21 +34,21 @@ SceneLight draw_scene_light(const LightAugment& augment, int64_t scene_size, at:
 void place_lamp(SceneLight& light, int64_t scene_size, at::Generator& gen);
 
 struct SimulateOptions {
-  std::filesystem::path images;   // folder of photographs
-  std::filesystem::path out;      // dataset folder: meas/, gt/, train_*.txt, val_*.txt
-  double val_fraction = 0.1;      // share of images listed in val_*.txt
-  uint64_t seed = 0;              // split and noise are deterministic for a seed
+  std::filesystem::path images;  // folder of photographs
+  std::filesystem::path out;     // dataset folder: meas/, gt/, train_*.txt, val_*.txt
+  double val_fraction = 0.1;     // share of images listed in val_*.txt
+  uint64_t seed = 0;             // split and noise are deterministic for a seed
   bool noise = true;
-  int64_t size = 256;             // scene side (the display image is resized, aspect ignored)
-  int workers = 0;                // <= 0: all cores
+  int64_t size = 256;  // scene side (the display image is resized, aspect ignored)
+  int workers = 0;     // <= 0: all cores
   bool progress = true;
-  int64_t limit = 0;              // > 0: only the first `limit` images (sorted by name)
-  std::string only = "all";       // all | train | val: simulate only that part of the split (lists keep the split)
-  double exposure = 1.0;          // scene light relative to the display's (dim sets: < 1)
-  bool lamp = false;              // one lamp per scene (lamp sets), lamp_gain x display white
+  int64_t limit = 0;         // > 0: only the first `limit` images (sorted by name)
+  std::string only = "all";  // all | train | val: simulate only that part of the split (lists keep the split)
+  double exposure = 1.0;     // scene light relative to the display's (dim sets: < 1)
+  bool lamp = false;         // one lamp per scene (lamp sets), lamp_gain x display white
   double lamp_gain = 20;
-  std::string camera;             // what made the captures (the rig's path), recorded with the settings
-  bool force = false;             // settings differ from the folder's record: rebuild (deletes its captures)
+  std::string camera;  // what made the captures (the rig's path), recorded with the settings
+  bool force = false;  // settings differ from the folder's record: rebuild (deletes its captures)
 };
 
 struct SimulateReport {
@@ -65,12 +65,13 @@ SimulateReport simulate_dataset(const Rig& rig, const SimulateOptions& options);
 // The deterministic train/validation split `simulate_dataset` writes (and on-the-fly simulation
 // uses): shuffle with the seed, the first round(fraction * n) are validation; both sorted.
 std::pair<std::vector<std::string>, std::vector<std::string>> split_train_val(const std::vector<std::string>& names,
-                                                                           double val_fraction, uint64_t seed);
+                                                                              double val_fraction, uint64_t seed);
 // Writes train_meas/gt.txt and val_meas/gt.txt: the split_train_val split of all `names`, listing
 // only the `complete` ones (a partially collected dataset is trainable, and its split is stable).
 // Returns {train, val} counts listed.
 std::pair<int64_t, int64_t> write_dataset_lists(const std::filesystem::path& out, const std::vector<std::string>& names,
-                                                const std::vector<std::string>& complete, double val_fraction, uint64_t seed);
+                                                const std::vector<std::string>& complete, double val_fraction,
+                                                uint64_t seed);
 // The photographs of a folder (any image extension), split by split_train_val's rule:
 // {train, held-out}. Errors when the folder has no readable images.
 std::pair<std::vector<std::filesystem::path>, std::vector<std::filesystem::path>> split_image_files(

@@ -8,8 +8,8 @@
 
 namespace flatnet {
 
-InferReport infer_files(Generator& generator, const CameraConfig& camera, const std::vector<std::filesystem::path>& captures,
-                        const InferOptions& opt) {
+InferReport infer_files(Generator& generator, const CameraConfig& camera,
+                        const std::vector<std::filesystem::path>& captures, const InferOptions& opt) {
   check_camera_for_model(generator->options(), camera);
   generator->prepare_inference(opt.levers);
   return infer_files([&](const torch::Tensor& planes) { return generator->forward(planes); }, camera, captures, opt);
@@ -27,7 +27,8 @@ InferReport infer_files(const BatchForward& forward, const CameraConfig& camera,
   double model_s = 0;
   for (size_t i = 0; i < captures.size(); i += opt.batch) {
     std::vector<Capture> batch;
-    for (size_t j = i; j < std::min(captures.size(), i + opt.batch); ++j) batch.push_back(load_capture(captures[j], camera.raw));
+    for (size_t j = i; j < std::min(captures.size(), i + opt.batch); ++j)
+      batch.push_back(load_capture(captures[j], camera.raw));
     std::vector<torch::Tensor> planes;
     for (const auto& c : batch) planes.push_back(c.planes);
     const auto t0 = std::chrono::steady_clock::now();

@@ -24,8 +24,8 @@ struct InferReport {
 };
 
 // The camera's crop, scene size and centring must match the generator's (check_camera_for_model).
-InferReport infer_files(Generator& generator, const CameraConfig& camera, const std::vector<std::filesystem::path>& captures,
-                        const InferOptions& options);
+InferReport infer_files(Generator& generator, const CameraConfig& camera,
+                        const std::vector<std::filesystem::path>& captures, const InferOptions& options);
 
 // The batch loop itself, for any engine: {B,4,rows,cols} planes -> {B,3,N,N} images in [0,1]
 // (LibTorch's generator above, OpenCV DNN in recon/opencv_engine). `options.levers` is not used.

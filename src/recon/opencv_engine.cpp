@@ -30,8 +30,9 @@ OpenCvEngine::~OpenCvEngine() = default;
 
 CameraConfig OpenCvEngine::camera() const {
   if (info_.camera_yaml.empty())
-    throw Error(path_, "the ONNX file carries no camera preprocessing (metadata flatnet.camera; not written by "
-                       "`flatnet export --onnx`?): give --camera");
+    throw Error(path_,
+                "the ONNX file carries no camera preprocessing (metadata flatnet.camera; not written by "
+                "`flatnet export --onnx`?): give --camera");
   return camera_from_yaml_text(info_.camera_yaml, path_);
 }
 

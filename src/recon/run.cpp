@@ -20,7 +20,8 @@ std::vector<std::filesystem::path> collect_captures(const std::filesystem::path&
     require(std::filesystem::is_directory(dir), dir, "no such folder");
     std::vector<std::filesystem::path> files;
     for (const auto& e : std::filesystem::directory_iterator(dir))
-      if (e.is_regular_file() && ::fnmatch(pattern.c_str(), e.path().filename().c_str(), 0) == 0) files.push_back(e.path());
+      if (e.is_regular_file() && ::fnmatch(pattern.c_str(), e.path().filename().c_str(), 0) == 0)
+        files.push_back(e.path());
     std::sort(files.begin(), files.end());
     require(!files.empty(), input, "no file matches this pattern");
     return files;
@@ -60,7 +61,8 @@ void check_output_names(const std::vector<std::filesystem::path>& captures, cons
       throw Error(c, "has the same name as " + it->second.string() + ": both would be written to " + target.string() +
                          " (reconstruct them into separate --out folders)");
     if (inputs.count(target))
-      throw Error("--out", "writing " + target.string() + " would overwrite a capture being read; choose another --out folder");
+      throw Error("--out",
+                  "writing " + target.string() + " would overwrite a capture being read; choose another --out folder");
   }
 }
 
@@ -70,7 +72,8 @@ torch::Tensor planes_to_srgb(const torch::Tensor& planes) {
 
 ReconReport reconstruct_files(const CameraConfig& camera, const Calibration& calib,
                               const std::vector<std::filesystem::path>& captures, const ReconOptions& opt) {
-  require(opt.method == "tikhonov" || opt.method == "tv", "--method", "must be tikhonov or tv, got '" + opt.method + "'");
+  require(opt.method == "tikhonov" || opt.method == "tv", "--method",
+          "must be tikhonov or tv, got '" + opt.method + "'");
   check_output_names(captures, opt.out);
   c10::InferenceMode guard;
   std::function<torch::Tensor(const torch::Tensor&)> solve;
@@ -94,7 +97,7 @@ ReconReport reconstruct_files(const CameraConfig& camera, const Calibration& cal
     for (size_t i = first; i < last; ++i) planes.push_back(load_centred_planes(captures[i], camera.raw));
     auto Y = torch::stack(planes);  // {B,4,h,w}
     const auto t0 = std::chrono::steady_clock::now();
-    auto X = solve(Y);              // {B,4,N,N}
+    auto X = solve(Y);  // {B,4,N,N}
     recon_s += std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
     for (size_t i = first; i < last; ++i) {
       auto name = captures[i].filename();

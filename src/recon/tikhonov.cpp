@@ -36,15 +36,19 @@ using torch::indexing::Slice;
 
 std::pair<torch::Tensor, torch::Tensor> tv_gradient(const torch::Tensor& x) {
   auto gx = torch::zeros_like(x), gy = torch::zeros_like(x);
-  gx.index_put_({"...", Slice(), Slice(0, -1)}, x.index({"...", Slice(), Slice(1, None)}) - x.index({"...", Slice(), Slice(0, -1)}));
-  gy.index_put_({"...", Slice(0, -1), Slice()}, x.index({"...", Slice(1, None), Slice()}) - x.index({"...", Slice(0, -1), Slice()}));
+  gx.index_put_({"...", Slice(), Slice(0, -1)},
+                x.index({"...", Slice(), Slice(1, None)}) - x.index({"...", Slice(), Slice(0, -1)}));
+  gy.index_put_({"...", Slice(0, -1), Slice()},
+                x.index({"...", Slice(1, None), Slice()}) - x.index({"...", Slice(0, -1), Slice()}));
   return {gx, gy};
 }
 torch::Tensor tv_divergence(const torch::Tensor& px, const torch::Tensor& py) {
   auto dx = px.clone(), dy = py.clone();
-  dx.index_put_({"...", Slice(), Slice(1, None)}, px.index({"...", Slice(), Slice(1, None)}) - px.index({"...", Slice(), Slice(0, -1)}));
+  dx.index_put_({"...", Slice(), Slice(1, None)},
+                px.index({"...", Slice(), Slice(1, None)}) - px.index({"...", Slice(), Slice(0, -1)}));
   dx.index_put_({"...", Slice(), -1}, -px.index({"...", Slice(), -2}));
-  dy.index_put_({"...", Slice(1, None), Slice()}, py.index({"...", Slice(1, None), Slice()}) - py.index({"...", Slice(0, -1), Slice()}));
+  dy.index_put_({"...", Slice(1, None), Slice()},
+                py.index({"...", Slice(1, None), Slice()}) - py.index({"...", Slice(0, -1), Slice()}));
   dy.index_put_({"...", -1, Slice()}, -py.index({"...", -2, Slice()}));
   return dx + dy;
 }
@@ -75,8 +79,7 @@ torch::Tensor tv_prox_nonneg(const torch::Tensor& b, double t, int iterations) {
 
 }  // namespace
 
-TVSolver::TVSolver(const Calibration& calib, TVOptions options)
-    : opt_(options), init_(calib, options.tikhonov_lambda) {
+TVSolver::TVSolver(const Calibration& calib, TVOptions options) : opt_(options), init_(calib, options.tikhonov_lambda) {
   P_ = calib.P.to(torch::kFloat32).contiguous();
   Q_ = calib.Q.to(torch::kFloat32).contiguous();
   auto nP = torch::linalg_matrix_norm(calib.P.to(torch::kFloat64), 2);  // {4}
@@ -91,8 +94,8 @@ torch::Tensor TVSolver::operator()(const torch::Tensor& Y) const {
   double tk = 1.0;
   const double step = 1.0 / lipschitz_;
   for (int k = 0; k < opt_.iterations; ++k) {
-    auto residual = torch::matmul(torch::matmul(P_, z), Qt) - Y;       // {B,4,h,w}
-    auto g = torch::matmul(torch::matmul(Pt, residual), Q_);           // {B,4,N,N}
+    auto residual = torch::matmul(torch::matmul(P_, z), Qt) - Y;  // {B,4,h,w}
+    auto g = torch::matmul(torch::matmul(Pt, residual), Q_);      // {B,4,N,N}
     auto xn = tv_prox_nonneg(z - step * g, step * opt_.lambda, opt_.prox_iterations);
     const double tn = (1 + std::sqrt(1 + 4 * tk * tk)) / 2;
     z = xn + ((tk - 1) / tn) * (xn - x);

@@ -31,8 +31,8 @@ class Tikhonov {
 // (FGP) on the dual with the non-negativity constraint. Starts from the Tikhonov solution.
 struct TVOptions {
   double lambda = 1e-4;
-  int iterations = 60;        // FISTA iterations
-  int prox_iterations = 10;   // FGP iterations per proximal step
+  int iterations = 60;            // FISTA iterations
+  int prox_iterations = 10;       // FGP iterations per proximal step
   double tikhonov_lambda = 3e-4;  // for the starting point
 };
 

@@ -126,7 +126,8 @@ void Config::check_ranges(const std::string& where) const {
     const auto it = values_.find(rule.name);
     if (it == values_.end()) continue;
     const auto problem = number_problem(it->second, rule);
-    if (!problem.empty()) throw Error(where + ": " + rule.name + " = " + it->second + " " + problem + ": " + rule.meaning);
+    if (!problem.empty())
+      throw Error(where + ": " + rule.name + " = " + it->second + " " + problem + ": " + rule.meaning);
   }
 }
 
@@ -143,9 +144,7 @@ std::string nearest_key(const std::string& key, const std::vector<std::string>& 
   return best;
 }
 
-std::filesystem::path Config::default_path() {
-  return data_dir() / "configs" / "defaults.yaml";
-}
+std::filesystem::path Config::default_path() { return data_dir() / "configs" / "defaults.yaml"; }
 
 Config Config::load(const std::filesystem::path& experiment, const std::vector<std::string>& sets,
                     const std::filesystem::path& defaults) {
@@ -155,7 +154,8 @@ Config Config::load(const std::filesystem::path& experiment, const std::vector<s
   for (const auto& kv : c.values_) c.bases_[kv.first] = defaults.parent_path().parent_path();
   if (!experiment.empty()) c.merge_file(experiment, 0);
   for (const auto& s : sets) c.set(s);
-  c.check_ranges((experiment.empty() ? std::string("config") : experiment.string()) + (sets.empty() ? "" : " with --set"));
+  c.check_ranges((experiment.empty() ? std::string("config") : experiment.string()) +
+                 (sets.empty() ? "" : " with --set"));
   return c;
 }
 
@@ -199,8 +199,7 @@ void Config::assign(const std::string& key, const std::string& value, const std:
 
 void Config::set(const std::string& assignment, const std::string& where) {
   const auto eq = assignment.find('=');
-  if (eq == std::string::npos || eq == 0)
-    throw Error(where + ": expected key=value, got '" + assignment + "'");
+  if (eq == std::string::npos || eq == 0) throw Error(where + ": expected key=value, got '" + assignment + "'");
   assign(assignment.substr(0, eq), assignment.substr(eq + 1), where, std::filesystem::current_path());
 }
 
@@ -258,9 +257,12 @@ void emit(YAML::Emitter& e, const KeyTree& t) {
   e << YAML::BeginMap;
   for (const auto& [k, child] : t.children) {
     e << YAML::Key << k << YAML::Value;
-    if (!child.leaf) emit(e, child);
-    else if (!child.value.empty() && child.value.front() == '[') e << YAML::Flow << YAML::Load(child.value);
-    else e << child.value;
+    if (!child.leaf)
+      emit(e, child);
+    else if (!child.value.empty() && child.value.front() == '[')
+      e << YAML::Flow << YAML::Load(child.value);
+    else
+      e << child.value;
   }
   e << YAML::EndMap;
 }

@@ -40,8 +40,7 @@ class Config {
 
  private:
   void merge_file(const std::filesystem::path& file, int depth);
-  void merge_node_text(const std::string& yaml, const std::filesystem::path& where,
-                       const std::filesystem::path& base);
+  void merge_node_text(const std::string& yaml, const std::filesystem::path& where, const std::filesystem::path& base);
   void assign(const std::string& key, const std::string& value, const std::string& where,
               const std::filesystem::path& base);
   const std::string& lookup(const std::string& key) const;

@@ -10,7 +10,8 @@
 
 namespace flatnet {
 
-DiskPairs::DiskPairs(std::vector<Pair> pairs, CameraConfig camera) : pairs_(std::move(pairs)), camera_(std::move(camera)) {
+DiskPairs::DiskPairs(std::vector<Pair> pairs, CameraConfig camera)
+    : pairs_(std::move(pairs)), camera_(std::move(camera)) {
   if (pairs_.empty()) throw Error("dataset: no pairs to train on");
 }
 
@@ -28,7 +29,11 @@ Sample DiskPairs::load(int64_t i, int64_t) const {
 
 SimulatedPairs::SimulatedPairs(std::vector<std::filesystem::path> images, std::shared_ptr<const Rig> rig,
                                CameraConfig camera, uint64_t seed, LightAugment light)
-    : images_(std::move(images)), rig_(std::move(rig)), camera_(std::move(camera)), seed_(seed), light_(light),
+    : images_(std::move(images)),
+      rig_(std::move(rig)),
+      camera_(std::move(camera)),
+      seed_(seed),
+      light_(light),
       cache_(images_.size()) {
   if (images_.empty()) throw Error("data.images: no images to simulate from");
 }
@@ -48,7 +53,8 @@ Sample SimulatedPairs::load(int64_t i, int64_t epoch) const {
   const auto& image = images_.at(i);
   Sample s;
   s.gt = scene(i);  // {3,N,N}
-  auto gen = at::detail::createCPUGenerator(stable_hash(image.filename().string() + "#" + std::to_string(epoch), seed_));
+  auto gen =
+      at::detail::createCPUGenerator(stable_hash(image.filename().string() + "#" + std::to_string(epoch), seed_));
   torch::Tensor raw;  // stored 16-bit codes
   if (light_.active()) {
     const auto light = draw_scene_light(light_, camera_.scene_size, gen);

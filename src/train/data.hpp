@@ -77,11 +77,11 @@ struct Batch {
 struct LoaderOptions {
   int64_t batch = 4;
   uint64_t seed = 0;
-  int64_t first_step = 0;       // resume: the step whose batch comes first
-  int workers = 1;              // background threads
-  int prefetch = 4;             // batches built ahead at most
-  double noise_augment = 0.0;   // std of Gaussian noise added to the planes (FlatNet: 0.003)
-  int world_size = 1, rank = 0; // data-parallel: rank r takes slice r of each step's global batch
+  int64_t first_step = 0;        // resume: the step whose batch comes first
+  int workers = 1;               // background threads
+  int prefetch = 4;              // batches built ahead at most
+  double noise_augment = 0.0;    // std of Gaussian noise added to the planes (FlatNet: 0.003)
+  int world_size = 1, rank = 0;  // data-parallel: rank r takes slice r of each step's global batch
 };
 
 // Endless stream of shuffled batches. Sample k = (step * world + rank) * batch + j is item perm_e[k mod n] of epoch

@@ -126,11 +126,12 @@ void ProcessGroup::check_identical(const std::vector<torch::Tensor>& tensors, co
   const auto mine = torch::tensor({static_cast<int64_t>(h >> 1)}, torch::kInt64);
   std::vector<torch::Tensor> root{mine.clone()};
   run("a consistency check", [&] { pg_->broadcast(root)->wait(); });
-  std::vector<torch::Tensor> differ{torch::tensor({root[0].item<int64_t>() != mine.item<int64_t>() ? 1 : 0}, torch::kInt64)};
+  std::vector<torch::Tensor> differ{
+      torch::tensor({root[0].item<int64_t>() != mine.item<int64_t>() ? 1 : 0}, torch::kInt64)};
   run("a consistency check", [&] { pg_->allreduce(differ)->wait(); });
   if (differ[0].item<int64_t>() > 0)
-    throw Error("distributed training: " + what + " differ between ranks (" + std::to_string(differ[0].item<int64_t>()) +
-                " rank(s) disagree with rank 0)");
+    throw Error("distributed training: " + what + " differ between ranks (" +
+                std::to_string(differ[0].item<int64_t>()) + " rank(s) disagree with rank 0)");
 }
 
 bool ProcessGroup::any(bool flag) {

@@ -27,8 +27,8 @@ struct DistributedOptions {
   int rank = 0;
   std::string master_addr = "127.0.0.1";
   int master_port = 29500;
-  double timeout_s = 300;             // a collective that waits longer fails (a rank died or hangs)
-  int64_t bucket_bytes = 25 << 20;    // gradients are all-reduced in buckets of about this size
+  double timeout_s = 300;           // a collective that waits longer fails (a rank died or hangs)
+  int64_t bucket_bytes = 25 << 20;  // gradients are all-reduced in buckets of about this size
 };
 
 // torchrun's environment: WORLD_SIZE, RANK, MASTER_ADDR, MASTER_PORT (absent: one process).

@@ -11,7 +11,6 @@
 
 namespace flatnet {
 
-
 namespace {
 
 // Keeps the rows of a CSV log whose first field (the step) is <= last_step; used on resume so
@@ -77,7 +76,8 @@ double lr_factor(const TrainOptions& opt, int64_t step) {
   return std::pow(0.5, static_cast<double>(step / std::max<int64_t>(1, opt.lr_halve_every)));
 }
 
-std::vector<std::pair<int64_t, int64_t>> crop_corners(const TrainOptions& opt, int64_t batch, int64_t scene, int64_t step) {
+std::vector<std::pair<int64_t, int64_t>> crop_corners(const TrainOptions& opt, int64_t batch, int64_t scene,
+                                                      int64_t step) {
   if (opt.crop <= 0 || opt.crop >= scene) return {};
   auto gen = at::detail::createCPUGenerator(opt.seed * 15485863ULL + static_cast<uint64_t>(step));
   const auto rc = at::randint(0, scene - opt.crop + 1, {batch, 2}, gen, torch::kLong);
@@ -133,7 +133,9 @@ StepLosses gan_step(Generator& g, Discriminator& d, Vgg16Features& vgg, torch::o
   const auto corners = crop_corners(opt, batch.meas.size(0), batch.gt.size(-1), step);
   const auto gt = crop_windows(batch.gt, corners, opt.crop);  // {B,3,n,n}
   g->set_autocast_bf16(opt.bf16);
-  auto generate = [&] { return corners.empty() ? g->forward(batch.meas) : g->forward_crops(batch.meas, corners, opt.crop); };
+  auto generate = [&] {
+    return corners.empty() ? g->forward(batch.meas) : g->forward_crops(batch.meas, corners, opt.crop);
+  };
   torch::Tensor fake;
   if (warmup) {
     torch::NoGradGuard no_grad;
@@ -145,10 +147,10 @@ StepLosses gan_step(Generator& g, Discriminator& d, Vgg16Features& vgg, torch::o
     const int64_t B = fake.size(0);
     for (auto& p : d->parameters()) p.set_requires_grad(true);
     opt_d.zero_grad();
-    const auto d_loss =
-        torch::binary_cross_entropy_with_logits(logits_fp32(d, gt, opt.bf16), uniform(B, opt.real_label_min, 1.0, label_gen)) +
-        torch::binary_cross_entropy_with_logits(logits_fp32(d, fake.detach(), opt.bf16),
-                                                uniform(B, 0.0, opt.fake_label_max, label_gen));
+    const auto d_loss = torch::binary_cross_entropy_with_logits(logits_fp32(d, gt, opt.bf16),
+                                                                uniform(B, opt.real_label_min, 1.0, label_gen)) +
+                        torch::binary_cross_entropy_with_logits(logits_fp32(d, fake.detach(), opt.bf16),
+                                                                uniform(B, 0.0, opt.fake_label_max, label_gen));
     out.discriminator = d_loss.item<double>();
     // Guard before any optimiser step: a non-finite loss must not reach the weights.
     if (!std::isfinite(out.discriminator)) diverged(opt, step, "discriminator loss", out.discriminator);
@@ -169,7 +171,8 @@ StepLosses gan_step(Generator& g, Discriminator& d, Vgg16Features& vgg, torch::o
       loss = loss + opt.w_adversarial * adv;
     }
     const double value = loss.item<double>();
-    if (!std::isfinite(value)) diverged(opt, step, "generator loss (mse " + std::to_string(mse.item<double>()) + ")", value);
+    if (!std::isfinite(value))
+      diverged(opt, step, "generator loss (mse " + std::to_string(mse.item<double>()) + ")", value);
     loss.backward();
     if (sync) sync->average(g->parameters());
     opt_g.step();
@@ -211,14 +214,21 @@ ValidationResult validate(Generator& generator, const std::vector<Sample>& sampl
 GanTrainer::GanTrainer(Generator generator, Discriminator discriminator, Vgg16Features vgg,
                        std::shared_ptr<const PairSource> train, std::vector<Sample> val, TrainOptions options,
                        Config config, CameraConfig camera)
-    : g_(std::move(generator)), d_(std::move(discriminator)), vgg_(std::move(vgg)), train_(std::move(train)),
-      val_(std::move(val)), opt_(std::move(options)), config_(std::move(config)), camera_(std::move(camera)) {
+    : g_(std::move(generator)),
+      d_(std::move(discriminator)),
+      vgg_(std::move(vgg)),
+      train_(std::move(train)),
+      val_(std::move(val)),
+      opt_(std::move(options)),
+      config_(std::move(config)),
+      camera_(std::move(camera)) {
   require(opt_.iterations > 0 && opt_.batch > 0, "train", "iterations and batch must be positive");
   require(opt_.w_perceptual <= 0 || !vgg_.is_empty(), "loss.perceptual", "a perceptual weight needs VGG-16 weights");
   g_->prepare_training({false, opt_.channels_last, false, opt_.gemm_upsample});
   // Two parameter groups: the inversion may learn at its own rate.
   std::vector<torch::Tensor> inversion, rest;
-  for (const auto& p : g_->named_parameters()) (p.key().rfind("inversion.", 0) == 0 ? inversion : rest).push_back(p.value());
+  for (const auto& p : g_->named_parameters())
+    (p.key().rfind("inversion.", 0) == 0 ? inversion : rest).push_back(p.value());
   std::vector<torch::optim::OptimizerParamGroup> groups;
   groups.emplace_back(rest, std::make_unique<torch::optim::AdamOptions>(opt_.lr));
   if (!inversion.empty())
@@ -257,7 +267,8 @@ void GanTrainer::set_learning_rates(int64_t step) {
   const double f = lr_factor(opt_, step);
   auto& groups = opt_g_->param_groups();
   static_cast<torch::optim::AdamOptions&>(groups[0].options()).lr(opt_.lr * f);
-  if (groups.size() > 1) static_cast<torch::optim::AdamOptions&>(groups[1].options()).lr(opt_.lr * opt_.lr_inversion_scale * f);
+  if (groups.size() > 1)
+    static_cast<torch::optim::AdamOptions&>(groups[1].options()).lr(opt_.lr * opt_.lr_inversion_scale * f);
   static_cast<torch::optim::AdamOptions&>(opt_d_->param_groups()[0].options()).lr(opt_.lr_discriminator * f);
 }
 
@@ -332,10 +343,11 @@ TrainSummary GanTrainer::run() {
       const double elapsed = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
       std::ostringstream line, status;
       line << state_.step << "," << std::setprecision(6) << sum_loss / n_logged << "," << sum_mse / n_logged << ","
-           << sum_ssim / n_logged << "," << sum_perc / n_logged << "," << sum_adv / n_logged << "," << sum_d / n_logged << ","
-           << static_cast<torch::optim::AdamOptions&>(opt_g_->param_groups()[0].options()).lr() << ","
+           << sum_ssim / n_logged << "," << sum_perc / n_logged << "," << sum_adv / n_logged << "," << sum_d / n_logged
+           << "," << static_cast<torch::optim::AdamOptions&>(opt_g_->param_groups()[0].options()).lr() << ","
            << (state_.step - summary.first_step) / elapsed;
-      append_line(opt_.out / "log.csv", "step,loss,mse,ssim_loss,perceptual,adversarial,discriminator,lr,steps_per_s", line.str());
+      append_line(opt_.out / "log.csv", "step,loss,mse,ssim_loss,perceptual,adversarial,discriminator,lr,steps_per_s",
+                  line.str());
       status << "step " << state_.step << " loss " << std::setprecision(4) << sum_loss / n_logged << " mse "
              << sum_mse / n_logged;
       if (adversarial) status << " D " << sum_d / n_logged;

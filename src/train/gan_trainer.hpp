@@ -35,15 +35,16 @@ struct TrainOptions {
   int workers = 1;
   int64_t val_every = 500, log_every = 10;
   double w_mse = 1.0, w_perceptual = 1.2, w_adversarial = 0.6;
-  double w_ssim = 0.0;          // weight of the structural term 1 - SSIM
-  double ema_decay = 0.0;       // exponential moving average of the generator's weights (0: off); used to validate and export
-  int64_t crop = 0;             // the enhancer trains on random crop x crop windows of the first stage (0: whole scenes)
-  bool bf16 = false;            // bf16 autocast for the enhancer and discriminator (fp32 master weights and Adam state)
+  double w_ssim = 0.0;  // weight of the structural term 1 - SSIM
+  double ema_decay =
+      0.0;            // exponential moving average of the generator's weights (0: off); used to validate and export
+  int64_t crop = 0;   // the enhancer trains on random crop x crop windows of the first stage (0: whole scenes)
+  bool bf16 = false;  // bf16 autocast for the enhancer and discriminator (fp32 master weights and Adam state)
   double real_label_min = 0.7, fake_label_max = 0.3;
-  bool channels_last = true;   // exact speed-ups (InferenceLevers): NHWC activations,
-  bool gemm_upsample = true;   // transposed convolutions as GEMMs
+  bool channels_last = true;     // exact speed-ups (InferenceLevers): NHWC activations,
+  bool gemm_upsample = true;     // transposed convolutions as GEMMs
   int64_t check_sync_every = 0;  // distributed: verify bit-identical parameters every N steps (0: never)
-  std::filesystem::path out;  // run folder: latest.ckpt, best.ckpt, model.flatnet, log.csv, val.csv, samples.png
+  std::filesystem::path out;     // run folder: latest.ckpt, best.ckpt, model.flatnet, log.csv, val.csv, samples.png
   bool progress = true;
 };
 
@@ -71,7 +72,8 @@ double lr_factor(const TrainOptions& opt, int64_t step);
 
 // The crop corners of step `step`'s batch: one uniform (row, col) per sample, drawn from (seed,
 // step) so a resumed run crops as the straight one. Empty when opt.crop is 0 or the scene size.
-std::vector<std::pair<int64_t, int64_t>> crop_corners(const TrainOptions& opt, int64_t batch, int64_t scene, int64_t step);
+std::vector<std::pair<int64_t, int64_t>> crop_corners(const TrainOptions& opt, int64_t batch, int64_t scene,
+                                                      int64_t step);
 
 // Exponential moving average of a generator's weights (batch-norm statistics copied as they are).
 // The decay warms up as min(decay, (1 + updates) / (10 + updates)) so early averages are not
@@ -114,8 +116,8 @@ StepLosses gan_step(Generator& g, Discriminator& d, Vgg16Features& vgg, torch::o
 class GanTrainer {
  public:
   GanTrainer(Generator generator, Discriminator discriminator, Vgg16Features vgg,
-             std::shared_ptr<const PairSource> train, std::vector<Sample> val, TrainOptions options,
-             Config config, CameraConfig camera);
+             std::shared_ptr<const PairSource> train, std::vector<Sample> val, TrainOptions options, Config config,
+             CameraConfig camera);
   // Data-parallel: rank 0's weights are broadcast, gradients averaged every step, batches sharded
   // by rank; only rank 0 validates and writes files. Call before resume() and run().
   void set_distributed(GradientAverager* collectives);

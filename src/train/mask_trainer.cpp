@@ -67,7 +67,8 @@ void write_mask_png(const std::filesystem::path& path, const torch::Tensor& wind
 
 MaskTrainSummary train_mask(MaskModel& model, const torch::Tensor& train_scenes, const torch::Tensor& val_scenes,
                             const WienerCamera& cam, const MaskTrainOptions& o) {
-  require(cam.noise_sigma > 0 || cam.photons > 0, "camera.noise_sigma", "must be positive (a noise-free design is degenerate)");
+  require(cam.noise_sigma > 0 || cam.photons > 0, "camera.noise_sigma",
+          "must be positive (a noise-free design is degenerate)");
   require(train_scenes.size(0) > 0 && val_scenes.size(0) > 0, "data.images", "no training or validation images");
   std::filesystem::create_directories(o.out);
   // gamma > 0 by construction: it is learned as its logarithm.
@@ -115,8 +116,9 @@ MaskTrainSummary train_mask(MaskModel& model, const torch::Tensor& train_scenes,
     const auto rec = wiener(capture(x, P, cam, gen), P, log_gamma.exp(), cam);
     const auto loss = torch::mse_loss(rec, x);
     const double lv = loss.item<double>();
-    if (!std::isfinite(lv)) throw Error("mask training diverged: the loss is " + std::to_string(lv) + " at step " +
-                                        std::to_string(step) + "; try a lower train.lr");
+    if (!std::isfinite(lv))
+      throw Error("mask training diverged: the loss is " + std::to_string(lv) + " at step " + std::to_string(step) +
+                  "; try a lower train.lr");
     opt->zero_grad();
     loss.backward();
     opt->step();
@@ -146,7 +148,8 @@ MaskTrainSummary train_mask(MaskModel& model, const torch::Tensor& train_scenes,
   torch::NoGradGuard ng;
   const auto window = model->window();
   write_mask_png(o.out / "mask.png", window);
-  write_mat(o.out / "vectors.mat", {{"U", model->U.detach().to(torch::kFloat64)}, {"V", model->V.detach().to(torch::kFloat64)}});
+  write_mat(o.out / "vectors.mat",
+            {{"U", model->U.detach().to(torch::kFloat64)}, {"V", model->V.detach().to(torch::kFloat64)}});
   std::ostringstream gs;
   gs << std::setprecision(9) << s.gamma << "\n";
   write_text_atomically(o.out / "gamma.txt", gs.str());

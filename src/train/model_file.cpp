@@ -87,7 +87,8 @@ std::pair<torch::Tensor, torch::Tensor> initial_inversion(const Config& c, const
     const double scale = 1.0 / std::sqrt(static_cast<double>(rows));
     return {at::randn({rows, n, k}, gen) * scale, at::randn({cols, n, k}, gen) * scale};
   }
-  throw Error("config: model.inversion.init must be transpose, pinv, calibfree, flatnet-toeplitz or random, got '" + init + "'");
+  throw Error("config: model.inversion.init must be transpose, pinv, calibfree, flatnet-toeplitz or random, got '" +
+              init + "'");
 }
 
 void write_string(torch::serialize::OutputArchive& a, const std::string& key, const std::string& value) {
@@ -117,9 +118,10 @@ bool read_nested(torch::serialize::InputArchive& a, const std::string& dotted, t
 
 // Fills every parameter and buffer of `m` with fetch(name, is_buffer), checking shapes; errors
 // about `where` call a tensor "<label> '<its name in the file>'".
-void fill_module(torch::nn::Module& m, const std::filesystem::path& where, const std::string& label,
-                 const std::function<torch::Tensor(const std::string&, bool)>& fetch,
-                 const std::function<std::string(const std::string&)>& name_in_file = [](const std::string& n) { return n; }) {
+void fill_module(
+    torch::nn::Module& m, const std::filesystem::path& where, const std::string& label,
+    const std::function<torch::Tensor(const std::string&, bool)>& fetch,
+    const std::function<std::string(const std::string&)>& name_in_file = [](const std::string& n) { return n; }) {
   torch::NoGradGuard no_grad;
   auto copy_in = [&](const std::string& name, torch::Tensor target, bool buffer) {
     const auto t = fetch(name, buffer);
@@ -230,7 +232,8 @@ GeneratorOptions generator_options(const Config& c, const CameraConfig& camera, 
       o.inversion.phir = torch::zeros({o.cols, o.scene, k});
     }
   } else if (initialise) {
-    require(!camera.calibration.empty(), "data.camera", "the camera names no calibration (needed for model.input tikhonov)");
+    require(!camera.calibration.empty(), "data.camera",
+            "the camera names no calibration (needed for model.input tikhonov)");
     const auto calib = load_calibration(camera.calibration, camera);
     o.tik_P = calib.P;
     o.tik_Q = calib.Q;
@@ -295,8 +298,8 @@ std::pair<Config, CameraConfig> checkpoint_settings(const std::filesystem::path&
   return read_header(a, path);
 }
 
-TrainState load_checkpoint(const std::filesystem::path& path, Generator& g, Discriminator& d,
-                           torch::optim::Adam& opt_g, torch::optim::Adam& opt_d, Generator* ema) {
+TrainState load_checkpoint(const std::filesystem::path& path, Generator& g, Discriminator& d, torch::optim::Adam& opt_g,
+                           torch::optim::Adam& opt_d, Generator* ema) {
   auto a = open_archive(path, kCheckpointFormat);
   load_module(a, "generator", *g, path);
   if (ema) {
@@ -331,7 +334,8 @@ void init_generator_from(const std::filesystem::path& model, Generator& g) {
   fill_module(*g, model, "weight", [&](const std::string& name, bool buffer) {
     const auto* t = buffer ? their_buffers.find(name) : theirs.find(name);
     if (!t)
-      throw Error(model, "has no '" + name + "': its architecture (model.input, model.enhancer) differs from this config's");
+      throw Error(model,
+                  "has no '" + name + "': its architecture (model.input, model.enhancer) differs from this config's");
     const auto* mine = buffer ? nullptr : ours.find(name);
     if (adds_level && mine && t->dim() == 4 && mine->dim() == 4 && t->size(1) == 4 && mine->size(1) == 8) {
       // The enhancer's first convolution gains the four level channels with zero weights: the
@@ -353,9 +357,12 @@ std::string flatnet_name(const std::string& ours) {
 void export_state_dict(const std::filesystem::path& path, Generator& generator, StateDictLayout layout) {
   // PyTorch's state_dict order: each module's parameters, then its buffers, depth first.
   std::vector<std::pair<std::string, torch::Tensor>> tensors;
-  std::function<void(torch::nn::Module&, const std::string&)> visit = [&](torch::nn::Module& m, const std::string& prefix) {
-    for (const auto& p : m.named_parameters(/*recurse=*/false)) tensors.emplace_back(flatnet_name(prefix + p.key()), p.value());
-    for (const auto& b : m.named_buffers(/*recurse=*/false)) tensors.emplace_back(flatnet_name(prefix + b.key()), b.value());
+  std::function<void(torch::nn::Module&, const std::string&)> visit = [&](torch::nn::Module& m,
+                                                                          const std::string& prefix) {
+    for (const auto& p : m.named_parameters(/*recurse=*/false))
+      tensors.emplace_back(flatnet_name(prefix + p.key()), p.value());
+    for (const auto& b : m.named_buffers(/*recurse=*/false))
+      tensors.emplace_back(flatnet_name(prefix + b.key()), b.value());
     for (const auto& c : m.named_children()) visit(*c.value(), prefix + c.key() + ".");
   };
   visit(*generator, "");
@@ -385,7 +392,8 @@ const PyValue& find_generator_dict(const PyValue& root, const std::filesystem::p
     return root;
   }
   std::string keys;
-  for (const auto& e : root.entries) keys += (keys.empty() ? "" : ", ") + (e.first->kind == PyValue::Kind::string ? e.first->text : e.first->describe());
+  for (const auto& e : root.entries)
+    keys += (keys.empty() ? "" : ", ") + (e.first->kind == PyValue::Kind::string ? e.first->text : e.first->describe());
   throw Error(path, "holds no state dict: no tensors at the top level and no gen_state_dict (keys: " + keys + ")");
 }
 
@@ -398,19 +406,21 @@ ImportReport import_state_dict(const std::filesystem::path& path, Generator& gen
   std::map<std::string, torch::Tensor> tensors;
   const auto named = tensors_in(dict);
   // DataParallel saves every name with a "module." prefix.
-  const bool parallel = !named.empty() && std::all_of(named.begin(), named.end(), [](const auto& kv) {
-    return kv.first.rfind("module.", 0) == 0;
-  });
+  const bool parallel = !named.empty() && std::all_of(named.begin(), named.end(),
+                                                      [](const auto& kv) { return kv.first.rfind("module.", 0) == 0; });
   for (const auto& [name, t] : named) tensors[parallel ? name.substr(7) : name] = t;
   rep.data_parallel = parallel;
   std::set<std::string> used;
-  fill_module(*generator, path, "tensor", [&](const std::string& ours, bool) {
-    const auto name = flatnet_name(ours);
-    const auto it = tensors.find(name);
-    require(it != tensors.end(), path, "has no tensor '" + name + "' (in " + rep.source + ") that the model needs");
-    used.insert(name);
-    return it->second;
-  }, flatnet_name);
+  fill_module(
+      *generator, path, "tensor",
+      [&](const std::string& ours, bool) {
+        const auto name = flatnet_name(ours);
+        const auto it = tensors.find(name);
+        require(it != tensors.end(), path, "has no tensor '" + name + "' (in " + rep.source + ") that the model needs");
+        used.insert(name);
+        return it->second;
+      },
+      flatnet_name);
   for (const auto& [name, t] : tensors)
     if (!used.count(name)) rep.unused.push_back(name);
   rep.used = static_cast<int64_t>(used.size());

@@ -36,9 +36,9 @@ void save_model_file(const std::filesystem::path& path, Generator& generator, co
 ModelFile load_model_file(const std::filesystem::path& path);
 
 struct TrainState {
-  int64_t step = 0;           // optimiser steps done
-  double best_psnr = -1e9;    // best validation PSNR so far
-  torch::Tensor rng_state;    // the default CPU generator's state
+  int64_t step = 0;         // optimiser steps done
+  double best_psnr = -1e9;  // best validation PSNR so far
+  torch::Tensor rng_state;  // the default CPU generator's state
 };
 
 // `ema`, when given, is the moving average of the generator's weights (saved as "generator_ema").
@@ -48,8 +48,8 @@ void save_checkpoint(const std::filesystem::path& path, Generator& g, Discrimina
 // The config and camera a checkpoint holds (to rebuild the networks before load_checkpoint).
 std::pair<Config, CameraConfig> checkpoint_settings(const std::filesystem::path& path);
 // `ema` is filled from the checkpoint's average when it has one, else from its generator.
-TrainState load_checkpoint(const std::filesystem::path& path, Generator& g, Discriminator& d,
-                           torch::optim::Adam& opt_g, torch::optim::Adam& opt_d, Generator* ema = nullptr);
+TrainState load_checkpoint(const std::filesystem::path& path, Generator& g, Discriminator& d, torch::optim::Adam& opt_g,
+                           torch::optim::Adam& opt_d, Generator* ema = nullptr);
 // A checkpoint's generator as a model file (what `flatnet export` does): the moving average of
 // the weights when the run kept one, else the live weights. `used_average` tells which.
 ModelFile model_from_checkpoint(const std::filesystem::path& path, bool* used_average = nullptr);

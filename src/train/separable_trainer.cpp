@@ -18,7 +18,7 @@ namespace flatnet {
 
 namespace {
 
-constexpr int kChannel = 1;                       // gb: the channel FlatNet's transpose init uses
+constexpr int kChannel = 1;                                  // gb: the channel FlatNet's transpose init uses
 constexpr int64_t kTop = 6, kLeft = 10, kH = 500, kW = 620;  // the reference camera's window
 
 torch::Tensor centre_columns(const torch::Tensor& m) { return m - m.mean(0, true); }  // C_n m
@@ -30,8 +30,9 @@ torch::Tensor capture_and_reconstruct(const torch::Tensor& u, const torch::Tenso
   const auto rig = separable_rig(u, v);
   const auto L = rig.phil[kChannel], R = rig.phir[kChannel], g = rig.gain[kChannel];
   // Expected signal on the whole plane: gain (PhiL X PhiR^T + the open mask's pedestal), + dark.
-  auto S = g * (torch::matmul(torch::matmul(L, X), R.t()) +
-                torch::outer(rig.vig_rows, rig.vig_cols) * X.sum({1, 2}, true)) + rig.dark;
+  auto S =
+      g * (torch::matmul(torch::matmul(L, X), R.t()) + torch::outer(rig.vig_rows, rig.vig_cols) * X.sum({1, 2}, true)) +
+      rig.dark;
   // Shot noise (Gaussian approximation of Poisson, reparameterised) and read noise, full-scale units.
   const auto e1 = at::normal(0.0, 1.0, S.sizes(), noise_gen, S.options());
   const auto e2 = at::normal(0.0, 1.0, S.sizes(), noise_gen, S.options());
@@ -65,14 +66,16 @@ std::pair<torch::Tensor, torch::Tensor> read_codes(const std::filesystem::path& 
 
 }  // namespace
 
-double separable_psnr(const torch::Tensor& u, const torch::Tensor& v, double lambda, const torch::Tensor& scenes, uint64_t seed) {
+double separable_psnr(const torch::Tensor& u, const torch::Tensor& v, double lambda, const torch::Tensor& scenes,
+                      uint64_t seed) {
   torch::NoGradGuard no_grad;
   auto gen = at::detail::createCPUGenerator(seed);
   const auto X = srgb_to_linear(scenes);
   double sum = 0;
   for (int64_t i = 0; i < X.size(0); i += 8) {
     const auto batch = X.slice(0, i, std::min(X.size(0), i + 8));
-    const auto rec = capture_and_reconstruct(u.to(torch::kFloat32), v.to(torch::kFloat32), torch::tensor(lambda), batch, gen);
+    const auto rec =
+        capture_and_reconstruct(u.to(torch::kFloat32), v.to(torch::kFloat32), torch::tensor(lambda), batch, gen);
     sum += mean_psnr(rec, batch) * batch.size(0);
   }
   return sum / X.size(0);
@@ -147,8 +150,8 @@ SeparableTrainSummary train_separable_codes(const SeparableTrainOptions& o) {
       }
       train_curve.x.push_back(static_cast<double>(step));
       train_curve.y.push_back(-10 * std::log10(std::max(1e-12, loss.item<double>())));
-      log << step << "," << loss.item<double>() << "," << t.item<double>() << "," << std::exp(log_lambda.item<double>()) << ","
-          << val_psnr << "\n";
+      log << step << "," << loss.item<double>() << "," << t.item<double>() << "," << std::exp(log_lambda.item<double>())
+          << "," << val_psnr << "\n";
       progress.set_status("loss " + std::to_string(loss.item<double>()) + " t " + std::to_string(t.item<double>()));
     }
     summary.steps = step;

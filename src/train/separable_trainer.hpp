@@ -17,18 +17,18 @@
 namespace flatnet {
 
 struct SeparableTrainOptions {
-  std::filesystem::path images;       // photographs; the training side of simulate's split (val 0.1, seed 1)
-  std::filesystem::path init_codes;   // .mat with code_rows, code_cols to start from (MLS); empty: random
-  int64_t train_limit = 400;          // photographs loaded for training (0: all)
-  int64_t val_count = 32;             // held-out-split photographs for validation
+  std::filesystem::path images;      // photographs; the training side of simulate's split (val 0.1, seed 1)
+  std::filesystem::path init_codes;  // .mat with code_rows, code_cols to start from (MLS); empty: random
+  int64_t train_limit = 400;         // photographs loaded for training (0: all)
+  int64_t val_count = 32;            // held-out-split photographs for validation
   int64_t iterations = 1000, batch = 8;
-  double lr = 0.02;                   // Adam, on the codes' pre-activations
-  double lambda_init = 1e-4;          // Tikhonov regulariser (absolute, as recon's), learned as its log
+  double lr = 0.02;           // Adam, on the codes' pre-activations
+  double lambda_init = 1e-4;  // Tikhonov regulariser (absolute, as recon's), learned as its log
   double target_throughput = 0.5, throughput_tolerance = 0.05;
   bool binary = false;
   uint64_t seed = 0;
   int64_t log_every = 25, val_every = 100;
-  std::filesystem::path out;          // codes.mat, lambda.txt, log.csv, curve.png
+  std::filesystem::path out;  // codes.mat, lambda.txt, log.csv, curve.png
   bool progress = true;
 };
 
@@ -41,6 +41,7 @@ SeparableTrainSummary train_separable_codes(const SeparableTrainOptions& options
 
 // Validation PSNR (linear light, clamped to [0,1]) of a code pair with Tikhonov at `lambda`, on
 // scenes {N,S,S} (sRGB luma in [0,1]) with the noise of `seed`.
-double separable_psnr(const torch::Tensor& u, const torch::Tensor& v, double lambda, const torch::Tensor& scenes, uint64_t seed);
+double separable_psnr(const torch::Tensor& u, const torch::Tensor& v, double lambda, const torch::Tensor& scenes,
+                      uint64_t seed);
 
 }  // namespace flatnet
