@@ -225,7 +225,8 @@ TEST_CASE(
     grey_psnr += psnr(torch::full({3, 256, 256}, 128.0f / 255), display_scene(photos[i], 256));
   CHECK(m.flatnet_psnr == Approx(grey_psnr / 3).margin(1e-4));
   CHECK(std::isnan(l.flatnet_psnr));
-  const auto md = separable_section(scores, o, 3);
+  CHECK(m.scored == 3);
+  const auto md = separable_section(scores, o);
   CHECK_THAT(md,
              Contains("| learned |") && Contains("not trained") && Contains("Light sweep") && Contains("cond(P1gb)"));
 

@@ -48,7 +48,8 @@ std::filesystem::path data_dir() {
 void keep_freed_memory() {
   // Tensors of 1-32 MB are allocated and freed on every forward pass. By default glibc serves them
   // with mmap and unmaps them on free, so each pass page-faults and zeroes its ~200 MB afresh:
-  // 17 % of bf16 inference time at paper width (flatnet bench --rows infer_paper: 187 -> 156 ms).
+  // 6-17 % of bf16 inference time at paper width (flatnet bench --rows infer_paper: 187 -> 156-176 ms
+  // over runs).
   // Served from the heap, and the heap not trimmed, freed blocks are reused instead; the price is
   // ~100 MB more resident memory at paper width.
   mallopt(M_MMAP_THRESHOLD, 1 << 30);

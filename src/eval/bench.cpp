@@ -72,8 +72,7 @@ BenchRow infer_row(const std::string& name, int64_t width, const BenchOptions& o
   const auto Y = torch::randn({1, 4, kRows, kCols}) * 0.05;
   std::string names = std::string(levers.fold_batchnorm ? " fold" : "") +
                       (levers.channels_last ? " channels-last" : "") + (levers.gemm_upsample ? " gemm-up" : "") +
-                      (levers.bf16 ? " bf16" : "") +
-                      (levers.bf16 && levers.onednn && levers.fold_batchnorm ? " onednn" : "");
+                      (levers.bf16 ? " bf16" : "") + (levers.onednn_active() ? " onednn" : "");
   c10::InferenceMode guard;
   auto row = time_row(name,
                       "FlatNet-sep U-Net width " + std::to_string(width) +

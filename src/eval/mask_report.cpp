@@ -124,7 +124,7 @@ std::vector<SeparableScore> score_separable_cameras(const std::vector<SeparableC
   std::vector<SeparableScore> scores;
   for (const auto& c : candidates) {
     SeparableScore s;
-    s.name = c.name, s.origin = c.origin, s.throughput = c.codes.throughput();
+    s.name = c.name, s.origin = c.origin, s.throughput = c.codes.throughput(), s.scored = n - tune;
     const Rig rig = camera_rig(c.codes, opt.camera);
     const auto calib = calibration_of(rig, opt.geometry.crop, opt.calib_error, opt.calib_seed);
     s.cond_p = condition_number(calib.P[1]), s.cond_q = condition_number(calib.Q[1]);
@@ -150,7 +150,10 @@ std::vector<SeparableScore> score_separable_cameras(const std::vector<SeparableC
       const auto scored = score_tikhonov(tik, planes, scenes, tune, n, true);
       s.lambda.push_back(best_lambda), s.psnr.push_back(mean_of(scored.psnr)), s.ssim.push_back(mean_of(scored.ssim));
     }
-    if (c.flatnet) {  // at the camera's light, on the scored photographs, preprocessed as the model was trained
+    // FlatNet: at the camera's light, on the scored photographs, preprocessed as the model was trained.
+    // The captures are simulated again (seeded by name: the same draws) rather than kept from the
+    // Tikhonov pass, which would hold ~1 GB of raw frames for a few seconds of simulation.
+    if (c.flatnet) {
       const auto& model = *c.flatnet;
       require(model.geometry.raw_height == opt.geometry.raw_height &&
                   model.geometry.raw_width == opt.geometry.raw_width && model.geometry.crop == opt.geometry.crop,
@@ -181,8 +184,7 @@ std::vector<SeparableScore> score_separable_cameras(const std::vector<SeparableC
   return scores;
 }
 
-std::string separable_section(const std::vector<SeparableScore>& scores, const SeparableReportOptions& opt,
-                              int64_t scored_count) {
+std::string separable_section(const std::vector<SeparableScore>& scores, const SeparableReportOptions& opt) {
   std::ostringstream md;
   const double full_well = opt.camera.full_well;
   md << "## The separable FlatCam: each code pair built into the reference camera\n\n"
@@ -194,7 +196,7 @@ std::string separable_section(const std::vector<SeparableScore>& scores, const S
      << " --only val` captures them (the same photographs and noise draws for every camera; Poisson and read noise, "
         "10-bit ADC), reconstructed by Tikhonov from the calibration, and scored in sRGB, colour, 8-bit, as `flatnet "
         "eval` scores. Lambda is tuned per camera and light level on the first "
-     << opt.tune_count << " held-out photographs; PSNR / SSIM are on the " << scored_count
+     << opt.tune_count << " held-out photographs; PSNR / SSIM are on the " << scores.front().scored
      << " after them. FlatNet: a model trained on that camera (`flatnet train` with `data.camera` set to it), on the "
         "same captures.\n\n";
   MarkdownTable main{{"codes", "throughput", "Tikhonov lambda", "Tikhonov PSNR / SSIM",
@@ -383,10 +385,8 @@ std::string write_mask_report(const MaskReportOptions& opt) {
   if (opt.wiener) md << wiener_sections(opt, held_out);
   if (!opt.separable.empty()) {
     const auto sep = score_separable_cameras(opt.separable, held_out, opt.separable_options);
-    const int64_t scored = std::min<int64_t>(static_cast<int64_t>(held_out.size()) - opt.separable_options.tune_count,
-                                             opt.separable_options.count > 0 ? opt.separable_options.count : INT64_MAX);
     md << (opt.wiener ? "\n" : "# Separable cameras from code pairs\n\n")
-       << separable_section(sep, opt.separable_options, scored);
+       << separable_section(sep, opt.separable_options);
     std::vector<Series> light;
     for (const auto& s : sep) {
       light.push_back({s.name, {}, s.psnr});

@@ -57,6 +57,7 @@ struct SeparableScore {
   std::vector<double> lambda_sweep_psnr;          // at full light, every held-out photograph, per options.lambdas
   std::vector<double> lambda, psnr, ssim;         // per light level: tuned lambda, scored PSNR / SSIM
   double flatnet_psnr = std::nan(""), flatnet_ssim = std::nan("");  // at full light, the scored photographs
+  int64_t scored = 0;                                               // photographs scored (after the tuning ones)
 };
 
 // Scores every candidate on the held-out photographs (split_image_files(images, 0.1, 1).second).
@@ -66,8 +67,7 @@ std::vector<SeparableScore> score_separable_cameras(const std::vector<SeparableC
 
 // The report's section: the table at the camera's light, the lambda sweep, the light sweep and the
 // code analysis, in Markdown.
-std::string separable_section(const std::vector<SeparableScore>& scores, const SeparableReportOptions& options,
-                              int64_t scored_count);
+std::string separable_section(const std::vector<SeparableScore>& scores, const SeparableReportOptions& options);
 
 // The Wiener rank-1 masks' vectors mapped to separable codes: sign(U), sign(V) (vectors.mat), with
 // the share of mask elements where (1 + sign(u) sign(v)^T) / 2 agrees with the learned mask.

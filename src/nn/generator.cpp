@@ -191,10 +191,7 @@ struct UpImpl : nn::Module {  // FlatNet's up: transposed conv on the deeper map
     const auto y = torch::addmm(concat_bias, x.permute({0, 2, 3, 1}).reshape({B * H * W, C}), concat_weight)
                        .view({B, H, W, 2, 2, O})
                        .permute({0, 1, 3, 2, 4, 5});  // [b][i][di][j][dj][o]
-    auto out = torch::empty({B, S + O, 2 * H, 2 * W}, x.options()
-                                                          .dtype(at::promote_types(x.scalar_type(), skip.scalar_type()))
-                                                          .memory_format(at::MemoryFormat::ChannelsLast));
-    out.narrow(1, 0, S).copy_(skip);
+    auto out = concat_buffer(skip, O, x.scalar_type());
     out.narrow(1, S, O).permute({0, 2, 3, 1}).view({B, H, 2, W, 2, O}).copy_(y);
     return out;
   }
@@ -204,10 +201,18 @@ struct UpImpl : nn::Module {  // FlatNet's up: transposed conv on the deeper map
   static torch::Tensor cat_channels(const torch::Tensor& a, const torch::Tensor& b) {
     const auto cl = at::MemoryFormat::ChannelsLast;
     if (!a.is_contiguous(cl) || !b.is_contiguous(cl) || a.dim() != 4) return torch::cat({a, b}, 1);
-    auto out = torch::empty({a.size(0), a.size(1) + b.size(1), a.size(2), a.size(3)},
-                            a.options().dtype(at::promote_types(a.scalar_type(), b.scalar_type())).memory_format(cl));
-    out.narrow(1, 0, a.size(1)).copy_(a);
+    auto out = concat_buffer(a, b.size(1), b.scalar_type());
     out.narrow(1, a.size(1), b.size(1)).copy_(b);
+    return out;
+  }
+  // A channels-last {B, C + extra, H, W} buffer (the promoted type of `first` and `other`) whose
+  // first C channels are `first`; the caller fills the rest.
+  static torch::Tensor concat_buffer(const torch::Tensor& first, int64_t extra, at::ScalarType other) {
+    auto out = torch::empty({first.size(0), first.size(1) + extra, first.size(2), first.size(3)},
+                            first.options()
+                                .dtype(at::promote_types(first.scalar_type(), other))
+                                .memory_format(at::MemoryFormat::ChannelsLast));
+    out.narrow(1, 0, first.size(1)).copy_(first);
     return out;
   }
   // The 2x2, stride-2 transposed convolution as one GEMM (exact: output pixels do not overlap):
@@ -494,7 +499,9 @@ void GeneratorImpl::apply_levers(const InferenceLevers& levers, bool for_inferen
   auto& enhancer = *named_children()["enhancer"];
   torch::NoGradGuard no_grad;
   if (levers.bf16) enhancer.to(torch::kBFloat16);
-  if (for_inference && levers.bf16 && levers.onednn && (levers_.fold_batchnorm || levers.fold_batchnorm))
+  auto folded = levers;  // batch norm folded by this call or an earlier one
+  folded.fold_batchnorm = levers.fold_batchnorm || levers_.fold_batchnorm;
+  if (for_inference && folded.onednn_active())
     for (auto& m : enhancer.modules(/*include_self=*/false)) {
       if (auto dc = std::dynamic_pointer_cast<DoubleConvImpl>(m)) dc->use_onednn();
       if (auto oc = std::dynamic_pointer_cast<OutConvImpl>(m)) oc->use_onednn();

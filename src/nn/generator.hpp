@@ -146,6 +146,8 @@ struct InferenceLevers {
   bool bf16 = false;
   bool gemm_upsample = true;
   bool onednn = true;
+  // onednn acts only on folded bf16 models.
+  bool onednn_active() const { return onednn && bf16 && fold_batchnorm; }
 };
 // "none" or a comma list of fold, channels-last, gemm-up, bf16, onednn.
 InferenceLevers parse_inference_levers(const std::string& s);

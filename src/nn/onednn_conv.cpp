@@ -18,6 +18,12 @@ dnnl::engine& cpu_engine() {
   return engine;
 }
 
+// One in-order stream per calling thread, made once rather than on every convolution.
+dnnl::stream& cpu_stream() {
+  thread_local dnnl::stream stream(cpu_engine());
+  return stream;
+}
+
 }  // namespace
 
 struct OneDnnConv::Plan {
@@ -62,7 +68,7 @@ OneDnnConv::Plan& OneDnnConv::plan_for(int64_t b, int64_t h, int64_t w) {
                                              plan->src, any_weights, bias_desc, plan->dst, {s, s}, {p, p}, {p, p});
   const dnnl::convolution_forward::primitive_desc pd(desc, attr, cpu_engine());
   plan->primitive = dnnl::convolution_forward(pd);
-  dnnl::stream stream(cpu_engine());
+  auto& stream = cpu_stream();
   // The module's weights as they lie in memory: {O,kh,kw,I} (channels-last).
   dnnl::memory user_weights({{o, i, kh, kw}, dt::bf16, tag::ohwi}, cpu_engine(), weight_.data_ptr());
   plan->weights = dnnl::memory(pd.weights_desc(), cpu_engine());
@@ -83,7 +89,7 @@ torch::Tensor OneDnnConv::operator()(const torch::Tensor& input) {
   auto y = torch::empty({plan.out_shape[0], plan.out_shape[1], plan.out_shape[2], plan.out_shape[3]},
                         x.options().memory_format(at::MemoryFormat::ChannelsLast));
   dnnl::memory src(plan.src, cpu_engine(), x.data_ptr()), dst(plan.dst, cpu_engine(), y.data_ptr());
-  dnnl::stream stream(cpu_engine());
+  auto& stream = cpu_stream();
   plan.primitive.execute(
       stream, {{DNNL_ARG_SRC, src}, {DNNL_ARG_WEIGHTS, plan.weights}, {DNNL_ARG_BIAS, plan.bias}, {DNNL_ARG_DST, dst}});
   stream.wait();
