@@ -34,8 +34,7 @@ TEST_CASE(".mat v7.3 round trip when matio supports HDF5", "[io][mat]") {
   try {
     write_mat(s.dir / "x.mat", {{"a", a}}, MatVersion::v73);
   } catch (const Error& e) {
-    WARN("v7.3 unsupported by this matio: " << e.what());
-    return;
+    SKIP_TEST(std::string("v7.3 unsupported by this matio: ") + e.what());
   }
   CHECK(torch::equal(MatReader(s.dir / "x.mat").read("a"), a));
 }

@@ -10,6 +10,7 @@
 #include "io/image.hpp"
 #include "io/mat.hpp"
 #include "optics/simulator.hpp"
+#include "eval/mask_score.hpp"
 #include "train/mask_trainer.hpp"
 #include "train/separable_trainer.hpp"
 

@@ -10,8 +10,8 @@
 #include "tiny_model.hpp"
 #include "nn/generator.hpp"
 #include "nn/losses.hpp"
-#include "train/config.hpp"
-#include "train/model_file.hpp"
+#include "io/config.hpp"
+#include "nn/model_file.hpp"
 
 using namespace flatnet;
 using Catch::Matchers::Contains;

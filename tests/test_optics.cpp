@@ -1,7 +1,7 @@
 // optics/: mask codes, the camera model against golden captures, calibration.
 #include <catch2/catch.hpp>
 
-#include "core/camera_config.hpp"
+#include "io/camera_config.hpp"
 #include "core/util.hpp"
 #include "helpers.hpp"
 #include "io/image.hpp"
@@ -66,10 +66,7 @@ TEST_CASE("calibration-free matrices: Toeplitz-like with the geometry's slope, s
 
 TEST_CASE("FlatNet's released calibration-free matrices load per channel", "[optics][codes][shared]") {
   const auto f = test::shared_dir() / "data" / "flatnet" / "phil_toep_slope22.mat";
-  if (!std::filesystem::exists(f)) {
-    WARN("skipped: " << f << " not present");
-    return;
-  }
+  if (!std::filesystem::exists(f)) SKIP_TEST(f.string() + " not present");
   auto phil = load_flatnet_toeplitz(f, "phil");
   CHECK(phil.sizes() == torch::IntArrayRef({4, 500, 256}));
   CHECK(torch::linalg_matrix_norm(phil[0], 2).item<double>() == Approx(0.5).epsilon(1e-3));

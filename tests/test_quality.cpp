@@ -9,9 +9,9 @@
 #include "io/image.hpp"
 #include "io/raw.hpp"
 #include "optics/simulator.hpp"
-#include "train/config.hpp"
+#include "io/config.hpp"
 #include "train/data.hpp"
-#include "train/model_file.hpp"
+#include "nn/model_file.hpp"
 
 using namespace flatnet;
 using Catch::Matchers::Contains;

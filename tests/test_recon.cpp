@@ -1,15 +1,17 @@
-// recon/ and eval/: Tikhonov, TV, metrics.
+// recon/ and eval/: Tikhonov, TV, the Reconstructor interface and its batch loop, metrics.
 #include <catch2/catch.hpp>
 
-#include "core/camera_config.hpp"
+#include "io/camera_config.hpp"
 #include "core/util.hpp"
 #include "eval/metrics.hpp"
 #include "eval/report.hpp"
 #include "helpers.hpp"
 #include "io/image.hpp"
 #include "io/raw.hpp"
-#include "recon/run.hpp"
+#include "nn/model_file.hpp"
+#include "recon/reconstructor.hpp"
 #include "recon/tikhonov.hpp"
+#include "recon/batch.hpp"
 
 using namespace flatnet;
 using Catch::Matchers::Contains;
@@ -135,4 +137,93 @@ TEST_CASE("reconstructions never overwrite a capture, and two captures of one na
     CHECK_THAT(r.output, Contains("overwrite a capture"));
     CHECK(read_bytes(in / "a.png") == before);
   }
+}
+
+// ---- The one reconstruction interface -------------------------------------------------------------
+
+TEST_CASE("Reconstructor: classical engines are the solver on the capture without its light level, in sRGB",
+          "[recon][interface]") {
+  const auto camera = load_camera_config(default_camera_path());
+  const auto calib = load_calibration(camera.calibration, camera);
+  const auto capture = load_capture(test::data_dir() / "golden" / "inet_n02980441_castle_raw.png", camera.raw);
+  const auto planes = capture.planes.unsqueeze(0);  // {1,4,500,620}
+  auto engine = make_classical(calib, camera, {ClassicalMethod::tikhonov, 0.0});
+  const auto image = engine->reconstruct(planes);
+  CHECK(image.sizes() == torch::IntArrayRef({1, 3, camera.scene_size, camera.scene_size}));
+  const Tikhonov tik(calib, camera.tikhonov_lambda);
+  CHECK(torch::equal(image, planes_to_srgb(tik(without_level(planes, camera.raw.centring)))));
+  CHECK_THAT(engine->describe(), Contains("Tikhonov"));
+  // Another lambda gives another image; batches reconstruct sample by sample.
+  auto other = make_classical(calib, camera, {ClassicalMethod::tikhonov, camera.tikhonov_lambda * 100});
+  CHECK_FALSE(torch::equal(other->reconstruct(planes), image));
+  const auto two = engine->reconstruct(torch::cat({planes, planes.flip({3})}));
+  CHECK(torch::allclose(two[0], image[0], 0, 1e-6));
+}
+
+TEST_CASE("Reconstructor factory: every method by name, and clear errors", "[recon][interface]") {
+  test::Scratch s("factory");
+  ReconstructorSpec spec;
+  spec.camera = load_camera_config(default_camera_path());
+  spec.method = "wiener";
+  CHECK_THROWS_WITH(make_reconstructor(spec), Contains("tikhonov, tv, flatnet or opencv") && Contains("wiener"));
+  spec.method = "tv";
+  auto tv = make_reconstructor(spec);
+  CHECK_THAT(tv.engine->describe(), Contains("TV"));
+  spec.method = "tikhonov";
+  spec.camera.calibration.clear();
+  CHECK_THROWS_WITH(make_reconstructor(spec), Contains("no calibration"));
+  spec.calibration = s.dir / "missing.mat";
+  CHECK_THROWS_WITH(make_reconstructor(spec), Contains("missing.mat"));
+  spec.method = "flatnet";
+  spec.model = test::source_dir() / "models" / "flatnet-sim-transpose.flatnet";
+  spec.use_camera = false;  // the model's own preprocessing
+  auto built = make_reconstructor(spec);
+  CHECK_THAT(built.engine->describe(), Contains("FlatNet flatnet-sim-transpose.flatnet (fp32)"));
+  auto model = load_model_file(spec.model);
+  CHECK(built.camera.raw.crop == model.camera.raw.crop);
+  // The engine is the generator itself (prepared for inference: within float rounding).
+  const auto planes =
+      load_capture(test::data_dir() / "golden" / "inet_n02980441_castle_raw.png", built.camera.raw).planes.unsqueeze(0);
+  torch::Tensor expected;
+  {
+    c10::InferenceMode guard;
+    expected = model.generator->forward(planes);
+  }
+  CHECK(torch::allclose(built.engine->reconstruct(planes), expected, 0, 1e-4));
+  spec.method = "opencv";
+  spec.model = s.dir / "missing.onnx";
+  CHECK_THROWS_WITH(make_reconstructor(spec), Contains("missing.onnx"));
+}
+
+TEST_CASE("reconstruct_files: one batch loop writes a PNG per capture for any engine", "[recon][interface]") {
+  test::Scratch s("batchloop");
+  const auto camera = load_camera_config(default_camera_path());
+  std::vector<std::filesystem::path> captures;
+  for (const auto& p : list_images(test::data_dir() / "golden", {".png"}))
+    if (p.stem().string().find("_raw") != std::string::npos) captures.push_back(p);
+  REQUIRE(captures.size() >= 2);
+  // A stand-in engine that counts its calls and returns grey images.
+  struct Grey final : Reconstructor {
+    int calls = 0;
+    std::string describe() const override { return "grey"; }
+    torch::Tensor reconstruct(const torch::Tensor& planes) override {
+      ++calls;
+      return torch::full({planes.size(0), 3, 16, 16}, 0.5);
+    }
+  } grey;
+  BatchOptions o;
+  o.out = s.dir / "out";
+  o.batch = 3;
+  o.progress = false;
+  const auto report = reconstruct_files(grey, camera, captures, o);
+  CHECK(report.count == static_cast<int64_t>(captures.size()));
+  CHECK(grey.calls == static_cast<int>((captures.size() + 2) / 3));
+  for (const auto& c : captures) {
+    const auto written = read_rgb(o.out / c.filename());
+    CHECK(written.sizes() == torch::IntArrayRef({3, 16, 16}));
+  }
+  o.batch = 0;
+  CHECK_THROWS_WITH(reconstruct_files(grey, camera, captures, o), Contains("--batch"));
+  o.batch = 1;
+  CHECK_THROWS_WITH(reconstruct_files(grey, camera, {}, o), Contains("no captures"));
 }

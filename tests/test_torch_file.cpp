@@ -8,8 +8,8 @@
 #include "helpers.hpp"
 #include "tiny_model.hpp"
 #include "io/torch_file.hpp"
-#include "train/config.hpp"
-#include "train/model_file.hpp"
+#include "io/config.hpp"
+#include "nn/model_file.hpp"
 
 using namespace flatnet;
 using Catch::Matchers::Contains;

@@ -63,7 +63,8 @@ struct Setup {
     Discriminator d(discriminator_options(config));
     auto train = std::make_shared<MemoryPairs>(6, poison);
     auto val = load_all(MemoryPairs(2), 0, 1);
-    return GanTrainer(g, d, Vgg16Features(nullptr), train, val, options(out, iterations), config, camera);
+    return GanTrainer(g, d, Vgg16Features(nullptr), train, val, options(out, iterations),
+                      model_identity(config, camera));
   }
 };
 
@@ -217,7 +218,7 @@ TEST_CASE(
   auto opt = setup.options(s.dir / "run", 2);
   opt.crop = 16;
   GanTrainer trainer(g, d, Vgg16Features(nullptr), std::make_shared<Pairs32>(), load_all(Pairs32(), 0, 1), opt,
-                     setup.config, setup.camera);
+                     model_identity(setup.config, setup.camera));
   const auto summary = trainer.run();
   CHECK(summary.last_step == 2);
   CHECK(std::isfinite(summary.last_psnr));
@@ -234,7 +235,7 @@ TEST_CASE("EMA: the average follows the weights with the warmed-up decay, is che
     auto opt = setup.options(out, iterations);
     opt.ema_decay = 0.9;
     return GanTrainer(g, d, Vgg16Features(nullptr), std::make_shared<MemoryPairs>(6), load_all(MemoryPairs(2), 0, 1),
-                      opt, setup.config, setup.camera);
+                      opt, model_identity(setup.config, setup.camera));
   };
   {
     auto straight = make(s.dir / "straight", 4);
@@ -340,7 +341,7 @@ TEST_CASE("distributed: two ranks start from rank 0's weights and hold bit-ident
     opt.check_sync_every = 1;  // the trainer compares checksums across ranks after every step
     trainers.push_back(std::make_unique<GanTrainer>(gens[r], discs[r], Vgg16Features(nullptr),
                                                     std::make_shared<MemoryPairs>(6), load_all(MemoryPairs(2), 0, 1),
-                                                    opt, setup.config, setup.camera));
+                                                    opt, model_identity(setup.config, setup.camera)));
   }
   bool differ = false;
   for (const auto& p : gens[0]->named_parameters())

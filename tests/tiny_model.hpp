@@ -6,10 +6,10 @@
 
 // A FlatNet generator small enough for unit tests (20x24 measurement planes -> 16x16 scene), and
 // the check that gradients reach every parameter.
-#include "core/camera_config.hpp"
+#include "io/camera_config.hpp"
 #include "nn/generator.hpp"
-#include "train/config.hpp"
-#include "train/model_file.hpp"
+#include "io/config.hpp"
+#include "nn/model_file.hpp"
 
 namespace test {
 

@@ -8,7 +8,7 @@
 #include "core/error.hpp"
 #include "core/precision.hpp"
 #include "core/util.hpp"
-#include "eval/bench.hpp"
+#include "bench/bench.hpp"
 
 namespace flatnet::cli {
 

@@ -9,9 +9,7 @@
 #include "hw/live.hpp"
 #include "io/raw.hpp"
 #include "optics/calibrate.hpp"
-#include "recon/run.hpp"
-#include "recon/tikhonov.hpp"
-#include "train/model_file.hpp"
+#include "recon/reconstructor.hpp"
 
 namespace flatnet::cli {
 
@@ -266,34 +264,16 @@ int live(int argc, char** argv) {
   cxxopts::ParseResult r;
   if (!parse(o, argc, argv, r)) return 0;
   require(!(r.count("model") && r.count("calib")), "live", "give --model or --calib, not both");
-  std::optional<ModelFile> model;
-  if (r.count("model")) model = load_model_file(r["model"].as<std::string>());
-  const auto camera = model && !r.count("camera") ? model->camera : camera_from(r);
-
-  Reconstructor reconstruct;
-  std::string method;
-  if (model) {
-    check_camera_for_model(model->generator->options(), camera);
-    auto generator = model->generator;
-    InferenceLevers levers;
-    levers.bf16 = precision_from(r) == Precision::bf16;
-    generator->prepare_inference(levers);
-    reconstruct = [generator](const torch::Tensor& planes) mutable {
-      c10::InferenceMode guard;
-      return generator->forward(planes.unsqueeze(0))[0];
-    };
-    method = "FlatNet " + r["model"].as<std::string>();
-  } else {
-    const std::filesystem::path calib_path =
-        r.count("calib") ? std::filesystem::path(r["calib"].as<std::string>()) : camera.calibration;
-    require(!calib_path.empty(), "live", "no calibration: pass --calib, --model, or a camera file that names one");
-    const double lambda = r["lambda"].as<double>() > 0 ? r["lambda"].as<double>() : camera.tikhonov_lambda;
-    auto tik = std::make_shared<Tikhonov>(load_calibration(calib_path, camera), lambda);
-    reconstruct = [tik, centring = camera.raw.centring](const torch::Tensor& planes) {
-      return planes_to_srgb((*tik)(without_level(planes, centring).unsqueeze(0))[0]);
-    };
-    method = "Tikhonov (lambda " + std::to_string(lambda) + ")";
-  }
+  ReconstructorSpec spec;
+  spec.method = r.count("model") ? "flatnet" : "tikhonov";
+  spec.use_camera = !r.count("model") || r.count("camera");  // a model preprocesses as it was trained
+  if (spec.use_camera) spec.camera = camera_from(r);
+  if (r.count("model")) spec.model = r["model"].as<std::string>();
+  if (r.count("calib")) spec.calibration = r["calib"].as<std::string>();
+  spec.lambda = r["lambda"].as<double>();
+  spec.levers.bf16 = r.count("model") && precision_from(r) == Precision::bf16;
+  auto built = make_reconstructor(spec);
+  const auto& camera = built.camera;
   auto source = open_from_flags(r, camera);
   std::unique_ptr<Display> display;
   if (!r.count("no-window")) {
@@ -309,9 +289,9 @@ int live(int argc, char** argv) {
   opt.seconds = r["seconds"].as<double>();
   opt.log = display ? nullptr : &std::cout;
   watch_interrupts();
-  std::cout << "live: " << method << ", camera " << source->describe()["device"].get<std::string>() << " ("
-            << source->format().name << "); Esc, q or Ctrl-C stops\n";
-  const auto s = run_live(*source, reconstruct, display.get(), opt);
+  std::cout << "live: " << built.engine->describe() << ", camera " << source->describe()["device"].get<std::string>()
+            << " (" << source->format().name << "); Esc, q or Ctrl-C stops\n";
+  const auto s = run_live(*source, *built.engine, display.get(), opt);
   std::cout << "live: " << s.frames << " frames, " << s.fps << " fps (per frame: grab " << s.grab_ms
             << " ms, preprocess " << s.preprocess_ms << " ms, reconstruct " << s.reconstruct_ms << " ms, show "
             << s.show_ms << " ms)\n";

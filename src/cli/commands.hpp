@@ -4,7 +4,7 @@
 #include <string>
 #include <vector>
 
-#include "core/camera_config.hpp"
+#include "io/camera_config.hpp"
 #include "core/precision.hpp"
 
 namespace flatnet::cli {

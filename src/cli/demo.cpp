@@ -6,9 +6,8 @@
 #include "core/util.hpp"
 #include "eval/report.hpp"
 #include "optics/simulator.hpp"
-#include "recon/infer.hpp"
-#include "recon/run.hpp"
-#include "train/model_file.hpp"
+#include "recon/batch.hpp"
+#include "nn/model_file.hpp"
 
 namespace flatnet::cli {
 
@@ -70,23 +69,29 @@ int demo(int argc, char** argv) {
   std::cout << "[2/3] reconstructing\n";
   const auto calib = load_calibration(camera.calibration, camera);
   const auto captures = collect_captures(sim.out / "meas");
-  for (const std::string method : {"tikhonov", "tv"}) {
-    ReconOptions ro;
-    ro.method = method;
-    ro.out = out / "recon" / method;
-    const auto rep = reconstruct_files(camera, calib, captures, ro);
-    std::cout << "  " << method << ": " << rep.recon_ms_per_capture << " ms per capture\n";
+  for (const auto method : {ClassicalMethod::tikhonov, ClassicalMethod::tv}) {
+    BatchOptions bo;
+    bo.out = out / "recon" / classical_method_name(method);
+    bo.batch = 8;
+    bo.label = classical_method_name(method);
+    auto engine = make_classical(calib, camera, {method, 0.0});
+    const auto rep = reconstruct_files(*engine, camera, captures, bo);
+    std::cout << "  " << classical_method_name(method) << ": " << rep.ms_per_capture << " ms per capture\n";
   }
   const bool bf16 = resolve_precision("auto") == Precision::bf16;
   std::cout << "  precision: " << describe_precision(bf16 ? Precision::bf16 : Precision::fp32) << "\n";
   for (const auto& [method, path] : shipped_models()) {
     auto model = load_model_file(path);
-    InferOptions io;
-    io.out = out / "recon" / method;
-    io.levers.bf16 = bf16;
+    InferenceLevers levers;
+    levers.bf16 = bf16;
     // The model's own preprocessing (its light-level centring, say) unless --camera names one.
-    const auto rep = infer_files(model.generator, r.count("camera") ? camera : model.camera, captures, io);
-    std::cout << "  " << method << ": " << rep.model_ms_per_image << " ms per capture (" << path.filename().string()
+    const auto& model_camera = r.count("camera") ? camera : model.camera;
+    auto engine = make_flatnet(model.generator, model_camera, levers, method);
+    BatchOptions bo;
+    bo.out = out / "recon" / method;
+    bo.label = "infer";
+    const auto rep = reconstruct_files(*engine, model_camera, captures, bo);
+    std::cout << "  " << method << ": " << rep.ms_per_capture << " ms per capture (" << path.filename().string()
               << ")\n";
   }
 

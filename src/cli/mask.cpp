@@ -16,9 +16,10 @@
 #include "io/mat.hpp"
 #include "optics/codes.hpp"
 #include "optics/simulator.hpp"
-#include "train/config.hpp"
+#include "io/config.hpp"
+#include "eval/mask_score.hpp"
 #include "train/mask_trainer.hpp"
-#include "train/model_file.hpp"
+#include "nn/model_file.hpp"
 #include "train/separable_trainer.hpp"
 
 namespace flatnet::cli {

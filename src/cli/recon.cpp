@@ -8,7 +8,7 @@
 #include "eval/report.hpp"
 #include "eval/thesis_report.hpp"
 #include "optics/simulator.hpp"
-#include "recon/run.hpp"
+#include "recon/batch.hpp"
 
 namespace flatnet::cli {
 
@@ -25,20 +25,22 @@ int recon(int argc, char** argv) {
   cxxopts::ParseResult r;
   if (!parse(o, argc, argv, r)) return 0;
   require(r.count("input") && r.count("out"), "recon", "--input DIR|FILE and --out DIR are required");
-  const auto camera = camera_from(r);
-  const std::filesystem::path calib_path =
-      r.count("calib") ? std::filesystem::path(r["calib"].as<std::string>()) : camera.calibration;
-  require(!calib_path.empty(), "recon", "no calibration: pass --calib or use a camera file that names one");
-  const auto calib = load_calibration(calib_path, camera);
-  ReconOptions opt;
-  opt.method = r["method"].as<std::string>();
-  opt.lambda = r["lambda"].as<double>();
+  ReconstructorSpec spec;
+  spec.method = r["method"].as<std::string>();
+  parse_classical_method(spec.method);  // recon is the classical command: flatnet models go through infer
+  spec.camera = camera_from(r);
+  if (r.count("calib")) spec.calibration = r["calib"].as<std::string>();
+  spec.lambda = r["lambda"].as<double>();
+  BatchOptions opt;
   opt.out = r["out"].as<std::string>();
   opt.batch = std::max(1, r["batch"].as<int>());
+  opt.label = spec.method;
   const auto captures = collect_captures(r["input"].as<std::string>());
-  const auto rep = reconstruct_files(camera, calib, captures, opt);
-  std::cout << opt.method << ": " << rep.count << " captures -> " << opt.out.string() << " ("
-            << rep.recon_ms_per_capture << " ms per capture reconstruction, " << rep.seconds << " s in all)\n";
+  check_output_names(captures, opt.out);  // before the calibration's SVDs
+  auto built = make_reconstructor(spec);
+  const auto rep = reconstruct_files(*built.engine, built.camera, captures, opt);
+  std::cout << spec.method << ": " << rep.count << " captures -> " << opt.out.string() << " (" << rep.ms_per_capture
+            << " ms per capture reconstruction, " << rep.seconds << " s in all)\n";
   return 0;
 }
 

@@ -17,9 +17,9 @@
 #include "optics/codes.hpp"
 #include "optics/mask.hpp"
 #include "optics/simulator.hpp"
-#include "recon/run.hpp"
+#include "io/image.hpp"
 #include "recon/tikhonov.hpp"
-#include "train/mask_trainer.hpp"
+#include "eval/mask_score.hpp"
 
 namespace flatnet {
 

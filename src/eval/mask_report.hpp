@@ -16,7 +16,7 @@
 
 #include <torch/torch.h>
 
-#include "core/camera_config.hpp"
+#include "io/camera_config.hpp"
 #include "optics/separable_camera.hpp"
 
 namespace flatnet {

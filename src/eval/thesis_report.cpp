@@ -10,9 +10,8 @@
 #include "eval/tables.hpp"
 #include "io/image.hpp"
 #include "optics/camera.hpp"
-#include "recon/infer.hpp"
-#include "recon/run.hpp"
-#include "train/model_file.hpp"
+#include "recon/batch.hpp"
+#include "nn/model_file.hpp"
 
 namespace flatnet {
 
@@ -56,21 +55,20 @@ void reconstruct_missing(const ReportOptions& o, const ReportMethod& m, const st
     if (!fs::exists(output_of(dir, c))) missing.push_back(c);
   if (missing.empty()) return;
   std::cerr << "  " << m.name << ": " << missing.size() << " of " << captures.size() << " to make\n";
+  BatchOptions bo;
+  bo.out = dir;
+  bo.progress = o.progress;
+  bo.label = m.name;
   if (m.kind == "model") {
     auto model = load_model_file(m.model);
-    InferOptions io;
-    io.out = dir;
-    io.progress = o.progress;
-    io.levers = o.levers;
-    const auto rep = infer_files(model.generator, model.camera, missing, io);
-    record_timing(dir, rep.model_ms_per_image, rep.count);
+    auto engine = make_flatnet(model.generator, model.camera, o.levers, m.name);
+    const auto rep = reconstruct_files(*engine, model.camera, missing, bo);
+    record_timing(dir, rep.ms_per_capture, rep.count);
   } else {
-    ReconOptions ro;
-    ro.method = m.kind;
-    ro.out = dir;
-    ro.progress = o.progress;
-    const auto rep = reconstruct_files(o.camera, *calib, missing, ro);
-    record_timing(dir, rep.recon_ms_per_capture, rep.count);
+    bo.batch = 8;
+    auto engine = make_classical(*calib, o.camera, {parse_classical_method(m.kind), 0.0});
+    const auto rep = reconstruct_files(*engine, o.camera, missing, bo);
+    record_timing(dir, rep.ms_per_capture, rep.count);
   }
 }
 

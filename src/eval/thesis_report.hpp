@@ -7,7 +7,7 @@
 #include <string>
 #include <vector>
 
-#include "core/camera_config.hpp"
+#include "io/camera_config.hpp"
 #include "nn/generator.hpp"
 
 namespace flatnet {

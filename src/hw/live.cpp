@@ -9,16 +9,12 @@
 
 namespace flatnet {
 
-torch::Tensor codes_to_unit(const torch::Tensor& codes, int bits) {
-  return (codes.to(torch::kFloat32) * static_cast<float>(1 << (16 - bits))).clamp_max(65535.0f) / 65535.0f;
-}
-
 namespace {
 using Clock = std::chrono::steady_clock;
 double ms_since(Clock::time_point t) { return std::chrono::duration<double, std::milli>(Clock::now() - t).count(); }
 }  // namespace
 
-LiveStats run_live(FrameSource& source, const Reconstructor& reconstruct, Display* display, const LiveOptions& opt) {
+LiveStats run_live(FrameSource& source, Reconstructor& engine, Display* display, const LiveOptions& opt) {
   c10::InferenceMode inference;
   LiveStats s;
   double grab = 0, prep = 0, recon = 0, show = 0;
@@ -42,7 +38,7 @@ LiveStats run_live(FrameSource& source, const Reconstructor& reconstruct, Displa
     const auto planes = preprocess_raw(codes_to_unit(frame.codes, source.format().bits), opt.geometry);
     prep += ms_since(t);
     t = Clock::now();
-    const auto image = reconstruct(planes);
+    const auto image = engine.reconstruct(planes.unsqueeze(0))[0];  // {4,h,w} -> {3,N,N}
     recon += ms_since(t);
     ++s.frames;
     t = Clock::now();

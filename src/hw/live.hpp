@@ -1,17 +1,14 @@
 #pragma once
 // Live view: grab the newest frame, preprocess it as the calibration expects, reconstruct
 // (Tikhonov or a FlatNet model), show it with the frame rate on screen (or print the rate).
-#include <functional>
 #include <iosfwd>
 
-#include "core/camera_config.hpp"
+#include "io/camera_config.hpp"
 #include "hw/camera_device.hpp"
 #include "hw/display.hpp"
+#include "recon/reconstructor.hpp"
 
 namespace flatnet {
-
-// Measurement planes {4,h,w} -> sRGB image {3,N,N} in [0,1].
-using Reconstructor = std::function<torch::Tensor(const torch::Tensor& planes)>;
 
 struct LiveOptions {
   RawGeometry geometry;         // the camera's preprocessing (frame size checked against it)
@@ -26,9 +23,7 @@ struct LiveStats {
   double grab_ms = 0, preprocess_ms = 0, reconstruct_ms = 0, show_ms = 0;  // means per frame
 };
 
-// Camera codes {H,W} -> raw frame in [0,1] as a stored capture would read back (codes_to_stored / 65535).
-torch::Tensor codes_to_unit(const torch::Tensor& codes, int bits);
-
-LiveStats run_live(FrameSource& source, const Reconstructor& reconstruct, Display* display, const LiveOptions& options);
+// Each frame: preprocess as `options.geometry`, reconstruct one capture with `engine`, show.
+LiveStats run_live(FrameSource& source, Reconstructor& engine, Display* display, const LiveOptions& options);
 
 }  // namespace flatnet

@@ -193,6 +193,10 @@ torch::Tensor bayer_planes_to_rgb(const torch::Tensor& planes) {
   return torch::stack({r, 0.5 * (gb + gr), b}, -3);
 }
 
+torch::Tensor planes_to_srgb(const torch::Tensor& planes) {
+  return linear_to_srgb(bayer_planes_to_rgb(planes).clamp(0, 1));
+}
+
 torch::Tensor rgb_to_bayer_planes(const torch::Tensor& rgb) {
   auto R = rgb.select(-3, 0), G = rgb.select(-3, 1), B = rgb.select(-3, 2);
   return torch::stack({B, G, G, R}, -3);

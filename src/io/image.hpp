@@ -30,6 +30,8 @@ torch::Tensor linear_to_srgb(const torch::Tensor& x);
 // Per-channel reconstruction planes {.., 4, H, W} in FlatNet's order (b, gb, gr, r), linear light
 // -> RGB {.., 3, H, W}: R from r, G the mean of gb and gr, B from b.
 torch::Tensor bayer_planes_to_rgb(const torch::Tensor& planes);
+// Linear-light planes {..,4,N,N} (b, gb, gr, r) -> sRGB image {..,3,N,N} in [0,1].
+torch::Tensor planes_to_srgb(const torch::Tensor& planes);
 // RGB {.., 3, H, W} -> planes {.., 4, H, W}: b = B, gb = gr = G, r = R.
 torch::Tensor rgb_to_bayer_planes(const torch::Tensor& rgb);
 

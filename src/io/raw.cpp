@@ -93,4 +93,8 @@ torch::Tensor adc_to_stored(const torch::Tensor& codes, int adc_bits) {
   return codes.to(torch::kInt32) * (1 << (16 - adc_bits));
 }
 
+torch::Tensor codes_to_unit(const torch::Tensor& codes, int bits) {
+  return (codes.to(torch::kFloat32) * static_cast<float>(1 << (16 - bits))).clamp_max(65535.0f) / 65535.0f;
+}
+
 }  // namespace flatnet

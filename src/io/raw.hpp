@@ -7,7 +7,7 @@
 
 #include <torch/torch.h>
 
-#include "core/camera_config.hpp"
+#include "io/camera_config.hpp"
 
 namespace flatnet {
 
@@ -46,5 +46,7 @@ torch::Tensor load_raw_unit(const std::filesystem::path& path, const RawGeometry
 
 // ADC codes {H,W} (0 .. 2^adc_bits-1) -> stored 16-bit values (bits shifted to the top).
 torch::Tensor adc_to_stored(const torch::Tensor& codes, int adc_bits);
+// Camera codes {H,W} -> raw frame in [0,1] as a stored capture would read back (codes_to_stored / 65535).
+torch::Tensor codes_to_unit(const torch::Tensor& codes, int bits);
 
 }  // namespace flatnet

@@ -1,5 +1,7 @@
 #include "nn/generator.hpp"
 
+#include "optics/separable_inverse.hpp"
+
 #include "core/error.hpp"
 #include "core/precision.hpp"
 #include "nn/onednn_conv.hpp"
@@ -53,21 +55,17 @@ TikhonovLayerImpl::TikhonovLayerImpl(int64_t rows, int64_t cols, int64_t n) {
 
 TikhonovLayerImpl::TikhonovLayerImpl(const torch::Tensor& P, const torch::Tensor& Q, double lambda)
     : TikhonovLayerImpl(P.size(1), Q.size(1), P.size(2)) {
-  // Eq. 2.6: X = V_L [ (s_L s_R^T) / ((s_L s_R^T)^2 + lambda) o (U_L^T Y U_R) ] V_R^T.
   torch::NoGradGuard no_grad;
-  auto [UL, sL, VLt] = torch::linalg::svd(P.to(torch::kFloat64), false, c10::nullopt);
-  auto [UR, sR, VRt] = torch::linalg::svd(Q.to(torch::kFloat64), false, c10::nullopt);
-  const auto s = sL.unsqueeze(2) * sR.unsqueeze(1);  // {4,N,N}
-  ULt_.copy_(UL.transpose(1, 2));
-  UR_.copy_(UR);
-  VL_.copy_(VLt.transpose(1, 2));
-  VRt_.copy_(VRt);
-  filter_.copy_(s / (s * s + lambda));
+  const auto inverse = separable_inverse(P, Q, lambda);  // thesis eq. 2.6
+  ULt_.copy_(inverse.ULt);
+  UR_.copy_(inverse.UR);
+  VL_.copy_(inverse.VL);
+  VRt_.copy_(inverse.VRt);
+  filter_.copy_(inverse.filter);
 }
 
 torch::Tensor TikhonovLayerImpl::forward(const torch::Tensor& Y) {
-  const auto core = torch::matmul(ULt_, torch::matmul(Y, UR_)) * filter_;  // {B,4,N,N}
-  return torch::matmul(VL_, torch::matmul(core, VRt_)).flip({1});
+  return apply_separable_inverse(ULt_, UR_, VL_, VRt_, filter_, Y).flip({1});  // {B,4,N,N}, (r, gr, gb, b)
 }
 
 // ---- U-Net building blocks, named as FlatNet's models.py ----------------------------------------

@@ -13,7 +13,7 @@
 #include <filesystem>
 #include <string>
 
-#include "core/camera_config.hpp"
+#include "io/camera_config.hpp"
 #include "nn/generator.hpp"
 
 namespace flatnet {

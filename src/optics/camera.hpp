@@ -7,7 +7,7 @@
 
 #include <torch/torch.h>
 
-#include "core/camera_config.hpp"
+#include "io/camera_config.hpp"
 
 namespace flatnet {
 

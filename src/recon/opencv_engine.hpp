@@ -6,7 +6,7 @@
 
 #include <torch/torch.h>
 
-#include "core/camera_config.hpp"
+#include "io/camera_config.hpp"
 #include "nn/onnx_export.hpp"
 
 namespace flatnet {

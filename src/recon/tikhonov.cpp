@@ -2,29 +2,17 @@
 
 namespace flatnet {
 
-Tikhonov::Tikhonov(const Calibration& calib, double lambda) : lambda_(lambda) {
-  // Thin SVDs in float64 (once), then stored in float32 for fast per-capture products.
-  auto [UL, sL, VLt] = torch::linalg_svd(calib.P.to(torch::kFloat64), false);  // {4,h,N},{4,N},{4,N,N}
-  auto [UR, sR, VRt] = torch::linalg_svd(calib.Q.to(torch::kFloat64), false);
-  ULt_ = UL.transpose(1, 2).contiguous().to(torch::kFloat32);
-  UR_ = UR.contiguous().to(torch::kFloat32);
-  VL_ = VLt.transpose(1, 2).contiguous().to(torch::kFloat32);
-  VRt_ = VRt.contiguous().to(torch::kFloat32);
-  sL_ = sL;
-  sR_ = sR;
-  set_lambda(lambda);
-}
+Tikhonov::Tikhonov(const Calibration& calib, double lambda)
+    : lambda_(lambda), inverse_(separable_inverse(calib.P, calib.Q, lambda)) {}
 
 void Tikhonov::set_lambda(double lambda) {
   lambda_ = lambda;
-  auto s = sL_.unsqueeze(2) * sR_.unsqueeze(1);  // {4,N,N} products of singular values
-  filter_ = (s / (s * s + lambda)).to(torch::kFloat32).contiguous();
+  inverse_.filter = tikhonov_filter(inverse_.sL, inverse_.sR, lambda);
 }
 
-torch::Tensor Tikhonov::operator()(const torch::Tensor& Y) const {
-  // Y: {B,4,h,w}
-  auto Z = torch::matmul(torch::matmul(ULt_, Y), UR_);  // {B,4,N,N}
-  return torch::matmul(torch::matmul(VL_, Z * filter_), VRt_);
+torch::Tensor Tikhonov::operator()(const torch::Tensor& Y) const {  // {B,4,h,w} -> {B,4,N,N}
+  const auto& v = inverse_;
+  return apply_separable_inverse(v.ULt, v.UR, v.VL, v.VRt, v.filter, Y);
 }
 
 namespace {

@@ -3,13 +3,12 @@
 #include <torch/torch.h>
 
 #include "optics/camera.hpp"
+#include "optics/separable_inverse.hpp"
 
 namespace flatnet {
 
-// Tikhonov-regularised least squares, closed form via the SVDs (FlatNet thesis eq. 2.6):
-//   P = U_L S_L V_L^T, Q = U_R S_R V_R^T,
-//   X = V_L [ (s_L s_R^T) / ((s_L s_R^T)^2 + lambda) o (U_L^T Y U_R) ] V_R^T.
-// The SVDs and the filter are computed once, in the constructor.
+// Tikhonov-regularised least squares, closed form via the SVDs (FlatNet thesis eq. 2.6; the
+// algebra is optics/separable_inverse). The SVDs and the filter are computed once, in the constructor.
 class Tikhonov {
  public:
   Tikhonov(const Calibration& calib, double lambda);
@@ -20,9 +19,7 @@ class Tikhonov {
 
  private:
   double lambda_;
-  torch::Tensor ULt_, UR_, VL_, VRt_;  // {4,N,h}, {4,w,N}, {4,N,N}, {4,N,N} float32
-  torch::Tensor sL_, sR_;              // {4,N}
-  torch::Tensor filter_;               // {4,N,N}
+  SeparableInverse inverse_;
 };
 
 // Total-variation regularised reconstruction, per channel:

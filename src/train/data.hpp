@@ -13,7 +13,7 @@
 
 #include <torch/torch.h>
 
-#include "core/camera_config.hpp"
+#include "io/camera_config.hpp"
 #include "io/dataset.hpp"
 #include "optics/camera.hpp"
 #include "optics/simulator.hpp"

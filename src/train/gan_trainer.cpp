@@ -213,15 +213,14 @@ ValidationResult validate(Generator& generator, const std::vector<Sample>& sampl
 
 GanTrainer::GanTrainer(Generator generator, Discriminator discriminator, Vgg16Features vgg,
                        std::shared_ptr<const PairSource> train, std::vector<Sample> val, TrainOptions options,
-                       Config config, CameraConfig camera)
+                       ModelIdentity identity)
     : g_(std::move(generator)),
       d_(std::move(discriminator)),
       vgg_(std::move(vgg)),
       train_(std::move(train)),
       val_(std::move(val)),
       opt_(std::move(options)),
-      config_(std::move(config)),
-      camera_(std::move(camera)) {
+      identity_(std::move(identity)) {
   require(opt_.iterations > 0 && opt_.batch > 0, "train", "iterations and batch must be positive");
   require(opt_.w_perceptual <= 0 || !vgg_.is_empty(), "loss.perceptual", "a perceptual weight needs VGG-16 weights");
   g_->prepare_training({false, opt_.channels_last, false, opt_.gemm_upsample});
@@ -284,12 +283,12 @@ void GanTrainer::checkpoint_and_validate(TrainSummary& summary) {
   if (best) state_.best_psnr = v.psnr;
   state_.rng_state = at::detail::getDefaultCPUGenerator().get_state();
   Generator* ema = ema_ ? &ema_->average() : nullptr;
-  save_checkpoint(opt_.out / "latest.ckpt", g_, d_, *opt_g_, *opt_d_, state_, config_, camera_, ema);
+  save_checkpoint(opt_.out / "latest.ckpt", g_, d_, *opt_g_, *opt_d_, state_, identity_, ema);
   // model.flatnet follows the latest weights (not picked on validation data); best.ckpt keeps the best.
-  save_model_file(opt_.out / "model.flatnet", exported(), config_, camera_);
+  save_model_file(opt_.out / "model.flatnet", exported(), identity_);
   if (best) {
     summary.best_psnr = v.psnr, summary.best_ssim = v.ssim;
-    save_checkpoint(opt_.out / "best.ckpt", g_, d_, *opt_g_, *opt_d_, state_, config_, camera_, ema);
+    save_checkpoint(opt_.out / "best.ckpt", g_, d_, *opt_g_, *opt_d_, state_, identity_, ema);
   }
 }
 

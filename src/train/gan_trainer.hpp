@@ -10,12 +10,11 @@
 #include <memory>
 #include <vector>
 
-#include "core/camera_config.hpp"
+#include "io/camera_config.hpp"
 #include "nn/generator.hpp"
 #include "nn/losses.hpp"
-#include "train/config.hpp"
 #include "train/data.hpp"
-#include "train/model_file.hpp"
+#include "nn/model_file.hpp"
 
 namespace flatnet {
 
@@ -116,8 +115,8 @@ StepLosses gan_step(Generator& g, Discriminator& d, Vgg16Features& vgg, torch::o
 class GanTrainer {
  public:
   GanTrainer(Generator generator, Discriminator discriminator, Vgg16Features vgg,
-             std::shared_ptr<const PairSource> train, std::vector<Sample> val, TrainOptions options, Config config,
-             CameraConfig camera);
+             std::shared_ptr<const PairSource> train, std::vector<Sample> val, TrainOptions options,
+             ModelIdentity identity);
   // Data-parallel: rank 0's weights are broadcast, gradients averaged every step, batches sharded
   // by rank; only rank 0 validates and writes files. Call before resume() and run().
   void set_distributed(GradientAverager* collectives);
@@ -138,8 +137,7 @@ class GanTrainer {
   std::shared_ptr<const PairSource> train_;
   std::vector<Sample> val_;
   TrainOptions opt_;
-  Config config_;
-  CameraConfig camera_;
+  ModelIdentity identity_;  // written into every checkpoint and model file
   std::unique_ptr<torch::optim::Adam> opt_g_, opt_d_;
   std::unique_ptr<WeightAverage> ema_;
   TrainState state_;

@@ -1,8 +1,7 @@
 #pragma once
 // Learning FlatCam masks end to end (FlatNet thesis, "learning the mask"): a rank-k mask, the
 // lensless capture of grayscale scenes through its PSF, Wiener deconvolution with a learned
-// regulariser gamma, and an MSE loss. Also the fair evaluation of any mask: gamma tuned on
-// validation images, PSNR on held-out ones, under the same noise.
+// regulariser gamma, and an MSE loss. The fair evaluation of any mask is eval/mask_score.
 #include <filesystem>
 #include <string>
 #include <vector>
@@ -10,9 +9,6 @@
 #include "optics/mask.hpp"
 
 namespace flatnet {
-
-// Photographs -> {N,size,size} luma (Rec. 601 weights on the sRGB values) in [0,1].
-torch::Tensor load_luma_scenes(const std::vector<std::filesystem::path>& images, int64_t size, int workers);
 
 struct MaskTrainOptions {
   int64_t iterations = 10000;
@@ -30,13 +26,6 @@ struct MaskTrainSummary {
   double gamma = 0, val_psnr = 0, throughput = 0, seconds = 0;
   int64_t steps = 0;
 };
-
-// Mean PSNR (reconstruction clamped to [0,1]) over scenes, captured through `window` with noise
-// drawn from `seed`, reconstructed by Wiener with `gamma`.
-double mask_psnr(const torch::Tensor& window, double gamma, const torch::Tensor& scenes, const WienerCamera& cam,
-                 uint64_t seed, int64_t batch = 8);
-// The gamma (log grid, then refined) that maximises mask_psnr on `scenes`.
-double tune_gamma(const torch::Tensor& window, const torch::Tensor& scenes, const WienerCamera& cam, uint64_t seed);
 
 MaskTrainSummary train_mask(MaskModel& model, const torch::Tensor& train_scenes, const torch::Tensor& val_scenes,
                             const WienerCamera& cam, const MaskTrainOptions& options);

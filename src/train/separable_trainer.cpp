@@ -12,6 +12,7 @@
 #include "io/mat.hpp"
 #include "optics/separable_camera.hpp"
 #include "optics/simulator.hpp"
+#include "eval/mask_score.hpp"
 #include "train/mask_trainer.hpp"
 
 namespace flatnet {

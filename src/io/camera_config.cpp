@@ -1,4 +1,4 @@
-#include "core/camera_config.hpp"
+#include "io/camera_config.hpp"
 
 #include <yaml-cpp/yaml.h>
 

@@ -1,4 +1,4 @@
-#include "recon/run.hpp"
+#include "recon/batch.hpp"
 
 #include <fnmatch.h>
 
@@ -9,7 +9,6 @@
 #include "core/util.hpp"
 #include "io/image.hpp"
 #include "io/raw.hpp"
-#include "recon/tikhonov.hpp"
 
 namespace flatnet {
 
@@ -66,50 +65,35 @@ void check_output_names(const std::vector<std::filesystem::path>& captures, cons
   }
 }
 
-torch::Tensor planes_to_srgb(const torch::Tensor& planes) {
-  return linear_to_srgb(bayer_planes_to_rgb(planes).clamp(0, 1));
-}
-
-ReconReport reconstruct_files(const CameraConfig& camera, const Calibration& calib,
-                              const std::vector<std::filesystem::path>& captures, const ReconOptions& opt) {
-  require(opt.method == "tikhonov" || opt.method == "tv", "--method",
-          "must be tikhonov or tv, got '" + opt.method + "'");
+BatchReport reconstruct_files(Reconstructor& engine, const CameraConfig& camera,
+                              const std::vector<std::filesystem::path>& captures, const BatchOptions& opt) {
+  require(!captures.empty(), "--input", "no captures to reconstruct");
+  require(opt.batch >= 1, "--batch", "must be at least 1");
   check_output_names(captures, opt.out);
-  c10::InferenceMode guard;
-  std::function<torch::Tensor(const torch::Tensor&)> solve;
-  if (opt.method == "tikhonov") {
-    auto tik = std::make_shared<Tikhonov>(calib, opt.lambda > 0 ? opt.lambda : camera.tikhonov_lambda);
-    solve = [tik](const torch::Tensor& y) { return (*tik)(y); };
-  } else {
-    TVOptions tv;
-    tv.lambda = opt.lambda > 0 ? opt.lambda : camera.tv_lambda;
-    tv.tikhonov_lambda = camera.tikhonov_lambda;
-    auto solver = std::make_shared<TVSolver>(calib, tv);
-    solve = [solver](const torch::Tensor& y) { return (*solver)(y); };
-  }
-  ReconReport report;
-  Progress progress(opt.method, static_cast<int64_t>(captures.size()), opt.progress);
-  double recon_s = 0;
+  std::filesystem::create_directories(opt.out);
+  c10::InferenceMode no_grad;
+  BatchReport report;
+  Progress progress(opt.label, static_cast<int64_t>(captures.size()), opt.progress);
   const auto start = std::chrono::steady_clock::now();
+  double engine_s = 0;
   for (size_t first = 0; first < captures.size(); first += opt.batch) {
     const size_t last = std::min(captures.size(), first + static_cast<size_t>(opt.batch));
     std::vector<torch::Tensor> planes;
-    for (size_t i = first; i < last; ++i) planes.push_back(load_centred_planes(captures[i], camera.raw));
-    auto Y = torch::stack(planes);  // {B,4,h,w}
+    for (size_t i = first; i < last; ++i) planes.push_back(load_capture(captures[i], camera.raw).planes);
     const auto t0 = std::chrono::steady_clock::now();
-    auto X = solve(Y);  // {B,4,N,N}
-    recon_s += std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+    const auto images = engine.reconstruct(torch::stack(planes));  // {B,4,rows,cols} -> {B,3,N,N}
+    engine_s += std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
     for (size_t i = first; i < last; ++i) {
       auto name = captures[i].filename();
-      name.replace_extension(".png");
-      write_rgb8(opt.out / name, planes_to_srgb(X[i - first]));
-      progress.tick();
+      write_rgb8(opt.out / name.replace_extension(".png"), images[static_cast<int64_t>(i - first)]);
     }
+    report.count += static_cast<int64_t>(last - first);
+    progress.tick(static_cast<int64_t>(last - first));
   }
   progress.finish();
-  report.count = static_cast<int64_t>(captures.size());
-  report.recon_ms_per_capture = 1000.0 * recon_s / std::max<int64_t>(1, report.count);
   report.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  report.ms_per_capture = 1000.0 * engine_s / report.count;
+  report.captures_per_s = report.count / std::max(1e-9, report.seconds);
   return report;
 }
 

@@ -2,7 +2,8 @@
 // Experiment configuration: configs/defaults.yaml defines every key (with comments and default
 // values); an experiment file overrides some of them (and may name a `base:` file it extends), and
 // `--set key=value` overrides last. A key that defaults.yaml does not define is an error that names
-// the nearest known key. Library code never sees this object: the CLI turns it into option structs.
+// the nearest known key. Read at the edges only: the CLI, the experiment runner (train/experiment)
+// and model files (which embed it) turn it into option structs; no library constructor takes it.
 #include <filesystem>
 #include <map>
 #include <string>
@@ -18,7 +19,7 @@ class Config {
   // Defaults overridden by YAML text (the merged config a checkpoint or model file embeds).
   static Config from_text(const std::string& yaml, const std::filesystem::path& where,
                           const std::filesystem::path& defaults = default_path());
-  static std::filesystem::path default_path();  // <source>/configs/defaults.yaml
+  static std::filesystem::path default_path();  // data_dir()/configs/defaults.yaml
 
   // Overrides one key ("a.b=value"); `where` names the source in errors.
   void set(const std::string& assignment, const std::string& where = "--set");

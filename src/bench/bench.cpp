@@ -1,17 +1,16 @@
-#include "eval/bench.hpp"
+#include "bench/bench.hpp"
 
 #include <malloc.h>
 
 #include <fstream>
 
-#include "core/camera_config.hpp"
+#include "io/camera_config.hpp"
 #include "core/error.hpp"
 #include "core/util.hpp"
-#include "hw/live.hpp"
 #include "io/raw.hpp"
 #include "optics/camera.hpp"
 #include "optics/mask.hpp"
-#include "recon/run.hpp"
+#include "recon/reconstructor.hpp"
 #include "recon/tikhonov.hpp"
 #include "train/data.hpp"
 #include "train/gan_trainer.hpp"
@@ -65,19 +64,20 @@ GeneratorOptions generator_for(int64_t width) {
 
 BenchRow infer_row(const std::string& name, int64_t width, const BenchOptions& o) {
   torch::manual_seed(0);
-  Generator g(generator_for(width));
   auto levers = o.levers;
   levers.bf16 = levers.bf16 || o.bf16;
-  g->prepare_inference(levers);
+  CameraConfig camera;  // the shapes of the reference camera, plane centring (as the model)
+  camera.raw.crop = {0, 0, kRows, kCols};
+  camera.scene_size = kScene;
+  const auto engine = make_flatnet(Generator(generator_for(width)), camera, levers);
   const auto Y = torch::randn({1, 4, kRows, kCols}) * 0.05;
   std::string names = std::string(levers.fold_batchnorm ? " fold" : "") +
                       (levers.channels_last ? " channels-last" : "") + (levers.gemm_upsample ? " gemm-up" : "") +
                       (levers.bf16 ? " bf16" : "") + (levers.onednn_active() ? " onednn" : "");
-  c10::InferenceMode guard;
   auto row = time_row(name,
                       "FlatNet-sep U-Net width " + std::to_string(width) +
                           ", batch 1, levers:" + (names.empty() ? std::string(" none") : names),
-                      o, [&] { g->forward(Y); });
+                      o, [&] { engine->reconstruct(Y); });
   row.per_second = 1000.0 / row.median_ms;
   return row;
 }
@@ -174,12 +174,12 @@ BenchRow run_bench_row(const std::string& name, const BenchOptions& o) {
     row.per_second = 1000.0 / row.median_ms;
   } else if (name == "live_frame") {
     const auto camera = load_camera_config(default_camera_path());
-    const Tikhonov tik(random_calibration(), 1e-4);
+    const auto engine = make_classical(random_calibration(), camera, {ClassicalMethod::tikhonov, 1e-4});
     const auto codes = torch::randint(0, 1024, {camera.raw.raw_height, camera.raw.raw_width}, torch::kInt32);
     c10::InferenceMode guard;
     row = time_row(name, "live view's work per frame: 10-bit codes 1024x1280 -> planes -> Tikhonov -> sRGB", o, [&] {
       const auto planes = preprocess_raw(codes_to_unit(codes, 10), camera.raw);
-      planes_to_srgb(tik(planes.unsqueeze(0))[0]);
+      engine->reconstruct(planes.unsqueeze(0));  // as run_live (hw/live)
     });
     row.per_second = 1000.0 / row.median_ms;
   } else if (name == "simulator") {

@@ -10,10 +10,10 @@
 #include <filesystem>
 #include <string>
 
-#include "core/camera_config.hpp"
+#include "io/camera_config.hpp"
 #include "nn/generator.hpp"
 #include "nn/losses.hpp"
-#include "train/config.hpp"
+#include "io/config.hpp"
 
 namespace flatnet {
 
@@ -29,6 +29,16 @@ struct ModelFile {
   CameraConfig camera;
 };
 
+// What a model file or checkpoint records beside its weights: the merged config that describes the
+// architecture (YAML text, as Config::to_yaml writes it) and the camera preprocessing. Trainers
+// carry this, not the Config object.
+struct ModelIdentity {
+  std::string config_yaml;
+  CameraConfig camera;
+};
+ModelIdentity model_identity(const Config& config, const CameraConfig& camera);
+
+void save_model_file(const std::filesystem::path& path, Generator& generator, const ModelIdentity& identity);
 void save_model_file(const std::filesystem::path& path, Generator& generator, const Config& config,
                      const CameraConfig& camera);
 // Errors (naming the file): not a flatnet archive, a checkpoint where a model is expected (or the
@@ -43,8 +53,8 @@ struct TrainState {
 
 // `ema`, when given, is the moving average of the generator's weights (saved as "generator_ema").
 void save_checkpoint(const std::filesystem::path& path, Generator& g, Discriminator& d, torch::optim::Adam& opt_g,
-                     torch::optim::Adam& opt_d, const TrainState& state, const Config& config,
-                     const CameraConfig& camera, Generator* ema = nullptr);
+                     torch::optim::Adam& opt_d, const TrainState& state, const ModelIdentity& identity,
+                     Generator* ema = nullptr);
 // The config and camera a checkpoint holds (to rebuild the networks before load_checkpoint).
 std::pair<Config, CameraConfig> checkpoint_settings(const std::filesystem::path& path);
 // `ema` is filled from the checkpoint's average when it has one, else from its generator.

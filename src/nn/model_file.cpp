@@ -1,4 +1,4 @@
-#include "train/model_file.hpp"
+#include "nn/model_file.hpp"
 
 #include <set>
 
@@ -186,12 +186,11 @@ std::string archive_bytes(torch::serialize::OutputArchive& a) {
   return bytes;
 }
 
-void write_header(torch::serialize::OutputArchive& a, const std::string& format, const Config& config,
-                  const CameraConfig& camera) {
+void write_header(torch::serialize::OutputArchive& a, const std::string& format, const ModelIdentity& identity) {
   write_string(a, "flatnet_format", format);
   a.write("flatnet_version", c10::IValue(kFormatVersion));
-  write_string(a, "config", config.to_yaml());
-  write_string(a, "camera", camera_geometry_yaml(camera));
+  write_string(a, "config", identity.config_yaml);
+  write_string(a, "camera", camera_geometry_yaml(identity.camera));
 }
 
 std::pair<Config, CameraConfig> read_header(torch::serialize::InputArchive& a, const std::filesystem::path& path) {
@@ -264,10 +263,16 @@ DiscriminatorOptions discriminator_options(const Config& c) {
   return o;
 }
 
+ModelIdentity model_identity(const Config& config, const CameraConfig& camera) { return {config.to_yaml(), camera}; }
+
 void save_model_file(const std::filesystem::path& path, Generator& generator, const Config& config,
                      const CameraConfig& camera) {
+  save_model_file(path, generator, model_identity(config, camera));
+}
+
+void save_model_file(const std::filesystem::path& path, Generator& generator, const ModelIdentity& identity) {
   torch::serialize::OutputArchive a;
-  write_header(a, kModelFormat, config, camera);
+  write_header(a, kModelFormat, identity);
   save_module(a, "generator", *generator);
   write_bytes_atomically(path, archive_bytes(a));
 }
@@ -275,10 +280,10 @@ void save_model_file(const std::filesystem::path& path, Generator& generator, co
 ModelFile load_model_file(const std::filesystem::path& path) { return read_generator(path, kModelFormat); }
 
 void save_checkpoint(const std::filesystem::path& path, Generator& g, Discriminator& d, torch::optim::Adam& opt_g,
-                     torch::optim::Adam& opt_d, const TrainState& state, const Config& config,
-                     const CameraConfig& camera, Generator* ema) {
+                     torch::optim::Adam& opt_d, const TrainState& state, const ModelIdentity& identity,
+                     Generator* ema) {
   torch::serialize::OutputArchive a;
-  write_header(a, kCheckpointFormat, config, camera);
+  write_header(a, kCheckpointFormat, identity);
   save_module(a, "generator", *g);
   if (ema) save_module(a, "generator_ema", **ema);
   save_module(a, "discriminator", *d);

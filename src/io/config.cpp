@@ -1,4 +1,4 @@
-#include "train/config.hpp"
+#include "io/config.hpp"
 
 #include <cmath>
 #include <fstream>

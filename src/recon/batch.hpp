@@ -1,0 +1,38 @@
+#pragma once
+// Reconstructing files: raw captures -> the engine's preprocessing -> any Reconstructor -> sRGB
+// PNGs with the captures' names. The one batch loop of `flatnet recon`, `infer`, `demo` and `report`.
+#include <filesystem>
+#include <vector>
+
+#include "io/camera_config.hpp"
+#include "recon/reconstructor.hpp"
+
+namespace flatnet {
+
+// A FILE, every .png in a DIR (sorted), files matching a pattern (DIR/fc_*.png), or the files a
+// .txt list names (relative to the list's folder).
+std::vector<std::filesystem::path> collect_captures(const std::filesystem::path& input);
+// Each capture's reconstruction is written to OUT/<capture name>.png. Throws (naming the files)
+// when two captures would write one output, or an output would replace a capture being read
+// (--out equal to the input folder).
+void check_output_names(const std::vector<std::filesystem::path>& captures, const std::filesystem::path& out);
+
+struct BatchOptions {
+  std::filesystem::path out;  // created when missing
+  int batch = 4;              // captures per reconstruct() call
+  bool progress = true;
+  std::string label = "recon";  // the progress line's name
+};
+
+struct BatchReport {
+  int64_t count = 0;
+  double ms_per_capture = 0;  // the engine alone (no file I/O)
+  double captures_per_s = 0;  // everything, file I/O included
+  double seconds = 0;
+};
+
+// `camera` is the preprocessing the engine expects (BuiltReconstructor::camera).
+BatchReport reconstruct_files(Reconstructor& engine, const CameraConfig& camera,
+                              const std::vector<std::filesystem::path>& captures, const BatchOptions& options);
+
+}  // namespace flatnet

@@ -1,0 +1,143 @@
+#include "recon/reconstructor.hpp"
+
+#include <iomanip>
+#include <sstream>
+
+#include <opencv2/core/version.hpp>
+
+#include "core/error.hpp"
+#include "io/image.hpp"
+#include "io/raw.hpp"
+#include "recon/opencv_engine.hpp"
+#include "recon/tikhonov.hpp"
+
+namespace flatnet {
+
+namespace {
+
+std::string short_number(double x) {
+  std::ostringstream s;
+  s << std::setprecision(3) << x;
+  return s.str();
+}
+
+class TikhonovReconstructor final : public Reconstructor {
+ public:
+  TikhonovReconstructor(const Calibration& calib, double lambda, Centring centring)
+      : solve_(calib, lambda), centring_(centring) {}
+  std::string describe() const override { return "Tikhonov (lambda " + short_number(solve_.lambda()) + ")"; }
+  torch::Tensor reconstruct(const torch::Tensor& planes) override {
+    return planes_to_srgb(solve_(without_level(planes, centring_)));  // {B,4,N,N} -> {B,3,N,N}
+  }
+
+ private:
+  Tikhonov solve_;
+  Centring centring_;
+};
+
+class TVReconstructor final : public Reconstructor {
+ public:
+  TVReconstructor(const Calibration& calib, const TVOptions& options, Centring centring)
+      : solve_(calib, options), lambda_(options.lambda), centring_(centring) {}
+  std::string describe() const override { return "TV (lambda " + short_number(lambda_) + ")"; }
+  torch::Tensor reconstruct(const torch::Tensor& planes) override {
+    return planes_to_srgb(solve_(without_level(planes, centring_)));
+  }
+
+ private:
+  TVSolver solve_;
+  double lambda_;
+  Centring centring_;
+};
+
+class FlatNetReconstructor final : public Reconstructor {
+ public:
+  FlatNetReconstructor(Generator generator, const InferenceLevers& levers, std::string name)
+      : generator_(std::move(generator)), name_(std::move(name)), bf16_(levers.bf16) {
+    generator_->prepare_inference(levers);
+  }
+  std::string describe() const override { return name_ + (bf16_ ? " (bf16)" : " (fp32)"); }
+  torch::Tensor reconstruct(const torch::Tensor& planes) override {
+    c10::InferenceMode no_grad;
+    return generator_->forward(planes);  // {B,4,rows,cols} -> {B,3,N,N}
+  }
+
+ private:
+  Generator generator_;
+  std::string name_;
+  bool bf16_;
+};
+
+class OpenCvReconstructor final : public Reconstructor {
+ public:
+  explicit OpenCvReconstructor(const std::filesystem::path& onnx_file) : engine_(onnx_file), path_(onnx_file) {}
+  OpenCvEngine& engine() { return engine_; }
+  std::string describe() const override {
+    return "ONNX " + path_.filename().string() + " through OpenCV DNN " + CV_VERSION + " (fp32)";
+  }
+  torch::Tensor reconstruct(const torch::Tensor& planes) override { return engine_.forward(planes); }
+
+ private:
+  OpenCvEngine engine_;
+  std::filesystem::path path_;
+};
+
+}  // namespace
+
+ClassicalMethod parse_classical_method(const std::string& name) {
+  if (name == "tikhonov") return ClassicalMethod::tikhonov;
+  if (name == "tv") return ClassicalMethod::tv;
+  throw Error("--method", "must be tikhonov or tv, got '" + name + "'");
+}
+
+std::string classical_method_name(ClassicalMethod method) {
+  return method == ClassicalMethod::tikhonov ? "tikhonov" : "tv";
+}
+
+std::unique_ptr<Reconstructor> make_classical(const Calibration& calib, const CameraConfig& camera,
+                                              const ClassicalOptions& o) {
+  if (o.method == ClassicalMethod::tikhonov)
+    return std::make_unique<TikhonovReconstructor>(calib, o.lambda > 0 ? o.lambda : camera.tikhonov_lambda,
+                                                   camera.raw.centring);
+  TVOptions tv;
+  tv.lambda = o.lambda > 0 ? o.lambda : camera.tv_lambda;
+  tv.tikhonov_lambda = camera.tikhonov_lambda;
+  return std::make_unique<TVReconstructor>(calib, tv, camera.raw.centring);
+}
+
+std::unique_ptr<Reconstructor> make_flatnet(Generator generator, const CameraConfig& camera,
+                                            const InferenceLevers& levers, const std::string& name) {
+  check_camera_for_model(generator->options(), camera);
+  return std::make_unique<FlatNetReconstructor>(std::move(generator), levers, name);
+}
+
+std::unique_ptr<Reconstructor> make_opencv(const std::filesystem::path& onnx_file, const CameraConfig& camera) {
+  auto r = std::make_unique<OpenCvReconstructor>(onnx_file);
+  r->engine().check_camera(camera);
+  return r;
+}
+
+BuiltReconstructor make_reconstructor(const ReconstructorSpec& spec) {
+  if (spec.method == "tikhonov" || spec.method == "tv") {
+    const auto calib_path = spec.calibration.empty() ? spec.camera.calibration : spec.calibration;
+    require(!calib_path.empty(), "--calib", "no calibration: pass one, or use a camera file that names one");
+    ClassicalOptions o;
+    o.method = parse_classical_method(spec.method);
+    o.lambda = spec.lambda;
+    return {make_classical(load_calibration(calib_path, spec.camera), spec.camera, o), spec.camera};
+  }
+  if (spec.method == "flatnet") {
+    auto m = load_model_file(spec.model);
+    const auto camera = spec.use_camera ? spec.camera : m.camera;
+    return {make_flatnet(m.generator, camera, spec.levers, "FlatNet " + spec.model.filename().string()), camera};
+  }
+  if (spec.method == "opencv") {
+    auto r = std::make_unique<OpenCvReconstructor>(spec.model);
+    const auto camera = spec.use_camera ? spec.camera : r->engine().camera();
+    r->engine().check_camera(camera);
+    return {std::move(r), camera};
+  }
+  throw Error("--method", "must be tikhonov, tv, flatnet or opencv, got '" + spec.method + "'");
+}
+
+}  // namespace flatnet

@@ -1,0 +1,71 @@
+#pragma once
+// One interface for every way of turning measurements into a photograph (after LenslessPiCam's
+// ReconstructionAlgorithm): classical Tikhonov and TV on the calibration, a FlatNet model through
+// LibTorch, or an exported ONNX graph through OpenCV's DNN module. `flatnet recon`, `infer`, `live`,
+// `demo`, `report` and the benchmarks all reconstruct through it, and files go through one batch
+// loop (recon/batch.hpp).
+#include <filesystem>
+#include <memory>
+#include <string>
+
+#include <torch/torch.h>
+
+#include "io/camera_config.hpp"
+#include "nn/generator.hpp"
+#include "nn/model_file.hpp"
+#include "optics/camera.hpp"
+
+namespace flatnet {
+
+class Reconstructor {
+ public:
+  virtual ~Reconstructor() = default;
+  // One line for logs: "Tikhonov (lambda 0.0003)", "FlatNet model.flatnet (bf16)".
+  virtual std::string describe() const = 0;
+  // Measurement planes exactly as load_capture / preprocess_raw make them (light level included)
+  // {B,4,rows,cols} -> sRGB images {B,3,N,N} in [0,1].
+  virtual torch::Tensor reconstruct(const torch::Tensor& planes) = 0;
+};
+
+// Tikhonov (thesis eq. 2.6) or TV (FISTA) on the calibration: the camera's light level is removed
+// first (its centring), the linear-light planes become sRGB.
+enum class ClassicalMethod { tikhonov, tv };
+ClassicalMethod parse_classical_method(const std::string& name);  // "tikhonov" | "tv", else an error
+std::string classical_method_name(ClassicalMethod method);
+
+struct ClassicalOptions {
+  ClassicalMethod method = ClassicalMethod::tikhonov;
+  double lambda = 0;  // <= 0: the camera file's default for the method
+};
+std::unique_ptr<Reconstructor> make_classical(const Calibration& calib, const CameraConfig& camera,
+                                              const ClassicalOptions& options);
+
+// A FlatNet generator (it is prepared for inference in place with `levers`); the camera must
+// preprocess as the model was trained (check_camera_for_model).
+std::unique_ptr<Reconstructor> make_flatnet(Generator generator, const CameraConfig& camera,
+                                            const InferenceLevers& levers, const std::string& name = "FlatNet");
+
+// An ONNX file from `flatnet export --onnx`, run by OpenCV's DNN module (fp32, no LibTorch
+// kernels); `camera` must preprocess as the graph expects (the file carries its own camera).
+std::unique_ptr<Reconstructor> make_opencv(const std::filesystem::path& onnx_file, const CameraConfig& camera);
+
+// Everything a reconstruction engine can be built from, for the factory by name.
+struct ReconstructorSpec {
+  std::string method = "tikhonov";    // tikhonov | tv | flatnet | opencv
+  CameraConfig camera;                // preprocessing; for flatnet and opencv only when use_camera
+  bool use_camera = true;             // false: flatnet/opencv use the model file's own camera
+  std::filesystem::path calibration;  // tikhonov, tv (empty: the camera's)
+  double lambda = 0;                  // tikhonov, tv (<= 0: the camera's)
+  std::filesystem::path model;        // flatnet (.flatnet), opencv (.onnx)
+  InferenceLevers levers;             // flatnet
+};
+
+struct BuiltReconstructor {
+  std::unique_ptr<Reconstructor> engine;
+  CameraConfig camera;  // the preprocessing its input must have (the spec's, or the model's own)
+};
+// Errors name what is missing or wrong (an unknown method, no calibration, a model file that is
+// not one, a camera that does not match the model).
+BuiltReconstructor make_reconstructor(const ReconstructorSpec& spec);
+
+}  // namespace flatnet
