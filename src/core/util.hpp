@@ -33,7 +33,7 @@ void write_text_atomically(const fs::path& path, const std::string& text);
 void write_bytes_atomically(const fs::path& path, const std::string& bytes);
 
 // A number's allowed range, for the tables that check flags (cli/common) and config keys
-// (train/config) in one place each: {name, lowest, highest, what the range means}.
+// (io/config) in one place each: {name, lowest, highest, what the range means}.
 struct NumberRule {
   const char* name;
   double lo, hi;
