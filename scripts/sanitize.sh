@@ -33,6 +33,7 @@ cd "$dir"
 if [ "$kind" = address ]; then
   ctest --output-on-failure -j 2 -L unit
 else
-  # Threads of our own: the prefetch loader, parallel_for_index, two Gloo ranks in one process.
-  ctest --output-on-failure -j 2 -R 'batch loader|distributed: two ranks|distributed: with batch norm|load_all|parallel|prefetch'
+  # Threads of our own: simulate's worker pool, parallel_for_index (NIQE), the prefetch loader in
+  # training, two Gloo ranks in one process and two ranks as processes.
+  ctest --output-on-failure -j 2 -R 'simulate, recon and eval end to end|NIQE rises|batch loader|training resumes bit for bit|distributed: two ranks|distributed: with batch norm|distributed training from the command line'
 fi
