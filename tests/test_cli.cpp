@@ -1,5 +1,5 @@
 // The flatnet binary end to end: simulate -> recon -> eval, resumability, and bad input.
-#include <catch2/catch.hpp>
+#include "catch_torch.hpp"
 #include <fstream>
 #include <unistd.h>
 

@@ -3,7 +3,7 @@
 // GigE Vision simulator (arv-fake-gv-camera-0.8, on loopback inside a private network namespace)
 // through the flatnet binary: formats, averaging, sidecars, resumable datasets, calibration
 // collection, live view, lost packets and a camera that disconnects and comes back.
-#include <catch2/catch.hpp>
+#include "catch_torch.hpp"
 #include <fstream>
 
 #include <nlohmann/json.hpp>

@@ -1,5 +1,5 @@
 // io/: .mat files, raw captures, images, dataset lists.
-#include <catch2/catch.hpp>
+#include "catch_torch.hpp"
 #include <fstream>
 
 #include "core/error.hpp"

@@ -1,6 +1,6 @@
 // Mask design: baselines, the capture/Wiener pipeline's physics, the throughput rule, gradients,
 // and the mask commands' errors.
-#include <catch2/catch.hpp>
+#include "catch_torch.hpp"
 #include <fstream>
 
 #include "core/error.hpp"

@@ -1,6 +1,6 @@
 // NIQE (eval/niqe): the moment-matching fits, the published behaviour (the score rises steadily
 // with blur and with noise), the model file, and its place in `flatnet eval`.
-#include <catch2/catch.hpp>
+#include "catch_torch.hpp"
 
 #include <opencv2/imgproc.hpp>
 

@@ -1,5 +1,5 @@
 // Networks, losses, configs and model files: shapes, gradients, names, round trips, errors.
-#include <catch2/catch.hpp>
+#include "catch_torch.hpp"
 #include <fstream>
 
 #include <ATen/autocast_mode.h>

@@ -1,6 +1,6 @@
 // ONNX export (nn/onnx_export) and the OpenCV DNN engine (recon/opencv_engine): the graph passes
 // ONNX's checker, OpenCV 4.6 imports it, and it computes what LibTorch computes.
-#include <catch2/catch.hpp>
+#include "catch_torch.hpp"
 #include <fstream>
 
 #include <onnx/checker.h>

@@ -1,5 +1,5 @@
 // optics/: mask codes, the camera model against golden captures, calibration.
-#include <catch2/catch.hpp>
+#include "catch_torch.hpp"
 
 #include "io/camera_config.hpp"
 #include "core/util.hpp"

@@ -1,6 +1,6 @@
 // Run-time precision: CPU feature detection, the auto choice, and bf16 autocast training that
 // tracks fp32 (emulated bf16 is slow but correct, so this runs on every machine).
-#include <catch2/catch.hpp>
+#include "catch_torch.hpp"
 
 #include <ATen/autocast_mode.h>
 

@@ -1,6 +1,6 @@
 // The quality recipe's pieces: real scenes' light (dim, lamps) through the simulator, the
 // Tikhonov-regularised pseudo-inverse initialisation, and starting training from a model file.
-#include <catch2/catch.hpp>
+#include "catch_torch.hpp"
 
 #include "core/error.hpp"
 #include "core/util.hpp"

@@ -1,5 +1,5 @@
 // recon/ and eval/: Tikhonov, TV, the Reconstructor interface and its batch loop, metrics.
-#include <catch2/catch.hpp>
+#include "catch_torch.hpp"
 
 #include "io/camera_config.hpp"
 #include "core/util.hpp"

@@ -1,7 +1,7 @@
 // Reading torch.save files as PyTorch users write them (io/torch_file) and importing generators
 // from them: committed fixtures (tests/data/torch_save, made by make_fixtures.py) on every
 // machine, and files written by /usr/bin/python3 at test time where it has torch.
-#include <catch2/catch.hpp>
+#include "catch_torch.hpp"
 #include <fstream>
 
 #include "core/error.hpp"

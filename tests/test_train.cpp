@@ -1,6 +1,6 @@
 // The GAN trainer and its data: deterministic batches, bit-for-bit resume, NaN handling, and
 // data-parallel training over c10d/Gloo on 127.0.0.1.
-#include <catch2/catch.hpp>
+#include "catch_torch.hpp"
 
 #include <arpa/inet.h>
 #include <netinet/in.h>

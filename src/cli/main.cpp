@@ -4,6 +4,8 @@
 #include <iostream>
 #include <map>
 
+#include <c10/util/Exception.h>  // c10::Error: LibTorch's exceptions become one line too
+
 #include "cli/commands.hpp"
 #include "core/error.hpp"
 #include "core/util.hpp"

@@ -12,6 +12,9 @@
 #include <fstream>
 #include <iomanip>
 #include <iostream>
+
+#include <ATen/Parallel.h>       // at::set_num_threads
+#include <c10/util/Exception.h>  // c10::Error
 #include <atomic>
 #include <mutex>
 #include <sstream>
