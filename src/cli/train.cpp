@@ -7,6 +7,7 @@
 #include "core/util.hpp"
 #include "io/dataset.hpp"
 #include "optics/simulator.hpp"
+#include "nn/model_file.hpp"
 #include "nn/onnx_export.hpp"
 #include "recon/batch.hpp"
 #include "train/distributed.hpp"

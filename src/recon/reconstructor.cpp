@@ -1,5 +1,6 @@
 #include "recon/reconstructor.hpp"
 
+#include <functional>
 #include <iomanip>
 #include <sstream>
 
@@ -8,6 +9,7 @@
 #include "core/error.hpp"
 #include "io/image.hpp"
 #include "io/raw.hpp"
+#include "nn/model_file.hpp"
 #include "recon/opencv_engine.hpp"
 #include "recon/tikhonov.hpp"
 
@@ -21,32 +23,20 @@ std::string short_number(double x) {
   return s.str();
 }
 
-class TikhonovReconstructor final : public Reconstructor {
+// Tikhonov or TV: the camera's light level removed (its centring), a linear solve, then sRGB.
+class ClassicalReconstructor final : public Reconstructor {
  public:
-  TikhonovReconstructor(const Calibration& calib, double lambda, Centring centring)
-      : solve_(calib, lambda), centring_(centring) {}
-  std::string describe() const override { return "Tikhonov (lambda " + short_number(solve_.lambda()) + ")"; }
+  using Solve = std::function<torch::Tensor(const torch::Tensor&)>;  // {B,4,h,w} -> {B,4,N,N}
+  ClassicalReconstructor(Solve solve, std::string description, Centring centring)
+      : solve_(std::move(solve)), description_(std::move(description)), centring_(centring) {}
+  std::string describe() const override { return description_; }
   torch::Tensor reconstruct(const torch::Tensor& planes) override {
     return planes_to_srgb(solve_(without_level(planes, centring_)));  // {B,4,N,N} -> {B,3,N,N}
   }
 
  private:
-  Tikhonov solve_;
-  Centring centring_;
-};
-
-class TVReconstructor final : public Reconstructor {
- public:
-  TVReconstructor(const Calibration& calib, const TVOptions& options, Centring centring)
-      : solve_(calib, options), lambda_(options.lambda), centring_(centring) {}
-  std::string describe() const override { return "TV (lambda " + short_number(lambda_) + ")"; }
-  torch::Tensor reconstruct(const torch::Tensor& planes) override {
-    return planes_to_srgb(solve_(without_level(planes, centring_)));
-  }
-
- private:
-  TVSolver solve_;
-  double lambda_;
+  Solve solve_;
+  std::string description_;
   Centring centring_;
 };
 
@@ -96,13 +86,18 @@ std::string classical_method_name(ClassicalMethod method) {
 
 std::unique_ptr<Reconstructor> make_classical(const Calibration& calib, const CameraConfig& camera,
                                               const ClassicalOptions& o) {
-  if (o.method == ClassicalMethod::tikhonov)
-    return std::make_unique<TikhonovReconstructor>(calib, o.lambda > 0 ? o.lambda : camera.tikhonov_lambda,
-                                                   camera.raw.centring);
+  const auto centring = camera.raw.centring;
+  if (o.method == ClassicalMethod::tikhonov) {
+    auto tik = std::make_shared<const Tikhonov>(calib, o.lambda > 0 ? o.lambda : camera.tikhonov_lambda);
+    return std::make_unique<ClassicalReconstructor>([tik](const torch::Tensor& y) { return (*tik)(y); },
+                                                    "Tikhonov (lambda " + short_number(tik->lambda()) + ")", centring);
+  }
   TVOptions tv;
   tv.lambda = o.lambda > 0 ? o.lambda : camera.tv_lambda;
   tv.tikhonov_lambda = camera.tikhonov_lambda;
-  return std::make_unique<TVReconstructor>(calib, tv, camera.raw.centring);
+  auto solver = std::make_shared<const TVSolver>(calib, tv);
+  return std::make_unique<ClassicalReconstructor>([solver](const torch::Tensor& y) { return (*solver)(y); },
+                                                  "TV (lambda " + short_number(tv.lambda) + ")", centring);
 }
 
 std::unique_ptr<Reconstructor> make_flatnet(Generator generator, const CameraConfig& camera,

@@ -12,7 +12,6 @@
 
 #include "io/camera_config.hpp"
 #include "nn/generator.hpp"
-#include "nn/model_file.hpp"
 #include "optics/camera.hpp"
 
 namespace flatnet {
