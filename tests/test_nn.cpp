@@ -345,6 +345,39 @@ TEST_CASE("training levers (channels-last, GEMM upsampling) give the same loss a
   }
 }
 
+TEST_CASE("perceptual loss: channels-last VGG gives the same loss, bf16 autocast agrees, gradients reach the image",
+          "[nn][loss][bf16]") {
+  torch::manual_seed(12);
+  Vgg16Features vgg;
+  {
+    torch::NoGradGuard no_grad;
+    for (auto& p : vgg->parameters()) p.mul_(3.0);  // default init fades with depth; keep relu4_3 alive
+  }
+  const auto y = torch::rand({2, 3, 32, 32});
+  auto loss_and_grad = [&](bool bf16) {
+    const auto x = (y + 0.2 * torch::randn_like(y)).clamp(0, 1).requires_grad_(true);
+    const auto loss = perceptual_loss(vgg, x, y, bf16);
+    loss.backward();
+    REQUIRE(x.grad().defined());
+    return std::make_pair(loss.item<double>(), x.grad().clone());
+  };
+  torch::manual_seed(1);
+  const auto [fp32, g32] = loss_and_grad(false);
+  vgg->use_channels_last();
+  CHECK(vgg->parameters()[0].is_contiguous(at::MemoryFormat::ChannelsLast));
+  torch::manual_seed(1);
+  const auto [cl, gcl] = loss_and_grad(false);
+  torch::manual_seed(1);
+  const auto [bf16, gbf] = loss_and_grad(true);
+  CHECK(fp32 > 0);
+  CHECK(cl == Approx(fp32).epsilon(1e-4));
+  CHECK(bf16 == Approx(fp32).epsilon(0.03));  // bf16 keeps 8 bits of mantissa
+  CHECK((gcl - g32).abs().max().item<double>() <= 1e-4 * g32.abs().max().item<double>());
+  const double cosine = (gbf * g32).sum().item<double>() / (gbf.norm() * g32.norm()).item<double>();
+  CHECK(cosine > 0.97);  // measured 0.984: bf16 rounding through ten convolutions, as Python autocast
+  for (const auto& p : vgg->parameters()) CHECK_FALSE(p.grad().defined());  // frozen
+}
+
 TEST_CASE("SSIM loss is 1 - the reported SSIM, differentiable, and 0 on identical images", "[nn][loss]") {
   torch::manual_seed(8);
   const auto y = torch::rand({2, 3, 24, 24});

@@ -4,6 +4,8 @@
 
 #include <fstream>
 
+#include <torch/csrc/autograd/profiler_kineto.h>
+
 #include "io/camera_config.hpp"
 #include "core/error.hpp"
 #include "core/util.hpp"
@@ -25,7 +27,62 @@ double now_ms() {
   return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now().time_since_epoch()).count();
 }
 
-// Times fn: `warmup` untimed calls, then `repeats` timed ones.
+// Runs fn once under LibTorch's profiler and sums its operators by name. Self time: an event's
+// duration less that of the events nested directly inside it on the same thread.
+std::vector<OpTime> profile_once(const std::function<void()>& fn) {
+  namespace prof = torch::profiler::impl;
+  const bool shapes = std::getenv("FLATNET_PROFILE_SHAPES") != nullptr;
+  const prof::ProfilerConfig config(prof::ProfilerState::KINETO, shapes);
+  const std::set<prof::ActivityType> activities = {prof::ActivityType::CPU};
+  torch::autograd::profiler::prepareProfiler(config, activities);
+  torch::autograd::profiler::enableProfiler(config, activities);
+  fn();
+  const auto result = torch::autograd::profiler::disableProfiler();
+  struct Span {
+    std::string name;
+    uint64_t thread, start, end;
+  };
+  std::vector<Span> spans;
+  for (const auto& e : result->events()) {
+    std::string name = e.name();
+    if (shapes && e.hasShapes()) {
+      for (const auto& s : e.shapes()) {
+        name += " [";
+        for (auto d : s) name += std::to_string(d) + ",";
+        name += "]";
+      }
+      for (const auto& t : e.dtypes()) name += " " + t;
+    }
+    spans.push_back({name, e.startThreadId(), e.startUs(), e.startUs() + e.durationUs()});
+  }
+  std::sort(spans.begin(), spans.end(), [](const Span& a, const Span& b) {
+    return std::tie(a.thread, a.start, b.end) < std::tie(b.thread, b.start, a.end);  // parents first
+  });
+  std::map<std::string, OpTime> by_name;
+  std::vector<std::pair<const Span*, double>> open;  // enclosing spans and their children's time
+  auto close = [&](const Span& s, double children_us) {
+    auto& op = by_name[s.name];
+    op.name = s.name;
+    ++op.calls;
+    op.total_ms += (s.end - s.start) / 1e3;
+    op.self_ms += std::max(0.0, (s.end - s.start) - children_us) / 1e3;
+  };
+  for (const auto& s : spans) {
+    while (!open.empty() && (open.back().first->thread != s.thread || open.back().first->end <= s.start)) {
+      close(*open.back().first, open.back().second);
+      open.pop_back();
+    }
+    if (!open.empty()) open.back().second += static_cast<double>(s.end - s.start);
+    open.emplace_back(&s, 0.0);
+  }
+  for (; !open.empty(); open.pop_back()) close(*open.back().first, open.back().second);
+  std::vector<OpTime> ops;
+  for (auto& [name, op] : by_name) ops.push_back(op);
+  std::sort(ops.begin(), ops.end(), [](const OpTime& a, const OpTime& b) { return a.self_ms > b.self_ms; });
+  return ops;
+}
+
+// Times fn: `warmup` untimed calls, then `repeats` timed ones (and one profiled, if asked).
 BenchRow time_row(const std::string& name, const std::string& what, const BenchOptions& o,
                   const std::function<void()>& fn) {
   BenchRow row;
@@ -42,6 +99,7 @@ BenchRow time_row(const std::string& name, const std::string& what, const BenchO
   row.median_ms = sorted[sorted.size() / 2];
   if (sorted.size() % 2 == 0) row.median_ms = 0.5 * (sorted[sorted.size() / 2 - 1] + sorted[sorted.size() / 2]);
   row.min_ms = sorted.front();
+  if (o.profile) row.ops = profile_once(fn);
   return row;
 }
 
@@ -88,7 +146,8 @@ BenchRow train_row(const std::string& name, int64_t width, bool paper, const Ben
   g->prepare_training(o.levers);
   DiscriminatorOptions dopt;
   Discriminator d(dopt);
-  Vgg16Features vgg(false);  // random weights: the cost is what is measured
+  Vgg16Features vgg(false);                              // random weights: the cost is what is measured
+  if (o.levers.channels_last) vgg->use_channels_last();  // as GanTrainer
   TrainOptions t;
   t.batch = 4;
   t.w_mse = 1.0;

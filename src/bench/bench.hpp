@@ -16,6 +16,15 @@ struct BenchOptions {
   InferenceLevers levers;  // for the infer_* rows (levers.bf16 is set from `bf16`)
   bool bf16 = false;       // infer_* with the enhancer in bf16, train_* with bf16 autocast
   int loader_workers = 2;  // for the loader row
+  bool profile = false;    // one more run under LibTorch's profiler: BenchRow::ops
+};
+
+// One operator's share of a profiled run (LibTorch's profiler, CPU): self time excludes the
+// operators it called, total includes them.
+struct OpTime {
+  std::string name;
+  int64_t calls = 0;
+  double self_ms = 0, total_ms = 0;
 };
 
 struct BenchRow {
@@ -23,8 +32,9 @@ struct BenchRow {
   std::string what;        // one line: the shapes and settings timed
   std::vector<double> ms;  // the timed runs
   double median_ms = 0, min_ms = 0;
-  double peak_rss_mb = 0;  // VmHWM after the row (reset before it)
-  double per_second = 0;   // derived throughput (items/s) where meaningful
+  double peak_rss_mb = 0;   // VmHWM after the row (reset before it)
+  double per_second = 0;    // derived throughput (items/s) where meaningful
+  std::vector<OpTime> ops;  // with BenchOptions::profile: operators by self time, largest first
 };
 
 // tikhonov, live_frame, simulator, infer_paper, infer_cpu, train_paper, train_cpu, mask_step, loader

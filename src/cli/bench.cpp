@@ -12,6 +12,25 @@
 
 namespace flatnet::cli {
 
+namespace {
+
+void print_profile(const BenchRow& row, int top) {
+  double all_self = 0;
+  for (const auto& op : row.ops) all_self += op.self_ms;
+  std::cout << "  profile of one more run (" << std::fixed << std::setprecision(1) << all_self
+            << " ms of operators):\n  " << std::setw(10) << "self ms" << std::setw(8) << "self %" << std::setw(11)
+            << "total ms" << std::setw(7) << "calls"
+            << "  operator\n";
+  for (int i = 0; i < std::min<int>(top, row.ops.size()); ++i) {
+    const auto& op = row.ops[i];
+    std::cout << "  " << std::setw(10) << op.self_ms << std::setw(8) << 100.0 * op.self_ms / all_self << std::setw(11)
+              << op.total_ms << std::setw(7) << op.calls << "  " << op.name << "\n";
+  }
+  std::cout << std::flush;
+}
+
+}  // namespace
+
 int bench(int argc, char** argv) {
   cxxopts::Options o("flatnet bench",
                      "Time the hot paths (median and min of N runs after warm-up, peak memory per row).\n"
@@ -23,6 +42,10 @@ int bench(int argc, char** argv) {
       "inference levers for infer_*: none, or a list of fold, channels-last, gemm-up, bf16, onednn (onednn: with bf16)",
       cxxopts::value<std::string>()->default_value("fold,channels-last,gemm-up,onednn"))(
       "json", "also write the results to this JSON file", cxxopts::value<std::string>())(
+      "profile",
+      "after each row, one more run under LibTorch's profiler; print its N costliest operators by self time "
+      "(and all of them into --json)",
+      cxxopts::value<int>())(
       "precision",
       "auto|fp32|bf16|both: precision of the infer_* and train_* rows (both: each row twice, the bf16 "
       "one named ROW_bf16); auto is bf16 where the CPU has it natively",
@@ -35,6 +58,9 @@ int bench(int argc, char** argv) {
   opt.warmup = r["warmup"].as<int>();
   opt.levers = parse_inference_levers(r["levers"].as<std::string>());
   require(opt.repeats >= 1 && opt.warmup >= 0, "bench", "--repeats must be >= 1 and --warmup >= 0");
+  const int profile_top = r.count("profile") ? r["profile"].as<int>() : 0;
+  require(profile_top >= 0, "bench", "--profile takes a count of operators to print (>= 0)");
+  opt.profile = r.count("profile") > 0;
   std::vector<std::string> rows;
   if (r.count("rows")) {
     std::stringstream in(r["rows"].as<std::string>());
@@ -84,6 +110,11 @@ int bench(int argc, char** argv) {
                            {"runs_ms", row.ms},
                            {"peak_rss_mb", row.peak_rss_mb},
                            {"per_second", row.per_second}});
+    if (!opt.profile) continue;
+    print_profile(row, profile_top);
+    auto& ops = out["rows"].back()["profile"] = nlohmann::json::array();
+    for (const auto& op : row.ops)
+      ops.push_back({{"op", op.name}, {"calls", op.calls}, {"self_ms", op.self_ms}, {"total_ms", op.total_ms}});
   }
   if (r.count("json")) write_text_atomically(r["json"].as<std::string>(), out.dump(2) + "\n");
   return 0;

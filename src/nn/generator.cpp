@@ -195,14 +195,38 @@ struct UpImpl : nn::Module {  // FlatNet's up: transposed conv on the deeper map
   }
   // torch::cat along the channels of channels-last maps takes a slow path in LibTorch 1.13 (10 ms
   // for 2 x 128 channels at 256x256 in bf16, 22 ms in fp32); two slice copies into a channels-last
-  // buffer give the same tensor in 1.7 ms (autograd flows through the copies as through cat).
+  // buffer give the same tensor in 1.7 ms. ConcatChannelsLast carries the gradient.
   static torch::Tensor cat_channels(const torch::Tensor& a, const torch::Tensor& b) {
     const auto cl = at::MemoryFormat::ChannelsLast;
     if (!a.is_contiguous(cl) || !b.is_contiguous(cl) || a.dim() != 4) return torch::cat({a, b}, 1);
-    auto out = concat_buffer(a, b.size(1), b.scalar_type());
-    out.narrow(1, a.size(1), b.size(1)).copy_(b);
-    return out;
+    return ConcatChannelsLast::apply(a, b);
   }
+  // Its own backward, because autograd's through two slice copies (CopySlices) copies the whole
+  // gradient of the buffer once per slice, and in LibTorch 1.13 that copy came out in the
+  // channels-first order, so every later use paid a transposing copy (one U-Net training step in
+  // bf16 spent ~0.7 s on them at 256x256). Here each input's gradient is its slice of the
+  // buffer's, copied once, channels-last.
+  struct ConcatChannelsLast : torch::autograd::Function<ConcatChannelsLast> {
+    static torch::Tensor forward(torch::autograd::AutogradContext* ctx, const torch::Tensor& a,
+                                 const torch::Tensor& b) {
+      ctx->saved_data["split"] = a.size(1);
+      ctx->saved_data["a_type"] = static_cast<int64_t>(a.scalar_type());
+      ctx->saved_data["b_type"] = static_cast<int64_t>(b.scalar_type());
+      auto out = concat_buffer(a, b.size(1), b.scalar_type());  // {B,Ca+Cb,H,W}
+      out.narrow(1, a.size(1), b.size(1)).copy_(b);
+      return out;
+    }
+    static torch::autograd::variable_list backward(torch::autograd::AutogradContext* ctx,
+                                                   torch::autograd::variable_list grads) {
+      const auto cl = at::MemoryFormat::ChannelsLast;
+      const int64_t split = ctx->saved_data["split"].toInt();
+      const auto& g = grads[0];
+      auto slice = [&](int64_t from, int64_t n, const char* type) {
+        return g.narrow(1, from, n).to(static_cast<at::ScalarType>(ctx->saved_data[type].toInt())).contiguous(cl);
+      };
+      return {slice(0, split, "a_type"), slice(split, g.size(1) - split, "b_type")};
+    }
+  };
   // A channels-last {B, C + extra, H, W} buffer (the promoted type of `first` and `other`) whose
   // first C channels are `first`; the caller fills the rest.
   static torch::Tensor concat_buffer(const torch::Tensor& first, int64_t extra, at::ScalarType other) {

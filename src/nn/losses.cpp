@@ -98,14 +98,26 @@ Vgg16Features load_vgg16(const std::filesystem::path& weights, bool normalize) {
   return vgg;
 }
 
-torch::Tensor perceptual_loss(Vgg16Features& vgg, const torch::Tensor& x, const torch::Tensor& y) {
-  std::pair<torch::Tensor, torch::Tensor> fy;
+void Vgg16FeaturesImpl::use_channels_last() {
+  torch::NoGradGuard no_grad;
+  for (auto& p : parameters())
+    if (p.dim() == 4) p.set_data(p.contiguous(at::MemoryFormat::ChannelsLast));
+}
+
+torch::Tensor perceptual_loss(Vgg16Features& vgg, const torch::Tensor& x, const torch::Tensor& y, bool bf16) {
+  std::pair<torch::Tensor, torch::Tensor> fx, fy;
   {
-    torch::NoGradGuard no_grad;
-    fy = vgg->forward(y);
+    AutocastGuard autocast(bf16);
+    {
+      torch::NoGradGuard no_grad;
+      fy = vgg->forward(y);
+    }
+    fx = vgg->forward(x);
   }
-  const auto fx = vgg->forward(x);
-  return torch::mse_loss(fx.first, fy.first) + torch::mse_loss(fx.second, fy.second);
+  auto mse = [](const torch::Tensor& a, const torch::Tensor& b) {
+    return torch::mse_loss(a.to(torch::kFloat32), b.to(torch::kFloat32));
+  };
+  return mse(fx.first, fy.first) + mse(fx.second, fy.second);
 }
 
 torch::Tensor ssim_loss(const torch::Tensor& x_in, const torch::Tensor& y_in) {

@@ -35,6 +35,8 @@ class Vgg16FeaturesImpl : public torch::nn::Module {
  public:
   explicit Vgg16FeaturesImpl(bool normalize = false);
   std::pair<torch::Tensor, torch::Tensor> forward(const torch::Tensor& x);  // {B,3,H,W}
+  // Weights in channels-last order (the layout oneDNN convolves fastest; see InferenceLevers).
+  void use_channels_last();
 
  private:
   torch::nn::Sequential features_{nullptr};
@@ -52,7 +54,9 @@ Vgg16Features load_vgg16(const std::filesystem::path& weights, bool normalize = 
 // Computed in fp32 even inside a bf16 autocast region. {B,C,H,W} each, H and W >= 11.
 torch::Tensor ssim_loss(const torch::Tensor& x, const torch::Tensor& y);
 
-// Sum of the MSEs of the two VGG feature maps of x and y (y's features need no gradient).
-torch::Tensor perceptual_loss(Vgg16Features& vgg, const torch::Tensor& x, const torch::Tensor& y);
+// Sum of the MSEs of the two VGG feature maps of x and y (y's features need no gradient). With
+// `bf16`, VGG runs under bf16 autocast (as the generator's enhancer does when training in bf16) and
+// the MSEs in fp32.
+torch::Tensor perceptual_loss(Vgg16Features& vgg, const torch::Tensor& x, const torch::Tensor& y, bool bf16 = false);
 
 }  // namespace flatnet

@@ -164,7 +164,7 @@ StepLosses gan_step(Generator& g, Discriminator& d, Vgg16Features& vgg, torch::o
     auto loss = opt.w_mse * mse;
     torch::Tensor perc, adv, structural;
     if (opt.w_ssim > 0) loss = loss + opt.w_ssim * (structural = ssim_loss(fake, gt));
-    if (perceptual) loss = loss + opt.w_perceptual * (perc = perceptual_loss(vgg, fake, gt));
+    if (perceptual) loss = loss + opt.w_perceptual * (perc = perceptual_loss(vgg, fake, gt, opt.bf16));
     if (adversarial) {
       for (auto& p : d->parameters()) p.set_requires_grad(false);
       adv = torch::binary_cross_entropy_with_logits(logits_fp32(d, fake, opt.bf16), torch::ones({fake.size(0), 1}));
@@ -224,6 +224,7 @@ GanTrainer::GanTrainer(Generator generator, Discriminator discriminator, Vgg16Fe
   require(opt_.iterations > 0 && opt_.batch > 0, "train", "iterations and batch must be positive");
   require(opt_.w_perceptual <= 0 || !vgg_.is_empty(), "loss.perceptual", "a perceptual weight needs VGG-16 weights");
   g_->prepare_training({false, opt_.channels_last, false, opt_.gemm_upsample});
+  if (opt_.channels_last && !vgg_.is_empty()) vgg_->use_channels_last();
   // Two parameter groups: the inversion may learn at its own rate.
   std::vector<torch::Tensor> inversion, rest;
   for (const auto& p : g_->named_parameters())
