@@ -9,6 +9,7 @@
 #include "tiny_model.hpp"
 #include "io/torch_file.hpp"
 #include "io/config.hpp"
+#include "nn/losses.hpp"
 #include "nn/model_file.hpp"
 
 using namespace flatnet;
@@ -206,4 +207,52 @@ torch.save(collections.OrderedDict(list(od.items()) + [('extra.weight', torch.on
     CHECK(rep.unused ==
           (std::string(name) == "extra.pt" ? std::vector<std::string>{"extra.weight"} : std::vector<std::string>{}));
   }
+}
+
+TEST_CASE("VGG-16 weights load as Python writes them: convert_vgg16.py, torchvision's own file, features.state_dict()",
+          "[torchfile][python][vgg]") {
+  if (!test::python_has_torch()) SKIP_TEST("/usr/bin/python3 has no torch");
+  test::Scratch s("vgg_python");
+  // Tensor k (in torchvision's order) holds k + 1e-3 * arange: each loaded value says where it came from.
+  const auto script = s.dir / "vgg.py";
+  std::ofstream(script) << R"(import collections, sys, torch
+d = sys.argv[1]
+cfg, names, cin, i = [64, 64, 'M', 128, 128, 'M', 256, 256, 256, 'M', 512, 512, 512], [], 3, 0
+for c in cfg:
+    if c == 'M':
+        i += 1
+        continue
+    names += [('%d.weight' % i, (c, cin, 3, 3)), ('%d.bias' % i, (c,))]
+    cin, i = c, i + 2
+def tensor(k, shape):
+    n = 1
+    for x in shape: n *= x
+    return (k + 1e-3 * torch.arange(n, dtype=torch.float64)).reshape(shape).float()
+features = collections.OrderedDict((n, tensor(k, sh)) for k, (n, sh) in enumerate(names))
+whole = collections.OrderedDict(('features.' + n, t) for n, t in features.items())
+whole['classifier.0.weight'] = torch.zeros(4, 3)   # torchvision's file goes on past features[22]
+whole._metadata = collections.OrderedDict([('', {'version': 1})])
+torch.save(whole, d + '/torchvision.pth')
+torch.save(whole, d + '/torchvision_legacy.pth', _use_new_zipfile_serialization=False)
+torch.save(dict(whole), d + '/convert.pt')
+torch.save(features, d + '/features.pt')
+torch.save(collections.OrderedDict(list(features.items())[:-1]), d + '/short.pt')
+torch.save([t for t in features.values()], d + '/list.pt')
+)";
+  const auto r = test::run_shell("/usr/bin/python3 " + test::q(script) + " " + test::q(s.dir));
+  INFO(r.output);
+  REQUIRE(r.code == 0);
+  for (const char* name : {"torchvision.pth", "torchvision_legacy.pth", "convert.pt", "features.pt"}) {
+    INFO(name);
+    const auto vgg = load_vgg16(s.dir / name);
+    const auto params = vgg->parameters();
+    REQUIRE(params.size() == 20);
+    for (size_t k = 0; k < params.size(); ++k) {
+      const auto expected =
+          (static_cast<double>(k) + 1e-3 * torch::arange(params[k].numel(), torch::kFloat64)).to(torch::kFloat32);
+      CHECK(torch::equal(params[k].flatten(), expected));
+    }
+  }
+  CHECK_THROWS_WITH(load_vgg16(s.dir / "short.pt"), Contains("short.pt") && Contains("features.21.bias"));
+  CHECK_THROWS_WITH(load_vgg16(s.dir / "list.pt"), Contains("list.pt") && Contains("expected a dict"));
 }

@@ -6,6 +6,7 @@
 
 #include "core/error.hpp"
 #include "core/util.hpp"
+#include "io/torch_file.hpp"
 
 namespace flatnet {
 
@@ -74,24 +75,25 @@ Vgg16Features load_vgg16(const std::filesystem::path& weights, bool normalize) {
   if (weights.empty() || !std::filesystem::exists(weights))
     throw Error(weights.empty() ? std::filesystem::path("loss.vgg_file") : weights,
                 "VGG-16 weights not found; the perceptual loss needs them. Make the file with "
-                "`python3 models/convert_vgg16.py` where torchvision can download its weights, "
-                "or train without the perceptual loss: --set loss.perceptual=0");
-  c10::IValue v;
-  try {
-    v = torch::pickle_load(read_bytes(weights));
-  } catch (const c10::Error& e) {
-    throw Error(weights, "not a torch.save'd state dict of VGG-16 features (" +
-                             std::string(e.what_without_backtrace()).substr(0, 200) + ")");
-  }
-  require(v.isGenericDict(), weights, "expected a dict of tensors (features.N.weight, ...)");
+                "`python3 models/convert_vgg16.py` where torchvision can download its weights (or point "
+                "loss.vgg_file at torchvision's own vgg16-397923af.pth), or train without the perceptual loss: "
+                "--set loss.perceptual=0");
+  const auto root = read_torch_file(weights);  // zip or legacy torch.save; errors name the file
+  require(root->is_dict(), weights,
+          "expected a dict of VGG-16 tensors (features.N.weight, ...), found a " + root->describe());
   Vgg16Features vgg(normalize);
-  auto dict = v.toGenericDict();
   torch::NoGradGuard no_grad;
   for (auto& p : vgg->named_parameters()) {
-    const auto it = dict.find(p.key());
-    require(it != dict.end(), weights, "missing tensor '" + p.key() + "'");
-    const auto t = it->value().toTensor();
-    require(t.sizes() == p.value().sizes(), weights, "tensor '" + p.key() + "' has the wrong shape for VGG-16");
+    // convert_vgg16.py and torchvision's whole-model state dict: "features.N.weight" (the
+    // classifier's tensors are ignored); torch.save(vgg.features.state_dict()): "N.weight".
+    auto value = root->get(p.key());
+    if (!value) value = root->get(p.key().substr(std::string("features.").size()));
+    require(value && value->kind == PyValue::Kind::tensor, weights,
+            "missing tensor '" + p.key() + "' (expected VGG-16's features.0.weight ... features.21.bias)");
+    const auto& t = value->tensor;
+    require(t.sizes() == p.value().sizes(), weights,
+            "tensor '" + p.key() + "' has the wrong shape for VGG-16 (" + value->describe() + ")");
+    require(torch::isfinite(t).all().item<bool>(), weights, "tensor '" + p.key() + "' holds NaN or infinity");
     p.value().copy_(t);
   }
   vgg->eval();
