@@ -3,6 +3,8 @@
 #include <fstream>
 #include <unistd.h>
 
+#include <nlohmann/json.hpp>
+
 #include "core/util.hpp"
 #include "helpers.hpp"
 #include "io/image.hpp"
@@ -537,4 +539,40 @@ TEST_CASE("cmake --install gives a binary that finds its files from any folder, 
                       " recon --input " + q(capture) + " --out " + q(s.dir / "lonely" / "rec"));
   INFO(r.output);
   CHECK(r.code == 0);
+}
+
+TEST_CASE("flatnet bench: rows, JSON, and --profile lists the operators of one more run", "[cli][bench]") {
+  test::Scratch s("bench");
+  const auto json_path = s.dir / "bench.json";
+  const auto r = test::run_flatnet(
+      "bench --rows tikhonov,infer_cpu --precision fp32 --repeats 1 --warmup 0 --profile 5 "
+      "--json " +
+      q(json_path));
+  INFO(r.output);
+  REQUIRE(r.code == 0);
+  CHECK_THAT(r.output, Contains("tikhonov") && Contains("infer_cpu") && Contains("profile of one more run"));
+  CHECK_THAT(r.output, Contains("aten::bmm"));  // Tikhonov is batched GEMMs
+  CHECK_THAT(r.output, Contains("aten::"));
+  const auto bytes = read_bytes(json_path);
+  const auto j = nlohmann::json::parse(std::string(bytes.begin(), bytes.end()));
+  REQUIRE(j["rows"].size() == 2);
+  for (const auto& row : j["rows"]) {
+    INFO(row["name"]);
+    CHECK(row["median_ms"].get<double>() > 0);
+    REQUIRE(row.contains("profile"));
+    REQUIRE(!row["profile"].empty());
+    double previous = 1e300;
+    for (const auto& op : row["profile"]) {  // by self time, largest first; self never exceeds total
+      CHECK(op["calls"].get<int64_t>() > 0);
+      CHECK(op["self_ms"].get<double>() <= op["total_ms"].get<double>() + 1e-9);
+      CHECK(op["self_ms"].get<double>() <= previous);
+      previous = op["self_ms"].get<double>();
+    }
+  }
+  const auto bad = test::run_flatnet("bench --rows tikhonov --repeats 1 --profile -1");
+  CHECK(bad.code == 2);
+  CHECK_THAT(bad.output, Contains("--profile"));
+  const auto unknown = test::run_flatnet("bench --rows warp_drive --repeats 1");
+  CHECK(unknown.code == 2);
+  CHECK_THAT(unknown.output, Contains("warp_drive") && Contains("tikhonov"));
 }

@@ -27,11 +27,11 @@ double now_ms() {
   return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now().time_since_epoch()).count();
 }
 
-// Runs fn once under LibTorch's profiler and sums its operators by name. Self time: an event's
+// Runs fn once under LibTorch's profiler and sums its operators by name (and, with `shapes`, by
+// input shapes and types). Self time: an event's
 // duration less that of the events nested directly inside it on the same thread.
-std::vector<OpTime> profile_once(const std::function<void()>& fn) {
+std::vector<OpTime> profile_once(const std::function<void()>& fn, bool shapes) {
   namespace prof = torch::profiler::impl;
-  const bool shapes = std::getenv("FLATNET_PROFILE_SHAPES") != nullptr;
   const prof::ProfilerConfig config(prof::ProfilerState::KINETO, shapes);
   const std::set<prof::ActivityType> activities = {prof::ActivityType::CPU};
   torch::autograd::profiler::prepareProfiler(config, activities);
@@ -45,13 +45,15 @@ std::vector<OpTime> profile_once(const std::function<void()>& fn) {
   std::vector<Span> spans;
   for (const auto& e : result->events()) {
     std::string name = e.name();
-    if (shapes && e.hasShapes()) {
+    if (shapes && e.hasShapes()) {  // e.g. "aten::bmm {4,256,500} {4,500,620} float float"
       for (const auto& s : e.shapes()) {
-        name += " [";
-        for (auto d : s) name += std::to_string(d) + ",";
-        name += "]";
+        if (s.empty()) continue;  // a scalar or an absent argument
+        std::string dims;
+        for (auto d : s) dims += (dims.empty() ? "" : ",") + std::to_string(d);
+        name += " {" + dims + "}";
       }
-      for (const auto& t : e.dtypes()) name += " " + t;
+      for (const auto& t : e.dtypes())
+        if (!t.empty() && t != "Scalar") name += " " + t;
     }
     spans.push_back({name, e.startThreadId(), e.startUs(), e.startUs() + e.durationUs()});
   }
@@ -99,7 +101,7 @@ BenchRow time_row(const std::string& name, const std::string& what, const BenchO
   row.median_ms = sorted[sorted.size() / 2];
   if (sorted.size() % 2 == 0) row.median_ms = 0.5 * (sorted[sorted.size() / 2 - 1] + sorted[sorted.size() / 2]);
   row.min_ms = sorted.front();
-  if (o.profile) row.ops = profile_once(fn);
+  if (o.profile) row.ops = profile_once(fn, o.profile_shapes);
   return row;
 }
 

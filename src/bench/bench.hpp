@@ -13,10 +13,11 @@ namespace flatnet {
 struct BenchOptions {
   int repeats = 5;
   int warmup = 1;
-  InferenceLevers levers;  // for the infer_* rows (levers.bf16 is set from `bf16`)
-  bool bf16 = false;       // infer_* with the enhancer in bf16, train_* with bf16 autocast
-  int loader_workers = 2;  // for the loader row
-  bool profile = false;    // one more run under LibTorch's profiler: BenchRow::ops
+  InferenceLevers levers;       // for the infer_* rows (levers.bf16 is set from `bf16`)
+  bool bf16 = false;            // infer_* with the enhancer in bf16, train_* with bf16 autocast
+  int loader_workers = 2;       // for the loader row
+  bool profile = false;         // one more run under LibTorch's profiler: BenchRow::ops
+  bool profile_shapes = false;  // ... operators told apart by their input shapes and types
 };
 
 // One operator's share of a profiled run (LibTorch's profiler, CPU): self time excludes the

@@ -45,7 +45,7 @@ int bench(int argc, char** argv) {
       "profile",
       "after each row, one more run under LibTorch's profiler; print its N costliest operators by self time "
       "(and all of them into --json)",
-      cxxopts::value<int>())(
+      cxxopts::value<int>())("profile-shapes", "with --profile: tell operators apart by input shapes and types")(
       "precision",
       "auto|fp32|bf16|both: precision of the infer_* and train_* rows (both: each row twice, the bf16 "
       "one named ROW_bf16); auto is bf16 where the CPU has it natively",
@@ -61,6 +61,8 @@ int bench(int argc, char** argv) {
   const int profile_top = r.count("profile") ? r["profile"].as<int>() : 0;
   require(profile_top >= 0, "bench", "--profile takes a count of operators to print (>= 0)");
   opt.profile = r.count("profile") > 0;
+  opt.profile_shapes = r.count("profile-shapes") > 0;
+  require(!opt.profile_shapes || opt.profile, "bench", "--profile-shapes goes with --profile N");
   std::vector<std::string> rows;
   if (r.count("rows")) {
     std::stringstream in(r["rows"].as<std::string>());
