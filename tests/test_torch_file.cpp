@@ -108,6 +108,7 @@ TEST_CASE("nested checkpoints: FlatNet's layout, optimiser state, numbers, lists
 TEST_CASE("bad torch.save files: one clear error naming the file, and no code is ever run", "[torchfile]") {
   test::Scratch s("torchfile_bad");
   CHECK_THROWS_WITH(read_torch_file(s.dir / "missing.pt"), Contains("missing.pt") && Contains("no such file"));
+  CHECK_THROWS_WITH(read_torch_file(s.dir), Contains(s.dir.string()) && Contains("is a folder"));
   write_bytes(s.dir / "empty.pt", "");
   CHECK_THROWS_WITH(read_torch_file(s.dir / "empty.pt"), Contains("empty.pt") && Contains("empty"));
   write_bytes(s.dir / "text.pt", "hello");

@@ -256,8 +256,14 @@ void parallel_for_index(int64_t n, int workers, const std::function<void(int64_t
 
 std::vector<char> read_bytes(const fs::path& path) {
   require(fs::exists(path), path, "no such file");
+  require(!fs::is_directory(path), path, "is a folder, not a file");
   std::ifstream in(path, std::ios::binary);
-  return std::vector<char>((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+  require(in.is_open(), path, "cannot be opened for reading (permissions?)");
+  try {
+    return std::vector<char>((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+  } catch (const std::exception& e) {
+    throw Error(path, std::string("read failed: ") + e.what());
+  }
 }
 
 std::string number_problem(const std::string& text, const NumberRule& rule) {

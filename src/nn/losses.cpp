@@ -92,7 +92,8 @@ Vgg16Features load_vgg16(const std::filesystem::path& weights, bool normalize) {
             "missing tensor '" + p.key() + "' (expected VGG-16's features.0.weight ... features.21.bias)");
     const auto& t = value->tensor;
     require(t.sizes() == p.value().sizes(), weights,
-            "tensor '" + p.key() + "' has the wrong shape for VGG-16 (" + value->describe() + ")");
+            "tensor '" + p.key() + "' has the wrong shape for VGG-16: " + value->describe() + ", expected " +
+                c10::str(p.value().sizes()));
     require(torch::isfinite(t).all().item<bool>(), weights, "tensor '" + p.key() + "' holds NaN or infinity");
     p.value().copy_(t);
   }
