@@ -62,6 +62,11 @@ int bench(int argc, char** argv) {
   require(profile_top >= 0, "bench", "--profile takes a count of operators to print (>= 0)");
   opt.profile = r.count("profile") > 0;
   opt.profile_shapes = r.count("profile-shapes") > 0;
+  if (r.count("json")) {  // before the rows run, not after minutes of them
+    const auto folder = std::filesystem::absolute(r["json"].as<std::string>()).parent_path();
+    require(std::filesystem::is_directory(folder), r["json"].as<std::string>(),
+            "--json: the folder " + folder.string() + " does not exist");
+  }
   require(!opt.profile_shapes || opt.profile, "bench", "--profile-shapes goes with --profile N");
   std::vector<std::string> rows;
   if (r.count("rows")) {
