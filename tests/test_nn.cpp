@@ -363,7 +363,7 @@ TEST_CASE("perceptual loss: channels-last VGG gives the same loss, bf16 autocast
   };
   torch::manual_seed(1);
   const auto [fp32, g32] = loss_and_grad(false);
-  vgg->use_channels_last();
+  weights_to_channels_last(*vgg);
   CHECK(vgg->parameters()[0].is_contiguous(at::MemoryFormat::ChannelsLast));
   torch::manual_seed(1);
   const auto [cl, gcl] = loss_and_grad(false);

@@ -148,8 +148,8 @@ BenchRow train_row(const std::string& name, int64_t width, bool paper, const Ben
   g->prepare_training(o.levers);
   DiscriminatorOptions dopt;
   Discriminator d(dopt);
-  Vgg16Features vgg(false);                              // random weights: the cost is what is measured
-  if (o.levers.channels_last) vgg->use_channels_last();  // as GanTrainer
+  Vgg16Features vgg(false);                                    // random weights: the cost is what is measured
+  if (o.levers.channels_last) weights_to_channels_last(*vgg);  // as GanTrainer
   TrainOptions t;
   t.batch = 4;
   t.w_mse = 1.0;

@@ -23,8 +23,9 @@ void print_profile(const BenchRow& row, int top) {
             << "  operator\n";
   for (int i = 0; i < std::min<int>(top, row.ops.size()); ++i) {
     const auto& op = row.ops[i];
-    std::cout << "  " << std::setw(10) << op.self_ms << std::setw(8) << 100.0 * op.self_ms / all_self << std::setw(11)
-              << op.total_ms << std::setw(7) << op.calls << "  " << op.name << "\n";
+    std::cout << "  " << std::setw(10) << op.self_ms << std::setw(8)
+              << (all_self > 0 ? 100.0 * op.self_ms / all_self : 0.0) << std::setw(11) << op.total_ms << std::setw(7)
+              << op.calls << "  " << op.name << "\n";
   }
   std::cout << std::flush;
 }
@@ -62,11 +63,8 @@ int bench(int argc, char** argv) {
   require(profile_top >= 0, "bench", "--profile takes a count of operators to print (>= 0)");
   opt.profile = r.count("profile") > 0;
   opt.profile_shapes = r.count("profile-shapes") > 0;
-  if (r.count("json")) {  // before the rows run, not after minutes of them
-    const auto folder = std::filesystem::absolute(r["json"].as<std::string>()).parent_path();
-    require(std::filesystem::is_directory(folder), r["json"].as<std::string>(),
-            "--json: the folder " + folder.string() + " does not exist");
-  }
+  if (r.count("json"))  // its folder made (as the writer would) before the rows run, not after minutes of them
+    std::filesystem::create_directories(std::filesystem::absolute(r["json"].as<std::string>()).parent_path());
   require(!opt.profile_shapes || opt.profile, "bench", "--profile-shapes goes with --profile N");
   std::vector<std::string> rows;
   if (r.count("rows")) {

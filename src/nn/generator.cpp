@@ -173,22 +173,12 @@ struct UpImpl : nn::Module {  // FlatNet's up: transposed conv on the deeper map
     if (dy != 0 || dx != 0) x2 = torch::constant_pad_nd(x2, {dx / 2, dx - dx / 2, dy / 2, dy - dy / 2});
     return conv->forward(cat_channels(x2, x1));
   }
-  // Inference: the upsampled map is written straight into its half of the concatenation. The GEMM's
-  // columns are ordered [di][dj][o] and carry the bias (addmm), so one strided copy of runs of O
-  // values moves each output pixel into place: no separate bias pass, permute copy or cat.
+  // Inference: the upsampled map is written straight into its half of the concatenation (one
+  // strided copy of runs of O values moves each output pixel into place: no separate bias pass,
+  // permute copy or cat).
   torch::Tensor upsample_into_concat(const torch::Tensor& x, const torch::Tensor& skip) {  // {B,C,H,W}, {B,S,2H,2W}
-    const int64_t B = x.size(0), C = x.size(1), H = x.size(2), W = x.size(3), O = up->weight.size(1), S = skip.size(1);
-    if (!concat_weight.defined() || concat_weight.scalar_type() != x.scalar_type()) {
-      concat_weight = up->weight.detach()
-                          .permute({0, 2, 3, 1})
-                          .reshape({C, 4 * O})
-                          .to(x.scalar_type())
-                          .contiguous();  // [c][di][dj][o]
-      concat_bias = up->bias.detach().repeat({4}).to(x.scalar_type());
-    }
-    const auto y = torch::addmm(concat_bias, x.permute({0, 2, 3, 1}).reshape({B * H * W, C}), concat_weight)
-                       .view({B, H, W, 2, 2, O})
-                       .permute({0, 1, 3, 2, 4, 5});  // [b][i][di][j][dj][o]
+    const int64_t B = x.size(0), H = x.size(2), W = x.size(3), O = up->weight.size(1), S = skip.size(1);
+    const auto y = upsample_columns(x).permute({0, 1, 3, 2, 4, 5});  // [b][i][di][j][dj][o]
     auto out = concat_buffer(skip, O, x.scalar_type());
     out.narrow(1, S, O).permute({0, 2, 3, 1}).view({B, H, 2, W, 2, O}).copy_(y);
     return out;
@@ -210,8 +200,8 @@ struct UpImpl : nn::Module {  // FlatNet's up: transposed conv on the deeper map
     static torch::Tensor forward(torch::autograd::AutogradContext* ctx, const torch::Tensor& a,
                                  const torch::Tensor& b) {
       ctx->saved_data["split"] = a.size(1);
-      ctx->saved_data["a_type"] = static_cast<int64_t>(a.scalar_type());
-      ctx->saved_data["b_type"] = static_cast<int64_t>(b.scalar_type());
+      ctx->saved_data["a_type"] = a.scalar_type();
+      ctx->saved_data["b_type"] = b.scalar_type();
       auto out = concat_buffer(a, b.size(1), b.scalar_type());  // {B,Ca+Cb,H,W}
       out.narrow(1, a.size(1), b.size(1)).copy_(b);
       return out;
@@ -222,7 +212,7 @@ struct UpImpl : nn::Module {  // FlatNet's up: transposed conv on the deeper map
       const int64_t split = ctx->saved_data["split"].toInt();
       const auto& g = grads[0];
       auto slice = [&](int64_t from, int64_t n, const char* type) {
-        return g.narrow(1, from, n).to(static_cast<at::ScalarType>(ctx->saved_data[type].toInt())).contiguous(cl);
+        return g.narrow(1, from, n).to(ctx->saved_data[type].toScalarType()).contiguous(cl);
       };
       return {slice(0, split, "a_type"), slice(split, g.size(1) - split, "b_type")};
     }
@@ -239,28 +229,35 @@ struct UpImpl : nn::Module {  // FlatNet's up: transposed conv on the deeper map
   }
   // The 2x2, stride-2 transposed convolution as one GEMM (exact: output pixels do not overlap):
   //   out[b, o, 2i+di, 2j+dj] = sum_c x[b, c, i, j] W[c, o, di, dj] + bias[o].
-  // In NHWC, X {B*H*W, C} @ W {C, O*4} then an interleaving copy; LibTorch 1.13's own CPU kernel
+  // In NHWC, X {B*H*W, C} @ W {C, 4*O} then an interleaving copy; LibTorch 1.13's own CPU kernel
   // (slow_conv_transpose2d: im2col and NCHW only) is 2-3x slower here.
   torch::Tensor upsample_as_gemm(const torch::Tensor& x) {  // {B,C,H,W} -> {B,O,2H,2W}
+    const int64_t B = x.size(0), H = x.size(2), W = x.size(3), O = up->weight.size(1);
+    // -> [b][i][di][j][dj][o]: NHWC of the upsampled map, then viewed as channels_last NCHW.
+    return upsample_columns(x)
+        .permute({0, 1, 3, 2, 4, 5})
+        .contiguous()
+        .view({B, 2 * H, 2 * W, O})
+        .permute({0, 3, 1, 2});
+  }
+  // The GEMM, {B,H,W,2,2,O} ([b][i][j][di][dj][o]). Its columns are ordered [di][dj][o], so the
+  // interleaving copies move runs of O contiguous values (ordered [o][di][dj] they moved pairs: 4x
+  // slower in bf16 training), and the bias rides in it (addmm), one value per column.
+  torch::Tensor upsample_columns(const torch::Tensor& x) {
     const int64_t B = x.size(0), C = x.size(1), H = x.size(2), W = x.size(3), O = up->weight.size(1);
-    // The GEMM's columns are ordered [di][dj][o], so the interleaving copy below moves runs of O
-    // contiguous values (ordered [o][di][dj] it moved pairs: 4x slower in bf16 training).
+    const auto type = x.scalar_type();
     torch::Tensor w, bias;
     if (!cache_weights) {  // training and validation: the live parameters (gradients reach them; never stale)
-      w = up->weight.permute({0, 2, 3, 1}).reshape({C, 4 * O});  // a view for channels-last weights
-      bias = up->bias;
+      w = up->weight.permute({0, 2, 3, 1}).reshape({C, 4 * O}).to(type);  // a view for channels-last fp32 weights
+      bias = up->bias.repeat({4}).to(type);
     } else {  // a module prepared for inference (weights frozen): reordered (and cast) once
-      if (!gemm_weight.defined() || gemm_weight.scalar_type() != x.scalar_type())
-        gemm_weight = up->weight.detach().permute({0, 2, 3, 1}).reshape({C, 4 * O}).to(x.scalar_type()).contiguous();
-      w = gemm_weight;
-      bias = up->bias.detach().to(x.scalar_type());
+      if (!gemm_weight.defined() || gemm_weight.scalar_type() != type) {
+        gemm_weight = up->weight.detach().permute({0, 2, 3, 1}).reshape({C, 4 * O}).to(type).contiguous();
+        gemm_bias = up->bias.detach().repeat({4}).to(type);
+      }
+      w = gemm_weight, bias = gemm_bias;
     }
-    const auto nhwc = x.permute({0, 2, 3, 1}).reshape({B * H * W, C});
-    // The bias rides in the GEMM (addmm), one value per column.
-    auto y = torch::addmm(bias.to(nhwc.scalar_type()).repeat({4}), nhwc, w.to(nhwc.scalar_type()))
-                 .view({B, H, W, 2, 2, O});  // [b][i][j][di][dj][o]
-    // -> [b][i][di][j][dj][o]: NHWC of the upsampled map, then viewed as channels_last NCHW.
-    return y.permute({0, 1, 3, 2, 4, 5}).contiguous().view({B, 2 * H, 2 * W, O}).permute({0, 3, 1, 2});
+    return torch::addmm(bias, x.permute({0, 2, 3, 1}).reshape({B * H * W, C}), w).view({B, H, W, 2, 2, O});
   }
   nn::ConvTranspose2d up{nullptr};
   DoubleConv conv{nullptr};
@@ -269,7 +266,7 @@ struct UpImpl : nn::Module {  // FlatNet's up: transposed conv on the deeper map
   // cache while training would be a stale copy after the first optimiser step (channels-last
   // weights reshape to a copy, not a view).
   bool cache_weights = false;
-  torch::Tensor gemm_weight, concat_weight, concat_bias;  // cached for inference, [c][di][dj][o]
+  torch::Tensor gemm_weight, gemm_bias;  // cached for inference: {C,4*O} [c][di][dj][o], {4*O}
 };
 TORCH_MODULE(Up);
 
@@ -519,7 +516,7 @@ void GeneratorImpl::apply_levers(const InferenceLevers& levers, bool for_inferen
     if (auto up = std::dynamic_pointer_cast<UpImpl>(m)) {
       up->gemm_up = levers.gemm_upsample;
       up->cache_weights = for_inference;
-      up->gemm_weight = up->concat_weight = up->concat_bias = torch::Tensor();
+      up->gemm_weight = up->gemm_bias = torch::Tensor();
     }
   auto& enhancer = *named_children()["enhancer"];
   torch::NoGradGuard no_grad;
@@ -531,12 +528,16 @@ void GeneratorImpl::apply_levers(const InferenceLevers& levers, bool for_inferen
       if (auto dc = std::dynamic_pointer_cast<DoubleConvImpl>(m)) dc->use_onednn();
       if (auto oc = std::dynamic_pointer_cast<OutConvImpl>(m)) oc->use_onednn();
     }
-  if (levers.channels_last)
-    for (auto& p : enhancer.parameters())
-      if (p.dim() == 4) p.set_data(p.contiguous(at::MemoryFormat::ChannelsLast));
+  if (levers.channels_last) weights_to_channels_last(enhancer);
   levers_.fold_batchnorm = levers_.fold_batchnorm || levers.fold_batchnorm;
   levers_.channels_last = levers.channels_last;
   levers_.bf16 = levers.bf16;
+}
+
+void weights_to_channels_last(torch::nn::Module& module) {
+  torch::NoGradGuard no_grad;
+  for (auto& p : module.parameters())
+    if (p.dim() == 4) p.set_data(p.contiguous(at::MemoryFormat::ChannelsLast));
 }
 
 InferenceLevers parse_inference_levers(const std::string& s) {

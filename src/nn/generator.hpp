@@ -152,6 +152,10 @@ struct InferenceLevers {
 // "none" or a comma list of fold, channels-last, gemm-up, bf16, onednn.
 InferenceLevers parse_inference_levers(const std::string& s);
 
+// The module's 4-D parameters (convolution weights) in channels-last order, the layout oneDNN
+// convolves fastest; the values are unchanged.
+void weights_to_channels_last(torch::nn::Module& module);
+
 class GeneratorImpl : public torch::nn::Module {
  public:
   explicit GeneratorImpl(const GeneratorOptions& options);

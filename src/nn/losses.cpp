@@ -101,12 +101,6 @@ Vgg16Features load_vgg16(const std::filesystem::path& weights, bool normalize) {
   return vgg;
 }
 
-void Vgg16FeaturesImpl::use_channels_last() {
-  torch::NoGradGuard no_grad;
-  for (auto& p : parameters())
-    if (p.dim() == 4) p.set_data(p.contiguous(at::MemoryFormat::ChannelsLast));
-}
-
 torch::Tensor perceptual_loss(Vgg16Features& vgg, const torch::Tensor& x, const torch::Tensor& y, bool bf16) {
   std::pair<torch::Tensor, torch::Tensor> fx, fy;
   {

@@ -35,8 +35,6 @@ class Vgg16FeaturesImpl : public torch::nn::Module {
  public:
   explicit Vgg16FeaturesImpl(bool normalize = false);
   std::pair<torch::Tensor, torch::Tensor> forward(const torch::Tensor& x);  // {B,3,H,W}
-  // Weights in channels-last order (the layout oneDNN convolves fastest; see InferenceLevers).
-  void use_channels_last();
 
  private:
   torch::nn::Sequential features_{nullptr};

@@ -224,7 +224,7 @@ GanTrainer::GanTrainer(Generator generator, Discriminator discriminator, Vgg16Fe
   require(opt_.iterations > 0 && opt_.batch > 0, "train", "iterations and batch must be positive");
   require(opt_.w_perceptual <= 0 || !vgg_.is_empty(), "loss.perceptual", "a perceptual weight needs VGG-16 weights");
   g_->prepare_training({false, opt_.channels_last, false, opt_.gemm_upsample});
-  if (opt_.channels_last && !vgg_.is_empty()) vgg_->use_channels_last();
+  if (opt_.channels_last && !vgg_.is_empty()) weights_to_channels_last(*vgg_);
   // Two parameter groups: the inversion may learn at its own rate.
   std::vector<torch::Tensor> inversion, rest;
   for (const auto& p : g_->named_parameters())
