@@ -5,6 +5,7 @@
 
 #include <nlohmann/json.hpp>
 
+#include "core/output_dir.hpp"
 #include "core/util.hpp"
 #include "helpers.hpp"
 #include "io/image.hpp"
@@ -164,7 +165,7 @@ TEST_CASE("bad input: one clear line, exit code 2", "[cli][errors]") {
   const std::string train =
       "train --config " + q(test::source_dir() / "configs" / "sim_transpose.yaml") + " --out " + q(s.dir / "run");
   for (const auto& [set, message] : std::vector<std::pair<std::string, std::string>>{
-           {"train.lr=nan", "train.lr = nan is not a finite number"},
+           {"train.lr=nan", "train.lr = nan is not a finite decimal number"},
            {"train.iterations=1e99", "train.iterations = 1e99 is out of range"},
            {"train.workers=100000", "train.workers = 100000 is out of range"},
            {"train.batch=0", "train.batch = 0 is out of range"},
@@ -423,6 +424,7 @@ TEST_CASE("a full disk: exit 2 naming the file, no temp files left, no broken fi
   CHECK_THAT(r.output, Contains("write failed"));
   for (const auto& e : std::filesystem::directory_iterator(disk / "rec")) {
     INFO(e.path());
+    if (e.path().filename() == kOutputMarker || e.path().filename() == kOutputLock) continue;  // the folder's claim
     CHECK(e.path().filename().string()[0] != '.');
     CHECK(read_rgb(e.path()).size(0) == 3);
   }
@@ -459,6 +461,17 @@ TEST_CASE("flatnet report: the table, the figure, timings, and it resumes from w
   std::filesystem::remove(s.dir / "out" / "display" / "tikhonov" / "bsds_16052.png");
   r = test::run_flatnet(cmd);
   CHECK_THAT(r.output, Contains("tikhonov: 1 of 2 to make"));
+  // Another model under the same method name: its own reconstructions, never the old model's.
+  const auto before = read_rgb(s.dir / "out" / "display" / "transpose" / "bsds_16052.png");
+  const auto calibfree = test::source_dir() / "models" / "flatnet-sim-calibfree.flatnet";
+  std::string other_cmd = cmd;
+  other_cmd.replace(other_cmd.find(q(model)), q(model).size(), q(calibfree));
+  r = test::run_flatnet(other_cmd);
+  INFO(r.output);
+  CHECK(r.code == 0);
+  CHECK_THAT(r.output, Contains("transpose: the reconstructions on disk were made by another model") &&
+                           Contains("transpose: 2 of 2 to make"));
+  CHECK_FALSE(torch::equal(read_rgb(s.dir / "out" / "display" / "transpose" / "bsds_16052.png"), before));
   // A set without ground truth, or a method that is not one, is named.
   r = test::run_flatnet("report --sets " + q(s.dir / "set" / "meas") + " --out " + q(s.dir / "o2"));
   CHECK(r.code == 2);

@@ -13,6 +13,8 @@
 #include "train/distributed.hpp"
 #include "train/gan_trainer.hpp"
 
+#include <iomanip>
+#include <sstream>
 #include <thread>
 #include <unistd.h>
 
@@ -129,6 +131,39 @@ TEST_CASE("training resumes bit for bit from its checkpoint", "[train]") {
   CHECK(scores(straight_lines[2]) == scores(lines[2]));
   CHECK(std::filesystem::exists(s.dir / "split" / "model.flatnet"));
   CHECK(std::filesystem::exists(s.dir / "split" / "samples.png"));
+}
+
+TEST_CASE("checkpoints as a set: a kill between best.ckpt and latest.ckpt loses nothing", "[train][safe]") {
+  test::Scratch s("ckpt_set");
+  Setup setup;
+  const auto dir = s.dir / "run";
+  {
+    auto first = setup.trainer(dir, 2);
+    first.run();
+  }
+  const auto step2 = s.dir / "latest_step2.ckpt";
+  std::filesystem::copy_file(dir / "latest.ckpt", step2);
+  {
+    auto second = setup.trainer(dir, 4);
+    second.resume(dir / "latest.ckpt");
+    second.run();
+  }
+  // As if killed after best.ckpt and before latest.ckpt: latest is a step behind the best file.
+  std::filesystem::copy_file(step2, dir / "latest.ckpt", std::filesystem::copy_options::overwrite_existing);
+  const double best_on_disk = checkpoint_best_psnr(dir / "best.ckpt");
+  auto third = setup.trainer(dir, 4);
+  const auto said = third.resume(dir / "latest.ckpt");
+  std::ostringstream best;
+  best << std::fixed << std::setprecision(2) << best_on_disk;
+  CHECK_THAT(said, Contains("resumed at step 2") && Contains("both optimisers") &&
+                       Contains(best.str() + " dB (best.ckpt)"));
+  // model.flatnet follows the checkpoint resumed from, not the lost steps.
+  const auto model = weights(dir / "latest.ckpt");
+  auto exported = load_model_file(dir / "model.flatnet");
+  for (const auto& p : exported.generator->named_parameters()) CHECK(torch::equal(p.value(), model.at(p.key())));
+  const auto summary = third.run();
+  CHECK(summary.best_psnr >= best_on_disk);
+  CHECK(checkpoint_best_psnr(dir / "best.ckpt") == summary.best_psnr);
 }
 
 TEST_CASE("validation scores the current weights, never a cached copy", "[train]") {

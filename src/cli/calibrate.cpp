@@ -35,6 +35,7 @@ int calibrate(int argc, char** argv) {
   if (r.count("write-patterns")) {
     const auto camera = camera_from(r);
     const std::filesystem::path dir = r["write-patterns"].as<std::string>();
+    const auto claim = claim_out(r, dir, "calibrate --write-patterns");
     std::string list;
     for (const auto& p : calibration_patterns(camera.scene_size, level)) {
       write_rgb8(dir / (p.name + ".png"), p.image.unsqueeze(0).expand({3, -1, -1}));

@@ -192,12 +192,14 @@ int capture_dataset(int argc, char** argv) {
       "val-fraction", "share of photographs in the validation lists", cxxopts::value<double>()->default_value("0.1"))(
       "seed", "split seed", cxxopts::value<uint64_t>()->default_value("0"));
   add_collect_flags(o, 1);
+  add_force_folder(o);
   cxxopts::ParseResult r;
   if (!parse(o, argc, argv, r)) return 0;
   require(r.count("images") && r.count("out"), "capture-dataset", "--images DIR and --out DIR are required");
   const auto camera = camera_from(r);
   DatasetCollectOptions opt;
   opt.out = r["out"].as<std::string>();
+  const auto claim = claim_out(r, opt.out, "capture-dataset");
   opt.scene_size = camera.scene_size;
   opt.val_fraction = r["val-fraction"].as<double>();
   opt.seed = r["seed"].as<uint64_t>();
@@ -221,6 +223,7 @@ int capture_calibration(int argc, char** argv) {
       cxxopts::value<std::string>())("level", "display code (sRGB, 1..255) of the patterns' bright parts",
                                      cxxopts::value<int>()->default_value(std::to_string(kDefaultPatternLevel)));
   add_collect_flags(o, 4);
+  add_force_folder(o);
   cxxopts::ParseResult r;
   if (!parse(o, argc, argv, r)) return 0;
   require(r.count("out"), "capture-calibration", "--out DIR is required");
@@ -232,7 +235,7 @@ int capture_calibration(int argc, char** argv) {
   std::vector<CollectItem> items;
   for (auto& p : calibration_patterns(camera.scene_size, level))
     items.push_back({p.name + ".png", [img = p.image] { return img; }});
-  std::filesystem::create_directories(out);
+  const auto claim = claim_out(r, out, "capture-calibration");
   auto session = open_collection(r, camera);
   const auto rep = collect(items, *session.source, *session.display, collect_options(r),
                            [&](const std::string& n) { return out / n; });

@@ -5,6 +5,7 @@
 #include <vector>
 
 #include "io/camera_config.hpp"
+#include "core/output_dir.hpp"
 #include "core/precision.hpp"
 
 namespace flatnet::cli {
@@ -41,6 +42,13 @@ void add_precision(cxxopts::Options& options);
 // The resolved choice, printed once to stderr ("precision: bf16 (AMX)"); asks for AMX tiles when bf16.
 Precision precision_from(const cxxopts::ParseResult& r);
 // --camera FILE (yaml or rig .mat); the reference camera when absent.
+// Claims the --out folder for `command` (core/output_dir.hpp); `--force` (when the command has it)
+// writes into a folder that holds other output. Keep the claim alive while writing.
+OutputClaim claim_out(const cxxopts::ParseResult& r, const std::filesystem::path& out, const std::string& command,
+                      const std::string& settings = "", const std::string& own_file = "");
+// "--force" for commands whose only output is a folder.
+void add_force_folder(cxxopts::Options& options);
+
 CameraConfig camera_from(const cxxopts::ParseResult& r, const std::string& flag = "camera");
 
 }  // namespace flatnet::cli

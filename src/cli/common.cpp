@@ -102,6 +102,20 @@ Precision precision_from(const cxxopts::ParseResult& r) {
   return p;
 }
 
+OutputClaim claim_out(const cxxopts::ParseResult& r, const std::filesystem::path& out, const std::string& command,
+                      const std::string& settings, const std::string& own_file) {
+  OutputRole role;
+  role.own_file = own_file;
+  role.command = command;
+  role.settings = settings;
+  role.force = r.count("force") > 0;
+  return claim_output_folder(out, role);
+}
+
+void add_force_folder(cxxopts::Options& options) {
+  options.add_options()("force", "write into an --out folder that holds other output or files flatnet did not write");
+}
+
 CameraConfig camera_from(const cxxopts::ParseResult& r, const std::string& flag) {
   const std::filesystem::path p =
       r.count(flag) ? std::filesystem::path(r[flag].as<std::string>()) : default_camera_path();

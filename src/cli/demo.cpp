@@ -49,10 +49,12 @@ int demo(int argc, char** argv) {
   o.add_options()("out", "output folder", cxxopts::value<std::string>()->default_value("demo_out"))(
       "images", "photographs to use (default: python3-skimage's sample photographs)", cxxopts::value<std::string>())(
       "camera", "camera .yaml (default: the reference camera)", cxxopts::value<std::string>());
+  add_force_folder(o);
   add_common(o);
   cxxopts::ParseResult r;
   if (!parse(o, argc, argv, r)) return 0;
   const std::filesystem::path out = r["out"].as<std::string>();
+  const auto claim = claim_out(r, out, "demo");
   const auto camera = camera_from(r);
   const auto images = r.count("images") ? std::filesystem::path(r["images"].as<std::string>())
                                         : gather_demo_images(kDemoImageDir, out / "photos");

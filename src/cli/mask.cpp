@@ -50,6 +50,7 @@ int mask_train(int argc, char** argv) {
   o.add_options()("config", "experiment config (configs/mask_rank1.yaml, ...)", cxxopts::value<std::string>())(
       "set", "override a setting (repeatable)", cxxopts::value<std::vector<std::string>>())(
       "out", "output folder", cxxopts::value<std::string>());
+  add_force_folder(o);
   add_common(o);
   cxxopts::ParseResult r;
   if (!parse(o, argc, argv, r)) return 0;
@@ -87,7 +88,7 @@ int mask_train(int argc, char** argv) {
             << first(val_imgs, c.integer("train.val_count")).size() << " validation photographs...\n";
   const auto train = load_luma_scenes(first(train_imgs, c.integer("data.train_limit")), cam.scene, 2);
   const auto val = load_luma_scenes(first(val_imgs, c.integer("train.val_count")), cam.scene, 2);
-  std::filesystem::create_directories(to.out);
+  const auto claim = claim_out(r, to.out, "mask train");
   write_text_atomically(to.out / "config.yaml", c.to_yaml());
   const auto s = train_mask(model, train, val, cam, to);
   std::cout << "rank " << mo.rank << " mask: validation PSNR " << std::fixed << std::setprecision(2) << s.val_psnr
@@ -172,6 +173,7 @@ int mask_report(int argc, char** argv) {
       cxxopts::value<std::vector<std::string>>()->default_value("wiener,separable"))(
       "flatnet", "FlatNet models trained on a code pair's camera, NAME=model.flatnet (NAME as in --codes)",
       cxxopts::value<std::vector<std::string>>());
+  add_force_folder(o);
   add_common(o);
   add_precision(o);
   cxxopts::ParseResult r;
@@ -180,6 +182,7 @@ int mask_report(int argc, char** argv) {
   MaskReportOptions opt;
   opt.images = r["images"].as<std::string>();
   opt.out = r["out"].as<std::string>();
+  const auto claim = claim_out(r, opt.out, "mask report");
   opt.noise = r["noise"].as<double>();
   opt.tune_count = r["tune-count"].as<int>();
   opt.count = r["count"].as<int>();
@@ -268,6 +271,7 @@ int mask_separable(int argc, char** argv) {
   opt.out = r["out"].as<std::string>();
   require(!std::filesystem::exists(opt.out / "codes.mat"), opt.out,
           "already holds learned codes; choose another --out");
+  const auto claim = claim_out(r, opt.out, "mask separable");
   const auto init = r["init"].as<std::string>();
   if (init == "mls")
     opt.init_codes = data_dir() / "models" / "camera" / "codes_mls.mat";
@@ -319,7 +323,7 @@ int mask_camera(int argc, char** argv) {
   const auto codes = load_code_pair(codes_path);
   const auto& u = codes.rows;
   const auto& v = codes.cols;
-  std::filesystem::create_directories(out);
+  const auto claim = claim_out(r, out, "mask camera");
   for (const char* f : {"rig.mat", "calib.mat", "camera.yaml"})
     require_new_output(out / f, r.count("force") > 0, {codes_path});
   const auto rig = separable_rig(u, v);

@@ -21,6 +21,7 @@ int recon(int argc, char** argv) {
                                                                                    cxxopts::value<std::string>())(
       "lambda", "regularisation weight (default: the camera file's)", cxxopts::value<double>()->default_value("0"))(
       "batch", "captures per batch", cxxopts::value<int>()->default_value("8"));
+  add_force_folder(o);
   add_common(o);
   cxxopts::ParseResult r;
   if (!parse(o, argc, argv, r)) return 0;
@@ -38,6 +39,7 @@ int recon(int argc, char** argv) {
   const auto captures = collect_captures(r["input"].as<std::string>());
   check_output_names(captures, opt.out);  // before the calibration's SVDs
   auto built = make_reconstructor(spec);
+  const auto claim = claim_out(r, opt.out, "recon");
   const auto rep = reconstruct_files(*built.engine, built.camera, captures, opt);
   std::cout << spec.method << ": " << rep.count << " captures -> " << opt.out.string() << " (" << rep.ms_per_capture
             << " ms per capture reconstruction, " << rep.seconds << " s in all)\n";
@@ -134,6 +136,7 @@ int report(int argc, char** argv) {
       cxxopts::value<int64_t>()->default_value("30"))("rows", "scenes per figure",
                                                       cxxopts::value<int>()->default_value("4"));
   add_precision(o);
+  add_force_folder(o);
   add_common(o);
   cxxopts::ParseResult r;
   if (!parse(o, argc, argv, r)) return 0;
@@ -141,6 +144,7 @@ int report(int argc, char** argv) {
   ReportOptions opt;
   opt.camera = camera_from(r);
   opt.out = r["out"].as<std::string>();
+  const auto claim = claim_out(r, opt.out, "report");
   const auto models = data_dir() / "models";
   const std::vector<std::string> default_methods = {
       "tikhonov", "tv", "flatnet-transpose=" + (models / "flatnet-sim-transpose.flatnet").string(),

@@ -49,6 +49,7 @@ int simulate(int argc, char** argv) {
   opt.lamp_gain = r["lamp-gain"].as<double>();
   opt.camera = std::filesystem::weakly_canonical(camera.rig).string();
   opt.force = r.count("force") > 0;
+  const auto claim = claim_out(r, opt.out, "simulate", "", "simulate.yaml");
   const auto rep = simulate_dataset(rig, opt);
   std::cout << "simulated " << rep.simulated << " captures (" << rep.skipped << " already done) in " << rep.seconds
             << " s: " << (rep.simulated > 0 ? rep.simulated / rep.seconds : 0.0) << " captures/s\n"

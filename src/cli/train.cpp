@@ -21,7 +21,7 @@ int train(int argc, char** argv) {
                   cxxopts::value<std::string>())("set", "override a setting: --set train.iterations=100 (repeatable)",
                                                  cxxopts::value<std::vector<std::string>>())(
       "out", "run folder (checkpoints, logs, model.flatnet)", cxxopts::value<std::string>())(
-      "resume", "continue the run in --out from its latest checkpoint")(
+      "resume", "continue the run in --out from its latest checkpoint")("force", "start afresh in an --out folder that holds another run (its checkpoints and logs are deleted)")(
       "init-from",
       "start from a model file's generator weights (a shipped model, or one from another camera's run) "
       "with fresh optimisers; the config must describe the same architecture",
@@ -40,6 +40,7 @@ int train(int argc, char** argv) {
   require(r.count("out"), "train", "--out DIR is required");
   ExperimentOptions e;
   e.out = r["out"].as<std::string>();
+  e.force = r.count("force") > 0;
   if (r.count("config")) e.config = r["config"].as<std::string>();
   e.sets = set_overrides(r);
   if (r.count("precision")) e.sets.push_back("train.precision=" + r["precision"].as<std::string>());
@@ -52,6 +53,13 @@ int train(int argc, char** argv) {
   if (r.count("master-addr")) dist.master_addr = r["master-addr"].as<std::string>();
   if (r.count("master-port")) dist.master_port = r["master-port"].as<int>();
   dist.timeout_s = r["dist-timeout"].as<double>();
+  // Rank 0 writes the run folder: it claims it (one run at a time; never a folder of other output).
+  // A --resume with nothing to resume is refused before the folder is touched.
+  OutputClaim claim;
+  if (dist.rank == 0) {
+    if (e.resume) require(std::filesystem::exists(e.out / "latest.ckpt"), e.out / "latest.ckpt", "nothing to resume (no checkpoint)");
+    claim = claim_out(r, e.out, "train", "", "latest.ckpt");
+  }
   watch_interrupts();
   const auto result = run_experiment(e);
   const auto& s = result.summary;
@@ -161,6 +169,7 @@ int infer(int argc, char** argv) {
       "exact inference speed-ups: none, or a list of fold, channels-last, gemm-up, onednn (bf16 and onednn: see "
       "--precision)",
       cxxopts::value<std::string>()->default_value("fold,channels-last,gemm-up,onednn"));
+  add_force_folder(o);
   add_precision(o);
   add_common(o);
   cxxopts::ParseResult r;
@@ -181,7 +190,10 @@ int infer(int argc, char** argv) {
   opt.batch = std::max(1, r["batch"].as<int>());
   opt.label = "infer";
   const auto captures = collect_captures(r["input"].as<std::string>());
+  check_output_names(captures, opt.out);  // never over a capture, even with --force
   auto built = make_reconstructor(spec);
+  // One folder holds one model's reconstructions: a rerun with another model is refused, not mixed.
+  const auto claim = claim_out(r, opt.out, "infer", "model " + file_fingerprint(spec.model));
   if (engine == "opencv")
     std::cerr << "engine: " << built.engine->describe() << " (--levers and --precision apply to libtorch)\n";
   const auto rep = reconstruct_files(*built.engine, built.camera, captures, opt);

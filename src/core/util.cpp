@@ -7,6 +7,8 @@
 #include <atomic>
 #include <csignal>
 
+#include <fcntl.h>
+#include <sys/stat.h>
 #include <unistd.h>
 
 #include <fstream>
@@ -17,6 +19,8 @@
 #include <c10/util/Exception.h>  // c10::Error
 #include <atomic>
 #include <mutex>
+#include <cstring>
+#include <regex>
 #include <sstream>
 #include <thread>
 
@@ -152,7 +156,14 @@ uint64_t stable_hash(const std::string& s, uint64_t seed) { return stable_hash(s
 
 namespace {
 std::atomic<bool> g_interrupted{false};
-void on_interrupt_signal(int) { g_interrupted = true; }
+// The first Ctrl-C or SIGTERM asks the loop to finish its item; a second one ends the process at
+// once (a user who presses Ctrl-C twice means it; a blocked read never sees the flag).
+void on_interrupt_signal(int sig) {
+  if (g_interrupted.exchange(true)) {
+    std::signal(sig, SIG_DFL);
+    std::raise(sig);
+  }
+}
 }  // namespace
 
 void watch_interrupts() {
@@ -254,27 +265,69 @@ void parallel_for_index(int64_t n, int workers, const std::function<void(int64_t
   if (error) std::rethrow_exception(error);
 }
 
-std::vector<char> read_bytes(const fs::path& path) {
-  require(fs::exists(path), path, "no such file");
-  require(!fs::is_directory(path), path, "is a folder, not a file");
-  std::ifstream in(path, std::ios::binary);
-  require(in.is_open(), path, "cannot be opened for reading (permissions?)");
-  try {
-    return std::vector<char>((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
-  } catch (const std::exception& e) {
-    throw Error(path, std::string("read failed: ") + e.what());
+std::string read_file_text(const fs::path& path, uint64_t max_bytes) {
+  // O_NONBLOCK: opening a fifo must not wait for a writer; it is refused below, like a device.
+  const int fd = ::open(path.c_str(), O_RDONLY | O_NONBLOCK | O_CLOEXEC);
+  if (fd < 0) {
+    const int err = errno;
+    require(err != ENOENT, path, "no such file");
+    throw Error(path, std::string("cannot be opened for reading (") + std::strerror(err) + ")");
   }
+  struct Closer {
+    int fd;
+    ~Closer() { ::close(fd); }
+  } closer{fd};
+  struct stat st {};
+  require(::fstat(fd, &st) == 0, path, "cannot be examined (fstat failed)");
+  require(!S_ISDIR(st.st_mode), path, "is a folder, not a file");
+  require(S_ISREG(st.st_mode), path, "is not a regular file (a fifo, socket or device); flatnet reads only files");
+  const auto size = static_cast<uint64_t>(st.st_size);
+  require(size <= max_bytes, path,
+          "is " + std::to_string(size) + " bytes, over the limit of " + std::to_string(max_bytes) + " for this kind of file");
+  std::string bytes(size, '\0');
+  size_t done = 0;
+  while (done < size) {
+    const auto n = ::read(fd, bytes.data() + done, size - done);
+    if (n < 0 && errno == EINTR) continue;
+    require(n >= 0, path, std::string("read failed (") + std::strerror(errno) + ")");
+    if (n == 0) break;  // the file shrank while being read
+    done += static_cast<size_t>(n);
+  }
+  require(done == size, path, "changed size while being read");
+  return bytes;
+}
+
+std::string file_fingerprint(const fs::path& path) {
+  const auto bytes = read_file_text(path);
+  char hex[17];
+  std::snprintf(hex, sizeof hex, "%016llx", static_cast<unsigned long long>(stable_hash(bytes.data(), bytes.size())));
+  return hex;
+}
+
+void require_regular_file(const fs::path& path) {
+  std::error_code ec;
+  const auto st = fs::status(path, ec);
+  require(fs::exists(st), path, "no such file");
+  require(!fs::is_directory(st), path, "is a folder, not a file");
+  require(fs::is_regular_file(st), path, "is not a regular file (a fifo, socket or device); flatnet reads only files");
+}
+
+std::vector<char> read_bytes(const fs::path& path, uint64_t max_bytes) {
+  const auto text = read_file_text(path, max_bytes);
+  return std::vector<char>(text.begin(), text.end());
+}
+
+bool is_decimal_number(const std::string& text) {
+  // [+-] digits [. digits] [e [+-] digits]: what a config or flag means by a number. strtod would
+  // also take hex ("0x10" -> 16), "inf", "nan" and leading blanks.
+  static const std::regex decimal(R"([+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?)");
+  return std::regex_match(text, decimal);
 }
 
 std::string number_problem(const std::string& text, const NumberRule& rule) {
-  double v = 0;
-  size_t used = 0;
-  try {
-    v = std::stod(text, &used);
-  } catch (const std::exception&) {
-    used = 0;
-  }
-  if (used == 0 || used != text.size() || !std::isfinite(v)) return "is not a finite number";
+  if (!is_decimal_number(text)) return "is not a finite decimal number";
+  const double v = std::strtod(text.c_str(), nullptr);
+  if (!std::isfinite(v)) return "is not a finite decimal number";
   if (v < rule.lo || v > rule.hi) return "is out of range";
   return "";
 }

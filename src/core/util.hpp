@@ -40,8 +40,10 @@ struct NumberRule {
   const char* meaning;
 };
 // "" when `text` is a finite number within the rule's range, else what is wrong
-// ("is not a finite number" or "is out of range").
+// ("is not a finite decimal number" or "is out of range").
 std::string number_problem(const std::string& text, const NumberRule& rule);
+// Whether `text` is a plain decimal number ("12", "-0.5", "2e-4"); hex, inf, nan and blanks are not.
+bool is_decimal_number(const std::string& text);
 
 // Reads a list file: one entry per line, CR/LF and surrounding blanks stripped, empty lines skipped.
 std::vector<std::string> read_lines(const fs::path& path);
@@ -55,12 +57,22 @@ extern const std::vector<std::string> kImageExtensions;  // png jpg jpeg tif tif
 // after all threads finish.
 void parallel_for_index(int64_t n, int workers, const std::function<void(int64_t)>& fn);
 
-// A whole file's bytes (e.g. for torch::pickle_load). Errors name a missing file.
-std::vector<char> read_bytes(const fs::path& path);
+// A whole file's bytes. Only regular files are read (a fifo or device is refused at once, never
+// waited on), and a file over `max_bytes` is refused before anything that size is allocated.
+// Errors name the file: missing, a folder, not a regular file, too large, unreadable.
+constexpr uint64_t kMaxInputBytes = 16ull << 30;
+std::string read_file_text(const fs::path& path, uint64_t max_bytes = kMaxInputBytes);
+std::vector<char> read_bytes(const fs::path& path, uint64_t max_bytes = kMaxInputBytes);
+// The same checks without reading, for files a library opens itself (images, .mat, YAML): errors
+// name a missing file, a folder, or a fifo, socket or device (which would block or never end).
+void require_regular_file(const fs::path& path);
 
 // Stable 64-bit hash (FNV-1a) for deterministic per-item seeds and content checksums.
 uint64_t stable_hash(const std::string& s, uint64_t seed = 0);
 uint64_t stable_hash(const void* data, size_t size, uint64_t seed = 0);
+// A file's content as 16 hex digits (stable_hash of its bytes): what a cache or an output folder
+// records of the file that made it, so that a changed file is never mistaken for the old one.
+std::string file_fingerprint(const fs::path& path);
 
 // Ctrl-C / SIGTERM for the long loops (training, capture, collection, live view): after
 // watch_interrupts(), interrupted() turns true and the loop finishes its current item.

@@ -2,6 +2,7 @@
 
 #include <fstream>
 #include <iostream>
+#include <sstream>
 
 #include "core/error.hpp"
 #include "core/util.hpp"
@@ -45,6 +46,32 @@ void record_timing(const fs::path& dir, double ms, int64_t count) {
   if (std::isfinite(old_ms) && old_n > 0) total_ms += old_ms * old_n, total_n += old_n;
   write_text_atomically(dir / "timing.txt", std::to_string(total_ms / total_n) + " " + std::to_string(total_n) +
                                                 "\n# ms per image in the method (no file I/O), images timed\n");
+}
+
+// What a method's cached reconstructions depend on: the model file's content (not its name), or
+// the classical method with its calibration's content and regularisers; and the set's folder.
+std::string method_key(const ReportOptions& o, const ReportMethod& m, const ReportSet& set) {
+  std::ostringstream key;
+  if (m.kind == "model")
+    key << "model " << file_fingerprint(m.model);
+  else
+    key << m.kind << " calibration " << file_fingerprint(o.camera.calibration) << " lambda "
+        << o.camera.tikhonov_lambda << " tv " << o.camera.tv_lambda;
+  key << "\nset " << fs::weakly_canonical(set.dir).string() << "\n";
+  return key.str();
+}
+
+// Keeps the cached reconstructions in `dir` only when they were made by the same method settings
+// (method.txt); otherwise they go, and the method runs again.
+void reuse_only_same_method(const fs::path& dir, const std::string& key, const std::string& name) {
+  const auto record = dir / "method.txt";
+  const bool same = fs::exists(record) && read_file_text(record, 1 << 16) == key;
+  if (!same && fs::exists(dir) && !fs::is_empty(dir)) {
+    std::cerr << "  " << name << ": the reconstructions on disk were made by another model or settings; remade\n";
+    fs::remove_all(dir);
+  }
+  fs::create_directories(dir);
+  if (!same) write_text_atomically(record, key);
 }
 
 // Makes the method's reconstructions of `captures` that are not on disk yet.
@@ -151,7 +178,7 @@ std::string make_report(const ReportOptions& o) {
       auto subset = captures;
       if (m.kind == "tv" && o.tv_count > 0 && static_cast<int64_t>(subset.size()) > o.tv_count)
         subset.resize(o.tv_count);
-      fs::create_directories(set_out / m.name);
+      reuse_only_same_method(set_out / m.name, method_key(o, m, set), m.name);
       reconstruct_missing(o, m, subset, set_out / m.name, calib.get());
       names.push_back(m.name);
     }

@@ -1,5 +1,9 @@
 #include "io/camera_config.hpp"
 
+#include <cmath>
+
+#include "io/yaml_text.hpp"
+
 #include <yaml-cpp/yaml.h>
 
 #include "core/error.hpp"
@@ -48,8 +52,14 @@ void validate(const CameraConfig& c, const std::filesystem::path& path) {
           path,
           "crop [top, left, height, width] must lie inside the " + std::to_string(g.plane_height()) + "x" +
               std::to_string(g.plane_width()) + " Bayer plane");
-  require(c.scene_size > 0, path, "scene_size must be positive");
-  require(c.tikhonov_lambda > 0 && c.tv_lambda > 0, path, "regularisation weights must be positive");
+  require(g.raw_height <= 65536 && g.raw_width <= 65536, path, "raw_height and raw_width must be at most 65536");
+  require(std::isfinite(g.rotation) && std::abs(g.rotation) <= 360, path,
+          "rotation must be a finite angle within [-360, 360] degrees");
+  require(c.scene_size > 0 && c.scene_size <= 4096, path, "scene_size must lie within 1..4096");
+  // Above ~1e4 the SVD filter s / (s^2 + lambda) is ~0 for any real camera: black images, not an answer.
+  require(std::isfinite(c.tikhonov_lambda) && std::isfinite(c.tv_lambda) && c.tikhonov_lambda > 0 &&
+              c.tv_lambda > 0 && c.tikhonov_lambda <= 1e4 && c.tv_lambda <= 1e4,
+          path, "regularisation weights (tikhonov_lambda, tv_lambda) must lie in (0, 1e4]");
 }
 
 }  // namespace
@@ -70,23 +80,11 @@ CameraConfig load_camera_config(const std::filesystem::path& path) {
     validate(c, path);
     return c;
   }
-  YAML::Node y;
-  try {
-    y = YAML::LoadFile(path.string());
-  } catch (const YAML::Exception& e) {
-    throw Error(path, std::string("invalid YAML: ") + e.what());
-  }
-  return camera_from_node(y, path, path.parent_path());
+  return camera_from_node(load_yaml_file(path), path, path.parent_path());
 }
 
 CameraConfig camera_from_yaml_text(const std::string& text, const std::filesystem::path& where) {
-  YAML::Node y;
-  try {
-    y = YAML::Load(text);
-  } catch (const YAML::Exception& e) {
-    throw Error(where, std::string("invalid camera settings: ") + e.what());
-  }
-  return camera_from_node(y, where, {});
+  return camera_from_node(parse_yaml_document(text, where), where, {});
 }
 
 std::string camera_geometry_yaml(const CameraConfig& c) {

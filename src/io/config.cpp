@@ -7,15 +7,23 @@
 
 #include "core/error.hpp"
 #include "core/util.hpp"
+#include "io/yaml_text.hpp"
 
 namespace flatnet {
 
 namespace {
 
 // Flattens a YAML mapping into dotted keys with scalar (or flow-sequence) text values.
+// Keys whose values are file or folder paths (Config::path resolves them against the folder of the
+// file that set them; to_yaml writes them resolved). No other value is ever treated as a path.
+const std::vector<std::string> kPathKeys = {
+    "data.camera",     "data.dataset",   "data.images", "data.root",      "data.train_gt",
+    "data.train_meas", "data.val_gt",    "data.val_meas", "loss.vgg_file", "model.inversion.toeplitz_file"};
+
 void flatten(const YAML::Node& node, const std::string& prefix, std::map<std::string, std::string>& out) {
   for (const auto& kv : node) {
     const auto key = prefix.empty() ? kv.first.as<std::string>() : prefix + "." + kv.first.as<std::string>();
+    if (out.count(key)) throw Error("config: setting '" + key + "' is given twice");
     if (kv.second.IsMap()) {
       flatten(kv.second, key, out);
     } else if (kv.second.IsSequence()) {
@@ -31,22 +39,12 @@ void flatten(const YAML::Node& node, const std::string& prefix, std::map<std::st
 }
 
 YAML::Node parse_yaml(const std::string& text, const std::filesystem::path& where) {
-  try {
-    YAML::Node n = YAML::Load(text);
-    require(n.IsMap() || n.IsNull(), where, "expected a mapping of settings");
-    return n;
-  } catch (const YAML::Exception& e) {
-    throw Error(where, std::string("invalid YAML: ") + e.what());
-  }
+  auto n = parse_yaml_document(text, where);
+  require(n.IsMap() || n.IsNull(), where, "expected a mapping of settings");
+  return n;
 }
 
-std::string read_file(const std::filesystem::path& p) {
-  std::ifstream in(p);
-  require(static_cast<bool>(in), p, "cannot read file");
-  std::stringstream ss;
-  ss << in.rdbuf();
-  return ss.str();
-}
+std::string read_file(const std::filesystem::path& p) { return read_file_text(p, kMaxYamlBytes); }
 
 size_t edit_distance(const std::string& a, const std::string& b) {
   std::vector<size_t> prev(b.size() + 1), cur(b.size() + 1);
@@ -171,15 +169,20 @@ void Config::merge_file(const std::filesystem::path& file, int depth) {
   require(std::filesystem::exists(file), file, "no such config file");
   require(!std::filesystem::is_directory(file), file, "is a folder; give a config .yaml file");
   require(depth < 8, file, "too many nested `base:` files");
-  const auto node = parse_yaml(read_file(file), file);
+  const auto text = read_file(file);
+  const auto node = parse_yaml(text, file);
   if (node["base"]) merge_file(file.parent_path() / node["base"].as<std::string>(), depth + 1);
-  merge_node_text(read_file(file), file, file.parent_path());
+  merge_node_text(text, file, file.parent_path());
 }
 
 void Config::merge_node_text(const std::string& yaml, const std::filesystem::path& where,
                              const std::filesystem::path& base) {
   std::map<std::string, std::string> flat;
-  flatten(parse_yaml(yaml, where), "", flat);
+  try {
+    flatten(parse_yaml(yaml, where), "", flat);
+  } catch (const YAML::Exception& e) {
+    throw Error(where, std::string("invalid settings: ") + e.what());
+  }
   for (const auto& kv : flat) {
     if (kv.first == "base") continue;
     assign(kv.first, kv.second, where.string(), base);
@@ -189,6 +192,8 @@ void Config::merge_node_text(const std::string& yaml, const std::filesystem::pat
 void Config::assign(const std::string& key, const std::string& value, const std::string& where,
                     const std::filesystem::path& base) {
   if (!values_.count(key)) {
+    if (key.size() > 200) throw Error(where + ": unknown setting '" + key.substr(0, 60) + "...' (" +
+                                      std::to_string(key.size()) + " characters)");
     std::vector<std::string> known;
     for (const auto& kv : values_) known.push_back(kv.first);
     throw Error(where + ": unknown setting '" + key + "' (did you mean '" + nearest_key(key, known) + "'?)");
@@ -213,13 +218,11 @@ std::string Config::str(const std::string& key) const { return lookup(key); }
 
 double Config::num(const std::string& key) const {
   const auto& v = lookup(key);
-  try {
-    size_t used = 0;
-    const double d = std::stod(v, &used);
-    if (used == v.size() && std::isfinite(d)) return d;
-  } catch (const std::exception&) {
+  if (is_decimal_number(v)) {
+    const double d = std::strtod(v.c_str(), nullptr);
+    if (std::isfinite(d)) return d;
   }
-  throw Error("config: setting '" + key + "' must be a finite number, got '" + v + "'");
+  throw Error("config: setting '" + key + "' must be a finite decimal number, got '" + v + "'");
 }
 
 int64_t Config::integer(const std::string& key) const {
@@ -236,7 +239,12 @@ bool Config::flag(const std::string& key) const {
   throw Error("config: setting '" + key + "' must be true or false, got '" + v + "'");
 }
 
+bool Config::is_path_key(const std::string& key) {
+  return std::find(kPathKeys.begin(), kPathKeys.end(), key) != kPathKeys.end();
+}
+
 std::filesystem::path Config::path(const std::string& key) const {
+  if (!is_path_key(key)) throw Error("config: setting '" + key + "' is not a path (config.cpp's kPathKeys)");
   const auto& v = lookup(key);
   if (v.empty()) return {};
   std::filesystem::path p(v);
@@ -275,11 +283,12 @@ std::string Config::to_yaml() const {
     KeyTree* node = &root;
     std::stringstream ss(kv.first);
     for (std::string part; std::getline(ss, part, '.');) node = &node->children[part];
-    // A relative value that names an existing file or folder is a path: write it resolved, so the
-    // text means the same wherever it is read.
+    // A path key's relative value that names an existing file or folder is written resolved, so
+    // the text means the same wherever it is read. Other values are never paths, whatever files
+    // the working folder holds (a file called "1" must not turn train.batch=1 into a path).
     std::string value = kv.second;
     const auto base = bases_.count(kv.first) ? bases_.at(kv.first) : std::filesystem::path();
-    if (!value.empty() && value.front() != '[' && !base.empty() && std::filesystem::path(value).is_relative() &&
+    if (is_path_key(kv.first) && !value.empty() && !base.empty() && std::filesystem::path(value).is_relative() &&
         std::filesystem::exists(base / value))
       value = std::filesystem::weakly_canonical(base / value).string();
     node->value = value;

@@ -28,8 +28,10 @@ class Config {
   double num(const std::string& key) const;
   int64_t integer(const std::string& key) const;
   bool flag(const std::string& key) const;
-  // A path value, resolved against the folder of the file that set it ("" stays "").
+  // A path value, resolved against the folder of the file that set it ("" stays ""). Only the
+  // keys is_path_key names are paths.
   std::filesystem::path path(const std::string& key) const;
+  static bool is_path_key(const std::string& key);
 
   // Throws (naming `where`, the key and its range) unless every number is finite and in its
   // range (config.cpp's table); load and from_text call it, and so must code that calls set().

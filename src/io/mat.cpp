@@ -4,6 +4,7 @@
 
 #include "core/error.hpp"
 #include "core/util.hpp"
+#include "io/mat_check.hpp"
 
 namespace flatnet {
 
@@ -59,7 +60,7 @@ bool is_supported_numeric(matio_classes c) {
 }  // namespace
 
 MatReader::MatReader(const std::filesystem::path& path) : path_(path) {
-  require(std::filesystem::exists(path), path, "no such file");
+  check_mat5_sizes(read_file_text(path), path);  // regular file, sizes and counts checked before matio allocates
   mat_ = Mat_Open(path.c_str(), MAT_ACC_RDONLY);
   require(mat_ != nullptr, path, "not a readable MATLAB .mat file");
 }

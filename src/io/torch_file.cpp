@@ -54,6 +54,13 @@ bool allowed_global(const std::string& name) {
   return storage_types().count(name) || std::find(callables.begin(), callables.end(), name) != callables.end();
 }
 
+// What a pickle may claim before flatnet refuses it: nesting (a list inside a list ... recursion
+// in every walker), the expanded size of a structure that shares parts (a DAG whose walk doubles
+// per level), dimensions of a tensor and elements of a storage.
+constexpr int kMaxNesting = 64;
+constexpr uint64_t kMaxExpandedNodes = 10'000'000;
+constexpr size_t kMaxDims = 16;
+
 // A storage named by a persistent id; its elements arrive from the container (zip record or the
 // legacy file's tail), possibly after the pickle that refers to it.
 struct Storage {
@@ -84,8 +91,28 @@ class Unpickler {
   [[noreturn]] void fail(const std::string& what) const {
     throw Error(file_, what + " (pickle byte " + std::to_string(pos_) + ")");
   }
-  const char* take(size_t n) {
-    if (pos_ + n > b_.size()) fail("truncated: the pickle ends early");
+  // Puts `child` into `parent`'s bookkeeping: a value once inside a container is frozen (a pickle
+  // that later changes it could build a cycle, e.g. a list that contains itself), and nesting and
+  // expanded size are checked against the limits before anything walks the tree.
+  void adopt(PyValue& parent, const PyRef& child) {
+    if (child.get() == &parent) fail("refuses a container that contains itself (hostile file?)");
+    child->frozen = true;
+    parent.height = std::max(parent.height, child->height + 1);
+    parent.expanded = std::min(kMaxExpandedNodes + 1, parent.expanded + child->expanded);
+    if (parent.height > kMaxNesting)
+      fail("nests containers deeper than " + std::to_string(kMaxNesting) + " levels (hostile file?)");
+    if (parent.expanded > kMaxExpandedNodes)
+      fail("expands to more than " + std::to_string(kMaxExpandedNodes) + " values (shared parts; hostile file?)");
+  }
+  void adopt_all(PyValue& parent, const std::vector<PyRef>& children) {
+    for (const auto& c : children) adopt(parent, c);
+  }
+  PyValue& mutable_container(const PyRef& v) {
+    if (v->frozen) fail("changes a " + v->describe() + " after placing it in another value (a cycle? hostile file?)");
+    return *v;
+  }
+  const char* take(uint64_t n) {
+    if (n > b_.size() - pos_) fail("truncated: the pickle ends early (a length of " + std::to_string(n) + " bytes)");
     const char* p = b_.data() + pos_;
     pos_ += n;
     return p;
@@ -124,6 +151,8 @@ class Unpickler {
   }
   PyRef global(const std::string& module, const std::string& name) {
     const auto full = module + "." + name;
+    if (objects_ && (module == "__torch__" || module.rfind("__torch__.", 0) == 0) && name == "Module")
+      return make_text(Kind::global, full);  // a TorchScript module: built below as its attributes, no code run
     if (!allowed_global(full))
       fail("refuses the global '" + full +
            "': a torch.save file for flatnet may hold only tensors, storages and "
@@ -132,25 +161,38 @@ class Unpickler {
   }
   PyRef tuple(std::vector<PyRef> items) {
     auto t = make(Kind::tuple);
+    adopt_all(*t, items);
     t->items = std::move(items);
     return t;
   }
-  void set_items(PyRef& dict, const std::vector<PyRef>& kv) {
-    if (dict->kind != Kind::dict) fail("malformed: SETITEM(S) on a " + dict->describe());
+  PyRef list(std::vector<PyRef> items) {
+    auto l = make(Kind::list);
+    adopt_all(*l, items);
+    l->items = std::move(items);
+    return l;
+  }
+  void set_items(PyRef& target, const std::vector<PyRef>& kv) {
+    if (target->kind != Kind::dict) fail("malformed: SETITEM(S) on a " + target->describe());
     if (kv.size() % 2) fail("malformed: SETITEMS with an odd count");
+    auto& dict = mutable_container(target);
+    adopt_all(dict, kv);
     for (size_t i = 0; i < kv.size(); i += 2) {
       bool replaced = false;
       if (kv[i]->kind == Kind::string || kv[i]->kind == Kind::integer)
-        for (auto& e : dict->entries)
+        for (auto& e : dict.entries)
           if (e.first->kind == kv[i]->kind && e.first->text == kv[i]->text && e.first->integer == kv[i]->integer) {
             e.second = kv[i + 1];
             replaced = true;
           }
-      if (!replaced) dict->entries.emplace_back(kv[i], kv[i + 1]);
+      if (!replaced) dict.entries.emplace_back(kv[i], kv[i + 1]);
     }
   }
   PyRef call(const PyRef& fn, const PyRef& args);
   PyRef rebuild_tensor(const std::vector<PyRef>& a);
+  void build(const PyRef& state);
+
+ public:
+  bool objects_ = false;  // read TorchScript modules as their attribute dicts (read_torchscript_archive)
 };
 
 int64_t as_int(const PyRef& v, const char* what, const std::filesystem::path& file) {
@@ -176,14 +218,16 @@ PyRef Unpickler::rebuild_tensor(const std::vector<PyRef>& a) {
   const auto offset = as_int(a[1], "storage offset", file_);
   const auto size = int_tuple(a[2], "size", file_), stride = int_tuple(a[3], "stride", file_);
   if (size.size() != stride.size()) fail("malformed tensor: size and stride differ in length");
+  if (size.size() > kMaxDims) fail("malformed tensor: " + std::to_string(size.size()) + " dimensions");
   auto v = make(Kind::tensor);
-  v->items = {a[0]};  // the storage; the view is taken once the storage's elements are loaded
   v->integer = offset;
-  auto sizes = make(Kind::tuple), strides = make(Kind::tuple);
-  for (auto s : size) sizes->items.push_back(make_int(s));
-  for (auto s : stride) strides->items.push_back(make_int(s));
-  v->items.push_back(sizes);
-  v->items.push_back(strides);
+  std::vector<PyRef> sizes, strides;
+  for (auto s : size) sizes.push_back(make_int(s));
+  for (auto s : stride) strides.push_back(make_int(s));
+  // The storage; the view is taken once the storage's elements are loaded.
+  std::vector<PyRef> parts = {a[0], tuple(sizes), tuple(strides)};
+  adopt_all(*v, parts);
+  v->items = parts;
   return v;
 }
 
@@ -195,7 +239,10 @@ PyRef Unpickler::call(const PyRef& fn, const PyRef& args) {
     auto d = make(Kind::dict);
     if (!a.empty() && (a[0]->kind == Kind::list || a[0]->kind == Kind::tuple))
       for (const auto& kv : a[0]->items)
-        if (kv->kind == Kind::tuple && kv->items.size() == 2) d->entries.emplace_back(kv->items[0], kv->items[1]);
+        if (kv->kind == Kind::tuple && kv->items.size() == 2) {
+          adopt_all(*d, kv->items);
+          d->entries.emplace_back(kv->items[0], kv->items[1]);
+        }
     return d;
   }
   if (fn->text == "torch._utils._rebuild_tensor_v2" || fn->text == "torch._utils._rebuild_tensor")
@@ -210,6 +257,20 @@ PyRef Unpickler::call(const PyRef& fn, const PyRef& args) {
     return a[0];
   }
   fail("refuses to call '" + fn->text + "'");
+}
+
+// BUILD: a TorchScript module (objects_) takes its state dict's entries as attributes; an
+// OrderedDict's or tensor's attributes (state_dict's _metadata) are not needed.
+void Unpickler::build(const PyRef& state) {
+  auto& target = top();
+  if (target->kind == Kind::dict && target->text.rfind("object ", 0) == 0) {
+    if (state->kind != Kind::dict) fail("malformed: a module's state is a " + state->describe() + ", not a dict");
+    auto& obj = mutable_container(target);
+    adopt(obj, state);
+    obj.entries.insert(obj.entries.end(), state->entries.begin(), state->entries.end());
+    return;
+  }
+  if (target->kind != Kind::dict && target->kind != Kind::tensor) fail("refuses BUILD on a " + target->describe());
 }
 
 PyRef Unpickler::run() {
@@ -260,12 +321,9 @@ PyRef Unpickler::run() {
         stack_.push_back(tuple({a, b, c}));
         break;
       }
-      case 'l': {
-        auto l = make(Kind::list);
-        l->items = pop_to_mark();
-        stack_.push_back(l);
+      case 'l':
+        stack_.push_back(list(pop_to_mark()));
         break;
-      }
       case 'd': {
         auto d = make(Kind::dict);
         auto kv = pop_to_mark();
@@ -395,15 +453,19 @@ PyRef Unpickler::run() {
         stack_.push_back(call(fn, args));
         break;
       }
-      case 0x81:
-        fail("refuses NEWOBJ: the file constructs a class instance");
-      case 0x92:
-        fail("refuses NEWOBJ_EX: the file constructs a class instance");
-      case 'b': {  // BUILD: an OrderedDict's attributes (state_dict's _metadata) are not needed
-        auto state = pop();
-        if (top()->kind != Kind::dict && top()->kind != Kind::tensor) fail("refuses BUILD on a " + top()->describe());
+      case 0x81: {  // NEWOBJ: only a TorchScript module, as the dict of its attributes
+        auto args = pop(), cls = pop();
+        if (!objects_ || cls->kind != Kind::global) fail("refuses NEWOBJ: the file constructs a class instance");
+        auto obj = make(Kind::dict);
+        obj->text = "object " + cls->text;
+        stack_.push_back(obj);
         break;
       }
+      case 0x92:
+        fail("refuses NEWOBJ_EX: the file constructs a class instance");
+      case 'b':
+        build(pop());
+        break;
       case 's': {
         auto v = pop(), k = pop();
         set_items(top(), {k, v});
@@ -417,22 +479,23 @@ PyRef Unpickler::run() {
       case 'a': {
         auto v = pop();
         if (top()->kind != Kind::list) fail("malformed: APPEND to a " + top()->describe());
-        top()->items.push_back(v);
+        auto& l = mutable_container(top());
+        adopt(l, v);
+        l.items.push_back(v);
         break;
       }
       case 'e':
       case 0x90: {  // APPENDS, ADDITEMS
         auto items = pop_to_mark();
         if (top()->kind != Kind::list) fail("malformed: APPENDS to a " + top()->describe());
-        top()->items.insert(top()->items.end(), items.begin(), items.end());
+        auto& l = mutable_container(top());
+        adopt_all(l, items);
+        l.items.insert(l.items.end(), items.begin(), items.end());
         break;
       }
-      case 0x91: {
-        auto l = make(Kind::list);
-        l->items = pop_to_mark();
-        stack_.push_back(l);
+      case 0x91:  // FROZENSET
+        stack_.push_back(list(pop_to_mark()));
         break;
-      }  // FROZENSET
       case 'Q': {
         auto pid = pop();
         stack_.push_back(persistent_(pid));
@@ -473,6 +536,8 @@ PyRef storage_from_id(const PyRef& pid, std::map<std::string, std::shared_ptr<St
     s = std::make_shared<Storage>();
     s->dtype = type->second;
     s->numel = as_int(pid->items[4], "storage size", file);
+    if (s->numel < 0 || static_cast<uint64_t>(s->numel) > kMaxInputBytes / c10::elementSize(s->dtype))
+      throw Error(file, "storage '" + pid->items[2]->text + "' claims " + std::to_string(s->numel) + " elements");
   }
   auto v = make_text(Kind::storage, pid->items[2]->text);
   return v;
@@ -480,6 +545,9 @@ PyRef storage_from_id(const PyRef& pid, std::map<std::string, std::shared_ptr<St
 
 torch::Tensor elements(const char* data, size_t bytes, c10::ScalarType dtype, int64_t numel,
                        const std::filesystem::path& file, const std::string& key) {
+  if (numel < 0 || static_cast<uint64_t>(numel) > bytes / c10::elementSize(dtype))
+    throw Error(file, "storage '" + key + "' is truncated: " + std::to_string(bytes) + " bytes for " +
+                          std::to_string(numel) + " elements");
   const auto need = static_cast<size_t>(numel) * c10::elementSize(dtype);
   if (bytes < need)
     throw Error(file, "storage '" + key + "' is truncated: " + std::to_string(bytes) + " of " + std::to_string(need) +
@@ -498,15 +566,25 @@ void materialise(PyValue& v, const std::map<std::string, std::shared_ptr<Storage
     std::vector<int64_t> size, stride;
     for (const auto& i : v.items[1]->items) size.push_back(i->integer);
     for (const auto& i : v.items[2]->items) stride.push_back(i->integer);
-    int64_t last = v.integer;  // the highest element the view touches must lie in the storage
-    bool empty = false;
+    // The highest element the view touches must lie in the storage, and the view may not hold more
+    // elements than the storage (a 1-element storage viewed as 32768x16384 with stride 0 would
+    // make a 2 GB copy out of 4 bytes). Every product is overflow-checked.
+    int64_t last = v.integer, numel = 1;
+    bool empty = false, overflow = false;
     for (size_t d = 0; d < size.size(); ++d) {
       if (size[d] < 0 || stride[d] < 0) throw Error(file, "malformed tensor: negative size or stride");
       if (size[d] == 0) empty = true;
-      last += (size[d] - 1) * stride[d];
+      int64_t reach = 0;
+      overflow |= __builtin_mul_overflow(size[d] > 0 ? size[d] - 1 : 0, stride[d], &reach);
+      overflow |= __builtin_add_overflow(last, reach, &last);
+      overflow |= __builtin_mul_overflow(numel, size[d], &numel);
     }
+    if (overflow) throw Error(file, "malformed tensor: its size or stride overflows 64 bits (hostile file?)");
     if (!empty && (v.integer < 0 || last >= s->numel))
       throw Error(file, "a tensor reaches past the end of storage '" + v.items[0]->text + "'");
+    if (!empty && numel > s->numel)
+      throw Error(file, "a tensor views its " + std::to_string(s->numel) + "-element storage '" + v.items[0]->text +
+                            "' as " + std::to_string(numel) + " elements (overlapping strides; hostile file?)");
     auto t = empty ? torch::empty(size, s->data.options()) : s->data.as_strided(size, stride, v.integer).clone();
     if (t.is_floating_point()) t = t.to(torch::kFloat32);
     v.tensor = t;
@@ -520,7 +598,7 @@ void materialise(PyValue& v, const std::map<std::string, std::shared_ptr<Storage
   }
 }
 
-PyRef read_zip(const std::filesystem::path& path) {
+PyRef read_zip(const std::filesystem::path& path, bool objects) {
   verify_zip_crcs(path);
   std::unique_ptr<caffe2::serialize::PyTorchStreamReader> reader;
   std::string pickle;
@@ -534,6 +612,7 @@ PyRef read_zip(const std::filesystem::path& path) {
   }
   std::map<std::string, std::shared_ptr<Storage>> storages;
   Unpickler u(pickle, 0, path, [&](const PyRef& pid) { return storage_from_id(pid, storages, path); });
+  u.objects_ = objects;
   auto root = u.run();
   for (auto& [key, s] : storages) {
     const auto record = "data/" + key;
@@ -755,9 +834,14 @@ std::string PyValue::describe() const {
 PyRef read_torch_file(const std::filesystem::path& path) {
   const auto raw = read_bytes(path);
   const std::string bytes(raw.begin(), raw.end());
-  if (bytes.size() >= 4 && bytes.compare(0, 4, "PK\x03\x04") == 0) return read_zip(path);
+  if (bytes.size() >= 4 && bytes.compare(0, 4, "PK\x03\x04") == 0) return read_zip(path, false);
   if (bytes.size() >= 2 && static_cast<unsigned char>(bytes[0]) == 0x80) return read_legacy(path, bytes);
   throw Error(path, bytes.empty() ? "is empty" : "not a torch.save file (neither a zip archive nor a legacy pickle)");
+}
+
+PyRef read_torchscript_archive(const std::filesystem::path& path) {
+  require(verify_zip_crcs(path), path, "is not a TorchScript archive (not a zip file)");
+  return read_zip(path, true);
 }
 
 std::vector<std::pair<std::string, torch::Tensor>> tensors_in(const PyValue& dict) {
@@ -777,7 +861,7 @@ uint64_t little_endian(const unsigned char* p, int bytes) {
 }  // namespace
 
 bool verify_zip_crcs(const std::filesystem::path& path) {
-  require(!std::filesystem::is_directory(path), path, "is a folder, not a file");
+  require_regular_file(path);
   std::ifstream in(path, std::ios::binary);
   require(static_cast<bool>(in), path, "cannot read file");
   in.seekg(0, std::ios::end);
@@ -838,7 +922,16 @@ bool verify_zip_crcs(const std::filesystem::path& path) {
       x += 4 + len;
     }
     at += 46 + name_len + extra_len + comment_len;
-    if (method != 0) continue;  // compressed entries: zlib checks its own stream when they are read
+    // torch.save and TorchScript archives store the pickle and the tensors uncompressed; such an
+    // entry compressed would be inflated to whatever size it claims (a zip bomb), so it is refused.
+    // Other entries (a TorchScript archive's code/, which flatnet never reads) are skipped.
+    const bool read_later = name.size() >= 8 && (name.compare(name.size() - 8, 8, "data.pkl") == 0 ||
+                                                 name.find("/data/") != std::string::npos);
+    if (method != 0 && !read_later) continue;
+    if (method != 0 || compressed != (uncompressed32 == 0xFFFFFFFF ? compressed : uncompressed32))
+      throw Error(path, "zip entry '" + name +
+                            "' is compressed; torch.save and flatnet archives store it uncompressed "
+                            "(was the file re-zipped by another tool?)");
     const auto lh = read_at(local, 30);
     if (little_endian(lh.data(), 4) != 0x04034b50) throw Error(path, "damaged zip archive (entry '" + name + "')");
     uint64_t data = local + 30 + little_endian(&lh[26], 2) + little_endian(&lh[28], 2);

@@ -34,6 +34,11 @@ struct PyValue {
   std::vector<PyRef> items;                      // list, tuple
   std::vector<std::pair<PyRef, PyRef>> entries;  // dict, in insertion order (OrderedDict or dict)
   torch::Tensor tensor;                          // tensor: float types as float32 (a storage names its key in text)
+  // The unpickler's bookkeeping (limits against hostile files): nesting below this value, values
+  // in its fully expanded tree, and whether it sits inside another value (then it may not change).
+  int height = 1;
+  uint64_t expanded = 1;
+  bool frozen = false;
 
   bool is_dict() const { return kind == Kind::dict; }
   // The value at a string key of a dict, or null.
@@ -50,6 +55,12 @@ bool verify_zip_crcs(const std::filesystem::path& path);
 // The object a torch.save file holds. Errors name the file: not a torch.save file, truncated,
 // an unknown opcode, a refused global, a missing storage record.
 PyRef read_torch_file(const std::filesystem::path& path);
+
+// The object a TorchScript archive (torch.jit.save, LibTorch's OutputArchive: flatnet's model files
+// before format 2) pickles, read as data: each `__torch__...Module` becomes the dict of its
+// attributes (parameters, buffers, submodules, strings). Nothing in the archive's code/ is run or
+// even read, so a module with a hostile __setstate__ is only a dict here.
+PyRef read_torchscript_archive(const std::filesystem::path& path);
 
 // Writes tensors as Python's torch.save(OrderedDict) does (zip container, pickle protocol 2,
 // _rebuild_tensor_v2 over one storage per tensor), so torch.load and load_state_dict read it.

@@ -2,9 +2,15 @@
 
 #include <set>
 
+#include "io/safetensors.hpp"
 #include "io/torch_file.hpp"
 
+#include <nlohmann/json.hpp>
+
+#include <cmath>
 #include <fstream>
+#include <iomanip>
+#include <limits>
 #include <regex>
 
 #include "core/error.hpp"
@@ -18,7 +24,7 @@ namespace {
 
 constexpr const char* kModelFormat = "flatnet-model";
 constexpr const char* kCheckpointFormat = "flatnet-checkpoint";
-constexpr int64_t kFormatVersion = 1;
+constexpr int kFormatVersion = 2;
 
 int channel_index(const std::string& name) {
   for (int c = 0; c < 4; ++c)
@@ -91,31 +97,6 @@ std::pair<torch::Tensor, torch::Tensor> initial_inversion(const Config& c, const
               init + "'");
 }
 
-void write_string(torch::serialize::OutputArchive& a, const std::string& key, const std::string& value) {
-  a.write(key, c10::IValue(value));
-}
-
-std::string read_string(torch::serialize::InputArchive& a, const std::string& key, const std::filesystem::path& where) {
-  c10::IValue v;
-  if (!a.try_read(key, v) || !v.isString()) throw Error(where, "not a flatnet file (no '" + key + "')");
-  return v.toStringRef();
-}
-
-void save_module(torch::serialize::OutputArchive& root, const std::string& key, torch::nn::Module& m) {
-  torch::serialize::OutputArchive a(root.compilation_unit());
-  m.save(a);
-  root.write(key, a);
-}
-
-// Reads tensor `dotted` ("enhancer.inc.conv.conv.0.weight") from the nested archives Module::save writes.
-bool read_nested(torch::serialize::InputArchive& a, const std::string& dotted, torch::Tensor& t, bool buffer) {
-  const auto dot = dotted.find('.');
-  if (dot == std::string::npos) return a.try_read(dotted, t, buffer);
-  torch::serialize::InputArchive sub;
-  if (!a.try_read(dotted.substr(0, dot), sub)) return false;
-  return read_nested(sub, dotted.substr(dot + 1), t, buffer);
-}
-
 // Fills every parameter and buffer of `m` with fetch(name, is_buffer), checking shapes; errors
 // about `where` call a tensor "<label> '<its name in the file>'".
 void fill_module(
@@ -138,79 +119,302 @@ void fill_module(
   for (auto& b : m.named_buffers()) copy_in(b.key(), b.value(), true);
 }
 
-void load_module(torch::serialize::InputArchive& root, const std::string& key, torch::nn::Module& m,
-                 const std::filesystem::path& where) {
-  torch::serialize::InputArchive a;
-  if (!root.try_read(key, a)) throw Error(where, "no '" + key + "' weights in the file");
-  fill_module(m, where, key + " weight", [&](const std::string& name, bool buffer) {
-    torch::Tensor t;
-    if (!read_nested(a, name, t, buffer))
-      throw Error(where, key + " weights lack '" + name + "' (the file's architecture differs from its config)");
-    return t;
-  });
+// ---- What a model file or checkpoint holds ------------------------------------------------------
+//
+// Format 2 (this one) is a safetensors file: every tensor under a prefix ("generator.",
+// "generator_ema.", "discriminator.", "optimizer_generator.", "optimizer_discriminator."), and the
+// strings in __metadata__: format, format_version, config (YAML), camera (YAML), step, best_psnr
+// and, for checkpoints, each optimiser's parameter groups (JSON). Python reads it with
+// `safetensors.torch.load_file` (no code runs), or with nothing but json and struct.
+// Format 1 (before 2026-11) was a TorchScript archive; it is still read, as data
+// (read_torchscript_archive), never through LibTorch's loader, which would run its code.
+
+struct Stored {
+  std::map<std::string, std::string> meta;
+  std::map<std::string, torch::Tensor> tensors;
+  int version = kFormatVersion;
+
+  const std::string& text(const std::string& key, const std::filesystem::path& path) const {
+    const auto it = meta.find(key);
+    if (it == meta.end()) throw Error(path, "not a flatnet file (no '" + key + "' in it)");
+    return it->second;
+  }
+  // Tensors under "<prefix>." with the prefix removed.
+  std::map<std::string, torch::Tensor> under(const std::string& prefix) const {
+    std::map<std::string, torch::Tensor> out;
+    for (const auto& [name, t] : tensors)
+      if (name.rfind(prefix + ".", 0) == 0) out[name.substr(prefix.size() + 1)] = t;
+    return out;
+  }
+};
+
+std::string format_number(double v) {
+  std::ostringstream os;
+  os << std::setprecision(17) << v;
+  return os.str();
 }
 
-torch::serialize::InputArchive open_archive(const std::filesystem::path& path, const std::string& expected_format) {
-  require(std::filesystem::exists(path), path, "no such file");
-  verify_zip_crcs(path);  // LibTorch's reader would load a damaged block as wrong weights
-  torch::serialize::InputArchive a;
-  try {
-    a.load_from(path.string());
-  } catch (const c10::Error&) {
-    throw Error(path, "not a flatnet " + std::string(expected_format == kModelFormat ? "model" : "checkpoint") +
-                          " file (not a torch archive)");
+// A format-1 archive's top-level values as format 2 names them.
+Stored read_format1(const std::filesystem::path& path) {
+  const auto root = read_torchscript_archive(path);
+  Stored s;
+  s.version = 1;
+  for (const auto& [k, v] : root->entries) {
+    if (k->kind != PyValue::Kind::string) continue;
+    const auto& key = k->text;
+    if (v->kind == PyValue::Kind::string) s.meta[key == "flatnet_format" ? "format" : key] = v->text;
+    if (v->kind == PyValue::Kind::integer && key == "step") s.meta["step"] = std::to_string(v->integer);
+    if (v->kind == PyValue::Kind::real && key == "best_psnr") s.meta["best_psnr"] = format_number(v->real);
+    if (v->kind == PyValue::Kind::tensor) s.tensors[key] = v->tensor;
+    if (v->is_dict() && (key == "generator" || key == "generator_ema" || key == "discriminator"))
+      for (auto& [name, t] : tensors_in(*v)) s.tensors[key + "." + name] = t;
   }
-  const auto format = read_string(a, "flatnet_format", path);
+  if (const auto it = s.tensors.find("rng_state"); it != s.tensors.end()) it->second = it->second.to(torch::kUInt8);
+  return s;
+}
+
+Stored read_stored(const std::filesystem::path& path, const std::string& expected_format) {
+  const auto bytes = read_file_text(path);
+  Stored s;
+  if (looks_like_safetensors(bytes)) {
+    auto st = parse_safetensors(bytes, path);
+    s.meta = std::move(st.metadata);
+    for (auto& [name, t] : st.tensors) s.tensors[name] = t;
+    const auto& version = s.text("format_version", path);
+    require(is_decimal_number(version), path, "format_version '" + version + "' is not a number");
+    s.version = std::stoi(version);
+  } else if (bytes.size() >= 4 && bytes.compare(0, 4, "PK\x03\x04") == 0) {
+    s = read_format1(path);
+  } else {
+    throw Error(path, std::string("not a flatnet ") + (expected_format == kModelFormat ? "model" : "checkpoint") +
+                          " file (neither safetensors nor a format-1 archive)");
+  }
+  const auto& format = s.text("format", path);
   if (format != expected_format) {
     if (format == kCheckpointFormat)
       throw Error(path, "this is a training checkpoint; make a model file with `flatnet export --checkpoint " +
                             path.string() + " --out MODEL`");
     throw Error(path, "is a " + format + " file, expected a " + expected_format + " file");
   }
-  c10::IValue version;
-  a.read("flatnet_version", version);
-  if (version.toInt() > kFormatVersion)
-    throw Error(path, "format version " + std::to_string(version.toInt()) + " is newer than this flatnet reads (" +
+  if (s.version > kFormatVersion)
+    throw Error(path, "format version " + std::to_string(s.version) + " is newer than this flatnet reads (" +
                           std::to_string(kFormatVersion) + "); update flatnet");
-  return a;
+  return s;
 }
 
-// The archive in memory: LibTorch's file writer aborts the process when the disk fills up (it
-// throws from a destructor); written from memory, a full disk is an ordinary, checked error.
-std::string archive_bytes(torch::serialize::OutputArchive& a) {
-  std::string bytes;
-  a.save_to([&](const void* data, size_t n) {
-    bytes.append(static_cast<const char*>(data), n);
-    return n;
+// Every parameter and buffer of `m`, prefixed, in the module's order.
+void add_module(std::vector<std::pair<std::string, torch::Tensor>>& out, const std::string& prefix,
+                torch::nn::Module& m) {
+  for (const auto& p : m.named_parameters()) out.emplace_back(prefix + "." + p.key(), p.value());
+  for (const auto& b : m.named_buffers()) out.emplace_back(prefix + "." + b.key(), b.value());
+}
+
+void load_module(const Stored& s, const std::string& key, torch::nn::Module& m, const std::filesystem::path& where) {
+  const auto tensors = s.under(key);
+  if (tensors.empty()) throw Error(where, "no '" + key + "' weights in the file");
+  fill_module(m, where, key + " weight", [&](const std::string& name, bool) {
+    const auto it = tensors.find(name);
+    if (it == tensors.end())
+      throw Error(where, key + " weights lack '" + name + "' (the file's architecture differs from its config)");
+    return it->second;
   });
-  return bytes;
 }
 
-void write_header(torch::serialize::OutputArchive& a, const std::string& format, const ModelIdentity& identity) {
-  write_string(a, "flatnet_format", format);
-  a.write("flatnet_version", c10::IValue(kFormatVersion));
-  write_string(a, "config", identity.config_yaml);
-  write_string(a, "camera", camera_geometry_yaml(identity.camera));
+std::map<std::string, std::string> header(const std::string& format, const ModelIdentity& identity) {
+  return {{"format", format},
+          {"format_version", std::to_string(kFormatVersion)},
+          {"config", identity.config_yaml},
+          {"camera", camera_geometry_yaml(identity.camera)},
+          {"written_by", std::string("flatnet ") + FLATNET_VERSION}};
 }
 
-std::pair<Config, CameraConfig> read_header(torch::serialize::InputArchive& a, const std::filesystem::path& path) {
-  auto config = Config::from_text(read_string(a, "config", path), path);
-  auto camera = camera_from_yaml_text(read_string(a, "camera", path), path);
+// The sizes a config claims, checked against the weights the file holds before a network of that
+// size is built: a hostile config (width 4096, scene 4194304) would otherwise allocate gigabytes
+// first. Each size-setting option is pinned by one tensor's shape; depths (layers, blocks) are
+// bounded by the number of tensors present (each layer holds at least one).
+void check_sizes_against_weights(const Config& c, const CameraConfig& camera, const Stored& s,
+                                 const std::filesystem::path& path) {
+  const auto g = s.under("generator");
+  auto expect = [&](const std::string& name, int64_t dim, int64_t value, const std::string& option) {
+    const auto it = g.find(name);
+    require(it != g.end(), path, "has no generator weight '" + name + "' (its config says " + option + ")");
+    require(it->second.dim() > dim && it->second.size(dim) == value, path,
+            option + " = " + std::to_string(value) + " disagrees with the weights (generator '" + name + "' is " +
+                c10::str(it->second.sizes()) + ")");
+  };
+  const int64_t rows = camera.raw.crop[2], cols = camera.raw.crop[3], n = camera.scene_size;
+  if (parse_input_stage(c.str("model.input")) == InputStage::inversion) {
+    expect("inversion.PhiL", 0, rows, "camera crop height");
+    expect("inversion.PhiL", 1, n, "camera scene_size");
+    expect("inversion.PhiR", 0, cols, "camera crop width");
+  } else {
+    expect("tikhonov.ULt", 1, n, "camera scene_size");
+    expect("tikhonov.ULt", 2, rows, "camera crop height");
+    expect("tikhonov.UR", 1, cols, "camera crop width");
+  }
+  const auto enhancer = c.str("model.enhancer");
+  const auto count = static_cast<int64_t>(g.size());
+  if (enhancer == "unet") expect("enhancer.outc.conv.weight", 1, c.integer("model.unet.width"), "model.unet.width");
+  if (enhancer == "dncnn") {
+    expect("enhancer.body.0.weight", 0, c.integer("model.dncnn.width"), "model.dncnn.width");
+    require(c.integer("model.dncnn.layers") <= count, path, "model.dncnn.layers exceeds the weights the file holds");
+  }
+  if (enhancer == "rcan") {
+    expect("enhancer.head.weight", 0, c.integer("model.rcan.width"), "model.rcan.width");
+    require(c.integer("model.rcan.groups") * c.integer("model.rcan.blocks") <= count, path,
+            "model.rcan.groups x blocks exceeds the weights the file holds");
+  }
+  if (const auto d = s.under("discriminator"); !d.empty()) {
+    const auto it = d.find("convs.0.weight");
+    require(it != d.end() && it->second.dim() == 4 && it->second.size(0) == c.integer("discriminator.width"), path,
+            "discriminator.width disagrees with the discriminator's weights");
+  }
+}
+
+std::pair<Config, CameraConfig> settings(const Stored& s, const std::filesystem::path& path) {
+  auto config = Config::from_text(s.text("config", path), path);
+  auto camera = camera_from_yaml_text(s.text("camera", path), path);
+  check_sizes_against_weights(config, camera, s, path);
   return {config, camera};
 }
 
 // The generator (with its config and camera) from a model file or a checkpoint; from a checkpoint
 // that kept a moving average of the weights, the average.
 ModelFile read_generator(const std::filesystem::path& path, const std::string& format, bool* used_average = nullptr) {
-  auto a = open_archive(path, format);
-  auto [config, camera] = read_header(a, path);
+  const auto s = read_stored(path, format);
+  auto [config, camera] = settings(s, path);
   ModelFile m{Generator(generator_options(config, camera, false)), config, camera};
-  torch::serialize::InputArchive probe;
-  const bool average = format == kCheckpointFormat && a.try_read("generator_ema", probe);
+  m.format_version = s.version;
+  const bool average = format == kCheckpointFormat && !s.under("generator_ema").empty();
   if (used_average) *used_average = average;
-  load_module(a, average ? "generator_ema" : "generator", *m.generator, path);
+  load_module(s, average ? "generator_ema" : "generator", *m.generator, path);
   m.generator->eval();
   return m;
+}
+
+// ---- Optimiser state as tensors and JSON ---------------------------------------------------------
+// Adam's moments per parameter, named by the parameter ("optimizer_generator.<name>.exp_avg",
+// ".exp_avg_sq", ".max_exp_avg_sq", ".step"), and its groups' options with their parameters' names
+// in the metadata. LibTorch keys its state by tensor address, which means nothing in a file.
+
+std::string state_key(const torch::Tensor& p) { return c10::guts::to_string(p.unsafeGetTensorImpl()); }
+
+std::map<const void*, std::string> parameter_names(torch::nn::Module& m) {
+  std::map<const void*, std::string> names;
+  for (const auto& p : m.named_parameters()) names[p.value().unsafeGetTensorImpl()] = p.key();
+  return names;
+}
+
+std::string save_optimizer(std::vector<std::pair<std::string, torch::Tensor>>& out, const std::string& prefix,
+                           torch::optim::Adam& opt, torch::nn::Module& m) {
+  const auto names = parameter_names(m);
+  nlohmann::json groups = nlohmann::json::array();
+  for (auto& group : opt.param_groups()) {
+    const auto& o = static_cast<const torch::optim::AdamOptions&>(group.options());
+    nlohmann::json g = {{"lr", o.lr()},
+                        {"betas", {std::get<0>(o.betas()), std::get<1>(o.betas())}},
+                        {"eps", o.eps()},
+                        {"weight_decay", o.weight_decay()},
+                        {"amsgrad", o.amsgrad()},
+                        {"params", nlohmann::json::array()}};
+    for (const auto& p : group.params()) {
+      const auto name = names.at(p.unsafeGetTensorImpl());
+      g["params"].push_back(name);
+      const auto it = opt.state().find(state_key(p));
+      if (it == opt.state().end()) continue;  // no step taken yet
+      const auto& st = static_cast<const torch::optim::AdamParamState&>(*it->second);
+      const auto base = prefix + "." + name + ".";
+      out.emplace_back(base + "step", torch::tensor(st.step(), torch::kInt64));
+      out.emplace_back(base + "exp_avg", st.exp_avg());
+      out.emplace_back(base + "exp_avg_sq", st.exp_avg_sq());
+      if (st.max_exp_avg_sq().defined()) out.emplace_back(base + "max_exp_avg_sq", st.max_exp_avg_sq());
+    }
+    groups.push_back(g);
+  }
+  return groups.dump();
+}
+
+nlohmann::json parse_groups(const std::string& text, const std::filesystem::path& path, const std::string& key) {
+  try {
+    auto j = nlohmann::json::parse(text, [&](int depth, nlohmann::json::parse_event_t, nlohmann::json&) {
+      if (depth > 4) throw Error(path, key + " nests too deeply");
+      return true;
+    });
+    require(j.is_array(), path, key + " is not a list of parameter groups");
+    return j;
+  } catch (const nlohmann::json::exception& e) {
+    throw Error(path, key + " is not valid JSON (" + std::string(e.what()).substr(0, 120) + ")");
+  }
+}
+
+void load_optimizer(const Stored& s, const std::string& prefix, torch::optim::Adam& opt, torch::nn::Module& m,
+                    const std::filesystem::path& path) {
+  const auto groups = parse_groups(s.text(prefix, path), path, prefix);
+  auto& ours = opt.param_groups();
+  require(groups.size() == ours.size(), path,
+          prefix + " has " + std::to_string(groups.size()) + " parameter groups, the trainer " +
+              std::to_string(ours.size()));
+  const auto names = parameter_names(m);
+  const auto tensors = s.under(prefix);
+  for (size_t i = 0; i < ours.size(); ++i) {
+    const auto& g = groups[i];
+    auto& o = static_cast<torch::optim::AdamOptions&>(ours[i].options());
+    try {
+      o.lr(g.at("lr").get<double>());
+      o.betas({g.at("betas").at(0).get<double>(), g.at("betas").at(1).get<double>()});
+      o.eps(g.at("eps").get<double>());
+      o.weight_decay(g.at("weight_decay").get<double>());
+      o.amsgrad(g.at("amsgrad").get<bool>());
+    } catch (const nlohmann::json::exception&) {
+      throw Error(path, prefix + " group " + std::to_string(i) + " lacks lr, betas, eps, weight_decay or amsgrad");
+    }
+    require(std::isfinite(o.lr()) && o.lr() >= 0 && std::isfinite(o.eps()), path,
+            prefix + " group " + std::to_string(i) + " has a non-finite or negative learning rate");
+    const auto& params = ours[i].params();
+    require(g.contains("params") && g["params"].is_array() && g["params"].size() == params.size(), path,
+            prefix + " group " + std::to_string(i) + " lists other parameters than the trainer's");
+    for (size_t j = 0; j < params.size(); ++j) {
+      const auto& p = params[j];
+      const auto name = names.at(p.unsafeGetTensorImpl());
+      require(g["params"][j].is_string() && g["params"][j].get<std::string>() == name, path,
+              prefix + " group " + std::to_string(i) + " parameter " + std::to_string(j) + " is not '" + name + "'");
+      const auto moment = [&](const std::string& what, bool required) -> torch::Tensor {
+        const auto it = tensors.find(name + "." + what);
+        if (it == tensors.end()) {
+          require(!required, path, prefix + " lacks '" + name + "." + what + "'");
+          return {};
+        }
+        if (what == "step") {
+          require(it->second.numel() == 1 && it->second.scalar_type() == torch::kInt64, path,
+                  prefix + " '" + name + ".step' is not one integer");
+          return it->second;
+        }
+        require(it->second.sizes() == p.sizes(), path,
+                prefix + " '" + name + "." + what + "' is " + c10::str(it->second.sizes()) + ", the parameter " +
+                    c10::str(p.sizes()));
+        require(torch::isfinite(it->second).all().item<bool>(), path,
+                prefix + " '" + name + "." + what + "' holds NaN or infinity");
+        return it->second.to(torch::kFloat32).clone();
+      };
+      const auto step = moment("step", false);
+      if (!step.defined()) {
+        opt.state().erase(state_key(p));
+        continue;
+      }
+      auto st = std::make_unique<torch::optim::AdamParamState>();
+      st->step(step.item<int64_t>());
+      st->exp_avg(moment("exp_avg", true));
+      st->exp_avg_sq(moment("exp_avg_sq", true));
+      if (auto mx = moment("max_exp_avg_sq", false); mx.defined()) st->max_exp_avg_sq(mx);
+      opt.state()[state_key(p)] = std::move(st);
+    }
+  }
+}
+
+double stored_number(const Stored& s, const std::string& key, const std::filesystem::path& path) {
+  const auto& text = s.text(key, path);
+  require(is_decimal_number(text) || text == "-inf", path, key + " '" + text + "' is not a number");
+  return text == "-inf" ? -std::numeric_limits<double>::infinity() : std::strtod(text.c_str(), nullptr);
 }
 
 }  // namespace
@@ -271,10 +475,9 @@ void save_model_file(const std::filesystem::path& path, Generator& generator, co
 }
 
 void save_model_file(const std::filesystem::path& path, Generator& generator, const ModelIdentity& identity) {
-  torch::serialize::OutputArchive a;
-  write_header(a, kModelFormat, identity);
-  save_module(a, "generator", *generator);
-  write_bytes_atomically(path, archive_bytes(a));
+  std::vector<std::pair<std::string, torch::Tensor>> tensors;
+  add_module(tensors, "generator", *generator);
+  write_safetensors(path, tensors, header(kModelFormat, identity));
 }
 
 ModelFile load_model_file(const std::filesystem::path& path) { return read_generator(path, kModelFormat); }
@@ -282,49 +485,56 @@ ModelFile load_model_file(const std::filesystem::path& path) { return read_gener
 void save_checkpoint(const std::filesystem::path& path, Generator& g, Discriminator& d, torch::optim::Adam& opt_g,
                      torch::optim::Adam& opt_d, const TrainState& state, const ModelIdentity& identity,
                      Generator* ema) {
-  torch::serialize::OutputArchive a;
-  write_header(a, kCheckpointFormat, identity);
-  save_module(a, "generator", *g);
-  if (ema) save_module(a, "generator_ema", **ema);
-  save_module(a, "discriminator", *d);
-  torch::serialize::OutputArchive og(a.compilation_unit()), od(a.compilation_unit());
-  opt_g.save(og);
-  opt_d.save(od);
-  a.write("optimizer_generator", og);
-  a.write("optimizer_discriminator", od);
-  a.write("step", c10::IValue(state.step));
-  a.write("best_psnr", c10::IValue(state.best_psnr));
-  a.write("rng_state", state.rng_state, /*is_buffer=*/true);
-  write_bytes_atomically(path, archive_bytes(a));
+  std::vector<std::pair<std::string, torch::Tensor>> tensors;
+  add_module(tensors, "generator", *g);
+  if (ema) add_module(tensors, "generator_ema", **ema);
+  add_module(tensors, "discriminator", *d);
+  auto meta = header(kCheckpointFormat, identity);
+  meta["optimizer_generator"] = save_optimizer(tensors, "optimizer_generator", opt_g, *g);
+  meta["optimizer_discriminator"] = save_optimizer(tensors, "optimizer_discriminator", opt_d, *d);
+  meta["step"] = std::to_string(state.step);
+  meta["best_psnr"] = format_number(state.best_psnr);
+  tensors.emplace_back("rng_state", state.rng_state);
+  write_safetensors(path, tensors, meta);
 }
 
 std::pair<Config, CameraConfig> checkpoint_settings(const std::filesystem::path& path) {
-  auto a = open_archive(path, kCheckpointFormat);
-  return read_header(a, path);
+  return settings(read_stored(path, kCheckpointFormat), path);
 }
 
 TrainState load_checkpoint(const std::filesystem::path& path, Generator& g, Discriminator& d, torch::optim::Adam& opt_g,
                            torch::optim::Adam& opt_d, Generator* ema) {
-  auto a = open_archive(path, kCheckpointFormat);
-  load_module(a, "generator", *g, path);
-  if (ema) {
-    torch::serialize::InputArchive probe;
-    load_module(a, a.try_read("generator_ema", probe) ? "generator_ema" : "generator", **ema, path);
+  const auto s = read_stored(path, kCheckpointFormat);
+  settings(s, path);
+  load_module(s, "generator", *g, path);
+  if (ema) load_module(s, s.under("generator_ema").empty() ? "generator" : "generator_ema", **ema, path);
+  load_module(s, "discriminator", *d, path);
+  TrainState st;
+  st.optimizers_restored = s.version >= 2;
+  if (st.optimizers_restored) {  // format 1 kept LibTorch's own optimiser archives; their moments start afresh
+    load_optimizer(s, "optimizer_generator", opt_g, *g, path);
+    load_optimizer(s, "optimizer_discriminator", opt_d, *d, path);
   }
-  load_module(a, "discriminator", *d, path);
-  torch::serialize::InputArchive og, od;
-  a.read("optimizer_generator", og);
-  a.read("optimizer_discriminator", od);
-  opt_g.load(og);
-  opt_d.load(od);
-  TrainState s;
-  c10::IValue v;
-  a.read("step", v);
-  s.step = v.toInt();
-  a.read("best_psnr", v);
-  s.best_psnr = v.toDouble();
-  a.read("rng_state", s.rng_state, true);
-  return s;
+  const auto step = stored_number(s, "step", path);
+  require(step >= 0 && step < 1e15 && step == std::floor(step), path, "step is not a count");
+  st.step = static_cast<int64_t>(step);
+  st.best_psnr = stored_number(s, "best_psnr", path);
+  const auto rng = s.tensors.find("rng_state");
+  require(rng != s.tensors.end() && rng->second.scalar_type() == torch::kUInt8 &&
+              rng->second.numel() == at::detail::getDefaultCPUGenerator().get_state().numel(),
+          path, "has no valid rng_state");
+  st.rng_state = rng->second;
+  return st;
+}
+
+double checkpoint_best_psnr(const std::filesystem::path& path) {
+  return stored_number(read_stored(path, kCheckpointFormat), "best_psnr", path);
+}
+
+int model_file_version(const std::filesystem::path& path) {
+  const auto bytes = read_file_text(path);
+  if (looks_like_safetensors(bytes)) return kFormatVersion;
+  return bytes.compare(0, 4, "PK\x03\x04") == 0 ? 1 : 0;
 }
 
 ModelFile model_from_checkpoint(const std::filesystem::path& path, bool* used_average) {

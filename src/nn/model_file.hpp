@@ -1,8 +1,9 @@
 #pragma once
 // What a trained model is on disk.
-//  - Model file (`flatnet infer --model`): one self-contained archive with the generator's
+//  - Model file (`flatnet infer --model`): one self-contained safetensors file with the generator's
 //    weights, the merged config that describes its architecture, and the camera preprocessing it
-//    was trained for. Format tag "flatnet-model", version 1.
+//    was trained for. Format tag "flatnet-model", version 2 (version 1, a TorchScript archive, is
+//    read as data and rewritten by `flatnet export --model OLD --out NEW`). Nothing loaded runs code.
 //  - Checkpoint (`flatnet train`, resumable): the same plus the discriminator, both optimisers,
 //    the step, the best validation PSNR and the RNG state. Format tag "flatnet-checkpoint".
 //  - State dict (`flatnet export --state-dict`, `flatnet import`): a torch.save-compatible dict of
@@ -27,6 +28,7 @@ struct ModelFile {
   Generator generator{nullptr};
   Config config;
   CameraConfig camera;
+  int format_version = 2;  // 1: a TorchScript archive from before 2026-11 (read as data)
 };
 
 // What a model file or checkpoint records beside its weights: the merged config that describes the
@@ -49,12 +51,17 @@ struct TrainState {
   int64_t step = 0;         // optimiser steps done
   double best_psnr = -1e9;  // best validation PSNR so far
   torch::Tensor rng_state;  // the default CPU generator's state
+  bool optimizers_restored = true;  // false after loading a format-1 checkpoint (moments start afresh)
 };
 
 // `ema`, when given, is the moving average of the generator's weights (saved as "generator_ema").
 void save_checkpoint(const std::filesystem::path& path, Generator& g, Discriminator& d, torch::optim::Adam& opt_g,
                      torch::optim::Adam& opt_d, const TrainState& state, const ModelIdentity& identity,
                      Generator* ema = nullptr);
+// The best validation PSNR a checkpoint records (best.ckpt: the PSNR of the weights it holds).
+double checkpoint_best_psnr(const std::filesystem::path& path);
+// 2 for a safetensors model file or checkpoint, 1 for a format-1 TorchScript archive, 0 otherwise.
+int model_file_version(const std::filesystem::path& path);
 // The config and camera a checkpoint holds (to rebuild the networks before load_checkpoint).
 std::pair<Config, CameraConfig> checkpoint_settings(const std::filesystem::path& path);
 // `ema` is filled from the checkpoint's average when it has one, else from its generator.

@@ -190,6 +190,29 @@ void check_and_record_settings(const SimulateOptions& opt) {
   write_text_atomically(record, text);
 }
 
+// Each pair records the photograph it was made from (its content fingerprint) in
+// OUT/.sources/NAME.txt, written after both images. A pair is reused only when that record matches
+// the photograph as it is now and both images decode at the sizes this rig makes; anything else (a
+// capture cut short, an empty gt file, an edited photograph, a pair from before the records) is
+// simulated again.
+std::filesystem::path source_record(const std::filesystem::path& out, const std::string& name) {
+  return out / ".sources" / (name + ".txt");
+}
+
+bool reusable_pair(const Rig& rig, const std::filesystem::path& meas, const std::filesystem::path& gt,
+                   const std::filesystem::path& record, const std::string& photo_fingerprint, int64_t size) {
+  if (!std::filesystem::exists(meas) || !std::filesystem::exists(gt) || !std::filesystem::exists(record)) return false;
+  try {
+    if (read_file_text(record, 1024) != photo_fingerprint + "\n") return false;
+    const auto raw = read_gray16(meas);  // {H,W}: the Bayer mosaic, two rows and columns per plane pixel
+    const auto scene = read_rgb(gt);     // {3,N,N}
+    return raw.dim() == 2 && raw.size(0) == 2 * rig.phil.size(1) && raw.size(1) == 2 * rig.phir.size(1) &&
+           scene.dim() == 3 && scene.size(1) == size && scene.size(2) == size;
+  } catch (const std::exception&) {
+    return false;  // undecodable: made again
+  }
+}
+
 }  // namespace
 
 SimulateReport simulate_dataset(const Rig& rig, const SimulateOptions& opt) {
@@ -228,6 +251,7 @@ SimulateReport simulate_dataset(const Rig& rig, const SimulateOptions& opt) {
   check_and_record_settings(opt);
   std::filesystem::create_directories(opt.out / "meas");
   std::filesystem::create_directories(opt.out / "gt");
+  std::filesystem::create_directories(opt.out / ".sources");
   SimulateReport report;
   report.total = static_cast<int64_t>(images.size());
 
@@ -247,10 +271,15 @@ SimulateReport simulate_dataset(const Rig& rig, const SimulateOptions& opt) {
         if (!first_error.empty()) return;
       }
       const auto meas_path = opt.out / "meas" / names[i], gt_path = opt.out / "gt" / names[i];
+      const auto record = source_record(opt.out, names[i]);
       try {
-        if (std::filesystem::exists(meas_path) && std::filesystem::exists(gt_path)) {
+        require(names[i].find_first_of("\n\r") == std::string::npos, images[i],
+                "a photograph's name holds a line break (the dataset's list files are one name per line)");
+        const auto fingerprint = file_fingerprint(images[i]);
+        if (reusable_pair(rig, meas_path, gt_path, record, fingerprint, opt.size)) {
           ++skipped;
         } else {
+          std::filesystem::remove(record);  // the pair is being remade: no record until both images are
           auto scene = display_scene(images[i], opt.size);
           // Per-image generator: the noise does not depend on thread scheduling.
           auto gen = at::detail::createCPUGenerator(stable_hash(names[i], opt.seed));
@@ -269,6 +298,7 @@ SimulateReport simulate_dataset(const Rig& rig, const SimulateOptions& opt) {
           }
           write_rgb8(gt_path, scene);
           write_gray16(meas_path, raw);
+          write_text_atomically(record, fingerprint + "\n");
           ++simulated;
         }
       } catch (const std::exception& e) {

@@ -126,6 +126,15 @@ std::string differing_settings(const Config& run, const Config& given) {
   return out;
 }
 
+// The files a training run writes into its folder (that exist now).
+std::vector<std::filesystem::path> run_files(const std::filesystem::path& out) {
+  std::vector<std::filesystem::path> found;
+  for (const char* name : {"latest.ckpt", "best.ckpt", "model.flatnet", "log.csv", "val.csv", "config.yaml",
+                           "samples.png", "curve.png"})
+    if (std::filesystem::exists(out / name)) found.push_back(out / name);
+  return found;
+}
+
 }  // namespace
 
 ExperimentResult run_experiment(const ExperimentOptions& o) {
@@ -152,8 +161,14 @@ ExperimentResult run_experiment(const ExperimentOptions& o) {
                   "), which differs in " + differences + "; change single settings with --set key=value");
     }
   } else {
-    require(!writer || !std::filesystem::exists(latest), out,
-            "already holds a training run; continue it with --resume or choose another --out");
+    require(!writer || o.force || !std::filesystem::exists(latest), out,
+            "already holds a training run; continue it with --resume, choose another --out, or add --force to "
+            "start afresh (deleting it)");
+    const auto old = run_files(out);
+    if (writer && !o.force && !old.empty())
+      throw Error(out, "holds the files of another run that never reached its first checkpoint (" +
+                           old.front().filename().string() +
+                           " ...); add --force to start afresh (deleting them) or choose another --out");
     config = Config::load(o.config, sets);
   }
   require(!(resume && !o.init_from.empty()), "--init-from", "starts a new run; it cannot be combined with --resume");
@@ -183,10 +198,8 @@ ExperimentResult run_experiment(const ExperimentOptions& o) {
                                                 : val_src->size())
       << " validation samples...\n";
   auto val = load_all(*val_src, config.integer("train.val_count"), std::max(1, opts.workers));
-  if (writer) {
-    std::filesystem::create_directories(out);
-    write_text_atomically(out / "config.yaml", config.to_yaml());
-  }
+  if (writer && !resume)
+    for (const auto& f : run_files(out)) std::filesystem::remove(f);  // --force: the old run's files go
   std::unique_ptr<ProcessGroup> group;
   if (dist.world_size > 1) {
     log << "rank " << dist.rank << " of " << dist.world_size << ": joining " << dist.master_addr << ":"
@@ -194,7 +207,11 @@ ExperimentResult run_experiment(const ExperimentOptions& o) {
     group = std::make_unique<ProcessGroup>(dist);
   }
   GanTrainer trainer(g, d, vgg, train_src, std::move(val), opts, model_identity(config, camera));
-  if (resume) trainer.resume(latest);  // every rank reads rank 0's checkpoint (a shared or copied folder)
+  if (resume) log << trainer.resume(latest) << "\n";  // every rank reads rank 0's checkpoint (a shared folder)
+  if (writer) {  // after a resume succeeded: a refused one changes nothing
+    std::filesystem::create_directories(out);
+    write_text_atomically(out / "config.yaml", config.to_yaml());
+  }
   trainer.set_distributed(group.get());
   log << "training on " << train_src->size() << " pairs, " << opts.iterations << " steps of batch " << opts.batch
       << (dist.world_size > 1 ? " per rank x " + std::to_string(dist.world_size) + " ranks" : "") << " ("

@@ -22,6 +22,7 @@ struct ExperimentOptions {
   std::vector<std::string> sets;    // "key=value" overrides, applied last
   std::filesystem::path out;        // run folder
   bool resume = false;              // continue out/latest.ckpt with the run's own config
+  bool force = false;               // a fresh run over another run's files: delete them first
   std::filesystem::path init_from;  // start from a model file's generator (fresh optimisers)
   DistributedOptions distributed;   // world size 1: a single process
   std::ostream* log = nullptr;      // progress lines (default: std::cerr)

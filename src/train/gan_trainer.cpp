@@ -246,12 +246,27 @@ GanTrainer::GanTrainer(Generator generator, Discriminator discriminator, Vgg16Fe
 
 Generator& GanTrainer::exported() { return ema_ ? ema_->average() : g_; }
 
-void GanTrainer::resume(const std::filesystem::path& checkpoint) {
+std::string GanTrainer::resume(const std::filesystem::path& checkpoint) {
   state_ = load_checkpoint(checkpoint, g_, d_, *opt_g_, *opt_d_, ema_ ? &ema_->average() : nullptr);
+  // The best PSNR is the one best.ckpt holds: a kill between writing best.ckpt and latest.ckpt
+  // leaves latest's record behind or ahead of the file, and no file would hold that score.
+  const auto best = opt_.out / "best.ckpt";
+  state_.best_psnr = std::filesystem::exists(best) ? checkpoint_best_psnr(best) : -1e9;
   auto gen = at::detail::getDefaultCPUGenerator();
   gen.set_state(state_.rng_state);
   truncate_log(opt_.out / "log.csv", state_.step);
   truncate_log(opt_.out / "val.csv", state_.step);
+  // A kill after latest.ckpt and before model.flatnet leaves the model a step behind: rewrite it.
+  if (!sync_ || sync_->rank() == 0) save_model_file(opt_.out / "model.flatnet", exported(), identity_);
+  std::ostringstream os;
+  os << "resumed at step " << state_.step << ": generator" << (ema_ ? ", its moving average" : "")
+     << ", discriminator, " << (state_.optimizers_restored ? "both optimisers" : "fresh optimisers (format-1 checkpoint)")
+     << " and the random state restored; best validation PSNR ";
+  if (std::filesystem::exists(best))
+    os << std::fixed << std::setprecision(2) << state_.best_psnr << " dB (best.ckpt)";
+  else
+    os << "none yet (no best.ckpt)";
+  return os.str();
 }
 
 void GanTrainer::set_distributed(GradientAverager* collectives) {
@@ -284,13 +299,16 @@ void GanTrainer::checkpoint_and_validate(TrainSummary& summary) {
   if (best) state_.best_psnr = v.psnr;
   state_.rng_state = at::detail::getDefaultCPUGenerator().get_state();
   Generator* ema = ema_ ? &ema_->average() : nullptr;
-  save_checkpoint(opt_.out / "latest.ckpt", g_, d_, *opt_g_, *opt_d_, state_, identity_, ema);
-  // model.flatnet follows the latest weights (not picked on validation data); best.ckpt keeps the best.
-  save_model_file(opt_.out / "model.flatnet", exported(), identity_);
+  // The order makes the set consistent after a kill at any instant: best.ckpt first (resume takes
+  // the best PSNR from it), then latest.ckpt (resume continues from it), then model.flatnet, which
+  // follows the latest weights (not picked on validation data) and is rewritten on resume. Each
+  // file is written atomically.
   if (best) {
     summary.best_psnr = v.psnr, summary.best_ssim = v.ssim;
     save_checkpoint(opt_.out / "best.ckpt", g_, d_, *opt_g_, *opt_d_, state_, identity_, ema);
   }
+  save_checkpoint(opt_.out / "latest.ckpt", g_, d_, *opt_g_, *opt_d_, state_, identity_, ema);
+  save_model_file(opt_.out / "model.flatnet", exported(), identity_);
 }
 
 TrainSummary GanTrainer::run() {

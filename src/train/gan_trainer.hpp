@@ -120,8 +120,10 @@ class GanTrainer {
   // Data-parallel: rank 0's weights are broadcast, gradients averaged every step, batches sharded
   // by rank; only rank 0 validates and writes files. Call before resume() and run().
   void set_distributed(GradientAverager* collectives);
-  // Continues from a checkpoint written by an earlier run with the same config.
-  void resume(const std::filesystem::path& checkpoint);
+  // Continues from a checkpoint written by an earlier run with the same config; the best PSNR is
+  // best.ckpt's (next to it), and model.flatnet is rewritten from the restored weights. Returns
+  // one line saying what was restored.
+  std::string resume(const std::filesystem::path& checkpoint);
   // The weights that are validated and exported: the moving average when train.ema_decay > 0.
   Generator& exported();
   // Stops after the current step and writes a checkpoint when interrupted() (core/util.hpp).

@@ -1,0 +1,156 @@
+#include "core/output_dir.hpp"
+
+#include <fcntl.h>
+#include <sys/file.h>
+#include <unistd.h>
+
+#include <cstring>
+#include <fstream>
+#include <sstream>
+
+#include "core/error.hpp"
+#include "core/util.hpp"
+
+namespace flatnet {
+namespace {
+
+namespace fs = std::filesystem;
+
+struct Marker {
+  std::string command, settings;
+};
+
+std::string marker_text(const OutputRole& role) {
+  return "# written by flatnet: this folder holds the output of one command; see README (output folders)\n"
+         "command: " +
+         role.command + "\nsettings: " + role.settings + "\n";
+}
+
+bool read_marker(const fs::path& dir, Marker& m) {
+  const auto path = dir / kOutputMarker;
+  if (!fs::exists(path)) return false;
+  std::istringstream in(read_file_text(path, 1 << 16));
+  for (std::string line; std::getline(in, line);) {
+    if (line.rfind("command: ", 0) == 0) m.command = line.substr(9);
+    if (line.rfind("settings: ", 0) == 0) m.settings = line.substr(10);
+  }
+  return true;
+}
+
+// The folder's entries other than flatnet's own marker and lock: how many, and one name.
+std::pair<size_t, std::string> foreign_entries(const fs::path& dir) {
+  size_t n = 0;
+  std::string example;
+  for (const auto& e : fs::directory_iterator(dir)) {
+    const auto name = e.path().filename().string();
+    if (name == kOutputMarker || name == kOutputLock) continue;
+    if (example.empty()) example = name;
+    ++n;
+  }
+  return {n, example};
+}
+
+int lock_folder(const fs::path& dir, const OutputRole& role) {
+  const auto path = dir / kOutputLock;
+  const int fd = ::open(path.c_str(), O_RDWR | O_CREAT | O_CLOEXEC, 0644);
+  require(fd >= 0, path, std::string("cannot be created (") + std::strerror(errno) + ")");
+  if (::flock(fd, LOCK_EX | LOCK_NB) != 0) {
+    std::string holder(512, '\0');
+    const auto n = ::pread(fd, holder.data(), holder.size(), 0);
+    holder.resize(n > 0 ? static_cast<size_t>(n) : 0);
+    while (!holder.empty() && (holder.back() == '\n' || holder.back() == '\0')) holder.pop_back();
+    ::close(fd);
+    throw Error(dir, "another flatnet command is writing to this folder" +
+                         (holder.empty() ? std::string() : " (" + holder + ")") +
+                         "; wait for it to finish or choose another folder");
+  }
+  const auto who = "pid " + std::to_string(::getpid()) + ", flatnet " + role.command + "\n";
+  if (::ftruncate(fd, 0) != 0 || ::pwrite(fd, who.data(), who.size(), 0) < 0) {
+    // The lock holds without the note; the note only helps the message above.
+  }
+  return fd;
+}
+
+}  // namespace
+
+OutputClaim::OutputClaim(OutputClaim&& other) noexcept { *this = std::move(other); }
+
+OutputClaim& OutputClaim::operator=(OutputClaim&& other) noexcept {
+  if (this != &other) {
+    release();
+    fd_ = other.fd_;
+    existed_ = other.existed_;
+    dir_ = other.dir_;
+    created_dir_ = other.created_dir_;
+    wrote_marker_ = other.wrote_marker_;
+    exceptions_at_claim_ = other.exceptions_at_claim_;
+    other.fd_ = -1;
+    other.dir_.clear();
+  }
+  return *this;
+}
+
+OutputClaim::~OutputClaim() { release(); }
+
+void OutputClaim::release() noexcept {
+  if (fd_ < 0) return;
+  try {
+    const bool failing = std::uncaught_exceptions() > exceptions_at_claim_;
+    if (failing && wrote_marker_ && foreign_entries(dir_).first == 0) {  // nothing but our marker and lock
+      if (created_dir_) {
+        fs::remove_all(dir_);
+      } else {
+        fs::remove(dir_ / kOutputMarker);
+        fs::remove(dir_ / kOutputLock);
+      }
+    }
+  } catch (...) {
+    // Best effort: the claim's own files stay.
+  }
+  ::close(fd_);  // closing drops the flock
+  fd_ = -1;
+}
+
+OutputClaim claim_output_folder(const fs::path& dir, const OutputRole& role) {
+  require(!dir.empty(), "--out", "an output folder is required");
+  OutputClaim claim;
+  claim.dir_ = dir;
+  claim.exceptions_at_claim_ = std::uncaught_exceptions();
+  if (fs::exists(dir)) {
+    require(fs::is_directory(dir), dir, "exists and is not a folder");
+  } else {
+    fs::create_directories(dir);
+    claim.created_dir_ = true;
+  }
+  try {
+    claim.fd_ = lock_folder(dir, role);
+  } catch (...) {
+    if (claim.created_dir_) fs::remove_all(dir);
+    throw;
+  }  // before reading the marker: no other command changes it now
+  Marker m;
+  bool marked = read_marker(dir, m);
+  if (!marked && !role.own_file.empty() && fs::exists(dir / role.own_file)) {
+    marked = true;  // an older flatnet's output of this command: adopted as it is
+    m.command = role.command;
+    m.settings = role.settings;
+  }
+  const auto [foreign, example] = foreign_entries(dir);
+  const auto hint = role.force ? std::string() : std::string("; choose another folder, or add --force to write into it anyway");
+  if (marked && m.command != role.command && !role.force)
+    throw Error(dir, "holds the output of `flatnet " + m.command + "`, not of `flatnet " + role.command + "`" + hint);
+  if (marked && m.command == role.command && !role.settings.empty() && m.settings != role.settings && !role.force)
+    throw Error(dir, "holds `flatnet " + m.command + "` output made with other settings (" + m.settings +
+                         "; now " + role.settings + ")" + hint);
+  if (!marked && foreign > 0 && !role.force)
+    throw Error(dir, "holds " + std::to_string(foreign) + " entries flatnet did not write (such as '" + example +
+                         "'); flatnet writes only into new or empty folders and its own" + hint);
+  claim.existed_ = marked && m.command == role.command;
+  if (!marked || m.command != role.command || m.settings != role.settings) {
+    write_text_atomically(dir / kOutputMarker, marker_text(role));
+    claim.wrote_marker_ = !marked;
+  }
+  return claim;
+}
+
+}  // namespace flatnet

@@ -1,0 +1,160 @@
+#include "io/mat_check.hpp"
+
+#include <zlib.h>
+
+#include <algorithm>
+#include <cstring>
+#include <vector>
+
+#include "core/error.hpp"
+
+namespace flatnet {
+namespace {
+
+constexpr uint32_t kMiMatrix = 14, kMiCompressed = 15;
+constexpr uint64_t kMaxVariableBytes = 8ull << 30;
+
+uint32_t u32(const unsigned char* p) { return p[0] | p[1] << 8 | p[2] << 16 | static_cast<uint32_t>(p[3]) << 24; }
+
+// Bytes per element of a v5 data type (0: not a numeric type).
+uint64_t type_size(uint32_t type) {
+  switch (type) {
+    case 1: case 2: return 1;            // miINT8, miUINT8
+    case 3: case 4: return 2;            // miINT16, miUINT16
+    case 5: case 6: case 7: return 4;    // miINT32, miUINT32, miSINGLE
+    case 9: case 12: case 13: return 8;  // miDOUBLE, miINT64, miUINT64
+    default: return 0;
+  }
+}
+
+// A data element's tag at p[0..8): {type, bytes, header size}; the small format packs <= 4 bytes of
+// data into the tag itself.
+struct Tag {
+  uint32_t type;
+  uint64_t bytes;
+  uint64_t header;
+};
+Tag read_tag(const unsigned char* p) {
+  const uint32_t first = u32(p);
+  if (first >> 16) return {first & 0xffff, first >> 16, 4};
+  return {first, u32(p + 4), 8};
+}
+uint64_t padded(uint64_t n) { return (n + 7) / 8 * 8; }
+
+// Checks one miMATRIX element's contents `m` (size `size`, the bytes after its tag): flags,
+// dimensions, name, then for numeric classes the real (and imaginary) data's byte counts.
+void check_matrix(const unsigned char* m, uint64_t size, const std::filesystem::path& path) {
+  auto need = [&](uint64_t at, uint64_t n, const char* what) {
+    if (at + n > size) throw Error(path, std::string("damaged .mat file: a variable's ") + what + " runs past its end");
+  };
+  need(0, 16, "array flags");
+  const auto flags = read_tag(m);
+  require(flags.type == 6 && flags.bytes == 8, path, "damaged .mat file: a variable without array flags");
+  const uint32_t cls = m[8] & 0xff;
+  const bool complex = m[9] & 0x08;
+  uint64_t at = 16;
+  need(at, 8, "dimensions");
+  const auto dims = read_tag(m + at);
+  require(dims.type == 5 && dims.bytes % 4 == 0 && dims.bytes >= 8 && dims.bytes <= 4 * 32, path,
+          "damaged .mat file: a variable's dimensions are malformed");
+  need(at + dims.header, dims.bytes, "dimensions");
+  uint64_t count = 1;
+  bool overflow = false;
+  for (uint64_t i = 0; i < dims.bytes / 4; ++i) {
+    const auto d = static_cast<int32_t>(u32(m + at + dims.header + 4 * i));
+    if (d < 0) throw Error(path, "damaged .mat file: a negative dimension");
+    overflow |= __builtin_mul_overflow(count, static_cast<uint64_t>(d), &count);
+  }
+  at += dims.header == 4 ? 8 : 8 + padded(dims.bytes);
+  need(at, 8, "name");
+  const auto name_tag = read_tag(m + at);
+  need(at + name_tag.header, name_tag.bytes, "name");
+  const std::string name(reinterpret_cast<const char*>(m + at + name_tag.header), name_tag.bytes);
+  at += name_tag.header == 4 ? 8 : 8 + padded(name_tag.bytes);
+  if (cls < 6 || cls > 15) return;  // cells, structs, chars, sparse: not read by flatnet
+  const auto where = "variable '" + name + "'";
+  if (overflow || count > kMaxVariableBytes)
+    throw Error(path, where + " declares " + (overflow ? std::string("more than 2^64") : std::to_string(count)) +
+                          " values (hostile or damaged file?)");
+  for (int part = 0; part < (complex ? 2 : 1); ++part) {
+    need(at, 8, "data");
+    const auto data = read_tag(m + at);
+    const auto per = type_size(data.type);
+    require(per > 0, path, where + " stores its data in an unknown type " + std::to_string(data.type));
+    if (data.bytes != count * per)
+      throw Error(path, where + "'s dimensions say " + std::to_string(count) + " values, its data holds " +
+                            std::to_string(data.bytes / per) + " (damaged or hostile file)");
+    if (data.header + data.bytes > size - at)
+      throw Error(path, "truncated: " + where + "'s data runs past the end of its element");
+    at += data.header == 4 ? 8 : 8 + padded(data.bytes);
+  }
+}
+
+// Inflates a miCOMPRESSED element (at most `limit` bytes out): zlib checks the stream's own checksum.
+std::string inflate_element(const unsigned char* p, uint64_t n, uint64_t limit, const std::filesystem::path& path) {
+  z_stream z{};
+  require(inflateInit(&z) == Z_OK, path, "cannot inflate a compressed variable");
+  std::string out;
+  std::vector<unsigned char> chunk(1 << 16);
+  z.next_in = const_cast<unsigned char*>(p);
+  z.avail_in = static_cast<uInt>(std::min<uint64_t>(n, UINT32_MAX));
+  int rc = Z_OK;
+  while (rc != Z_STREAM_END) {
+    z.next_out = chunk.data();
+    z.avail_out = static_cast<uInt>(chunk.size());
+    rc = inflate(&z, Z_NO_FLUSH);
+    if (rc != Z_OK && rc != Z_STREAM_END) {
+      inflateEnd(&z);
+      throw Error(path, "damaged .mat file: a compressed variable does not inflate (zlib error " + std::to_string(rc) + ")");
+    }
+    out.append(reinterpret_cast<char*>(chunk.data()), chunk.size() - z.avail_out);
+    if (out.size() > limit) {
+      inflateEnd(&z);
+      throw Error(path, "a compressed variable inflates past " + std::to_string(limit) + " bytes (a zip bomb?)");
+    }
+    if (rc == Z_OK && z.avail_in == 0 && z.avail_out != 0) {
+      inflateEnd(&z);
+      throw Error(path, "truncated: a compressed variable ends early");
+    }
+  }
+  inflateEnd(&z);
+  return out;
+}
+
+void check_element(const unsigned char* p, uint64_t left, const std::filesystem::path& path, bool inside_compressed,
+                   uint64_t& used) {
+  require(left >= 8, path, "truncated .mat file: an element's tag is cut short");
+  const auto tag = read_tag(p);
+  require(tag.header == 8, path, "damaged .mat file: a top-level element in the small format");
+  if (tag.bytes > left - 8)
+    throw Error(path, "truncated: a .mat element claims " + std::to_string(tag.bytes) + " bytes, " +
+                          std::to_string(left - 8) + " remain");
+  used = 8 + (tag.type == kMiCompressed ? tag.bytes : padded(tag.bytes));
+  used = std::min(used, left);
+  if (tag.type == kMiMatrix) check_matrix(p + 8, tag.bytes, path);
+  if (tag.type == kMiCompressed && !inside_compressed) {
+    // zlib's deflate shrinks at most ~1032:1, so more than that out of these bytes is a bomb.
+    const uint64_t limit = std::min<uint64_t>(kMaxVariableBytes, 1100 * tag.bytes + (64 << 10));
+    const auto inner = inflate_element(p + 8, tag.bytes, limit, path);
+    uint64_t inner_used = 0;
+    check_element(reinterpret_cast<const unsigned char*>(inner.data()), inner.size(), path, true, inner_used);
+  }
+}
+
+}  // namespace
+
+void check_mat5_sizes(const std::string& bytes, const std::filesystem::path& path) {
+  require(bytes.size() >= 128, path, "not a readable MATLAB .mat file (shorter than its 128-byte header)");
+  const auto* p = reinterpret_cast<const unsigned char*>(bytes.data());
+  const uint16_t version = p[124] | p[125] << 8;
+  if (version == 0x0200) return;  // v7.3: an HDF5 file (its own checks)
+  require(p[126] == 'I' && p[127] == 'M', path,
+          "not a little-endian MATLAB v5 .mat file (flatnet reads v5 and v7.3 files written on little-endian machines)");
+  for (uint64_t at = 128; at < bytes.size();) {
+    uint64_t used = 0;
+    check_element(p + at, bytes.size() - at, path, false, used);
+    at += used;
+  }
+}
+
+}  // namespace flatnet

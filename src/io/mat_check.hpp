@@ -1,0 +1,14 @@
+#pragma once
+// A check of a MATLAB v5 .mat file's own claims before matio reads it: every numeric variable's data
+// holds exactly the values its dimensions say (matio would read a 500x256 header over 4 values and
+// fill the rest with zeros), and what a variable claims fits in the bytes present (a 216-byte file
+// declaring 20000x20000 doubles would allocate 3.2 GB). v7.3 (HDF5) files are left to HDF5.
+#include <filesystem>
+#include <string>
+
+namespace flatnet {
+
+// Errors name the file, the variable and what is wrong. `bytes` is the whole file.
+void check_mat5_sizes(const std::string& bytes, const std::filesystem::path& path);
+
+}  // namespace flatnet

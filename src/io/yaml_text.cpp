@@ -1,0 +1,50 @@
+#include "io/yaml_text.hpp"
+
+#include <set>
+
+#include "core/error.hpp"
+#include "core/util.hpp"
+
+namespace flatnet {
+namespace {
+
+constexpr int kMaxYamlDepth = 32;
+
+void check_keys(const YAML::Node& node, const std::filesystem::path& where, int depth) {
+  require(depth <= kMaxYamlDepth, where, "YAML nests deeper than " + std::to_string(kMaxYamlDepth) + " levels");
+  if (node.IsMap()) {
+    std::set<std::string> seen;
+    for (const auto& kv : node) {
+      const auto key = kv.first.IsScalar() ? kv.first.Scalar() : std::string("(a non-scalar key)");
+      require(seen.insert(key).second, where, "YAML key '" + key + "' is given twice in one mapping");
+      check_keys(kv.second, where, depth + 1);
+    }
+  } else if (node.IsSequence()) {
+    for (const auto& item : node) check_keys(item, where, depth + 1);
+  }
+}
+
+}  // namespace
+
+YAML::Node parse_yaml_document(const std::string& text, const std::filesystem::path& where) {
+  require(text.size() <= kMaxYamlBytes, where,
+          "YAML text of " + std::to_string(text.size()) + " bytes is over the limit of " +
+              std::to_string(kMaxYamlBytes));
+  std::vector<YAML::Node> documents;
+  try {
+    documents = YAML::LoadAll(text);
+  } catch (const YAML::Exception& e) {
+    throw Error(where, std::string("invalid YAML: ") + e.what());
+  }
+  require(documents.size() <= 1, where,
+          "holds " + std::to_string(documents.size()) + " YAML documents ('---'); flatnet reads one");
+  if (documents.empty()) return YAML::Node();
+  check_keys(documents.front(), where, 0);
+  return documents.front();
+}
+
+YAML::Node load_yaml_file(const std::filesystem::path& path) {
+  return parse_yaml_document(read_file_text(path, kMaxYamlBytes), path);
+}
+
+}  // namespace flatnet

@@ -1,0 +1,21 @@
+#pragma once
+// YAML as flatnet reads it (configs, camera files, the settings model files embed): one document,
+// no key given twice in a mapping, bounded size and nesting. YAML itself allows a second document
+// and duplicate keys, and a reader that silently took the first or the last would disagree with
+// the user's intent; both are errors here, naming the file.
+#include <cstdint>
+#include <filesystem>
+#include <string>
+
+#include <yaml-cpp/yaml.h>
+
+namespace flatnet {
+
+constexpr uint64_t kMaxYamlBytes = 1u << 20;  // 1 MiB: defaults.yaml is 6 KB
+
+// Parses `text` (from `where`, named in errors).
+YAML::Node parse_yaml_document(const std::string& text, const std::filesystem::path& where);
+// Reads and parses a YAML file: a regular file of at most kMaxYamlBytes.
+YAML::Node load_yaml_file(const std::filesystem::path& path);
+
+}  // namespace flatnet

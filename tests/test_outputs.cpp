@@ -1,0 +1,169 @@
+// Runs that cannot hurt (issue 25): outputs never replace what flatnet did not write for that role,
+// one command writes a folder at a time, and reruns check what they reuse.
+#include "catch_torch.hpp"
+
+#include <fstream>
+
+#include "core/error.hpp"
+#include "core/output_dir.hpp"
+#include "core/util.hpp"
+#include "helpers.hpp"
+#include "io/image.hpp"
+
+using namespace flatnet;
+using Catch::Matchers::Contains;
+using test::q;
+
+namespace {
+
+OutputRole role(const std::string& command, const std::string& settings = "", bool force = false) {
+  OutputRole r;
+  r.command = command;
+  r.settings = settings;
+  r.force = force;
+  return r;
+}
+
+void touch(const std::filesystem::path& p, const std::string& text = "x") { std::ofstream(p) << text; }
+
+std::filesystem::path photos(const std::filesystem::path& dir) {
+  std::filesystem::create_directories(dir);
+  for (const char* n : {"bsds_16052_scene.png", "inet_n02980441_castle_scene.png"})
+    std::filesystem::copy_file(test::data_dir() / "golden" / n, dir / n);
+  return dir;
+}
+
+}  // namespace
+
+TEST_CASE("output folders: one role each, never a folder of foreign files, --force to override", "[outputs]") {
+  test::Scratch s("claims");
+  const auto dir = s.dir / "out";
+  {
+    auto c = claim_output_folder(dir, role("infer", "model a"));
+    CHECK_FALSE(c.existed());
+    touch(dir / "x.png");
+  }
+  CHECK(std::filesystem::exists(dir / kOutputMarker));
+  CHECK(claim_output_folder(dir, role("infer", "model a")).existed());  // a rerun
+  CHECK_THROWS_WITH(claim_output_folder(dir, role("infer", "model b")),
+                    Contains(dir.string()) && Contains("other settings") && Contains("--force"));
+  CHECK_THROWS_WITH(claim_output_folder(dir, role("mask train")),
+                    Contains("holds the output of `flatnet infer`") && Contains("--force"));
+  CHECK_NOTHROW(claim_output_folder(dir, role("infer", "model b", true)));  // --force re-marks it
+  CHECK(claim_output_folder(dir, role("infer", "model b")).existed());
+  // A folder of files flatnet did not write (a dataset's gt/, captures, photographs).
+  const auto gt = s.dir / "gt";
+  std::filesystem::create_directories(gt);
+  touch(gt / "img.png");
+  CHECK_THROWS_WITH(claim_output_folder(gt, role("infer")),
+                    Contains(gt.string()) && Contains("flatnet did not write") && Contains("img.png"));
+  CHECK_FALSE(std::filesystem::exists(gt / kOutputMarker));
+  // An older flatnet's run folder (no marker) is recognised by its own file.
+  const auto old_run = s.dir / "old_run";
+  std::filesystem::create_directories(old_run);
+  touch(old_run / "latest.ckpt");
+  auto train = role("train");
+  train.own_file = "latest.ckpt";
+  CHECK(claim_output_folder(old_run, train).existed());
+  // A file is not a folder.
+  touch(s.dir / "file");
+  CHECK_THROWS_WITH(claim_output_folder(s.dir / "file", role("infer")), Contains("not a folder"));
+}
+
+TEST_CASE("output folders: a second command is refused while one writes, --force or not", "[outputs]") {
+  test::Scratch s("locks");
+  const auto dir = s.dir / "out";
+  auto held = claim_output_folder(dir, role("recon"));
+  CHECK_THROWS_WITH(claim_output_folder(dir, role("recon", "", true)),
+                    Contains(dir.string()) && Contains("another flatnet command is writing") && Contains("pid"));
+  // Another process: the same refusal, exit 2, nothing written.
+  const auto r = test::run_flatnet("recon --method tikhonov --input " +
+                                   q(test::data_dir() / "golden" / "bsds_16052_raw.png") + " --out " + q(dir) +
+                                   " --force");
+  CHECK(r.code == 2);
+  CHECK_THAT(r.output, Contains("another flatnet command is writing"));
+  CHECK_FALSE(std::filesystem::exists(dir / "bsds_16052_raw.png"));
+  held = OutputClaim();  // released
+  CHECK_NOTHROW(claim_output_folder(dir, role("recon")));
+}
+
+TEST_CASE("output folders: a command refused on bad input leaves no folder behind", "[outputs]") {
+  test::Scratch s("unwind");
+  const auto dir = s.dir / "new";
+  try {
+    auto c = claim_output_folder(dir, role("infer"));
+    throw Error("bad input found after the claim");
+  } catch (const Error&) {
+  }
+  CHECK_FALSE(std::filesystem::exists(dir));
+  // An existing empty folder stays, without the marker.
+  std::filesystem::create_directories(dir);
+  try {
+    auto c = claim_output_folder(dir, role("infer"));
+    throw Error("bad input");
+  } catch (const Error&) {
+  }
+  CHECK(std::filesystem::exists(dir));
+  CHECK(std::filesystem::is_empty(dir));
+}
+
+TEST_CASE("outputs never replace inputs: infer into a dataset's gt, patterns into raw captures", "[outputs][cli]") {
+  test::Scratch s("no_replace");
+  const auto gt = s.dir / "dataset" / "gt", meas = s.dir / "dataset" / "meas";
+  std::filesystem::create_directories(gt);
+  std::filesystem::create_directories(meas);
+  std::filesystem::copy_file(test::data_dir() / "golden" / "bsds_16052_raw.png", meas / "bsds_16052.png");
+  std::filesystem::copy_file(test::data_dir() / "golden" / "bsds_16052_scene.png", gt / "bsds_16052.png");
+  const auto truth = read_bytes(gt / "bsds_16052.png");
+  const auto model = test::source_dir() / "models" / "flatnet-sim-transpose.flatnet";
+  auto r = test::run_flatnet("infer --model " + q(model) + " --input " + q(meas) + " --out " + q(gt));
+  CHECK(r.code == 2);
+  CHECK_THAT(r.output, Contains("gt") && Contains("flatnet did not write"));
+  CHECK(read_bytes(gt / "bsds_16052.png") == truth);
+  r = test::run_flatnet("calibrate --write-patterns " + q(meas));
+  CHECK(r.code == 2);
+  CHECK_THAT(r.output, Contains("meas") && Contains("flatnet did not write"));
+  CHECK(read_gray16(meas / "bsds_16052.png").size(0) == 1024);  // still the 16-bit capture
+  // Two models into one folder: the second is refused, not mixed in; --force replaces.
+  const auto out = s.dir / "rec";
+  REQUIRE(test::run_flatnet("infer --precision fp32 --model " + q(model) + " --input " + q(meas) + " --out " + q(out)).code == 0);
+  const auto calibfree = test::source_dir() / "models" / "flatnet-sim-calibfree.flatnet";
+  r = test::run_flatnet("infer --precision fp32 --model " + q(calibfree) + " --input " + q(meas) + " --out " + q(out));
+  CHECK(r.code == 2);
+  CHECK_THAT(r.output, Contains("other settings"));
+  r = test::run_flatnet("infer --precision fp32 --model " + q(calibfree) + " --input " + q(meas) + " --out " + q(out) +
+                        " --force");
+  CHECK(r.code == 0);
+}
+
+TEST_CASE("simulate checks what it reuses: cut captures, empty gt, edited photographs, odd names", "[outputs][cli]") {
+  test::Scratch s("sim_reuse");
+  const auto src = photos(s.dir / "photos");
+  const std::string cmd = "simulate --images " + q(src) + " --out " + q(s.dir / "ds") + " --val-fraction 0.5";
+  REQUIRE(test::run_flatnet(cmd).code == 0);
+  const auto meas = s.dir / "ds" / "meas" / "bsds_16052_scene.png";
+  const auto gt = s.dir / "ds" / "gt" / "inet_n02980441_castle_scene.png";
+  const auto good_meas = read_bytes(meas);
+  // A capture cut to 1000 bytes and an empty gt file are made again, not counted as done.
+  {
+    std::ofstream(meas, std::ios::binary | std::ios::trunc).write(good_meas.data(), 1000);
+    std::ofstream(gt, std::ios::trunc);
+  }
+  auto r = test::run_flatnet(cmd);
+  INFO(r.output);
+  CHECK(r.code == 0);
+  CHECK_THAT(r.output, Contains("simulated 2 captures (0 already done)"));
+  CHECK(read_bytes(meas) == good_meas);  // the same capture as before (deterministic noise)
+  CHECK(read_rgb(gt).size(1) == 256);
+  // A photograph whose content changed: its capture is made again.
+  std::filesystem::copy_file(test::data_dir() / "golden" / "inet_n02980441_castle_scene.png",
+                             src / "bsds_16052_scene.png", std::filesystem::copy_options::overwrite_existing);
+  r = test::run_flatnet(cmd);
+  CHECK_THAT(r.output, Contains("simulated 1 captures (1 already done)"));
+  CHECK(read_bytes(meas) != good_meas);
+  // A name with a line break would break the list files.
+  std::filesystem::copy_file(test::data_dir() / "golden" / "bsds_16052_scene.png", src / "two\nlines.png");
+  r = test::run_flatnet(cmd);
+  CHECK(r.code == 2);
+  CHECK_THAT(r.output, Contains("line break"));
+}

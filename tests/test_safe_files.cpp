@@ -1,0 +1,411 @@
+// Files a user hands flatnet may be hostile (issue 25): model files and checkpoints are safetensors
+// (data, never code), every size a file claims is checked before anything that size is allocated,
+// and configs mean exactly what they say.
+#include "catch_torch.hpp"
+
+#include <sys/stat.h>
+
+#include <chrono>
+#include <fstream>
+#include <nlohmann/json.hpp>
+
+#include "core/error.hpp"
+#include "core/util.hpp"
+#include "helpers.hpp"
+#include "io/camera_config.hpp"
+#include "io/config.hpp"
+#include "io/mat.hpp"
+#include "io/safetensors.hpp"
+#include "io/torch_file.hpp"
+#include "nn/model_file.hpp"
+#include "tiny_model.hpp"
+
+using namespace flatnet;
+using Catch::Matchers::Contains;
+
+namespace {
+
+void write_file(const std::filesystem::path& p, const std::string& bytes) {
+  std::ofstream(p, std::ios::binary).write(bytes.data(), static_cast<std::streamsize>(bytes.size()));
+}
+
+std::string read_file(const std::filesystem::path& p) {
+  std::ifstream in(p, std::ios::binary);
+  return std::string(std::istreambuf_iterator<char>(in), {});
+}
+
+// A safetensors file from a header given as JSON text and a byte buffer.
+std::string handmade(const std::string& header, const std::string& buffer) {
+  std::string out(8, '\0');
+  for (int i = 0; i < 8; ++i) out[i] = static_cast<char>((static_cast<uint64_t>(header.size()) >> (8 * i)) & 0xff);
+  return out + header + buffer;
+}
+
+// A model file as flatnet wrote it before format 2: a TorchScript archive from LibTorch's
+// OutputArchive (what save_model_file did until 2026-11).
+void save_format1_model(const std::filesystem::path& path, Generator& g, const Config& config,
+                        const CameraConfig& camera) {
+  torch::serialize::OutputArchive a;
+  a.write("flatnet_format", c10::IValue(std::string("flatnet-model")));
+  a.write("flatnet_version", c10::IValue(int64_t{1}));
+  a.write("config", c10::IValue(config.to_yaml()));
+  a.write("camera", c10::IValue(camera_geometry_yaml(camera)));
+  torch::serialize::OutputArchive sub(a.compilation_unit());
+  g->save(sub);
+  a.write("generator", sub);
+  a.save_to(path.string());
+}
+
+Config tiny_config() { return Config::load({}, {"model.unet.width=2"}); }
+
+bool have_python() { return std::system("python3 -c 'import json, struct, zlib' >/dev/null 2>&1") == 0; }
+
+}  // namespace
+
+TEST_CASE("safetensors: round trip of every dtype, and the file follows the specification", "[safe][model]") {
+  test::Scratch s("st_roundtrip");
+  std::vector<std::pair<std::string, torch::Tensor>> tensors = {
+      {"f32", torch::randn({3, 4})},
+      {"f64", torch::randn({2}, torch::kFloat64)},
+      {"bf16", torch::randn({5}).to(torch::kBFloat16)},
+      {"i64", torch::arange(7, torch::kInt64)},
+      {"u8", torch::arange(9, torch::kInt64).to(torch::kUInt8)},
+      {"bool", torch::tensor({true, false, true})},
+      {"scalar", torch::tensor(2.5)},
+      {"empty", torch::zeros({0, 3})},
+      {"strided", torch::randn({4, 6}).t()}};
+  write_safetensors(s.dir / "a.safetensors", tensors, {{"note", "héllo\nworld"}});
+  const auto back = read_safetensors(s.dir / "a.safetensors");
+  REQUIRE(back.tensors.size() == tensors.size());
+  for (const auto& [name, t] : tensors) {
+    INFO(name);
+    const auto* b = back.find(name);
+    REQUIRE(b);
+    CHECK(b->scalar_type() == t.scalar_type());
+    CHECK(torch::equal(*b, t.contiguous()));
+  }
+  CHECK(back.metadata.at("note") == "héllo\nworld");
+  CHECK(back.metadata.count(kCrcKey) == 0);  // checked, then removed
+  // The data starts 8-byte aligned, as the specification recommends.
+  const auto bytes = read_file(s.dir / "a.safetensors");
+  uint64_t n = 0;
+  std::memcpy(&n, bytes.data(), 8);
+  CHECK((8 + n) % 8 == 0);
+}
+
+TEST_CASE("model files and checkpoints are read by an independent reader that follows the specification",
+          "[safe][model][python]") {
+  if (!have_python()) SKIP_TEST("no python3");
+  test::Scratch s("st_python");
+  const auto config = tiny_config();
+  const auto camera = test::tiny_camera();
+  auto g = test::random_generator(config, camera);
+  save_model_file(s.dir / "m.flatnet", g, config, camera);
+  const auto script = test::source_dir() / "scripts" / "safetensors_read.py";
+  const auto r = test::run_shell("python3 " + test::q(script) + " " + test::q(s.dir / "m.flatnet") + " --json");
+  REQUIRE(r.code == 0);
+  const auto j = nlohmann::json::parse(r.output);
+  CHECK(j["metadata"]["format"] == "flatnet-model");
+  CHECK(j["metadata"]["format_version"] == "2");
+  CHECK(j["metadata"]["config"].get<std::string>().find("width: 2") != std::string::npos);
+  // Every parameter and buffer, with the same shape and values.
+  int64_t seen = 0;
+  auto compare = [&](const std::string& name, const torch::Tensor& t) {
+    INFO(name);
+    const auto& e = j["tensors"]["generator." + name];
+    REQUIRE(e.is_object());
+    CHECK(e["shape"].get<std::vector<int64_t>>() == t.sizes().vec());
+    CHECK(e["sum"].get<double>() == Approx(t.to(torch::kFloat64).sum().item<double>()).margin(1e-9));
+    CHECK(e["sum_sq"].get<double>() == Approx(t.to(torch::kFloat64).square().sum().item<double>()).margin(1e-9));
+    ++seen;
+  };
+  for (const auto& p : g->named_parameters()) compare(p.key(), p.value());
+  for (const auto& b : g->named_buffers()) compare(b.key(), b.value());
+  CHECK(seen == static_cast<int64_t>(j["tensors"].size()));
+  // One flipped bit in a weight: the independent reader refuses it too (the CRC-32 in __metadata__).
+  auto bytes = read_file(s.dir / "m.flatnet");
+  bytes[bytes.size() - 3] ^= 0x10;
+  write_file(s.dir / "flipped.flatnet", bytes);
+  const auto bad = test::run_shell("python3 " + test::q(script) + " " + test::q(s.dir / "flipped.flatnet"));
+  CHECK(bad.code == 1);
+  CHECK_THAT(bad.output, Contains("data_crc32"));
+  CHECK_THROWS_WITH(load_model_file(s.dir / "flipped.flatnet"), Contains("flipped.flatnet") && Contains("CRC-32"));
+}
+
+TEST_CASE("hostile safetensors files: one clear error naming the file, nothing large allocated", "[safe]") {
+  test::Scratch s("st_hostile");
+  const std::string four(4, '\0');
+  auto refused = [&](const std::string& name, const std::string& bytes, const std::string& why) {
+    INFO(name);
+    write_file(s.dir / name, bytes);
+    CHECK_THROWS_WITH(read_safetensors(s.dir / name), Contains(name) && Contains(why));
+  };
+  const std::string ok = R"({"a":{"dtype":"F32","shape":[1],"data_offsets":[0,4]}})";
+  CHECK_NOTHROW(parse_safetensors(handmade(ok, four), "ok"));
+  refused("short.st", "abc", "not a safetensors file");
+  std::string huge(8, '\xff');
+  refused("huge_header.st", huge + "{}", "over the limit");
+  refused("long_header.st", handmade(ok, four).substr(0, 20), "truncated");
+  refused("not_json.st", handmade("{\"a\": nope}", ""), "not valid JSON");
+  refused("not_object.st", handmade("[1, 2]", ""), "not a safetensors file");
+  refused("duplicate.st",
+          handmade(R"({"a":{"dtype":"F32","shape":[1],"data_offsets":[0,4]},"a":{"dtype":"F32","shape":[1],"data_offsets":[0,4]}})",
+                   four),
+          "twice");
+  refused("deep.st", handmade(R"({"a":{"dtype":"F32","shape":[[[[1]]]],"data_offsets":[0,4]}})", four), "nests");
+  refused("dtype.st", handmade(R"({"a":{"dtype":"F8_E4M3","shape":[1],"data_offsets":[0,1]}})", "x"),
+          "dtype 'F8_E4M3'");
+  refused("overflow.st",
+          handmade(R"({"a":{"dtype":"F32","shape":[4294967296,4294967296],"data_offsets":[0,4]}})", four),
+          "overflows");
+  refused("mismatch.st", handmade(R"({"a":{"dtype":"F32","shape":[1000000000],"data_offsets":[0,4]}})", four),
+          "need 4000000000");
+  refused("past_end.st", handmade(R"({"a":{"dtype":"F32","shape":[2],"data_offsets":[0,8]}})", four), "truncated");
+  refused("hole.st", handmade(R"({"a":{"dtype":"F32","shape":[1],"data_offsets":[4,8]}})", std::string(8, '\0')),
+          "holes");
+  refused("overlap.st",
+          handmade(R"({"a":{"dtype":"F32","shape":[1],"data_offsets":[0,4]},"b":{"dtype":"F32","shape":[1],"data_offsets":[0,4]}})",
+                   four),
+          "holes or overlapping");
+  refused("trailing.st", handmade(ok, four + "junk"), "belong to none");
+  refused("bool.st", handmade(R"({"a":{"dtype":"BOOL","shape":[1],"data_offsets":[0,1]}})", "\x07"), "0 and 1");
+  refused("meta.st", handmade(R"({"__metadata__":{"k":1}})", ""), "not a string");
+  refused("negative.st", handmade(R"({"a":{"dtype":"F32","shape":[-1],"data_offsets":[0,4]}})", four),
+          "non-negative");
+  // A model file whose tensors are fine but whose CRC-32 does not match.
+  refused("crc.st", handmade(R"({"__metadata__":{"data_crc32":"00000000"},"a":{"dtype":"F32","shape":[1],"data_offsets":[0,4]}})",
+                             std::string("\1\2\3\4", 4)),
+          "CRC-32");
+}
+
+TEST_CASE("format-1 model files (TorchScript archives) are read as data, with the same outputs", "[safe][model]") {
+  test::Scratch s("format1");
+  const auto config = tiny_config();
+  const auto camera = test::tiny_camera();
+  auto g = test::random_generator(config, camera);
+  const auto Y = torch::randn({1, 4, 20, 24});
+  const auto expected = g->forward(Y);
+  save_format1_model(s.dir / "old.flatnet", g, config, camera);
+  CHECK(model_file_version(s.dir / "old.flatnet") == 1);
+  auto m = load_model_file(s.dir / "old.flatnet");
+  CHECK(m.format_version == 1);
+  CHECK(torch::equal(m.generator->forward(Y), expected));
+  // `flatnet export --model OLD --out NEW` rewrites it as format 2, the same weights.
+  const auto r = test::run_flatnet("export --model " + test::q(s.dir / "old.flatnet") + " --out " +
+                                   test::q(s.dir / "new.flatnet"));
+  REQUIRE(r.code == 0);
+  CHECK(model_file_version(s.dir / "new.flatnet") == 2);
+  CHECK(torch::equal(load_model_file(s.dir / "new.flatnet").generator->forward(Y), expected));
+}
+
+TEST_CASE("a TorchScript model with a __setstate__ is never run by any command that loads models",
+          "[safe][model][python]") {
+  if (!test::python_has_torch()) SKIP_TEST("/usr/bin/python3 has no torch");
+  test::Scratch s("setstate");
+  // The module's __setstate__ prints a marker when LibTorch's (or Python's) loader restores it, as
+  // the issue's exploit wrote a file.
+  write_file(s.dir / "make.py", R"(import sys, torch
+from typing import Tuple
+class Evil(torch.nn.Module):
+    def __init__(self):
+        super().__init__()
+        self.flatnet_format = "flatnet-model"
+        self.w = torch.zeros(2)
+    @torch.jit.export
+    def __getstate__(self):
+        return (self.w, self.flatnet_format, self.training)
+    @torch.jit.export
+    def __setstate__(self, state: Tuple[torch.Tensor, str, bool]):
+        self.w = state[0]
+        self.flatnet_format = state[1]
+        self.training = state[2]
+        print("PWNED-SETSTATE")
+    def forward(self, x):
+        return x
+torch.jit.save(torch.jit.script(Evil()), sys.argv[1])
+)");
+  const auto made = test::run_shell("/usr/bin/python3 " + test::q(s.dir / "make.py") + " " + test::q(s.dir / "evil.flatnet"));
+  if (made.code != 0) SKIP_TEST("this torch cannot script the probe: " + made.output.substr(0, 200));
+  // The probe is real: Python's own loader runs it.
+  const auto python = test::run_shell("/usr/bin/python3 -c \"import torch; torch.jit.load('" + (s.dir / "evil.flatnet").string() + "')\"");
+  CHECK_THAT(python.output, Contains("PWNED-SETSTATE"));
+  std::filesystem::create_directories(s.dir / "in");
+  std::filesystem::copy_file(test::data_dir() / "golden" / "bsds_16052_raw.png", s.dir / "in" / "a.png");
+  for (const std::string cmd :
+       {"infer --model " + test::q(s.dir / "evil.flatnet") + " --input " + test::q(s.dir / "in") + " --out " +
+            test::q(s.dir / "o"),
+        "export --model " + test::q(s.dir / "evil.flatnet") + " --out " + test::q(s.dir / "x.flatnet")}) {
+    INFO(cmd);
+    const auto r = test::run_flatnet(cmd);
+    CHECK(r.code != 0);
+    CHECK_THAT(r.output, Contains("evil.flatnet"));
+    CHECK_THAT(r.output, !Contains("PWNED"));
+  }
+  CHECK_THROWS_WITH(load_model_file(s.dir / "evil.flatnet"), Contains("evil.flatnet"));
+  auto g = test::random_generator(tiny_config(), test::tiny_camera());  // train --init-from
+  CHECK_THROWS_WITH(init_generator_from(s.dir / "evil.flatnet", g), Contains("evil.flatnet"));
+}
+
+TEST_CASE("a model file's config is checked against its weights before the network is built", "[safe][model]") {
+  test::Scratch s("sizes");
+  const auto config = tiny_config();
+  const auto camera = test::tiny_camera();
+  auto g = test::random_generator(config, camera);
+  save_model_file(s.dir / "m.flatnet", g, config, camera);
+  auto tamper = [&](const std::string& name, const std::string& key, const std::string& from, const std::string& to) {
+    auto st = read_safetensors(s.dir / "m.flatnet");
+    auto& text = st.metadata.at(key);
+    const auto at = text.find(from);
+    REQUIRE(at != std::string::npos);
+    text.replace(at, from.size(), to);
+    write_safetensors(s.dir / name, st.tensors, st.metadata);
+  };
+  tamper("wide.flatnet", "config", "width: 2\n", "width: 4096\n");
+  CHECK_THROWS_WITH(load_model_file(s.dir / "wide.flatnet"),
+                    Contains("wide.flatnet") && Contains("model.unet.width = 4096 disagrees with the weights"));
+  tamper("scene.flatnet", "camera", "scene_size: 16", "scene_size: 4096");
+  CHECK_THROWS_WITH(load_model_file(s.dir / "scene.flatnet"),
+                    Contains("scene.flatnet") && Contains("scene_size = 4096 disagrees"));
+  tamper("bigscene.flatnet", "camera", "scene_size: 16", "scene_size: 4194304");
+  CHECK_THROWS_WITH(load_model_file(s.dir / "bigscene.flatnet"), Contains("bigscene.flatnet") && Contains("1..4096"));
+  tamper("hex.flatnet", "config", "width: 2\n", "width: 0x2\n");
+  CHECK_THROWS_WITH(load_model_file(s.dir / "hex.flatnet"), Contains("hex.flatnet") && Contains("model.unet.width"));
+}
+
+TEST_CASE("hostile pickles: cycles, deep nesting, huge lengths and amplifying views are refused", "[safe][torchfile]") {
+  test::Scratch s("pickles");
+  auto refused = [&](const std::string& name, const std::string& pickle, const std::string& why) {
+    INFO(name);
+    write_file(s.dir / name, pickle);
+    CHECK_THROWS_WITH(read_torch_file(s.dir / name), Contains(name) && Contains(why));
+  };
+  // [l] with l.append(l): EMPTY_LIST, BINPUT 0, BINGET 0, APPEND, STOP.
+  refused("self.pt", std::string("\x80\x02]q\x00h\x00" "a.", 9), "contains itself");
+  // a = []; b = [a]; a.append(b): a changes after it was placed in b.
+  refused("cycle.pt", std::string{'\x80', '\x02', ']', 'q', '\0', ']', 'q', '\1', 'h', '\0', 'a', '0', 'h', '\1', 'a', '.'},
+          "after placing it");
+  // 200000 nested lists.
+  refused("deep.pt", std::string("\x80\x02", 2) + std::string(200000, ']') + std::string(199999, 'a') + ".",
+          "deeper than 64");
+  // A string that claims 2^64 - 5 bytes.
+  refused("long.pt", std::string("\x80\x02\x8d\xfb\xff\xff\xff\xff\xff\xff\xff", 11) + "abc.", "truncated");
+  // A DAG that doubles at every level: 40 levels of [x, x].
+  std::string dag("\x80\x02]q\x00", 5);
+  for (int i = 0; i < 40; ++i) dag += std::string("(h\x00h\x00lq\x00", 8);
+  dag += ".";
+  refused("dag.pt", dag, "expands to more than");
+}
+
+TEST_CASE("a view that claims more elements than its storage holds is refused before the copy",
+          "[safe][torchfile][python]") {
+  if (!test::python_has_torch()) SKIP_TEST("/usr/bin/python3 has no torch");
+  test::Scratch s("amplify");
+  const auto r = test::run_shell("/usr/bin/python3 -c \"import torch; torch.save({'w': torch.zeros(1).expand(32768, "
+                                 "16384)}, '" + (s.dir / "amp.pt").string() + "')\"");
+  REQUIRE(r.code == 0);
+  CHECK(std::filesystem::file_size(s.dir / "amp.pt") < 4096);
+  CHECK_THROWS_WITH(read_torch_file(s.dir / "amp.pt"), Contains("amp.pt") && Contains("overlapping strides"));
+}
+
+TEST_CASE("configs mean what they say: no stray paths, no hex, no duplicate keys or second documents",
+          "[safe][config]") {
+  test::Scratch s("strict_config");
+  // A file called "1" in the working folder does not turn train.batch=1 into a path.
+  const auto cwd = std::filesystem::current_path();
+  std::filesystem::current_path(s.dir);
+  write_file(s.dir / "1", "stray");
+  const auto c = Config::load({}, {"train.batch=1"});
+  const auto text = c.to_yaml();
+  std::filesystem::current_path(cwd);
+  CHECK(Config::from_text(text, "saved").integer("train.batch") == 1);
+  CHECK_THROWS_WITH(Config::load({}, {"train.batch=0x10"}), Contains("train.batch") && Contains("decimal"));
+  CHECK_THROWS_WITH(Config::load({}, {"train.lr=inf"}), Contains("train.lr"));
+  write_file(s.dir / "dup.yaml", "train:\n  lr: 1.0e-4\n  lr: 2.0e-4\n");
+  CHECK_THROWS_WITH(Config::load(s.dir / "dup.yaml"), Contains("dup.yaml") && Contains("'lr' is given twice"));
+  write_file(s.dir / "two.yaml", "train:\n  lr: 1.0e-4\n---\ntrain:\n  lr: 2.0e-4\n");
+  CHECK_THROWS_WITH(Config::load(s.dir / "two.yaml"), Contains("two.yaml") && Contains("2 YAML documents"));
+  write_file(s.dir / "big.yaml", "train:\n  " + std::string(2 << 20, 'x') + ": 1\n");
+  CHECK_THROWS_WITH(Config::load(s.dir / "big.yaml"), Contains("big.yaml") && Contains("over the limit"));
+  // Cameras: NaN rotation, infinite or absurd regularisation, absurd scene sizes.
+  const std::string camera = "raw_height: 40\nraw_width: 48\ncrop: [0, 0, 20, 24]\nscene_size: 16\n";
+  for (const auto& [extra, why] : std::vector<std::pair<std::string, std::string>>{
+           {"rotation: .nan\n", "rotation"},
+           {"tikhonov_lambda: .inf\n", "regularisation"},
+           {"tikhonov_lambda: 1e300\n", "regularisation"}}) {
+    INFO(extra);
+    write_file(s.dir / "cam.yaml", camera + extra);
+    CHECK_THROWS_WITH(load_camera_config(s.dir / "cam.yaml"), Contains("cam.yaml") && Contains(why));
+  }
+}
+
+TEST_CASE("fifos and devices are refused at once, never waited on", "[safe]") {
+  test::Scratch s("fifo");
+  const auto fifo = s.dir / "pipe";
+  REQUIRE(::mkfifo(fifo.c_str(), 0600) == 0);
+  const auto t0 = std::chrono::steady_clock::now();
+  CHECK_THROWS_WITH(read_file_text(fifo), Contains("pipe") && Contains("not a regular file"));
+  CHECK_THROWS_WITH(load_model_file(fifo), Contains("pipe") && Contains("not a regular file"));
+  CHECK_THROWS_WITH(Config::load(fifo), Contains("pipe"));
+  CHECK_THROWS_WITH(load_camera_config(fifo), Contains("pipe") && Contains("not a regular file"));
+  CHECK_THROWS_WITH(read_torch_file(fifo), Contains("pipe") && Contains("not a regular file"));
+  CHECK_THROWS_WITH(read_file_text("/dev/zero"), Contains("/dev/zero") && Contains("not a regular file"));
+  CHECK(std::chrono::steady_clock::now() - t0 < std::chrono::seconds(5));
+  write_file(s.dir / "big.bin", std::string(100, 'x'));
+  CHECK_THROWS_WITH(read_file_text(s.dir / "big.bin", 10), Contains("big.bin") && Contains("over the limit"));
+}
+
+namespace {
+
+// A MATLAB v5 file with one uncompressed double variable whose header says rows x cols and whose
+// data holds `values` (what MATLAB writes when they agree).
+std::string mat5(const std::string& name, int32_t rows, int32_t cols, const std::vector<double>& values) {
+  auto u32 = [](uint32_t v) { return std::string(reinterpret_cast<const char*>(&v), 4); };
+  auto element = [&](uint32_t type, const std::string& data) {
+    return u32(type) + u32(static_cast<uint32_t>(data.size())) + data + std::string((8 - data.size() % 8) % 8, '\0');
+  };
+  std::string header = "MATLAB 5.0 MAT-file, written by a test";
+  header.resize(116, ' ');
+  header += std::string(8, '\0') + std::string("\x00\x01IM", 4);
+  const std::string body = element(6, u32(6) + u32(0)) +
+                           element(5, std::string(reinterpret_cast<const char*>(&rows), 4) +
+                                          std::string(reinterpret_cast<const char*>(&cols), 4)) +
+                           element(1, name) +
+                           element(9, std::string(reinterpret_cast<const char*>(values.data()), 8 * values.size()));
+  return header + u32(14) + u32(static_cast<uint32_t>(body.size())) + body;
+}
+
+}  // namespace
+
+TEST_CASE(".mat files: what a variable claims is checked against its data before matio allocates", "[safe][mat]") {
+  test::Scratch s("mat_sizes");
+  write_file(s.dir / "ok.mat", mat5("A", 2, 2, {1, 2, 3, 4}));
+  const auto a = MatReader(s.dir / "ok.mat").read("A");
+  CHECK(a.sizes() == c10::IntArrayRef{2, 2});
+  CHECK(a[1][0].item<double>() == 2);  // column-major
+  write_file(s.dir / "short.mat", mat5("P1b", 500, 256, {1, 2, 3, 4}));
+  CHECK_THROWS_WITH(MatReader(s.dir / "short.mat"),
+                    Contains("short.mat") && Contains("'P1b'") && Contains("128000 values, its data holds 4"));
+  write_file(s.dir / "huge.mat", mat5("P1b", 20000, 20000, {1, 2, 3, 4}));
+  CHECK(std::filesystem::file_size(s.dir / "huge.mat") < 300);
+  CHECK_THROWS_WITH(MatReader(s.dir / "huge.mat"), Contains("huge.mat") && Contains("400000000 values"));
+  auto cut = mat5("A", 2, 2, {1, 2, 3, 4});
+  write_file(s.dir / "cut.mat", cut.substr(0, cut.size() - 9));
+  CHECK_THROWS_WITH(MatReader(s.dir / "cut.mat"), Contains("cut.mat") && Contains("truncated"));
+  // Files matio writes (compressed v5) and the shipped camera files pass.
+  write_mat(s.dir / "written.mat", {{"B", torch::randn({30, 7}, torch::kFloat64)}});
+  CHECK(MatReader(s.dir / "written.mat").read("B").size(1) == 7);
+  for (const auto& f : {test::rig_path(), test::calib_path()}) CHECK_NOTHROW(MatReader(f).names());
+}
+
+TEST_CASE(".mat files as MATLAB, scipy and FlatNet's release wrote them pass the size check", "[safe][mat][shared]") {
+  std::vector<std::filesystem::path> files;
+  for (const auto& root : {test::source_dir() / "models", test::shared_dir() / "data"})
+    if (std::filesystem::exists(root))
+      for (const auto& e : std::filesystem::recursive_directory_iterator(root))
+        if (e.path().extension() == ".mat") files.push_back(e.path());
+  REQUIRE(files.size() >= 8);  // the shipped camera, codes, masks and NIQE model at least
+  for (const auto& f : files) {
+    INFO(f);
+    CHECK_NOTHROW(MatReader(f).names());
+  }
+}
