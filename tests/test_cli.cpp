@@ -176,6 +176,14 @@ TEST_CASE("bad input: one clear line, exit code 2", "[cli][errors]") {
     CHECK_THAT(r.output, Contains(message) && Contains("--set"));
     CHECK_FALSE(std::filesystem::exists(s.dir / "run"));
   }
+  // A batch the machine's memory cannot hold is refused before it is tried; hex is not a number.
+  r = test::run_flatnet(train + " --set train.batch=4096 --set data.images=" + q(make_photos(s.dir / "photos")));
+  CHECK(r.code == 2);
+  CHECK_THAT(r.output, Contains("train.batch") && Contains("GB available"));
+  r = test::run_flatnet(train + " --set train.batch=0x10");
+  CHECK(r.code == 2);
+  CHECK_THAT(r.output, Contains("train.batch = 0x10 is not a finite decimal number"));
+  CHECK_FALSE(std::filesystem::exists(s.dir / "run"));
   // A flag value of the wrong type names the flag.
   r = test::run_flatnet("recon --method tikhonov --lambda nan --input " + q(golden) + " --out " + q(s.dir / "o"));
   CHECK(r.code == 2);
@@ -219,12 +227,29 @@ TEST_CASE("train, export, import and infer from the command line, and bad input 
   auto again = test::run_flatnet(base + " --out " + q(s.dir / "run"));
   CHECK(again.code == 2);
   CHECK_THAT(again.output, Contains("--resume"));
-  // --resume keeps the run's own config: another --config is refused, not silently ignored.
+  // --resume keeps the run's own config: another --config is refused, not silently ignored, and
+  // the refused resume changes nothing in the folder.
+  const auto config_before = read_bytes(s.dir / "run" / "config.yaml");
   auto other_config = test::run_flatnet("train --out " + q(s.dir / "run") + " --resume --config " +
                                         q(test::source_dir() / "configs" / "sim_calibfree.yaml"));
   CHECK(other_config.code == 2);
   CHECK_THAT(other_config.output,
              Contains("--resume continues with the run's own config") && Contains("model.inversion.init"));
+  CHECK(read_bytes(s.dir / "run" / "config.yaml") == config_before);
+  auto wider = test::run_flatnet("train --out " + q(s.dir / "run") + " --resume --set model.unet.width=4");
+  CHECK(wider.code == 2);
+  CHECK(read_bytes(s.dir / "run" / "config.yaml") == config_before);
+  // A fresh run into a folder left by a run killed before its first checkpoint: refused, or
+  // started afresh with --force.
+  std::filesystem::create_directories(s.dir / "dead");
+  REQUIRE(test::run_flatnet(base + " --set train.iterations=1 --set train.val_every=1 --out " + q(s.dir / "dead")).code == 0);
+  std::filesystem::remove(s.dir / "dead" / "latest.ckpt");
+  auto fresh = test::run_flatnet(base + " --set train.iterations=1 --out " + q(s.dir / "dead"));
+  CHECK(fresh.code == 2);
+  CHECK_THAT(fresh.output, Contains("never reached its first checkpoint") && Contains("--force"));
+  fresh = test::run_flatnet(base + " --set train.iterations=1 --set train.val_every=1 --out " + q(s.dir / "dead") + " --force");
+  CHECK(fresh.code == 0);
+  CHECK(read_lines(s.dir / "dead" / "val.csv").size() == 2);  // header and this run's one row
   // A log row cut short (a crash while writing) does not block the resume.
   std::ofstream(s.dir / "run" / "log.csv", std::ios::app) << "2,0.5,0.";
   std::ofstream(s.dir / "run" / "log.csv", std::ios::app) << "\ngarbage\n";

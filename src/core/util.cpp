@@ -111,8 +111,7 @@ void write_bytes_atomically(const fs::path& path, const std::string& bytes) {
 void write_text_atomically(const fs::path& path, const std::string& text) { write_bytes_atomically(path, text); }
 
 std::vector<std::string> read_lines(const fs::path& path) {
-  std::ifstream in(path);
-  require(static_cast<bool>(in), path, "cannot open list file");
+  std::istringstream in(read_file_text(path, 1ull << 30));  // a regular file: a fifo would block
   std::vector<std::string> lines;
   std::string line;
   while (std::getline(in, line)) {

@@ -1,6 +1,8 @@
 #include "train/experiment.hpp"
 
 #include <iostream>
+#include <fstream>
+#include <sstream>
 
 #include "core/error.hpp"
 #include "core/precision.hpp"
@@ -135,7 +137,39 @@ std::vector<std::filesystem::path> run_files(const std::filesystem::path& out) {
   return found;
 }
 
+// Memory the machine can still give (MemAvailable), in bytes; 0 when unknown.
+double available_memory_bytes() {
+  std::ifstream in("/proc/meminfo");  // procfs reports size 0: read as a stream
+  for (std::string key; in >> key;) {
+    double kb = 0;
+    in >> kb;
+    if (key == "MemAvailable:") return kb * 1024;
+    in.ignore(1 << 10, '\n');
+  }
+  return 0;
+}
+
 }  // namespace
+
+double training_bytes_per_sample(const Config& c, const CameraConfig& camera) {
+  const int64_t crop = c.integer("train.crop");
+  const double side = static_cast<double>(crop > 0 ? crop : camera.scene_size);
+  const double pixels = side * side;
+  // Activations kept for the backward pass and their gradients, float32. Measured on the U-Net
+  // (width 32, crop 128, the quality recipe): peak memory at batch 12 minus batch 4, over 8 samples,
+  // is 71 MB, i.e. ~34 floats per first-level channel and pixel. DnCNN and RCAN keep about 8
+  // floats per layer, channel and pixel (conv, batch norm, ReLU and their gradients).
+  double floats = 0;
+  const auto enhancer = c.str("model.enhancer");
+  if (enhancer == "dncnn") floats = 8.0 * c.integer("model.dncnn.layers") * c.integer("model.dncnn.width") * pixels;
+  else if (enhancer == "rcan")
+    floats = 8.0 * 3 * c.integer("model.rcan.groups") * c.integer("model.rcan.blocks") * c.integer("model.rcan.width") * pixels;
+  else floats = 34.0 * c.integer("model.unet.width") * pixels;
+  // The first stage: the measurement, W1^T Y and the scene, per Bayer plane, with gradients.
+  const double rows = camera.raw.crop[2], cols = camera.raw.crop[3], n = camera.scene_size;
+  floats += 3.0 * 4 * (rows * cols + n * cols + n * n);
+  return 4.0 * floats;
+}
 
 ExperimentResult run_experiment(const ExperimentOptions& o) {
   std::ostream& log = o.log ? *o.log : std::cerr;
@@ -177,6 +211,15 @@ ExperimentResult run_experiment(const ExperimentOptions& o) {
   const auto camera = camera_of(config);
   auto vgg = vgg_if_needed(config);
   auto opts = train_options(config, out);
+  // A batch that cannot fit is refused before it fills the machine's memory (an estimate; see
+  // training_bytes_per_sample).
+  if (const double available = available_memory_bytes(); available > 0) {
+    const double need = training_bytes_per_sample(config, camera) * static_cast<double>(opts.batch);
+    require(need < 0.9 * available, "train.batch",
+            std::to_string(opts.batch) + " samples need about " + std::to_string(static_cast<int64_t>(need / 1e9)) +
+                " GB for training, and this machine has " + std::to_string(static_cast<int64_t>(available / 1e9)) +
+                " GB available; lower train.batch (or train.crop)");
+  }
   require(opts.crop <= camera.scene_size, "train.crop",
           std::to_string(opts.crop) + " exceeds the camera's " + std::to_string(camera.scene_size) +
               "-pixel scene (0: whole scenes)");

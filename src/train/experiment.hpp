@@ -33,6 +33,10 @@ struct ExperimentResult {
   bool writer = true;  // rank 0: the process that validates and writes files
 };
 
+// Estimated bytes one training sample needs (activations for the backward pass and their
+// gradients); run_experiment refuses a batch whose estimate exceeds 90 % of the available memory.
+double training_bytes_per_sample(const Config& config, const CameraConfig& camera);
+
 // Everything that can fail on bad input (config keys and ranges, the camera, VGG weights, data)
 // is checked before anything is written. Stops early, with a checkpoint, when interrupted().
 ExperimentResult run_experiment(const ExperimentOptions& options);
