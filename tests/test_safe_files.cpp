@@ -409,3 +409,30 @@ TEST_CASE(".mat files as MATLAB, scipy and FlatNet's release wrote them pass the
     CHECK_NOTHROW(MatReader(f).names());
   }
 }
+
+TEST_CASE("--reinit inversion keeps the enhancer and gives the first stage this camera's initialisation",
+          "[model][adapt]") {
+  test::Scratch s("reinit");
+  auto config = Config::load({}, {"model.unet.width=2", "model.inversion.init=random", "model.inversion.seed=1"});
+  const auto camera = test::tiny_camera();
+  auto source = test::random_generator(config, camera);
+  save_model_file(s.dir / "m.flatnet", source, config, camera);
+  // Another camera: other crop (24x28 planes), another initialisation of the first stage.
+  auto other_camera = camera;
+  other_camera.raw.crop = {0, 0, 24, 28};
+  auto other_config = Config::load({}, {"model.unet.width=2", "model.inversion.init=random", "model.inversion.seed=5"});
+  Generator fresh(generator_options(other_config, other_camera, true));
+  Generator adapted(generator_options(other_config, other_camera, true));
+  init_generator_from(s.dir / "m.flatnet", adapted, GeneratorPart::enhancer);
+  const auto src = source->named_parameters(), mine = fresh->named_parameters();
+  for (const auto& p : adapted->named_parameters()) {
+    INFO(p.key());
+    if (p.key().rfind("inversion.", 0) == 0)
+      CHECK(torch::equal(p.value(), mine[p.key()]));  // this camera's, as initialised
+    else
+      CHECK(torch::equal(p.value(), src[p.key()]));  // the model's
+  }
+  // Copying everything cannot work across cameras: the first stage's shapes differ, named.
+  Generator all(generator_options(other_config, other_camera, true));
+  CHECK_THROWS_WITH(init_generator_from(s.dir / "m.flatnet", all), Contains("inversion.PhiL"));
+}

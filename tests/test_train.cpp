@@ -223,6 +223,54 @@ TEST_CASE("schedules: halving steps down, cosine falls smoothly to 0 at the last
   CHECK_THROWS_WITH(parse_lr_schedule("linear"), Contains("halving or cosine"));
 }
 
+TEST_CASE("a time budget: cosine spans it, training stops cleanly with a checkpoint, resume continues it",
+          "[train][budget]") {
+  TrainOptions t;
+  t.schedule = LrSchedule::cosine;
+  t.iterations = 1000000;
+  t.minutes = 10;
+  CHECK(lr_factor(t, 5, 0) == Approx(1.0));
+  CHECK(lr_factor(t, 5, 300) == Approx(0.5));  // half the budget: half way down the cosine
+  CHECK(lr_factor(t, 5, 600) == Approx(0.0).margin(1e-12));
+  CHECK(lr_factor(t, 5, 6000) == Approx(0.0).margin(1e-12));
+
+  test::Scratch s("budget");
+  Setup setup;
+  auto make = [&](double minutes) {
+    torch::manual_seed(0);
+    auto opts = setup.options(s.dir / "run", 1000000);
+    opts.minutes = minutes;
+    opts.val_every = 1000000;
+    Generator g(generator_options(setup.config, setup.camera, true));
+    Discriminator d(discriminator_options(setup.config));
+    return GanTrainer(g, d, Vgg16Features(nullptr), std::make_shared<MemoryPairs>(6), load_all(MemoryPairs(2), 0, 1),
+                      opts, model_identity(setup.config, setup.camera));
+  };
+  int64_t first_steps = 0;
+  {
+    auto trainer = make(0.01);  // 0.6 s
+    const auto summary = trainer.run();
+    CHECK(summary.budget_reached);
+    first_steps = summary.last_step;
+    CHECK(first_steps > 0);
+    CHECK(first_steps < 1000000);
+  }
+  REQUIRE(std::filesystem::exists(s.dir / "run" / "latest.ckpt"));
+  CHECK(std::filesystem::exists(s.dir / "run" / "model.flatnet"));
+  // The budget counts the time of earlier runs: the same budget again stops at once; a larger one continues.
+  {
+    auto again = make(0.01);
+    again.resume(s.dir / "run" / "latest.ckpt");
+    const auto summary = again.run();
+    CHECK(summary.last_step == first_steps);
+  }
+  {
+    auto more = make(0.2);
+    more.resume(s.dir / "run" / "latest.ckpt");
+    CHECK(more.run().last_step > first_steps);
+  }
+}
+
 TEST_CASE(
     "crops: corners depend on (seed, step) and stay inside the scene, and crop training runs and validates at full "
     "size",

@@ -306,7 +306,11 @@ int mask_camera(int argc, char** argv) {
       "and camera.yaml, for simulate, calibrate, recon and train.");
   o.add_options()("codes",
                   ".mat with code_rows and code_cols (vectors, values in [-1, 1]); models/camera/codes_mls.mat is MLS",
-                  cxxopts::value<std::string>())("out", "folder to write", cxxopts::value<std::string>())(
+                  cxxopts::value<std::string>())(
+      "random-codes",
+      "instead of --codes: a seeded pair of random +-1 codes, 511 each (another FlatCam, for adaptation tests); "
+      "written to OUT/codes.mat",
+      cxxopts::value<uint64_t>())("out", "folder to write", cxxopts::value<std::string>())(
       "calib-error", "relative (Frobenius) error of the calibration, as a real one has",
       cxxopts::value<double>()->default_value("0.03"))("seed", "seed of that error",
                                                        cxxopts::value<uint64_t>()->default_value("0"))(
@@ -316,16 +320,27 @@ int mask_camera(int argc, char** argv) {
   add_common(o);
   cxxopts::ParseResult r;
   if (!parse(o, argc, argv, r)) return 0;
-  require(r.count("codes") && r.count("out"), "mask camera", "--codes FILE and --out DIR are required");
-  const std::filesystem::path codes_path = r["codes"].as<std::string>(), out = r["out"].as<std::string>();
+  require(r.count("codes") + r.count("random-codes") == 1 && r.count("out"), "mask camera",
+          "one of --codes FILE or --random-codes SEED, and --out DIR, are required");
+  const std::filesystem::path out = r["out"].as<std::string>();
+  const std::filesystem::path codes_path =
+      r.count("codes") ? std::filesystem::path(r["codes"].as<std::string>()) : out / "codes.mat";
   const double error = r["calib-error"].as<double>();
   require(std::isfinite(error) && error >= 0 && error <= 1, "--calib-error", "0 to 1 (0.03: 3 %)");
-  const auto codes = load_code_pair(codes_path);
+  CodePair codes;
+  if (r.count("codes")) {
+    codes = load_code_pair(codes_path);
+  } else {  // +-1 with probability 1/2 each, rows then columns from one seeded generator
+    auto gen = at::detail::createCPUGenerator(r["random-codes"].as<uint64_t>());
+    codes.rows = at::randint(0, 2, {511}, gen, torch::kFloat64) * 2 - 1;
+    codes.cols = at::randint(0, 2, {511}, gen, torch::kFloat64) * 2 - 1;
+  }
   const auto& u = codes.rows;
   const auto& v = codes.cols;
   const auto claim = claim_out(r, out, "mask camera");
   for (const char* f : {"rig.mat", "calib.mat", "camera.yaml"})
     require_new_output(out / f, r.count("force") > 0, {codes_path});
+  if (r.count("random-codes")) write_mat(codes_path, {{"code_rows", codes.rows}, {"code_cols", codes.cols}});
   const auto rig = separable_rig(u, v);
   auto camera = load_camera_config(default_camera_path());
   camera.name = out.filename().string();

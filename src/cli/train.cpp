@@ -25,6 +25,11 @@ int train(int argc, char** argv) {
       "init-from",
       "start from a model file's generator weights (a shipped model, or one from another camera's run) "
       "with fresh optimisers; the config must describe the same architecture",
+      cxxopts::value<std::string>())(
+      "reinit",
+      "with --init-from: 'inversion' keeps the model's enhancer (and level path) and initialises the first stage "
+      "afresh for this run's camera, from its calibration or geometry (model.inversion.init): adapting a model to "
+      "another camera",
       cxxopts::value<std::string>())("precision", "auto|fp32|bf16: overrides train.precision",
                                      cxxopts::value<std::string>());
   o.add_options("distributed (defaults: torchrun's WORLD_SIZE, RANK, MASTER_ADDR, MASTER_PORT)")(
@@ -46,6 +51,12 @@ int train(int argc, char** argv) {
   if (r.count("precision")) e.sets.push_back("train.precision=" + r["precision"].as<std::string>());
   e.resume = r.count("resume") > 0;
   if (r.count("init-from")) e.init_from = r["init-from"].as<std::string>();
+  if (r.count("reinit")) {
+    require(r["reinit"].as<std::string>() == "inversion", "--reinit",
+            "'" + r["reinit"].as<std::string>() + "': only 'inversion' (the camera-specific first stage) can be re-initialised");
+    require(r.count("init-from") > 0, "--reinit", "needs --init-from MODEL");
+    e.reinit_inversion = true;
+  }
   auto& dist = e.distributed;
   dist = distributed_from_env();
   if (r.count("world-size")) dist.world_size = r["world-size"].as<int>();
@@ -71,6 +82,9 @@ int train(int argc, char** argv) {
             << s.steps_per_s << " steps/s, data wait " << s.loader_wait_s << " s)\n"
             << "validation: last PSNR " << s.last_psnr << " SSIM " << s.last_ssim << ", best PSNR " << s.best_psnr
             << "\nmodel: " << (e.out / "model.flatnet").string() << "\n";
+  if (s.budget_reached)
+    std::cout << "stopped at the time budget (train.minutes); a larger budget continues it: `flatnet train --out "
+              << e.out.string() << " --resume --set train.minutes=N`\n";
   if (interrupted()) {
     std::cout << "interrupted: continue with `flatnet train --out " << e.out.string() << " --resume`\n";
     return 130;

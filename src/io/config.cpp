@@ -64,6 +64,7 @@ size_t edit_distance(const std::string& a, const std::string& b) {
 const std::vector<NumberRule>& range_rules() {
   static const std::vector<NumberRule> rules = {
       {"train.iterations", 1, 1e9, "1 to 1e9 steps"},
+      {"train.minutes", 0, 1e6, "0 (no budget) or minutes of wall-clock training"},
       {"train.batch", 1, 4096, "1 to 4096 samples"},
       {"train.lr", 0, 10, "0 (frozen) to 10"},
       {"train.lr_discriminator", 0, 10, "0 (frozen) to 10"},

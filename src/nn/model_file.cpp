@@ -494,6 +494,7 @@ void save_checkpoint(const std::filesystem::path& path, Generator& g, Discrimina
   meta["optimizer_discriminator"] = save_optimizer(tensors, "optimizer_discriminator", opt_d, *d);
   meta["step"] = std::to_string(state.step);
   meta["best_psnr"] = format_number(state.best_psnr);
+  meta["train_seconds"] = format_number(state.train_seconds);
   tensors.emplace_back("rng_state", state.rng_state);
   write_safetensors(path, tensors, meta);
 }
@@ -519,6 +520,10 @@ TrainState load_checkpoint(const std::filesystem::path& path, Generator& g, Disc
   require(step >= 0 && step < 1e15 && step == std::floor(step), path, "step is not a count");
   st.step = static_cast<int64_t>(step);
   st.best_psnr = stored_number(s, "best_psnr", path);
+  if (s.meta.count("train_seconds")) {
+    st.train_seconds = stored_number(s, "train_seconds", path);
+    require(std::isfinite(st.train_seconds) && st.train_seconds >= 0, path, "train_seconds is not a duration");
+  }
   const auto rng = s.tensors.find("rng_state");
   require(rng != s.tensors.end() && rng->second.scalar_type() == torch::kUInt8 &&
               rng->second.numel() == at::detail::getDefaultCPUGenerator().get_state().numel(),
@@ -541,12 +546,22 @@ ModelFile model_from_checkpoint(const std::filesystem::path& path, bool* used_av
   return read_generator(path, kCheckpointFormat, used_average);
 }
 
-void init_generator_from(const std::filesystem::path& model, Generator& g) {
+void init_generator_from(const std::filesystem::path& model, Generator& g, GeneratorPart part) {
   auto m = load_model_file(model);
   const auto theirs = m.generator->named_parameters(), their_buffers = m.generator->named_buffers();
   const bool adds_level = g->options().level_input && !m.generator->options().level_input;
-  const auto ours = g->named_parameters();
+  const auto ours = g->named_parameters(), our_buffers = g->named_buffers();
+  auto first_stage = [](const std::string& name) {
+    return name.rfind("inversion.", 0) == 0 || name.rfind("tikhonov.", 0) == 0;
+  };
+  if (part == GeneratorPart::enhancer)
+    require(m.generator->options().input == g->options().input, model,
+            "its first stage (model.input) differs from this config's; --reinit inversion keeps the stage's kind");
   fill_module(*g, model, "weight", [&](const std::string& name, bool buffer) {
+    if (part == GeneratorPart::enhancer && first_stage(name)) {
+      const auto* own = buffer ? our_buffers.find(name) : ours.find(name);
+      return own->detach().clone();  // this camera's, as initialised
+    }
     const auto* t = buffer ? their_buffers.find(name) : theirs.find(name);
     if (!t)
       throw Error(model,

@@ -52,6 +52,7 @@ struct TrainState {
   double best_psnr = -1e9;  // best validation PSNR so far
   torch::Tensor rng_state;  // the default CPU generator's state
   bool optimizers_restored = true;  // false after loading a format-1 checkpoint (moments start afresh)
+  double train_seconds = 0;         // wall-clock training time so far (train.minutes counts it)
 };
 
 // `ema`, when given, is the moving average of the generator's weights (saved as "generator_ema").
@@ -75,7 +76,11 @@ ModelFile model_from_checkpoint(const std::filesystem::path& path, bool* used_av
 // must exist with the same shape, else an error naming the file, the tensor and both shapes.
 // One exception: a model without model.level_input into a generator with it; the enhancer's first
 // convolution gets zero weights for the level channels (the same function to begin with).
-void init_generator_from(const std::filesystem::path& model, Generator& g);
+// With GeneratorPart::enhancer, only the enhancer and the batch norm after the first stage are
+// copied (`--reinit inversion`): the first stage (inversion or Tikhonov layer) keeps the values `g`
+// was built with (this camera's), and may differ in shape from the file's.
+enum class GeneratorPart { all, enhancer };
+void init_generator_from(const std::filesystem::path& model, Generator& g, GeneratorPart part = GeneratorPart::all);
 
 // FlatNet-sep name of one of our parameter names ("inversion.PhiL" -> "PhiL",
 // "enhancer.inc.conv.conv.0.weight" -> "inc.conv.conv.0.weight").

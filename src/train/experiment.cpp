@@ -16,6 +16,7 @@ namespace flatnet {
 TrainOptions train_options(const Config& c, const std::filesystem::path& out) {
   TrainOptions t;
   t.iterations = c.integer("train.iterations");
+  t.minutes = c.num("train.minutes");
   t.batch = c.integer("train.batch");
   t.lr = c.num("train.lr");
   t.lr_discriminator = c.num("train.lr_discriminator");
@@ -225,10 +226,16 @@ ExperimentResult run_experiment(const ExperimentOptions& o) {
               "-pixel scene (0: whole scenes)");
   auto [train_src, val_src] = data_sources(config, camera);
   torch::manual_seed(opts.seed);
-  Generator g(generator_options(config, camera, !resume && o.init_from.empty()));
+  require(!o.reinit_inversion || !o.init_from.empty(), "--reinit", "re-initialises part of an --init-from model");
+  Generator g(generator_options(config, camera, !resume && (o.init_from.empty() || o.reinit_inversion)));
   if (!o.init_from.empty()) {
-    init_generator_from(o.init_from, g);
-    log << "initialised from " << o.init_from.string() << " (fresh optimisers)\n";
+    init_generator_from(o.init_from, g, o.reinit_inversion ? GeneratorPart::enhancer : GeneratorPart::all);
+    if (o.reinit_inversion)
+      log << "initialised from " << o.init_from.string() << ": its enhancer (with the level path) and batch norm; "
+          << "the first stage afresh for this camera (model.inversion.init " << config.str("model.inversion.init")
+          << "); fresh optimisers and discriminator\n";
+    else
+      log << "initialised from " << o.init_from.string() << " (fresh optimisers)\n";
   }
   if (writer) {
     const auto p = resolve_precision(config.str("train.precision"), "train.precision");

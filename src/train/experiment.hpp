@@ -24,6 +24,7 @@ struct ExperimentOptions {
   bool resume = false;              // continue out/latest.ckpt with the run's own config
   bool force = false;               // a fresh run over another run's files: delete them first
   std::filesystem::path init_from;  // start from a model file's generator (fresh optimisers)
+  bool reinit_inversion = false;    // with init_from: keep the enhancer, the first stage afresh for this camera
   DistributedOptions distributed;   // world size 1: a single process
   std::ostream* log = nullptr;      // progress lines (default: std::cerr)
 };

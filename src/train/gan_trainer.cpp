@@ -68,9 +68,10 @@ LrSchedule parse_lr_schedule(const std::string& s) {
   throw Error("config: train.schedule must be halving or cosine, got '" + s + "'");
 }
 
-double lr_factor(const TrainOptions& opt, int64_t step) {
+double lr_factor(const TrainOptions& opt, int64_t step, double seconds) {
   if (opt.schedule == LrSchedule::cosine) {
-    const double t = std::min(1.0, static_cast<double>(step) / std::max<int64_t>(1, opt.iterations));
+    double t = std::min(1.0, static_cast<double>(step) / std::max<int64_t>(1, opt.iterations));
+    if (opt.minutes > 0) t = std::max(t, std::min(1.0, seconds / (60.0 * opt.minutes)));
     return 0.5 * (1.0 + std::cos(M_PI * t));
   }
   return std::pow(0.5, static_cast<double>(step / std::max<int64_t>(1, opt.lr_halve_every)));
@@ -279,7 +280,7 @@ void GanTrainer::set_distributed(GradientAverager* collectives) {
 }
 
 void GanTrainer::set_learning_rates(int64_t step) {
-  const double f = lr_factor(opt_, step);
+  const double f = lr_factor(opt_, step, trained_seconds());
   auto& groups = opt_g_->param_groups();
   static_cast<torch::optim::AdamOptions&>(groups[0].options()).lr(opt_.lr * f);
   if (groups.size() > 1)
@@ -298,6 +299,7 @@ void GanTrainer::checkpoint_and_validate(TrainSummary& summary) {
   const bool best = v.psnr > state_.best_psnr;
   if (best) state_.best_psnr = v.psnr;
   state_.rng_state = at::detail::getDefaultCPUGenerator().get_state();
+  state_.train_seconds = trained_seconds();
   Generator* ema = ema_ ? &ema_->average() : nullptr;
   // The order makes the set consistent after a kill at any instant: best.ckpt first (resume takes
   // the best PSNR from it), then latest.ckpt (resume continues from it), then model.flatnet, which
@@ -332,7 +334,15 @@ TrainSummary GanTrainer::run() {
   const auto start = std::chrono::steady_clock::now();
   double sum_loss = 0, sum_mse = 0, sum_ssim = 0, sum_perc = 0, sum_adv = 0, sum_d = 0;
   int64_t n_logged = 0;
-  auto stop = [&] { return sync_ ? sync_->any(interrupted()) : interrupted(); };
+  run_start_ = std::chrono::steady_clock::now();
+  seconds_before_run_ = state_.train_seconds;
+  const bool budget = opt_.minutes > 0;
+  bool over_budget = false;
+  auto stop = [&] {
+    over_budget = budget && trained_seconds() >= 60.0 * opt_.minutes;
+    const bool local = interrupted() || over_budget;
+    return sync_ ? sync_->any(local) : local;
+  };
   bool stopping = false;
   int64_t checkpointed = -1;
   while (state_.step < opt_.iterations && !(stopping = stop())) {
@@ -378,7 +388,9 @@ TrainSummary GanTrainer::run() {
       checkpointed = state_.step;
     }
   }
-  if (stopping && writer && checkpointed != state_.step) checkpoint_and_validate(summary);  // Ctrl-C loses nothing
+  // Ctrl-C or the time budget: a final checkpoint and model file, so nothing is lost.
+  if (stopping && writer && checkpointed != state_.step) checkpoint_and_validate(summary);
+  summary.budget_reached = stopping && over_budget && !interrupted();
   progress.finish();
   summary.last_step = state_.step;
   summary.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();

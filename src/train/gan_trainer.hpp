@@ -6,6 +6,7 @@
 // sample sheet) and atomic checkpoints (latest.ckpt, best.ckpt, model.flatnet) every `val_every`
 // steps; a resumed run continues with the same data order, noise and weights, bit for bit.
 #include <atomic>
+#include <chrono>
 #include <filesystem>
 #include <memory>
 #include <vector>
@@ -23,9 +24,13 @@ LrSchedule parse_lr_schedule(const std::string& s);
 
 struct TrainOptions {
   int64_t iterations = 20000;
+  // Wall-clock budget (0: none): training stops cleanly after this many minutes in all (resumes
+  // included) with a final checkpoint and model file; a cosine schedule then spans the budget.
+  double minutes = 0;
   int64_t batch = 4;
   double lr = 1e-4, lr_discriminator = 1e-4, lr_inversion_scale = 1.0;
-  // halving: lr * 0.5^floor(step / lr_halve_every) (the thesis); cosine: lr * (1 + cos(pi step / iterations)) / 2.
+  // halving: lr * 0.5^floor(step / lr_halve_every) (the thesis); cosine: lr * (1 + cos(pi t)) / 2 with
+// t = step / iterations, or with a time budget the larger of that and the budget's elapsed fraction.
   LrSchedule schedule = LrSchedule::halving;
   int64_t lr_halve_every = 5000;
   int64_t discriminator_warmup = 0;
@@ -49,6 +54,7 @@ struct TrainOptions {
 
 struct TrainSummary {
   int64_t first_step = 0, last_step = 0;
+  bool budget_reached = false;  // stopped by train.minutes
   double best_psnr = 0, best_ssim = 0, last_psnr = 0, last_ssim = 0;
   double seconds = 0, steps_per_s = 0, loader_wait_s = 0;
 };
@@ -67,7 +73,8 @@ struct StepLosses {
 };
 
 // Learning-rate factor (relative to train.lr) at `step` under the options' schedule.
-double lr_factor(const TrainOptions& opt, int64_t step);
+// `seconds`: training time so far (resumes included), for a cosine schedule over a time budget.
+double lr_factor(const TrainOptions& opt, int64_t step, double seconds = 0);
 
 // The crop corners of step `step`'s batch: one uniform (row, col) per sample, drawn from (seed,
 // step) so a resumed run crops as the straight one. Empty when opt.crop is 0 or the scene size.
@@ -132,6 +139,14 @@ class GanTrainer {
  private:
   void set_learning_rates(int64_t step);
   void checkpoint_and_validate(TrainSummary& summary);
+  // Training time in all: the checkpoint's record plus this run's time so far.
+  double trained_seconds() const {
+    if (run_start_ == std::chrono::steady_clock::time_point{}) return state_.train_seconds;
+    return seconds_before_run_ +
+           std::chrono::duration<double>(std::chrono::steady_clock::now() - run_start_).count();
+  }
+  std::chrono::steady_clock::time_point run_start_{};
+  double seconds_before_run_ = 0;
 
   Generator g_;
   Discriminator d_;
