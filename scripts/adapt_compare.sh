@@ -4,9 +4,11 @@
 #             (`flatnet mask camera`, light level kept as the shipped models expect)
 #   eval      the 250 held-out display captures of each camera (`flatnet simulate --seed 1 --only val`)
 #   methods   Tikhonov; the shipped transpose model as it is; adapted for M minutes
-#             (`--init-from models/flatnet-sim-transpose.flatnet --reinit inversion`); from scratch for
-#             M minutes (the same recipe, inversion from the camera's calibration). The two runs of one
-#             camera and budget share the 2 cores, one thread each, so they get equal compute.
+#             (`--init-from models/flatnet-sim-transpose.flatnet --reinit inversion`: the inversion
+#             from the new camera's calibration); transfer (the same, with model.inversion.init
+#             transfer: the inversion that reproduces the shipped one's W^T P through the new
+#             camera); from scratch for M minutes (the same recipe). Runs go in pairs ($PAIRS) that
+#             share the 2 cores, one thread each, so the runs of a pair get equal compute.
 # Usage: scripts/adapt_compare.sh [RUNS_DIR] [PHOTOS_DIR]   (MINUTES="20 10 40" by default)
 # Resumable: what exists is reused (a killed run is resumed; its budget counts the time it had).
 # Writes RUNS_DIR/adapt_table.md.
@@ -29,7 +31,7 @@ camera() {  # NAME -> the camera folder, made once
   fi
 }
 
-train_run() {  # CAMERA MODE MINUTES
+train_run() {  # CAMERA MODE MINUTES (MODE: adapted, transfer or scratch)
   local cam=$1 mode=$2 m=$3 out=$runs/$1-$2-$3min
   local args=(--config configs/sim_transpose.yaml --set "data.camera=$runs/cam-$cam/camera.yaml"
               --set "data.images=$PWD/$photos" --set train.iterations=1000000 --set "train.minutes=$m"
@@ -38,6 +40,9 @@ train_run() {  # CAMERA MODE MINUTES
     "$flatnet" train --out "$out" --resume --set "train.minutes=$m" --threads 1 > "$out.log" 2>&1
   elif [ "$mode" = adapted ]; then
     "$flatnet" train "${args[@]}" --init-from "$shipped" --reinit inversion > "$out.log" 2>&1
+  elif [ "$mode" = transfer ]; then
+    "$flatnet" train "${args[@]}" --init-from "$shipped" --reinit inversion --set model.inversion.init=transfer \
+      --source-camera configs/cameras/sim_level.yaml > "$out.log" 2>&1
   else
     "$flatnet" train "${args[@]}" > "$out.log" 2>&1
   fi
@@ -60,32 +65,35 @@ for cam in learned random; do
   reconstruct "$cam" shipped "$shipped"
 done
 
+# Each pair of runs shares the 2 cores (one thread each): CAMERA:MODE+CAMERA:MODE.
+pairs=${PAIRS:-learned:adapted+learned:scratch random:adapted+random:scratch learned:transfer+random:transfer}
 for m in $minutes; do
-  for cam in learned random; do
-    echo "[$(date +%H:%M)] $cam: adapted and from scratch, $m minutes each (in parallel, one thread each)"
-    train_run "$cam" adapted "$m" &
-    a=$!
-    train_run "$cam" scratch "$m" &
-    b=$!
-    wait $a $b
-    for mode in adapted scratch; do
+  for pair in $pairs; do
+    echo "[$(date +%H:%M)] ${pair/+/ and }, $m minutes each (in parallel, one thread each)"
+    pids=()
+    for run in ${pair/+/ }; do
+      train_run "${run%%:*}" "${run##*:}" "$m" &
+      pids+=($!)
+    done
+    wait "${pids[@]}"
+    for run in ${pair/+/ }; do
+      cam=${run%%:*} mode=${run##*:}
       reconstruct "$cam" "$mode-${m}min" "$runs/$cam-$mode-${m}min/model.flatnet"
     done
   done
 done
 
 {
-  echo "| camera | method | images | PSNR dB | SSIM | NIQE | training steps |"
-  echo "|---|---|---|---|---|---|---|"
+  echo "| camera | method | PSNR dB | SSIM | NIQE | training steps |"
+  echo "|---|---|---|---|---|---|"
   for cam in learned random; do
     "$flatnet" eval --gt "$runs/eval-$cam/heldout/gt" --out "$runs/eval-$cam/rec" > "$runs/eval-$cam/eval.txt" 2>&1
-    # metrics.csv: image,method,psnr,ssim,mean_output,mean_truth,niqe (one row per image)
-    awk -F, 'NR > 1 { n[$2]++; p[$2] += $3; s[$2] += $4; q[$2] += $7 }
-             END { for (m in n) printf "%s %d %.2f %.3f %.2f\n", m, n[m], p[m] / n[m], s[m] / n[m], q[m] / n[m] }' \
-      "$runs/eval-$cam/rec/metrics.csv" | sort | while read -r method images psnr ssim niqe; do
+    # metrics.csv: image,method,psnr,ssim,mean_output,mean_truth,niqe; the "mean" rows are the averages.
+    grep '^mean,' "$runs/eval-$cam/rec/metrics.csv" | grep -v ',ground truth,' | sort -t, -k2,2 |
+      while IFS=, read -r _ method psnr ssim _ _ niqe; do
       steps=""
       [ -f "$runs/$cam-$method/val.csv" ] && steps=$(tail -n 1 "$runs/$cam-$method/val.csv" | cut -d, -f1)
-      echo "| $cam | $method | $images | $psnr | $ssim | $niqe | $steps |"
+      printf '| %s | %s | %.2f | %.3f | %.2f | %s |\n' "$cam" "$method" "$psnr" "$ssim" "$niqe" "$steps"
     done
   done
 } > "$runs/adapt_table.md"

@@ -273,6 +273,13 @@ TEST_CASE("train, export, import and infer from the command line, and bad input 
   for (const auto& line : stop_log)
     if (line.rfind("steps 0..", 0) == 0) done = std::stoll(line.substr(9));
   REQUIRE(done >= 0);
+  // A second SIGTERM ends the process at once (the first asks for a clean stop, which may take a while).
+  const auto twice = s.dir / "twice";
+  const auto kill_twice = std::string(FLATNET_BINARY) + " " + base +
+                          " --set train.iterations=100000 --set train.log_every=1 --out " + q(twice) +
+                          " > /dev/null 2>&1 & P=$!; for i in $(seq 300); do [ -s " + q(twice / "log.csv") +
+                          " ] && break; sleep 0.1; done; kill -TERM $P; sleep 0.2; kill -TERM $P; wait $P";
+  CHECK(test::run_shell("bash -c " + q(kill_twice)).code == 128 + 15);
   auto resumed =
       test::run_flatnet("train --out " + q(stopped) + " --resume --set train.iterations=" + std::to_string(done + 1));
   INFO(resumed.output);

@@ -436,3 +436,31 @@ TEST_CASE("--reinit inversion keeps the enhancer and gives the first stage this 
   Generator all(generator_options(other_config, other_camera, true));
   CHECK_THROWS_WITH(init_generator_from(s.dir / "m.flatnet", all), Contains("inversion.PhiL"));
 }
+
+TEST_CASE("transfer: the new camera's first stage reproduces the trained one's, W_new^T P_new = W_old^T P_old",
+          "[model][adapt]") {
+  test::Scratch s("transfer");
+  auto config = Config::load({}, {"model.unet.width=2", "model.inversion.init=random", "model.inversion.shared=false"});
+  const auto camera = test::tiny_camera();
+  auto source = test::random_generator(config, camera);
+  save_model_file(s.dir / "m.flatnet", source, config, camera);
+  auto gen = at::detail::createCPUGenerator(3);
+  const auto P_old = at::randn({4, 20, 16}, gen, torch::kFloat64), Q_old = at::randn({4, 24, 16}, gen, torch::kFloat64);
+  const auto P_new = at::randn({4, 20, 16}, gen, torch::kFloat64), Q_new = at::randn({4, 24, 16}, gen, torch::kFloat64);
+  Generator g(generator_options(config, camera, true));
+  transfer_inversion(s.dir / "m.flatnet", {P_old, Q_old, P_new, Q_new}, 1e-9, g);
+  const auto W_old = source->named_parameters()["inversion.PhiL"].to(torch::kFloat64);
+  const auto W_new = g->named_parameters()["inversion.PhiL"].to(torch::kFloat64);
+  for (int64_t c = 0; c < 4; ++c) {
+    INFO(c);
+    // P_new is 20x16 of full column rank: the products agree up to float32 rounding.
+    const auto want = torch::matmul(W_old.select(2, c).t(), P_old[c]);
+    const auto got = torch::matmul(W_new.select(2, c).t(), P_new[c]);
+    CHECK((got - want).abs().max().item<double>() < 1e-4 * want.abs().max().item<double>());
+  }
+  // Regularisation shrinks it (lambda 1: every singular value at least halved in the filter).
+  Generator h(generator_options(config, camera, true));
+  transfer_inversion(s.dir / "m.flatnet", {P_old, Q_old, P_new, Q_new}, 1.0, h);
+  CHECK(h->named_parameters()["inversion.PhiL"].norm().item<double>() <
+        g->named_parameters()["inversion.PhiL"].norm().item<double>());
+}

@@ -26,6 +26,10 @@ int train(int argc, char** argv) {
       "start from a model file's generator weights (a shipped model, or one from another camera's run) "
       "with fresh optimisers; the config must describe the same architecture",
       cxxopts::value<std::string>())(
+      "source-camera",
+      "with --reinit inversion and model.inversion.init transfer: the camera .yaml the --init-from model was trained "
+      "for (default: the model's data.camera)",
+      cxxopts::value<std::string>())(
       "reinit",
       "with --init-from: 'inversion' keeps the model's enhancer (and level path) and initialises the first stage "
       "afresh for this run's camera, from its calibration or geometry (model.inversion.init): adapting a model to "
@@ -57,6 +61,7 @@ int train(int argc, char** argv) {
     require(r.count("init-from") > 0, "--reinit", "needs --init-from MODEL");
     e.reinit_inversion = true;
   }
+  if (r.count("source-camera")) e.source_camera = r["source-camera"].as<std::string>();
   auto& dist = e.distributed;
   dist = distributed_from_env();
   if (r.count("world-size")) dist.world_size = r["world-size"].as<int>();

@@ -88,12 +88,15 @@ std::pair<torch::Tensor, torch::Tensor> initial_inversion(const Config& c, const
     if (shared) return {L[0].unsqueeze(2), R[0].unsqueeze(2)};
     return {L.permute({1, 2, 0}), R.permute({1, 2, 0})};
   }
+  if (init == "transfer") {  // filled by transfer_inversion (train --init-from M --reinit inversion)
+    return {torch::zeros({rows, n, k}), torch::zeros({cols, n, k})};
+  }
   if (init == "random") {
     auto gen = at::detail::createCPUGenerator(seed);
     const double scale = 1.0 / std::sqrt(static_cast<double>(rows));
     return {at::randn({rows, n, k}, gen) * scale, at::randn({cols, n, k}, gen) * scale};
   }
-  throw Error("config: model.inversion.init must be transpose, pinv, calibfree, flatnet-toeplitz or random, got '" +
+  throw Error("config: model.inversion.init must be transpose, pinv, calibfree, flatnet-toeplitz, random or transfer, got '" +
               init + "'");
 }
 
@@ -181,7 +184,8 @@ Stored read_stored(const std::filesystem::path& path, const std::string& expecte
     s.meta = std::move(st.metadata);
     for (auto& [name, t] : st.tensors) s.tensors[name] = t;
     const auto& version = s.text("format_version", path);
-    require(is_decimal_number(version), path, "format_version '" + version + "' is not a number");
+    require(version.size() <= 6 && version.find_first_not_of("0123456789") == std::string::npos && !version.empty(),
+            path, "format_version '" + version.substr(0, 40) + "' is not a version number");
     s.version = std::stoi(version);
   } else if (bytes.size() >= 4 && bytes.compare(0, 4, "PK\x03\x04") == 0) {
     s = read_format1(path);
@@ -576,6 +580,41 @@ void init_generator_from(const std::filesystem::path& model, Generator& g, Gener
     }
     return t->detach();
   });
+}
+
+void transfer_inversion(const std::filesystem::path& source, const CalibrationPair& c, double lambda, Generator& g) {
+  require(lambda > 0 && std::isfinite(lambda), "model.inversion.lambda", "must be positive");
+  const auto m = load_model_file(source);
+  const auto old_params = m.generator->named_parameters();
+  const auto* old_l = old_params.find("inversion.PhiL");
+  const auto* old_r = old_params.find("inversion.PhiR");
+  require(old_l && old_r, source, "has no trainable inversion to transfer (model.input is not inversion)");
+  auto params = g->named_parameters();
+  auto* new_l = params.find("inversion.PhiL");
+  auto* new_r = params.find("inversion.PhiR");
+  require(new_l && new_r, "model.input", "transfer needs an inversion first stage");
+  require(old_l->size(1) == new_l->size(1), source, "its scene size differs from this camera's");
+  int shared_channel = 1;
+  // One side: W_old {m_old,N,k}, P_old/P_new {4,m,N} -> W_new {m_new,N,k}.
+  auto side = [&](const torch::Tensor& w_old, const torch::Tensor& p_old, const torch::Tensor& p_new, int64_t k) {
+    std::vector<torch::Tensor> out;
+    for (int64_t i = 0; i < k; ++i) {
+      const int64_t ch = k == 1 ? shared_channel : i;  // a shared inversion is one channel's (model.inversion.channel)
+      const auto M = torch::matmul(w_old.select(2, i).to(torch::kFloat64).t(), p_old[ch]);  // {N,N}
+      auto [U, S, Vh] = torch::linalg::svd(p_new[ch], false, c10::nullopt);
+      const auto smax = S.max();
+      const auto filter = S / (S * S + lambda * smax * smax);
+      out.push_back(torch::matmul(U * filter.unsqueeze(0), torch::matmul(Vh, M.t())));  // {m_new,N}
+    }
+    return torch::stack(out, 2).to(torch::kFloat32);
+  };
+  const int64_t k = new_l->size(2);
+  require(old_l->size(2) == k, source, "its inversion is " + std::string(k == 1 ? "per channel" : "shared") +
+                                           ", this config's is not (model.inversion.shared)");
+  shared_channel = channel_index(m.config.str("model.inversion.channel"));
+  torch::NoGradGuard no_grad;
+  new_l->copy_(side(*old_l, c.P_old, c.P_new, k));
+  new_r->copy_(side(*old_r, c.Q_old, c.Q_new, k));
 }
 
 std::string flatnet_name(const std::string& ours) {

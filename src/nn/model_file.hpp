@@ -85,6 +85,18 @@ void init_generator_from(const std::filesystem::path& model, Generator& g, Gener
 // FlatNet-sep name of one of our parameter names ("inversion.PhiL" -> "PhiL",
 // "enhancer.inc.conv.conv.0.weight" -> "inc.conv.conv.0.weight").
 std::string flatnet_name(const std::string& ours);
+
+// The first stage for a new camera that reproduces a trained model's (`--reinit inversion` with
+// model.inversion.init transfer): per Bayer channel, W_new = argmin ||W^T P_new - W_old^T P_old||^2
+// + lambda s_max^2 ||W||^2 = U diag(s / (s^2 + lambda s_max^2)) V^T (W_old^T P_old)^T for
+// P_new = U diag(s) V^T, and the same for W2 with Q. The enhancer then sees, through the new
+// camera, the intermediate image it was trained on (W_old^T P_old X Q_old^T W2_old). `source`:
+// the trained model file; its camera's calibration (P_old, Q_old) and this camera's, {4,m,N} each.
+struct CalibrationPair {
+  torch::Tensor P_old, Q_old, P_new, Q_new;
+};
+void transfer_inversion(const std::filesystem::path& source, const CalibrationPair& calibrations, double lambda,
+                        Generator& g);
 // torch.save(generator.state_dict()) as PyTorch writes it (an OrderedDict in the zip container),
 // or FlatNet's checkpoint layout {'gen_state_dict': OrderedDict} that its main.py loads.
 enum class StateDictLayout { state_dict, flatnet_checkpoint };

@@ -9,6 +9,7 @@
 #include "core/util.hpp"
 #include "io/dataset.hpp"
 #include "nn/model_file.hpp"
+#include "optics/camera.hpp"
 #include "optics/simulator.hpp"
 
 namespace flatnet {
@@ -150,6 +151,37 @@ double available_memory_bytes() {
   return 0;
 }
 
+// --init-from: the model's generator into `g`; with --reinit inversion only its enhancer (and
+// batch norm), the first stage as the config initialises it or, with init transfer, made to
+// reproduce the model's first stage through this camera.
+void initialise_from_model(const ExperimentOptions& o, const Config& config, const CameraConfig& camera, Generator& g,
+                           std::ostream& log) {
+  const bool transfer = config.str("model.inversion.init") == "transfer";
+  init_generator_from(o.init_from, g, o.reinit_inversion ? GeneratorPart::enhancer : GeneratorPart::all);
+  if (o.reinit_inversion)
+    log << "initialised from " << o.init_from.string() << ": its enhancer (with the level path) and batch norm; "
+        << "the first stage afresh for this camera (model.inversion.init " << config.str("model.inversion.init")
+        << "); fresh optimisers and discriminator\n";
+  else
+    log << "initialised from " << o.init_from.string() << " (fresh optimisers)\n";
+  if (o.reinit_inversion && transfer) {
+    auto source_camera = o.source_camera;
+    if (source_camera.empty()) source_camera = load_model_file(o.init_from).config.path("data.camera");
+    require(std::filesystem::exists(source_camera), "--source-camera",
+            "the camera " + o.init_from.string() + " was trained for (" + source_camera.string() +
+                ") is not here; name its camera .yaml with --source-camera");
+    const auto source = load_camera_config(source_camera);
+    require(!source.calibration.empty() && !camera.calibration.empty(), "model.inversion.init",
+            "transfer needs both cameras' calibrations");
+    const auto old_calib = load_calibration(source.calibration, source);
+    const auto new_calib = load_calibration(camera.calibration, camera);
+    transfer_inversion(o.init_from, {old_calib.P, old_calib.Q, new_calib.P, new_calib.Q},
+                       config.num("model.inversion.lambda"), g);
+    log << "first stage transferred from " << o.init_from.string() << " (camera " << source_camera.string()
+        << ") to this camera: W^T P_new ~ W_old^T P_old\n";
+  }
+}
+
 }  // namespace
 
 double training_bytes_per_sample(const Config& c, const CameraConfig& camera) {
@@ -227,16 +259,12 @@ ExperimentResult run_experiment(const ExperimentOptions& o) {
   auto [train_src, val_src] = data_sources(config, camera);
   torch::manual_seed(opts.seed);
   require(!o.reinit_inversion || !o.init_from.empty(), "--reinit", "re-initialises part of an --init-from model");
+  const bool transfer = config.str("model.inversion.init") == "transfer";
+  require(!transfer || resume || o.reinit_inversion, "model.inversion.init",
+          "transfer makes the first stage from a trained model's: use it with --init-from MODEL --reinit inversion");
   Generator g(generator_options(config, camera, !resume && (o.init_from.empty() || o.reinit_inversion)));
-  if (!o.init_from.empty()) {
-    init_generator_from(o.init_from, g, o.reinit_inversion ? GeneratorPart::enhancer : GeneratorPart::all);
-    if (o.reinit_inversion)
-      log << "initialised from " << o.init_from.string() << ": its enhancer (with the level path) and batch norm; "
-          << "the first stage afresh for this camera (model.inversion.init " << config.str("model.inversion.init")
-          << "); fresh optimisers and discriminator\n";
-    else
-      log << "initialised from " << o.init_from.string() << " (fresh optimisers)\n";
-  }
+  if (!o.init_from.empty()) initialise_from_model(o, config, camera, g, log);
+
   if (writer) {
     const auto p = resolve_precision(config.str("train.precision"), "train.precision");
     if (p == Precision::bf16) request_amx_permission();

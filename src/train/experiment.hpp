@@ -25,6 +25,9 @@ struct ExperimentOptions {
   bool force = false;               // a fresh run over another run's files: delete them first
   std::filesystem::path init_from;  // start from a model file's generator (fresh optimisers)
   bool reinit_inversion = false;    // with init_from: keep the enhancer, the first stage afresh for this camera
+  // model.inversion.init transfer: the camera the init_from model was trained for (its calibration);
+  // empty: the model's own data.camera.
+  std::filesystem::path source_camera;
   DistributedOptions distributed;   // world size 1: a single process
   std::ostream* log = nullptr;      // progress lines (default: std::cerr)
 };

@@ -379,6 +379,7 @@ TrainSummary GanTrainer::run() {
       status << "step " << state_.step << " loss " << std::setprecision(4) << sum_loss / n_logged << " mse "
              << sum_mse / n_logged;
       if (adversarial) status << " D " << sum_d / n_logged;
+      if (budget) status << " | budget left " << format_duration(std::max(0.0, 60.0 * opt_.minutes - trained_seconds()));
       progress.set_status(status.str());
       sum_loss = sum_mse = sum_ssim = sum_perc = sum_adv = sum_d = 0;
       n_logged = 0;
