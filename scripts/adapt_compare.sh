@@ -16,7 +16,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 runs=${1:-$HOME/flatnet-runs/adapt}
 photos=${2:-../shared/data/images/train}
-minutes=${MINUTES:-20 10 40}
+minutes=${MINUTES-20 10 40}  # MINUTES="" skips training (table only)
 flatnet=${FLATNET:-$PWD/build/flatnet}
 shipped=$PWD/models/flatnet-sim-transpose.flatnet
 mkdir -p "$runs"
