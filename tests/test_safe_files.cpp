@@ -410,7 +410,7 @@ TEST_CASE(".mat files as MATLAB, scipy and FlatNet's release wrote them pass the
   }
 }
 
-TEST_CASE("--reinit inversion keeps the enhancer and gives the first stage this camera's initialisation",
+TEST_CASE("reinit inversion (train --reinit) keeps the enhancer and gives the first stage this camera's initialisation",
           "[model][adapt]") {
   test::Scratch s("reinit");
   auto config = Config::load({}, {"model.unet.width=2", "model.inversion.init=random", "model.inversion.seed=1"});
