@@ -49,4 +49,11 @@ bool python_has_torch() {
   return has;
 }
 
+fs::path make_photos(const fs::path& dir) {
+  fs::create_directories(dir);
+  for (const char* n : {"bsds_16052_scene.png", "inet_n02980441_castle_scene.png"})
+    fs::copy_file(data_dir() / "golden" / n, dir / n);
+  return dir;
+}
+
 }  // namespace test

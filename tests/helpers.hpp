@@ -42,6 +42,9 @@ RunResult run_shell(const std::string& command);
 // Whether /usr/bin/python3 has torch (the reference scripts' interpreter).
 bool python_has_torch();
 
+// Two photographs (the golden scenes) copied into `dir`, which is created; returns `dir`.
+fs::path make_photos(const fs::path& dir);
+
 // A path quoted for a shell command line.
 inline std::string q(const fs::path& p) { return "'" + p.string() + "'"; }
 

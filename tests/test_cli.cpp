@@ -19,13 +19,7 @@ namespace {
 using test::kOnDisk;
 using test::q;
 
-// Two photographs: the golden scenes.
-std::filesystem::path make_photos(const std::filesystem::path& dir) {
-  std::filesystem::create_directories(dir);
-  for (const char* n : {"bsds_16052_scene.png", "inet_n02980441_castle_scene.png"})
-    std::filesystem::copy_file(test::data_dir() / "golden" / n, dir / n);
-  return dir;
-}
+using test::make_photos;
 }  // namespace
 
 TEST_CASE("simulate, recon and eval end to end, and simulate resumes deterministically", "[cli][e2e]") {

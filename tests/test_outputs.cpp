@@ -26,12 +26,6 @@ OutputRole role(const std::string& command, const std::string& settings = "", bo
 
 void touch(const std::filesystem::path& p, const std::string& text = "x") { std::ofstream(p) << text; }
 
-std::filesystem::path photos(const std::filesystem::path& dir) {
-  std::filesystem::create_directories(dir);
-  for (const char* n : {"bsds_16052_scene.png", "inet_n02980441_castle_scene.png"})
-    std::filesystem::copy_file(test::data_dir() / "golden" / n, dir / n);
-  return dir;
-}
 
 }  // namespace
 
@@ -138,7 +132,7 @@ TEST_CASE("outputs never replace inputs: infer into a dataset's gt, patterns int
 
 TEST_CASE("simulate checks what it reuses: cut captures, empty gt, edited photographs, odd names", "[outputs][cli]") {
   test::Scratch s("sim_reuse");
-  const auto src = photos(s.dir / "photos");
+  const auto src = test::make_photos(s.dir / "photos");
   const std::string cmd = "simulate --images " + q(src) + " --out " + q(s.dir / "ds") + " --val-fraction 0.5";
   REQUIRE(test::run_flatnet(cmd).code == 0);
   const auto meas = s.dir / "ds" / "meas" / "bsds_16052_scene.png";
