@@ -6,6 +6,7 @@
 
 #include "core/error.hpp"
 #include "eval/metrics.hpp"
+#include "io/image.hpp"
 #include "helpers.hpp"
 #include "tiny_model.hpp"
 #include "nn/generator.hpp"
@@ -390,6 +391,64 @@ TEST_CASE("SSIM loss is 1 - the reported SSIM, differentiable, and 0 on identica
   REQUIRE(x.grad().defined());
   CHECK(x.grad().abs().sum().item<double>() > 0);
   CHECK_THROWS_WITH(ssim_loss(torch::rand({1, 3, 8, 8}), torch::rand({1, 3, 8, 8})), Contains("11x11"));
+}
+
+TEST_CASE("CIELAB conversion matches skimage.color.rgb2lab (D65)", "[nn][loss]") {
+  const auto rgb = torch::tensor({1.0f, 0.0f, 0.2f, 0.01f, 0.0f, 1.0f, 0.5f, 0.01f, 0.0f, 0.0f, 0.7f, 0.01f})
+                       .view({1, 3, 1, 4});  // red, green, a blue-grey, near black
+  const auto lab = srgb_to_lab(rgb).squeeze(0).squeeze(1);  // {3,4}
+  const std::vector<std::array<double, 3>> expected = {{53.2405879, 80.0923082, 67.2027510},
+                                                       {87.7350995, -86.1830297, 83.1797032},
+                                                       {50.9720364, -6.39817671, -33.7093230},
+                                                       {0.699142415, -4.43881748e-05, 8.41378036e-05}};
+  for (int i = 0; i < 4; ++i)
+    for (int c = 0; c < 3; ++c) CHECK(lab[c][i].item<double>() == Approx(expected[i][c]).margin(2e-3));
+}
+
+TEST_CASE("the weight-free perceptual terms: 0 on the truth, positive otherwise, gradients reach the output",
+          "[nn][loss]") {
+  torch::manual_seed(9);
+  const auto y = torch::rand({2, 3, 32, 32});
+  Discriminator d(DiscriminatorOptions{"thesis", 8});
+  for (auto& p : d->parameters()) p.set_requires_grad(false);  // as the generator step does
+  const std::vector<std::pair<std::string, std::function<torch::Tensor(const torch::Tensor&)>>> terms = {
+      {"feature matching", [&](const torch::Tensor& x) { return feature_matching_loss(d, x, y); }},
+      {"focal frequency", [&](const torch::Tensor& x) { return focal_frequency_loss(x, y); }},
+      {"chroma", [&](const torch::Tensor& x) { return chroma_loss(x, y); }},
+      {"gradient", [&](const torch::Tensor& x) { return gradient_loss(x, y); }}};
+  d->eval();  // batch norm on running statistics: features of y are the same whichever batch holds it
+  for (const auto& [name, term] : terms) {
+    INFO(name);
+    CHECK(term(y).item<double>() == Approx(0.0).margin(1e-7));
+    const auto x = (y + 0.1 * torch::randn_like(y)).clamp(0, 1).requires_grad_(true);
+    const auto loss = term(x);
+    CHECK(loss.item<double>() > 1e-4);
+    loss.backward();
+    REQUIRE(x.grad().defined());
+    CHECK(torch::isfinite(x.grad()).all().item<bool>());
+    CHECK(x.grad().abs().sum().item<double>() > 0);
+  }
+  for (const auto& p : d->parameters()) CHECK_FALSE(p.grad().defined());
+}
+
+TEST_CASE("the terms see what they are for: chroma ignores a luma change, gradient a constant offset, frequency "
+          "a blur",
+          "[nn][loss]") {
+  torch::manual_seed(10);
+  // A photograph (a blur of white noise would remove almost all of its edges at any size).
+  const auto y = read_rgb(test::data_dir() / "golden" / "inet_n02980441_castle_scene.png").unsqueeze(0);
+  const auto grey = y.mean(1, true).repeat({1, 3, 1, 1});  // same luma-ish, no colour
+  CHECK(chroma_loss(grey, y).item<double>() > 0.02);       // colour lost costs
+  CHECK(chroma_loss(y, grey).item<double>() > 0.02);
+  // A uniform offset moves no edge: the gradient term is 0, MSE is not.
+  const auto dimmer = y * 0.8 + 0.1;
+  CHECK(gradient_loss(y * 0.8 + (0.1 + 0.05), dimmer).item<double>() == Approx(0.0).margin(1e-6));
+  // A blur loses high frequencies: the focal term grows with the blur.
+  namespace F = torch::nn::functional;
+  const auto blur3 = F::avg_pool2d(y, F::AvgPool2dFuncOptions(3).stride(1).padding(1).count_include_pad(false));
+  const auto blur5 = F::avg_pool2d(y, F::AvgPool2dFuncOptions(5).stride(1).padding(2).count_include_pad(false));
+  CHECK(focal_frequency_loss(blur5, y).item<double>() > focal_frequency_loss(blur3, y).item<double>());
+  CHECK(gradient_loss(blur5, y).item<double>() > gradient_loss(blur3, y).item<double>());
 }
 
 TEST_CASE("inversion crops equal the matching window of the whole first stage", "[nn]") {

@@ -108,7 +108,27 @@ TEST_CASE("eval reports spread over images and brightness: a reconstruction that
   CHECK(scores[1].brightness > 2.0);
   CHECK(scores[0].psnr_sd > 0);  // brighter images lose more to halving: PSNR varies
   CHECK(format_table(scores).find("+-") != std::string::npos);
-  CHECK(read_lines(s.dir / "out" / "metrics.csv").at(0) == "image,method,psnr,ssim,mean_output,mean_truth");
+  CHECK(read_lines(s.dir / "out" / "metrics.csv").at(0) ==
+        "image,method,psnr,ssim,mean_output,mean_truth,colour_kept,detail_kept");
+  // Halving the image halves its colourfulness and detail (both are linear in the values, up to
+  // 8-bit rounding); a white image keeps neither.
+  CHECK(scores[0].colour_kept == Approx(0.5).margin(0.02));
+  CHECK(scores[0].detail_kept == Approx(0.5).margin(0.02));
+  CHECK(scores[1].colour_kept == Approx(0.0).margin(1e-9));
+  CHECK(scores[1].detail_kept == Approx(0.0).margin(1e-9));
+  CHECK(format_table(scores).find("colour") != std::string::npos);
+}
+
+TEST_CASE("colourfulness and detail match their definitions (Hasler-Suesstrunk 2003; Sobel of the luma)", "[eval]") {
+  const auto x = read_rgb(test::data_dir() / "golden" / "inet_n02980441_castle_scene.png");
+  // numpy: sqrt(sd(rg)^2 + sd(yb)^2) + 0.3 sqrt(mean(rg)^2 + mean(yb)^2) on values / 255, and
+  // scipy.signal.correlate2d(luma, sobel, 'valid') magnitudes' mean.
+  CHECK(colourfulness(x) == Approx(0.266866453557).epsilon(1e-6));
+  CHECK(luma_detail(x) == Approx(0.438046295424).epsilon(1e-6));
+  const auto grey = x.mean(0, true).repeat({3, 1, 1});
+  CHECK(colourfulness(grey) == Approx(0.0).margin(1e-12));  // a grey image has no colour
+  CHECK(luma_detail(torch::full({3, 16, 16}, 0.3)) == Approx(0.0).margin(1e-12));
+  CHECK(luma_detail(x.flip(2)) == Approx(luma_detail(x)).epsilon(1e-9));  // a mirror image has the same detail
 }
 
 TEST_CASE("reconstructions never overwrite a capture, and two captures of one name are refused", "[recon][outputs]") {

@@ -209,6 +209,56 @@ TEST_CASE("the non-finite guard runs before any optimiser step, discriminator wa
   }
 }
 
+TEST_CASE("each weight-free perceptual term alone trains the whole generator; feature matching trains the "
+          "discriminator too",
+          "[train][loss]") {
+  Setup setup;
+  MemoryPairs pairs(2);
+  Batch b{torch::stack({pairs.load(0, 0).meas, pairs.load(1, 0).meas}),
+          torch::stack({pairs.load(0, 0).gt, pairs.load(1, 0).gt}), 0};
+  Vgg16Features none(nullptr);
+  for (const std::string term : {"feature_matching", "frequency", "chroma", "gradient"}) {  // NOLINT
+    INFO(term);
+    torch::manual_seed(0);
+    Generator g(generator_options(setup.config, setup.camera, true));
+    Discriminator d(discriminator_options(setup.config));
+    torch::optim::SGD opt_g(g->parameters(), 1e-2), opt_d(d->parameters(), 1e-2);
+    auto t = setup.options("", 1);
+    t.w_mse = 0, t.w_adversarial = 0;  // the term alone
+    double TrainOptions::*weight = term == "feature_matching" ? &TrainOptions::w_feature_matching
+                                   : term == "frequency"      ? &TrainOptions::w_frequency
+                                   : term == "chroma"         ? &TrainOptions::w_chroma
+                                                              : &TrainOptions::w_gradient;
+    t.*weight = 1.0;
+    std::vector<torch::Tensor> g0, d0;
+    for (const auto& p : g->parameters()) g0.push_back(p.detach().clone());
+    for (const auto& p : d->parameters()) d0.push_back(p.detach().clone());
+    const auto l = gan_step(g, d, none, opt_g, opt_d, t, b, 0);
+    CHECK(l.loss > 0);
+    const double logged = term == "feature_matching" ? l.feature_matching
+                          : term == "frequency"      ? l.frequency
+                          : term == "chroma"         ? l.chroma
+                                                     : l.gradient;
+    CHECK(logged == Approx(l.loss));
+    const auto params = g->named_parameters();
+    for (size_t i = 0; i < g0.size(); ++i) {
+      const auto& name = params[i].key();
+      INFO(name);
+      // A convolution's bias right before a training-mode batch norm has no effect (the norm
+      // subtracts the batch mean): its gradient is 0 under any loss. Every other parameter moves.
+      const bool before_batch_norm = name.size() > 12 && (name.compare(name.size() - 12, 12, ".conv.0.bias") == 0 ||
+                                                          name.compare(name.size() - 12, 12, ".conv.3.bias") == 0);
+      // The gradient, not the step: a small term moves deep weights by less than float resolution.
+      const auto& grad = params[i].value().grad();
+      if (!before_batch_norm) CHECK((grad.defined() && grad.abs().sum().item<double>() > 0));
+    }
+    bool d_moved = false;
+    const auto d_params = d->parameters();
+    for (size_t i = 0; i < d0.size(); ++i) d_moved = d_moved || !torch::equal(d0[i], d_params[i]);
+    CHECK(d_moved == (term == "feature_matching"));
+  }
+}
+
 TEST_CASE("schedules: halving steps down, cosine falls smoothly to 0 at the last step", "[train]") {
   TrainOptions t;
   t.lr_halve_every = 10;

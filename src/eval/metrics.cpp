@@ -31,6 +31,26 @@ double ssim(const torch::Tensor& a, const torch::Tensor& b) {
   return s.mean({1, 2, 3}).mean().item<double>();
 }
 
+double colourfulness(const torch::Tensor& rgb) {
+  TORCH_CHECK(rgb.dim() == 3 && rgb.size(0) == 3, "colourfulness: expects {3,H,W}, got ", rgb.sizes());
+  const auto x = rgb.to(torch::kFloat64);
+  const auto r = x[0], g = x[1], b = x[2];
+  const auto rg = r - g, yb = 0.5 * (r + g) - b;
+  const double sd = std::sqrt(rg.var(false).item<double>() + yb.var(false).item<double>());
+  const double mean = std::hypot(rg.mean().item<double>(), yb.mean().item<double>());
+  return sd + 0.3 * mean;
+}
+
+double luma_detail(const torch::Tensor& rgb) {
+  TORCH_CHECK(rgb.dim() == 3 && rgb.size(0) == 3 && rgb.size(1) >= 3 && rgb.size(2) >= 3,
+              "detail: expects {3,H,W} of at least 3x3, got ", rgb.sizes());
+  const auto x = rgb.to(torch::kFloat64);
+  const auto luma = (0.299 * x[0] + 0.587 * x[1] + 0.114 * x[2]).view({1, 1, x.size(1), x.size(2)});
+  const auto sobel_x = torch::tensor({-1.0, 0.0, 1.0, -2.0, 0.0, 2.0, -1.0, 0.0, 1.0}, torch::kFloat64).view({1, 1, 3, 3});
+  const auto gx = torch::conv2d(luma, sobel_x), gy = torch::conv2d(luma, sobel_x.transpose(2, 3));
+  return (gx * gx + gy * gy).sqrt().mean().item<double>();
+}
+
 void write_contact_sheet(const std::filesystem::path& path, const std::vector<std::string>& column_labels,
                          const std::vector<std::string>& row_labels,
                          const std::vector<std::vector<torch::Tensor>>& images) {

@@ -16,6 +16,14 @@ double psnr(const torch::Tensor& a, const torch::Tensor& b);
 // use_sample_covariance=False, data_range=1, channel_axis=2).
 double ssim(const torch::Tensor& a, const torch::Tensor& b);
 
+// Colourfulness of an sRGB {3,H,W} image in [0,1] (Hasler & Suesstrunk 2003, eq. 3):
+// sqrt(sd(rg)^2 + sd(yb)^2) + 0.3 sqrt(mean(rg)^2 + mean(yb)^2), rg = R - G, yb = (R + G) / 2 - B,
+// on the 0..1 scale (the paper's 0..255 values are 255 times these). 0 for a grey image.
+double colourfulness(const torch::Tensor& rgb);
+// Detail: the mean Sobel gradient magnitude of the luma (0.299 R + 0.587 G + 0.114 B), over the
+// pixels whose 3x3 neighbourhood lies inside the image. 0 for a flat image.
+double luma_detail(const torch::Tensor& rgb);
+
 // Contact sheet: one row per image, ground truth then each method; labels above the columns.
 // images[row][col] are {3,H,W} in [0,1]. Written as an 8-bit PNG.
 void write_contact_sheet(const std::filesystem::path& path, const std::vector<std::string>& column_labels,

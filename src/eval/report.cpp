@@ -62,10 +62,10 @@ std::vector<MethodScore> evaluate(const EvalOptions& opt) {
   auto add = [](Sums& s, double v) {
     if (std::isfinite(v)) s.sum += v, s.sq += v * v, ++s.n;
   };
-  std::vector<Sums> niqe_sums(methods.size());
+  std::vector<Sums> niqe_sums(methods.size()), colour_sums(methods.size()), detail_sums(methods.size());
   Sums truth_niqe;
   std::ostringstream csv;
-  csv << "image,method,psnr,ssim,mean_output,mean_truth" << (with_niqe ? ",niqe" : "") << "\n"
+  csv << "image,method,psnr,ssim,mean_output,mean_truth" << (with_niqe ? ",niqe" : "") << ",colour_kept,detail_kept\n"
       << std::fixed << std::setprecision(4);
   std::vector<MethodScore> scores;
   std::vector<std::vector<torch::Tensor>> sheet;
@@ -77,6 +77,7 @@ std::vector<MethodScore> evaluate(const EvalOptions& opt) {
     const auto name = gt_path.stem().string() + ".png";
     std::vector<torch::Tensor> row;
     torch::Tensor gt;
+    double gt_colour = 0, gt_detail = 0;
     for (size_t k = 0; k < methods.size(); ++k) {
       const auto rec_path = methods[k].dir / name;
       if (!std::filesystem::exists(rec_path)) continue;
@@ -91,6 +92,7 @@ std::vector<MethodScore> evaluate(const EvalOptions& opt) {
                     std::to_string(truth.size(2)) + "x" + std::to_string(truth.size(1)) +
                     ": not a reconstruction of that scene (is --out a folder of reconstructions?)");
         gt = resize(truth, rec.size(1), rec.size(2));
+        gt_colour = colourfulness(gt), gt_detail = luma_detail(gt);
       }
       require(rec.sizes() == gt.sizes(), rec_path, "size differs from the other reconstructions");
       const double p = psnr(rec, gt), s = ssim(rec, gt);
@@ -101,7 +103,12 @@ std::vector<MethodScore> evaluate(const EvalOptions& opt) {
         add(niqe_sums[k], q);
         csv << "," << q;
       }
-      csv << "\n";
+      // Ratios to the truth; a truth without colour (or detail) has no ratio: NaN, left out of the mean.
+      const double colour_kept = gt_colour > 1e-6 ? colourfulness(rec) / gt_colour : std::nan("");
+      const double detail_kept = gt_detail > 1e-6 ? luma_detail(rec) / gt_detail : std::nan("");
+      add(colour_sums[k], colour_kept);
+      add(detail_sums[k], detail_kept);
+      csv << "," << colour_kept << "," << detail_kept << "\n";
       scores[k].count++;
       scores[k].psnr += p;
       scores[k].ssim += s;
@@ -114,7 +121,7 @@ std::vector<MethodScore> evaluate(const EvalOptions& opt) {
     if (with_niqe && gt.defined()) {
       const double q = niqe_score(niqe_model, gt);
       add(truth_niqe, q);
-      csv << name << ",ground truth,,,," << gt.mean().item<double>() << "," << q << "\n";
+      csv << name << ",ground truth,,,," << gt.mean().item<double>() << "," << q << ",,\n";
     }
     if (!row.empty() && static_cast<int>(sheet.size()) < opt.sheet_rows) {
       row[0] = gt;
@@ -138,8 +145,12 @@ std::vector<MethodScore> evaluate(const EvalOptions& opt) {
       s.niqe = niqe_sums[k].sum / niqe_sums[k].n;
       s.niqe_sd = std::sqrt(std::max(0.0, niqe_sums[k].sq / niqe_sums[k].n - s.niqe * s.niqe));
       csv << "," << s.niqe;
+    } else if (with_niqe) {
+      csv << ",";
     }
-    csv << "\n";
+    if (colour_sums[k].n > 0) s.colour_kept = colour_sums[k].sum / colour_sums[k].n;
+    if (detail_sums[k].n > 0) s.detail_kept = detail_sums[k].sum / detail_sums[k].n;
+    csv << "," << s.colour_kept << "," << s.detail_kept << "\n";
   }
   if (with_niqe && truth_niqe.n > 0) {
     MethodScore truth{"ground truth"};
@@ -147,7 +158,7 @@ std::vector<MethodScore> evaluate(const EvalOptions& opt) {
     truth.psnr = truth.ssim = truth.psnr_sd = truth.ssim_sd = truth.brightness = std::nan("");
     truth.niqe = truth_niqe.sum / truth_niqe.n;
     truth.niqe_sd = std::sqrt(std::max(0.0, truth_niqe.sq / truth_niqe.n - truth.niqe * truth.niqe));
-    csv << "mean,ground truth,,,,," << truth.niqe << "\n";
+    csv << "mean,ground truth,,,,," << truth.niqe << ",,\n";
     scores.push_back(truth);
   }
   write_text_atomically(opt.out / "metrics.csv", csv.str());
@@ -168,7 +179,16 @@ std::string format_table(const std::vector<MethodScore>& scores) {
   };
   std::ostringstream os;
   os << std::left << std::setw(24) << "method" << std::right << std::setw(7) << "images" << std::setw(16) << "PSNR dB"
-     << std::setw(16) << "SSIM" << std::setw(12) << "brightness" << (any_niqe ? "            NIQE" : "") << "\n";
+     << std::setw(16) << "SSIM" << std::setw(12) << "brightness" << std::setw(9) << "colour" << std::setw(9)
+     << "detail" << (any_niqe ? "            NIQE" : "") << "\n";
+  auto ratio = [](double v) {
+    std::ostringstream o;
+    if (std::isfinite(v))
+      o << std::fixed << std::setprecision(2) << v;
+    else
+      o << "-";
+    return o.str();
+  };
   for (const auto& s : scores) {
     std::ostringstream b;
     if (std::isfinite(s.brightness))
@@ -176,7 +196,8 @@ std::string format_table(const std::vector<MethodScore>& scores) {
     else
       b << "-";
     os << std::left << std::setw(24) << s.method << std::right << std::setw(7) << s.count << std::setw(16)
-       << pm(s.psnr, s.psnr_sd, 2) << std::setw(16) << pm(s.ssim, s.ssim_sd, 3) << std::setw(12) << b.str();
+       << pm(s.psnr, s.psnr_sd, 2) << std::setw(16) << pm(s.ssim, s.ssim_sd, 3) << std::setw(12) << b.str()
+       << std::setw(9) << ratio(s.colour_kept) << std::setw(9) << ratio(s.detail_kept);
     if (any_niqe) os << std::setw(16) << pm(s.niqe, s.niqe_sd, 2);
     os << "\n";
   }

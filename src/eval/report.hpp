@@ -17,6 +17,10 @@ struct MethodScore {
   double brightness = 0;
   // NIQE (eval/niqe.hpp; lower is more natural) over the images where it is defined; NaN without a model.
   double niqe = std::nan(""), niqe_sd = std::nan("");
+  // How much of the truth's colourfulness and detail (eval/metrics.hpp) the output keeps: the mean
+  // over images of output / truth (images whose truth has none are left out). 1 keeps it all; a
+  // blurry grey regressor scores well below 1.
+  double colour_kept = std::nan(""), detail_kept = std::nan("");
 };
 
 struct EvalOptions {

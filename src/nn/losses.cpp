@@ -27,13 +27,18 @@ DiscriminatorImpl::DiscriminatorImpl(const DiscriminatorOptions& o) {
   out_ = register_module("out", nn::Conv2d(nn::Conv2dOptions(in, 1, 1).padding(flatnet ? 1 : 0)));
 }
 
-torch::Tensor DiscriminatorImpl::forward(const torch::Tensor& x) {
+torch::Tensor DiscriminatorImpl::forward(const torch::Tensor& x) { return features(x).back(); }
+
+std::vector<torch::Tensor> DiscriminatorImpl::features(const torch::Tensor& x) {
+  std::vector<torch::Tensor> out;
   auto h = x;
   for (size_t i = 0; i < convs_->size(); ++i) {
     h = norms_[i]->as<nn::BatchNorm2dImpl>()->forward(convs_[i]->as<nn::Conv2dImpl>()->forward(h));
     h = h * torch::sigmoid(h);  // swish
+    out.push_back(h);
   }
-  return out_->forward(h).mean({2, 3});  // {B,1}
+  out.push_back(out_->forward(h).mean({2, 3}));  // {B,1}
+  return out;
 }
 
 Vgg16FeaturesImpl::Vgg16FeaturesImpl(bool normalize) : normalize_(normalize) {
@@ -115,6 +120,71 @@ torch::Tensor perceptual_loss(Vgg16Features& vgg, const torch::Tensor& x, const 
     return torch::mse_loss(a.to(torch::kFloat32), b.to(torch::kFloat32));
   };
   return mse(fx.first, fy.first) + mse(fx.second, fy.second);
+}
+
+torch::Tensor feature_matching_loss(Discriminator& d, const torch::Tensor& x, const torch::Tensor& y, bool bf16) {
+  std::vector<torch::Tensor> fx, fy;
+  {
+    AutocastGuard autocast(bf16);
+    {
+      torch::NoGradGuard no_grad;
+      fy = d->features(y);
+    }
+    fx = d->features(x);
+  }
+  auto loss = torch::zeros({}, torch::kFloat32);
+  for (size_t i = 0; i + 1 < fx.size(); ++i)  // the layers' features, not the logits
+    loss = loss + torch::l1_loss(fx[i].to(torch::kFloat32), fy[i].to(torch::kFloat32));
+  return loss / static_cast<double>(fx.size() - 1);
+}
+
+torch::Tensor focal_frequency_loss(const torch::Tensor& x_in, const torch::Tensor& y_in) {
+  TORCH_CHECK(x_in.sizes() == y_in.sizes() && x_in.dim() == 4, "focal_frequency_loss: equal {B,C,H,W} inputs expected");
+  AutocastOffGuard fp32;
+  const auto fx = torch::fft::fft2(x_in.to(torch::kFloat32), c10::nullopt, {-2, -1}, "ortho");
+  const auto fy = torch::fft::fft2(y_in.to(torch::kFloat32), c10::nullopt, {-2, -1}, "ortho");
+  const auto diff = fx - fy;
+  const auto distance = torch::real(diff).pow(2) + torch::imag(diff).pow(2);  // {B,C,H,W}
+  torch::Tensor weight;
+  {
+    torch::NoGradGuard no_grad;
+    weight = distance.sqrt();
+    const auto peak = std::get<0>(weight.flatten(2).max(-1)).clamp_min(1e-12);  // {B,C}
+    weight = weight / peak.unsqueeze(-1).unsqueeze(-1);
+  }
+  return (weight * distance).mean();
+}
+
+torch::Tensor srgb_to_lab(const torch::Tensor& rgb_in) {
+  AutocastOffGuard fp32;
+  const auto rgb = rgb_in.to(torch::kFloat32).clamp(0, 1);
+  // sRGB decoding (IEC 61966-2-1), then linear RGB -> XYZ (D65), each row over the white point.
+  const auto linear = torch::where(rgb <= 0.04045, rgb / 12.92, ((rgb + 0.055) / 1.055).pow(2.4));
+  // (the matrix of skimage.color and of sRGB's original specification)
+  const auto m = torch::tensor({0.412453f / 0.95047f, 0.357580f / 0.95047f, 0.180423f / 0.95047f,  //
+                                0.212671f, 0.715160f, 0.072169f,                                //
+                                0.019334f / 1.08883f, 0.119193f / 1.08883f, 0.950227f / 1.08883f})
+                     .view({3, 3});
+  const auto xyz = torch::einsum("ij,bjhw->bihw", {m, linear});
+  // f(t) = t^(1/3) above (6/29)^3, linear below (finite gradient at black).
+  const double d = 6.0 / 29.0;
+  const auto f = torch::where(xyz > d * d * d, xyz.clamp_min(d * d * d).pow(1.0 / 3.0), xyz / (3 * d * d) + 4.0 / 29.0);
+  const auto fx = f.select(1, 0), fy = f.select(1, 1), fz = f.select(1, 2);
+  return torch::stack({116 * fy - 16, 500 * (fx - fy), 200 * (fy - fz)}, 1);
+}
+
+torch::Tensor chroma_loss(const torch::Tensor& x, const torch::Tensor& y) {
+  AutocastOffGuard fp32;
+  const auto lx = srgb_to_lab(x), ly = srgb_to_lab(y.detach());
+  return torch::l1_loss(lx.slice(1, 1, 3), ly.slice(1, 1, 3)) / 100.0;
+}
+
+torch::Tensor gradient_loss(const torch::Tensor& x_in, const torch::Tensor& y_in) {
+  AutocastOffGuard fp32;
+  const auto x = x_in.to(torch::kFloat32), y = y_in.to(torch::kFloat32);
+  auto dx = [](const torch::Tensor& t) { return t.slice(3, 1) - t.slice(3, 0, -1); };
+  auto dy = [](const torch::Tensor& t) { return t.slice(2, 1) - t.slice(2, 0, -1); };
+  return 0.5 * (torch::l1_loss(dx(x), dx(y)) + torch::l1_loss(dy(x), dy(y)));
 }
 
 torch::Tensor ssim_loss(const torch::Tensor& x_in, const torch::Tensor& y_in) {

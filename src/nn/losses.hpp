@@ -21,6 +21,8 @@ class DiscriminatorImpl : public torch::nn::Module {
  public:
   explicit DiscriminatorImpl(const DiscriminatorOptions& options);
   torch::Tensor forward(const torch::Tensor& x);  // {B,3,H,W} -> {B,1} logits
+  // The activation after each swish layer ({B,w,H/2,W/2}, {B,2w,H/4,W/4}, ...) and, last, the logits.
+  std::vector<torch::Tensor> features(const torch::Tensor& x);
 
  private:
   torch::nn::ModuleList convs_, norms_;
@@ -56,5 +58,30 @@ torch::Tensor ssim_loss(const torch::Tensor& x, const torch::Tensor& y);
 // `bf16`, VGG runs under bf16 autocast (as the generator's enhancer does when training in bf16) and
 // the MSEs in fp32.
 torch::Tensor perceptual_loss(Vgg16Features& vgg, const torch::Tensor& x, const torch::Tensor& y, bool bf16 = false);
+
+// Perceptual terms that need no downloaded weights (issue 26). Each takes {B,3,H,W} images in
+// [0,1] (the output x and the truth y; y needs no gradient) and is computed in fp32, also inside
+// a bf16 autocast region.
+
+// Feature matching (pix2pixHD, Wang et al. 2018, eq. 4): the mean over the discriminator's layers of
+// the L1 distance between the features of x and of y. The discriminator's weights get no gradient
+// from it (the caller freezes them); x does. With `bf16`, the discriminator runs under autocast.
+torch::Tensor feature_matching_loss(Discriminator& d, const torch::Tensor& x, const torch::Tensor& y, bool bf16 = false);
+
+// Focal frequency loss (Jiang et al., ICCV 2021, eq. 2-4, alpha = 1): the squared distance of the
+// orthonormal 2-D spectra, each frequency weighted by its own distance (square root, normalised to
+// [0,1] by the image's largest, no gradient), so the frequencies the output misses most count most.
+torch::Tensor focal_frequency_loss(const torch::Tensor& x, const torch::Tensor& y);
+
+// CIELAB (D65) of sRGB images: {B,3,H,W} in [0,1] -> {B,3,H,W} with L* in [0,100] and a*, b*.
+torch::Tensor srgb_to_lab(const torch::Tensor& rgb);
+
+// Colour term: the mean L1 distance of the chroma coordinates (a*, b*) of x and y, over 100 (so that
+// a term of 0.01 is one CIELAB unit). Greens turned grey-brown cost here even where luma is right.
+torch::Tensor chroma_loss(const torch::Tensor& x, const torch::Tensor& y);
+
+// Gradient (edge) term: the mean L1 distance of the horizontal and vertical differences of x and
+// y, per channel. A blurred edge costs in proportion to the contrast lost, not its square.
+torch::Tensor gradient_loss(const torch::Tensor& x, const torch::Tensor& y);
 
 }  // namespace flatnet

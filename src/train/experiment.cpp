@@ -40,6 +40,10 @@ TrainOptions train_options(const Config& c, const std::filesystem::path& out) {
   t.w_mse = c.num("loss.mse");
   t.w_perceptual = c.num("loss.perceptual");
   t.w_adversarial = c.num("loss.adversarial");
+  t.w_feature_matching = c.num("loss.feature_matching");
+  t.w_frequency = c.num("loss.frequency");
+  t.w_chroma = c.num("loss.chroma");
+  t.w_gradient = c.num("loss.gradient");
   t.real_label_min = c.num("discriminator.real_label_min");
   t.fake_label_max = c.num("discriminator.fake_label_max");
   require(t.real_label_min >= 0 && t.real_label_min <= 1 && t.fake_label_max >= 0 && t.fake_label_max <= 1,
@@ -47,7 +51,9 @@ TrainOptions train_options(const Config& c, const std::filesystem::path& out) {
   require(t.batch >= 1 && t.iterations >= 1, "train", "batch and iterations must be positive");
   require(t.w_mse >= 0 && t.w_perceptual >= 0 && t.w_adversarial >= 0 && t.w_ssim >= 0, "loss",
           "weights must be non-negative");
-  require(t.w_mse + t.w_perceptual + t.w_adversarial + t.w_ssim > 0, "loss", "every weight is 0: nothing to train on");
+  require(t.w_mse + t.w_perceptual + t.w_adversarial + t.w_ssim + t.w_feature_matching + t.w_frequency + t.w_chroma +
+                  t.w_gradient > 0,
+          "loss", "every weight is 0: nothing to train on");
   t.channels_last = c.flag("train.channels_last");
   t.gemm_upsample = c.flag("train.gemm_upsample");
   t.check_sync_every = c.integer("train.check_sync_every");

@@ -16,7 +16,11 @@ namespace {
 // Keeps the rows of a CSV log whose first field (the step) is <= last_step; used on resume so
 // the log continues without duplicates. The checkpoint, not the log, is the run's state: rows that
 // do not start with a step (a line cut short by a crash, an edit) are dropped with a warning.
-void truncate_log(const std::filesystem::path& path, int64_t last_step) {
+const char* const kLogHeader =
+    "step,loss,mse,ssim_loss,perceptual,adversarial,discriminator,lr,steps_per_s,feature_matching,frequency,chroma,"
+    "gradient";
+
+void truncate_log(const std::filesystem::path& path, int64_t last_step, const std::string& new_header = "") {
   if (!std::filesystem::exists(path)) return;
   std::ifstream in(path);
   std::string line, kept;
@@ -24,8 +28,8 @@ void truncate_log(const std::filesystem::path& path, int64_t last_step) {
   int64_t line_number = 0, dropped = 0, first_dropped = 0;
   while (std::getline(in, line)) {
     ++line_number;
-    if (header) {
-      kept += line + "\n";
+    if (header) {  // a run from an older flatnet gets the current header (its rows keep their fewer fields)
+      kept += (new_header.empty() ? line : new_header) + "\n";
       header = false;
       continue;
     }
@@ -61,6 +65,21 @@ torch::Tensor uniform(int64_t n, double lo, double hi, at::Generator& gen) {
 }
 
 }  // namespace
+
+StepLosses& StepLosses::operator+=(const StepLosses& o) {
+  loss += o.loss, mse += o.mse, ssim += o.ssim, perceptual += o.perceptual, adversarial += o.adversarial;
+  discriminator += o.discriminator, feature_matching += o.feature_matching, frequency += o.frequency;
+  chroma += o.chroma, gradient += o.gradient;
+  return *this;
+}
+
+StepLosses StepLosses::operator/(double n) const {
+  StepLosses m = *this;
+  for (double* v : {&m.loss, &m.mse, &m.ssim, &m.perceptual, &m.adversarial, &m.discriminator, &m.feature_matching,
+                    &m.frequency, &m.chroma, &m.gradient})
+    *v /= n;
+  return m;
+}
 
 LrSchedule parse_lr_schedule(const std::string& s) {
   if (s == "halving") return LrSchedule::halving;
@@ -127,7 +146,7 @@ StepLosses gan_step(Generator& g, Discriminator& d, Vgg16Features& vgg, torch::o
                     torch::optim::Optimizer& opt_d, const TrainOptions& opt, const Batch& batch, int64_t step,
                     GradientAverager* sync) {
   StepLosses out;
-  const bool adversarial = opt.w_adversarial > 0;
+  const bool adversarial = opt.trains_discriminator();
   const bool perceptual = opt.w_perceptual > 0;
   const bool warmup = step < opt.discriminator_warmup;
   auto label_gen = at::detail::createCPUGenerator(opt.seed * 104729ULL + static_cast<uint64_t>(step));
@@ -166,11 +185,22 @@ StepLosses gan_step(Generator& g, Discriminator& d, Vgg16Features& vgg, torch::o
     torch::Tensor perc, adv, structural;
     if (opt.w_ssim > 0) loss = loss + opt.w_ssim * (structural = ssim_loss(fake, gt));
     if (perceptual) loss = loss + opt.w_perceptual * (perc = perceptual_loss(vgg, fake, gt, opt.bf16));
-    if (adversarial) {
-      for (auto& p : d->parameters()) p.set_requires_grad(false);
+    if (adversarial) for (auto& p : d->parameters()) p.set_requires_grad(false);
+    if (opt.w_adversarial > 0) {
       adv = torch::binary_cross_entropy_with_logits(logits_fp32(d, fake, opt.bf16), torch::ones({fake.size(0), 1}));
       loss = loss + opt.w_adversarial * adv;
     }
+    // The weight-free perceptual terms (issue 26), each logged on its own.
+    auto add_term = [&](double weight, double& logged, const std::function<torch::Tensor()>& term) {
+      if (weight <= 0) return;
+      const auto t = term();
+      logged = t.item<double>();
+      loss = loss + weight * t;
+    };
+    add_term(opt.w_feature_matching, out.feature_matching, [&] { return feature_matching_loss(d, fake, gt, opt.bf16); });
+    add_term(opt.w_frequency, out.frequency, [&] { return focal_frequency_loss(fake, gt); });
+    add_term(opt.w_chroma, out.chroma, [&] { return chroma_loss(fake, gt); });
+    add_term(opt.w_gradient, out.gradient, [&] { return gradient_loss(fake, gt); });
     const double value = loss.item<double>();
     if (!std::isfinite(value))
       diverged(opt, step, "generator loss (mse " + std::to_string(mse.item<double>()) + ")", value);
@@ -255,7 +285,7 @@ std::string GanTrainer::resume(const std::filesystem::path& checkpoint) {
   state_.best_psnr = std::filesystem::exists(best) ? checkpoint_best_psnr(best) : -1e9;
   auto gen = at::detail::getDefaultCPUGenerator();
   gen.set_state(state_.rng_state);
-  truncate_log(opt_.out / "log.csv", state_.step);
+  truncate_log(opt_.out / "log.csv", state_.step, kLogHeader);
   truncate_log(opt_.out / "val.csv", state_.step);
   // A kill after latest.ckpt and before model.flatnet leaves the model a step behind: rewrite it.
   if (!sync_ || sync_->rank() == 0) save_model_file(opt_.out / "model.flatnet", exported(), identity_);
@@ -327,12 +357,12 @@ TrainSummary GanTrainer::run() {
   BatchLoader loader(train_, lo);
   const bool writer = !sync_ || sync_->rank() == 0;  // only rank 0 writes logs and checkpoints
   if (writer) std::filesystem::create_directories(opt_.out);
-  const bool adversarial = opt_.w_adversarial > 0;
+  const bool adversarial = opt_.trains_discriminator();
   g_->train();
   d_->train();
   Progress progress("train", opt_.iterations - state_.step, opt_.progress);
   const auto start = std::chrono::steady_clock::now();
-  double sum_loss = 0, sum_mse = 0, sum_ssim = 0, sum_perc = 0, sum_adv = 0, sum_d = 0;
+  StepLosses sums;  // since the last log line
   int64_t n_logged = 0;
   run_start_ = std::chrono::steady_clock::now();
   seconds_before_run_ = state_.train_seconds;
@@ -351,8 +381,7 @@ TrainSummary GanTrainer::run() {
     const auto batch = loader.next();
     const auto l = gan_step(g_, d_, vgg_, *opt_g_, *opt_d_, opt_, batch, step, sync_);
     if (ema_) ema_->update(step);
-    sum_loss += l.loss, sum_mse += l.mse, sum_ssim += l.ssim, sum_perc += l.perceptual, sum_adv += l.adversarial;
-    const double d_value = l.discriminator;
+    sums += l;
     if (sync_ && sync_->world_size() > 1) {
       // Batch-norm running statistics follow rank 0's (as DistributedDataParallel's broadcast_buffers).
       std::vector<torch::Tensor> buffers = g_->buffers(), d_buffers = d_->buffers();
@@ -363,25 +392,24 @@ TrainSummary GanTrainer::run() {
         sync_->check_identical(d_->parameters(), "discriminator parameters after step " + std::to_string(step + 1));
       }
     }
-    sum_d += d_value;
     ++n_logged;
     state_.step = step + 1;
     progress.tick();
     if (writer && (state_.step % opt_.log_every == 0 || state_.step == opt_.iterations)) {
       const double elapsed = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
       std::ostringstream line, status;
-      line << state_.step << "," << std::setprecision(6) << sum_loss / n_logged << "," << sum_mse / n_logged << ","
-           << sum_ssim / n_logged << "," << sum_perc / n_logged << "," << sum_adv / n_logged << "," << sum_d / n_logged
-           << "," << static_cast<torch::optim::AdamOptions&>(opt_g_->param_groups()[0].options()).lr() << ","
-           << (state_.step - summary.first_step) / elapsed;
-      append_line(opt_.out / "log.csv", "step,loss,mse,ssim_loss,perceptual,adversarial,discriminator,lr,steps_per_s",
-                  line.str());
-      status << "step " << state_.step << " loss " << std::setprecision(4) << sum_loss / n_logged << " mse "
-             << sum_mse / n_logged;
-      if (adversarial) status << " D " << sum_d / n_logged;
+      const auto m = sums / static_cast<double>(n_logged);
+      line << state_.step << "," << std::setprecision(6) << m.loss << "," << m.mse << "," << m.ssim << ","
+           << m.perceptual << "," << m.adversarial << "," << m.discriminator << ","
+           << static_cast<torch::optim::AdamOptions&>(opt_g_->param_groups()[0].options()).lr() << ","
+           << (state_.step - summary.first_step) / elapsed << "," << m.feature_matching << "," << m.frequency << ","
+           << m.chroma << "," << m.gradient;
+      append_line(opt_.out / "log.csv", kLogHeader, line.str());
+      status << "step " << state_.step << " loss " << std::setprecision(4) << m.loss << " mse " << m.mse;
+      if (adversarial) status << " D " << m.discriminator;
       if (budget) status << " | budget left " << format_duration(std::max(0.0, 60.0 * opt_.minutes - trained_seconds()));
       progress.set_status(status.str());
-      sum_loss = sum_mse = sum_ssim = sum_perc = sum_adv = sum_d = 0;
+      sums = StepLosses{};
       n_logged = 0;
     }
     if (writer && (state_.step % opt_.val_every == 0 || state_.step == opt_.iterations)) {

@@ -40,6 +40,11 @@ struct TrainOptions {
   int64_t val_every = 500, log_every = 10;
   double w_mse = 1.0, w_perceptual = 1.2, w_adversarial = 0.6;
   double w_ssim = 0.0;  // weight of the structural term 1 - SSIM
+  // Terms that need no downloaded weights (nn/losses.hpp): feature matching on the discriminator's
+  // layers (trains the discriminator even when w_adversarial is 0), focal frequency, CIELAB chroma, gradient.
+  double w_feature_matching = 0.0, w_frequency = 0.0, w_chroma = 0.0, w_gradient = 0.0;
+  // The discriminator is trained (one step per generator step) when a term needs it.
+  bool trains_discriminator() const { return w_adversarial > 0 || w_feature_matching > 0; }
   double ema_decay =
       0.0;            // exponential moving average of the generator's weights (0: off); used to validate and export
   int64_t crop = 0;   // the enhancer trains on random crop x crop windows of the first stage (0: whole scenes)
@@ -70,6 +75,9 @@ ValidationResult validate(Generator& generator, const std::vector<Sample>& sampl
 
 struct StepLosses {
   double loss = 0, mse = 0, ssim = 0, perceptual = 0, adversarial = 0, discriminator = 0;
+  double feature_matching = 0, frequency = 0, chroma = 0, gradient = 0;
+  StepLosses& operator+=(const StepLosses& o);
+  StepLosses operator/(double n) const;
 };
 
 // Learning-rate factor (relative to train.lr) at `step` under the options' schedule.
