@@ -29,6 +29,7 @@ GeneratorOptions tiny_options(int64_t k = 1, Enhancer e = Enhancer::unet) {
   o.unet.width = 2;
   o.dncnn.layers = 4, o.dncnn.width = 4;
   o.rcan.groups = 2, o.rcan.blocks = 2, o.rcan.width = 16, o.rcan.reduction = 2;
+  o.nafnet.width = 4;
   return o;
 }
 
@@ -75,9 +76,17 @@ TEST_CASE("inversion computes leaky_relu(PhiL^T Y PhiR) per channel, in FlatNet'
 
 TEST_CASE("gradients reach every parameter of every generator variant and the discriminators", "[nn]") {
   torch::manual_seed(0);
-  for (auto e : {Enhancer::unet, Enhancer::dncnn, Enhancer::rcan}) {
+  for (auto e : {Enhancer::unet, Enhancer::dncnn, Enhancer::rcan, Enhancer::nafnet}) {
     for (int64_t k : {1, 4}) {
       Generator g(tiny_options(k, e));
+      // NAFNet's blocks start as the identity (beta = gamma = 0), which gives their inner layers no
+      // gradient at step 0; any other value does.
+      for (auto& p : g->named_parameters())
+        if (p.key().size() > 5 && (p.key().substr(p.key().size() - 5) == ".beta" ||
+                                   p.key().substr(p.key().size() - 6) == ".gamma")) {
+          torch::NoGradGuard no_grad;
+          p.value().fill_(0.1);
+        }
       const auto out = g->forward(torch::randn({2, 4, 20, 24}));
       REQUIRE(out.sizes() == torch::IntArrayRef({2, 3, 16, 16}));
       CHECK(out.min().item<double>() >= 0);
@@ -92,6 +101,33 @@ TEST_CASE("gradients reach every parameter of every generator variant and the di
     test::check_all_gradients(*d, logits.sum());
   }
   CHECK_THROWS_WITH(Discriminator(DiscriminatorOptions{"patch", 4}), Contains("thesis or flatnet"));
+}
+
+TEST_CASE("NAFNet: the authors' parameter names and shapes, blocks that start as the identity, LayerNorm2d",
+          "[nn][nafnet]") {
+  NAFNet net(NAFNetOptions{8, 3, 4, 1, 1, 2});
+  const auto params = net->named_parameters();
+  // NAFNet_arch.py's names (basicsr), so that its state dicts map onto this module.
+  for (const char* name : {"intro.weight", "encoders.0.0.conv1.weight", "encoders.0.0.norm1.weight",
+                           "encoders.0.0.sca.1.weight", "encoders.3.0.beta", "downs.3.weight", "middle_blks.0.gamma",
+                           "ups.0.0.weight", "decoders.3.1.conv5.bias", "ending.weight"}) {
+    INFO(name);
+    CHECK(params.find(name) != nullptr);
+  }
+  CHECK(params["encoders.0.0.conv2.weight"].sizes() == torch::IntArrayRef({8, 1, 3, 3}));  // depthwise over 2c
+  CHECK(params["downs.0.weight"].sizes() == torch::IntArrayRef({8, 4, 2, 2}));           // 2x2 stride 2 to 2c
+  CHECK(params["ups.0.0.weight"].sizes() == torch::IntArrayRef({128, 64, 1, 1}));        // 1x1 to 2c, then shuffle
+  CHECK(params.find("ups.0.0.bias") == nullptr);
+  CHECK(params["encoders.3.0.conv1.weight"].sizes() == torch::IntArrayRef({64, 32, 1, 1}));
+  const auto out = net->forward(torch::randn({2, 8, 32, 48}));
+  CHECK(out.sizes() == torch::IntArrayRef({2, 3, 32, 48}));
+  CHECK_THROWS_WITH(net->forward(torch::randn({1, 8, 24, 32})), Contains("multiples of 16"));
+  // LayerNorm2d normalises each pixel over its channels.
+  LayerNorm2d ln(5);
+  const auto x = torch::randn({2, 5, 3, 4}) * 3 + 1;
+  const auto y = ln->forward(x);
+  CHECK(y.mean(1).abs().max().item<double>() < 1e-5);
+  CHECK(torch::allclose(y.var(1, false), torch::ones({2, 3, 4}), 1e-3, 1e-3));
 }
 
 TEST_CASE("naive generator: the Tikhonov stage equals the SVD closed form", "[nn]") {

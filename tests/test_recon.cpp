@@ -119,7 +119,7 @@ TEST_CASE("eval reports spread over images and brightness: a reconstruction that
   CHECK(format_table(scores).find("colour") != std::string::npos);
 }
 
-TEST_CASE("colourfulness and detail match their definitions (Hasler-Suesstrunk 2003; Sobel of the luma)", "[eval]") {
+TEST_CASE("colourfulness and detail match their definitions (Hasler-Suesstrunk 2003, Sobel of the luma)", "[eval]") {
   const auto x = read_rgb(test::data_dir() / "golden" / "inet_n02980441_castle_scene.png");
   // numpy: sqrt(sd(rg)^2 + sd(yb)^2) + 0.3 sqrt(mean(rg)^2 + mean(yb)^2) on values / 255, and
   // scipy.signal.correlate2d(luma, sobel, 'valid') magnitudes' mean.

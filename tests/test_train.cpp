@@ -209,7 +209,7 @@ TEST_CASE("the non-finite guard runs before any optimiser step, discriminator wa
   }
 }
 
-TEST_CASE("each weight-free perceptual term alone trains the whole generator; feature matching trains the "
+TEST_CASE("each weight-free perceptual term alone trains the whole generator, feature matching trains the "
           "discriminator too",
           "[train][loss]") {
   Setup setup;

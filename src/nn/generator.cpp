@@ -388,6 +388,100 @@ torch::Tensor RCANImpl::forward(const torch::Tensor& x) {
   return tail_->forward(y);
 }
 
+// ---- NAFNet --------------------------------------------------------------------------------------
+
+LayerNorm2dImpl::LayerNorm2dImpl(int64_t channels) {
+  weight = register_parameter("weight", torch::ones({channels}));
+  bias = register_parameter("bias", torch::zeros({channels}));
+}
+
+torch::Tensor LayerNorm2dImpl::forward(const torch::Tensor& x) {
+  const auto mean = x.mean(1, true);
+  const auto centred = x - mean;
+  const auto var = centred.pow(2).mean(1, true);
+  return centred * torch::rsqrt(var + 1e-6) * weight.view({1, -1, 1, 1}) + bias.view({1, -1, 1, 1});
+}
+
+namespace {
+
+// SimpleGate: the first half of the channels times the second.  {B,2c,H,W} -> {B,c,H,W}
+torch::Tensor simple_gate(const torch::Tensor& x) {
+  const auto halves = x.chunk(2, 1);
+  return halves[0] * halves[1];
+}
+
+struct NAFBlockImpl : nn::Module {
+  explicit NAFBlockImpl(int64_t c) {
+    conv1 = register_module("conv1", nn::Conv2d(nn::Conv2dOptions(c, 2 * c, 1)));
+    conv2 = register_module("conv2", nn::Conv2d(nn::Conv2dOptions(2 * c, 2 * c, 3).padding(1).groups(2 * c)));
+    conv3 = register_module("conv3", nn::Conv2d(nn::Conv2dOptions(c, c, 1)));
+    sca = register_module("sca", nn::Sequential(nn::AdaptiveAvgPool2d(1), nn::Conv2d(nn::Conv2dOptions(c, c, 1))));
+    conv4 = register_module("conv4", nn::Conv2d(nn::Conv2dOptions(c, 2 * c, 1)));
+    conv5 = register_module("conv5", nn::Conv2d(nn::Conv2dOptions(c, c, 1)));
+    norm1 = register_module("norm1", LayerNorm2d(c));
+    norm2 = register_module("norm2", LayerNorm2d(c));
+    beta = register_parameter("beta", torch::zeros({1, c, 1, 1}));
+    gamma = register_parameter("gamma", torch::zeros({1, c, 1, 1}));
+  }
+  torch::Tensor forward(const torch::Tensor& in) {  // {B,c,H,W}
+    auto x = simple_gate(conv2->forward(conv1->forward(norm1->forward(in))));  // {B,c,H,W}
+    x = conv3->forward(x * sca->forward(x));
+    const auto y = in + x * beta;
+    x = conv5->forward(simple_gate(conv4->forward(norm2->forward(y))));
+    return y + x * gamma;
+  }
+  nn::Conv2d conv1{nullptr}, conv2{nullptr}, conv3{nullptr}, conv4{nullptr}, conv5{nullptr};
+  nn::Sequential sca{nullptr};
+  LayerNorm2d norm1{nullptr}, norm2{nullptr};
+  torch::Tensor beta, gamma;
+};
+TORCH_MODULE(NAFBlock);
+
+nn::Sequential naf_blocks(int64_t channels, int64_t count) {
+  nn::Sequential s;
+  for (int64_t i = 0; i < count; ++i) s->push_back(NAFBlock(channels));
+  return s;
+}
+
+}  // namespace
+
+NAFNetImpl::NAFNetImpl(const NAFNetOptions& o) {
+  intro_ = register_module("intro", nn::Conv2d(nn::Conv2dOptions(o.in_channels, o.width, 3).padding(1)));
+  encoders_ = register_module("encoders", nn::ModuleList());
+  downs_ = register_module("downs", nn::ModuleList());
+  ups_ = register_module("ups", nn::ModuleList());
+  decoders_ = register_module("decoders", nn::ModuleList());
+  int64_t c = o.width;
+  for (int level = 0; level < 4; ++level, c *= 2) {
+    encoders_->push_back(naf_blocks(c, o.enc_blocks));
+    downs_->push_back(nn::Conv2d(nn::Conv2dOptions(c, 2 * c, 2).stride(2)));
+  }
+  middle_ = register_module("middle_blks", naf_blocks(c, o.middle_blocks));
+  for (int level = 0; level < 4; ++level, c /= 2) {
+    ups_->push_back(nn::Sequential(nn::Conv2d(nn::Conv2dOptions(c, 2 * c, 1).bias(false)), nn::PixelShuffle(2)));
+    decoders_->push_back(naf_blocks(c / 2, o.dec_blocks));
+  }
+  ending_ = register_module("ending", nn::Conv2d(nn::Conv2dOptions(o.width, o.out_channels, 3).padding(1)));
+}
+
+torch::Tensor NAFNetImpl::forward(const torch::Tensor& input) {
+  TORCH_CHECK(input.size(2) % 16 == 0 && input.size(3) % 16 == 0, "NAFNet: H and W must be multiples of 16, got ",
+              input.sizes());
+  auto x = intro_->forward(input);  // {B,w,H,W}
+  std::vector<torch::Tensor> skips;
+  for (size_t i = 0; i < encoders_->size(); ++i) {
+    x = encoders_[i]->as<nn::SequentialImpl>()->forward(x);
+    skips.push_back(x);
+    x = downs_[i]->as<nn::Conv2dImpl>()->forward(x);  // {B,2c,H/2,W/2}
+  }
+  x = middle_->forward(x);  // {B,16w,H/16,W/16}
+  for (size_t i = 0; i < decoders_->size(); ++i) {
+    x = ups_[i]->as<nn::SequentialImpl>()->forward(x) + skips[skips.size() - 1 - i];
+    x = decoders_[i]->as<nn::SequentialImpl>()->forward(x);
+  }
+  return ending_->forward(x);  // {B,out,H,W}
+}
+
 // ---- Generator -----------------------------------------------------------------------------------
 
 GeneratorImpl::GeneratorImpl(const GeneratorOptions& o) : options_(o) {
@@ -408,6 +502,9 @@ GeneratorImpl::GeneratorImpl(const GeneratorOptions& o) : options_(o) {
       break;
     case Enhancer::rcan:
       enhancer_ = nn::AnyModule(register_module("enhancer", RCAN(o.rcan)));
+      break;
+    case Enhancer::nafnet:
+      enhancer_ = nn::AnyModule(register_module("enhancer", NAFNet(o.nafnet)));
       break;
   }
 }
@@ -573,7 +670,8 @@ Enhancer parse_enhancer(const std::string& s) {
   if (s == "unet") return Enhancer::unet;
   if (s == "dncnn") return Enhancer::dncnn;
   if (s == "rcan") return Enhancer::rcan;
-  throw Error("config: model.enhancer must be unet, dncnn or rcan, got '" + s + "'");
+  if (s == "nafnet") return Enhancer::nafnet;
+  throw Error("config: model.enhancer must be unet, dncnn, rcan or nafnet, got '" + s + "'");
 }
 
 }  // namespace flatnet

@@ -106,9 +106,45 @@ class RCANImpl : public torch::nn::Module {
 };
 TORCH_MODULE(RCAN);
 
+// ---- NAFNet (Chen et al., ECCV 2022), a modern enhancer ----------------------------------------
+// A U-shaped network of NAFBlocks: LayerNorm over channels, 1x1 conv to 2c, 3x3 depthwise conv,
+// SimpleGate (one half times the other), simplified channel attention (global mean, 1x1 conv,
+// multiply), 1x1 conv, a residual scaled by beta; then a gated 1x1 feed-forward scaled by gamma
+// (beta and gamma start at 0, so every block starts as the identity). Down: 2x2 stride-2 conv to
+// 2c; up: 1x1 conv to 2c and pixel shuffle; skips are added. Four levels (H, W divisible by 16).
+// Parameter names as the authors' NAFNet_arch.py (intro, encoders, downs, middle_blks, ups,
+// decoders, ending), without its input residual (the output has other channels than the input).
+struct NAFNetOptions {
+  int64_t in_channels = 4, out_channels = 3;
+  int64_t width = 16;                 // first level's channels; 2x per level down
+  int64_t enc_blocks = 1;             // NAFBlocks per encoder level (the paper: 1, 1, 1, 28 at width 32)
+  int64_t middle_blocks = 1;          // at the lowest resolution
+  int64_t dec_blocks = 1;             // per decoder level
+};
+class NAFNetImpl : public torch::nn::Module {
+ public:
+  explicit NAFNetImpl(const NAFNetOptions& options);
+  torch::Tensor forward(const torch::Tensor& x);  // {B,in,H,W} -> {B,out,H,W} logits
+ private:
+  torch::nn::Conv2d intro_{nullptr}, ending_{nullptr};
+  torch::nn::ModuleList encoders_, downs_, ups_, decoders_;
+  torch::nn::Sequential middle_{nullptr};
+};
+TORCH_MODULE(NAFNet);
+
+// Layer normalisation over the channels of each pixel (NAFNet's LayerNorm2d), eps 1e-6:
+// weight * (x - mean_c) / sqrt(var_c + eps) + bias.  {B,C,H,W} -> {B,C,H,W}
+class LayerNorm2dImpl : public torch::nn::Module {
+ public:
+  explicit LayerNorm2dImpl(int64_t channels);
+  torch::Tensor forward(const torch::Tensor& x);
+  torch::Tensor weight, bias;
+};
+TORCH_MODULE(LayerNorm2d);
+
 // ---- The generator -------------------------------------------------------------------------------
 enum class InputStage { inversion, tikhonov };
-enum class Enhancer { unet, dncnn, rcan };
+enum class Enhancer { unet, dncnn, rcan, nafnet };
 
 struct GeneratorOptions {
   InputStage input = InputStage::inversion;
@@ -120,6 +156,7 @@ struct GeneratorOptions {
   UNetOptions unet;
   DnCNNOptions dncnn;
   RCANOptions rcan;
+  NAFNetOptions nafnet;
   double bn_momentum = 0.99;  // the BatchNorm2d(4) between the stages
   // Light level as an input (camera centring "level"): each measurement plane's mean is removed
   // before the first stage and given to the enhancer as four constant channels beside the

@@ -268,6 +268,13 @@ void check_sizes_against_weights(const Config& c, const CameraConfig& camera, co
     require(c.integer("model.rcan.groups") * c.integer("model.rcan.blocks") <= count, path,
             "model.rcan.groups x blocks exceeds the weights the file holds");
   }
+  if (enhancer == "nafnet") {
+    expect("enhancer.intro.weight", 0, c.integer("model.nafnet.width"), "model.nafnet.width");
+    require(4 * (c.integer("model.nafnet.enc_blocks") + c.integer("model.nafnet.dec_blocks")) +
+                    c.integer("model.nafnet.middle_blocks") <=
+                count,
+            path, "model.nafnet block counts exceed the weights the file holds");
+  }
   if (const auto d = s.under("discriminator"); !d.empty()) {
     const auto it = d.find("convs.0.weight");
     require(it != d.end() && it->second.dim() == 4 && it->second.size(0) == c.integer("discriminator.width"), path,
@@ -448,7 +455,11 @@ GeneratorOptions generator_options(const Config& c, const CameraConfig& camera, 
   }
   o.level_input = c.flag("model.level_input");
   const int64_t enhancer_inputs = o.level_input ? 8 : 4;  // first stage (+ light level)
-  o.unet.in_channels = o.dncnn.in_channels = o.rcan.in_channels = enhancer_inputs;
+  o.unet.in_channels = o.dncnn.in_channels = o.rcan.in_channels = o.nafnet.in_channels = enhancer_inputs;
+  o.nafnet.width = c.integer("model.nafnet.width");
+  o.nafnet.enc_blocks = c.integer("model.nafnet.enc_blocks");
+  o.nafnet.middle_blocks = c.integer("model.nafnet.middle_blocks");
+  o.nafnet.dec_blocks = c.integer("model.nafnet.dec_blocks");
   o.enhancer = parse_enhancer(c.str("model.enhancer"));
   o.unet.width = c.integer("model.unet.width");
   o.unet.bn_momentum = o.bn_momentum;
@@ -458,7 +469,8 @@ GeneratorOptions generator_options(const Config& c, const CameraConfig& camera, 
   o.rcan.blocks = c.integer("model.rcan.blocks");
   o.rcan.width = c.integer("model.rcan.width");
   o.rcan.reduction = c.integer("model.rcan.reduction");
-  require(o.unet.width >= 1 && o.dncnn.width >= 1 && o.rcan.width >= 1, "config", "model widths must be positive");
+  require(o.unet.width >= 1 && o.dncnn.width >= 1 && o.rcan.width >= 1 && o.nafnet.width >= 1, "config",
+          "model widths must be positive");
   require(o.scene % 16 == 0, "camera", "scene_size must be divisible by 16 for the U-Net");
   check_camera_for_model(o, camera);
   return o;

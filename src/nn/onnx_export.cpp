@@ -156,6 +156,8 @@ class GeneratorGraph {
         break;
       case Enhancer::rcan:
         throw Error("ONNX export covers the U-Net and DnCNN enhancers; this model's is RCAN (model.enhancer: rcan)");
+      case Enhancer::nafnet:
+        throw Error("ONNX export covers the U-Net and DnCNN enhancers; this model's is NAFNet (model.enhancer: nafnet)");
     }
     return x;  // logits
   }

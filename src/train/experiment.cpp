@@ -203,6 +203,9 @@ double training_bytes_per_sample(const Config& c, const CameraConfig& camera) {
   if (enhancer == "dncnn") floats = 8.0 * c.integer("model.dncnn.layers") * c.integer("model.dncnn.width") * pixels;
   else if (enhancer == "rcan")
     floats = 8.0 * 3 * c.integer("model.rcan.groups") * c.integer("model.rcan.blocks") * c.integer("model.rcan.width") * pixels;
+  else if (enhancer == "nafnet")  // ~40 floats per channel and pixel per block; each level has half the U-Net's
+    floats = 40.0 * c.integer("model.nafnet.width") * pixels * 2 *
+             (c.integer("model.nafnet.enc_blocks") + c.integer("model.nafnet.dec_blocks") + 1);
   else floats = 34.0 * c.integer("model.unet.width") * pixels;
   // The first stage: the measurement, W1^T Y and the scene, per Bayer plane, with gradients.
   const double rows = camera.raw.crop[2], cols = camera.raw.crop[3], n = camera.scene_size;

@@ -1,0 +1,128 @@
+// The manual's links: every relative link in README.md, docs/ and models/README.md names a file
+// that exists, and every #anchor a heading of that file (GitHub's slugs).
+#include "catch_torch.hpp"
+
+#include <fstream>
+#include <regex>
+#include <set>
+#include <sstream>
+
+#include "helpers.hpp"
+
+namespace {
+
+std::filesystem::path source_dir() { return std::filesystem::path(FLATNET_TEST_DATA).parent_path().parent_path(); }
+
+std::vector<std::string> lines_of(const std::filesystem::path& p) {
+  std::ifstream in(p);
+  std::vector<std::string> out;
+  for (std::string line; std::getline(in, line);) out.push_back(line);
+  return out;
+}
+
+// GitHub's heading anchor: lower case; letters, digits, '-' and '_' kept; spaces become '-'; the rest dropped.
+std::string slug(const std::string& heading) {
+  std::string s;
+  for (unsigned char c : heading) {
+    if (std::isalnum(c) || c == '-' || c == '_')
+      s += static_cast<char>(std::tolower(c));
+    else if (c == ' ')
+      s += '-';
+    else if (c >= 0x80)
+      s += static_cast<char>(c);  // UTF-8 letters are kept as they are
+  }
+  return s;
+}
+
+// Anchors of a Markdown file's headings (outside code fences).
+std::set<std::string> anchors(const std::filesystem::path& p) {
+  std::set<std::string> out;
+  bool fence = false;
+  for (const auto& line : lines_of(p)) {
+    if (line.rfind("```", 0) == 0) fence = !fence;
+    if (fence || line.empty() || line[0] != '#') continue;
+    const auto text = line.substr(line.find_first_not_of('#'));
+    out.insert(slug(text.substr(text.find_first_not_of(' '))));
+  }
+  return out;
+}
+
+struct Link {
+  std::filesystem::path file;
+  int line;
+  std::string target;
+};
+
+std::vector<Link> links(const std::filesystem::path& p) {
+  static const std::regex link(R"(\]\(([^)\s]+)\))");
+  std::vector<Link> out;
+  bool fence = false;
+  int n = 0;
+  for (const auto& line : lines_of(p)) {
+    ++n;
+    if (line.rfind("```", 0) == 0) fence = !fence;
+    if (fence) continue;
+    for (std::sregex_iterator it(line.begin(), line.end(), link), end; it != end; ++it)
+      out.push_back({p, n, (*it)[1].str()});
+  }
+  return out;
+}
+
+std::vector<std::filesystem::path> manual_files() {
+  const auto root = source_dir();
+  std::vector<std::filesystem::path> files = {root / "README.md", root / "models" / "README.md"};
+  for (const auto& e : std::filesystem::directory_iterator(root / "docs"))
+    if (e.path().extension() == ".md") files.push_back(e.path());
+  return files;
+}
+
+}  // namespace
+
+TEST_CASE("the manual's relative links name files that exist and headings that exist", "[docs]") {
+  const auto files = manual_files();
+  REQUIRE(files.size() >= 8);  // README, models/README and the docs pages
+  int checked = 0;
+  for (const auto& file : files) {
+    for (const auto& l : links(file)) {
+      if (l.target.rfind("http://", 0) == 0 || l.target.rfind("https://", 0) == 0 || l.target.rfind("mailto:", 0) == 0)
+        continue;
+      INFO(l.file.string() << ":" << l.line << ": " << l.target);
+      const auto hash = l.target.find('#');
+      const auto path_part = l.target.substr(0, hash);
+      const auto target = path_part.empty() ? l.file : l.file.parent_path() / path_part;
+      CHECK(std::filesystem::exists(target));
+      if (hash != std::string::npos && std::filesystem::exists(target) && target.extension() == ".md")
+        CHECK(anchors(target).count(l.target.substr(hash + 1)) == 1);
+      ++checked;
+    }
+  }
+  CHECK(checked >= 20);
+}
+
+TEST_CASE("the link checker itself: slugs as GitHub makes them, and a broken link is found", "[docs]") {
+  CHECK(slug("Shipped models (`models/flatnet-sim-*.flatnet`)") == "shipped-models-modelsflatnet-sim-flatnet");
+  CHECK(slug("Precision: bf16 where the CPU has it") == "precision-bf16-where-the-cpu-has-it");
+  test::Scratch s("docs_links");
+  {
+    std::ofstream f(s.dir / "a.md");
+    f << "# Title\n## A section\nSee [b](b.md), [here](#a-section), [gone](#nowhere).\n```\n[not a link](x.md)\n```\n";
+  }
+  const auto found = links(s.dir / "a.md");
+  REQUIRE(found.size() == 3);
+  CHECK_FALSE(std::filesystem::exists(s.dir / found[0].target));
+  CHECK(anchors(s.dir / "a.md").count("a-section") == 1);
+  CHECK(anchors(s.dir / "a.md").count("nowhere") == 0);
+}
+
+TEST_CASE("README.md is the front door: short, with the two set-up commands and the manual's pages", "[docs]") {
+  const auto readme = lines_of(source_dir() / "README.md");
+  CHECK(readme.size() <= 200);
+  std::string text;
+  for (const auto& l : readme) text += l + "\n";
+  CHECK(text.find("scripts/run.sh") != std::string::npos);
+  CHECK(text.find("scripts/test.sh") != std::string::npos);
+  for (const char* page : {"usage", "training", "evaluation", "deployment", "capture", "masks", "performance", "design"}) {
+    INFO(page);
+    CHECK(text.find(std::string("docs/") + page + ".md") != std::string::npos);
+  }
+}
