@@ -615,3 +615,18 @@ TEST_CASE("flatnet bench: rows, JSON, and --profile lists the operators of one m
   CHECK(unknown.code == 2);
   CHECK_THAT(unknown.output, Contains("warp_drive") && Contains("tikhonov"));
 }
+
+TEST_CASE("report inversion: the thesis's Figure 3.3 from the shipped models, and a model without an inversion refused",
+          "[cli][inversion]") {
+  test::Scratch s("cli_inversion");
+  const auto models = test::source_dir() / "models";
+  auto r = test::run_flatnet("report inversion --models T=" + q(models / "flatnet-sim-transpose.flatnet") + " --out " +
+                             q(s.dir / "inv") + " --threads 1");
+  REQUIRE(r.code == 0);
+  CHECK(std::filesystem::exists(s.dir / "inv" / "inversion.png"));
+  const auto md = read_file_text(s.dir / "inv" / "inversion.md", 1 << 20);
+  CHECK(md.find("| T | transpose | W1^T PhiL |") != std::string::npos);
+  auto missing = test::run_flatnet("report inversion --out " + q(s.dir / "inv2"));
+  CHECK(missing.code == 2);
+  CHECK(missing.output.find("--models") != std::string::npos);
+}

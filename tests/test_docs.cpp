@@ -11,8 +11,6 @@
 
 namespace {
 
-std::filesystem::path source_dir() { return std::filesystem::path(FLATNET_TEST_DATA).parent_path().parent_path(); }
-
 std::vector<std::string> lines_of(const std::filesystem::path& p) {
   std::ifstream in(p);
   std::vector<std::string> out;
@@ -69,7 +67,7 @@ std::vector<Link> links(const std::filesystem::path& p) {
 }
 
 std::vector<std::filesystem::path> manual_files() {
-  const auto root = source_dir();
+  const auto root = test::source_dir();
   std::vector<std::filesystem::path> files = {root / "README.md", root / "models" / "README.md"};
   for (const auto& e : std::filesystem::directory_iterator(root / "docs"))
     if (e.path().extension() == ".md") files.push_back(e.path());
@@ -115,7 +113,7 @@ TEST_CASE("the link checker itself: slugs as GitHub makes them, and a broken lin
 }
 
 TEST_CASE("README.md is the front door: short, with the two set-up commands and the manual's pages", "[docs]") {
-  const auto readme = lines_of(source_dir() / "README.md");
+  const auto readme = lines_of(test::source_dir() / "README.md");
   CHECK(readme.size() <= 200);
   std::string text;
   for (const auto& l : readme) text += l + "\n";

@@ -3,6 +3,7 @@
 
 #include "io/camera_config.hpp"
 #include "core/util.hpp"
+#include "eval/inversion_report.hpp"
 #include "eval/metrics.hpp"
 #include "eval/report.hpp"
 #include "helpers.hpp"
@@ -246,4 +247,23 @@ TEST_CASE("reconstruct_files: one batch loop writes a PNG per capture for any en
   CHECK_THROWS_WITH(reconstruct_files(grey, camera, captures, o), Contains("--batch"));
   o.batch = 1;
   CHECK_THROWS_WITH(reconstruct_files(grey, camera, {}, o), Contains("no captures"));
+}
+
+TEST_CASE("inversion products: an exact inverse is all diagonal, a shifted one is found at its offset",
+          "[eval][inversion]") {
+  const auto q = std::get<0>(torch::linalg_qr(torch::randn({40, 16}, torch::kFloat64)));  // {40,16} orthonormal columns
+  const auto [product, exact] = inversion_product(q, q);
+  CHECK(torch::allclose(product, torch::eye(16, torch::kFloat64), 1e-9, 1e-9));
+  CHECK(exact.diagonal == Approx(1.0));
+  CHECK(exact.band == Approx(1.0));
+  CHECK(exact.offset == 0);
+  // W whose column i is Phi's column i - 5 (the first five zero): W^T Phi has its ones at i - j = 5.
+  auto shifted = torch::zeros_like(q);
+  shifted.slice(1, 5).copy_(q.slice(1, 0, 11));
+  const auto [p2, s2] = inversion_product(shifted, q);
+  CHECK(s2.diagonal < 1e-12);
+  CHECK(s2.band > 0.99);
+  CHECK(p2[5][0].item<double>() == Approx(1.0));  // row i = 5 (W's column 5 is Phi's column 0): offset i - j = 5
+  CHECK(s2.offset == 5);
+  CHECK_THROWS(inversion_product(q, q.slice(1, 0, 8)));
 }

@@ -3,6 +3,7 @@
 #include "cli/commands.hpp"
 #include "core/error.hpp"
 #include "core/util.hpp"
+#include "eval/inversion_report.hpp"
 #include "eval/niqe.hpp"
 #include "core/precision.hpp"
 #include "eval/report.hpp"
@@ -118,7 +119,44 @@ int eval(int argc, char** argv) {
   return 0;
 }
 
+namespace {
+
+// flatnet report inversion: the thesis's Figure 3.3 for any model files.
+int inversion_report_command(int argc, char** argv) {
+  cxxopts::Options o("flatnet report inversion",
+                     "What a model's inversion learned (the thesis's Figure 3.3): W1^T PhiL and W2^T PhiR before and "
+                     "after training, as images and diagonal energy shares.");
+  o.add_options()("models", "NAME=MODEL.flatnet or MODEL.flatnet, comma-separated",
+                  cxxopts::value<std::vector<std::string>>())(
+      "out", "folder for inversion.md and inversion.png", cxxopts::value<std::string>())(
+      "camera", "the camera the models were trained for, whose calibration gives PhiL and PhiR (default: the "
+      "reference camera)", cxxopts::value<std::string>());
+  add_force_folder(o);
+  add_common(o);
+  cxxopts::ParseResult r;
+  if (!parse(o, argc, argv, r)) return 0;
+  require(r.count("models") && r.count("out"), "report inversion", "--models NAME=M.flatnet,... and --out DIR are required");
+  InversionReportOptions opt;
+  opt.out = r["out"].as<std::string>();
+  const auto camera = camera_from(r);
+  require(!camera.calibration.empty(), "--camera", "this camera names no calibration: the products need PhiL and PhiR");
+  opt.calibration = camera.calibration;
+  for (const auto& m : r["models"].as<std::vector<std::string>>()) {
+    const auto eq = m.find('=');
+    const std::filesystem::path file = eq == std::string::npos ? m : m.substr(eq + 1);
+    require_regular_file(file);
+    opt.models.push_back({eq == std::string::npos ? file.stem().string() : m.substr(0, eq), file});
+  }
+  const auto claim = claim_out(r, opt.out, "report inversion");
+  std::cout << write_inversion_report(opt) << "wrote " << (opt.out / "inversion.md").string() << " and "
+            << (opt.out / "inversion.png").string() << "\n";
+  return 0;
+}
+
+}  // namespace
+
 int report(int argc, char** argv) {
+  if (argc > 1 && std::string(argv[1]) == "inversion") return inversion_report_command(argc - 1, argv + 1);
   cxxopts::Options o(
       "flatnet report",
       "The thesis's comparison as one command: every method on every held-out set, scored (PSNR, SSIM, NIQE), "

@@ -225,6 +225,11 @@ void Progress::finish() {
   draw(true);
 }
 
+void Progress::set_time_left(double seconds) {
+  deadline_ = std::chrono::steady_clock::now() +
+              std::chrono::duration_cast<std::chrono::steady_clock::duration>(std::chrono::duration<double>(seconds));
+}
+
 void Progress::draw(bool final_line) {
   if (!enabled_) return;
   const double r = rate();
@@ -236,7 +241,14 @@ void Progress::draw(bool final_line) {
   if (final_line)
     os << " in " << format_duration(elapsed_s());
   else
-    os << " ETA " << format_duration(r > 0 ? (total_ - done_) / r : -1);
+  {
+    double eta = r > 0 ? (total_ - done_) / r : -1;
+    if (deadline_ != std::chrono::steady_clock::time_point{}) {
+      const double budget = std::max(0.0, std::chrono::duration<double>(deadline_ - std::chrono::steady_clock::now()).count());
+      eta = eta < 0 ? budget : std::min(eta, budget);
+    }
+    os << " ETA " << format_duration(eta);
+  }
   if (!status_.empty()) os << "  " << status_;
   if (tty_)
     std::cerr << "\r" << os.str() << "\033[K" << (final_line ? "\n" : "") << std::flush;

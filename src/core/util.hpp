@@ -88,6 +88,9 @@ class Progress {
   double rate() const;  // items per second so far
   double elapsed_s() const;
   void set_status(std::string status);  // extra text after the bar (e.g. current losses)
+  // A time budget that ends the job before `total` (training's train.minutes): the ETA shown is
+  // the sooner of the two. Seconds from now.
+  void set_time_left(double seconds);
 
  private:
   void draw(bool final_line);
@@ -97,6 +100,7 @@ class Progress {
   bool enabled_;
   bool tty_;
   std::chrono::steady_clock::time_point start_, last_draw_;
+  std::chrono::steady_clock::time_point deadline_{};  // unset: no budget
 };
 
 std::string format_duration(double seconds);

@@ -367,6 +367,7 @@ TrainSummary GanTrainer::run() {
   run_start_ = std::chrono::steady_clock::now();
   seconds_before_run_ = state_.train_seconds;
   const bool budget = opt_.minutes > 0;
+  if (budget) progress.set_time_left(60.0 * opt_.minutes - trained_seconds());
   bool over_budget = false;
   auto stop = [&] {
     over_budget = budget && trained_seconds() >= 60.0 * opt_.minutes;
