@@ -50,5 +50,9 @@ OutputClaim claim_out(const cxxopts::ParseResult& r, const std::filesystem::path
 void add_force_folder(cxxopts::Options& options);
 
 CameraConfig camera_from(const cxxopts::ParseResult& r, const std::string& flag = "camera");
+// NAME=PATH,NAME=PATH -> pairs; errors name the flag. With `bare_allowed`, a PATH alone is named
+// after its file's stem.
+std::vector<std::pair<std::string, std::string>> named_paths(const std::vector<std::string>& items,
+                                                             const std::string& flag, bool bare_allowed = false);
 
 }  // namespace flatnet::cli

@@ -116,6 +116,22 @@ void add_force_folder(cxxopts::Options& options) {
   options.add_options()("force", "write into an --out folder that holds other output or files flatnet did not write");
 }
 
+std::vector<std::pair<std::string, std::string>> named_paths(const std::vector<std::string>& items,
+                                                             const std::string& flag, bool bare_allowed) {
+  std::vector<std::pair<std::string, std::string>> out;
+  for (const auto& item : items) {
+    const auto eq = item.find('=');
+    if (bare_allowed && eq == std::string::npos) {
+      out.emplace_back(std::filesystem::path(item).stem().string(), item);
+      continue;
+    }
+    require(eq != std::string::npos && eq > 0 && eq + 1 < item.size(), flag,
+            "expects NAME=FILE items, got '" + item + "'");
+    out.emplace_back(item.substr(0, eq), item.substr(eq + 1));
+  }
+  return out;
+}
+
 CameraConfig camera_from(const cxxopts::ParseResult& r, const std::string& flag) {
   const std::filesystem::path p =
       r.count(flag) ? std::filesystem::path(r[flag].as<std::string>()) : default_camera_path();

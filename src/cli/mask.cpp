@@ -139,19 +139,6 @@ std::string shown(const std::filesystem::path& p) {
   return !rel.empty() && *rel.begin() != ".." ? rel.string() : p.string();
 }
 
-// NAME=PATH,NAME=PATH -> pairs; errors name the flag.
-std::vector<std::pair<std::string, std::string>> named_paths(const std::vector<std::string>& items,
-                                                             const std::string& flag) {
-  std::vector<std::pair<std::string, std::string>> out;
-  for (const auto& item : items) {
-    const auto eq = item.find('=');
-    require(eq != std::string::npos && eq > 0 && eq + 1 < item.size(), flag,
-            "expects NAME=FILE items, got '" + item + "'");
-    out.emplace_back(item.substr(0, eq), item.substr(eq + 1));
-  }
-  return out;
-}
-
 int mask_report(int argc, char** argv) {
   cxxopts::Options o(
       "flatnet mask report",

@@ -141,11 +141,9 @@ int inversion_report_command(int argc, char** argv) {
   const auto camera = camera_from(r);
   require(!camera.calibration.empty(), "--camera", "this camera names no calibration: the products need PhiL and PhiR");
   opt.calibration = camera.calibration;
-  for (const auto& m : r["models"].as<std::vector<std::string>>()) {
-    const auto eq = m.find('=');
-    const std::filesystem::path file = eq == std::string::npos ? m : m.substr(eq + 1);
+  for (const auto& [name, file] : named_paths(r["models"].as<std::vector<std::string>>(), "--models", true)) {
     require_regular_file(file);
-    opt.models.push_back({eq == std::string::npos ? file.stem().string() : m.substr(0, eq), file});
+    opt.models.push_back({name, file});
   }
   const auto claim = claim_out(r, opt.out, "report inversion");
   std::cout << write_inversion_report(opt) << "wrote " << (opt.out / "inversion.md").string() << " and "

@@ -36,12 +36,6 @@ std::pair<torch::Tensor, ProductStats> inversion_product(const torch::Tensor& W,
 
 namespace {
 
-int channel_index(const std::string& name) {
-  for (size_t c = 0; c < kChannelNames.size(); ++c)
-    if (name == kChannelNames[c]) return static_cast<int>(c);
-  throw Error("config: model.inversion.channel must be b, gb, gr or r, got '" + name + "'");
-}
-
 // The inversion's W1, W2 of one channel: {rows,N}, {cols,N}.
 std::pair<torch::Tensor, torch::Tensor> inversion_of(Generator& g, int channel, const std::filesystem::path& file) {
   torch::Tensor L, R;

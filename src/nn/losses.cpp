@@ -174,7 +174,6 @@ torch::Tensor srgb_to_lab(const torch::Tensor& rgb_in) {
 }
 
 torch::Tensor chroma_loss(const torch::Tensor& x, const torch::Tensor& y) {
-  AutocastOffGuard fp32;
   const auto lx = srgb_to_lab(x), ly = srgb_to_lab(y.detach());
   return torch::l1_loss(lx.slice(1, 1, 3), ly.slice(1, 1, 3)) / 100.0;
 }

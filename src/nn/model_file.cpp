@@ -26,12 +26,6 @@ constexpr const char* kModelFormat = "flatnet-model";
 constexpr const char* kCheckpointFormat = "flatnet-checkpoint";
 constexpr int kFormatVersion = 2;
 
-int channel_index(const std::string& name) {
-  for (int c = 0; c < 4; ++c)
-    if (name == kChannelNames[c]) return c;
-  throw Error("config: model.inversion.channel must be b, gb, gr or r, got '" + name + "'");
-}
-
 // Initial W1 {rows,N,k}, W2 {cols,N,k} for model.inversion.init.
 std::pair<torch::Tensor, torch::Tensor> initial_inversion(const Config& c, const CameraConfig& camera) {
   const auto init = c.str("model.inversion.init");

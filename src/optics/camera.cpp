@@ -11,6 +11,12 @@ using torch::indexing::Slice;
 
 const std::array<const char*, 4> kChannelNames = {"b", "gb", "gr", "r"};
 
+int channel_index(const std::string& name) {
+  for (int c = 0; c < 4; ++c)
+    if (name == kChannelNames[c]) return c;
+  throw Error("config: model.inversion.channel must be b, gb, gr or r, got '" + name + "'");
+}
+
 Rig load_rig(const std::filesystem::path& path) {
   MatReader mat(path);
   Rig rig;

@@ -56,6 +56,8 @@ struct Calibration {
 };
 
 extern const std::array<const char*, 4> kChannelNames;  // b, gb, gr, r
+// The index of a channel name in kChannelNames (model.inversion.channel); an error names the key.
+int channel_index(const std::string& name);
 
 // Reads P1b..P1r and Q1b..Q1r; checks they match the geometry's crop and scene size.
 Calibration load_calibration(const std::filesystem::path& path, const CameraConfig& camera);
