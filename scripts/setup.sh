@@ -9,6 +9,9 @@
 #  - xvfb + xauth: the capture tests show scenes in a real (virtual) window; iproute2 and
 #    util-linux's unshare run Aravis's GigE Vision simulator in a loopback-only namespace.
 #  - python3-skimage (its data folder) provides the photographs `flatnet demo` uses on a fresh machine.
+#  - ONNX Runtime (optional, for the ONNX deployment test): the npm registry's onnxruntime-node holds
+#    the CPU runtime; installed with --ignore-scripts (its install script only fetches GPU parts) under
+#    ~/.cache/flatnet/onnxruntime-node-VERSION, where CMakeLists.txt's FLATNET_ORT_DIR looks.
 #  - python3-torch is optional: only reference comparisons in scripts/ and a few tests use it;
 #    FLATNET_SKIP_OPTIONAL=1 leaves the optional packages out (those tests then show as skipped).
 set -euo pipefail
@@ -23,6 +26,20 @@ packages=(
   python3-skimage
 )
 optional=(python3-torch clang-format)
+if ! command -v node >/dev/null || ! command -v npm >/dev/null; then optional+=(nodejs npm); fi
+ort_version=1.20.1
+ort_dir="${FLATNET_ORT_DIR:-$HOME/.cache/flatnet/onnxruntime-node-$ort_version}"
+
+install_onnxruntime() {
+  [ -n "${FLATNET_SKIP_OPTIONAL:-}" ] && return 0
+  [ -f "$ort_dir/node_modules/onnxruntime-node/package.json" ] && return 0
+  command -v npm >/dev/null || { echo "setup: no npm; ONNX Runtime not installed (its test will be skipped)"; return 0; }
+  echo "setup: installing onnxruntime-node@$ort_version into $ort_dir"
+  mkdir -p "$ort_dir"
+  npm install --prefix "$ort_dir" --ignore-scripts --no-audit --no-fund --loglevel=error \
+    "onnxruntime-node@$ort_version" >/dev/null ||
+    echo "setup: onnxruntime-node not installed (its test will be skipped)"
+}
 if [ -n "${FLATNET_SKIP_OPTIONAL:-}" ]; then optional=(); fi
 
 SUDO=""
@@ -37,6 +54,7 @@ done
 
 if [ ${#missing[@]} -eq 0 ]; then
   echo "setup: all ${#packages[@]} required packages present"
+  install_onnxruntime
   exit 0
 fi
 
@@ -54,4 +72,5 @@ fi
 for p in "${optional[@]}"; do
   $SUDO apt-get install -y -qq --no-install-recommends "$p" || echo "setup: optional $p not installed"
 done
+install_onnxruntime
 echo "setup: done"

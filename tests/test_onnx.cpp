@@ -1,6 +1,7 @@
 // ONNX export (nn/onnx_export) and the OpenCV DNN engine (recon/opencv_engine): the graph passes
 // ONNX's checker, OpenCV 4.6 imports it, and it computes what LibTorch computes.
 #include "catch_torch.hpp"
+#include <cstdlib>
 #include <fstream>
 
 #include <onnx/checker.h>
@@ -25,7 +26,84 @@ Generator variant(const std::vector<std::string>& sets, const CameraConfig& came
   return g;
 }
 
+// Where scripts/setup.sh put onnxruntime-node (FLATNET_ORT_DIR in the environment wins).
+std::filesystem::path onnxruntime_dir() {
+  const char* env = std::getenv("FLATNET_ORT_DIR");
+  return env && *env ? std::filesystem::path(env) : std::filesystem::path(FLATNET_ORT_DIR);
+}
+
+void write_f32(const std::filesystem::path& path, const torch::Tensor& t) {
+  const auto c = t.contiguous().to(torch::kFloat32);
+  std::ofstream(path, std::ios::binary).write(static_cast<const char*>(c.data_ptr()), c.numel() * 4);
+}
+
+// The model run in ONNX Runtime (tests/tools/onnxruntime_run.js under Node) on `input`.
+torch::Tensor run_in_onnxruntime(const std::filesystem::path& model, const torch::Tensor& input,
+                                 const std::filesystem::path& scratch) {
+  const auto in = scratch / "in.f32", out = scratch / "out.f32";
+  write_f32(in, input);
+  std::string dims;
+  for (auto d : input.sizes()) dims += (dims.empty() ? "" : ",") + std::to_string(d);
+  const auto r = test::run_shell("NODE_PATH=" + test::q(onnxruntime_dir() / "node_modules") + " node " +
+                                 test::q(test::source_dir() / "tests" / "tools" / "onnxruntime_run.js") + " " +
+                                 test::q(model) + " " + test::q(in) + " " + dims + " " + test::q(out));
+  INFO(r.output);
+  REQUIRE(r.code == 0);
+  const auto size = static_cast<int64_t>(std::filesystem::file_size(out));
+  auto result = torch::empty({size / 4}, torch::kFloat32);
+  std::ifstream(out, std::ios::binary).read(static_cast<char*>(result.data_ptr()), size);
+  REQUIRE(r.output.find("\"dims\":[" + std::to_string(input.size(0)) + ",3,") != std::string::npos);
+  return result;
+}
+
 }  // namespace
+
+TEST_CASE("ONNX export has a batch axis: ONNX Runtime computes what LibTorch computes, batch 1 and 3",
+          "[onnx][onnxruntime]") {
+  if (test::run_shell("command -v node").code != 0) SKIP_TEST("no node (scripts/setup.sh installs nodejs)");
+  if (!std::filesystem::exists(onnxruntime_dir() / "node_modules" / "onnxruntime-node" / "package.json"))
+    SKIP_TEST("no onnxruntime-node under " + onnxruntime_dir().string() + " (scripts/setup.sh installs it)");
+  test::Scratch s("onnxruntime");
+  const auto plain = test::tiny_camera(), level = test::tiny_camera(Centring::level);
+  struct Case {
+    const char* what;
+    std::vector<std::string> sets;
+    CameraConfig camera;
+  };
+  const std::vector<Case> cases = {
+      {"inversion, one pair, U-Net", {"model.unet.width=4"}, plain},
+      {"inversion per channel, light level, U-Net",
+       {"model.unet.width=4", "model.inversion.shared=false", "model.level_input=true"},
+       level},
+      {"Tikhonov first stage, light level, U-Net",
+       {"model.unet.width=4", "model.input=tikhonov", "model.level_input=true"},
+       level},
+      {"inversion, DnCNN", {"model.enhancer=dncnn", "model.dncnn.layers=4", "model.dncnn.width=3"}, plain},
+  };
+  for (const auto& c : cases) {
+    INFO(c.what);
+    auto g = variant(c.sets, c.camera);
+    const auto file = s.dir / "model.onnx";
+    std::filesystem::remove(file);
+    export_onnx(file, g, c.camera);
+    for (int64_t batch : {1, 3}) {
+      INFO("batch " << batch);
+      torch::manual_seed(7 + batch);
+      // Samples of different light levels, so a batch axis mixed up with another would show.
+      const auto planes =
+          torch::randn({batch, 4, 20, 24}) + torch::arange(batch, torch::kFloat32).view({batch, 1, 1, 1}) * 0.3;
+      torch::Tensor expected;
+      {
+        torch::NoGradGuard ng;
+        expected = g->forward(planes);  // {batch,3,16,16}
+      }
+      const auto got = run_in_onnxruntime(file, planes, s.dir);
+      REQUIRE(got.numel() == expected.numel());
+      CHECK((got.view_as(expected) - expected).abs().max().item<double>() < 1e-4);
+      if (batch > 1) CHECK((expected[0] - expected[batch - 1]).abs().max().item<double>() > 1e-3);
+    }
+  }
+}
 
 TEST_CASE("ONNX export: OpenCV DNN computes what LibTorch computes, for every first stage and enhancer", "[onnx]") {
   test::Scratch s("onnx");

@@ -231,7 +231,7 @@ torch.jit.save(torch.jit.script(Evil()), sys.argv[1])
   CHECK_THAT(python.output, Contains("PWNED-SETSTATE"));
   std::filesystem::create_directories(s.dir / "in");
   std::filesystem::copy_file(test::data_dir() / "golden" / "bsds_16052_raw.png", s.dir / "in" / "a.png");
-  for (const std::string cmd :
+  for (const std::string& cmd :
        {"infer --model " + test::q(s.dir / "evil.flatnet") + " --input " + test::q(s.dir / "in") + " --out " +
             test::q(s.dir / "o"),
         "export --model " + test::q(s.dir / "evil.flatnet") + " --out " + test::q(s.dir / "x.flatnet")}) {

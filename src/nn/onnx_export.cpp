@@ -13,7 +13,8 @@ namespace {
 
 constexpr int kOpset = 13;  // ReduceMean takes `axes` as an attribute up to opset 17; OpenCV 4.6 reads 13
 const char* kCameraKey = "flatnet.camera";
-const char* kLevelKey = "flatnet.level_input";  // "1": the graph reads the planes' light level (centring "level")
+const char* kLevelKey = "flatnet.level_input";
+const char* kBatchAxis = "batch";  // "1": the graph reads the planes' light level (centring "level")
 
 // Appends nodes and constants to an ONNX graph; every value gets a fresh, readable name.
 class GraphBuilder {
@@ -70,16 +71,16 @@ class GraphBuilder {
     attr_int(n, "axis", 1);
     return n->output(0);
   }
-  std::string transpose_last_two(const std::string& x) {  // {1,C,H,W} -> {1,C,W,H}
+  std::string transpose_last_two(const std::string& x) {  // {B,C,H,W} -> {B,C,W,H}
     auto* n = node("Transpose", {x}, "t");
     attr_ints(n, "perm", {0, 1, 3, 2});
     return n->output(0);
   }
-  // x M for a constant M {K,N}: {1,C,H,K} -> {1,C,H,N}.
+  // x M for a constant M {K,N}: {B,C,H,K} -> {B,C,H,N}.
   std::string right_matmul(const std::string& x, const torch::Tensor& M, const std::string& hint) {
     return op("MatMul", {x, constant(hint, M)}, hint + "_out");
   }
-  // M x for a constant M {N,K}: {1,C,K,W} -> {1,C,N,W}, as (x^T M^T)^T (OpenCV reads a MatMul
+  // M x for a constant M {N,K}: {B,C,K,W} -> {B,C,N,W}, as (x^T M^T)^T (OpenCV reads a MatMul
   // only with the constant on the right).
   std::string left_matmul(const std::string& x, const torch::Tensor& M, const std::string& hint) {
     return transpose_last_two(right_matmul(transpose_last_two(x), M.t(), hint));
@@ -110,10 +111,13 @@ class GraphBuilder {
   int64_t counter_ = 0;
 };
 
-void declare_tensor(onnx::ValueInfoProto* v, const std::string& name, const std::vector<int64_t>& dims) {
+// A float32 graph input or output {batch, dims...}: the first axis is symbolic ("batch"), so one
+// file runs any batch size (ONNX Runtime, TensorRT); OpenCV DNN feeds it one sample at a time.
+void declare_batched_tensor(onnx::ValueInfoProto* v, const std::string& name, const std::vector<int64_t>& dims) {
   v->set_name(name);
   auto* t = v->mutable_type()->mutable_tensor_type();
   t->set_elem_type(onnx::TensorProto::FLOAT);
+  t->mutable_shape()->add_dim()->set_dim_param(kBatchAxis);
   for (auto d : dims) t->mutable_shape()->add_dim()->set_dim_value(d);
 }
 
@@ -137,12 +141,13 @@ class GeneratorGraph {
       auto* mean = b_.node("ReduceMean", {meas}, "level");
       GraphBuilder::attr_ints(mean, "axes", {2, 3});
       GraphBuilder::attr_int(mean, "keepdims", 1);
-      level = mean->output(0);                         // {1,4,1,1}
-      planes = b_.op("Sub", {meas, level}, "planes");  // {1,4,rows,cols}
+      level = mean->output(0);                         // {B,4,1,1}
+      planes = b_.op("Sub", {meas, level}, "planes");  // {B,4,rows,cols}
     }
-    auto x = reversed_channels(first_stage(planes));  // {1,4,N,N}
+    auto x = reversed_channels(first_stage(planes));  // {B,4,N,N}
     x = batch_norm(x, "bn");
-    if (o.level_input) {  // {1,8,N,N}
+    if (o.level_input) {  // {B,8,N,N}
+      // Expand broadcasts both ways: {B,4,1,1} with {1,4,N,N} gives {B,4,N,N}.
       const auto shape = b_.constant_i64("level_shape", {1, 4, o.scene, o.scene});
       const auto level_map = b_.op("Expand", {reversed_channels(level), shape}, "level_map");
       x = b_.concat_channels({x, level_map}, "with_level");
@@ -267,10 +272,10 @@ class GeneratorGraph {
 
   // FlatNet's U-Net: 4 stride-2 double convolutions down, 4 transposed convolutions up with skips.
   std::string unet(const std::string& input) {
-    std::vector<std::string> skips{sequential(input, "enhancer.inc.conv.conv")};  // {1,w,N,N}
+    std::vector<std::string> skips{sequential(input, "enhancer.inc.conv.conv")};  // {B,w,N,N}
     for (int i = 1; i <= 4; ++i)
       skips.push_back(sequential(skips.back(), "enhancer.down" + std::to_string(i) + ".mpconv.0.conv"));
-    auto x = skips[4];  // {1,8w,N/16,N/16}
+    auto x = skips[4];  // {B,8w,N/16,N/16}
     for (int i = 1; i <= 4; ++i) {
       const auto prefix = "enhancer.up" + std::to_string(i);
       auto up = module_as<torch::nn::ConvTranspose2dImpl>(prefix + ".up");
@@ -311,8 +316,8 @@ OnnxExportReport export_onnx(const std::filesystem::path& path, Generator& gener
   model.set_producer_name("flatnet");
   model.set_producer_version(FLATNET_VERSION);
   model.set_doc_string(
-      "FlatNet reconstruction: meas {1,4,rows,cols} (planes b, gb, gr, r as the camera's "
-      "preprocessing makes them) -> image {1,3,N,N} sRGB in [0,1]");
+      "FlatNet reconstruction: meas {batch,4,rows,cols} (planes b, gb, gr, r as the camera's "
+      "preprocessing makes them) -> image {batch,3,N,N} sRGB in [0,1]");
   auto* opset = model.add_opset_import();
   opset->set_domain("");
   opset->set_version(kOpset);
@@ -327,13 +332,13 @@ OnnxExportReport export_onnx(const std::filesystem::path& path, Generator& gener
 
   auto* graph = model.mutable_graph();
   graph->set_name("flatnet_generator");
-  declare_tensor(graph->add_input(), "meas", {1, 4, o.rows, o.cols});
+  declare_batched_tensor(graph->add_input(), "meas", {4, o.rows, o.cols});
   GraphBuilder builder(graph);
   GeneratorGraph gen(builder, *generator);
   const auto logits = gen.build("meas");
   auto* out = builder.node("Sigmoid", {logits}, "image");
   out->set_output(0, "image");
-  declare_tensor(graph->add_output(), "image", {1, 3, o.scene, o.scene});
+  declare_batched_tensor(graph->add_output(), "image", {3, o.scene, o.scene});
 
   try {
     check_with_onnx(model);
@@ -364,10 +369,10 @@ OnnxModelInfo read_onnx_info(const std::filesystem::path& path) {
     return d;
   };
   if (g.input_size() < 1 || g.output_size() != 1)
-    throw Error(path, "an ONNX model with one input {1,4,rows,cols} and one output {1,3,N,N} expected");
+    throw Error(path, "an ONNX model with one input {batch,4,rows,cols} and one output {batch,3,N,N} expected");
   const auto in = dims(g.input(0)), out = dims(g.output(0));
   if (in.size() != 4 || in[1] != 4 || out.size() != 4 || out[1] != 3 || out[2] != out[3])
-    throw Error(path, "an ONNX model with input {1,4,rows,cols} and output {1,3,N,N} expected");
+    throw Error(path, "an ONNX model with input {batch,4,rows,cols} and output {batch,3,N,N} expected");
   info.rows = in[2];
   info.cols = in[3];
   info.scene = out[2];
