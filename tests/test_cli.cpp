@@ -10,6 +10,7 @@
 #include "helpers.hpp"
 #include "io/image.hpp"
 #include "io/mat.hpp"
+#include "nn/model_file.hpp"
 #include "optics/camera.hpp"
 
 using namespace flatnet;
@@ -629,4 +630,81 @@ TEST_CASE("report inversion: the thesis's Figure 3.3 from the shipped models, an
   auto missing = test::run_flatnet("report inversion --out " + q(s.dir / "inv2"));
   CHECK(missing.code == 2);
   CHECK(missing.output.find("--models") != std::string::npos);
+}
+
+TEST_CASE("model cards: flatnet info tells what a model file holds, export records held-out scores",
+          "[cli][info]") {
+  test::Scratch s("info");
+  auto photos = make_photos(s.dir / "photos");
+  REQUIRE(test::run_flatnet("simulate --images " + q(photos) + " --out " + q(s.dir / "ds") + " --val-fraction 0.5")
+              .code == 0);
+  auto r = test::run_flatnet("train --config " + q(test::source_dir() / "configs" / "sim_transpose.yaml") +
+                             " --set data.dataset=" + q(s.dir / "ds") + " --set model.unet.width=2" + kOnDisk +
+                             " --set train.iterations=3 --set train.val_every=1 --out " + q(s.dir / "run"));
+  INFO(r.output);
+  REQUIRE(r.code == 0);
+  const auto model = s.dir / "run" / "model.flatnet";
+
+  // The file's SHA-256 is the one sha256sum computes; training is recorded.
+  const auto sum = test::run_shell("sha256sum " + q(model));
+  REQUIRE(sum.code == 0);
+  const auto hash = sum.output.substr(0, 64);
+  r = test::run_flatnet("info " + q(model));
+  INFO(r.output);
+  REQUIRE(r.code == 0);
+  CHECK_THAT(r.output, Contains("sha256    " + hash));
+  CHECK_THAT(r.output, Contains("model file") && Contains("U-Net, width 2") && Contains("transpose init"));
+  CHECK_THAT(r.output, Contains("3 steps") && Contains("best validation PSNR"));
+  CHECK_THAT(r.output, Contains("written   20") && Contains("none recorded"));
+  CHECK_THAT(r.output, Contains("1 mse + 0.2 ssim"));
+
+  // A checkpoint too, shown with its moving average when it kept one.
+  r = test::run_flatnet("info " + q(s.dir / "run" / "latest.ckpt"));
+  CHECK(r.code == 0);
+  CHECK_THAT(r.output, Contains("training checkpoint") && Contains("3 steps"));
+
+  // Scores from `flatnet eval` into a copy of the model; the weights do not change.
+  REQUIRE(test::run_flatnet("infer --model " + q(model) + " --input " + q(s.dir / "ds" / "meas") + " --out " +
+                            q(s.dir / "eval" / "tiny"))
+              .code == 0);
+  r = test::run_flatnet("eval --niqe none --gt " + q(s.dir / "ds" / "gt") + " --out " + q(s.dir / "eval"));
+  INFO(r.output);
+  REQUIRE(r.code == 0);
+  REQUIRE(std::filesystem::exists(s.dir / "eval" / "scores.json"));
+  const auto scored = s.dir / "scored.flatnet";
+  r = test::run_flatnet("export --model " + q(model) + " --out " + q(scored) + " --scores heldout=" +
+                        q(s.dir / "eval"));
+  INFO(r.output);
+  REQUIRE(r.code == 0);
+  r = test::run_flatnet("info --json " + q(scored));
+  REQUIRE(r.code == 0);
+  const auto j = nlohmann::json::parse(r.output);
+  CHECK(j["kind"] == "model");
+  CHECK(j["trained_steps"] == "3");
+  CHECK(j["scores"]["heldout"]["method"] == "tiny");
+  CHECK(j["scores"]["heldout"]["images"] == 2);
+  CHECK(j["scores"]["heldout"]["psnr"].get<double>() > 0);
+  CHECK(j["scores"]["heldout"]["niqe"].is_null());
+  CHECK(j["parameters"].get<int64_t>() > 0);
+  r = test::run_flatnet("info " + q(scored));
+  CHECK_THAT(r.output, Contains("heldout") && Contains("(2 images)"));
+  // Same weights as the file it was made from.
+  auto a = load_model_file(model), b = load_model_file(scored);
+  for (const auto& p : a.generator->named_parameters())
+    CHECK(torch::equal(p.value(), b.generator->named_parameters()[p.key()]));
+
+  // Bad input: a scores file that is not one, a method that is not there, a file that is not a model.
+  std::ofstream(s.dir / "junk.json") << "{not json";
+  r = test::run_flatnet("export --model " + q(model) + " --out " + q(s.dir / "x.flatnet") + " --scores a=" +
+                        q(s.dir / "junk.json"));
+  CHECK(r.code == 2);
+  CHECK_THAT(r.output, Contains("junk.json") && Contains("scores.json"));
+  r = test::run_flatnet("export --model " + q(model) + " --out " + q(s.dir / "x.flatnet") + " --method other --scores a=" +
+                        q(s.dir / "eval"));
+  CHECK(r.code == 2);
+  CHECK_THAT(r.output, Contains("no method 'other'") && Contains("tiny"));
+  CHECK_FALSE(std::filesystem::exists(s.dir / "x.flatnet"));
+  r = test::run_flatnet("info " + q(s.dir / "junk.json"));
+  CHECK(r.code == 2);
+  CHECK_THAT(r.output, Contains("junk.json"));
 }

@@ -105,8 +105,14 @@ int export_model(int argc, char** argv) {
       "state-dict", "write torch.save(state_dict) with FlatNet-sep's parameter names instead of a model file")(
       "flatnet-checkpoint", "write FlatNet's checkpoint layout {'gen_state_dict': state_dict} (its main.py loads it)")(
       "onnx",
-      "write an ONNX graph to this file (input meas {1,4,rows,cols}, output image {1,3,N,N}; "
-      "OpenCV DNN reads it: `flatnet infer --engine opencv`)",
+      "write an ONNX graph to this file (input meas {batch,4,rows,cols}, output image {batch,3,N,N}; "
+      "ONNX Runtime and OpenCV DNN read it: `flatnet infer --engine opencv`)",
+      cxxopts::value<std::string>())(
+      "scores",
+      "record held-out scores in the model file: SET=EVAL_DIR,... (folders `flatnet eval` wrote, or their "
+      "scores.json); `flatnet info` prints them",
+      cxxopts::value<std::vector<std::string>>())(
+      "method", "with --scores: which method of the eval folder is this model (default: its only one)",
       cxxopts::value<std::string>())("force", "replace an existing --out file");
   add_common(o);
   cxxopts::ParseResult r;
@@ -118,14 +124,19 @@ int export_model(int argc, char** argv) {
   const std::filesystem::path out = r.count("onnx") ? r["onnx"].as<std::string>() : r["out"].as<std::string>();
   const std::string input = r.count("checkpoint") ? r["checkpoint"].as<std::string>() : r["model"].as<std::string>();
   require_new_output(out, r.count("force") > 0, {input});
+  require(!r.count("scores") || !(r.count("onnx") || r.count("state-dict") || r.count("flatnet-checkpoint")),
+          "--scores", "is recorded in a model file (--out), not in ONNX or state-dict exports");
   bool average = false;
   auto m = r.count("checkpoint") ? model_from_checkpoint(input, &average) : load_model_file(input);
+  if (r.count("scores"))
+    m.provenance.scores =
+        recorded_scores(r["scores"].as<std::vector<std::string>>(), r.count("method") ? r["method"].as<std::string>() : "");
   if (average) std::cerr << "exporting the moving average of the weights (train.ema_decay)\n";
   if (r.count("onnx")) {
     const auto rep = export_onnx(out, m.generator, m.camera);
     std::cout << "wrote ONNX " << out.string() << " (" << rep.nodes << " nodes, " << rep.initializers
-              << " weight tensors, " << rep.bytes / 1e6 << " MB; input meas {1,4," << m.camera.raw.crop[2] << ","
-              << m.camera.raw.crop[3] << "}, output image {1,3," << m.camera.scene_size << "," << m.camera.scene_size
+              << " weight tensors, " << rep.bytes / 1e6 << " MB; input meas {batch,4," << m.camera.raw.crop[2] << ","
+              << m.camera.raw.crop[3] << "}, output image {batch,3," << m.camera.scene_size << "," << m.camera.scene_size
               << "}; checked by ONNX's checker)\n";
   } else if (r.count("state-dict") || r.count("flatnet-checkpoint")) {
     const bool flatnet_layout = r.count("flatnet-checkpoint") > 0;
@@ -137,8 +148,8 @@ int export_model(int argc, char** argv) {
                                  : "model.load_state_dict(torch.load(path))")
               << ")\n";
   } else {
-    save_model_file(out, m.generator, m.config, m.camera);
-    std::cout << "wrote model " << out.string() << "\n";
+    save_model_file(out, m.generator, m.config, m.camera, m.provenance);
+    std::cout << "wrote model " << out.string() << (r.count("scores") ? " with its scores" : "") << "\n";
   }
   return 0;
 }

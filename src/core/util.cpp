@@ -1,5 +1,7 @@
 #include "core/util.hpp"
 
+#include <openssl/evp.h>
+
 #include <malloc.h>
 
 #include <cmath>
@@ -312,6 +314,30 @@ std::string file_fingerprint(const fs::path& path) {
   const auto bytes = read_file_text(path);
   char hex[17];
   std::snprintf(hex, sizeof hex, "%016llx", static_cast<unsigned long long>(stable_hash(bytes.data(), bytes.size())));
+  return hex;
+}
+
+std::string sha256_hex(const fs::path& path) {
+  require_regular_file(path);
+  std::ifstream in(path, std::ios::binary);
+  require(in.good(), path, "cannot be opened for reading");
+  std::unique_ptr<EVP_MD_CTX, decltype(&EVP_MD_CTX_free)> ctx(EVP_MD_CTX_new(), EVP_MD_CTX_free);
+  require(ctx && EVP_DigestInit_ex(ctx.get(), EVP_sha256(), nullptr) == 1, path, "SHA-256 unavailable (OpenSSL)");
+  std::vector<char> piece(1 << 20);
+  while (in) {
+    in.read(piece.data(), static_cast<std::streamsize>(piece.size()));
+    if (in.gcount() > 0) EVP_DigestUpdate(ctx.get(), piece.data(), static_cast<size_t>(in.gcount()));
+  }
+  require(in.eof(), path, "read error while hashing");
+  unsigned char digest[EVP_MAX_MD_SIZE];
+  unsigned int length = 0;
+  EVP_DigestFinal_ex(ctx.get(), digest, &length);
+  std::string hex;
+  char byte[3];
+  for (unsigned int i = 0; i < length; ++i) {
+    std::snprintf(byte, sizeof byte, "%02x", digest[i]);
+    hex += byte;
+  }
   return hex;
 }
 

@@ -73,6 +73,9 @@ uint64_t stable_hash(const void* data, size_t size, uint64_t seed = 0);
 // A file's content as 16 hex digits (stable_hash of its bytes): what a cache or an output folder
 // records of the file that made it, so that a changed file is never mistaken for the old one.
 std::string file_fingerprint(const fs::path& path);
+// SHA-256 of a file's bytes, 64 lowercase hex digits (as `sha256sum` prints it; OpenSSL's libcrypto),
+// read in 1 MiB pieces. Errors name the file.
+std::string sha256_hex(const fs::path& path);
 
 // Ctrl-C / SIGTERM for the long loops (training, capture, collection, live view): after
 // watch_interrupts(), interrupted() turns true and the loop finishes its current item.

@@ -1,6 +1,7 @@
 #include "eval/report.hpp"
 
 #include <iomanip>
+#include <nlohmann/json.hpp>
 
 #include "core/error.hpp"
 #include "core/util.hpp"
@@ -162,10 +163,23 @@ std::vector<MethodScore> evaluate(const EvalOptions& opt) {
     scores.push_back(truth);
   }
   write_text_atomically(opt.out / "metrics.csv", csv.str());
+  write_text_atomically(opt.out / "scores.json", scores_json(scores));
   std::vector<std::string> labels{"ground truth"};
   for (const auto& m : methods) labels.push_back(m.name);
   write_contact_sheet(opt.out / "sheet.png", labels, row_labels, sheet);
   return scores;
+}
+
+std::string scores_json(const std::vector<MethodScore>& scores) {
+  auto number = [](double v) { return std::isfinite(v) ? nlohmann::json(v) : nlohmann::json(nullptr); };
+  nlohmann::json all = nlohmann::json::object();
+  for (const auto& s : scores)
+    all[s.method] = {{"images", s.count},           {"psnr", number(s.psnr)},
+                     {"psnr_sd", number(s.psnr_sd)}, {"ssim", number(s.ssim)},
+                     {"ssim_sd", number(s.ssim_sd)}, {"brightness", number(s.brightness)},
+                     {"niqe", number(s.niqe)},       {"colour_kept", number(s.colour_kept)},
+                     {"detail_kept", number(s.detail_kept)}};
+  return all.dump(2) + "\n";
 }
 
 std::string format_table(const std::vector<MethodScore>& scores) {

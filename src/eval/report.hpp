@@ -31,9 +31,14 @@ struct EvalOptions {
   std::vector<std::string> methods;  // subfolders of `out` to score, in this order (empty: every one, by name)
 };
 
-// Writes out/metrics.csv (per image and mean rows) and out/sheet.png; returns the means. With a
+// Writes out/metrics.csv (per image and mean rows), out/scores.json (the means, scores_json) and
+// out/sheet.png; returns the means. With a
 // NIQE model, the last entry is the ground truth itself (method "ground truth", NIQE only).
 std::vector<MethodScore> evaluate(const EvalOptions& options);
 std::string format_table(const std::vector<MethodScore>& scores);
+// {"METHOD": {"images": N, "psnr": ..., "psnr_sd", "ssim", "ssim_sd", "brightness", "niqe",
+// "colour_kept", "detail_kept"}, ...}; a metric that is not defined is null. What a model file's
+// recorded scores hold (`flatnet export --scores`).
+std::string scores_json(const std::vector<MethodScore>& scores);
 
 }  // namespace flatnet

@@ -7,13 +7,16 @@
 
 #include <nlohmann/json.hpp>
 
+#include <chrono>
 #include <cmath>
+#include <ctime>
 #include <fstream>
 #include <iomanip>
 #include <limits>
 #include <regex>
 
 #include "core/error.hpp"
+#include "core/precision.hpp"
 #include "core/util.hpp"
 #include "optics/camera.hpp"
 #include "optics/codes.hpp"
@@ -218,12 +221,34 @@ void load_module(const Stored& s, const std::string& key, torch::nn::Module& m, 
   });
 }
 
+std::string utc_now_iso8601() {
+  const auto now = std::chrono::system_clock::to_time_t(std::chrono::system_clock::now());
+  std::tm utc{};
+  gmtime_r(&now, &utc);
+  char text[32];
+  std::strftime(text, sizeof text, "%Y-%m-%dT%H:%M:%SZ", &utc);
+  return text;
+}
+
 std::map<std::string, std::string> header(const std::string& format, const ModelIdentity& identity) {
-  return {{"format", format},
-          {"format_version", std::to_string(kFormatVersion)},
-          {"config", identity.config_yaml},
-          {"camera", camera_geometry_yaml(identity.camera)},
-          {"written_by", std::string("flatnet ") + FLATNET_VERSION}};
+  std::map<std::string, std::string> meta{{"format", format},
+                                          {"format_version", std::to_string(kFormatVersion)},
+                                          {"config", identity.config_yaml},
+                                          {"camera", camera_geometry_yaml(identity.camera)},
+                                          {"written_by", std::string("flatnet ") + FLATNET_VERSION}};
+  auto provenance = identity.provenance;
+  provenance.written_at = utc_now_iso8601();
+  provenance.written_on = cpu_features().summary();
+  for (const auto& [key, field] : provenance_fields())
+    if (!(provenance.*field).empty()) meta[key] = provenance.*field;
+  return meta;
+}
+
+Provenance provenance_of(const Stored& s) {
+  Provenance p;
+  for (const auto& [key, field] : provenance_fields())
+    if (const auto it = s.meta.find(key); it != s.meta.end()) p.*field = it->second;
+  return p;
 }
 
 // The sizes a config claims, checked against the weights the file holds before a network of that
@@ -288,9 +313,18 @@ std::pair<Config, CameraConfig> settings(const Stored& s, const std::filesystem:
 ModelFile read_generator(const std::filesystem::path& path, const std::string& format, bool* used_average = nullptr) {
   const auto s = read_stored(path, format);
   auto [config, camera] = settings(s, path);
-  ModelFile m{Generator(generator_options(config, camera, false)), config, camera};
+  ModelFile m{Generator(generator_options(config, camera, false)), config, camera, 2, {}};
   m.format_version = s.version;
+  m.provenance = provenance_of(s);
   const bool average = format == kCheckpointFormat && !s.under("generator_ema").empty();
+  if (format == kCheckpointFormat) {  // what a model exported from it will say
+    const auto text = [&](const char* key) { return s.meta.count(key) ? s.meta.at(key) : std::string(); };
+    m.provenance.trained_steps = text("step");
+    m.provenance.train_seconds = text("train_seconds");
+    const auto best = text("best_psnr");  // -1e9 before the first validation
+    m.provenance.best_val_psnr = best.empty() || std::stod(best) < -1e8 ? "" : best;
+    m.provenance.source = "checkpoint " + path.filename().string() + (average ? " (moving average)" : "");
+  }
   if (used_average) *used_average = average;
   load_module(s, average ? "generator_ema" : "generator", *m.generator, path);
   m.generator->eval();
@@ -477,11 +511,20 @@ DiscriminatorOptions discriminator_options(const Config& c) {
   return o;
 }
 
-ModelIdentity model_identity(const Config& config, const CameraConfig& camera) { return {config.to_yaml(), camera}; }
+ModelIdentity model_identity(const Config& config, const CameraConfig& camera) { return {config.to_yaml(), camera, {}}; }
+
+std::vector<std::pair<std::string, std::string Provenance::*>> provenance_fields() {
+  return {{"trained_steps", &Provenance::trained_steps}, {"train_seconds", &Provenance::train_seconds},
+          {"best_val_psnr", &Provenance::best_val_psnr}, {"written_at", &Provenance::written_at},
+          {"written_on", &Provenance::written_on},       {"source", &Provenance::source},
+          {"scores", &Provenance::scores}};
+}
 
 void save_model_file(const std::filesystem::path& path, Generator& generator, const Config& config,
-                     const CameraConfig& camera) {
-  save_model_file(path, generator, model_identity(config, camera));
+                     const CameraConfig& camera, const Provenance& provenance) {
+  auto identity = model_identity(config, camera);
+  identity.provenance = provenance;
+  save_model_file(path, generator, identity);
 }
 
 void save_model_file(const std::filesystem::path& path, Generator& generator, const ModelIdentity& identity) {
@@ -544,6 +587,21 @@ TrainState load_checkpoint(const std::filesystem::path& path, Generator& g, Disc
 
 double checkpoint_best_psnr(const std::filesystem::path& path) {
   return stored_number(read_stored(path, kCheckpointFormat), "best_psnr", path);
+}
+
+bool is_checkpoint_file(const std::filesystem::path& path) {
+  const auto bytes = read_file_text(path);
+  if (looks_like_safetensors(bytes)) {
+    const auto st = parse_safetensors(bytes, path);
+    const auto it = st.metadata.find("format");
+    return it != st.metadata.end() && it->second == kCheckpointFormat;
+  }
+  if (bytes.compare(0, 4, "PK\x03\x04") == 0) {
+    const auto meta = read_format1(path).meta;
+    const auto it = meta.find("format");
+    return it != meta.end() && it->second == kCheckpointFormat;
+  }
+  return false;
 }
 
 int model_file_version(const std::filesystem::path& path) {

@@ -24,11 +24,26 @@ namespace flatnet {
 GeneratorOptions generator_options(const Config& config, const CameraConfig& camera, bool initialise);
 DiscriminatorOptions discriminator_options(const Config& config);
 
+// Where a model file came from, beside its weights (metadata strings; empty when not known, as in
+// files from before 2026-11-24 or imported state dicts). `flatnet info` prints them.
+struct Provenance {
+  std::string trained_steps;   // optimiser steps, "12000"
+  std::string train_seconds;   // wall-clock training time, "14400.5"
+  std::string best_val_psnr;   // the run's best validation PSNR (dB; validation split, not held-out)
+  std::string written_at;      // UTC, ISO 8601: "2026-11-24T05:52:00Z"
+  std::string written_on;      // the CPU that wrote it ("AMD EPYC ...; avx512f avx512_bf16")
+  std::string source;          // what it was made from: "checkpoint latest.ckpt (moving average)"
+  std::string scores;          // held-out scores, JSON {"SET": {"images": N, "psnr": ..., ...}}
+};
+// Provenance's fields with their metadata keys, in the order `flatnet info` prints them.
+std::vector<std::pair<std::string, std::string Provenance::*>> provenance_fields();
+
 struct ModelFile {
   Generator generator{nullptr};
   Config config;
   CameraConfig camera;
   int format_version = 2;  // 1: a TorchScript archive from before 2026-11 (read as data)
+  Provenance provenance;
 };
 
 // What a model file or checkpoint records beside its weights: the merged config that describes the
@@ -37,12 +52,13 @@ struct ModelFile {
 struct ModelIdentity {
   std::string config_yaml;
   CameraConfig camera;
+  Provenance provenance;  // written_at and written_on are filled in when a file is written
 };
 ModelIdentity model_identity(const Config& config, const CameraConfig& camera);
 
 void save_model_file(const std::filesystem::path& path, Generator& generator, const ModelIdentity& identity);
 void save_model_file(const std::filesystem::path& path, Generator& generator, const Config& config,
-                     const CameraConfig& camera);
+                     const CameraConfig& camera, const Provenance& provenance = {});
 // Errors (naming the file): not a flatnet archive, a checkpoint where a model is expected (or the
 // reverse), a newer format version, weights missing or of the wrong shape.
 ModelFile load_model_file(const std::filesystem::path& path);
@@ -61,6 +77,8 @@ void save_checkpoint(const std::filesystem::path& path, Generator& g, Discrimina
                      Generator* ema = nullptr);
 // The best validation PSNR a checkpoint records (best.ckpt: the PSNR of the weights it holds).
 double checkpoint_best_psnr(const std::filesystem::path& path);
+// Whether a flatnet file (format 1 or 2) is a training checkpoint rather than a model file.
+bool is_checkpoint_file(const std::filesystem::path& path);
 // 2 for a safetensors model file or checkpoint, 1 for a format-1 TorchScript archive, 0 otherwise.
 int model_file_version(const std::filesystem::path& path);
 // The config and camera a checkpoint holds (to rebuild the networks before load_checkpoint).

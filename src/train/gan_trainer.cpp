@@ -288,7 +288,7 @@ std::string GanTrainer::resume(const std::filesystem::path& checkpoint) {
   truncate_log(opt_.out / "log.csv", state_.step, kLogHeader);
   truncate_log(opt_.out / "val.csv", state_.step);
   // A kill after latest.ckpt and before model.flatnet leaves the model a step behind: rewrite it.
-  if (!sync_ || sync_->rank() == 0) save_model_file(opt_.out / "model.flatnet", exported(), identity_);
+  if (!sync_ || sync_->rank() == 0) save_model_file(opt_.out / "model.flatnet", exported(), exported_identity());
   std::ostringstream os;
   os << "resumed at step " << state_.step << ": generator" << (ema_ ? ", its moving average" : "")
      << ", discriminator, " << (state_.optimizers_restored ? "both optimisers" : "fresh optimisers (format-1 checkpoint)")
@@ -340,7 +340,16 @@ void GanTrainer::checkpoint_and_validate(TrainSummary& summary) {
     save_checkpoint(opt_.out / "best.ckpt", g_, d_, *opt_g_, *opt_d_, state_, identity_, ema);
   }
   save_checkpoint(opt_.out / "latest.ckpt", g_, d_, *opt_g_, *opt_d_, state_, identity_, ema);
-  save_model_file(opt_.out / "model.flatnet", exported(), identity_);
+  save_model_file(opt_.out / "model.flatnet", exported(), exported_identity());
+}
+
+ModelIdentity GanTrainer::exported_identity() const {
+  auto identity = identity_;
+  identity.provenance.trained_steps = std::to_string(state_.step);
+  identity.provenance.train_seconds = std::to_string(std::lround(trained_seconds()));
+  if (state_.best_psnr > -1e8) identity.provenance.best_val_psnr = std::to_string(state_.best_psnr);
+  identity.provenance.source = std::string("flatnet train (") + (ema_ ? "moving average of the weights" : "last weights") + ")";
+  return identity;
 }
 
 TrainSummary GanTrainer::run() {

@@ -147,6 +147,8 @@ class GanTrainer {
  private:
   void set_learning_rates(int64_t step);
   void checkpoint_and_validate(TrainSummary& summary);
+  // What model.flatnet records: the run's identity with its steps, time and best validation PSNR.
+  ModelIdentity exported_identity() const;
   // Training time in all: the checkpoint's record plus this run's time so far.
   double trained_seconds() const {
     if (run_start_ == std::chrono::steady_clock::time_point{}) return state_.train_seconds;

@@ -1,0 +1,189 @@
+// flatnet info: what a model file (or checkpoint) holds, without reading the code; and the held-out
+// scores `flatnet export --scores` records in a model file.
+#include <cxxopts.hpp>
+#include <iomanip>
+#include <iostream>
+#include <nlohmann/json.hpp>
+#include <sstream>
+
+#include "cli/commands.hpp"
+#include "core/error.hpp"
+#include "core/util.hpp"
+#include "nn/model_file.hpp"
+
+namespace flatnet::cli {
+
+namespace {
+
+std::string join(const std::vector<std::string>& items, const std::string& separator) {
+  std::string out;
+  for (const auto& item : items) out += (out.empty() ? "" : separator) + item;
+  return out;
+}
+
+std::string join_nonzero_losses(const Config& c) {
+  std::string out;
+  for (const char* term : {"mse", "ssim", "perceptual", "adversarial", "feature_matching", "frequency", "chroma",
+                           "gradient"}) {
+    const double w = c.num(std::string("loss.") + term);
+    if (w == 0) continue;
+    std::ostringstream os;
+    os << (out.empty() ? "" : " + ") << w << " " << term;
+    out += os.str();
+  }
+  return out.empty() ? "none" : out;
+}
+
+std::string enhancer_text(const Config& c) {
+  const auto e = c.str("model.enhancer");
+  std::ostringstream os;
+  if (e == "unet") os << "U-Net, width " << c.integer("model.unet.width");
+  if (e == "dncnn") os << "DnCNN, " << c.integer("model.dncnn.layers") << " layers of " << c.integer("model.dncnn.width");
+  if (e == "rcan")
+    os << "RCAN, " << c.integer("model.rcan.groups") << " groups x " << c.integer("model.rcan.blocks") << " blocks of "
+       << c.integer("model.rcan.width");
+  if (e == "nafnet")
+    os << "NAFNet, width " << c.integer("model.nafnet.width") << ", blocks " << c.integer("model.nafnet.enc_blocks")
+       << "/" << c.integer("model.nafnet.middle_blocks") << "/" << c.integer("model.nafnet.dec_blocks");
+  return os.str();
+}
+
+std::string first_stage_text(const Config& c) {
+  if (c.str("model.input") == "tikhonov") return "fixed Tikhonov filter (the naive model)";
+  return "trainable inversion W1^T Y W2 (" + c.str("model.inversion.init") + " init, " +
+         (c.flag("model.inversion.shared") ? "one pair for all channels" : "one pair per Bayer channel") + ")";
+}
+
+// "12000 steps, 4 h 0 min of training, best validation PSNR 19.89 dB"
+std::string training_text(const Provenance& p) {
+  if (p.trained_steps.empty()) return "not recorded (a file from before 2026-11-24, or an imported state dict)";
+  std::ostringstream os;
+  os << p.trained_steps << " steps";
+  if (!p.train_seconds.empty() && is_decimal_number(p.train_seconds))
+    os << ", " << format_duration(std::stod(p.train_seconds)) << " of training";
+  if (!p.best_val_psnr.empty() && is_decimal_number(p.best_val_psnr))
+    os << ", best validation PSNR " << std::fixed << std::setprecision(2) << std::stod(p.best_val_psnr) << " dB";
+  return os.str();
+}
+
+std::string scores_text(const std::string& json_text) {
+  if (json_text.empty()) return "none recorded (flatnet export --scores SET=EVAL_DIR records them)";
+  const auto all = nlohmann::json::parse(json_text, nullptr, false);
+  if (all.is_discarded() || !all.is_object()) return "(unreadable: " + json_text.substr(0, 60) + ")";
+  std::ostringstream os;
+  os << std::fixed;
+  for (const auto& [set, s] : all.items()) {
+    auto value = [&](const char* key, int digits) {
+      if (!s.is_object() || !s.contains(key) || !s[key].is_number()) return std::string("-");
+      std::ostringstream v;
+      v << std::fixed << std::setprecision(digits) << s[key].get<double>();
+      return v.str();
+    };
+    os << "\n  " << std::left << std::setw(10) << set << " PSNR " << value("psnr", 2) << " dB, SSIM "
+       << value("ssim", 3) << ", NIQE " << value("niqe", 2) << ", colour kept " << value("colour_kept", 2)
+       << ", detail kept " << value("detail_kept", 2) << " (" << value("images", 0) << " images)";
+  }
+  return os.str();
+}
+
+}  // namespace
+
+std::string recorded_scores(const std::vector<std::string>& items, const std::string& method) {
+  nlohmann::json recorded = nlohmann::json::object();
+  for (const auto& [set, where] : named_paths(items, "--scores")) {
+    std::filesystem::path file = where;
+    if (std::filesystem::is_directory(file)) file /= "scores.json";
+    const auto all = nlohmann::json::parse(read_file_text(file, 1u << 20), nullptr, false);
+    require(!all.is_discarded() && all.is_object(), file, "is not a scores.json that `flatnet eval` writes");
+    std::vector<std::string> methods;
+    for (const auto& [name, _] : all.items())
+      if (name != "ground truth") methods.push_back(name);
+    std::string chosen = method;
+    if (chosen.empty()) {
+      require(methods.size() == 1, file,
+              "holds " + std::to_string(methods.size()) + " methods; name one with --method (" + join(methods, ", ") + ")");
+      chosen = methods[0];
+    }
+    require(all.contains(chosen) && all[chosen].is_object(), file,
+            "has no method '" + chosen + "' (it has " + join(methods, ", ") + ")");
+    auto entry = all[chosen];
+    entry["method"] = chosen;
+    recorded[set] = entry;
+  }
+  return recorded.dump();
+}
+
+int info(int argc, char** argv) {
+  cxxopts::Options o("flatnet info", "What a model file or checkpoint holds: architecture, camera, recipe, "
+                                     "training, recorded scores and its SHA-256.");
+  o.add_options()("file", "model file (.flatnet) or training checkpoint (.ckpt)", cxxopts::value<std::string>())(
+      "json", "print one JSON object instead of text");
+  o.parse_positional({"file"});
+  o.positional_help("FILE");
+  add_common(o);
+  cxxopts::ParseResult r;
+  if (!parse(o, argc, argv, r)) return 0;
+  require(r.count("file"), "info", "a model file is required: flatnet info MODEL.flatnet");
+  const std::filesystem::path path = r["file"].as<std::string>();
+  const bool checkpoint = is_checkpoint_file(path);
+  bool average = false;
+  auto m = checkpoint ? model_from_checkpoint(path, &average) : load_model_file(path);
+  const auto& c = m.config;
+  int64_t parameters = 0;
+  for (const auto& p : m.generator->parameters()) parameters += p.numel();
+  const auto& cam = m.camera;
+  const auto hash = sha256_hex(path);
+  const auto bytes = std::filesystem::file_size(path);
+
+  if (r.count("json")) {
+    nlohmann::json j = {
+        {"file", path.string()},
+        {"bytes", bytes},
+        {"sha256", hash},
+        {"kind", checkpoint ? "checkpoint" : "model"},
+        {"format_version", m.format_version},
+        {"first_stage", first_stage_text(c)},
+        {"enhancer", enhancer_text(c)},
+        {"level_input", c.flag("model.level_input")},
+        {"parameters", parameters},
+        {"camera", {{"name", cam.name}, {"crop", {cam.raw.crop[2], cam.raw.crop[3]}}, {"scene", cam.scene_size}}},
+        {"losses", join_nonzero_losses(c)},
+        {"config", c.to_yaml()},
+    };
+    for (const auto& [key, field] : provenance_fields()) {
+      const auto& value = m.provenance.*field;
+      if (value.empty()) continue;
+      const auto parsed = key == "scores" ? nlohmann::json::parse(value, nullptr, false) : nlohmann::json();
+      j[key] = key == "scores" && !parsed.is_discarded() ? parsed : nlohmann::json(value);
+    }
+    std::cout << j.dump(2) << "\n";
+    return 0;
+  }
+  const auto& p = m.provenance;
+  std::cout << std::left;
+  auto line = [](const char* label, const std::string& text) { std::cout << std::setw(10) << label << text << "\n"; };
+  line("file", path.string() + " (" + std::to_string(bytes) + " bytes)");
+  line("sha256", hash);
+  line("kind", std::string(checkpoint ? "training checkpoint" : "model file") + ", format " +
+                   std::to_string(m.format_version) + (checkpoint && average ? " (its moving average shown)" : ""));
+  line("model", first_stage_text(c) + " -> " + enhancer_text(c) +
+                    (c.flag("model.level_input") ? ", light level as input" : "") + "; " +
+                    std::to_string(parameters) + " parameters");
+  line("camera", cam.name + ": " + std::to_string(cam.raw.crop[2]) + "x" + std::to_string(cam.raw.crop[3]) +
+                     " measurement -> " + std::to_string(cam.scene_size) + "x" + std::to_string(cam.scene_size) +
+                     " scene (data.camera " + c.str("data.camera") + ")");
+  line("data", c.str("data.source") == "simulate" ? "simulated display captures of " + c.str("data.images")
+                                                  : "captures in " + c.str("data.dataset"));
+  std::ostringstream recipe;
+  recipe << join_nonzero_losses(c) << "; batch " << c.integer("train.batch") << ", crop " << c.integer("train.crop")
+         << ", lr " << c.num("train.lr") << ", precision " << c.str("train.precision");
+  line("recipe", recipe.str());
+  line("training", training_text(p));
+  if (!p.source.empty()) line("source", p.source);
+  if (!p.written_at.empty()) line("written", p.written_at + (p.written_on.empty() ? "" : " on " + p.written_on));
+  line("scores", scores_text(p.scores));
+  std::cout << "(`flatnet info --json` adds the full config)\n";
+  return 0;
+}
+
+}  // namespace flatnet::cli
