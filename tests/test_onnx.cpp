@@ -26,6 +26,27 @@ Generator variant(const std::vector<std::string>& sets, const CameraConfig& came
   return g;
 }
 
+// The generators both engine tests export: every first stage, with and without the light level,
+// and the U-Net and DnCNN enhancers.
+struct ExportCase {
+  const char* what;
+  std::vector<std::string> sets;
+  CameraConfig camera;
+};
+std::vector<ExportCase> export_cases() {
+  const auto plain = test::tiny_camera(), level = test::tiny_camera(Centring::level);
+  return {
+      {"inversion, one pair, U-Net", {"model.unet.width=4"}, plain},
+      {"inversion, one pair per channel, light level, U-Net",
+       {"model.unet.width=4", "model.inversion.shared=false", "model.level_input=true"},
+       level},
+      {"Tikhonov first stage, light level, U-Net",
+       {"model.unet.width=4", "model.input=tikhonov", "model.level_input=true"},
+       level},
+      {"inversion, DnCNN", {"model.enhancer=dncnn", "model.dncnn.layers=4", "model.dncnn.width=3"}, plain},
+  };
+}
+
 // Where scripts/setup.sh put onnxruntime-node (FLATNET_ORT_DIR in the environment wins).
 std::filesystem::path onnxruntime_dir() {
   const char* env = std::getenv("FLATNET_ORT_DIR");
@@ -64,22 +85,7 @@ TEST_CASE("ONNX export has a batch axis: ONNX Runtime computes what LibTorch com
   if (!std::filesystem::exists(onnxruntime_dir() / "node_modules" / "onnxruntime-node" / "package.json"))
     SKIP_TEST("no onnxruntime-node under " + onnxruntime_dir().string() + " (scripts/setup.sh installs it)");
   test::Scratch s("onnxruntime");
-  const auto plain = test::tiny_camera(), level = test::tiny_camera(Centring::level);
-  struct Case {
-    const char* what;
-    std::vector<std::string> sets;
-    CameraConfig camera;
-  };
-  const std::vector<Case> cases = {
-      {"inversion, one pair, U-Net", {"model.unet.width=4"}, plain},
-      {"inversion per channel, light level, U-Net",
-       {"model.unet.width=4", "model.inversion.shared=false", "model.level_input=true"},
-       level},
-      {"Tikhonov first stage, light level, U-Net",
-       {"model.unet.width=4", "model.input=tikhonov", "model.level_input=true"},
-       level},
-      {"inversion, DnCNN", {"model.enhancer=dncnn", "model.dncnn.layers=4", "model.dncnn.width=3"}, plain},
-  };
+  const auto cases = export_cases();
   for (const auto& c : cases) {
     INFO(c.what);
     auto g = variant(c.sets, c.camera);
@@ -107,22 +113,7 @@ TEST_CASE("ONNX export has a batch axis: ONNX Runtime computes what LibTorch com
 
 TEST_CASE("ONNX export: OpenCV DNN computes what LibTorch computes, for every first stage and enhancer", "[onnx]") {
   test::Scratch s("onnx");
-  const auto plain = test::tiny_camera(), level = test::tiny_camera(Centring::level);
-  struct Case {
-    const char* what;
-    std::vector<std::string> sets;
-    CameraConfig camera;
-  };
-  const std::vector<Case> cases = {
-      {"inversion, one pair, U-Net", {"model.unet.width=4"}, plain},
-      {"inversion, one pair per channel, light level, U-Net",
-       {"model.unet.width=4", "model.inversion.shared=false", "model.level_input=true"},
-       level},
-      {"Tikhonov first stage, light level, U-Net",
-       {"model.unet.width=4", "model.input=tikhonov", "model.level_input=true"},
-       level},
-      {"inversion, DnCNN", {"model.enhancer=dncnn", "model.dncnn.layers=4", "model.dncnn.width=3"}, plain},
-  };
+  const auto cases = export_cases();
   for (const auto& c : cases) {
     INFO(c.what);
     auto g = variant(c.sets, c.camera);
