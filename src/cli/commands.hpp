@@ -7,6 +7,7 @@
 #include "io/camera_config.hpp"
 #include "core/output_dir.hpp"
 #include "core/precision.hpp"
+#include "nn/lpips.hpp"
 
 namespace flatnet::cli {
 
@@ -54,6 +55,12 @@ OutputClaim claim_out(const cxxopts::ParseResult& r, const std::filesystem::path
 void add_force_folder(cxxopts::Options& options);
 
 CameraConfig camera_from(const cxxopts::ParseResult& r, const std::string& flag = "camera");
+// --lpips alex|vgg and --lpips-dir DIR (eval, report).
+void add_lpips(cxxopts::Options& options);
+// The LPIPS backbone to score with and its files, or {"", {}} without --lpips. A wrong backbone name
+// is an error; missing weight files are not: one line on stderr says which files to get and where
+// they go, and the other metrics still run.
+std::pair<std::string, LpipsFiles> lpips_from(const cxxopts::ParseResult& r);
 // NAME=PATH,NAME=PATH -> pairs; errors name the flag. With `bare_allowed`, a PATH alone is named
 // after its file's stem.
 std::vector<std::pair<std::string, std::string>> named_paths(const std::vector<std::string>& items,

@@ -90,6 +90,27 @@ std::vector<std::string> set_overrides(const cxxopts::ParseResult& r) {
   return r.count("set") ? r["set"].as<std::vector<std::string>>() : std::vector<std::string>{};
 }
 
+void add_lpips(cxxopts::Options& options) {
+  options.add_options()("lpips", "add LPIPS v0.1 with this backbone: alex|vgg (needs torchvision's backbone file and "
+                                 "the lpips package's linear layers; docs/evaluation.md)",
+                        cxxopts::value<std::string>())(
+      "lpips-dir", "folder with the LPIPS files (also searched: models/lpips, ~/.cache/torch/hub/checkpoints)",
+      cxxopts::value<std::string>());
+}
+
+std::pair<std::string, LpipsFiles> lpips_from(const cxxopts::ParseResult& r) {
+  if (!r.count("lpips")) return {};
+  const auto name = r["lpips"].as<std::string>();
+  require(name == "alex" || name == "vgg", "--lpips", "expected alex or vgg, got '" + name + "'");
+  try {
+    return {name, find_lpips_files(parse_lpips_backbone(name),
+                                   r.count("lpips-dir") ? r["lpips-dir"].as<std::string>() : std::string())};
+  } catch (const Error& e) {
+    std::cerr << "no LPIPS column: " << e.what() << "\n";
+    return {};
+  }
+}
+
 void add_precision(cxxopts::Options& options) {
   options.add_options()("precision", "auto|fp32|bf16: auto is bf16 where the CPU has AMX or AVX512-BF16, else fp32",
                         cxxopts::value<std::string>()->default_value("auto"));

@@ -92,13 +92,14 @@ int eval(int argc, char** argv) {
   if (argc > 1 && std::string(argv[1]) == "fit-niqe") return fit_niqe_command(argc - 1, argv + 1);
   cxxopts::Options o(
       "flatnet eval",
-      "PSNR, SSIM and NIQE of reconstructions against ground truth ('flatnet eval fit-niqe' fits NIQE's model).");
+      "PSNR, SSIM, NIQE, colour and detail kept (and LPIPS with --lpips) of reconstructions against ground truth ('flatnet eval fit-niqe' fits NIQE's model).");
   o.add_options()("gt", "ground-truth folder", cxxopts::value<std::string>())(
       "out", "reconstructions: a folder of PNGs, or of one subfolder per method; reports are written here",
       cxxopts::value<std::string>())("sheet-rows", "images in the contact sheet",
                                      cxxopts::value<int>()->default_value("6"))(
       "niqe", "NIQE model (.mat from `flatnet eval fit-niqe`), or none (default: the shipped models/niqe.mat)",
       cxxopts::value<std::string>());
+  add_lpips(o);
   add_common(o);
   cxxopts::ParseResult r;
   if (!parse(o, argc, argv, r)) return 0;
@@ -110,6 +111,7 @@ int eval(int argc, char** argv) {
   } else if (std::filesystem::exists(shipped_niqe())) {
     opt.niqe_model = shipped_niqe();
   }
+  std::tie(opt.lpips, opt.lpips_files) = lpips_from(r);
   const auto scores = evaluate(opt);
   if (!opt.niqe_model.empty())
     std::cout << "NIQE (lower is more natural; model " << opt.niqe_model.string()
@@ -171,6 +173,7 @@ int report(int argc, char** argv) {
       "tv-count", "TV on the first N captures of each set (0: all; FISTA takes seconds per capture)",
       cxxopts::value<int64_t>()->default_value("30"))("rows", "scenes per figure",
                                                       cxxopts::value<int>()->default_value("4"));
+  add_lpips(o);
   add_precision(o);
   add_force_folder(o);
   add_common(o);
@@ -193,6 +196,7 @@ int report(int argc, char** argv) {
   } else if (std::filesystem::exists(shipped_niqe())) {
     opt.niqe_model = shipped_niqe();
   }
+  std::tie(opt.lpips, opt.lpips_files) = lpips_from(r);
   opt.tv_count = r["tv-count"].as<int64_t>();
   require(opt.tv_count >= 0, "--tv-count", "0 (all) or more");
   opt.figure_rows = std::max(1, r["rows"].as<int>());

@@ -63,10 +63,15 @@ std::vector<MethodScore> evaluate(const EvalOptions& opt) {
   auto add = [](Sums& s, double v) {
     if (std::isfinite(v)) s.sum += v, s.sq += v * v, ++s.n;
   };
-  std::vector<Sums> niqe_sums(methods.size()), colour_sums(methods.size()), detail_sums(methods.size());
+  std::vector<Sums> niqe_sums(methods.size()), colour_sums(methods.size()), detail_sums(methods.size()),
+      lpips_sums(methods.size());
+  const bool with_lpips = !opt.lpips.empty();
+  Lpips lpips{nullptr};
+  if (with_lpips) lpips = load_lpips(parse_lpips_backbone(opt.lpips), opt.lpips_files);
   Sums truth_niqe;
   std::ostringstream csv;
-  csv << "image,method,psnr,ssim,mean_output,mean_truth" << (with_niqe ? ",niqe" : "") << ",colour_kept,detail_kept\n"
+  csv << "image,method,psnr,ssim,mean_output,mean_truth" << (with_niqe ? ",niqe" : "") << ",colour_kept,detail_kept"
+      << (with_lpips ? ",lpips_" + opt.lpips : "") << "\n"
       << std::fixed << std::setprecision(4);
   std::vector<MethodScore> scores;
   std::vector<std::vector<torch::Tensor>> sheet;
@@ -109,7 +114,14 @@ std::vector<MethodScore> evaluate(const EvalOptions& opt) {
       const double detail_kept = gt_detail > 1e-6 ? luma_detail(rec) / gt_detail : std::nan("");
       add(colour_sums[k], colour_kept);
       add(detail_sums[k], detail_kept);
-      csv << "," << colour_kept << "," << detail_kept << "\n";
+      csv << "," << colour_kept << "," << detail_kept;
+      if (with_lpips) {
+        torch::NoGradGuard no_grad;
+        const double d = lpips->forward(rec.unsqueeze(0), gt.unsqueeze(0)).item<double>();  // {1,3,H,W} each
+        add(lpips_sums[k], d);
+        csv << "," << d;
+      }
+      csv << "\n";
       scores[k].count++;
       scores[k].psnr += p;
       scores[k].ssim += s;
@@ -122,7 +134,8 @@ std::vector<MethodScore> evaluate(const EvalOptions& opt) {
     if (with_niqe && gt.defined()) {
       const double q = niqe_score(niqe_model, gt);
       add(truth_niqe, q);
-      csv << name << ",ground truth,,,," << gt.mean().item<double>() << "," << q << ",,\n";
+      csv << name << ",ground truth,,,," << gt.mean().item<double>() << "," << q << ",," << (with_lpips ? "," : "")
+          << "\n";
     }
     if (!row.empty() && static_cast<int>(sheet.size()) < opt.sheet_rows) {
       row[0] = gt;
@@ -151,7 +164,16 @@ std::vector<MethodScore> evaluate(const EvalOptions& opt) {
     }
     if (colour_sums[k].n > 0) s.colour_kept = colour_sums[k].sum / colour_sums[k].n;
     if (detail_sums[k].n > 0) s.detail_kept = detail_sums[k].sum / detail_sums[k].n;
-    csv << "," << s.colour_kept << "," << s.detail_kept << "\n";
+    csv << "," << s.colour_kept << "," << s.detail_kept;
+    if (with_lpips) {
+      s.lpips_net = opt.lpips;
+      if (lpips_sums[k].n > 0) {
+        s.lpips = lpips_sums[k].sum / lpips_sums[k].n;
+        s.lpips_sd = std::sqrt(std::max(0.0, lpips_sums[k].sq / lpips_sums[k].n - s.lpips * s.lpips));
+      }
+      csv << "," << s.lpips;
+    }
+    csv << "\n";
   }
   if (with_niqe && truth_niqe.n > 0) {
     MethodScore truth{"ground truth"};
@@ -159,7 +181,7 @@ std::vector<MethodScore> evaluate(const EvalOptions& opt) {
     truth.psnr = truth.ssim = truth.psnr_sd = truth.ssim_sd = truth.brightness = std::nan("");
     truth.niqe = truth_niqe.sum / truth_niqe.n;
     truth.niqe_sd = std::sqrt(std::max(0.0, truth_niqe.sq / truth_niqe.n - truth.niqe * truth.niqe));
-    csv << "mean,ground truth,,,,," << truth.niqe << ",,\n";
+    csv << "mean,ground truth,,,,," << truth.niqe << ",," << (with_lpips ? "," : "") << "\n";
     scores.push_back(truth);
   }
   write_text_atomically(opt.out / "metrics.csv", csv.str());
@@ -173,18 +195,24 @@ std::vector<MethodScore> evaluate(const EvalOptions& opt) {
 std::string scores_json(const std::vector<MethodScore>& scores) {
   auto number = [](double v) { return std::isfinite(v) ? nlohmann::json(v) : nlohmann::json(nullptr); };
   nlohmann::json all = nlohmann::json::object();
-  for (const auto& s : scores)
+  for (const auto& s : scores) {
     all[s.method] = {{"images", s.count},           {"psnr", number(s.psnr)},
                      {"psnr_sd", number(s.psnr_sd)}, {"ssim", number(s.ssim)},
                      {"ssim_sd", number(s.ssim_sd)}, {"brightness", number(s.brightness)},
                      {"niqe", number(s.niqe)},       {"colour_kept", number(s.colour_kept)},
                      {"detail_kept", number(s.detail_kept)}};
+    if (!s.lpips_net.empty()) all[s.method]["lpips"] = number(s.lpips), all[s.method]["lpips_net"] = s.lpips_net;
+  }
   return all.dump(2) + "\n";
 }
 
 std::string format_table(const std::vector<MethodScore>& scores) {
   bool any_niqe = false;
-  for (const auto& s : scores) any_niqe = any_niqe || std::isfinite(s.niqe);
+  std::string lpips_net;
+  for (const auto& s : scores) {
+    any_niqe = any_niqe || std::isfinite(s.niqe);
+    if (std::isfinite(s.lpips)) lpips_net = s.lpips_net;
+  }
   auto pm = [](double mean, double sd, int digits) {
     if (!std::isfinite(mean)) return std::string("-");
     std::ostringstream o;
@@ -194,7 +222,9 @@ std::string format_table(const std::vector<MethodScore>& scores) {
   std::ostringstream os;
   os << std::left << std::setw(24) << "method" << std::right << std::setw(7) << "images" << std::setw(16) << "PSNR dB"
      << std::setw(16) << "SSIM" << std::setw(12) << "brightness" << std::setw(9) << "colour" << std::setw(9)
-     << "detail" << (any_niqe ? "            NIQE" : "") << "\n";
+     << "detail" << (any_niqe ? "            NIQE" : "");
+  if (!lpips_net.empty()) os << std::setw(17) << "LPIPS " + lpips_net;
+  os << "\n";
   auto ratio = [](double v) {
     std::ostringstream o;
     if (std::isfinite(v))
@@ -213,6 +243,7 @@ std::string format_table(const std::vector<MethodScore>& scores) {
        << pm(s.psnr, s.psnr_sd, 2) << std::setw(16) << pm(s.ssim, s.ssim_sd, 3) << std::setw(12) << b.str()
        << std::setw(9) << ratio(s.colour_kept) << std::setw(9) << ratio(s.detail_kept);
     if (any_niqe) os << std::setw(16) << pm(s.niqe, s.niqe_sd, 2);
+    if (!lpips_net.empty()) os << std::setw(17) << pm(s.lpips, s.lpips_sd, 3);
     os << "\n";
   }
   return os.str();

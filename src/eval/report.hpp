@@ -5,6 +5,8 @@
 #include <string>
 #include <vector>
 
+#include "nn/lpips.hpp"
+
 namespace flatnet {
 
 struct MethodScore {
@@ -21,6 +23,9 @@ struct MethodScore {
   // over images of output / truth (images whose truth has none are left out). 1 keeps it all; a
   // blurry grey regressor scores well below 1.
   double colour_kept = std::nan(""), detail_kept = std::nan("");
+  // LPIPS v0.1 (nn/lpips.hpp; lower is closer to the truth) and its backbone; NaN without one.
+  double lpips = std::nan(""), lpips_sd = std::nan("");
+  std::string lpips_net;
 };
 
 struct EvalOptions {
@@ -29,6 +34,8 @@ struct EvalOptions {
   int sheet_rows = 6;
   std::filesystem::path niqe_model;  // a NIQE model (.mat); empty: no NIQE column
   std::vector<std::string> methods;  // subfolders of `out` to score, in this order (empty: every one, by name)
+  std::string lpips;                 // "alex" | "vgg": an LPIPS column with that backbone; empty: none
+  LpipsFiles lpips_files;            // its weights (find_lpips_files)
 };
 
 // Writes out/metrics.csv (per image and mean rows), out/scores.json (the means, scores_json) and
@@ -37,7 +44,7 @@ struct EvalOptions {
 std::vector<MethodScore> evaluate(const EvalOptions& options);
 std::string format_table(const std::vector<MethodScore>& scores);
 // {"METHOD": {"images": N, "psnr": ..., "psnr_sd", "ssim", "ssim_sd", "brightness", "niqe",
-// "colour_kept", "detail_kept"}, ...}; a metric that is not defined is null. What a model file's
+// "colour_kept", "detail_kept", "lpips" (+ "lpips_net")}, ...}; a metric that is not defined is null. What a model file's
 // recorded scores hold (`flatnet export --scores`).
 std::string scores_json(const std::vector<MethodScore>& scores);
 

@@ -187,13 +187,20 @@ std::string make_report(const ReportOptions& o) {
     eo.out = set_out;
     eo.niqe_model = o.niqe_model;
     eo.methods = names;
+    eo.lpips = o.lpips, eo.lpips_files = o.lpips_files;
     const auto scores = evaluate(eo);
-    MarkdownTable table{{"method", "images", "PSNR dB", "SSIM", "NIQE", "ms per image"}, {}};
+    const bool with_lpips = !o.lpips.empty();
+    MarkdownTable table{{"method", "images", "PSNR dB", "SSIM", "NIQE"}, {}};
+    if (with_lpips) table.header.push_back("LPIPS (" + o.lpips + ")");
+    table.header.push_back("ms per image");
     for (const auto& s : scores) {
       const auto [ms, timed] =
           s.method == "ground truth" ? std::pair<double, int64_t>{std::nan(""), 0} : read_timing(set_out / s.method);
-      table.add({s.method, std::to_string(s.count), plus_minus(s.psnr, s.psnr_sd, 2), plus_minus(s.ssim, s.ssim_sd, 3),
-                 plus_minus(s.niqe, s.niqe_sd, 2), fixed(ms, 1)});
+      std::vector<std::string> row{s.method, std::to_string(s.count), plus_minus(s.psnr, s.psnr_sd, 2),
+                                   plus_minus(s.ssim, s.ssim_sd, 3), plus_minus(s.niqe, s.niqe_sd, 2)};
+      if (with_lpips) row.push_back(plus_minus(s.lpips, s.lpips_sd, 3));
+      row.push_back(fixed(ms, 1));
+      table.add(row);
     }
     const bool lamp = set.name.find("lamp") != std::string::npos;
     md << "## " << set.name << (lamp ? ": dynamic range (thesis Figure 5.3)" : "") << "\n\n"

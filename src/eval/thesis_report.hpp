@@ -9,6 +9,7 @@
 
 #include "io/camera_config.hpp"
 #include "nn/generator.hpp"
+#include "nn/lpips.hpp"
 
 namespace flatnet {
 
@@ -29,6 +30,8 @@ struct ReportOptions {
   std::vector<ReportSet> sets;
   std::filesystem::path out;
   std::filesystem::path niqe_model;  // empty: no NIQE column
+  std::string lpips;                 // "alex" | "vgg": an LPIPS column (EvalOptions::lpips); empty: none
+  LpipsFiles lpips_files;
   int64_t tv_count = 30;             // TV (FISTA, seconds per capture) on the first N captures of a set (0: all)
   int figure_rows = 4;               // scenes in each set's figure
   InferenceLevers levers;            // for the model methods (bf16 where chosen)
