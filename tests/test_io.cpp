@@ -213,3 +213,25 @@ TEST_CASE("dataset lists: pairs, FlatNet-style roots, and errors", "[io][dataset
   std::ofstream(s.dir / "empty.txt") << "\n";
   REQUIRE_THROWS_WITH(read_pairs({s.dir / "empty.txt", s.dir / "gt.txt", s.dir / "root"}), Contains("list is empty"));
 }
+
+TEST_CASE("worker threads run single-threaded, and BLAS from two workers at once gives each its own answer",
+          "[core][threads]") {
+  const int before = at::get_num_threads();
+  set_threads(2);
+  std::vector<int> seen(4, 0);
+  // Two workers each multiply their own matrices many times at once (OpenBLAS's OpenMP build shares
+  // its multithreaded buffers between callers); every product must equal the one made alone.
+  const auto a = torch::randn({300, 200}), b = torch::randn({200, 250});
+  const auto expected = torch::matmul(a, b);
+  std::vector<double> worst(4, 0);
+  parallel_for_index(4, 2, [&](int64_t i) {
+    seen[i] = at::get_num_threads();
+    for (int k = 0; k < 20; ++k)
+      worst[i] = std::max(worst[i], (torch::matmul(a * (i + 1), b) / (i + 1) - expected).abs().max().item<double>());
+  });
+  set_threads(before);
+  for (int i = 0; i < 4; ++i) {
+    CHECK(seen[i] == 1);
+    CHECK(worst[i] < 1e-3);
+  }
+}

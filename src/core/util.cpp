@@ -18,6 +18,7 @@
 #include <iostream>
 
 #include <ATen/Parallel.h>       // at::set_num_threads
+#include <dlfcn.h>               // dlsym: OpenMP's omp_set_num_threads
 #include <c10/util/Exception.h>  // c10::Error
 #include <atomic>
 #include <mutex>
@@ -258,6 +259,17 @@ void Progress::draw(bool final_line) {
     std::cerr << os.str() << "\n" << std::flush;
 }
 
+void single_threaded_worker() {
+  // Looked up at run time: the OpenMP runtime is LibTorch's (libgomp), and a LibTorch built without
+  // OpenMP has none to limit.
+  using SetNumThreads = void (*)(int);
+  static const auto set_num_threads = reinterpret_cast<SetNumThreads>(::dlsym(RTLD_DEFAULT, "omp_set_num_threads"));
+  // ATen sets a new thread's count from --threads on its first parallel call (a thread-local
+  // lazy init); run that first, or it would undo this later.
+  (void)at::get_num_threads();
+  if (set_num_threads) set_num_threads(1);
+}
+
 void parallel_for_index(int64_t n, int workers, const std::function<void(int64_t)>& fn) {
   std::atomic<int64_t> next{0};
   std::exception_ptr error;
@@ -265,6 +277,7 @@ void parallel_for_index(int64_t n, int workers, const std::function<void(int64_t
   std::vector<std::thread> pool;
   for (int t = 0; t < std::max(1, workers); ++t)
     pool.emplace_back([&] {
+      single_threaded_worker();
       for (int64_t i; (i = next++) < n;) {
         try {
           fn(i);

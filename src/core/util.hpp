@@ -55,7 +55,15 @@ extern const std::vector<std::string> kImageExtensions;  // png jpg jpeg tif tif
 
 // Calls fn(i) for i in [0, n) on `workers` threads (at least 1); the first exception is rethrown
 // after all threads finish.
+// Each worker runs single-threaded (single_threaded_worker).
 void parallel_for_index(int64_t n, int workers, const std::function<void(int64_t)>& fn);
+// Call first in every worker thread flatnet starts. A new std::thread begins with OpenMP's initial
+// thread count (all cores), not the count --threads set on the main thread, so each ATen or BLAS
+// call in it would fork its own team: workers x cores threads on the cores. Worse, OpenBLAS's
+// OpenMP build (Debian's libopenblas0-openmp) keeps one buffer set for multithreaded calls
+// (NUM_PARALLEL=1), and two threads entering it at once may corrupt each other's GEMMs. A worker
+// limited to one OpenMP thread takes OpenBLAS's single-threaded path, whose buffers are its own.
+void single_threaded_worker();
 
 // A whole file's bytes. Only regular files are read (a fifo or device is refused at once, never
 // waited on), and a file over `max_bytes` is refused before anything that size is allocated.

@@ -264,6 +264,7 @@ SimulateReport simulate_dataset(const Rig& rig, const SimulateOptions& opt) {
   Progress progress("simulate", report.total, opt.progress);
   const auto start = std::chrono::steady_clock::now();
   auto work = [&]() {
+    single_threaded_worker();
     c10::InferenceMode guard;
     for (size_t i = next++; i < images.size(); i = next++) {
       {
