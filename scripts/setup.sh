@@ -12,6 +12,8 @@
 #  - ONNX Runtime (optional, for the ONNX deployment test): the npm registry's onnxruntime-node holds
 #    the CPU runtime; installed with --ignore-scripts (its install script only fetches GPU parts) under
 #    ~/.cache/flatnet/onnxruntime-node-VERSION, where CMakeLists.txt's FLATNET_ORT_DIR looks.
+#  - chromium (optional): the test of `flatnet report`'s report.html loads the page headless and
+#    takes a screenshot; without it that test shows as skipped.
 #  - python3-torch is optional: only reference comparisons in scripts/ and a few tests use it;
 #    FLATNET_SKIP_OPTIONAL=1 leaves the optional packages out (those tests then show as skipped).
 set -euo pipefail
@@ -25,7 +27,7 @@ packages=(
   libonnx-dev libprotobuf-dev zlib1g-dev libdnnl-dev libssl-dev
   python3-skimage
 )
-optional=(python3-torch clang-format)
+optional=(python3-torch clang-format chromium)
 if ! command -v node >/dev/null || ! command -v npm >/dev/null; then optional+=(nodejs npm); fi
 ort_version=1.20.1
 ort_dir="${FLATNET_ORT_DIR:-$HOME/.cache/flatnet/onnxruntime-node-$ort_version}"

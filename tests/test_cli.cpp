@@ -480,6 +480,12 @@ TEST_CASE("flatnet report: the table, the figure, timings, and it resumes from w
   CHECK_THAT(text, Contains("| tikhonov | 2 |") && Contains("| tv | 1 |") && Contains("| transpose | 2 |") &&
                        Contains("| ground truth | 2 | - | - |"));
   CHECK(std::filesystem::exists(s.dir / "out" / "display_figure.png"));
+  {
+    std::ifstream html_file(s.dir / "out" / "report.html");
+    const std::string html((std::istreambuf_iterator<char>(html_file)), {});
+    CHECK_THAT(html, Contains("data-method=\"transpose\"") && Contains("data-method=\"tikhonov\"") &&
+                         Contains("<td>bsds_16052.png</td>"));
+  }
   CHECK(read_rgb(s.dir / "out" / "display" / "transpose" / "bsds_16052.png").size(1) == 256);
   // Resumed: nothing is made again, and one missing reconstruction is made alone.
   r = test::run_flatnet(cmd);

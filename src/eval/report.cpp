@@ -43,7 +43,7 @@ std::vector<Method> find_methods(const std::filesystem::path& out) {
 
 }  // namespace
 
-std::vector<MethodScore> evaluate(const EvalOptions& opt) {
+std::vector<MethodScore> evaluate(const EvalOptions& opt, std::vector<ImageScore>* per_image) {
   const auto gt_files = list_images(opt.gt, kImageExtensions);
   require(!gt_files.empty(), opt.gt, "no ground-truth images in this folder");
   std::vector<Method> methods;
@@ -104,10 +104,12 @@ std::vector<MethodScore> evaluate(const EvalOptions& opt) {
       const double p = psnr(rec, gt), s = ssim(rec, gt);
       const double mean_out = rec.mean().item<double>(), mean_gt = gt.mean().item<double>();
       csv << name << "," << methods[k].name << "," << p << "," << s << "," << mean_out << "," << mean_gt;
+      ImageScore image{name, methods[k].name, p, s};
       if (with_niqe) {
         const double q = niqe_score(niqe_model, rec);
         add(niqe_sums[k], q);
         csv << "," << q;
+        image.niqe = q;
       }
       // Ratios to the truth; a truth without colour (or detail) has no ratio: NaN, left out of the mean.
       const double colour_kept = gt_colour > 1e-6 ? colourfulness(rec) / gt_colour : std::nan("");
@@ -115,13 +117,16 @@ std::vector<MethodScore> evaluate(const EvalOptions& opt) {
       add(colour_sums[k], colour_kept);
       add(detail_sums[k], detail_kept);
       csv << "," << colour_kept << "," << detail_kept;
+      image.colour_kept = colour_kept, image.detail_kept = detail_kept;
       if (with_lpips) {
         torch::NoGradGuard no_grad;
         const double d = lpips->forward(rec.unsqueeze(0), gt.unsqueeze(0)).item<double>();  // {1,3,H,W} each
         add(lpips_sums[k], d);
         csv << "," << d;
+        image.lpips = d;
       }
       csv << "\n";
+      if (per_image) per_image->push_back(image);
       scores[k].count++;
       scores[k].psnr += p;
       scores[k].ssim += s;

@@ -28,6 +28,13 @@ struct MethodScore {
   std::string lpips_net;
 };
 
+// One image's scores under one method (a row of metrics.csv); NaN where undefined.
+struct ImageScore {
+  std::string image, method;
+  double psnr = 0, ssim = 0, niqe = std::nan(""), colour_kept = std::nan(""), detail_kept = std::nan(""),
+         lpips = std::nan("");
+};
+
 struct EvalOptions {
   std::filesystem::path gt;   // ground-truth images
   std::filesystem::path out;  // one method's outputs, or a folder with one subfolder per method
@@ -41,7 +48,8 @@ struct EvalOptions {
 // Writes out/metrics.csv (per image and mean rows), out/scores.json (the means, scores_json) and
 // out/sheet.png; returns the means. With a
 // NIQE model, the last entry is the ground truth itself (method "ground truth", NIQE only).
-std::vector<MethodScore> evaluate(const EvalOptions& options);
+// With `per_image`, also every image's scores, in metrics.csv's order.
+std::vector<MethodScore> evaluate(const EvalOptions& options, std::vector<ImageScore>* per_image = nullptr);
 std::string format_table(const std::vector<MethodScore>& scores);
 // {"METHOD": {"images": N, "psnr": ..., "psnr_sd", "ssim", "ssim_sd", "brightness", "niqe",
 // "colour_kept", "detail_kept", "lpips" (+ "lpips_net")}, ...}; a metric that is not defined is null. What a model file's

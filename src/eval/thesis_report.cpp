@@ -6,6 +6,7 @@
 
 #include "core/error.hpp"
 #include "core/util.hpp"
+#include "eval/html_report.hpp"
 #include "eval/metrics.hpp"
 #include "eval/report.hpp"
 #include "eval/tables.hpp"
@@ -168,6 +169,7 @@ std::string make_report(const ReportOptions& o) {
      << "not available here, so there is no perceptual index (PI); NIQE is reported alone. Time: milliseconds per "
         "image "
      << "in the method itself, no file I/O, on " << o.machine << ".\n\n";
+  std::vector<HtmlSet> pages;
   for (size_t si = 0; si < o.sets.size(); ++si) {
     const auto& set = o.sets[si];
     std::cerr << "[" << si + 1 << "/" << o.sets.size() << "] " << set.name << " (" << set.dir.string() << ")\n";
@@ -188,7 +190,8 @@ std::string make_report(const ReportOptions& o) {
     eo.niqe_model = o.niqe_model;
     eo.methods = names;
     eo.lpips = o.lpips, eo.lpips_files = o.lpips_files;
-    const auto scores = evaluate(eo);
+    HtmlSet page{set.name, std::to_string(captures.size()) + " captures from " + set.dir.string() + "."};
+    const auto scores = evaluate(eo, &page.images);
     const bool with_lpips = !o.lpips.empty();
     MarkdownTable table{{"method", "images", "PSNR dB", "SSIM", "NIQE"}, {}};
     if (with_lpips) table.header.push_back("LPIPS (" + o.lpips + ")");
@@ -201,7 +204,11 @@ std::string make_report(const ReportOptions& o) {
       if (with_lpips) row.push_back(plus_minus(s.lpips, s.lpips_sd, 3));
       row.push_back(fixed(ms, 1));
       table.add(row);
+      page.ms_per_image.push_back(ms);
     }
+    page.methods = names, page.scores = scores, page.gt_dir = eo.gt, page.rec_dir = set_out;
+    page.gallery = std::max(8, o.figure_rows);
+    pages.push_back(std::move(page));
     const bool lamp = set.name.find("lamp") != std::string::npos;
     md << "## " << set.name << (lamp ? ": dynamic range (thesis Figure 5.3)" : "") << "\n\n"
        << captures.size() << " captures from `" << set.dir.string() << "`"
@@ -214,6 +221,11 @@ std::string make_report(const ReportOptions& o) {
     md << "![" << set.name << "](" << figure << ")\n\n";
   }
   write_text_atomically(o.out / "report.md", md.str());
+  write_text_atomically(o.out / "report.html",
+                        html_report("Reconstruction report", "Made by " + o.command + " on " + o.machine +
+                                                                 ". PSNR in dB and SSIM on the 256x256 sRGB images; "
+                                                                 "NIQE lower is more natural; LPIPS lower is closer.",
+                                    pages));
   return md.str();
 }
 
