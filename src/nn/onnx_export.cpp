@@ -160,9 +160,11 @@ class GeneratorGraph {
         x = sequential(x, "enhancer.body");
         break;
       case Enhancer::rcan:
-        throw Error("ONNX export covers the U-Net and DnCNN enhancers; this model's is RCAN (model.enhancer: rcan)");
+        throw Error(
+            "ONNX export covers the U-Net, DnCNN and NAFNet enhancers; this model's is RCAN (model.enhancer: rcan)");
       case Enhancer::nafnet:
-        throw Error("ONNX export covers the U-Net and DnCNN enhancers; this model's is NAFNet (model.enhancer: nafnet)");
+        x = nafnet(x);
+        break;
     }
     return x;  // logits
   }
@@ -288,6 +290,89 @@ class GeneratorGraph {
       x = sequential(x, prefix + ".conv.conv");
     }
     return conv(x, *module_as<torch::nn::Conv2dImpl>("enhancer.outc.conv"), nullptr, "outc");
+  }
+
+  // NAFNet's LayerNorm2d over channels: (x - mean_c) / sqrt(var_c + 1e-6) * weight + bias.
+  std::string layer_norm(const std::string& x, const std::string& name) {
+    auto ln = module_as<LayerNorm2dImpl>(name);
+    auto reduce = [&](const std::string& in, const std::string& hint) {
+      auto* n = b_.node("ReduceMean", {in}, hint);
+      GraphBuilder::attr_ints(n, "axes", {1});
+      GraphBuilder::attr_int(n, "keepdims", 1);
+      return n->output(0);  // {B,1,H,W}
+    };
+    // {B,1,H,W} -> {B,C,H,W} by a 1x1 convolution with ones: OpenCV 4.6 broadcasts no computed
+    // tensor over the channels (its Mul/Div refuse {B,C,H,W} with {B,1,H,W}).
+    const int64_t channels = ln->weight.size(0);
+    auto per_channel = [&](const std::string& single) {
+      auto* n = b_.node("Conv", {single, b_.constant("ones", torch::ones({channels, 1, 1, 1}))}, "ln_expand");
+      GraphBuilder::attr_ints(n, "kernel_shape", {1, 1});
+      return n->output(0);
+    };
+    const auto centred = b_.op("Sub", {x, per_channel(reduce(x, "ln_mean"))}, "ln_centred");
+    const auto var = reduce(b_.op("Mul", {centred, centred}, "ln_sq"), "ln_var");
+    const auto std = b_.op("Sqrt", {b_.op("Add", {var, b_.constant("ln_eps", torch::full({1}, 1e-6))}, "ln_v")}, "ln_std");
+    const auto normed = b_.op("Div", {centred, per_channel(std)}, "ln_normed");
+    const auto scaled = b_.op("Mul", {normed, b_.constant(name + "_w", ln->weight.view({1, -1, 1, 1}))}, "ln_scaled");
+    return b_.op("Add", {scaled, b_.constant(name + "_b", ln->bias.view({1, -1, 1, 1}))}, "ln");
+  }
+
+  std::string simple_gate(const std::string& x) {  // {B,2c,H,W} -> {B,c,H,W}
+    const auto halves = b_.split_channels(x, 2, "half");
+    return b_.op("Mul", {halves[0], halves[1]}, "gate");
+  }
+
+  std::string conv_named(const std::string& x, const std::string& name) {
+    return conv(x, *module_as<torch::nn::Conv2dImpl>(name), nullptr, name);
+  }
+
+  // One NAFBlock (nn/generator.cpp): y = x + beta * conv3(sca(gate(dw(conv1(ln(x)))))),
+  // out = y + gamma * conv5(gate(conv4(ln(y)))).
+  std::string naf_block(const std::string& in, const std::string& name) {
+    auto x = simple_gate(conv_named(conv_named(layer_norm(in, name + ".norm1"), name + ".conv1"), name + ".conv2"));
+    auto* pool = b_.node("GlobalAveragePool", {x}, "sca_pool");
+    const auto attention = conv_named(pool->output(0), name + ".sca.1");  // {B,c,1,1}
+    x = conv_named(b_.op("Mul", {x, attention}, "sca"), name + ".conv3");
+    auto params = module_as<torch::nn::Module>(name)->named_parameters(false);
+    const auto y = b_.op("Add", {in, b_.op("Mul", {x, b_.constant(name + "_beta", params["beta"])}, "scaled")}, "y");
+    x = conv_named(simple_gate(conv_named(layer_norm(y, name + ".norm2"), name + ".conv4")), name + ".conv5");
+    return b_.op("Add", {y, b_.op("Mul", {x, b_.constant(name + "_gamma", params["gamma"])}, "scaled")}, "naf");
+  }
+
+  std::string naf_blocks(std::string x, const std::string& name) {
+    const auto count = module_as<torch::nn::SequentialImpl>(name)->size();
+    for (size_t i = 0; i < count; ++i) x = naf_block(x, name + "." + std::to_string(i));
+    return x;
+  }
+
+  // PyTorch's pixel_shuffle(2): {B,4C,H,W} -> {B,C,2,2,H,W} -> (0,1,4,2,5,3) -> {B,C,2H,2W}. As
+  // Reshape and Transpose rather than DepthToSpace (mode CRD), which OpenCV 4.6 does not import.
+  std::string pixel_shuffle(const std::string& x, int64_t channels, int64_t size) {
+    const auto split = b_.op("Reshape", {x, b_.constant_i64("shuffle_in", {0, channels, 2, 2, size, size})}, "split");
+    auto* t = b_.node("Transpose", {split}, "interleaved");
+    GraphBuilder::attr_ints(t, "perm", {0, 1, 4, 2, 5, 3});
+    return b_.op("Reshape", {t->output(0), b_.constant_i64("shuffle_out", {0, channels, 2 * size, 2 * size})}, "up");
+  }
+
+  // NAFNet: intro, 4 levels of blocks + 2x2 stride-2 convolutions down, the middle blocks, then up
+  // by a 1x1 convolution and pixel shuffle, skips added.
+  std::string nafnet(const std::string& input) {
+    auto x = conv_named(input, "enhancer.intro");
+    std::vector<std::string> skips;
+    for (int i = 0; i < 4; ++i) {
+      x = naf_blocks(x, "enhancer.encoders." + std::to_string(i));
+      skips.push_back(x);
+      x = conv_named(x, "enhancer.downs." + std::to_string(i));
+    }
+    x = naf_blocks(x, "enhancer.middle_blks");
+    for (int i = 0; i < 4; ++i) {
+      const auto up = "enhancer.ups." + std::to_string(i) + ".0";
+      const int64_t channels = module_as<torch::nn::Conv2dImpl>(up)->options.out_channels() / 4;
+      const int64_t size = g_.options().scene >> (4 - i);  // this level's input resolution
+      x = b_.op("Add", {pixel_shuffle(conv_named(x, up), channels, size), skips[3 - i]}, "skip");
+      x = naf_blocks(x, "enhancer.decoders." + std::to_string(i));
+    }
+    return conv_named(x, "enhancer.ending");
   }
 
   GraphBuilder& b_;

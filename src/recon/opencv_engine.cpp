@@ -11,7 +11,19 @@ struct OpenCvEngine::Net {
 };
 
 namespace {
-std::string first_line(const std::string& s) { return s.substr(0, s.find('\n')); }
+// OpenCV's message on one line: where it failed, and the node it could not handle (its later lines).
+std::string one_line(const std::string& s) {
+  std::string out;
+  for (const char c : s) {
+    if (c == '\n') {
+      if (!out.empty() && out.back() != ' ') out += " ";
+    } else {
+      out += c;
+    }
+  }
+  while (!out.empty() && out.back() == ' ') out.pop_back();
+  return out;
+}
 }  // namespace
 
 OpenCvEngine::OpenCvEngine(const std::filesystem::path& onnx_file)
@@ -19,7 +31,7 @@ OpenCvEngine::OpenCvEngine(const std::filesystem::path& onnx_file)
   try {
     net_->net = cv::dnn::readNetFromONNX(onnx_file.string());
   } catch (const cv::Exception& e) {
-    throw Error(onnx_file, "OpenCV DNN cannot import this ONNX graph: " + first_line(e.what()));
+    throw Error(onnx_file, "OpenCV DNN cannot import this ONNX graph: " + one_line(e.what()));
   }
   if (net_->net.empty()) throw Error(onnx_file, "OpenCV DNN read an empty network");
   net_->net.setPreferableBackend(cv::dnn::DNN_BACKEND_OPENCV);
@@ -60,7 +72,7 @@ torch::Tensor OpenCvEngine::forward(const torch::Tensor& planes) {
       net_->net.setInput(blob, "meas");
       out = net_->net.forward();
     } catch (const cv::Exception& e) {
-      throw Error(path_, "OpenCV DNN failed to run the graph: " + first_line(e.what()));
+      throw Error(path_, "OpenCV DNN failed to run the graph: " + one_line(e.what()));
     }
     if (out.dims != 4 || out.size[1] != 3 || out.size[2] != info_.scene || out.size[3] != info_.scene)
       throw Error(path_, "OpenCV DNN gave an output of unexpected shape");
