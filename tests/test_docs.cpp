@@ -3,11 +3,16 @@
 #include "catch_torch.hpp"
 
 #include <fstream>
+#include <iomanip>
 #include <regex>
 #include <set>
 #include <sstream>
 
+#include <nlohmann/json.hpp>
+
+#include "core/util.hpp"
 #include "helpers.hpp"
+#include "nn/model_file.hpp"
 
 namespace {
 
@@ -68,9 +73,10 @@ std::vector<Link> links(const std::filesystem::path& p) {
 
 std::vector<std::filesystem::path> manual_files() {
   const auto root = test::source_dir();
-  std::vector<std::filesystem::path> files = {root / "README.md", root / "models" / "README.md"};
-  for (const auto& e : std::filesystem::directory_iterator(root / "docs"))
-    if (e.path().extension() == ".md") files.push_back(e.path());
+  std::vector<std::filesystem::path> files;
+  for (const auto& dir : {root, root / "docs", root / "models"})
+    for (const auto& e : std::filesystem::directory_iterator(dir))
+      if (e.path().extension() == ".md") files.push_back(e.path());
   return files;
 }
 
@@ -123,4 +129,35 @@ TEST_CASE("README.md is the front door: short, with the two set-up commands and 
     INFO(page);
     CHECK(text.find(std::string("docs/") + page + ".md") != std::string::npos);
   }
+}
+
+TEST_CASE("every shipped model has a card that matches its file: hash, held-out scores, the sections", "[docs][cards]") {
+  int cards = 0;
+  for (const auto& e : std::filesystem::directory_iterator(test::source_dir() / "models")) {
+    if (e.path().extension() != ".flatnet") continue;
+    const auto card = e.path().parent_path() / (e.path().stem().string() + ".md");
+    INFO(card);
+    REQUIRE(std::filesystem::exists(card));
+    std::string text;
+    for (const auto& l : lines_of(card)) text += l + "\n";
+    // The Hugging Face layout: YAML front matter naming the model, then the card's sections.
+    CHECK(text.rfind("---\n", 0) == 0);
+    CHECK(text.find("- name: " + e.path().stem().string() + "\n") != std::string::npos);
+    for (const char* section : {"## Intended use", "## Camera", "## Training data", "## Training\n", "## Evaluation",
+                                "## Limitations"})
+      CHECK(text.find(section) != std::string::npos);
+    // The card describes this file, not an earlier one: its hash and the scores the file records.
+    CHECK(text.find("sha256 " + flatnet::sha256_hex(e.path())) != std::string::npos);
+    const auto model = flatnet::load_model_file(e.path());
+    REQUIRE_FALSE(model.provenance.scores.empty());
+    const auto heldout = nlohmann::json::parse(model.provenance.scores).at("heldout");
+    std::ostringstream psnr, ssim;
+    psnr << std::fixed << std::setprecision(2) << heldout.at("psnr").get<double>();
+    ssim << std::fixed << std::setprecision(3) << heldout.at("ssim").get<double>();
+    CHECK(text.find("{type: psnr, value: " + psnr.str() + "}") != std::string::npos);
+    CHECK(text.find("{type: ssim, value: " + ssim.str() + "}") != std::string::npos);
+    CHECK(text.find("| held-out | " + psnr.str() + " | " + ssim.str() + " |") != std::string::npos);
+    ++cards;
+  }
+  CHECK(cards >= 2);
 }
