@@ -11,6 +11,7 @@
 #include "io/image.hpp"
 #include "io/mat.hpp"
 #include "nn/model_file.hpp"
+#include "bench/bench.hpp"
 #include "optics/camera.hpp"
 
 using namespace flatnet;
@@ -621,6 +622,48 @@ TEST_CASE("flatnet bench: rows, JSON, and --profile lists the operators of one m
   const auto unknown = test::run_flatnet("bench --rows warp_drive --repeats 1");
   CHECK(unknown.code == 2);
   CHECK_THAT(unknown.output, Contains("warp_drive") && Contains("tikhonov"));
+}
+
+TEST_CASE("FLOP counting: convolutions, transposed convolutions and GEMMs exactly, 2 per multiply-add", "[bench][flops]") {
+  c10::InferenceMode guard;
+  const auto x = torch::randn({2, 3, 10, 12}), w = torch::randn({5, 3, 3, 3});
+  // As nn::Conv2d calls it (every size given per axis: LibTorch's counter needs that).
+  const std::vector<int64_t> one{1, 1};
+  // 'same' 3x3: every output pixel of 5 channels takes 3x3x3 multiply-adds.
+  CHECK(count_gflop([&] { torch::conv2d(x, w, torch::Tensor(), one, one, one); }) * 1e9 ==
+        Approx(2.0 * 2 * 5 * 10 * 12 * 3 * 9));
+  // stride 2, no padding: outputs 4x5.
+  CHECK(count_gflop([&] { const std::vector<int64_t> stride{2, 2}, pad{0, 0};
+    torch::conv2d(x, w, torch::Tensor(), stride, pad, one);
+  }) * 1e9 == Approx(2.0 * 2 * 5 * 4 * 5 * 3 * 9));
+  // 2x2 stride-2 transposed: every input pixel scatters to 2x2 outputs of 7 channels.
+  const auto wt = torch::randn({3, 7, 2, 2});
+  CHECK(count_gflop([&] { torch::conv_transpose2d(x, wt, {}, 2); }) * 1e9 == Approx(2.0 * 2 * 3 * 10 * 12 * 7 * 4));
+  const auto a = torch::randn({30, 40}), b = torch::randn({40, 50});
+  CHECK(count_gflop([&] { torch::mm(a, b); }) * 1e9 == Approx(2.0 * 30 * 40 * 50));
+}
+
+TEST_CASE("flatnet bench --rows peak: the practical peak first, then each row's GFLOP/s and share of it",
+          "[cli][bench][flops]") {
+  test::Scratch s("bench_peak");
+  const auto json_path = s.dir / "bench.json";
+  // Asked after the row it calibrates, the peak still runs first.
+  const auto r = test::run_flatnet("bench --rows tikhonov,peak --precision fp32 --repeats 1 --warmup 0 --json " +
+                                   q(json_path));
+  INFO(r.output);
+  REQUIRE(r.code == 0);
+  CHECK_THAT(r.output, Contains("GFLOP/s") && Contains("peak %") && Contains("peak_gemm_fp32"));
+  const auto bytes = read_bytes(json_path);
+  const auto j = nlohmann::json::parse(std::string(bytes.begin(), bytes.end()));
+  REQUIRE(j["rows"].size() >= 3);
+  CHECK(j["rows"][0]["name"] == "peak_gemm_fp32");
+  const auto& tik = j["rows"].back();
+  REQUIRE(tik["name"] == "tikhonov");
+  CHECK(tik["gflop"].get<double>() > 0.1);  // batched GEMMs of 500x620 planes
+  CHECK(tik["gflops"].get<double>() > 0);
+  CHECK(tik["peak_share"].get<double>() > 0);
+  CHECK(tik["peak_share"].get<double>() < 2);
+  CHECK(j["rows"][0]["peak_share"].is_null());  // a peak row is not a share of itself
 }
 
 TEST_CASE("report inversion: the thesis's Figure 3.3 from the shipped models, and a model without an inversion refused",

@@ -8,6 +8,7 @@
 
 #include "io/camera_config.hpp"
 #include "core/error.hpp"
+#include "core/precision.hpp"
 #include "core/util.hpp"
 #include "io/raw.hpp"
 #include "optics/camera.hpp"
@@ -105,6 +106,35 @@ BenchRow time_row(const std::string& name, const std::string& what, const BenchO
   return row;
 }
 
+// The practical peak of this machine for one kind of kernel: a large GEMM (2048^3) or a 3x3
+// convolution at U-Net scale (batch 4, 128 -> 128 channels, 128x128, channels-last), in fp32 or bf16,
+// through the same LibTorch paths the models use (OpenBLAS / oneDNN).
+BenchRow peak_row(const std::string& name, const BenchOptions& o) {
+  const bool bf16 = name.size() > 5 && name.substr(name.size() - 5) == "_bf16";
+  const auto dtype = bf16 ? torch::kBFloat16 : torch::kFloat32;
+  c10::InferenceMode guard;
+  BenchRow row;
+  if (name.rfind("peak_gemm", 0) == 0) {
+    const int64_t n = 2048;
+    const auto a = torch::randn({n, n}).to(dtype), b = torch::randn({n, n}).to(dtype);
+    row = time_row(name, std::string("practical peak: GEMM 2048x2048x2048, ") + (bf16 ? "bf16" : "fp32"), o,
+                   [&] { torch::mm(a, b); });
+    row.gflop = 2.0 * n * n * n / 1e9;
+    row.peak_kind = bf16 ? "bf16" : "fp32";
+  } else {
+    const auto x = torch::randn({4, 128, 128, 128}).to(dtype).contiguous(at::MemoryFormat::ChannelsLast);
+    const auto w = (torch::randn({128, 128, 3, 3}) * 0.03).to(dtype).contiguous(at::MemoryFormat::ChannelsLast);
+    row = time_row(name,
+                   std::string("practical peak: 3x3 convolution, batch 4, 128->128 channels, 128x128, channels-last, ") +
+                       (bf16 ? "bf16" : "fp32"),
+                   o, [&] { torch::conv2d(x, w, {}, 1, 1); });
+    row.gflop = 2.0 * 4 * 128 * 128 * 128 * 128 * 9 / 1e9;
+    row.peak_kind = bf16 ? "bf16" : "fp32";
+  }
+  row.per_second = 1000.0 / row.median_ms;
+  return row;
+}
+
 Calibration random_calibration() {
   auto gen = at::detail::createCPUGenerator(0);
   Calibration c;
@@ -139,6 +169,13 @@ BenchRow infer_row(const std::string& name, int64_t width, const BenchOptions& o
                           ", batch 1, levers:" + (names.empty() ? std::string(" none") : names),
                       o, [&] { engine->reconstruct(Y); });
   row.per_second = 1000.0 / row.median_ms;
+  // The work, counted on the same model without levers (the oneDNN lever bypasses ATen's operators,
+  // which the profiler counts; folding removes only the batch norms' few FLOPs).
+  Generator plain(generator_for(width));
+  plain->eval();
+  c10::InferenceMode guard;
+  row.gflop = count_gflop([&] { plain->forward(Y); });
+  row.peak_kind = levers.bf16 ? "bf16" : "fp32";
   return row;
 }
 
@@ -171,6 +208,11 @@ BenchRow train_row(const std::string& name, int64_t width, bool paper, const Ben
                           (o.levers.gemm_upsample ? ", gemm-up" : "") + (o.bf16 ? ", bf16 autocast" : ", fp32"),
                       o, [&] { gan_step(g, d, vgg, opt_g, opt_d, t, batch, step++); });
   row.per_second = 1000.0 / row.median_ms;
+  // Forward work as the profiler counts it, x3 for the backward (gradients of inputs and weights:
+  // the usual convention; the discriminator's forward on real images has no input gradient, so
+  // this slightly overstates the work).
+  row.gflop = 3 * count_gflop([&] { gan_step(g, d, vgg, opt_g, opt_d, t, batch, step++); });
+  row.peak_kind = o.bf16 ? "bf16" : "fp32";
   return row;
 }
 
@@ -206,6 +248,36 @@ const std::vector<std::string>& bench_row_names() {
   return names;
 }
 
+std::vector<std::string> peak_row_names() {
+  std::vector<std::string> names = {"peak_gemm_fp32", "peak_conv_fp32"};
+  if (resolve_precision("auto") == Precision::bf16) {
+    names.push_back("peak_gemm_bf16");
+    names.push_back("peak_conv_bf16");
+  }
+  return names;
+}
+
+double count_gflop(const std::function<void()>& fn) {
+  namespace prof = torch::profiler::impl;
+  const prof::ProfilerConfig config(prof::ProfilerState::KINETO, /*report_input_shapes=*/true, false, false,
+                                    /*with_flops=*/true);
+  const std::set<prof::ActivityType> activities = {prof::ActivityType::CPU};
+  torch::autograd::profiler::prepareProfiler(config, activities);
+  torch::autograd::profiler::enableProfiler(config, activities);
+  fn();
+  const auto result = torch::autograd::profiler::disableProfiler();
+  double flops = 0;
+  for (const auto& e : result->events()) {
+    flops += static_cast<double>(e.flops());
+    if (e.name() == "aten::conv_transpose2d" && e.hasShapes() && e.shapes().size() >= 2) {
+      const auto& in = e.shapes()[0];  // {N,Cin,H,W}
+      const auto& w = e.shapes()[1];   // {Cin,Cout/groups,kh,kw}
+      if (in.size() == 4 && w.size() == 4) flops += 2.0 * in[0] * in[1] * in[2] * in[3] * w[1] * w[2] * w[3];
+    }
+  }
+  return flops / 1e9;
+}
+
 bool bench_row_has_precision(const std::string& name) {
   return name.rfind("infer_", 0) == 0 || name.rfind("train_", 0) == 0;
 }
@@ -233,6 +305,8 @@ BenchRow run_bench_row(const std::string& name, const BenchOptions& o) {
     c10::InferenceMode guard;
     row = time_row(name, "Tikhonov (SVD closed form) of one capture, 4 planes 500x620 -> 256x256", o, [&] { tik(Y); });
     row.per_second = 1000.0 / row.median_ms;
+    row.gflop = count_gflop([&] { tik(Y); });
+    row.peak_kind = "fp32";
   } else if (name == "live_frame") {
     const auto camera = load_camera_config(default_camera_path());
     const auto engine = make_classical(random_calibration(), camera, {ClassicalMethod::tikhonov, 1e-4});
@@ -260,6 +334,11 @@ BenchRow run_bench_row(const std::string& name, const BenchOptions& o) {
     row = train_row(name, 128, true, o);
   } else if (name == "train_cpu") {
     row = train_row(name, 16, false, o);
+  } else if (name.rfind("peak_", 0) == 0 && name.size() > 5) {
+    const auto names = peak_row_names();
+    if (std::find(names.begin(), names.end(), name) == names.end())
+      throw Error("bench: row '" + name + "' needs bf16, which this CPU does not run natively");
+    row = peak_row(name, o);
   } else if (name == "mask_step") {
     row = mask_row(o);
   } else if (name == "loader") {

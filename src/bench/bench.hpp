@@ -3,6 +3,8 @@
 // scripts/bench_reference.py times in Python PyTorch (scripts/bench_compare.sh prints the ratios).
 // Each row: warm-up runs, then `repeats` timed runs; median and min in ms, and the peak resident
 // memory of the row alone (the kernel's high-water mark is reset before each row).
+#include <cmath>
+#include <functional>
 #include <string>
 #include <vector>
 
@@ -36,13 +38,29 @@ struct BenchRow {
   double peak_rss_mb = 0;   // VmHWM after the row (reset before it)
   double per_second = 0;    // derived throughput (items/s) where meaningful
   std::vector<OpTime> ops;  // with BenchOptions::profile: operators by self time, largest first
+  // Floating-point work of one run in GFLOP (count_gflop: convolutions, matrix products and
+  // elementwise arithmetic as LibTorch's profiler counts them, transposed convolutions from their
+  // shapes; training rows x3 for the backward pass), NaN where not counted (FFTs, data loading).
+  double gflop = std::nan("");
+  double gflops() const { return gflop / (median_ms / 1e3); }  // achieved GFLOP/s (median run)
+  // The precision whose practical peak this row is measured against ("fp32", "bf16"; empty: none):
+  // the fastest of that precision's peak rows (GEMM or 3x3 convolution).
+  std::string peak_kind;
 };
 
 // tikhonov, live_frame, simulator, infer_paper, infer_cpu, train_paper, train_cpu, mask_step, loader
 const std::vector<std::string>& bench_row_names();
+// The machine's practical peak: peak_gemm_fp32, peak_conv_fp32, and (where the CPU runs bf16
+// natively) peak_gemm_bf16, peak_conv_bf16. `flatnet bench --rows peak` runs them.
+std::vector<std::string> peak_row_names();
 // Rows whose cost depends on the precision (infer_*, train_*); in bf16 they are reported as NAME_bf16.
 bool bench_row_has_precision(const std::string& name);
 BenchRow run_bench_row(const std::string& name, const BenchOptions& options);
+
+// GFLOP of one call of fn, counted by running it once under LibTorch's profiler with FLOP counting
+// (aten::conv2d, mm, addmm, bmm, mul, add: 2 per multiply-add) plus aten::conv_transpose2d from its
+// input and weight shapes (2 N Cin H W Cout kh kw), which the profiler does not count.
+double count_gflop(const std::function<void()>& fn);
 
 // Peak resident set size of this process in MB (VmHWM) and its reset (Linux /proc/self/clear_refs).
 double peak_rss_mb();

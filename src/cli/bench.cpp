@@ -1,6 +1,7 @@
 #include <fstream>
 #include <iomanip>
 #include <iostream>
+#include <map>
 
 #include <nlohmann/json.hpp>
 
@@ -36,7 +37,9 @@ int bench(int argc, char** argv) {
   cxxopts::Options o("flatnet bench",
                      "Time the hot paths (median and min of N runs after warm-up, peak memory per row).\n"
                      "scripts/bench_compare.sh runs these rows beside their Python PyTorch twins.");
-  o.add_options()("rows", "comma list of rows (default: all)", cxxopts::value<std::string>())(
+  o.add_options()("rows", "comma list of rows (default: all; peak: the machine's practical peak rows, which then give "
+                          "every row its share of the peak)",
+                  cxxopts::value<std::string>())(
       "repeats", "timed runs per row", cxxopts::value<int>()->default_value("5"))(
       "warmup", "untimed runs before them", cxxopts::value<int>()->default_value("1"))(
       "levers",
@@ -70,10 +73,18 @@ int bench(int argc, char** argv) {
   if (r.count("rows")) {
     std::stringstream in(r["rows"].as<std::string>());
     std::string item;
-    while (std::getline(in, item, ',')) rows.push_back(item);
+    while (std::getline(in, item, ',')) {
+      if (item != "peak") {
+        rows.push_back(item);
+        continue;
+      }
+      for (const auto& p : peak_row_names()) rows.push_back(p);
+    }
   } else {
     rows = bench_row_names();
   }
+  // The peak rows first, so that every other row can be given its share of the peak.
+  std::stable_partition(rows.begin(), rows.end(), [](const std::string& n) { return n.rfind("peak_", 0) == 0; });
   const auto choice = r["precision"].as<std::string>();
   std::vector<bool> precisions;  // bf16 or not, per pass over a precision-dependent row
   if (choice == "both")
@@ -86,9 +97,11 @@ int bench(int argc, char** argv) {
   std::cout << "flatnet bench: " << threads << " threads, " << opt.repeats << " runs after " << opt.warmup
             << " warm-up\n"
             << "cpu: " << cpu.summary() << "; bf16: " << cpu.bf16_engine() << "\n";
-  std::cout << std::left << std::setw(13) << "row" << std::right << std::setw(12) << "median ms" << std::setw(12)
-            << "min ms" << std::setw(12) << "peak MB" << std::setw(12) << "per s"
+  std::cout << std::left << std::setw(15) << "row" << std::right << std::setw(10) << "median ms" << std::setw(12)
+            << "min ms" << std::setw(12) << "peak MB" << std::setw(12) << "per s" << std::setw(10) << "GFLOP/s"
+            << std::setw(8) << "peak %"
             << "  what\n";
+  std::map<std::string, double> peak_gflops;  // by precision: the fastest of this run's peak rows
   nlohmann::json out = {{"tool", "flatnet"},
                         {"threads", threads},
                         {"repeats", opt.repeats},
@@ -104,17 +117,35 @@ int bench(int argc, char** argv) {
   for (const auto& [name, bf16] : plan) {
     opt.bf16 = bf16;
     const auto row = run_bench_row(name, opt);
-    std::cout << std::left << std::setw(13) << row.name << std::right << std::fixed << std::setprecision(2)
-              << std::setw(12) << row.median_ms << std::setw(12) << row.min_ms << std::setprecision(0) << std::setw(12)
-              << row.peak_rss_mb << std::setprecision(2) << std::setw(12) << row.per_second << "  " << row.what
-              << std::endl;
+    const bool is_peak = row.name.rfind("peak_", 0) == 0;
+    if (is_peak) peak_gflops[row.peak_kind] = std::max(peak_gflops[row.peak_kind], row.gflops());
+    const double gflops = row.gflops();
+    const auto peak = peak_gflops.find(row.peak_kind);
+    const double share = peak != peak_gflops.end() && !is_peak ? gflops / peak->second : std::nan("");
+    auto cell = [](double v, int digits) {
+      std::ostringstream o;
+      if (std::isfinite(v))
+        o << std::fixed << std::setprecision(digits) << v;
+      else
+        o << "-";
+      return o.str();
+    };
+    std::cout << std::left << std::setw(15) << row.name << std::right << std::fixed << std::setprecision(2)
+              << std::setw(10) << row.median_ms << std::setw(12) << row.min_ms << std::setprecision(0) << std::setw(12)
+              << row.peak_rss_mb << std::setprecision(2) << std::setw(12) << row.per_second << std::setw(10)
+              << cell(gflops, 1) << std::setw(8) << cell(100 * share, 1) << "  " << row.what << std::endl;
+    auto number = [](double v) { return std::isfinite(v) ? nlohmann::json(v) : nlohmann::json(nullptr); };
     out["rows"].push_back({{"name", row.name},
                            {"what", row.what},
                            {"median_ms", row.median_ms},
                            {"min_ms", row.min_ms},
                            {"runs_ms", row.ms},
                            {"peak_rss_mb", row.peak_rss_mb},
-                           {"per_second", row.per_second}});
+                           {"per_second", row.per_second},
+                           {"gflop", number(row.gflop)},
+                           {"gflops", number(gflops)},
+                           {"peak_kind", row.peak_kind},
+                           {"peak_share", number(share)}});
     if (!opt.profile) continue;
     print_profile(row, profile_top);
     auto& ops = out["rows"].back()["profile"] = nlohmann::json::array();
