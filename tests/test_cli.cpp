@@ -643,6 +643,17 @@ TEST_CASE("FLOP counting: convolutions, transposed convolutions and GEMMs exactl
   CHECK(count_gflop([&] { torch::mm(a, b); }) * 1e9 == Approx(2.0 * 30 * 40 * 50));
 }
 
+TEST_CASE("FLOP counting of a training step: the backward's two gradients, each the forward's work", "[bench][flops]") {
+  const auto x = torch::randn({2, 3, 10, 12}, torch::requires_grad());
+  const auto w = torch::randn({5, 3, 3, 3}, torch::requires_grad());
+  const std::vector<int64_t> one{1, 1};
+  const double forward = 2.0 * 2 * 5 * 10 * 12 * 3 * 9;
+  const double counted = count_gflop([&] { torch::conv2d(x, w, torch::Tensor(), one, one, one).sum().backward(); }) * 1e9;
+  // forward + 2 x forward, and the sum's and its backward's few elementwise operations
+  CHECK(counted >= 3 * forward);
+  CHECK(counted < 3 * forward + 4 * 2 * 5 * 10 * 12);
+}
+
 TEST_CASE("flatnet bench --rows peak: the practical peak first, then each row's GFLOP/s and share of it",
           "[cli][bench][flops]") {
   test::Scratch s("bench_peak");

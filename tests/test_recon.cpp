@@ -7,6 +7,8 @@
 #include "eval/metrics.hpp"
 #include "eval/report.hpp"
 #include "helpers.hpp"
+#include "nn/onednn_conv.hpp"
+#include "optics/separable_inverse.hpp"
 #include "io/image.hpp"
 #include "io/raw.hpp"
 #include "nn/model_file.hpp"
@@ -266,4 +268,28 @@ TEST_CASE("inversion products: an exact inverse is all diagonal, a shifted one i
   CHECK(p2[5][0].item<double>() == Approx(1.0));  // row i = 5 (W's column 5 is Phi's column 0): offset i - j = 5
   CHECK(s2.offset == 5);
   CHECK_THROWS(inversion_product(q, q.slice(1, 0, 8)));
+}
+
+TEST_CASE("Tikhonov through oneDNN's GEMM equals the reference products, batches and broadcasts included",
+          "[recon][onednn]") {
+  torch::manual_seed(9);
+  // onednn_bmm against torch::bmm, with either operand broadcast over the batch.
+  const auto a = torch::randn({3, 7, 5}), b = torch::randn({3, 5, 4});
+  CHECK(torch::allclose(onednn_bmm(a, b), torch::bmm(a, b), 1e-5, 1e-5));
+  CHECK(torch::allclose(onednn_bmm(a.slice(0, 0, 1), b), torch::matmul(a.slice(0, 0, 1), b), 1e-5, 1e-5));
+  CHECK(torch::allclose(onednn_bmm(a, b.slice(0, 0, 1)), torch::matmul(a, b.slice(0, 0, 1)), 1e-5, 1e-5));
+  CHECK_THROWS(onednn_bmm(a, torch::randn({3, 4, 4})));
+  // The reconstruction: batch 1 and 2, against the optics layer's reference order.
+  Calibration c;
+  c.P = torch::randn({4, 40, 16}) / std::sqrt(40.0);
+  c.Q = torch::randn({4, 36, 16}) / std::sqrt(36.0);
+  const Tikhonov tik(c, 1e-3);
+  const auto v = separable_inverse(c.P, c.Q, 1e-3);
+  for (int64_t batch : {1, 2}) {
+    const auto Y = torch::randn({batch, 4, 40, 36});
+    const auto reference = apply_separable_inverse(v.ULt, v.UR, v.VL, v.VRt, v.filter, Y);
+    const auto fast = tik(Y);
+    REQUIRE(fast.sizes() == reference.sizes());
+    CHECK((fast - reference).abs().max().item<double>() < 1e-4 * reference.abs().max().item<double>());
+  }
 }

@@ -208,10 +208,9 @@ BenchRow train_row(const std::string& name, int64_t width, bool paper, const Ben
                           (o.levers.gemm_upsample ? ", gemm-up" : "") + (o.bf16 ? ", bf16 autocast" : ", fp32"),
                       o, [&] { gan_step(g, d, vgg, opt_g, opt_d, t, batch, step++); });
   row.per_second = 1000.0 / row.median_ms;
-  // Forward work as the profiler counts it, x3 for the backward (gradients of inputs and weights:
-  // the usual convention; the discriminator's forward on real images has no input gradient, so
-  // this slightly overstates the work).
-  row.gflop = 3 * count_gflop([&] { gan_step(g, d, vgg, opt_g, opt_d, t, batch, step++); });
+  // The step's work: forwards, backwards (count_gflop counts both gradients of every convolution,
+  // which overstates the first layers' by their unneeded input gradient) and Adam.
+  row.gflop = count_gflop([&] { gan_step(g, d, vgg, opt_g, opt_d, t, batch, step++); });
   row.peak_kind = o.bf16 ? "bf16" : "fp32";
   return row;
 }
@@ -269,10 +268,20 @@ double count_gflop(const std::function<void()>& fn) {
   double flops = 0;
   for (const auto& e : result->events()) {
     flops += static_cast<double>(e.flops());
-    if (e.name() == "aten::conv_transpose2d" && e.hasShapes() && e.shapes().size() >= 2) {
-      const auto& in = e.shapes()[0];  // {N,Cin,H,W}
-      const auto& w = e.shapes()[1];   // {Cin,Cout/groups,kh,kw}
-      if (in.size() == 4 && w.size() == 4) flops += 2.0 * in[0] * in[1] * in[2] * in[3] * w[1] * w[2] * w[3];
+    if (!e.hasShapes()) continue;
+    const auto& shapes = e.shapes();
+    if (e.name() == "aten::conv_transpose2d" && shapes.size() >= 2 && shapes[0].size() == 4 && shapes[1].size() == 4) {
+      const auto &in = shapes[0], &w = shapes[1];  // {N,Cin,H,W}, {Cin,Cout/groups,kh,kw}
+      flops += 2.0 * in[0] * in[1] * in[2] * in[3] * w[1] * w[2] * w[3];
+    } else if (e.name() == "aten::convolution_backward" && shapes.size() >= 3 && shapes[0].size() == 4 &&
+               shapes[1].size() == 4 && shapes[2].size() == 4) {
+      // The gradients of the input and of the weight, each as much work as the forward. A
+      // transposed convolution's output is larger than its input (FlatNet's 2x2 stride-2 ups).
+      const auto &grad_out = shapes[0], &in = shapes[1], &w = shapes[2];
+      const bool transposed = grad_out[2] > in[2];
+      const double forward = transposed ? 2.0 * in[0] * in[1] * in[2] * in[3] * w[1] * w[2] * w[3]
+                                        : 2.0 * grad_out[0] * grad_out[1] * grad_out[2] * grad_out[3] * w[1] * w[2] * w[3];
+      flops += 2 * forward;
     }
   }
   return flops / 1e9;
@@ -305,7 +314,9 @@ BenchRow run_bench_row(const std::string& name, const BenchOptions& o) {
     c10::InferenceMode guard;
     row = time_row(name, "Tikhonov (SVD closed form) of one capture, 4 planes 500x620 -> 256x256", o, [&] { tik(Y); });
     row.per_second = 1000.0 / row.median_ms;
-    row.gflop = count_gflop([&] { tik(Y); });
+    // oneDNN's GEMMs are invisible to the profiler: counted from the shapes, per plane
+    // Y U_R (2 h w N), U_L^T (.) (2 N h N), V_L (.) and (.) V_R^T (2 N^3 each).
+    row.gflop = 4.0 * (2.0 * kRows * kCols * kScene + 2.0 * kScene * kRows * kScene + 4.0 * kScene * kScene * kScene) / 1e9;
     row.peak_kind = "fp32";
   } else if (name == "live_frame") {
     const auto camera = load_camera_config(default_camera_path());

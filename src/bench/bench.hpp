@@ -39,8 +39,8 @@ struct BenchRow {
   double per_second = 0;    // derived throughput (items/s) where meaningful
   std::vector<OpTime> ops;  // with BenchOptions::profile: operators by self time, largest first
   // Floating-point work of one run in GFLOP (count_gflop: convolutions, matrix products and
-  // elementwise arithmetic as LibTorch's profiler counts them, transposed convolutions from their
-  // shapes; training rows x3 for the backward pass), NaN where not counted (FFTs, data loading).
+  // elementwise arithmetic as LibTorch's profiler counts them, transposed convolutions and the
+  // convolutions' backward from their shapes), NaN where not counted (FFTs, data loading).
   double gflop = std::nan("");
   double gflops() const { return gflop / (median_ms / 1e3); }  // achieved GFLOP/s (median run)
   // The precision whose practical peak this row is measured against ("fp32", "bf16"; empty: none):
@@ -58,8 +58,9 @@ bool bench_row_has_precision(const std::string& name);
 BenchRow run_bench_row(const std::string& name, const BenchOptions& options);
 
 // GFLOP of one call of fn, counted by running it once under LibTorch's profiler with FLOP counting
-// (aten::conv2d, mm, addmm, bmm, mul, add: 2 per multiply-add) plus aten::conv_transpose2d from its
-// input and weight shapes (2 N Cin H W Cout kh kw), which the profiler does not count.
+// (aten::conv2d, mm, addmm, bmm, mul, add: 2 per multiply-add) plus, from their shapes, what the
+// profiler does not count: aten::conv_transpose2d (2 N Cin H W Cout kh kw) and
+// aten::convolution_backward (the input's and the weight's gradients, each the forward's work).
 double count_gflop(const std::function<void()>& fn);
 
 // Peak resident set size of this process in MB (VmHWM) and its reset (Linux /proc/self/clear_refs).

@@ -2,6 +2,8 @@
 
 #include <oneapi/dnnl/dnnl.hpp>
 
+#include <mutex>
+
 #include "core/error.hpp"
 
 namespace flatnet {
@@ -94,6 +96,50 @@ torch::Tensor OneDnnConv::operator()(const torch::Tensor& input) {
       stream, {{DNNL_ARG_SRC, src}, {DNNL_ARG_WEIGHTS, plan.weights}, {DNNL_ARG_BIAS, plan.bias}, {DNNL_ARG_DST, dst}});
   stream.wait();
   return y;
+}
+
+namespace {
+
+struct MatmulPlan {
+  dnnl::matmul primitive;
+  dnnl::memory::desc a, b, c;
+};
+
+// Made once per shape (batch of A, of B, M, K, N), shared by the threads that ask.
+MatmulPlan& matmul_plan(int64_t batch_a, int64_t batch_b, int64_t m, int64_t k, int64_t n) {
+  static std::mutex mutex;
+  static std::map<std::array<int64_t, 5>, std::unique_ptr<MatmulPlan>> plans;
+  std::lock_guard<std::mutex> lock(mutex);
+  auto& slot = plans[{batch_a, batch_b, m, k, n}];
+  if (!slot) {
+    auto plan = std::make_unique<MatmulPlan>();
+    const int64_t batch = std::max(batch_a, batch_b);
+    plan->a = dnnl::memory::desc({batch_a, m, k}, dt::f32, tag::abc);
+    plan->b = dnnl::memory::desc({batch_b, k, n}, dt::f32, tag::abc);
+    plan->c = dnnl::memory::desc({batch, m, n}, dt::f32, tag::abc);
+    const dnnl::matmul::desc desc(plan->a, plan->b, plan->c);
+    plan->primitive = dnnl::matmul(dnnl::matmul::primitive_desc(desc, cpu_engine()));
+    slot = std::move(plan);
+  }
+  return *slot;
+}
+
+}  // namespace
+
+torch::Tensor onednn_bmm(const torch::Tensor& a_in, const torch::Tensor& b_in) {
+  TORCH_CHECK(a_in.dim() == 3 && b_in.dim() == 3 && a_in.size(2) == b_in.size(1) &&
+                  (a_in.size(0) == b_in.size(0) || a_in.size(0) == 1 || b_in.size(0) == 1),
+              "onednn_bmm: {batch,M,K} x {batch,K,N} expected, got ", a_in.sizes(), " and ", b_in.sizes());
+  const auto a = a_in.to(torch::kFloat32).contiguous(), b = b_in.to(torch::kFloat32).contiguous();
+  const int64_t m = a.size(1), k = a.size(2), n = b.size(2);
+  const auto& plan = matmul_plan(a.size(0), b.size(0), m, k, n);
+  auto c = torch::empty({std::max(a.size(0), b.size(0)), m, n}, a.options());
+  dnnl::memory am(plan.a, cpu_engine(), a.data_ptr()), bm(plan.b, cpu_engine(), b.data_ptr()),
+      cm(plan.c, cpu_engine(), c.data_ptr());
+  auto& stream = cpu_stream();
+  plan.primitive.execute(stream, {{DNNL_ARG_SRC, am}, {DNNL_ARG_WEIGHTS, bm}, {DNNL_ARG_DST, cm}});
+  stream.wait();
+  return c;
 }
 
 }  // namespace flatnet

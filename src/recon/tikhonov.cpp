@@ -1,5 +1,7 @@
 #include "recon/tikhonov.hpp"
 
+#include "nn/onednn_conv.hpp"
+
 namespace flatnet {
 
 Tikhonov::Tikhonov(const Calibration& calib, double lambda)
@@ -12,7 +14,18 @@ void Tikhonov::set_lambda(double lambda) {
 
 torch::Tensor Tikhonov::operator()(const torch::Tensor& Y) const {  // {B,4,h,w} -> {B,4,N,N}
   const auto& v = inverse_;
-  return apply_separable_inverse(v.ULt, v.UR, v.VL, v.VRt, v.filter, Y);
+  if (Y.requires_grad() || Y.dim() != 4 || Y.size(1) != 4)
+    return apply_separable_inverse(v.ULt, v.UR, v.VL, v.VRt, v.filter, Y);
+  // The same products (thesis eq. 2.6) through oneDNN's fp32 GEMM (nn/onednn_conv.hpp), the
+  // cheaper order first: UL^T (Y UR) is 2 N h (w + N) per plane against 2 N w (h + N).
+  const int64_t B = Y.size(0), h = Y.size(2), w = Y.size(3), N = v.VL.size(1);
+  const auto Yc = Y.to(torch::kFloat32).reshape({B * 4, h, w});
+  const auto per_plane = [&](const torch::Tensor& m) {  // {4,r,c} -> {B*4,r,c} (a view when B is 1)
+    return B == 1 ? m : m.unsqueeze(0).expand({B, 4, m.size(1), m.size(2)}).reshape({B * 4, m.size(1), m.size(2)});
+  };
+  const auto Z = onednn_bmm(per_plane(v.ULt), onednn_bmm(Yc, per_plane(v.UR)));  // {B*4,N,N}
+  const auto filtered = (Z.view({B, 4, N, N}) * v.filter).reshape({B * 4, N, N});
+  return onednn_bmm(onednn_bmm(per_plane(v.VL), filtered), per_plane(v.VRt)).view({B, 4, N, N});
 }
 
 namespace {
