@@ -293,3 +293,21 @@ TEST_CASE("Tikhonov through oneDNN's GEMM equals the reference products, batches
     CHECK((fast - reference).abs().max().item<double>() < 1e-4 * reference.abs().max().item<double>());
   }
 }
+
+TEST_CASE("the differentiable oneDNN product has torch::matmul's value and gradients, broadcasts included",
+          "[nn][onednn]") {
+  torch::manual_seed(10);
+  for (const auto& [batch_a, batch_b] : std::vector<std::pair<int64_t, int64_t>>{{3, 3}, {1, 3}, {3, 1}}) {
+    INFO(batch_a << " x " << batch_b);
+    const auto a0 = torch::randn({batch_a, 6, 5}), b0 = torch::randn({batch_b, 5, 4});
+    const auto weights = torch::randn({3, 6, 4});  // a loss that weighs every output differently
+    auto a1 = a0.clone().requires_grad_(), b1 = b0.clone().requires_grad_();
+    auto a2 = a0.clone().requires_grad_(), b2 = b0.clone().requires_grad_();
+    const auto mine = onednn_matmul_autograd(a1, b1), reference = torch::matmul(a2, b2);
+    CHECK(torch::allclose(mine, reference, 1e-5, 1e-5));
+    (mine * weights).sum().backward();
+    (reference * weights).sum().backward();
+    CHECK(torch::allclose(a1.grad(), a2.grad(), 1e-4, 1e-5));
+    CHECK(torch::allclose(b1.grad(), b2.grad(), 1e-4, 1e-5));
+  }
+}

@@ -215,6 +215,44 @@ BenchRow train_row(const std::string& name, int64_t width, bool paper, const Ben
   return row;
 }
 
+// One step of the shipped models' GAN recipe (configs/gan_transpose.yaml): U-Net width 32 reading
+// the light level, batch 8, the enhancer on 128x128 crops, MSE + 0.2 (1 - SSIM) + 0.01 adversarial
+// + 0.05 feature matching + 0.5 chroma, Adam. Data loading is not part of it (the loader row).
+BenchRow train_recipe_row(const std::string& name, const BenchOptions& o) {
+  torch::manual_seed(0);
+  auto options = generator_for(32);
+  options.level_input = true;
+  options.unet.in_channels = 8;  // the first stage's 4 planes and their 4 light levels
+  options.bn_momentum = options.unet.bn_momentum = 0.1;
+  Generator g(options);
+  g->prepare_training(o.levers);
+  Discriminator d(DiscriminatorOptions{});
+  Vgg16Features vgg(false);  // unused: the recipe has no perceptual term
+  TrainOptions t;
+  t.batch = 8;
+  t.crop = 128;
+  t.w_mse = 1.0, t.w_ssim = 0.2, t.w_perceptual = 0.0, t.w_adversarial = 0.01;
+  t.w_feature_matching = 0.05, t.w_chroma = 0.5;
+  t.bf16 = o.bf16;
+  torch::optim::Adam opt_g(g->parameters(), torch::optim::AdamOptions(1e-4));
+  torch::optim::Adam opt_d(d->parameters(), torch::optim::AdamOptions(1e-4));
+  g->train();
+  d->train();
+  Batch batch;
+  batch.meas = torch::randn({8, 4, kRows, kCols}) * 0.05 + 0.3;
+  batch.gt = torch::rand({8, 3, kScene, kScene});
+  int64_t step = 0;
+  auto row = time_row(name,
+                      "one step of the shipped GAN recipe: U-Net width 32 + light level, batch 8, 128x128 crops, MSE + "
+                      "0.2 SSIM + 0.01 adversarial + 0.05 feature matching + 0.5 chroma, Adam" +
+                          std::string(o.bf16 ? ", bf16 autocast" : ", fp32"),
+                      o, [&] { gan_step(g, d, vgg, opt_g, opt_d, t, batch, step++); });
+  row.per_second = 1000.0 / row.median_ms;
+  row.gflop = count_gflop([&] { gan_step(g, d, vgg, opt_g, opt_d, t, batch, step++); });
+  row.peak_kind = o.bf16 ? "bf16" : "fp32";
+  return row;
+}
+
 BenchRow mask_row(const BenchOptions& o) {
   MaskOptions mo;
   mo.rank = 1;
@@ -242,8 +280,9 @@ BenchRow mask_row(const BenchOptions& o) {
 }  // namespace
 
 const std::vector<std::string>& bench_row_names() {
-  static const std::vector<std::string> names = {"tikhonov",    "live_frame", "simulator", "infer_paper", "infer_cpu",
-                                                 "train_paper", "train_cpu",  "mask_step", "loader"};
+  static const std::vector<std::string> names = {"tikhonov",  "live_frame",   "simulator", "infer_paper",
+                                                 "infer_cpu", "train_paper",  "train_cpu", "train_recipe",
+                                                 "mask_step", "loader"};
   return names;
 }
 
@@ -345,6 +384,8 @@ BenchRow run_bench_row(const std::string& name, const BenchOptions& o) {
     row = train_row(name, 128, true, o);
   } else if (name == "train_cpu") {
     row = train_row(name, 16, false, o);
+  } else if (name == "train_recipe") {
+    row = train_recipe_row(name, o);
   } else if (name.rfind("peak_", 0) == 0 && name.size() > 5) {
     const auto names = peak_row_names();
     if (std::find(names.begin(), names.end(), name) == names.end())

@@ -48,7 +48,8 @@ struct BenchRow {
   std::string peak_kind;
 };
 
-// tikhonov, live_frame, simulator, infer_paper, infer_cpu, train_paper, train_cpu, mask_step, loader
+// tikhonov, live_frame, simulator, infer_paper, infer_cpu, train_paper, train_cpu, train_recipe (the
+// shipped models' GAN recipe), mask_step, loader
 const std::vector<std::string>& bench_row_names();
 // The machine's practical peak: peak_gemm_fp32, peak_conv_fp32, and (where the CPU runs bf16
 // natively) peak_gemm_bf16, peak_conv_bf16. `flatnet bench --rows peak` runs them.

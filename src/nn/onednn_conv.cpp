@@ -142,4 +142,31 @@ torch::Tensor onednn_bmm(const torch::Tensor& a_in, const torch::Tensor& b_in) {
   return c;
 }
 
+namespace {
+
+class OneDnnMatmulFunction : public torch::autograd::Function<OneDnnMatmulFunction> {
+ public:
+  static torch::Tensor forward(torch::autograd::AutogradContext* ctx, const torch::Tensor& a, const torch::Tensor& b) {
+    ctx->save_for_backward({a, b});
+    return onednn_bmm(a, b);
+  }
+  static torch::autograd::tensor_list backward(torch::autograd::AutogradContext* ctx,
+                                               torch::autograd::tensor_list grads) {
+    const auto saved = ctx->get_saved_variables();
+    const auto &a = saved[0], &b = saved[1];
+    const auto grad = grads[0].contiguous();  // {batch,M,N}
+    auto reduce_to = [](torch::Tensor g, int64_t batch) { return batch == 1 && g.size(0) > 1 ? g.sum(0, true) : g; };
+    torch::Tensor grad_a, grad_b;
+    if (a.requires_grad()) grad_a = reduce_to(onednn_bmm(grad, b.transpose(1, 2).contiguous()), a.size(0));
+    if (b.requires_grad()) grad_b = reduce_to(onednn_bmm(a.transpose(1, 2).contiguous(), grad), b.size(0));
+    return {grad_a, grad_b};
+  }
+};
+
+}  // namespace
+
+torch::Tensor onednn_matmul_autograd(const torch::Tensor& a, const torch::Tensor& b) {
+  return OneDnnMatmulFunction::apply(a, b);
+}
+
 }  // namespace flatnet

@@ -44,5 +44,8 @@ class OneDnnConv {
 // AVX-512 machines oneDNN's fp32 GEMM kernels run about twice as fast as OpenBLAS's at the
 // Tikhonov reconstruction's shapes (`flatnet bench --rows peak,tikhonov`). Inference only: no autograd.
 torch::Tensor onednn_bmm(const torch::Tensor& a, const torch::Tensor& b);
+// The same product, differentiable: its backward is two more oneDNN GEMMs (dA = dC B^T and
+// dB = A^T dC, summed over a broadcast batch). fp32; what FlatNet's first stage trains with.
+torch::Tensor onednn_matmul_autograd(const torch::Tensor& a, const torch::Tensor& b);
 
 }  // namespace flatnet
