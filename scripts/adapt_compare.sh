@@ -18,7 +18,7 @@ runs=${1:-$HOME/flatnet-runs/adapt}
 photos=${2:-../shared/data/images/train}
 minutes=${MINUTES-20 10 40}  # MINUTES="" skips training (table only)
 flatnet=${FLATNET:-$PWD/build/flatnet}
-shipped=$PWD/models/flatnet-sim-transpose.flatnet
+shipped=${SHIPPED:-$PWD/models/flatnet-sim-transpose.flatnet}  # SHIPPED: another starting model
 mkdir -p "$runs"
 
 camera() {  # NAME -> the camera folder, made once
@@ -90,7 +90,7 @@ done
     "$flatnet" eval --gt "$runs/eval-$cam/heldout/gt" --out "$runs/eval-$cam/rec" > "$runs/eval-$cam/eval.txt" 2>&1
     # metrics.csv: image,method,psnr,ssim,mean_output,mean_truth,niqe; the "mean" rows are the averages.
     grep '^mean,' "$runs/eval-$cam/rec/metrics.csv" | grep -v ',ground truth,' | sort -t, -k2,2 |
-      while IFS=, read -r _ method psnr ssim _ _ niqe; do
+      while IFS=, read -r _ method psnr ssim _ _ niqe _rest; do
       steps=""
       [ -f "$runs/$cam-$method/val.csv" ] && steps=$(tail -n 1 "$runs/$cam-$method/val.csv" | cut -d, -f1)
       printf '| %s | %s | %.2f | %.3f | %.2f | %s |\n' "$cam" "$method" "$psnr" "$ssim" "$niqe" "$steps"
