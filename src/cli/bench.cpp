@@ -10,6 +10,7 @@
 #include "core/precision.hpp"
 #include "core/util.hpp"
 #include "bench/bench.hpp"
+#include "eval/tables.hpp"  // fixed: "-" for NaN
 
 namespace flatnet::cli {
 
@@ -122,18 +123,10 @@ int bench(int argc, char** argv) {
     const double gflops = row.gflops();
     const auto peak = peak_gflops.find(row.peak_kind);
     const double share = peak != peak_gflops.end() && !is_peak ? gflops / peak->second : std::nan("");
-    auto cell = [](double v, int digits) {
-      std::ostringstream o;
-      if (std::isfinite(v))
-        o << std::fixed << std::setprecision(digits) << v;
-      else
-        o << "-";
-      return o.str();
-    };
     std::cout << std::left << std::setw(15) << row.name << std::right << std::fixed << std::setprecision(2)
               << std::setw(10) << row.median_ms << std::setw(12) << row.min_ms << std::setprecision(0) << std::setw(12)
               << row.peak_rss_mb << std::setprecision(2) << std::setw(12) << row.per_second << std::setw(10)
-              << cell(gflops, 1) << std::setw(8) << cell(100 * share, 1) << "  " << row.what << std::endl;
+              << fixed(gflops, 1) << std::setw(8) << fixed(100 * share, 1) << "  " << row.what << std::endl;
     auto number = [](double v) { return std::isfinite(v) ? nlohmann::json(v) : nlohmann::json(nullptr); };
     out["rows"].push_back({{"name", row.name},
                            {"what", row.what},
