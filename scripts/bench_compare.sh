@@ -9,7 +9,8 @@
 #   ratio_best <row> <C++ best median (fp32 or bf16) / Python best median>   (infer_*/train_* rows)
 #   scripts/bench_compare.sh [ROWS] [REPEATS] [ROUNDS]     (defaults: all six rows, 3, 2)
 # Environment: THREADS (default: all cores), LEVERS (flatnet's inference levers, default
-# fold,channels-last,gemm-up,onednn), PRECISION (flatnet's, default both), SWEEP=1 also times each
+# fold,channels-last,gemm-up,onednn), PYTHON (default /usr/bin/python3), FLATNET_BIN (default
+# build/flatnet), PRECISION (flatnet's, default both), SWEEP=1 also times each
 # inference lever alone (C++ only).
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -19,8 +20,8 @@ rounds=${3:-2}
 threads=${THREADS:-$(nproc)}
 levers=${LEVERS:-fold,channels-last,gemm-up,onednn}
 precision=${PRECISION:-both}
-py=/usr/bin/python3
-bin=build/flatnet
+py=${PYTHON:-/usr/bin/python3}  # another interpreter with torch: PYTHON=...
+bin=${FLATNET_BIN:-build/flatnet}
 [ -x "$bin" ] || bash scripts/build.sh
 "$py" -c 'import torch' 2>/dev/null || { echo "bench_compare: $py has no torch (apt install python3-torch)" >&2; exit 2; }
 tmp=$(mktemp -d)
@@ -28,6 +29,11 @@ trap 'rm -rf "$tmp"' EXIT
 
 bf16_flags=$(grep -m1 '^flags' /proc/cpuinfo | tr ' ' '\n' | grep -E '^(avx512f|avx512_bf16|amx_bf16)$' | tr '\n' ' ' || true)
 echo "machine: $(grep -m1 'model name' /proc/cpuinfo | cut -d: -f2 | sed 's/^ //'), $(nproc) cores, $threads threads, flags: ${bf16_flags:-none of avx512f avx512_bf16 amx_bf16}, $(date -u +%Y-%m-%d)"
+# Python runs on the OpenBLAS kernels flatnet runs on (core/blas.hpp: flatnet asks for SkylakeX where
+# OpenBLAS 0.3.21 falls back to slower ones), so that both sides' fp32 GEMMs are the same code.
+blas_core=$("$bin" bench --rows peak_gemm_fp32 --repeats 1 --warmup 0 --threads 1 | sed -n 's/^blas: OpenBLAS \([A-Za-z0-9]*\).*/\1/p')
+if [ -n "$blas_core" ]; then export OPENBLAS_CORETYPE=$blas_core; fi
+echo "blas: ${blas_core:+OpenBLAS $blas_core, both sides}"
 echo "flatnet levers: $levers; $repeats timed runs after 1 warm-up, $rounds interleaved rounds per row"
 IFS=, read -ra row_list <<< "$rows"
 for row in "${row_list[@]}"; do

@@ -4,10 +4,12 @@
 
 #include <ATen/autocast_mode.h>
 
+#include "core/blas.hpp"
 #include "core/error.hpp"
 #include "core/precision.hpp"
 #include "nn/generator.hpp"
 #include "nn/onednn_conv.hpp"
+#include "helpers.hpp"
 
 using namespace flatnet;
 using Catch::Matchers::Contains;
@@ -31,6 +33,39 @@ TEST_CASE("cpuinfo flags decide whether bf16 is native", "[precision]") {
   CHECK_THROWS_WITH(resolve_precision("fp16", a, "train.precision"),
                     Contains("train.precision") && Contains("auto, fp32 or bf16"));
   CHECK_FALSE(cpu_features().summary().empty());
+}
+
+TEST_CASE("OpenBLAS gets its SkylakeX kernels on AVX-512 CPUs it predates, unless the user chose", "[precision][blas]") {
+  const auto avx512 = parse_cpuinfo("model name : X\nflags : fpu avx2 avx512f avx512cd avx512bw avx512dq avx512vl\n");
+  const auto avx2 = parse_cpuinfo("model name : X\nflags : fpu avx2 fma\n");
+  const auto partial = parse_cpuinfo("model name : X\nflags : avx512f avx512cd\n");  // Knights Landing-like
+  CHECK(avx512.avx512_core);
+  CHECK_FALSE(partial.avx512_core);
+  CHECK(better_openblas_core("Prescott", avx512, nullptr) == "SkylakeX");    // Emerald Rapids on 0.3.21
+  CHECK(better_openblas_core("Cooperlake", avx512, nullptr) == "SkylakeX");  // Zen 5 on 0.3.21
+  CHECK(better_openblas_core("Haswell", avx512, "") == "SkylakeX");
+  CHECK(better_openblas_core("SkylakeX", avx512, nullptr).empty());
+  CHECK(better_openblas_core("SapphireRapids", avx512, nullptr).empty());  // a newer OpenBLAS's own
+  CHECK(better_openblas_core("Haswell", avx512, "Haswell").empty());       // the user's OPENBLAS_CORETYPE
+  CHECK(better_openblas_core("Haswell", avx2, nullptr).empty());
+  CHECK(better_openblas_core("Prescott", partial, nullptr).empty());
+  CHECK(better_openblas_core("", avx512, nullptr).empty());  // not OpenBLAS
+}
+
+TEST_CASE("the CLI runs OpenBLAS on the kernels chosen for this CPU and says which", "[precision][blas][cli]") {
+  const std::string row = "bench --rows peak_gemm_fp32 --repeats 1 --warmup 0 --threads 1";
+  const auto chosen = test::run_shell("env -u OPENBLAS_CORETYPE " + std::string(FLATNET_BINARY) + " " + row);
+  REQUIRE(chosen.code == 0);
+  if (openblas_core().empty()) {
+    CHECK_THAT(chosen.output, Contains("blas: not OpenBLAS"));
+  } else if (cpu_features().avx512_core) {
+    CHECK_THAT(chosen.output, Contains("blas: OpenBLAS SkylakeX") || Contains("blas: OpenBLAS SapphireRapids"));
+  } else {
+    CHECK_THAT(chosen.output, !Contains("set by flatnet"));
+  }
+  const auto user = test::run_shell("OPENBLAS_CORETYPE=Haswell " + std::string(FLATNET_BINARY) + " " + row);
+  REQUIRE(user.code == 0);
+  if (!openblas_core().empty()) CHECK_THAT(user.output, Contains("blas: OpenBLAS Haswell\n"));
 }
 
 TEST_CASE("autocast guards nest and restore the thread's state", "[precision]") {

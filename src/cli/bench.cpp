@@ -6,6 +6,7 @@
 #include <nlohmann/json.hpp>
 
 #include "cli/commands.hpp"
+#include "core/blas.hpp"
 #include "core/error.hpp"
 #include "core/precision.hpp"
 #include "core/util.hpp"
@@ -97,7 +98,7 @@ int bench(int argc, char** argv) {
   const auto& cpu = cpu_features();
   std::cout << "flatnet bench: " << threads << " threads, " << opt.repeats << " runs after " << opt.warmup
             << " warm-up\n"
-            << "cpu: " << cpu.summary() << "; bf16: " << cpu.bf16_engine() << "\n";
+            << "cpu: " << cpu.summary() << "; bf16: " << cpu.bf16_engine() << "\nblas: " << describe_blas() << "\n";
   std::cout << std::left << std::setw(15) << "row" << std::right << std::setw(10) << "median ms" << std::setw(12)
             << "min ms" << std::setw(12) << "peak MB" << std::setw(12) << "per s" << std::setw(10) << "GFLOP/s"
             << std::setw(8) << "peak %"
@@ -107,6 +108,7 @@ int bench(int argc, char** argv) {
                         {"threads", threads},
                         {"repeats", opt.repeats},
                         {"cpu", cpu.summary()},
+                        {"blas", describe_blas()},
                         {"rows", nlohmann::json::array()}};
   std::vector<std::pair<std::string, bool>> plan;
   for (const auto& name : rows) {

@@ -7,6 +7,7 @@
 #include <c10/util/Exception.h>  // c10::Error: LibTorch's exceptions become one line too
 
 #include "cli/commands.hpp"
+#include "core/blas.hpp"
 #include "core/error.hpp"
 #include "core/util.hpp"
 
@@ -59,6 +60,7 @@ int main(int argc, char** argv) {
     std::cerr << "flatnet: unknown command '" << command << "' (run 'flatnet --help')\n";
     return 2;
   }
+  flatnet::select_openblas_kernels(argv);  // may re-execute this program once (core/blas.hpp)
   flatnet::keep_freed_memory();
   try {
     return it->second.first(argc - 1, argv + 1);

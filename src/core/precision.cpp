@@ -32,6 +32,8 @@ CpuFeatures parse_cpuinfo(const std::string& text) {
       std::set<std::string> flags;
       for (std::string w; words >> w;) flags.insert(w);
       f.avx512f = flags.count("avx512f") > 0;
+      f.avx512_core = f.avx512f && flags.count("avx512cd") && flags.count("avx512bw") && flags.count("avx512dq") &&
+                      flags.count("avx512vl");
       f.avx512_bf16 = flags.count("avx512_bf16") > 0;
       f.amx_bf16 = flags.count("amx_bf16") > 0;
     }

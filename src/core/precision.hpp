@@ -12,6 +12,7 @@ enum class Precision { fp32, bf16 };
 struct CpuFeatures {
   std::string model;  // "Intel(R) Xeon(R) Processor"
   bool avx512f = false;
+  bool avx512_core = false;  // F, CD, BW, DQ and VL: what OpenBLAS's SkylakeX kernels need
   bool avx512_bf16 = false;  // AVX512-BF16: vdpbf16ps
   bool amx_bf16 = false;     // AMX tiles with bf16
   bool native_bf16() const { return avx512_bf16 || amx_bf16; }

@@ -1,0 +1,54 @@
+#include "core/blas.hpp"
+
+#include <cstdlib>
+#if defined(__linux__)
+#include <unistd.h>
+#endif
+
+// OpenBLAS's own query; weak, so that a program running on another BLAS still starts (null then).
+extern "C" char* openblas_get_corename(void) __attribute__((weak));
+
+namespace flatnet {
+
+namespace {
+constexpr const char* kChoseVariable = "FLATNET_OPENBLAS_CHOSE";
+}
+
+std::string openblas_core() {
+  if (openblas_get_corename == nullptr) return "";
+  const char* name = openblas_get_corename();
+  return name ? name : "";
+}
+
+std::string better_openblas_core(const std::string& current, const CpuFeatures& cpu, const char* user_choice) {
+  if (user_choice != nullptr && *user_choice != '\0') return "";
+  if (current.empty() || !cpu.avx512_core) return "";
+  if (current == "SkylakeX" || current == "SapphireRapids") return "";
+  return "SkylakeX";
+}
+
+void select_openblas_kernels(char** argv) {
+#if defined(__linux__)
+  const std::string current = openblas_core();
+  const std::string wanted = better_openblas_core(current, cpu_features(), std::getenv("OPENBLAS_CORETYPE"));
+  if (wanted.empty()) return;
+  setenv("OPENBLAS_CORETYPE", wanted.c_str(), 1);
+  setenv(kChoseVariable, current.c_str(), 1);
+  execv("/proc/self/exe", argv);
+  unsetenv("OPENBLAS_CORETYPE");  // exec failed: run on with the library's choice
+  unsetenv(kChoseVariable);
+#else
+  (void)argv;
+#endif
+}
+
+std::string describe_blas() {
+  const std::string core = openblas_core();
+  if (core.empty()) return "not OpenBLAS";
+  std::string text = "OpenBLAS " + core;
+  const char* chose = std::getenv(kChoseVariable);
+  if (chose != nullptr && *chose != '\0') text += std::string(" (set by flatnet; OpenBLAS chose ") + chose + ")";
+  return text;
+}
+
+}  // namespace flatnet
