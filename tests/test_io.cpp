@@ -4,6 +4,8 @@
 
 #include "core/error.hpp"
 #include "core/util.hpp"
+#include <numeric>
+
 #include "helpers.hpp"
 #include "io/dataset.hpp"
 #include "io/image.hpp"
@@ -212,6 +214,28 @@ TEST_CASE("dataset lists: pairs, FlatNet-style roots, and errors", "[io][dataset
                       Contains("gt3.txt") && Contains("line 1") && Contains("missing.png"));
   std::ofstream(s.dir / "empty.txt") << "\n";
   REQUIRE_THROWS_WITH(read_pairs({s.dir / "empty.txt", s.dir / "gt.txt", s.dir / "root"}), Contains("list is empty"));
+}
+
+TEST_CASE("parallel_for_index starts nothing after an error, and rethrows the first", "[core][threads]") {
+  std::vector<int> ran(50, 0);
+  CHECK_THROWS_WITH(parallel_for_index(50, 1,
+                                       [&](int64_t i) {
+                                         ran[i] = 1;
+                                         if (i == 3) throw Error("photo3.png", "corrupt");
+                                       }),
+                    Contains("photo3.png: corrupt"));
+  CHECK(std::accumulate(ran.begin(), ran.end(), 0) == 4);  // 0..3 ran, 4..49 never started
+}
+
+TEST_CASE("all cores means the cores this process may run on (its affinity)", "[core][threads][cli]") {
+  CHECK(all_cores() >= 1);
+  const int before = at::get_num_threads();
+  CHECK(set_threads(0) == all_cores());
+  set_threads(before);
+  const auto pinned = test::run_shell("taskset -c 0 " + std::string(FLATNET_BINARY) +
+                                      " bench --rows peak_gemm_fp32 --repeats 1 --warmup 0");
+  REQUIRE(pinned.code == 0);
+  CHECK_THAT(pinned.output, Contains("flatnet bench: 1 threads"));
 }
 
 TEST_CASE("worker threads run single-threaded, and BLAS from two workers at once gives each its own answer",

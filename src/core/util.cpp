@@ -10,6 +10,7 @@
 #include <csignal>
 
 #include <fcntl.h>
+#include <sched.h>  // sched_getaffinity
 #include <sys/stat.h>
 #include <unistd.h>
 
@@ -66,8 +67,15 @@ void keep_freed_memory() {
   mallopt(M_TRIM_THRESHOLD, 1 << 30);
 }
 
+int all_cores() {
+  cpu_set_t allowed;
+  CPU_ZERO(&allowed);
+  if (sched_getaffinity(0, sizeof(allowed), &allowed) == 0 && CPU_COUNT(&allowed) > 0) return CPU_COUNT(&allowed);
+  return static_cast<int>(std::max(1u, std::thread::hardware_concurrency()));
+}
+
 int set_threads(int n) {
-  if (n <= 0) n = static_cast<int>(std::max(1u, std::thread::hardware_concurrency()));
+  if (n <= 0) n = all_cores();
   at::set_num_threads(n);
   return n;
 }
@@ -272,18 +280,20 @@ void single_threaded_worker() {
 
 void parallel_for_index(int64_t n, int workers, const std::function<void(int64_t)>& fn) {
   std::atomic<int64_t> next{0};
+  std::atomic<bool> failed{false};
   std::exception_ptr error;
   std::mutex error_mutex;
   std::vector<std::thread> pool;
   for (int t = 0; t < std::max(1, workers); ++t)
     pool.emplace_back([&] {
       single_threaded_worker();
-      for (int64_t i; (i = next++) < n;) {
+      for (int64_t i; !failed && (i = next++) < n;) {
         try {
           fn(i);
         } catch (...) {
           std::lock_guard<std::mutex> lock(error_mutex);
           if (!error) error = std::current_exception();
+          failed = true;
         }
       }
     });

@@ -21,7 +21,11 @@ std::filesystem::path data_dir();
 // called once by the CLI; every forward pass then reuses its buffers instead of page-faulting.
 void keep_freed_memory();
 
-// Sets LibTorch's intra-op threads; n <= 0 means all hardware threads. Returns the count used.
+// The cores this process may run on (its CPU affinity: `taskset -c 0,1` gives 2 on any machine;
+// a container's cpuset likewise), at least 1. The one meaning of "all cores" in flatnet.
+int all_cores();
+
+// Sets LibTorch's intra-op threads; n <= 0 means all_cores(). Returns the count used.
 int set_threads(int n);
 
 // Writes a file atomically: `write_to` receives a temporary path in the same folder (same
@@ -53,8 +57,8 @@ std::vector<fs::path> list_images(const fs::path& dir, const std::vector<std::st
 bool has_extension(const fs::path& p, const std::vector<std::string>& extensions);
 extern const std::vector<std::string> kImageExtensions;  // png jpg jpeg tif tiff bmp
 
-// Calls fn(i) for i in [0, n) on `workers` threads (at least 1); the first exception is rethrown
-// after all threads finish.
+// Calls fn(i) for i in [0, n) on `workers` threads (at least 1). After an exception no new index
+// starts; the first exception is rethrown once all threads have finished.
 // Each worker runs single-threaded (single_threaded_worker).
 void parallel_for_index(int64_t n, int workers, const std::function<void(int64_t)>& fn);
 // Call first in every worker thread flatnet starts. A new std::thread begins with OpenMP's initial

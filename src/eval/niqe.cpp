@@ -179,7 +179,7 @@ NiqeModel fit_niqe(const std::vector<std::filesystem::path>& images,
   m.patch = patch;
   std::vector<torch::Tensor> rows(images.size());
   Progress bar("fit-niqe", static_cast<int64_t>(images.size()), progress);
-  const int workers = static_cast<int>(std::max(1u, std::thread::hardware_concurrency()));
+  const int workers = all_cores();
   parallel_for_index(static_cast<int64_t>(images.size()), workers, [&](int64_t i) {
     rows[i] = niqe_features(niqe_gray(load(images[i])), patch, true, m.sharpness_threshold);
     bar.tick();

@@ -5,9 +5,7 @@
 #include <iostream>
 #include <map>
 #include <sstream>
-#include <mutex>
 #include <random>
-#include <thread>
 
 #include "core/error.hpp"
 #include "core/util.hpp"
@@ -255,66 +253,53 @@ SimulateReport simulate_dataset(const Rig& rig, const SimulateOptions& opt) {
   SimulateReport report;
   report.total = static_cast<int64_t>(images.size());
 
-  const int workers =
-      opt.workers > 0 ? opt.workers : static_cast<int>(std::max(1u, std::thread::hardware_concurrency()));
-  std::atomic<size_t> next{0};
+  const int workers = opt.workers > 0 ? opt.workers : all_cores();
   std::atomic<int64_t> simulated{0}, skipped{0};
-  std::mutex error_mutex;
-  std::string first_error;
   Progress progress("simulate", report.total, opt.progress);
   const auto start = std::chrono::steady_clock::now();
-  auto work = [&]() {
-    single_threaded_worker();
+  // One photograph per call; the first error stops the others from starting (parallel_for_index).
+  const auto simulate_one = [&](int64_t i) {
     c10::InferenceMode guard;
-    for (size_t i = next++; i < images.size(); i = next++) {
-      {
-        std::lock_guard<std::mutex> lock(error_mutex);
-        if (!first_error.empty()) return;
-      }
-      const auto meas_path = opt.out / "meas" / names[i], gt_path = opt.out / "gt" / names[i];
-      const auto record = source_record(opt.out, names[i]);
-      try {
-        require(names[i].find_first_of("\n\r") == std::string::npos, images[i],
-                "a photograph's name holds a line break (the dataset's list files are one name per line)");
-        const auto fingerprint = file_fingerprint(images[i]);
-        if (reusable_pair(rig, meas_path, gt_path, record, fingerprint, opt.size)) {
-          ++skipped;
-        } else {
-          std::filesystem::remove(record);  // the pair is being remade: no record until both images are
-          auto scene = display_scene(images[i], opt.size);
-          // Per-image generator: the noise does not depend on thread scheduling.
-          auto gen = at::detail::createCPUGenerator(stable_hash(names[i], opt.seed));
-          torch::Tensor raw;
-          if (opt.exposure == 1.0 && !opt.lamp) {
-            raw = simulate_raw(rig, scene, opt.noise, gen);
-          } else {  // a real scene's light: the ground truth is what the scene shows, clipped at white
-            SceneLight light;
-            light.exposure = opt.exposure;
-            light.lamp_gain = opt.lamp_gain;
-            auto lamp_gen = at::detail::createCPUGenerator(stable_hash(names[i] + "#lamp", opt.seed));
-            if (opt.lamp) place_lamp(light, opt.size, lamp_gen);
-            const auto linear = lit_scene(scene, light);
-            raw = simulate_raw_linear(rig, linear, opt.noise, gen);
-            scene = visible_scene(linear);
-          }
-          write_rgb8(gt_path, scene);
-          write_gray16(meas_path, raw);
-          write_text_atomically(record, fingerprint + "\n");
-          ++simulated;
-        }
-      } catch (const std::exception& e) {
-        std::lock_guard<std::mutex> lock(error_mutex);
-        if (first_error.empty()) first_error = e.what();
-        return;
-      }
+    const auto meas_path = opt.out / "meas" / names[i], gt_path = opt.out / "gt" / names[i];
+    const auto record = source_record(opt.out, names[i]);
+    require(names[i].find_first_of("\n\r") == std::string::npos, images[i],
+            "a photograph's name holds a line break (the dataset's list files are one name per line)");
+    const auto fingerprint = file_fingerprint(images[i]);
+    if (reusable_pair(rig, meas_path, gt_path, record, fingerprint, opt.size)) {
+      ++skipped;
       progress.tick();
+      return;
     }
+    std::filesystem::remove(record);  // the pair is being remade: no record until both images are
+    auto scene = display_scene(images[i], opt.size);
+    // Per-image generator: the noise does not depend on thread scheduling.
+    auto gen = at::detail::createCPUGenerator(stable_hash(names[i], opt.seed));
+    torch::Tensor raw;
+    if (opt.exposure == 1.0 && !opt.lamp) {
+      raw = simulate_raw(rig, scene, opt.noise, gen);
+    } else {  // a real scene's light: the ground truth is what the scene shows, clipped at white
+      SceneLight light;
+      light.exposure = opt.exposure;
+      light.lamp_gain = opt.lamp_gain;
+      auto lamp_gen = at::detail::createCPUGenerator(stable_hash(names[i] + "#lamp", opt.seed));
+      if (opt.lamp) place_lamp(light, opt.size, lamp_gen);
+      const auto linear = lit_scene(scene, light);
+      raw = simulate_raw_linear(rig, linear, opt.noise, gen);
+      scene = visible_scene(linear);
+    }
+    write_rgb8(gt_path, scene);
+    write_gray16(meas_path, raw);
+    write_text_atomically(record, fingerprint + "\n");
+    ++simulated;
+    progress.tick();
   };
-  std::vector<std::thread> pool;
-  for (int t = 0; t < workers; ++t) pool.emplace_back(work);
-  for (auto& t : pool) t.join();
+  try {
+    parallel_for_index(static_cast<int64_t>(images.size()), workers, simulate_one);
+  } catch (...) {
+    progress.finish();
+    throw;
+  }
   progress.finish();
-  if (!first_error.empty()) throw Error(first_error);
   report.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
   report.simulated = simulated;
   report.skipped = skipped;

@@ -90,7 +90,7 @@ SeparableTrainSummary train_separable_codes(const SeparableTrainOptions& o) {
   if (o.train_limit > 0 && static_cast<int64_t>(train_list.size()) > o.train_limit) train_list.resize(o.train_limit);
   auto val_list = val_files;
   if (static_cast<int64_t>(val_list.size()) > o.val_count) val_list.resize(o.val_count);
-  const int workers = static_cast<int>(std::max(1u, std::thread::hardware_concurrency()));
+  const int workers = all_cores();
   const auto train = load_luma_scenes(train_list, 256, workers), val = load_luma_scenes(val_list, 256, workers);
   const auto train_linear = srgb_to_linear(train);
 
