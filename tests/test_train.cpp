@@ -3,6 +3,7 @@
 #include "catch_torch.hpp"
 
 #include <arpa/inet.h>
+#include <fstream>
 #include <netinet/in.h>
 #include <sys/socket.h>
 #include <unistd.h>
@@ -10,6 +11,7 @@
 #include "core/error.hpp"
 #include "core/util.hpp"
 #include "helpers.hpp"
+#include "train/csv_log.hpp"
 #include "train/distributed.hpp"
 #include "train/gan_trainer.hpp"
 
@@ -570,4 +572,19 @@ TEST_CASE("distributed: bad rendezvous settings are refused clearly", "[train][d
   unsetenv("WORLD_SIZE");
   unsetenv("RANK");
   CHECK(distributed_from_env().world_size == 1);
+}
+
+TEST_CASE("a trainer's CSV log: header at once, rows on flush, a failed write names the file", "[train][logs]") {
+  test::Scratch s("csv_log");
+  CsvLog log(s.dir / "log.csv", "step,loss,psnr");
+  CHECK(read_file_text(s.dir / "log.csv", 1 << 20) == "step,loss,psnr\n");
+  log.add(10, 0.25, 18.5);
+  log.add(20, 0.125, std::nan(""));
+  CHECK(read_file_text(s.dir / "log.csv", 1 << 20) == "step,loss,psnr\n");  // not yet flushed
+  log.flush();
+  CHECK(read_file_text(s.dir / "log.csv", 1 << 20) == "step,loss,psnr\n10,0.25,18.5\n20,0.125,nan\n");
+  for (const auto& e : std::filesystem::directory_iterator(s.dir))  // no temporary file left behind
+    CHECK(e.path().filename() == "log.csv");
+  std::ofstream(s.dir / "file") << "x";
+  CHECK_THROWS_WITH(CsvLog(s.dir / "file" / "log.csv", "step"), Contains("log.csv"));
 }

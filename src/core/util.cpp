@@ -81,7 +81,11 @@ int set_threads(int n) {
 }
 
 void write_atomically(const fs::path& path, const std::function<void(const fs::path&)>& write_to) {
-  if (path.has_parent_path()) fs::create_directories(path.parent_path());
+  if (path.has_parent_path()) {
+    std::error_code ec;
+    fs::create_directories(path.parent_path(), ec);
+    require(!ec, path, "cannot make its folder " + path.parent_path().string() + " (" + ec.message() + ")");
+  }
   static std::atomic<uint64_t> counter{0};
   const fs::path tmp = path.parent_path() / ("." + path.stem().string() + ".tmp" + std::to_string(::getpid()) + "_" +
                                              std::to_string(counter++) + path.extension().string());

@@ -1,5 +1,7 @@
 #include "train/mask_trainer.hpp"
 
+#include "train/csv_log.hpp"
+
 #include <fstream>
 #include <iomanip>
 #include <random>
@@ -38,10 +40,8 @@ MaskTrainSummary train_mask(MaskModel& model, const torch::Tensor& train_scenes,
     throw Error("config: train.optimizer must be sgd or adam, got '" + o.optimizer + "'");
 
   const auto n = train_scenes.size(0);
-  std::ofstream log(o.out / "log.csv");
-  log << "step,loss,psnr,gamma,throughput\n";
-  std::ofstream val_log(o.out / "val.csv");
-  val_log << "step,val_psnr,gamma,throughput\n";
+  CsvLog log(o.out / "log.csv", "step,loss,psnr,gamma,throughput");
+  CsvLog val_log(o.out / "val.csv", "step,val_psnr,gamma,throughput");
   Series train_curve{"train (batch)", {}, {}}, val_curve{"validation", {}, {}};
   Progress progress("mask", o.iterations, o.progress);
   const auto start = std::chrono::steady_clock::now();
@@ -55,7 +55,9 @@ MaskTrainSummary train_mask(MaskModel& model, const torch::Tensor& train_scenes,
     const auto w = model->window();
     const double g = std::exp(log_gamma.item<double>());
     const double p = mask_psnr(w, g, val_scenes, cam, 12345);
-    val_log << step << "," << p << "," << g << "," << throughput(w) << "\n" << std::flush;
+    val_log.add(step, p, g, throughput(w));
+    val_log.flush();
+    log.flush();
     val_curve.x.push_back(static_cast<double>(step));
     val_curve.y.push_back(p);
     s.val_psnr = p, s.gamma = g, s.throughput = throughput(w);
@@ -82,8 +84,7 @@ MaskTrainSummary train_mask(MaskModel& model, const torch::Tensor& train_scenes,
     progress.tick();
     if ((step + 1) % o.log_every == 0) {
       const double g = std::exp(log_gamma.item<double>());
-      log << step + 1 << "," << sum_loss / count << "," << sum_psnr / count << "," << g << ","
-          << throughput(model->window().detach()) << "\n";
+      log.add(step + 1, sum_loss / count, sum_psnr / count, g, throughput(model->window().detach()));
       train_curve.x.push_back(static_cast<double>(step + 1));
       train_curve.y.push_back(sum_psnr / count);
       std::ostringstream st;

@@ -13,6 +13,7 @@
 #include "optics/separable_camera.hpp"
 #include "optics/simulator.hpp"
 #include "eval/mask_score.hpp"
+#include "train/csv_log.hpp"
 #include "train/mask_trainer.hpp"
 
 namespace flatnet {
@@ -115,8 +116,7 @@ SeparableTrainSummary train_separable_codes(const SeparableTrainOptions& o) {
   };
 
   std::filesystem::create_directories(o.out);
-  std::ostringstream log;
-  log << "step,loss,throughput,lambda,val_psnr\n";
+  CsvLog log(o.out / "log.csv", "step,loss,throughput,lambda,val_psnr");
   SeparableTrainSummary summary;
   {
     const auto [u, v] = codes();
@@ -151,8 +151,8 @@ SeparableTrainSummary train_separable_codes(const SeparableTrainOptions& o) {
       }
       train_curve.x.push_back(static_cast<double>(step));
       train_curve.y.push_back(-10 * std::log10(std::max(1e-12, loss.item<double>())));
-      log << step << "," << loss.item<double>() << "," << t.item<double>() << "," << std::exp(log_lambda.item<double>())
-          << "," << val_psnr << "\n";
+      log.add(step, loss.item<double>(), t.item<double>(), std::exp(log_lambda.item<double>()), val_psnr);
+      log.flush();
       progress.set_status("loss " + std::to_string(loss.item<double>()) + " t " + std::to_string(t.item<double>()));
     }
     summary.steps = step;
@@ -166,7 +166,7 @@ SeparableTrainSummary train_separable_codes(const SeparableTrainOptions& o) {
   write_mat(o.out / "codes.mat", {{"code_rows", u.detach().to(torch::kFloat64).view({-1, 1})},
                                   {"code_cols", v.detach().to(torch::kFloat64).view({-1, 1})}});
   write_text_atomically(o.out / "lambda.txt", std::to_string(summary.lambda) + "\n");
-  write_text_atomically(o.out / "log.csv", log.str());
+  log.flush();
   PlotOptions po;
   po.title = "separable codes: PSNR (Tikhonov, linear light)";
   po.xlabel = "step";
