@@ -41,152 +41,218 @@ std::vector<Method> find_methods(const std::filesystem::path& out) {
   return methods;
 }
 
-}  // namespace
+// Mean and standard deviation of a column over the images where it is finite (NIQE of a flat image,
+// a ratio to a truth without colour and the like are NaN and left out).
+struct FiniteStats {
+  double sum = 0, sq = 0;
+  int64_t n = 0;
+  void add(double v) {
+    if (std::isfinite(v)) sum += v, sq += v * v, ++n;
+  }
+  double mean() const { return n > 0 ? sum / n : std::nan(""); }
+  double sd() const { return n > 0 ? std::sqrt(std::max(0.0, sq / n - mean() * mean())) : std::nan(""); }
+};
 
-std::vector<MethodScore> evaluate(const EvalOptions& opt, std::vector<ImageScore>* per_image) {
-  const auto gt_files = list_images(opt.gt, kImageExtensions);
-  require(!gt_files.empty(), opt.gt, "no ground-truth images in this folder");
+// The optional scorers: NIQE (a model file) and LPIPS (a backbone's weights).
+struct Scorers {
+  bool with_niqe = false, with_lpips = false;
+  NiqeModel niqe;
+  Lpips lpips{nullptr};
+  std::string lpips_net;
+};
+
+Scorers load_scorers(const EvalOptions& opt) {
+  Scorers s;
+  s.with_niqe = !opt.niqe_model.empty();
+  if (s.with_niqe) s.niqe = load_niqe(opt.niqe_model);
+  s.with_lpips = !opt.lpips.empty();
+  if (s.with_lpips) s.lpips = load_lpips(parse_lpips_backbone(opt.lpips), opt.lpips_files);
+  s.lpips_net = opt.lpips;
+  return s;
+}
+
+// The truth of `rec_path`'s scene at the reconstruction's size. Reconstructions at another resolution
+// are compared with the truth resized; another shape (a raw capture, a crop) is a wrong folder, not a score.
+torch::Tensor truth_for(const std::filesystem::path& gt_path, const std::filesystem::path& rec_path,
+                        const torch::Tensor& rec) {
+  const auto truth = read_rgb(gt_path);
+  const double rec_aspect = double(rec.size(2)) / rec.size(1), gt_aspect = double(truth.size(2)) / truth.size(1);
+  require(std::abs(rec_aspect / gt_aspect - 1) < 0.01, rec_path,
+          "is " + std::to_string(rec.size(2)) + "x" + std::to_string(rec.size(1)) + ", its ground truth " +
+              std::to_string(truth.size(2)) + "x" + std::to_string(truth.size(1)) +
+              ": not a reconstruction of that scene (is --out a folder of reconstructions?)");
+  return resize(truth, rec.size(1), rec.size(2));
+}
+
+// The truth of one scene and the scores that depend on it alone.
+struct Truth {
+  torch::Tensor image;  // {3,H,W}
+  double colour = 0, detail = 0;
+};
+
+// Every score of one reconstruction against its truth (a row of metrics.csv).
+struct Scored {
+  ImageScore image;
+  double mean_out = 0, mean_truth = 0;
+};
+
+Scored score_image(const torch::Tensor& rec, const Truth& truth, Scorers& scorers) {  // LPIPS's forward is not const
+  Scored r;
+  r.image.psnr = psnr(rec, truth.image);
+  r.image.ssim = ssim(rec, truth.image);
+  r.mean_out = rec.mean().item<double>();
+  r.mean_truth = truth.image.mean().item<double>();
+  if (scorers.with_niqe) r.image.niqe = niqe_score(scorers.niqe, rec);
+  // Ratios to the truth; a truth without colour (or detail) has no ratio: NaN, left out of the mean.
+  r.image.colour_kept = truth.colour > 1e-6 ? colourfulness(rec) / truth.colour : std::nan("");
+  r.image.detail_kept = truth.detail > 1e-6 ? luma_detail(rec) / truth.detail : std::nan("");
+  if (scorers.with_lpips) {
+    torch::NoGradGuard no_grad;
+    r.image.lpips = scorers.lpips->forward(rec.unsqueeze(0), truth.image.unsqueeze(0)).item<double>();  // {1,3,H,W}
+  }
+  return r;
+}
+
+// metrics.csv: image,method,psnr,ssim,mean_output,mean_truth[,niqe],colour_kept,detail_kept[,lpips_NET]
+std::string csv_header(const Scorers& scorers) {
+  return std::string("image,method,psnr,ssim,mean_output,mean_truth") + (scorers.with_niqe ? ",niqe" : "") +
+         ",colour_kept,detail_kept" + (scorers.with_lpips ? ",lpips_" + scorers.lpips_net : "") + "\n";
+}
+
+void write_csv_row(std::ostream& csv, const Scored& r, const Scorers& scorers) {
+  csv << r.image.image << "," << r.image.method << "," << r.image.psnr << "," << r.image.ssim << "," << r.mean_out
+      << "," << r.mean_truth;
+  if (scorers.with_niqe) csv << "," << r.image.niqe;
+  csv << "," << r.image.colour_kept << "," << r.image.detail_kept;
+  if (scorers.with_lpips) csv << "," << r.image.lpips;
+  csv << "\n";
+}
+
+// One method's running totals over the images, and its MethodScore (and mean row) at the end.
+struct MethodTotals {
+  int64_t count = 0;
+  double psnr = 0, psnr_sq = 0, ssim = 0, ssim_sq = 0, out = 0, truth = 0;  // plain sums over every image
+  FiniteStats niqe, colour, detail, lpips;
+
+  void add(const Scored& r) {
+    ++count;
+    psnr += r.image.psnr, psnr_sq += r.image.psnr * r.image.psnr;
+    ssim += r.image.ssim, ssim_sq += r.image.ssim * r.image.ssim;
+    out += r.mean_out, truth += r.mean_truth;
+    niqe.add(r.image.niqe), colour.add(r.image.colour_kept), detail.add(r.image.detail_kept);
+    lpips.add(r.image.lpips);
+  }
+
+  MethodScore finish(const std::string& method, const Scorers& scorers) const {
+    MethodScore s;
+    s.method = method;
+    s.count = count;
+    s.psnr = psnr / count;
+    s.ssim = ssim / count;
+    s.psnr_sd = std::sqrt(std::max(0.0, psnr_sq / count - s.psnr * s.psnr));
+    s.ssim_sd = std::sqrt(std::max(0.0, ssim_sq / count - s.ssim * s.ssim));
+    s.brightness = truth > 0 ? out / truth : 0;
+    if (scorers.with_niqe && niqe.n > 0) s.niqe = niqe.mean(), s.niqe_sd = niqe.sd();
+    if (colour.n > 0) s.colour_kept = colour.mean();
+    if (detail.n > 0) s.detail_kept = detail.mean();
+    if (scorers.with_lpips) {
+      s.lpips_net = scorers.lpips_net;
+      if (lpips.n > 0) s.lpips = lpips.mean(), s.lpips_sd = lpips.sd();
+    }
+    return s;
+  }
+
+  // The method's "mean" row of metrics.csv (an empty NIQE cell where no image had one).
+  void write_mean_row(std::ostream& csv, const MethodScore& s, const Scorers& scorers) const {
+    csv << "mean," << s.method << "," << s.psnr << "," << s.ssim << "," << out / count << "," << truth / count;
+    if (scorers.with_niqe) {
+      csv << ",";
+      if (niqe.n > 0) csv << s.niqe;
+    }
+    csv << "," << s.colour_kept << "," << s.detail_kept;
+    if (scorers.with_lpips) csv << "," << s.lpips;
+    csv << "\n";
+  }
+};
+
+// The truth's own NIQE row (per image and mean): its other columns are empty.
+void write_truth_row(std::ostream& csv, const std::string& image, double mean_truth, double niqe,
+                     const Scorers& scorers) {
+  csv << image << ",ground truth,,,," << mean_truth << "," << niqe << ",," << (scorers.with_lpips ? "," : "") << "\n";
+}
+
+std::vector<Method> chosen_methods(const EvalOptions& opt) {
   std::vector<Method> methods;
   for (const auto& name : opt.methods) {
     require(std::filesystem::is_directory(opt.out / name), opt.out / name, "no reconstructions of this method");
     methods.push_back({name, opt.out / name});
   }
-  if (methods.empty()) methods = find_methods(opt.out);
-  NiqeModel niqe_model;
-  const bool with_niqe = !opt.niqe_model.empty();
-  if (with_niqe) niqe_model = load_niqe(opt.niqe_model);
-  // Running sums of a NIQE column: {sum, sum of squares, count} (NaN scores, flat images, skipped).
-  struct Sums {
-    double sum = 0, sq = 0;
-    int64_t n = 0;
-  };
-  auto add = [](Sums& s, double v) {
-    if (std::isfinite(v)) s.sum += v, s.sq += v * v, ++s.n;
-  };
-  std::vector<Sums> niqe_sums(methods.size()), colour_sums(methods.size()), detail_sums(methods.size()),
-      lpips_sums(methods.size());
-  const bool with_lpips = !opt.lpips.empty();
-  Lpips lpips{nullptr};
-  if (with_lpips) lpips = load_lpips(parse_lpips_backbone(opt.lpips), opt.lpips_files);
-  Sums truth_niqe;
+  return methods.empty() ? find_methods(opt.out) : methods;
+}
+
+}  // namespace
+
+std::vector<MethodScore> evaluate(const EvalOptions& opt, std::vector<ImageScore>* per_image) {
+  const auto gt_files = list_images(opt.gt, kImageExtensions);
+  require(!gt_files.empty(), opt.gt, "no ground-truth images in this folder");
+  const auto methods = chosen_methods(opt);
+  auto scorers = load_scorers(opt);
   std::ostringstream csv;
-  csv << "image,method,psnr,ssim,mean_output,mean_truth" << (with_niqe ? ",niqe" : "") << ",colour_kept,detail_kept"
-      << (with_lpips ? ",lpips_" + opt.lpips : "") << "\n"
-      << std::fixed << std::setprecision(4);
-  std::vector<MethodScore> scores;
-  std::vector<std::vector<torch::Tensor>> sheet;
+  csv << csv_header(scorers) << std::fixed << std::setprecision(4);
+  std::vector<MethodTotals> totals(methods.size());
+  FiniteStats truth_niqe;
+  std::vector<std::vector<torch::Tensor>> sheet;  // rows: the truth, then each method ({3,H,W} each)
   std::vector<std::string> row_labels;
-  for (const auto& m : methods) scores.push_back({m.name});
-  std::vector<double> sum_sq_psnr(methods.size()), sum_sq_ssim(methods.size()), sum_out(methods.size()),
-      sum_gt(methods.size());
   for (const auto& gt_path : gt_files) {
     const auto name = gt_path.stem().string() + ".png";
+    const bool on_sheet = static_cast<int>(sheet.size()) < opt.sheet_rows;
     std::vector<torch::Tensor> row;
-    torch::Tensor gt;
-    double gt_colour = 0, gt_detail = 0;
+    Truth truth;
     for (size_t k = 0; k < methods.size(); ++k) {
       const auto rec_path = methods[k].dir / name;
       if (!std::filesystem::exists(rec_path)) continue;
-      auto rec = read_rgb(rec_path);
-      if (!gt.defined()) {
-        const auto truth = read_rgb(gt_path);
-        // Reconstructions at another resolution are compared with the truth resized; another shape
-        // (a raw capture, a crop) is a wrong folder, not a score.
-        const double rec_aspect = double(rec.size(2)) / rec.size(1), gt_aspect = double(truth.size(2)) / truth.size(1);
-        require(std::abs(rec_aspect / gt_aspect - 1) < 0.01, rec_path,
-                "is " + std::to_string(rec.size(2)) + "x" + std::to_string(rec.size(1)) + ", its ground truth " +
-                    std::to_string(truth.size(2)) + "x" + std::to_string(truth.size(1)) +
-                    ": not a reconstruction of that scene (is --out a folder of reconstructions?)");
-        gt = resize(truth, rec.size(1), rec.size(2));
-        gt_colour = colourfulness(gt), gt_detail = luma_detail(gt);
+      const auto rec = read_rgb(rec_path);
+      if (!truth.image.defined()) {
+        truth.image = truth_for(gt_path, rec_path, rec);
+        truth.colour = colourfulness(truth.image), truth.detail = luma_detail(truth.image);
       }
-      require(rec.sizes() == gt.sizes(), rec_path, "size differs from the other reconstructions");
-      const double p = psnr(rec, gt), s = ssim(rec, gt);
-      const double mean_out = rec.mean().item<double>(), mean_gt = gt.mean().item<double>();
-      csv << name << "," << methods[k].name << "," << p << "," << s << "," << mean_out << "," << mean_gt;
-      ImageScore image{name, methods[k].name, p, s};
-      if (with_niqe) {
-        const double q = niqe_score(niqe_model, rec);
-        add(niqe_sums[k], q);
-        csv << "," << q;
-        image.niqe = q;
-      }
-      // Ratios to the truth; a truth without colour (or detail) has no ratio: NaN, left out of the mean.
-      const double colour_kept = gt_colour > 1e-6 ? colourfulness(rec) / gt_colour : std::nan("");
-      const double detail_kept = gt_detail > 1e-6 ? luma_detail(rec) / gt_detail : std::nan("");
-      add(colour_sums[k], colour_kept);
-      add(detail_sums[k], detail_kept);
-      csv << "," << colour_kept << "," << detail_kept;
-      image.colour_kept = colour_kept, image.detail_kept = detail_kept;
-      if (with_lpips) {
-        torch::NoGradGuard no_grad;
-        const double d = lpips->forward(rec.unsqueeze(0), gt.unsqueeze(0)).item<double>();  // {1,3,H,W} each
-        add(lpips_sums[k], d);
-        csv << "," << d;
-        image.lpips = d;
-      }
-      csv << "\n";
-      if (per_image) per_image->push_back(image);
-      scores[k].count++;
-      scores[k].psnr += p;
-      scores[k].ssim += s;
-      sum_sq_psnr[k] += p * p, sum_sq_ssim[k] += s * s, sum_out[k] += mean_out, sum_gt[k] += mean_gt;
-      if (static_cast<int>(sheet.size()) < opt.sheet_rows) {
+      require(rec.sizes() == truth.image.sizes(), rec_path, "size differs from the other reconstructions");
+      auto scored = score_image(rec, truth, scorers);
+      scored.image.image = name, scored.image.method = methods[k].name;
+      write_csv_row(csv, scored, scorers);
+      if (per_image) per_image->push_back(scored.image);
+      totals[k].add(scored);
+      if (on_sheet) {
         if (row.empty()) row.resize(methods.size() + 1);
         row[k + 1] = rec;
       }
     }
-    if (with_niqe && gt.defined()) {
-      const double q = niqe_score(niqe_model, gt);
-      add(truth_niqe, q);
-      csv << name << ",ground truth,,,," << gt.mean().item<double>() << "," << q << ",," << (with_lpips ? "," : "")
-          << "\n";
+    if (scorers.with_niqe && truth.image.defined()) {
+      const double q = niqe_score(scorers.niqe, truth.image);
+      truth_niqe.add(q);
+      write_truth_row(csv, name, truth.image.mean().item<double>(), q, scorers);
     }
-    if (!row.empty() && static_cast<int>(sheet.size()) < opt.sheet_rows) {
-      row[0] = gt;
+    if (!row.empty() && on_sheet) {
+      row[0] = truth.image;
       for (auto& t : row)
-        if (!t.defined()) t = torch::ones_like(gt);
+        if (!t.defined()) t = torch::ones_like(truth.image);
       sheet.push_back(row);
       row_labels.push_back(gt_path.stem().string());
     }
   }
-  for (size_t k = 0; k < scores.size(); ++k) {
-    auto& s = scores[k];
-    require(s.count > 0, opt.out / s.method, "no file matches a ground-truth name in " + opt.gt.string());
-    s.psnr /= s.count;
-    s.ssim /= s.count;
-    s.psnr_sd = std::sqrt(std::max(0.0, sum_sq_psnr[k] / s.count - s.psnr * s.psnr));
-    s.ssim_sd = std::sqrt(std::max(0.0, sum_sq_ssim[k] / s.count - s.ssim * s.ssim));
-    s.brightness = sum_gt[k] > 0 ? sum_out[k] / sum_gt[k] : 0;
-    csv << "mean," << s.method << "," << s.psnr << "," << s.ssim << "," << sum_out[k] / s.count << ","
-        << sum_gt[k] / s.count;
-    if (with_niqe && niqe_sums[k].n > 0) {
-      s.niqe = niqe_sums[k].sum / niqe_sums[k].n;
-      s.niqe_sd = std::sqrt(std::max(0.0, niqe_sums[k].sq / niqe_sums[k].n - s.niqe * s.niqe));
-      csv << "," << s.niqe;
-    } else if (with_niqe) {
-      csv << ",";
-    }
-    if (colour_sums[k].n > 0) s.colour_kept = colour_sums[k].sum / colour_sums[k].n;
-    if (detail_sums[k].n > 0) s.detail_kept = detail_sums[k].sum / detail_sums[k].n;
-    csv << "," << s.colour_kept << "," << s.detail_kept;
-    if (with_lpips) {
-      s.lpips_net = opt.lpips;
-      if (lpips_sums[k].n > 0) {
-        s.lpips = lpips_sums[k].sum / lpips_sums[k].n;
-        s.lpips_sd = std::sqrt(std::max(0.0, lpips_sums[k].sq / lpips_sums[k].n - s.lpips * s.lpips));
-      }
-      csv << "," << s.lpips;
-    }
-    csv << "\n";
+  std::vector<MethodScore> scores;
+  for (size_t k = 0; k < methods.size(); ++k) {
+    require(totals[k].count > 0, opt.out / methods[k].name, "no file matches a ground-truth name in " + opt.gt.string());
+    scores.push_back(totals[k].finish(methods[k].name, scorers));
+    totals[k].write_mean_row(csv, scores.back(), scorers);
   }
-  if (with_niqe && truth_niqe.n > 0) {
-    MethodScore truth{"ground truth"};
+  if (scorers.with_niqe && truth_niqe.n > 0) {
+    MethodScore truth;
+    truth.method = "ground truth";
     truth.count = truth_niqe.n;
     truth.psnr = truth.ssim = truth.psnr_sd = truth.ssim_sd = truth.brightness = std::nan("");
-    truth.niqe = truth_niqe.sum / truth_niqe.n;
-    truth.niqe_sd = std::sqrt(std::max(0.0, truth_niqe.sq / truth_niqe.n - truth.niqe * truth.niqe));
-    csv << "mean,ground truth,,,,," << truth.niqe << ",," << (with_lpips ? "," : "") << "\n";
+    truth.niqe = truth_niqe.mean(), truth.niqe_sd = truth_niqe.sd();
+    csv << "mean,ground truth,,,,," << truth.niqe << ",," << (scorers.with_lpips ? "," : "") << "\n";
     scores.push_back(truth);
   }
   write_text_atomically(opt.out / "metrics.csv", csv.str());
