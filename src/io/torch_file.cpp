@@ -190,6 +190,11 @@ class Unpickler {
   PyRef call(const PyRef& fn, const PyRef& args);
   PyRef rebuild_tensor(const std::vector<PyRef>& a);
   void build(const PyRef& state);
+  // run()'s opcode groups: each returns false for an opcode not its own.
+  bool stack_and_memo_op(unsigned char op);
+  bool value_op(unsigned char op);
+  bool object_op(unsigned char op);
+  PyRef long_integer(size_t n);
 
  public:
   bool objects_ = false;  // read TorchScript modules as their attribute dicts (read_torchscript_archive)
@@ -273,250 +278,207 @@ void Unpickler::build(const PyRef& state) {
   if (target->kind != Kind::dict && target->kind != Kind::tensor) fail("refuses BUILD on a " + target->describe());
 }
 
+// Pickle opcodes (Python's Lib/pickletools.py names them; protocols 0-5, those torch.save writes).
+enum PickleOp : unsigned char {
+  kProto = 0x80, kFrame = 0x95, kStop = '.', kMark = '(', kPop = '0', kPopMark = '1', kDup = '2',
+  kEmptyDict = '}', kEmptyList = ']', kEmptyTuple = ')', kEmptySet = 0x8f, kTuple = 't', kTuple1 = 0x85,
+  kTuple2 = 0x86, kTuple3 = 0x87, kList = 'l', kDict = 'd', kFrozenset = 0x91,
+  kBinput = 'q', kLongBinput = 'r', kMemoize = 0x94, kBinget = 'h', kLongBinget = 'j',
+  kBinint = 'J', kBinint1 = 'K', kBinint2 = 'M', kLong1 = 0x8a, kLong4 = 0x8b, kBinfloat = 'G', kNone = 'N',
+  kNewTrue = 0x88, kNewFalse = 0x89, kBinunicode = 'X', kShortBinunicode = 0x8c, kBinunicode8 = 0x8d,
+  kShortBinstring = 'U', kBinstring = 'T', kShortBinbytes = 'C', kBinbytes = 'B', kBinbytes8 = 0x8e,
+  kGlobal = 'c', kStackGlobal = 0x93, kReduce = 'R', kNewobj = 0x81, kNewobjEx = 0x92, kBuild = 'b',
+  kSetitem = 's', kSetitems = 'u', kAppend = 'a', kAppends = 'e', kAdditems = 0x90, kBinpersid = 'Q',
+};
+
 PyRef Unpickler::run() {
   while (true) {
     const auto op = static_cast<unsigned char>(*take(1));
-    switch (op) {
-      case 0x80:
-        take(1);
-        break;  // PROTO
-      case 0x95:
-        take(8);
-        break;     // FRAME (the frame's bytes follow inline)
-      case '.': {  // STOP
-        if (stack_.size() != 1 || !marks_.empty())
-          fail("malformed: STOP with " + std::to_string(stack_.size()) + " values");
-        return stack_.back();
-      }
-      case '(':
-        marks_.push_back(stack_.size());
-        break;  // MARK
-      case '}':
-        stack_.push_back(make(Kind::dict));
-        break;
-      case ']':
-        stack_.push_back(make(Kind::list));
-        break;
-      case ')':
-        stack_.push_back(tuple({}));
-        break;
-      case 0x8f:
-        stack_.push_back(make(Kind::list));
-        break;  // EMPTY_SET (kept as a list)
-      case 't':
-        stack_.push_back(tuple(pop_to_mark()));
-        break;
-      case 0x85: {
-        auto a = pop();
-        stack_.push_back(tuple({a}));
-        break;
-      }
-      case 0x86: {
-        auto b = pop(), a = pop();
-        stack_.push_back(tuple({a, b}));
-        break;
-      }
-      case 0x87: {
-        auto c = pop(), b = pop(), a = pop();
-        stack_.push_back(tuple({a, b, c}));
-        break;
-      }
-      case 'l':
-        stack_.push_back(list(pop_to_mark()));
-        break;
-      case 'd': {
-        auto d = make(Kind::dict);
-        auto kv = pop_to_mark();
-        set_items(d, kv);
-        stack_.push_back(d);
-        break;
-      }
-      case 'q':
-        memo_[uint_le(1)] = top();
-        break;  // BINPUT
-      case 'r':
-        memo_[uint_le(4)] = top();
-        break;  // LONG_BINPUT
-      case 0x94:
-        memo_[memo_.size()] = top();
-        break;  // MEMOIZE
-      case 'h':
-      case 'j': {  // BINGET, LONG_BINGET
-        const auto k = uint_le(op == 'h' ? 1 : 4);
-        const auto it = memo_.find(k);
-        if (it == memo_.end()) fail("malformed: memo " + std::to_string(k) + " was never stored");
-        stack_.push_back(it->second);
-        break;
-      }
-      case 'J':
-        stack_.push_back(make_int(static_cast<int32_t>(uint_le(4))));
-        break;
-      case 'K':
-        stack_.push_back(make_int(static_cast<int64_t>(uint_le(1))));
-        break;
-      case 'M':
-        stack_.push_back(make_int(static_cast<int64_t>(uint_le(2))));
-        break;
-      case 0x8a:
-      case 0x8b: {  // LONG1, LONG4: little-endian two's complement
-        const auto n = uint_le(op == 0x8a ? 1 : 4);
-        if (n > 8) {  // only the legacy magic number is this long: kept as big-endian hex text
-          const auto* p = reinterpret_cast<const unsigned char*>(take(n));
-          std::ostringstream hex;
-          hex << std::hex;
-          bool leading = true;
-          for (size_t i = n; i-- > 0;) {
-            if (leading && p[i] == 0) continue;
-            hex << (leading ? "" : (p[i] < 16 ? "0" : "")) << static_cast<int>(p[i]);
-            leading = false;
-          }
-          stack_.push_back(make_text(Kind::integer, hex.str()));
-          break;
-        }
-        uint64_t v = n ? uint_le(n) : 0;
-        if (n && n < 8 && (v >> (8 * n - 1)) & 1) v |= ~uint64_t(0) << (8 * n);
-        stack_.push_back(make_int(static_cast<int64_t>(v)));
-        break;
-      }
-      case 'G': {  // BINFLOAT, big-endian
-        const auto* p = reinterpret_cast<const unsigned char*>(take(8));
-        uint64_t bits = 0;
-        for (int i = 0; i < 8; ++i) bits = (bits << 8) | p[i];
-        auto v = make(Kind::real);
-        std::memcpy(&v->real, &bits, 8);
-        stack_.push_back(v);
-        break;
-      }
-      case 'N':
-        stack_.push_back(make(Kind::none));
-        break;
-      case 0x88:
-      case 0x89: {
-        auto v = make(Kind::boolean);
-        v->boolean = op == 0x88;
-        stack_.push_back(v);
-        break;
-      }
-      case 'X': {
-        const auto n = uint_le(4);
-        stack_.push_back(make_text(Kind::string, std::string(take(n), n)));
-        break;
-      }
-      case 0x8c: {
-        const auto n = uint_le(1);
-        stack_.push_back(make_text(Kind::string, std::string(take(n), n)));
-        break;
-      }
-      case 0x8d: {
-        const auto n = uint_le(8);
-        stack_.push_back(make_text(Kind::string, std::string(take(n), n)));
-        break;
-      }
-      case 'U': {
-        const auto n = uint_le(1);
-        stack_.push_back(make_text(Kind::string, std::string(take(n), n)));
-        break;
-      }
-      case 'T': {
-        const auto n = uint_le(4);
-        stack_.push_back(make_text(Kind::string, std::string(take(n), n)));
-        break;
-      }
-      case 'C': {
-        const auto n = uint_le(1);
-        stack_.push_back(make_text(Kind::bytes, std::string(take(n), n)));
-        break;
-      }
-      case 'B': {
-        const auto n = uint_le(4);
-        stack_.push_back(make_text(Kind::bytes, std::string(take(n), n)));
-        break;
-      }
-      case 0x8e: {
-        const auto n = uint_le(8);
-        stack_.push_back(make_text(Kind::bytes, std::string(take(n), n)));
-        break;
-      }
-      case 'c': {  // GLOBAL "module\nname\n"
-        const auto module = line();
-        stack_.push_back(global(module, line()));
-        break;
-      }
-      case 0x93: {  // STACK_GLOBAL
-        auto name = pop(), module = pop();
-        if (name->kind != Kind::string || module->kind != Kind::string) fail("malformed: STACK_GLOBAL without strings");
-        stack_.push_back(global(module->text, name->text));
-        break;
-      }
-      case 'R': {
-        auto args = pop(), fn = pop();
-        stack_.push_back(call(fn, args));
-        break;
-      }
-      case 0x81: {  // NEWOBJ: only a TorchScript module, as the dict of its attributes
-        auto args = pop(), cls = pop();
-        if (!objects_ || cls->kind != Kind::global) fail("refuses NEWOBJ: the file constructs a class instance");
-        auto obj = make(Kind::dict);
-        obj->text = "object " + cls->text;
-        stack_.push_back(obj);
-        break;
-      }
-      case 0x92:
-        fail("refuses NEWOBJ_EX: the file constructs a class instance");
-      case 'b':
-        build(pop());
-        break;
-      case 's': {
-        auto v = pop(), k = pop();
-        set_items(top(), {k, v});
-        break;
-      }
-      case 'u': {
-        auto kv = pop_to_mark();
-        set_items(top(), kv);
-        break;
-      }
-      case 'a': {
-        auto v = pop();
-        if (top()->kind != Kind::list) fail("malformed: APPEND to a " + top()->describe());
-        auto& l = mutable_container(top());
-        adopt(l, v);
-        l.items.push_back(v);
-        break;
-      }
-      case 'e':
-      case 0x90: {  // APPENDS, ADDITEMS
-        auto items = pop_to_mark();
-        if (top()->kind != Kind::list) fail("malformed: APPENDS to a " + top()->describe());
-        auto& l = mutable_container(top());
-        adopt_all(l, items);
-        l.items.insert(l.items.end(), items.begin(), items.end());
-        break;
-      }
-      case 0x91:  // FROZENSET
-        stack_.push_back(list(pop_to_mark()));
-        break;
-      case 'Q': {
-        auto pid = pop();
-        stack_.push_back(persistent_(pid));
-        break;
-      }  // BINPERSID
-      case '0':
-        pop();
-        break;
-      case '1':
-        pop_to_mark();
-        break;
-      case '2':
-        stack_.push_back(top());
-        break;
-      default: {
-        std::ostringstream os;
-        os << "unknown pickle opcode 0x" << std::hex << static_cast<int>(op);
-        --pos_;
-        fail(os.str());
-      }
+    if (op == kStop) {
+      if (stack_.size() != 1 || !marks_.empty()) fail("malformed: STOP with " + std::to_string(stack_.size()) + " values");
+      return stack_.back();
     }
+    if (stack_and_memo_op(op) || value_op(op) || object_op(op)) continue;
+    std::ostringstream os;
+    os << "unknown pickle opcode 0x" << std::hex << static_cast<int>(op);
+    --pos_;
+    fail(os.str());
+  }
+}
+
+// Framing, marks, containers built from the stack, the memo, POP and DUP.
+bool Unpickler::stack_and_memo_op(unsigned char op) {
+  switch (op) {
+    case kProto: take(1); return true;
+    case kFrame: take(8); return true;  // the frame's bytes follow inline
+    case kMark: marks_.push_back(stack_.size()); return true;
+    case kPop: pop(); return true;
+    case kPopMark: pop_to_mark(); return true;
+    case kDup: stack_.push_back(top()); return true;
+    case kEmptyDict: stack_.push_back(make(Kind::dict)); return true;
+    case kEmptyList: stack_.push_back(make(Kind::list)); return true;
+    case kEmptyTuple: stack_.push_back(tuple({})); return true;
+    case kEmptySet: stack_.push_back(make(Kind::list)); return true;  // a set is kept as a list
+    case kTuple: stack_.push_back(tuple(pop_to_mark())); return true;
+    case kTuple1: {
+      auto a = pop();
+      stack_.push_back(tuple({a}));
+      return true;
+    }
+    case kTuple2: {
+      auto b = pop(), a = pop();
+      stack_.push_back(tuple({a, b}));
+      return true;
+    }
+    case kTuple3: {
+      auto c = pop(), b = pop(), a = pop();
+      stack_.push_back(tuple({a, b, c}));
+      return true;
+    }
+    case kList: stack_.push_back(list(pop_to_mark())); return true;
+    case kFrozenset: stack_.push_back(list(pop_to_mark())); return true;
+    case kDict: {
+      auto d = make(Kind::dict);
+      set_items(d, pop_to_mark());
+      stack_.push_back(d);
+      return true;
+    }
+    case kBinput: memo_[uint_le(1)] = top(); return true;
+    case kLongBinput: memo_[uint_le(4)] = top(); return true;
+    case kMemoize: memo_[memo_.size()] = top(); return true;
+    case kBinget:
+    case kLongBinget: {
+      const auto k = uint_le(op == kBinget ? 1 : 4);
+      const auto it = memo_.find(k);
+      if (it == memo_.end()) fail("malformed: memo " + std::to_string(k) + " was never stored");
+      stack_.push_back(it->second);
+      return true;
+    }
+    default: return false;
+  }
+}
+
+// LONG1/LONG4's n bytes: little-endian two's complement. Only the legacy format's magic number is
+// longer than 8 bytes; it is kept as big-endian hex text.
+PyRef Unpickler::long_integer(size_t n) {
+  if (n > 8) {
+    const auto* p = reinterpret_cast<const unsigned char*>(take(n));
+    std::ostringstream hex;
+    hex << std::hex;
+    bool leading = true;
+    for (size_t i = n; i-- > 0;) {
+      if (leading && p[i] == 0) continue;
+      hex << (leading ? "" : (p[i] < 16 ? "0" : "")) << static_cast<int>(p[i]);
+      leading = false;
+    }
+    return make_text(Kind::integer, hex.str());
+  }
+  uint64_t v = n ? uint_le(n) : 0;
+  if (n && n < 8 && (v >> (8 * n - 1)) & 1) v |= ~uint64_t(0) << (8 * n);
+  return make_int(static_cast<int64_t>(v));
+}
+
+// Scalars: integers, floats, None, booleans, strings and bytes.
+bool Unpickler::value_op(unsigned char op) {
+  const auto text = [&](Kind kind, uint64_t length_bytes) {
+    const auto n = uint_le(length_bytes);
+    stack_.push_back(make_text(kind, std::string(take(n), n)));
+    return true;
+  };
+  switch (op) {
+    case kBinint: stack_.push_back(make_int(static_cast<int32_t>(uint_le(4)))); return true;
+    case kBinint1: stack_.push_back(make_int(static_cast<int64_t>(uint_le(1)))); return true;
+    case kBinint2: stack_.push_back(make_int(static_cast<int64_t>(uint_le(2)))); return true;
+    case kLong1:
+    case kLong4: stack_.push_back(long_integer(uint_le(op == kLong1 ? 1 : 4))); return true;
+    case kBinfloat: {  // big-endian IEEE double
+      const auto* p = reinterpret_cast<const unsigned char*>(take(8));
+      uint64_t bits = 0;
+      for (int i = 0; i < 8; ++i) bits = (bits << 8) | p[i];
+      auto v = make(Kind::real);
+      std::memcpy(&v->real, &bits, 8);
+      stack_.push_back(v);
+      return true;
+    }
+    case kNone: stack_.push_back(make(Kind::none)); return true;
+    case kNewTrue:
+    case kNewFalse: {
+      auto v = make(Kind::boolean);
+      v->boolean = op == kNewTrue;
+      stack_.push_back(v);
+      return true;
+    }
+    case kShortBinunicode: return text(Kind::string, 1);
+    case kBinunicode: return text(Kind::string, 4);
+    case kBinunicode8: return text(Kind::string, 8);
+    case kShortBinstring: return text(Kind::string, 1);
+    case kBinstring: return text(Kind::string, 4);
+    case kShortBinbytes: return text(Kind::bytes, 1);
+    case kBinbytes: return text(Kind::bytes, 4);
+    case kBinbytes8: return text(Kind::bytes, 8);
+    default: return false;
+  }
+}
+
+// Globals, calls and object building: where a pickle could run code, so each is allow-listed
+// (global, call) or refused.
+bool Unpickler::object_op(unsigned char op) {
+  switch (op) {
+    case kGlobal: {  // "module\nname\n"
+      const auto module = line();
+      stack_.push_back(global(module, line()));
+      return true;
+    }
+    case kStackGlobal: {
+      auto name = pop(), module = pop();
+      if (name->kind != Kind::string || module->kind != Kind::string) fail("malformed: STACK_GLOBAL without strings");
+      stack_.push_back(global(module->text, name->text));
+      return true;
+    }
+    case kReduce: {
+      auto args = pop(), fn = pop();
+      stack_.push_back(call(fn, args));
+      return true;
+    }
+    case kNewobj: {  // only a TorchScript module, as the dict of its attributes
+      auto args = pop(), cls = pop();
+      if (!objects_ || cls->kind != Kind::global) fail("refuses NEWOBJ: the file constructs a class instance");
+      auto obj = make(Kind::dict);
+      obj->text = "object " + cls->text;
+      stack_.push_back(obj);
+      return true;
+    }
+    case kNewobjEx: fail("refuses NEWOBJ_EX: the file constructs a class instance");
+    case kBuild: build(pop()); return true;
+    case kSetitem: {
+      auto v = pop(), k = pop();
+      set_items(top(), {k, v});
+      return true;
+    }
+    case kSetitems: set_items(top(), pop_to_mark()); return true;
+    case kAppend: {
+      auto v = pop();
+      if (top()->kind != Kind::list) fail("malformed: APPEND to a " + top()->describe());
+      auto& l = mutable_container(top());
+      adopt(l, v);
+      l.items.push_back(v);
+      return true;
+    }
+    case kAppends:
+    case kAdditems: {
+      auto items = pop_to_mark();
+      if (top()->kind != Kind::list) fail("malformed: APPENDS to a " + top()->describe());
+      auto& l = mutable_container(top());
+      adopt_all(l, items);
+      l.items.insert(l.items.end(), items.begin(), items.end());
+      return true;
+    }
+    case kBinpersid: {
+      auto pid = pop();
+      stack_.push_back(persistent_(pid));
+      return true;
+    }
+    default: return false;
   }
 }
 
