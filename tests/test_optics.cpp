@@ -11,6 +11,7 @@
 #include "optics/camera.hpp"
 #include "optics/codes.hpp"
 #include "optics/separable_camera.hpp"
+#include "optics/simulator.hpp"
 
 using namespace flatnet;
 using Catch::Matchers::Contains;
@@ -199,4 +200,17 @@ TEST_CASE("a camera from codes: the MLS pair rebuilds rig.mat, and gradients rea
           Approx(0.03).epsilon(0.02));
     CHECK(exact.P[c].mean(0).abs().max().item<double>() < 1e-12);  // centred columns
   }
+}
+
+TEST_CASE("the simulator's errors name its options by key, never by a CLI flag", "[optics][errors]") {
+  const auto rig = load_rig(test::rig_path());
+  test::Scratch s("sim_keys");
+  SimulateOptions o;
+  o.images = s.dir;
+  o.out = s.dir / "out";
+  o.exposure = -1;
+  CHECK_THROWS_WITH(simulate_dataset(rig, o), Contains("simulate.exposure") && !Contains("--"));
+  o.exposure = 1;
+  o.val_fraction = 2;
+  CHECK_THROWS_WITH(simulate_dataset(rig, o), Contains("simulate.val_fraction: must be within [0, 1]") && !Contains("--"));
 }

@@ -125,8 +125,10 @@ TEST_CASE("simulate makes dim, lamp and held-out-only sets, and train --init-fro
   auto bad = test::run_flatnet("simulate --images " + q(photos) + " --out " + q(s.dir / "x") + " --exposure -1");
   CHECK(bad.code == 2);
   CHECK_THAT(bad.output, Contains("--exposure"));
+  CHECK_THAT(bad.output, !Contains("simulate.exposure"));  // the library's key, shown to the CLI's user as its flag
   bad = test::run_flatnet("simulate --images " + q(photos) + " --out " + q(s.dir / "x") + " --only test");
   CHECK(bad.code == 2);
+  CHECK_THAT(bad.output, Contains("--only: must be all, train or val"));
   bad =
       test::run_flatnet("simulate --images " + q(photos) + " --out " + q(s.dir / "x") + " --only val --val-fraction 0");
   CHECK(bad.code == 2);

@@ -144,7 +144,7 @@ TEST_CASE("reconstructions never overwrite a capture, and two captures of one na
   std::filesystem::copy_file(capture, other / "a.png");
   const auto before = read_bytes(in / "a.png");
   // --out equal to the input folder, given as the folder, a pattern or a list.
-  CHECK_THROWS_WITH(check_output_names({in / "a.png"}, in), Contains("--out") && Contains("overwrite a capture"));
+  CHECK_THROWS_WITH(check_output_names({in / "a.png"}, in), Contains("recon.out") && Contains("overwrite a capture"));
   CHECK_THROWS_WITH(check_output_names({in / "a.png"}, s.dir / "in" / "."), Contains("overwrite"));
   // Two captures named a.png from different folders would make one output.
   CHECK_THROWS_WITH(check_output_names({in / "a.png", other / "a.png"}, s.dir / "out"),
@@ -246,7 +246,7 @@ TEST_CASE("reconstruct_files: one batch loop writes a PNG per capture for any en
     CHECK(written.sizes() == torch::IntArrayRef({3, 16, 16}));
   }
   o.batch = 0;
-  CHECK_THROWS_WITH(reconstruct_files(grey, camera, captures, o), Contains("--batch"));
+  CHECK_THROWS_WITH(reconstruct_files(grey, camera, captures, o), Contains("recon.batch: must be at least 1"));
   o.batch = 1;
   CHECK_THROWS_WITH(reconstruct_files(grey, camera, {}, o), Contains("no captures"));
 }

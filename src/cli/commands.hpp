@@ -33,6 +33,11 @@ int capture_calibration(int argc, char** argv);
 int live(int argc, char** argv);
 int bench(int argc, char** argv);
 
+// Library errors name options by their keys (`simulate.val_fraction`, `recon.method`): a library
+// caller never passed a flag. The CLI's user knows them as flags; this rewrites each key in an
+// error's text as the flag that sets it (`--val-fraction`, `--method`).
+std::string with_flags(const std::string& message);
+
 // Shared flag handling.
 void add_common(cxxopts::Options& options);  // --threads, --help
 // Parses; prints help and returns false on --help. Applies --threads.

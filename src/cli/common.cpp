@@ -1,3 +1,4 @@
+#include <cctype>
 #include <cmath>
 #include <iostream>
 
@@ -6,6 +7,44 @@
 #include "core/util.hpp"
 
 namespace flatnet::cli {
+
+namespace {
+// Option keys the library layers name in errors, and the flag of each. Keys are unique, and none is a
+// prefix of another followed by a key character, so the rewrite is unambiguous.
+const std::vector<std::pair<std::string, std::string>>& flag_of_key() {
+  static const std::vector<std::pair<std::string, std::string>> table = {
+      {"simulate.val_fraction", "--val-fraction"}, {"simulate.exposure", "--exposure"},
+      {"simulate.lamp_gain", "--lamp-gain"},       {"simulate.size", "--size"},
+      {"simulate.only", "--only"},                 {"simulate.out", "--out"},
+      {"simulate.force", "--force"},               {"recon.method", "--method"},
+      {"recon.calib", "--calib"},                  {"recon.out", "--out"},
+      {"recon.input", "--input"},                  {"recon.batch", "--batch"},
+      {"report.methods", "--methods"},
+  };
+  return table;
+}
+
+bool is_key_char(char c) { return std::isalnum(static_cast<unsigned char>(c)) || c == '_' || c == '.'; }
+}  // namespace
+
+std::string with_flags(const std::string& message) {
+  std::string text = message;
+  for (const auto& [key, flag] : flag_of_key()) {
+    for (size_t at = text.find(key); at != std::string::npos; at = text.find(key, at)) {
+      const bool starts = at == 0 || !is_key_char(text[at - 1]);
+      const bool ends = at + key.size() == text.size() || !is_key_char(text[at + key.size()]) ||
+                        (text[at + key.size()] == '.' && (at + key.size() + 1 == text.size() ||
+                                                          !is_key_char(text[at + key.size() + 1])));
+      if (starts && ends) {
+        text.replace(at, key.size(), flag);
+        at += flag.size();
+      } else {
+        at += key.size();
+      }
+    }
+  }
+  return text;
+}
 
 void add_common(cxxopts::Options& options) {
   options.add_options("common")("threads", "CPU threads (default: all cores)",

@@ -65,7 +65,7 @@ int main(int argc, char** argv) {
   try {
     return it->second.first(argc - 1, argv + 1);
   } catch (const flatnet::Error& e) {
-    std::cerr << "flatnet " << command << ": error: " << e.what() << "\n";
+    std::cerr << "flatnet " << command << ": error: " << flatnet::cli::with_flags(e.what()) << "\n";
   } catch (const cxxopts::exceptions::exception& e) {
     std::cerr << "flatnet " << command << ": error: " << e.what() << "\n";
   } catch (const std::filesystem::filesystem_error& e) {  // "PATH: reason", as flatnet's own errors

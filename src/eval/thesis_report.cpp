@@ -129,7 +129,7 @@ void write_figure(const fs::path& path, const ReportSet& set, const std::vector<
 ReportMethod parse_report_method(const std::string& spec) {
   if (spec == "tikhonov" || spec == "tv") return {spec, spec, {}};
   const auto eq = spec.find('=');
-  require(eq != std::string::npos && eq > 0 && eq + 1 < spec.size(), "--methods",
+  require(eq != std::string::npos && eq > 0 && eq + 1 < spec.size(), "report.methods",
           "'" + spec + "': expected tikhonov, tv or NAME=MODEL.flatnet");
   ReportMethod m{spec.substr(0, eq), "model", spec.substr(eq + 1)};
   require(fs::exists(m.model), m.model, "no such model file");
@@ -149,7 +149,7 @@ std::string make_report(const ReportOptions& o) {
   require(!o.methods.empty() && !o.sets.empty(), "report", "at least one method and one set are needed");
   for (size_t i = 0; i < o.methods.size(); ++i)
     for (size_t j = 0; j < i; ++j)
-      require(o.methods[i].name != o.methods[j].name, "--methods", "two methods are named '" + o.methods[i].name + "'");
+      require(o.methods[i].name != o.methods[j].name, "report.methods", "two methods are named '" + o.methods[i].name + "'");
   fs::create_directories(o.out);
   std::unique_ptr<Calibration> calib;
   for (const auto& m : o.methods)

@@ -58,17 +58,17 @@ void check_output_names(const std::vector<std::filesystem::path>& captures, cons
     const auto [it, fresh] = writer_of.emplace(target, c);
     if (!fresh)
       throw Error(c, "has the same name as " + it->second.string() + ": both would be written to " + target.string() +
-                         " (reconstruct them into separate --out folders)");
+                         " (reconstruct them into separate `recon.out` folders)");
     if (inputs.count(target))
-      throw Error("--out",
-                  "writing " + target.string() + " would overwrite a capture being read; choose another --out folder");
+      throw Error("recon.out", "writing " + target.string() +
+                                 " would overwrite a capture being read; choose another `recon.out` folder");
   }
 }
 
 BatchReport reconstruct_files(Reconstructor& engine, const CameraConfig& camera,
                               const std::vector<std::filesystem::path>& captures, const BatchOptions& opt) {
-  require(!captures.empty(), "--input", "no captures to reconstruct");
-  require(opt.batch >= 1, "--batch", "must be at least 1");
+  require(!captures.empty(), "recon.input", "no captures to reconstruct");
+  require(opt.batch >= 1, "recon.batch", "must be at least 1");
   check_output_names(captures, opt.out);
   std::filesystem::create_directories(opt.out);
   c10::InferenceMode no_grad;

@@ -77,7 +77,7 @@ class OpenCvReconstructor final : public Reconstructor {
 ClassicalMethod parse_classical_method(const std::string& name) {
   if (name == "tikhonov") return ClassicalMethod::tikhonov;
   if (name == "tv") return ClassicalMethod::tv;
-  throw Error("--method", "must be tikhonov or tv, got '" + name + "'");
+  throw Error("recon.method", "must be tikhonov or tv, got '" + name + "'");
 }
 
 std::string classical_method_name(ClassicalMethod method) {
@@ -115,7 +115,7 @@ std::unique_ptr<Reconstructor> make_opencv(const std::filesystem::path& onnx_fil
 BuiltReconstructor make_reconstructor(const ReconstructorSpec& spec) {
   if (spec.method == "tikhonov" || spec.method == "tv") {
     const auto calib_path = spec.calibration.empty() ? spec.camera.calibration : spec.calibration;
-    require(!calib_path.empty(), "--calib", "no calibration: pass one, or use a camera file that names one");
+    require(!calib_path.empty(), "recon.calib", "no calibration: pass one, or use a camera file that names one");
     ClassicalOptions o;
     o.method = parse_classical_method(spec.method);
     o.lambda = spec.lambda;
@@ -132,7 +132,7 @@ BuiltReconstructor make_reconstructor(const ReconstructorSpec& spec) {
     r->engine().check_camera(camera);
     return {std::move(r), camera};
   }
-  throw Error("--method", "must be tikhonov, tv, flatnet or opencv, got '" + spec.method + "'");
+  throw Error("recon.method", "must be tikhonov, tv, flatnet or opencv, got '" + spec.method + "'");
 }
 
 }  // namespace flatnet
