@@ -33,7 +33,8 @@ int capture_calibration(int argc, char** argv);
 int live(int argc, char** argv);
 int bench(int argc, char** argv);
 
-// Library errors name options by their keys (`simulate.val_fraction`, `recon.method`): a library
+// Library errors name options by their keys, `<options>.<field>` (`simulate.val_fraction` for
+// SimulateOptions::val_fraction, `experiment.init_from`, `recon.method`): a library
 // caller never passed a flag. The CLI's user knows them as flags; this rewrites each key in an
 // error's text as the flag that sets it (`--val-fraction`, `--method`).
 std::string with_flags(const std::string& message);

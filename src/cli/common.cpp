@@ -19,7 +19,16 @@ const std::vector<std::pair<std::string, std::string>>& flag_of_key() {
       {"simulate.force", "--force"},               {"recon.method", "--method"},
       {"recon.calib", "--calib"},                  {"recon.out", "--out"},
       {"recon.input", "--input"},                  {"recon.batch", "--batch"},
-      {"report.methods", "--methods"},
+      {"report.methods", "--methods"},             {"recon.camera", "--camera"},
+      {"infer.levers", "--levers"},                {"eval.out", "--out"},
+      {"mask_report.out", "--out"},                {"mask_report.noise", "--noise"},
+      {"capture.timeout_ms", "--timeout-ms"},      {"capture.average", "--average"},
+      {"capture.frames", "--frames"},              {"collect.images", "--images"},
+      {"collect.display", "--display"},            {"live.region", "--region"},
+      {"experiment.source_camera", "--source-camera"},  {"experiment.out", "--out"},
+      {"experiment.rank", "--rank"},                    {"experiment.resume", "--resume"},
+      {"experiment.force", "--force"},                  {"experiment.init_from", "--init-from"},
+      {"experiment.reinit", "--reinit"},
   };
   return table;
 }

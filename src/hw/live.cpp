@@ -32,7 +32,7 @@ LiveStats run_live(FrameSource& source, Reconstructor& engine, Display* display,
       require(frame.codes.size(0) == opt.geometry.raw_height && frame.codes.size(1) == opt.geometry.raw_width, "camera",
               "frames are " + std::to_string(frame.codes.size(1)) + "x" + std::to_string(frame.codes.size(0)) +
                   " but the camera file expects " + std::to_string(opt.geometry.raw_width) + "x" +
-                  std::to_string(opt.geometry.raw_height) + " (set --region or use the matching camera .yaml)");
+                  std::to_string(opt.geometry.raw_height) + " (set live.region or use the matching camera .yaml)");
     }
     t = Clock::now();
     const auto planes = preprocess_raw(codes_to_unit(frame.codes, source.format().bits), opt.geometry);

@@ -168,7 +168,7 @@ void check_and_record_settings(const SimulateOptions& opt) {
     }
     if (!differences.empty() && !opt.force)
       throw Error(opt.out, "holds captures simulated with other settings (" + differences +
-                               "); rerun with the recorded settings to resume, choose another `simulate.out`, or set `simulate.force` "
+                               "); rerun with the recorded settings to resume, choose another simulate.out, or set simulate.force "
                                "to delete its captures and rebuild");
     if (!differences.empty()) {
       std::cerr << "simulate: --force: deleting " << opt.out.string() << "'s captures and lists (" << differences

@@ -58,10 +58,10 @@ void check_output_names(const std::vector<std::filesystem::path>& captures, cons
     const auto [it, fresh] = writer_of.emplace(target, c);
     if (!fresh)
       throw Error(c, "has the same name as " + it->second.string() + ": both would be written to " + target.string() +
-                         " (reconstruct them into separate `recon.out` folders)");
+                         " (reconstruct them into separate recon.out folders)");
     if (inputs.count(target))
       throw Error("recon.out", "writing " + target.string() +
-                                 " would overwrite a capture being read; choose another `recon.out` folder");
+                                 " would overwrite a capture being read; choose another recon.out folder");
   }
 }
 

@@ -173,9 +173,9 @@ void initialise_from_model(const ExperimentOptions& o, const Config& config, con
   if (o.reinit_inversion && transfer) {
     auto source_camera = o.source_camera;
     if (source_camera.empty()) source_camera = load_model_file(o.init_from).config.path("data.camera");
-    require(std::filesystem::exists(source_camera), "--source-camera",
+    require(std::filesystem::exists(source_camera), "experiment.source_camera",
             "the camera " + o.init_from.string() + " was trained for (" + source_camera.string() +
-                ") is not here; name its camera .yaml with --source-camera");
+                ") is not here; name its camera .yaml with experiment.source_camera");
     const auto source = load_camera_config(source_camera);
     require(!source.calibration.empty() && !camera.calibration.empty(), "model.inversion.init",
             "transfer needs both cameras' calibrations");
@@ -216,8 +216,8 @@ double training_bytes_per_sample(const Config& c, const CameraConfig& camera) {
 ExperimentResult run_experiment(const ExperimentOptions& o) {
   std::ostream& log = o.log ? *o.log : std::cerr;
   const auto& dist = o.distributed;
-  require(!o.out.empty(), "train", "--out DIR is required");
-  require(dist.world_size >= 1 && dist.rank >= 0 && dist.rank < dist.world_size, "--rank",
+  require(!o.out.empty(), "experiment.out", "an output folder is required");
+  require(dist.world_size >= 1 && dist.rank >= 0 && dist.rank < dist.world_size, "experiment.rank",
           "must lie in [0, world size " + std::to_string(dist.world_size) + ")");
   const bool writer = dist.rank == 0;
   const auto& out = o.out;
@@ -238,16 +238,16 @@ ExperimentResult run_experiment(const ExperimentOptions& o) {
     }
   } else {
     require(!writer || o.force || !std::filesystem::exists(latest), out,
-            "already holds a training run; continue it with --resume, choose another --out, or add --force to "
+            "already holds a training run; continue it with experiment.resume, choose another experiment.out, or set experiment.force to "
             "start afresh (deleting it)");
     const auto old = run_files(out);
     if (writer && !o.force && !old.empty())
       throw Error(out, "holds the files of another run that never reached its first checkpoint (" +
                            old.front().filename().string() +
-                           " ...); add --force to start afresh (deleting them) or choose another --out");
+                           " ...); set experiment.force to start afresh (deleting them) or choose another experiment.out");
     config = Config::load(o.config, sets);
   }
-  require(!(resume && !o.init_from.empty()), "--init-from", "starts a new run; it cannot be combined with --resume");
+  require(!(resume && !o.init_from.empty()), "experiment.init_from", "starts a new run; it cannot be combined with experiment.resume");
   require_no_light_augment_on_disk(config);
   // Everything that can fail on bad input is checked before anything is written.
   const auto camera = camera_of(config);
@@ -267,10 +267,10 @@ ExperimentResult run_experiment(const ExperimentOptions& o) {
               "-pixel scene (0: whole scenes)");
   auto [train_src, val_src] = data_sources(config, camera);
   torch::manual_seed(opts.seed);
-  require(!o.reinit_inversion || !o.init_from.empty(), "--reinit", "re-initialises part of an --init-from model");
+  require(!o.reinit_inversion || !o.init_from.empty(), "experiment.reinit", "re-initialises part of a experiment.init_from model");
   const bool transfer = config.str("model.inversion.init") == "transfer";
   require(!transfer || resume || o.reinit_inversion, "model.inversion.init",
-          "transfer makes the first stage from a trained model's: use it with --init-from MODEL --reinit inversion");
+          "transfer makes the first stage from a trained model's: use it with experiment.init_from MODEL experiment.reinit inversion");
   Generator g(generator_options(config, camera, !resume && (o.init_from.empty() || o.reinit_inversion)));
   if (!o.init_from.empty()) initialise_from_model(o, config, camera, g, log);
 
