@@ -162,7 +162,7 @@ TEST_CASE("VGG-16 features: torchvision's layout, loader round trip, clear error
   std::ofstream(s.dir / "vgg.pt", std::ios::binary).write(bytes.data(), bytes.size());
   auto loaded = load_vgg16(s.dir / "vgg.pt");
   CHECK(torch::equal(loaded->named_parameters()["features.21.weight"], dict.at("features.21.weight")));
-  CHECK_THROWS_WITH(load_vgg16(s.dir / "missing.pt"), Contains("--set loss.perceptual=0"));
+  CHECK_THROWS_WITH(load_vgg16(s.dir / "missing.pt"), Contains("loss.perceptual = 0"));
   std::ofstream(s.dir / "junk.pt") << "not a tensor file";
   CHECK_THROWS_WITH(load_vgg16(s.dir / "junk.pt"), Contains("junk.pt"));
 }

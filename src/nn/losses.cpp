@@ -82,7 +82,7 @@ Vgg16Features load_vgg16(const std::filesystem::path& weights, bool normalize) {
                 "VGG-16 weights not found; the perceptual loss needs them. Make the file with "
                 "`python3 models/convert_vgg16.py` where torchvision can download its weights (or point "
                 "loss.vgg_file at torchvision's own vgg16-397923af.pth), or train without the perceptual loss: "
-                "--set loss.perceptual=0");
+                "loss.perceptual = 0");
   const auto root = read_torch_file(weights);  // zip or legacy torch.save; errors name the file
   require(root->is_dict(), weights,
           "expected a dict of VGG-16 tensors (features.N.weight, ...), found a " + root->describe());
