@@ -4,6 +4,7 @@
 #include <fstream>
 
 #include "core/error.hpp"
+#include "core/util.hpp"
 #include "eval/mask_report.hpp"
 #include "eval/metrics.hpp"
 #include "helpers.hpp"
@@ -295,4 +296,29 @@ TEST_CASE("mask report refuses bad code and model lists", "[mask][cli][report]")
   CHECK(std::filesystem::exists(s.dir / "o" / "report.md"));
   CHECK(std::filesystem::exists(s.dir / "o" / "separable_sweep.png"));
   CHECK_FALSE(std::filesystem::exists(s.dir / "o" / "sweep.png"));  // the Wiener sections were left out
+}
+
+TEST_CASE("mask separable takes a config like the other trainers: defaults, shortcut flags, --set, ranges",
+          "[mask][separable][cli]") {
+  test::Scratch s("separable_cli");
+  const auto photos = test::make_photos(s.dir / "photos");
+  const std::string base = "mask separable --images " + q(photos) +
+                           " --set data.val_fraction=0.5 --set data.train_limit=1 --set train.val_every=1"
+                           " --set train.log_every=1 --batch 1 --val-count 1";
+  auto r = test::run_flatnet(base + " --iterations 2 --out " + q(s.dir / "run"));
+  REQUIRE(r.code == 0);
+  CHECK(std::filesystem::exists(s.dir / "run" / "codes.mat"));
+  const auto config = read_file_text(s.dir / "run" / "config.yaml");
+  CHECK_THAT(config, Contains("iterations: 2") && Contains("val_fraction: 0.5") && Contains("length: 511"));
+  CHECK_THAT(read_file_text(s.dir / "run" / "log.csv"),
+             Catch::Matchers::StartsWith("step,loss,throughput,lambda,val_psnr\n1,") && Contains("\n2,"));
+  r = test::run_flatnet(base + " --set codes.target_throughput=2 --out " + q(s.dir / "bad"));
+  CHECK(r.code == 2);
+  CHECK_THAT(r.output, Contains("codes.target_throughput = 2") && Contains("a share of light"));
+  r = test::run_flatnet(base + " --set codes.lenght=3 --out " + q(s.dir / "bad2"));
+  CHECK(r.code == 2);
+  CHECK_THAT(r.output, Contains("codes.length"));
+  r = test::run_flatnet(base + " --init random --set codes.length=63 --iterations 1 --out " + q(s.dir / "short"));
+  REQUIRE(r.code == 0);
+  CHECK(MatReader(s.dir / "short" / "codes.mat").read("code_rows").numel() == 63);
 }

@@ -232,51 +232,67 @@ int mask_report(int argc, char** argv) {
   return 0;
 }
 
-// flatnet mask separable: learns the code pair of the separable camera through Tikhonov.
+// flatnet mask separable: learns the code pair of the separable camera through Tikhonov. Configured
+// like the other trainers: configs/separable_defaults.yaml, then --config, then the shortcut flags
+// (each one a key), then --set.
+std::filesystem::path separable_defaults() { return data_dir() / "configs" / "separable_defaults.yaml"; }
+
 int mask_separable(int argc, char** argv) {
   cxxopts::Options o("flatnet mask separable",
-                     "Learn a separable FlatCam's codes end to end: codes -> PhiL/PhiR -> noisy capture -> Tikhonov.");
-  o.add_options()("images", "photographs (the training side of simulate's split is used)",
-                  cxxopts::value<std::string>())("out", "folder for codes.mat, lambda.txt, log.csv, curve.png",
-                                                 cxxopts::value<std::string>())(
-      "init", "mls (models/camera/codes_mls.mat), random, or a codes .mat",
-      cxxopts::value<std::string>()->default_value("mls"))(
-      "binary", "sign(u), sign(v) forward, straight-through gradients (a fabricable 0/1 mask)")(
-      "iterations", "steps", cxxopts::value<int64_t>()->default_value("1000"))(
-      "batch", "scenes per step", cxxopts::value<int64_t>()->default_value("8"))(
-      "lr", "Adam learning rate", cxxopts::value<double>()->default_value("0.02"))(
-      "lambda", "initial Tikhonov regulariser", cxxopts::value<double>()->default_value("1e-4"))(
-      "train-limit", "training photographs loaded (0: all)", cxxopts::value<int64_t>()->default_value("400"))(
-      "val-count", "held-out photographs for validation", cxxopts::value<int64_t>()->default_value("32"))(
-      "seed", "seed", cxxopts::value<uint64_t>()->default_value("0"));
+                     "Learn a separable FlatCam's codes end to end: codes -> PhiL/PhiR -> noisy capture -> Tikhonov. "
+                     "Settings: configs/separable_defaults.yaml (each shortcut flag sets one of its keys).");
+  o.add_options()("config", "experiment config overriding configs/separable_defaults.yaml", cxxopts::value<std::string>())(
+      "set", "override a setting, key=value (repeatable)", cxxopts::value<std::vector<std::string>>())(
+      "out", "folder for codes.mat, lambda.txt, log.csv, curve.png, config.yaml", cxxopts::value<std::string>())(
+      "images", "data.images: photographs (the training side of simulate's split is used)",
+      cxxopts::value<std::string>())("init", "codes.init: mls, random, or a codes .mat", cxxopts::value<std::string>())(
+      "binary", "codes.binary=true: sign(u), sign(v) forward, straight-through gradients (a fabricable 0/1 mask)")(
+      "iterations", "train.iterations", cxxopts::value<std::string>())("batch", "train.batch", cxxopts::value<std::string>())(
+      "lr", "train.lr", cxxopts::value<std::string>())("lambda", "train.lambda_init", cxxopts::value<std::string>())(
+      "train-limit", "data.train_limit (0: all)", cxxopts::value<std::string>())(
+      "val-count", "train.val_count", cxxopts::value<std::string>())("seed", "train.seed", cxxopts::value<std::string>());
   add_common(o);
   cxxopts::ParseResult r;
   if (!parse(o, argc, argv, r)) return 0;
-  require(r.count("images") && r.count("out"), "mask separable", "--images DIR and --out DIR are required");
+  require(r.count("out"), "mask separable", "--out DIR is required");
+  std::vector<std::string> sets;
+  for (const auto& [flag, key] : std::vector<std::pair<std::string, std::string>>{
+           {"images", "data.images"}, {"init", "codes.init"}, {"iterations", "train.iterations"},
+           {"batch", "train.batch"}, {"lr", "train.lr"}, {"lambda", "train.lambda_init"},
+           {"train-limit", "data.train_limit"}, {"val-count", "train.val_count"}, {"seed", "train.seed"}})
+    if (r.count(flag)) sets.push_back(key + "=" + r[flag].as<std::string>());
+  if (r.count("binary")) sets.push_back("codes.binary=true");
+  for (const auto& s : set_overrides(r)) sets.push_back(s);
+  const auto c = Config::load(r.count("config") ? r["config"].as<std::string>() : "", sets, separable_defaults());
   SeparableTrainOptions opt;
-  opt.images = r["images"].as<std::string>();
+  opt.images = c.path("data.images");
+  opt.val_fraction = c.num("data.val_fraction");
+  opt.split_seed = static_cast<uint64_t>(c.integer("data.split_seed"));
+  opt.train_limit = c.integer("data.train_limit");
+  const auto init = c.str("codes.init");
+  if (init == "mls")
+    opt.init_codes = data_dir() / "models" / "camera" / "codes_mls.mat";
+  else if (init != "random")
+    opt.init_codes = c.path("codes.init");
+  opt.code_length = c.integer("codes.length");
+  opt.binary = c.flag("codes.binary");
+  opt.target_throughput = c.num("codes.target_throughput");
+  opt.throughput_tolerance = c.num("codes.throughput_tolerance");
+  opt.iterations = c.integer("train.iterations");
+  opt.batch = c.integer("train.batch");
+  opt.lr = c.num("train.lr");
+  opt.lambda_init = c.num("train.lambda_init");
+  opt.seed = static_cast<uint64_t>(c.integer("train.seed"));
+  opt.log_every = c.integer("train.log_every");
+  opt.val_every = c.integer("train.val_every");
+  opt.val_count = c.integer("train.val_count");
+  require(opt.lr > 0, "train.lr", "must be positive for the code pair");
+  require(opt.val_count >= 1, "train.val_count", "at least 1 (the code pair's validation needs photographs)");
   opt.out = r["out"].as<std::string>();
   require(!std::filesystem::exists(opt.out / "codes.mat"), opt.out,
           "already holds learned codes; choose another --out");
   const auto claim = claim_out(r, opt.out, "mask separable");
-  const auto init = r["init"].as<std::string>();
-  if (init == "mls")
-    opt.init_codes = data_dir() / "models" / "camera" / "codes_mls.mat";
-  else if (init != "random")
-    opt.init_codes = init;
-  opt.binary = r.count("binary") > 0;
-  opt.iterations = r["iterations"].as<int64_t>();
-  opt.batch = r["batch"].as<int64_t>();
-  opt.lr = r["lr"].as<double>();
-  opt.lambda_init = r["lambda"].as<double>();
-  opt.train_limit = r["train-limit"].as<int64_t>();
-  opt.val_count = r["val-count"].as<int64_t>();
-  opt.seed = r["seed"].as<uint64_t>();
-  require(opt.iterations >= 1 && opt.iterations <= 1000000, "--iterations", "1 to 1e6");
-  require(opt.batch >= 1 && opt.batch <= 256, "--batch", "1 to 256");
-  require(std::isfinite(opt.lr) && opt.lr > 0 && opt.lr <= 10, "--lr", "a positive rate");
-  require(std::isfinite(opt.lambda_init) && opt.lambda_init > 0, "--lambda", "a positive regulariser");
-  require(opt.val_count >= 1, "--val-count", "at least 1");
+  write_text_atomically(opt.out / "config.yaml", c.to_yaml());
   watch_interrupts();
   const auto s = train_separable_codes(opt);
   std::cout << "separable codes: " << s.steps << " steps in " << format_duration(s.seconds) << "; validation PSNR "

@@ -22,6 +22,7 @@ namespace {
 
 constexpr int kChannel = 1;                                  // gb: the channel FlatNet's transpose init uses
 constexpr int64_t kTop = 6, kLeft = 10, kH = 500, kW = 620;  // the reference camera's window
+const int64_t kScene = SeparableCameraOptions{}.scene;       // its scene side (256)
 
 torch::Tensor centre_columns(const torch::Tensor& m) { return m - m.mean(0, true); }  // C_n m
 
@@ -86,13 +87,13 @@ double separable_psnr(const torch::Tensor& u, const torch::Tensor& v, double lam
 SeparableTrainSummary train_separable_codes(const SeparableTrainOptions& o) {
   require(o.iterations >= 1 && o.batch >= 1, "separable training", "iterations and batch must be positive");
   require(!o.out.empty(), "separable training", "an output folder is needed");
-  const auto [train_files, val_files] = split_image_files(o.images, 0.1, 1);
+  const auto [train_files, val_files] = split_image_files(o.images, o.val_fraction, o.split_seed);
   auto train_list = train_files;
   if (o.train_limit > 0 && static_cast<int64_t>(train_list.size()) > o.train_limit) train_list.resize(o.train_limit);
   auto val_list = val_files;
   if (static_cast<int64_t>(val_list.size()) > o.val_count) val_list.resize(o.val_count);
   const int workers = all_cores();
-  const auto train = load_luma_scenes(train_list, 256, workers), val = load_luma_scenes(val_list, 256, workers);
+  const auto train = load_luma_scenes(train_list, kScene, workers), val = load_luma_scenes(val_list, kScene, workers);
   const auto train_linear = srgb_to_linear(train);
 
   torch::manual_seed(o.seed);
@@ -102,8 +103,8 @@ SeparableTrainSummary train_separable_codes(const SeparableTrainOptions& o) {
     a = torch::atanh(u0.clamp(-0.95, 0.95));
     b = torch::atanh(v0.clamp(-0.95, 0.95));
   } else {
-    a = torch::randn({511}) * 0.5;
-    b = torch::randn({511}) * 0.5;
+    a = torch::randn({o.code_length}) * 0.5;
+    b = torch::randn({o.code_length}) * 0.5;
   }
   a.requires_grad_();
   b.requires_grad_();

@@ -17,8 +17,11 @@
 namespace flatnet {
 
 struct SeparableTrainOptions {
-  std::filesystem::path images;      // photographs; the training side of simulate's split (val 0.1, seed 1)
+  std::filesystem::path images;      // photographs; the training side of simulate's split
+  double val_fraction = 0.1;         // that split (flatnet simulate's defaults: the same photographs held out)
+  uint64_t split_seed = 1;
   std::filesystem::path init_codes;  // .mat with code_rows, code_cols to start from (MLS); empty: random
+  int64_t code_length = 511;         // elements per code when init_codes is empty
   int64_t train_limit = 400;         // photographs loaded for training (0: all)
   int64_t val_count = 32;            // held-out-split photographs for validation
   int64_t iterations = 1000, batch = 8;
