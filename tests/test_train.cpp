@@ -588,3 +588,20 @@ TEST_CASE("a trainer's CSV log: header at once, rows on flush, a failed write na
   std::ofstream(s.dir / "file") << "x";
   CHECK_THROWS_WITH(CsvLog(s.dir / "file" / "log.csv", "step"), Contains("log.csv"));
 }
+
+TEST_CASE("the moving average's decay is checked once per entry: the config's range, the trainer's options",
+          "[train][errors]") {
+  CHECK_THROWS_WITH(Config::load({}, {"train.ema_decay=1"}), Contains("train.ema_decay = 1"));
+  Setup setup;
+  test::Scratch s("ema_decay");
+  torch::manual_seed(0);
+  Generator g(generator_options(setup.config, setup.camera, true));
+  Discriminator d(discriminator_options(setup.config));
+  for (const double bad : {-0.5, 1.0}) {
+    auto o = setup.options(s.dir / "run", 2);
+    o.ema_decay = bad;
+    CHECK_THROWS_WITH(GanTrainer(g, d, Vgg16Features(nullptr), std::make_shared<MemoryPairs>(6),
+                                 load_all(MemoryPairs(2), 0, 1), o, model_identity(setup.config, setup.camera)),
+                      Contains("train.ema_decay: must lie in [0, 1)"));
+  }
+}

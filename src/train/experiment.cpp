@@ -29,7 +29,6 @@ TrainOptions train_options(const Config& c, const std::filesystem::path& out) {
   t.crop = c.integer("train.crop");
   require(t.crop == 0 || (t.crop >= 16 && t.crop % 16 == 0), "train.crop",
           "must be 0 or a multiple of 16 (the U-Net halves it 4 times)");
-  require(t.ema_decay >= 0 && t.ema_decay < 1, "train.ema_decay", "must lie in [0, 1)");
   t.bf16 = resolve_precision(c.str("train.precision"), "train.precision") == Precision::bf16;
   t.discriminator_warmup = c.integer("train.discriminator_warmup");
   t.noise_augment = c.num("train.noise_augment");

@@ -267,8 +267,9 @@ GanTrainer::GanTrainer(Generator generator, Discriminator discriminator, Vgg16Fe
   opt_g_ = std::make_unique<torch::optim::Adam>(groups, torch::optim::AdamOptions(opt_.lr));
   opt_d_ = std::make_unique<torch::optim::Adam>(d_->parameters(), torch::optim::AdamOptions(opt_.lr_discriminator));
   g_->set_autocast_bf16(opt_.bf16);
+  // The one check of the decay for library callers (a config's value is range-checked when it loads).
+  require(opt_.ema_decay >= 0 && opt_.ema_decay < 1, "train.ema_decay", "must lie in [0, 1)");
   if (opt_.ema_decay > 0) {
-    require(opt_.ema_decay < 1, "train.ema_decay", "must lie in [0, 1)");
     ema_ = std::make_unique<WeightAverage>(g_, opt_.ema_decay);
     ema_->average()->set_autocast_bf16(opt_.bf16);
   }
