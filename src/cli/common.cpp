@@ -9,8 +9,8 @@
 namespace flatnet::cli {
 
 namespace {
-// Option keys the library layers name in errors, and the flag of each. Keys are unique, and none is a
-// prefix of another followed by a key character, so the rewrite is unambiguous.
+// Option keys the library layers name in errors, and the flag of each. A key is rewritten only as a
+// whole word (not inside a longer name such as thesis_report.methods).
 const std::vector<std::pair<std::string, std::string>>& flag_of_key() {
   static const std::vector<std::pair<std::string, std::string>> table = {
       {"simulate.val_fraction", "--val-fraction"}, {"simulate.exposure", "--exposure"},
@@ -33,18 +33,16 @@ const std::vector<std::pair<std::string, std::string>>& flag_of_key() {
   return table;
 }
 
-bool is_key_char(char c) { return std::isalnum(static_cast<unsigned char>(c)) || c == '_' || c == '.'; }
+bool is_name_char(char c) { return std::isalnum(static_cast<unsigned char>(c)) || c == '_'; }
 }  // namespace
 
 std::string with_flags(const std::string& message) {
   std::string text = message;
   for (const auto& [key, flag] : flag_of_key()) {
     for (size_t at = text.find(key); at != std::string::npos; at = text.find(key, at)) {
-      const bool starts = at == 0 || !is_key_char(text[at - 1]);
-      const bool ends = at + key.size() == text.size() || !is_key_char(text[at + key.size()]) ||
-                        (text[at + key.size()] == '.' && (at + key.size() + 1 == text.size() ||
-                                                          !is_key_char(text[at + key.size() + 1])));
-      if (starts && ends) {
+      const size_t end = at + key.size();
+      const bool whole = (at == 0 || !is_name_char(text[at - 1])) && (end == text.size() || !is_name_char(text[end]));
+      if (whole) {
         text.replace(at, key.size(), flag);
         at += flag.size();
       } else {

@@ -27,6 +27,7 @@ namespace flatnet::cli {
 namespace {
 
 std::filesystem::path mask_defaults() { return data_dir() / "configs" / "mask_defaults.yaml"; }
+std::filesystem::path separable_defaults() { return data_dir() / "configs" / "separable_defaults.yaml"; }
 
 WienerCamera wiener_camera(const Config& c) {
   WienerCamera cam;
@@ -235,8 +236,6 @@ int mask_report(int argc, char** argv) {
 // flatnet mask separable: learns the code pair of the separable camera through Tikhonov. Configured
 // like the other trainers: configs/separable_defaults.yaml, then --config, then the shortcut flags
 // (each one a key), then --set.
-std::filesystem::path separable_defaults() { return data_dir() / "configs" / "separable_defaults.yaml"; }
-
 int mask_separable(int argc, char** argv) {
   cxxopts::Options o("flatnet mask separable",
                      "Learn a separable FlatCam's codes end to end: codes -> PhiL/PhiR -> noisy capture -> Tikhonov. "

@@ -29,8 +29,11 @@ std::string better_openblas_core(const std::string& current, const CpuFeatures& 
 
 void select_openblas_kernels(char** argv) {
 #if defined(__linux__)
+  const char* user_choice = std::getenv("OPENBLAS_CORETYPE");
+  if (user_choice != nullptr && *user_choice != '\0') return;  // the user's choice: nothing to read or decide
   const std::string current = openblas_core();
-  const std::string wanted = better_openblas_core(current, cpu_features(), std::getenv("OPENBLAS_CORETYPE"));
+  if (current.empty()) return;  // not OpenBLAS
+  const std::string wanted = better_openblas_core(current, cpu_features(), user_choice);
   if (wanted.empty()) return;
   setenv("OPENBLAS_CORETYPE", wanted.c_str(), 1);
   setenv(kChoseVariable, current.c_str(), 1);

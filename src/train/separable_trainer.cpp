@@ -144,7 +144,8 @@ SeparableTrainSummary train_separable_codes(const SeparableTrainOptions& o) {
     progress.tick();
     if (step % o.log_every == 0 || step == o.iterations) {
       double val_psnr = std::nan("");
-      if (step % o.val_every == 0 || step == o.iterations) {
+      const bool validate = step % o.val_every == 0 || step == o.iterations;
+      if (validate) {
         const auto [uv, vv] = codes();
         val_psnr = separable_psnr(uv.detach(), vv.detach(), std::exp(log_lambda.item<double>()), val, 99);
         val_curve.x.push_back(static_cast<double>(step));
@@ -153,7 +154,7 @@ SeparableTrainSummary train_separable_codes(const SeparableTrainOptions& o) {
       train_curve.x.push_back(static_cast<double>(step));
       train_curve.y.push_back(-10 * std::log10(std::max(1e-12, loss.item<double>())));
       log.add(step, loss.item<double>(), t.item<double>(), std::exp(log_lambda.item<double>()), val_psnr);
-      log.flush();
+      if (validate) log.flush();  // the log on disk at each validation (CsvLog), and at the end
       progress.set_status("loss " + std::to_string(loss.item<double>()) + " t " + std::to_string(t.item<double>()));
     }
     summary.steps = step;
