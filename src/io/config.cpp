@@ -18,7 +18,8 @@ namespace {
 // file that set them; to_yaml writes them resolved). No other value is ever treated as a path.
 const std::vector<std::string> kPathKeys = {
     "data.camera",     "data.dataset",   "data.images", "data.root",      "data.train_gt",
-    "data.train_meas", "data.val_gt",    "data.val_meas", "loss.vgg_file", "model.inversion.toeplitz_file"};
+    "data.train_meas", "data.val_gt",    "data.val_meas", "loss.vgg_file", "model.inversion.toeplitz_file",
+    "codes.init"};
 
 void flatten(const YAML::Node& node, const std::string& prefix, std::map<std::string, std::string>& out) {
   for (const auto& kv : node) {
@@ -117,6 +118,9 @@ const std::vector<NumberRule>& range_rules() {
       {"codes.length", 2, 65536, "2 or more elements"},
       {"codes.target_throughput", 1e-3, 1, "a share of light, above 0 and at most 1"},
       {"codes.throughput_tolerance", 0, 1, "0 to 1"},
+      {"codes.lr", 1e-9, 10, "a positive learning rate"},
+      {"codes.freeze_at", 0, 1, "a share of the run, 0 to 1"},
+      {"codes.calib_error", 0, 1, "0 to 1 (0.03: 3 %)"},
       {"train.lambda_init", 1e-12, 1e6, "a positive regulariser"},
       {"mask.rank", 1, 511, "1 to 511"},
       {"mask.upsample", 1, 64, "1 to 64 sensor pixels per element"},

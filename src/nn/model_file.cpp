@@ -537,7 +537,7 @@ ModelFile load_model_file(const std::filesystem::path& path) { return read_gener
 
 void save_checkpoint(const std::filesystem::path& path, Generator& g, Discriminator& d, torch::optim::Adam& opt_g,
                      torch::optim::Adam& opt_d, const TrainState& state, const ModelIdentity& identity,
-                     Generator* ema) {
+                     Generator* ema, const CheckpointCamera& camera) {
   std::vector<std::pair<std::string, torch::Tensor>> tensors;
   add_module(tensors, "generator", *g);
   if (ema) add_module(tensors, "generator_ema", **ema);
@@ -545,6 +545,10 @@ void save_checkpoint(const std::filesystem::path& path, Generator& g, Discrimina
   auto meta = header(kCheckpointFormat, identity);
   meta["optimizer_generator"] = save_optimizer(tensors, "optimizer_generator", opt_g, *g);
   meta["optimizer_discriminator"] = save_optimizer(tensors, "optimizer_discriminator", opt_d, *d);
+  if (camera.module) {
+    add_module(tensors, "camera", *camera.module);
+    meta["optimizer_camera"] = save_optimizer(tensors, "optimizer_camera", *camera.optimizer, *camera.module);
+  }
   meta["step"] = std::to_string(state.step);
   meta["best_psnr"] = format_number(state.best_psnr);
   meta["train_seconds"] = format_number(state.train_seconds);
@@ -557,17 +561,23 @@ std::pair<Config, CameraConfig> checkpoint_settings(const std::filesystem::path&
 }
 
 TrainState load_checkpoint(const std::filesystem::path& path, Generator& g, Discriminator& d, torch::optim::Adam& opt_g,
-                           torch::optim::Adam& opt_d, Generator* ema) {
+                           torch::optim::Adam& opt_d, Generator* ema, const CheckpointCamera& camera) {
   const auto s = read_stored(path, kCheckpointFormat);
   settings(s, path);
+  const bool has_camera = !s.under("camera").empty();
+  require(has_camera == (camera.module != nullptr), path,
+          has_camera ? "holds a learned camera (a co-design run), and this run learns none"
+                     : "holds no learned camera, and this run learns one (codes.learn)");
   load_module(s, "generator", *g, path);
   if (ema) load_module(s, s.under("generator_ema").empty() ? "generator" : "generator_ema", **ema, path);
   load_module(s, "discriminator", *d, path);
+  if (camera.module) load_module(s, "camera", *camera.module, path);
   TrainState st;
   st.optimizers_restored = s.version >= 2;
   if (st.optimizers_restored) {  // format 1 kept LibTorch's own optimiser archives; their moments start afresh
     load_optimizer(s, "optimizer_generator", opt_g, *g, path);
     load_optimizer(s, "optimizer_discriminator", opt_d, *d, path);
+    if (camera.module) load_optimizer(s, "optimizer_camera", *camera.optimizer, *camera.module, path);
   }
   const auto step = stored_number(s, "step", path);
   require(step >= 0 && step < 1e15 && step == std::floor(step), path, "step is not a count");

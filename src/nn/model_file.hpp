@@ -71,10 +71,16 @@ struct TrainState {
   double train_seconds = 0;         // wall-clock training time so far (train.minutes counts it)
 };
 
+// A co-design run's learned camera (train/codesign.hpp): its parameters ("camera.") and their
+// optimiser ("optimizer_camera.") travel in the checkpoint; both null for other runs.
+struct CheckpointCamera {
+  torch::nn::Module* module = nullptr;
+  torch::optim::Adam* optimizer = nullptr;
+};
 // `ema`, when given, is the moving average of the generator's weights (saved as "generator_ema").
 void save_checkpoint(const std::filesystem::path& path, Generator& g, Discriminator& d, torch::optim::Adam& opt_g,
                      torch::optim::Adam& opt_d, const TrainState& state, const ModelIdentity& identity,
-                     Generator* ema = nullptr);
+                     Generator* ema = nullptr, const CheckpointCamera& camera = {});
 // The best validation PSNR a checkpoint records (best.ckpt: the PSNR of the weights it holds).
 double checkpoint_best_psnr(const std::filesystem::path& path);
 // Whether a flatnet file (format 1 or 2) is a training checkpoint rather than a model file.
@@ -84,8 +90,9 @@ int model_file_version(const std::filesystem::path& path);
 // The config and camera a checkpoint holds (to rebuild the networks before load_checkpoint).
 std::pair<Config, CameraConfig> checkpoint_settings(const std::filesystem::path& path);
 // `ema` is filled from the checkpoint's average when it has one, else from its generator.
+// A checkpoint without a camera is refused when `camera` is given (and the reverse).
 TrainState load_checkpoint(const std::filesystem::path& path, Generator& g, Discriminator& d, torch::optim::Adam& opt_g,
-                           torch::optim::Adam& opt_d, Generator* ema = nullptr);
+                           torch::optim::Adam& opt_d, Generator* ema = nullptr, const CheckpointCamera& camera = {});
 // A checkpoint's generator as a model file (what `flatnet export` does): the moving average of
 // the weights when the run kept one, else the live weights. `used_average` tells which.
 ModelFile model_from_checkpoint(const std::filesystem::path& path, bool* used_average = nullptr);

@@ -49,6 +49,15 @@ torch::Tensor simulate_raw_linear(const Rig& rig, const torch::Tensor& scene_lin
 torch::Tensor simulate_raw(const Rig& rig, const torch::Tensor& scene_srgb, bool noise,
                            c10::optional<at::Generator> gen = c10::nullopt);
 
+// The whole capture chain as one differentiable function, for learning a camera's codes with the
+// network that reconstructs its captures (train/codesign.hpp): linear-light scenes {B,3,N,N} ->
+// preprocessed planes {B,4,crop_h,crop_w}, the planes `preprocess_raw(simulate_raw_linear(...))`
+// gives. Shot noise is the reparameterised Gaussian approximation of Poisson everywhere
+// (photon_electrons samples exactly below 1000 electrons), and the ADC's rounding passes
+// gradients straight through (its clipping does not). Geometries with a rotation are refused.
+torch::Tensor capture_planes(const Rig& rig, const torch::Tensor& scene_linear, const RawGeometry& geometry, bool noise,
+                             at::Generator& gen);
+
 // A calibration in FlatNet's layout: after preprocessing, Y_c ~= P_c X_c Q_c^T.
 struct Calibration {
   torch::Tensor P;  // {4, crop_h, N} float64 (P1b, P1gb, P1gr, P1r)

@@ -55,17 +55,18 @@ Sample SimulatedPairs::load(int64_t i, int64_t epoch) const {
   s.gt = scene(i);  // {3,N,N}
   auto gen =
       at::detail::createCPUGenerator(stable_hash(image.filename().string() + "#" + std::to_string(epoch), seed_));
-  torch::Tensor raw;  // stored 16-bit codes
-  if (light_.active()) {
-    const auto light = draw_scene_light(light_, camera_.scene_size, gen);
-    const auto linear = lit_scene(s.gt, light);
-    s.gt = visible_scene(linear);
-    raw = simulate_raw_linear(*rig_, linear, true, gen);
-  } else {
-    raw = simulate_raw(*rig_, s.gt, true, gen);
-  }
-  s.meas = preprocess_raw(raw.to(torch::kFloat32) / 65535.0f, camera_.raw);
   s.name = image.filename().string();
+  torch::Tensor linear = srgb_to_linear(s.gt);
+  if (light_.active()) {
+    linear = lit_scene(s.gt, draw_scene_light(light_, camera_.scene_size, gen));
+    s.gt = visible_scene(linear);
+  }
+  if (!rig_) {
+    s.scene = linear;
+    return s;
+  }
+  const auto raw = simulate_raw_linear(*rig_, linear, true, gen);  // stored 16-bit codes
+  s.meas = preprocess_raw(raw.to(torch::kFloat32) / 65535.0f, camera_.raw);
   return s;
 }
 
@@ -97,7 +98,7 @@ BatchLoader::~BatchLoader() {
 
 Batch BatchLoader::build(int64_t step) const {
   const int64_t n = source_->size();
-  std::vector<torch::Tensor> meas, gt;
+  std::vector<torch::Tensor> meas, gt, scenes;
   int64_t cached_epoch = -1;
   std::vector<int64_t> perm;
   for (int64_t j = 0; j < opt_.batch; ++j) {
@@ -105,14 +106,21 @@ Batch BatchLoader::build(int64_t step) const {
     const int64_t k = (step * opt_.world_size + opt_.rank) * opt_.batch + j, epoch = k / n;
     if (epoch != cached_epoch) perm = epoch_permutation(n, opt_.seed, epoch), cached_epoch = epoch;
     auto s = source_->load(perm[k % n], epoch);
-    if (opt_.noise_augment > 0) {
-      auto gen = at::detail::createCPUGenerator(opt_.seed * 7919ULL + static_cast<uint64_t>(k));
-      s.meas = s.meas + opt_.noise_augment * at::randn(s.meas.sizes(), gen);
+    if (s.scene.defined()) {  // the trainer captures it (and adds noise_augment)
+      scenes.push_back(s.scene);
+    } else {
+      if (opt_.noise_augment > 0) {
+        auto gen = at::detail::createCPUGenerator(opt_.seed * 7919ULL + static_cast<uint64_t>(k));
+        s.meas = s.meas + opt_.noise_augment * at::randn(s.meas.sizes(), gen);
+      }
+      meas.push_back(s.meas);
     }
-    meas.push_back(s.meas);
     gt.push_back(s.gt);
   }
-  return {torch::stack(meas), torch::stack(gt), step};
+  Batch b{{}, torch::stack(gt), step};
+  if (!meas.empty()) b.meas = torch::stack(meas);
+  if (!scenes.empty()) b.scene = torch::stack(scenes);
+  return b;
 }
 
 void BatchLoader::work() {

@@ -24,6 +24,7 @@ struct Sample {
   torch::Tensor meas;  // {4,rows,cols} preprocessed measurement planes
   torch::Tensor gt;    // {3,N,N} sRGB in [0,1]
   std::string name;
+  torch::Tensor scene{};  // {3,N,N} linear light, only from sources that leave the capture to the trainer (co-design)
 };
 
 class PairSource {
@@ -50,6 +51,8 @@ class DiskPairs : public PairSource {
 // generator seeded by (seed, image, epoch). With a LightAugment, each sample's scene light is
 // redrawn from the same generator (dim scenes, lamps; see optics/simulator.hpp) and the ground
 // truth is what that scene shows. Display scenes are decoded once and kept (8-bit, 192 KiB each).
+// Without a rig, samples carry the linear scene instead of a capture (the co-design trainer
+// captures it through the camera it is learning).
 class SimulatedPairs : public PairSource {
  public:
   SimulatedPairs(std::vector<std::filesystem::path> images, std::shared_ptr<const Rig> rig, CameraConfig camera,
@@ -72,6 +75,7 @@ struct Batch {
   torch::Tensor meas;  // {B,4,rows,cols}
   torch::Tensor gt;    // {B,3,N,N}
   int64_t step = 0;
+  torch::Tensor scene{};  // {B,3,N,N} linear light, when the source gives scenes (then meas is undefined)
 };
 
 struct LoaderOptions {

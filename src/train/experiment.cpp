@@ -80,8 +80,10 @@ std::pair<std::shared_ptr<const PairSource>, std::shared_ptr<const PairSource>> 
             std::make_shared<DiskPairs>(read_pairs(val), camera)};
   }
   if (source == "simulate") {
-    require(!camera.rig.empty(), "data.camera", "names no rig; on-the-fly simulation needs the true response");
-    auto rig = std::make_shared<const Rig>(load_rig(camera.rig));
+    const bool codesign = c.flag("codes.learn");  // the trainer captures through the codes it learns: no rig
+    require(codesign || !camera.rig.empty(), "data.camera",
+            "names no rig; on-the-fly simulation needs the true response");
+    auto rig = codesign ? nullptr : std::make_shared<const Rig>(load_rig(camera.rig));
     auto [train_images, val_images] =
         split_image_files(c.path("data.images"), c.num("data.val_fraction"), c.integer("data.split_seed"));
     const auto seed = static_cast<uint64_t>(c.integer("train.seed"));
@@ -103,6 +105,24 @@ std::pair<std::shared_ptr<const PairSource>, std::shared_ptr<const PairSource>> 
             std::make_shared<SimulatedPairs>(val_images, rig, camera, seed + 1)};
   }
   throw Error("config: data.source must be dataset or simulate, got '" + source + "'");
+}
+
+CodesignOptions codesign_options(const Config& c, const CameraConfig& camera) {
+  CodesignOptions o;
+  const auto init = c.str("codes.init");
+  o.init_codes = init == "mls" ? data_dir() / "models" / "camera" / "codes_mls.mat" : c.path("codes.init");
+  o.lr = c.num("codes.lr");
+  o.binary = c.flag("codes.binary");
+  o.target_throughput = c.num("codes.target_throughput");
+  o.throughput_tolerance = c.num("codes.throughput_tolerance");
+  o.freeze_at = c.num("codes.freeze_at");
+  o.calib_error = c.num("codes.calib_error");
+  o.geometry = camera.raw;
+  require(camera.scene_size == o.camera.scene, "data.camera",
+          "co-design builds the reference camera's sensor and optics, whose scene is " +
+              std::to_string(o.camera.scene) + " pixels; this camera's is " + std::to_string(camera.scene_size));
+  require(c.str("data.source") == "simulate", "codes.learn", "needs data.source: simulate (photographs in data.images)");
+  return o;
 }
 
 namespace {
@@ -264,6 +284,11 @@ ExperimentResult run_experiment(const ExperimentOptions& o) {
   require(opts.crop <= camera.scene_size, "train.crop",
           std::to_string(opts.crop) + " exceeds the camera's " + std::to_string(camera.scene_size) +
               "-pixel scene (0: whole scenes)");
+  CodePairCamera learned{nullptr};  // co-design: the camera whose codes learn with the network
+  if (config.flag("codes.learn")) {
+    require(dist.world_size == 1, "codes.learn", "co-design runs in one process");
+    learned = CodePairCamera(codesign_options(config, camera));
+  }
   auto [train_src, val_src] = data_sources(config, camera);
   torch::manual_seed(opts.seed);
   require(!o.reinit_inversion || !o.init_from.empty(), "experiment.reinit", "re-initialises part of a experiment.init_from model");
@@ -293,6 +318,12 @@ ExperimentResult run_experiment(const ExperimentOptions& o) {
     group = std::make_unique<ProcessGroup>(dist);
   }
   GanTrainer trainer(g, d, vgg, train_src, std::move(val), opts, model_identity(config, camera));
+  if (learned) {
+    log << "co-design: codes from " << config.str("codes.init") << " (throughput "
+        << learned->throughput().item<double>() << "), learned until " << config.num("codes.freeze_at") * 100
+        << " % of the run; their camera in " << (out / "camera").string() << "\n";
+    trainer.set_learned_camera(learned, camera);
+  }
   if (resume) log << trainer.resume(latest) << "\n";  // every rank reads rank 0's checkpoint (a shared folder)
   if (writer) {  // after a resume succeeded: a refused one changes nothing
     std::filesystem::create_directories(out);

@@ -50,5 +50,8 @@ ExperimentResult run_experiment(const ExperimentOptions& options);
 TrainOptions train_options(const Config& config, const std::filesystem::path& out);
 std::pair<std::shared_ptr<const PairSource>, std::shared_ptr<const PairSource>> data_sources(
     const Config& config, const CameraConfig& camera);
+// codes.* -> the co-design camera's options (codes.learn; needs data.source simulate and the
+// reference camera's scene size).
+CodesignOptions codesign_options(const Config& config, const CameraConfig& camera);
 
 }  // namespace flatnet

@@ -279,7 +279,8 @@ GanTrainer::GanTrainer(Generator generator, Discriminator discriminator, Vgg16Fe
 Generator& GanTrainer::exported() { return ema_ ? ema_->average() : g_; }
 
 std::string GanTrainer::resume(const std::filesystem::path& checkpoint) {
-  state_ = load_checkpoint(checkpoint, g_, d_, *opt_g_, *opt_d_, ema_ ? &ema_->average() : nullptr);
+  state_ = load_checkpoint(checkpoint, g_, d_, *opt_g_, *opt_d_, ema_ ? &ema_->average() : nullptr,
+                           checkpoint_camera());
   // The best PSNR is the one best.ckpt holds: a kill between writing best.ckpt and latest.ckpt
   // leaves latest's record behind or ahead of the file, and no file would hold that score.
   const auto best = opt_.out / "best.ckpt";
@@ -310,6 +311,50 @@ void GanTrainer::set_distributed(GradientAverager* collectives) {
   opt_.progress = opt_.progress && sync_->rank() == 0;
 }
 
+void GanTrainer::set_learned_camera(CodePairCamera camera, CameraConfig geometry) {
+  require(!sync_ || sync_->world_size() == 1, "codes.learn", "co-design runs in one process");
+  camera_ = std::move(camera);
+  camera_geometry_ = std::move(geometry);
+  opt_camera_ = std::make_unique<torch::optim::Adam>(camera_->parameters(), torch::optim::AdamOptions(camera_->options().lr));
+}
+
+CheckpointCamera GanTrainer::checkpoint_camera() {
+  return camera_ ? CheckpointCamera{camera_.get(), opt_camera_.get()} : CheckpointCamera{};
+}
+
+bool GanTrainer::codes_frozen(int64_t step) const {
+  // The share of the run done: steps, or the time budget's elapsed share (as the cosine schedule).
+  double t = static_cast<double>(step) / std::max<int64_t>(1, opt_.iterations);
+  if (opt_.minutes > 0) t = std::max(t, trained_seconds() / (60.0 * opt_.minutes));
+  return t >= camera_->options().freeze_at;
+}
+
+torch::Tensor GanTrainer::capture_batch(const Batch& batch, int64_t step) {
+  require(batch.scene.defined(), "codes.learn", "the training source gives captures, not scenes");
+  // Noise from (seed, step): a resumed run captures as the straight one.
+  auto gen = at::detail::createCPUGenerator(opt_.seed * 2654435761ULL + 17 + static_cast<uint64_t>(step));
+  opt_camera_->zero_grad();
+  const bool learning = !codes_frozen(step);
+  torch::AutoGradMode grad_mode(learning);
+  auto planes = camera_->capture(batch.scene, gen);  // {B,4,h,w}
+  if (opt_.noise_augment > 0) planes = planes + opt_.noise_augment * at::randn(planes.sizes(), gen);
+  return learning ? planes : planes.detach();
+}
+
+void GanTrainer::step_codes(int64_t step) {
+  if (codes_frozen(step)) return;
+  const auto penalty = camera_->throughput_penalty();
+  if (penalty.requires_grad()) penalty.backward();
+  for (const auto& p : camera_->parameters()) {
+    if (!p.grad().defined()) return;  // the generator did not step (discriminator warm-up)
+    if (!torch::isfinite(p.grad()).all().item<bool>())
+      throw Error("training diverged: the codes' gradient is not finite at step " + std::to_string(step) +
+                  "; they did not step on it; the last good checkpoint is " + (opt_.out / "latest.ckpt").string() +
+                  ". Try a lower codes.lr.");
+  }
+  opt_camera_->step();
+}
+
 void GanTrainer::set_learning_rates(int64_t step) {
   const double f = lr_factor(opt_, step, trained_seconds());
   auto& groups = opt_g_->param_groups();
@@ -317,10 +362,17 @@ void GanTrainer::set_learning_rates(int64_t step) {
   if (groups.size() > 1)
     static_cast<torch::optim::AdamOptions&>(groups[1].options()).lr(opt_.lr * opt_.lr_inversion_scale * f);
   static_cast<torch::optim::AdamOptions&>(opt_d_->param_groups()[0].options()).lr(opt_.lr_discriminator * f);
+  if (opt_camera_)
+    static_cast<torch::optim::AdamOptions&>(opt_camera_->param_groups()[0].options()).lr(camera_->options().lr * f);
 }
 
 void GanTrainer::checkpoint_and_validate(TrainSummary& summary) {
   const auto t0 = std::chrono::steady_clock::now();
+  if (camera_) {  // the validation scenes through the current codes, with the same noise every time
+    torch::NoGradGuard no_grad;
+    auto gen = at::detail::createCPUGenerator(opt_.seed + 99);
+    for (auto& s : val_) s.meas = camera_->capture(s.scene.unsqueeze(0), gen)[0];
+  }
   const auto v = validate(exported(), val_, opt_.batch, opt_.out / "samples.png");
   const double secs = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
   summary.last_psnr = v.psnr, summary.last_ssim = v.ssim;
@@ -336,11 +388,13 @@ void GanTrainer::checkpoint_and_validate(TrainSummary& summary) {
   // the best PSNR from it), then latest.ckpt (resume continues from it), then model.flatnet, which
   // follows the latest weights (not picked on validation data) and is rewritten on resume. Each
   // file is written atomically.
+  // A co-design run's camera first: the model and checkpoints written next belong to these codes.
+  if (camera_) write_code_camera(opt_.out / "camera", camera_, camera_geometry_);
   if (best) {
     summary.best_psnr = v.psnr, summary.best_ssim = v.ssim;
-    save_checkpoint(opt_.out / "best.ckpt", g_, d_, *opt_g_, *opt_d_, state_, identity_, ema);
+    save_checkpoint(opt_.out / "best.ckpt", g_, d_, *opt_g_, *opt_d_, state_, identity_, ema, checkpoint_camera());
   }
-  save_checkpoint(opt_.out / "latest.ckpt", g_, d_, *opt_g_, *opt_d_, state_, identity_, ema);
+  save_checkpoint(opt_.out / "latest.ckpt", g_, d_, *opt_g_, *opt_d_, state_, identity_, ema, checkpoint_camera());
   save_model_file(opt_.out / "model.flatnet", exported(), exported_identity());
 }
 
@@ -389,8 +443,10 @@ TrainSummary GanTrainer::run() {
   while (state_.step < opt_.iterations && !(stopping = stop())) {
     const int64_t step = state_.step;
     set_learning_rates(step);
-    const auto batch = loader.next();
+    auto batch = loader.next();
+    if (camera_) batch.meas = capture_batch(batch, step);
     const auto l = gan_step(g_, d_, vgg_, *opt_g_, *opt_d_, opt_, batch, step, sync_);
+    if (camera_) step_codes(step);
     if (ema_) ema_->update(step);
     sums += l;
     if (sync_ && sync_->world_size() > 1) {
@@ -418,6 +474,11 @@ TrainSummary GanTrainer::run() {
       append_line(opt_.out / "log.csv", kLogHeader, line.str());
       status << "step " << state_.step << " loss " << std::setprecision(4) << m.loss << " mse " << m.mse;
       if (adversarial) status << " D " << m.discriminator;
+      if (camera_) {
+        torch::NoGradGuard no_grad;
+        status << " throughput " << std::setprecision(3) << camera_->throughput().item<double>()
+               << (codes_frozen(state_.step) ? " (codes fixed)" : "");
+      }
       if (budget) status << " | budget left " << format_duration(std::max(0.0, 60.0 * opt_.minutes - trained_seconds()));
       progress.set_status(status.str());
       sums = StepLosses{};

@@ -14,6 +14,7 @@
 #include "io/camera_config.hpp"
 #include "nn/generator.hpp"
 #include "nn/losses.hpp"
+#include "train/codesign.hpp"
 #include "train/data.hpp"
 #include "nn/model_file.hpp"
 
@@ -141,10 +142,21 @@ class GanTrainer {
   std::string resume(const std::filesystem::path& checkpoint);
   // The weights that are validated and exported: the moving average when train.ema_decay > 0.
   Generator& exported();
+  // Co-design (train/codesign.hpp): the training source gives scenes (SimulatedPairs without a
+  // rig), each batch is captured through `camera` in the graph and its codes learn with the
+  // network until codes.freeze_at; checkpoints hold them; every checkpoint writes OUT/codes.mat
+  // and OUT/camera/ (`geometry`'s preprocessing). Validation scenes are captured through the
+  // current codes with fixed noise. Call before resume() and run().
+  void set_learned_camera(CodePairCamera camera, CameraConfig geometry);
   // Stops after the current step and writes a checkpoint when interrupted() (core/util.hpp).
   TrainSummary run();
 
  private:
+  bool codes_frozen(int64_t step) const;
+  // The batch's planes through the learned camera; with a graph to its codes while they learn.
+  torch::Tensor capture_batch(const Batch& batch, int64_t step);
+  void step_codes(int64_t step);  // after gan_step: the throughput penalty, then Adam on the codes
+  CheckpointCamera checkpoint_camera();
   void set_learning_rates(int64_t step);
   void checkpoint_and_validate(TrainSummary& summary);
   // What model.flatnet records: the run's identity with its steps, time and best validation PSNR.
@@ -169,6 +181,9 @@ class GanTrainer {
   std::unique_ptr<WeightAverage> ema_;
   TrainState state_;
   GradientAverager* sync_ = nullptr;
+  CodePairCamera camera_{nullptr};  // co-design only
+  std::unique_ptr<torch::optim::Adam> opt_camera_;
+  CameraConfig camera_geometry_;
 };
 
 }  // namespace flatnet
