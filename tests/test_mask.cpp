@@ -321,4 +321,9 @@ TEST_CASE("mask separable takes a config like the other trainers: defaults, shor
   r = test::run_flatnet(base + " --init random --set codes.length=63 --iterations 1 --out " + q(s.dir / "short"));
   REQUIRE(r.code == 0);
   CHECK(MatReader(s.dir / "short" / "codes.mat").read("code_rows").numel() == 63);
+  // A codes file to start from (a path, resolved as every path setting).
+  r = test::run_flatnet(base + " --init " + q(s.dir / "short" / "codes.mat") + " --iterations 1 --out " + q(s.dir / "from_file"));
+  INFO(r.output);
+  REQUIRE(r.code == 0);
+  CHECK(MatReader(s.dir / "from_file" / "codes.mat").read("code_rows").numel() == 63);
 }
