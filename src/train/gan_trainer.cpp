@@ -8,6 +8,7 @@
 #include "core/util.hpp"
 #include "eval/metrics.hpp"
 #include "train/distributed.hpp"
+#include "train/nonfinite.hpp"
 
 namespace flatnet {
 
@@ -58,6 +59,12 @@ void append_line(const std::filesystem::path& path, const std::string& header, c
   std::ofstream out(path, std::ios::app);
   if (fresh) out << header << "\n";
   out << line << "\n";
+}
+
+std::vector<torch::Tensor> clone_all(const std::vector<torch::Tensor>& tensors) {
+  std::vector<torch::Tensor> out;
+  for (const auto& t : tensors) out.push_back(t.detach().clone());
+  return out;
 }
 
 torch::Tensor uniform(int64_t n, double lo, double hi, at::Generator& gen) {
@@ -127,12 +134,9 @@ void WeightAverage::update(int64_t step) {
 
 namespace {
 
-[[noreturn]] void diverged(const TrainOptions& opt, int64_t step, const std::string& what, double value) {
-  std::ostringstream os;
-  os << "training diverged: the " << what << " is " << value << " at step " << step
-     << "; no optimiser stepped on it and nothing was saved from this step; the last good checkpoint is "
-     << (opt.out / "latest.ckpt").string() << ". Try a lower train.lr.";
-  throw Error(os.str());
+// gan_step's guard: thrown before any optimiser step; run() skips the step (train/nonfinite.hpp).
+[[noreturn]] void diverged(int64_t step, const std::string& what, double value) {
+  throw NonFiniteStep(what, value, step);
 }
 
 torch::Tensor logits_fp32(Discriminator& d, const torch::Tensor& x, bool bf16) {
@@ -173,7 +177,7 @@ StepLosses gan_step(Generator& g, Discriminator& d, Vgg16Features& vgg, torch::o
                                                                 uniform(B, 0.0, opt.fake_label_max, label_gen));
     out.discriminator = d_loss.item<double>();
     // Guard before any optimiser step: a non-finite loss must not reach the weights.
-    if (!std::isfinite(out.discriminator)) diverged(opt, step, "discriminator loss", out.discriminator);
+    if (!std::isfinite(out.discriminator)) diverged(step, "discriminator loss", out.discriminator);
     d_loss.backward();
     if (sync) sync->average(d->parameters());
     opt_d.step();
@@ -203,7 +207,7 @@ StepLosses gan_step(Generator& g, Discriminator& d, Vgg16Features& vgg, torch::o
     add_term(opt.w_gradient, out.gradient, [&] { return gradient_loss(fake, gt); });
     const double value = loss.item<double>();
     if (!std::isfinite(value))
-      diverged(opt, step, "generator loss (mse " + std::to_string(mse.item<double>()) + ")", value);
+      diverged(step, "generator loss (mse " + std::to_string(mse.item<double>()) + ")", value);
     loss.backward();
     if (sync) sync->average(g->parameters());
     opt_g.step();
@@ -345,13 +349,12 @@ void GanTrainer::step_codes(int64_t step) {
   if (codes_frozen(step)) return;
   const auto penalty = camera_->throughput_penalty();
   if (penalty.requires_grad()) penalty.backward();
+  std::vector<torch::Tensor> grads;
   for (const auto& p : camera_->parameters()) {
     if (!p.grad().defined()) return;  // the generator did not step (discriminator warm-up)
-    if (!torch::isfinite(p.grad()).all().item<bool>())
-      throw Error("training diverged: the codes' gradient is not finite at step " + std::to_string(step) +
-                  "; they did not step on it; the last good checkpoint is " + (opt_.out / "latest.ckpt").string() +
-                  ". Try a lower codes.lr.");
+    grads.push_back(p.grad());
   }
+  if (!all_finite(grads)) throw NonFiniteStep("gradient of the codes", std::nan(""), step);
   opt_camera_->step();
 }
 
@@ -440,15 +443,35 @@ TrainSummary GanTrainer::run() {
   };
   bool stopping = false;
   int64_t checkpointed = -1;
+  NonFiniteGuard nonfinite((opt_.out / "latest.ckpt").string() + " (the last validation's, if the run reached one)",
+                           "a lower train.lr");
   while (state_.step < opt_.iterations && !(stopping = stop())) {
     const int64_t step = state_.step;
     set_learning_rates(step);
     auto batch = loader.next();
-    if (camera_) batch.meas = capture_batch(batch, step);
-    const auto l = gan_step(g_, d_, vgg_, *opt_g_, *opt_d_, opt_, batch, step, sync_);
-    if (camera_) step_codes(step);
-    if (ema_) ema_->update(step);
-    sums += l;
+    StepLosses l;
+    bool skipped = false;
+    // Batch norm's running statistics change in the forward pass: a skipped step puts them back.
+    std::vector<torch::Tensor> statistics;
+    for (auto* m : {static_cast<torch::nn::Module*>(g_.get()), static_cast<torch::nn::Module*>(d_.get())})
+      for (const auto& b : m->buffers()) statistics.push_back(b);
+    const auto statistics_before = clone_all(statistics);
+    try {
+      if (camera_) batch.meas = capture_batch(batch, step);
+      l = gan_step(g_, d_, vgg_, *opt_g_, *opt_d_, opt_, batch, step, sync_);
+      if (camera_) step_codes(step);
+      nonfinite.good();
+    } catch (const NonFiniteStep& bad) {
+      // Data-parallel ranks must take the same steps: a skip on one rank alone would pair its next
+      // collective with another rank's current one, so there the first non-finite step stops.
+      if (sync_ && sync_->world_size() > 1) nonfinite.stop(bad);
+      nonfinite.skip(bad);  // throws at the limit
+      skipped = true;
+      torch::NoGradGuard no_grad;
+      for (size_t i = 0; i < statistics.size(); ++i) statistics[i].copy_(statistics_before[i]);
+    }
+    if (ema_ && !skipped) ema_->update(step);
+    if (!skipped) sums += l;
     if (sync_ && sync_->world_size() > 1) {
       // Batch-norm running statistics follow rank 0's (as DistributedDataParallel's broadcast_buffers).
       std::vector<torch::Tensor> buffers = g_->buffers(), d_buffers = d_->buffers();
@@ -459,13 +482,13 @@ TrainSummary GanTrainer::run() {
         sync_->check_identical(d_->parameters(), "discriminator parameters after step " + std::to_string(step + 1));
       }
     }
-    ++n_logged;
+    if (!skipped) ++n_logged;
     state_.step = step + 1;
     progress.tick();
     if (writer && (state_.step % opt_.log_every == 0 || state_.step == opt_.iterations)) {
       const double elapsed = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
       std::ostringstream line, status;
-      const auto m = sums / static_cast<double>(n_logged);
+      const auto m = sums / static_cast<double>(std::max<int64_t>(1, n_logged));
       line << state_.step << "," << std::setprecision(6) << m.loss << "," << m.mse << "," << m.ssim << ","
            << m.perceptual << "," << m.adversarial << "," << m.discriminator << ","
            << static_cast<torch::optim::AdamOptions&>(opt_g_->param_groups()[0].options()).lr() << ","

@@ -122,8 +122,9 @@ class GradientAverager {
 };
 
 // One training step (see the file comment) on `batch`; `step` seeds the label smoothing. With
-// `sync`, gradients are averaged across processes before each optimiser step. Throws on a
-// non-finite loss before any parameter changes.
+// `sync`, gradients are averaged across processes before each optimiser step. Throws
+// NonFiniteStep (train/nonfinite.hpp) on a non-finite loss before any parameter changes; run()
+// skips such a step, and stops after kNonFiniteLimit in a row.
 StepLosses gan_step(Generator& g, Discriminator& d, Vgg16Features& vgg, torch::optim::Optimizer& opt_g,
                     torch::optim::Optimizer& opt_d, const TrainOptions& opt, const Batch& batch, int64_t step,
                     GradientAverager* sync = nullptr);

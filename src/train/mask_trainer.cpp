@@ -1,6 +1,7 @@
 #include "train/mask_trainer.hpp"
 
 #include "train/csv_log.hpp"
+#include "train/nonfinite.hpp"
 
 #include <fstream>
 #include <iomanip>
@@ -63,6 +64,26 @@ MaskTrainSummary train_mask(MaskModel& model, const torch::Tensor& train_scenes,
     s.val_psnr = p, s.gamma = g, s.throughput = throughput(w);
   };
   validate(0);
+  // One optimiser step on `loss`, or none when it or its gradient is not finite (train/nonfinite.hpp).
+  NonFiniteGuard nonfinite("the last validation's (val.csv); the mask is written only at the end", "a lower train.lr");
+  auto train_step = [&](const torch::Tensor& loss, int64_t step) {
+    const double value = loss.item<double>();
+    if (!std::isfinite(value)) {
+      nonfinite.skip(NonFiniteStep("loss", value, step));  // throws at the limit
+      return false;
+    }
+    opt->zero_grad();
+    loss.backward();
+    std::vector<torch::Tensor> grads;
+    for (const auto& p : params) grads.push_back(p.grad());
+    if (!all_finite(grads)) {
+      nonfinite.skip(NonFiniteStep("loss's gradient", std::nan(""), step));
+      return false;
+    }
+    opt->step();
+    nonfinite.good();
+    return true;
+  };
   for (int64_t step = 0; step < o.iterations; ++step) {
     std::vector<int64_t> idx(o.batch);
     for (auto& i : idx) i = pick(rng);
@@ -72,17 +93,13 @@ MaskTrainSummary train_mask(MaskModel& model, const torch::Tensor& train_scenes,
     const auto rec = wiener(capture(x, P, cam, gen), P, log_gamma.exp(), cam);
     const auto loss = torch::mse_loss(rec, x);
     const double lv = loss.item<double>();
-    if (!std::isfinite(lv))
-      throw Error("mask training diverged: the loss is " + std::to_string(lv) + " at step " + std::to_string(step) +
-                  "; try a lower train.lr");
-    opt->zero_grad();
-    loss.backward();
-    opt->step();
-    sum_loss += lv;
-    sum_psnr += psnr_sum(rec.detach(), x) / o.batch;
-    ++count;
+    if (train_step(loss, step)) {
+      sum_loss += lv;
+      sum_psnr += psnr_sum(rec.detach(), x) / o.batch;
+      ++count;
+    }
     progress.tick();
-    if ((step + 1) % o.log_every == 0) {
+    if ((step + 1) % o.log_every == 0 && count > 0) {
       const double g = std::exp(log_gamma.item<double>());
       log.add(step + 1, sum_loss / count, sum_psnr / count, g, throughput(model->window().detach()));
       train_curve.x.push_back(static_cast<double>(step + 1));

@@ -15,6 +15,7 @@
 #include "eval/mask_score.hpp"
 #include "train/csv_log.hpp"
 #include "train/mask_trainer.hpp"
+#include "train/nonfinite.hpp"
 
 namespace flatnet {
 
@@ -128,6 +129,7 @@ SeparableTrainSummary train_separable_codes(const SeparableTrainOptions& o) {
   auto gen = at::detail::createCPUGenerator(o.seed + 1);
   Progress progress("codes", o.iterations, o.progress);
   const auto start = std::chrono::steady_clock::now();
+  NonFiniteGuard nonfinite("the last validation's (log.csv); the codes are written only at the end", "a lower train.lr");
   for (int64_t step = 1; step <= o.iterations && !interrupted(); ++step) {
     const auto idx = torch::randint(train_linear.size(0), {o.batch}, gen, torch::kLong);
     const auto X = train_linear.index_select(0, idx);
@@ -138,9 +140,14 @@ SeparableTrainSummary train_separable_codes(const SeparableTrainOptions& o) {
     const auto loss = (rec - X).pow(2).mean() + 100.0 * excess.pow(2);
     opt.zero_grad();
     loss.backward();
-    bool finite = std::isfinite(loss.item<double>());
-    for (const auto& p : {a, b, log_lambda}) finite = finite && torch::isfinite(p.grad()).all().item<bool>();
-    if (finite) opt.step();  // an SVD with nearly equal singular values can give a non-finite gradient: skip that step
+    // An SVD with nearly equal singular values can give a non-finite gradient: that step is
+    // skipped, and kNonFiniteLimit in a row stop (train/nonfinite.hpp).
+    if (!std::isfinite(loss.item<double>()))
+      nonfinite.skip(NonFiniteStep("loss", loss.item<double>(), step));
+    else if (!all_finite({a.grad(), b.grad(), log_lambda.grad()}))
+      nonfinite.skip(NonFiniteStep("gradient of the codes or lambda", std::nan(""), step));
+    else
+      opt.step(), nonfinite.good();
     progress.tick();
     if (step % o.log_every == 0 || step == o.iterations) {
       double val_psnr = std::nan("");
