@@ -122,6 +122,8 @@ CodesignOptions codesign_options(const Config& c, const CameraConfig& camera) {
           "co-design builds the reference camera's sensor and optics, whose scene is " +
               std::to_string(o.camera.scene) + " pixels; this camera's is " + std::to_string(camera.scene_size));
   require(c.str("data.source") == "simulate", "codes.learn", "needs data.source: simulate (photographs in data.images)");
+  require(camera.raw.rotation == 0, "data.camera",
+          "co-design simulates unrotated captures; this camera's rotation is " + std::to_string(camera.raw.rotation));
   return o;
 }
 
