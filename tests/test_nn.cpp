@@ -527,3 +527,29 @@ TEST_CASE("bf16 autocast: the enhancer runs in bf16, weights and gradients stay 
   }
   CHECK_FALSE(at::autocast::is_cpu_enabled());  // the guard restored the thread's state
 }
+
+TEST_CASE("every number in the defaults files has a range rule, and every rule a key in them", "[config]") {
+  const auto configs = test::source_dir() / "configs";
+  std::map<std::string, std::string> keys;  // key -> its default value, over the three defaults files
+  for (const char* file : {"defaults.yaml", "mask_defaults.yaml", "separable_defaults.yaml"}) {
+    const auto config = Config::load({}, {}, configs / file);
+    for (const auto& [key, value] : config.values()) keys[key] = value;
+  }
+  const auto ranged = Config::ranged_keys();
+  for (const auto& key : ranged) {
+    INFO("range rule for " << key);
+    CHECK(keys.count(key) == 1);  // a rule for a key no trainer has drifted away from the defaults
+  }
+  // Seeds and counts of steps between logs take any non-negative integer; every other number
+  // has its range declared.
+  auto is_number = [](const std::string& v) {
+    char* end = nullptr;
+    std::strtod(v.c_str(), &end);
+    return !v.empty() && end == v.c_str() + v.size();
+  };
+  for (const auto& [key, value] : keys) {
+    if (!is_number(value) || key.size() >= 4 && key.compare(key.size() - 4, 4, "seed") == 0) continue;
+    INFO(key << " = " << value << " has no range rule (src/io/config.cpp)");
+    CHECK(std::find(ranged.begin(), ranged.end(), key) != ranged.end());
+  }
+}

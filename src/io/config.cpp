@@ -103,6 +103,7 @@ const std::vector<NumberRule>& range_rules() {
       {"model.rcan.reduction", 1, 4096, "1 to 4096"},
       {"model.bn_momentum", 0, 1, "0 to 1"},
       {"model.inversion.lambda", 1e-12, 1e6, "a positive regulariser"},
+      {"model.inversion.slope", 1e-3, 1e3, "a positive slope (sensor pixels per scene pixel)"},
       {"loss.mse", 0, 1e6, "a weight, 0 or more"},
       {"loss.ssim", 0, 1e6, "a weight, 0 or more"},
       {"loss.perceptual", 0, 1e6, "a weight, 0 or more"},
@@ -135,6 +136,12 @@ const std::vector<NumberRule>& range_rules() {
 }
 
 }  // namespace
+
+std::vector<std::string> Config::ranged_keys() {
+  std::vector<std::string> keys;
+  for (const auto& rule : range_rules()) keys.push_back(rule.name);
+  return keys;
+}
 
 void Config::check_ranges(const std::string& where) const {
   for (const auto& rule : range_rules()) {

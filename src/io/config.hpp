@@ -36,6 +36,8 @@ class Config {
   // Throws (naming `where`, the key and its range) unless every number is finite and in its
   // range (config.cpp's table); load and from_text call it, and so must code that calls set().
   void check_ranges(const std::string& where = "--set") const;
+  // The keys config.cpp's range table checks (a test holds it and the defaults files together).
+  static std::vector<std::string> ranged_keys();
 
   // Every key with its value, as nested YAML (what checkpoints and model files embed).
   std::string to_yaml() const;
