@@ -4,14 +4,16 @@
 #   cameras  mls       the reference camera (configs/cameras/sim_level.yaml)
 #            separable the codes learned for Tikhonov (models/masks/separable/codes.mat)
 #            codesign  the codes learned with FlatNet (RUNS/codesign-2651/camera)
+#            binary    their binary variant (RUNS/codesign-binary-600/camera: 600 more steps with
+#                      codes.binary, from the co-designed codes and model; a 0/1 mask to fabricate)
 #   models   FlatNet trained from scratch for 2651 steps on each camera (the same recipe,
 #            configs/sim_transpose.yaml, batch 8, crop 128, cosine); on MLS also the shipped model
 #   sets     heldout (the 250 held-out photographs, `flatnet simulate --seed 1 --only val`), dim
 #            (--exposure 0.33), lamp (--lamp --lamp-gain 20), as scripts/make_eval_sets.sh
 # The runs themselves (commands in docs/masks.md, "Co-design"):
 #   RUNS/mls-scratch-2651, RUNS/learned-scratch-40min (2651 steps in its 40 minutes),
-#   RUNS/codesign-2651 (codes.learn, started from the separable codes)
-# Usage: scripts/codesign_compare.sh [RUNS_DIR] [PHOTOS_DIR] (CAMERAS="mls separable codesign" by default);
+#   RUNS/codesign-2651 (codes.learn, started from the separable codes), RUNS/codesign-binary-600
+# Usage: scripts/codesign_compare.sh [RUNS_DIR] [PHOTOS_DIR] (CAMERAS="mls separable codesign binary" by default);
 # writes RUNS_DIR/codesign_table.md.
 # Resumable: simulated sets and reconstructions that exist are reused.
 set -euo pipefail
@@ -25,6 +27,7 @@ camera_yaml() {  # CAMERA -> its camera.yaml
     mls) echo "$PWD/configs/cameras/sim_level.yaml" ;;
     separable) echo "$runs/cam-learned/camera.yaml" ;;
     codesign) echo "$runs/codesign-2651/camera/camera.yaml" ;;
+    binary) echo "$runs/codesign-binary-600/camera/camera.yaml" ;;
   esac
 }
 models() {  # CAMERA -> NAME=MODEL ...
@@ -32,6 +35,7 @@ models() {  # CAMERA -> NAME=MODEL ...
     mls) echo "scratch-2651=$runs/mls-scratch-2651/model.flatnet shipped=$PWD/models/flatnet-sim-transpose.flatnet" ;;
     separable) echo "scratch-2651=$runs/learned-scratch-40min/model.flatnet" ;;
     codesign) echo "codesign-2651=$runs/codesign-2651/model.flatnet" ;;
+    binary) echo "binary-2651+600=$runs/codesign-binary-600/model.flatnet" ;;
   esac
 }
 set_flags() {  # SET -> simulate's flags
@@ -47,7 +51,7 @@ set_flags() {  # SET -> simulate's flags
 
 echo "| camera | model | set | PSNR dB | SSIM | colour kept | detail kept | NIQE |" > "$runs/codesign_table.md.tmp"
 echo "|---|---|---|---|---|---|---|---|" >> "$runs/codesign_table.md.tmp"
-for cam in ${CAMERAS:-mls separable codesign}; do
+for cam in ${CAMERAS:-mls separable codesign binary}; do
   yaml=$(camera_yaml "$cam")
   for set in heldout dim lamp; do
     data=$runs/codesign-eval/$cam/$set
@@ -62,7 +66,10 @@ for cam in ${CAMERAS:-mls separable codesign}; do
       [ -d "$rec/$name" ] ||
         "$flatnet" infer --model "$model" --camera "$yaml" --input "$data/val_meas.txt" --out "$rec/$name" > /dev/null
     done
-    "$flatnet" eval --gt "$data/gt" --out "$rec" > "$rec.eval.txt" 2>&1
+    # Scored again only when a reconstruction folder is newer than the scores.
+    if [ ! -f "$rec/metrics.csv" ] || [ -n "$(find "$rec" -mindepth 1 -maxdepth 1 -type d -newer "$rec/metrics.csv")" ]; then
+      "$flatnet" eval --gt "$data/gt" --out "$rec" > "$rec.eval.txt" 2>&1
+    fi
     # metrics.csv: image,method,psnr,ssim,mean_output,mean_truth,niqe,colour_kept,detail_kept
     grep '^mean,' "$rec/metrics.csv" | grep -v ',ground truth,' | sort -t, -k2,2 |
       while IFS=, read -r _ method psnr ssim _ _ niqe colour detail; do

@@ -220,9 +220,14 @@ int mask_report(int argc, char** argv) {
       levers.bf16 = precision == Precision::bf16;
       model.generator->prepare_inference(levers);
       auto generator = model.generator;
+      // The steps it trained (files from before 2026-11-24 record only the configured count,
+      // which a run with a time budget never reaches).
+      const auto steps = model.provenance.trained_steps.empty()
+                             ? model.config.str("train.iterations") + " steps configured"
+                             : model.provenance.trained_steps + " steps";
       it->flatnet =
           CameraModel{[generator](const torch::Tensor& planes) mutable { return generator->forward(planes); },
-                      model.camera.raw, shown(path) + " (" + model.config.str("train.iterations") + " steps)"};
+                      model.camera.raw, shown(path) + " (" + steps + ")"};
     }
   }
   opt.separable_options.geometry = load_camera_config(default_camera_path()).raw;

@@ -103,20 +103,24 @@ torch::Tensor capture_planes(const Rig& rig, const torch::Tensor& scene_linear, 
                              at::Generator& gen) {
   TORCH_CHECK(scene_linear.dim() == 4 && scene_linear.size(1) == 3, "scenes must be {B,3,N,N}");
   require(g.rotation == 0.0, "camera.rotation", "a learned camera's captures are simulated unrotated; it must be 0");
-  auto S = expected_signal(rig, rgb_to_bayer_planes(scene_linear));  // {B,4,plane_h,plane_w}, full-scale units
-  if (noise) {  // electrons ~ N(S fw, S fw) + N(0, read_noise^2), in full-scale units
-    const auto shot = at::normal(0.0, 1.0, S.sizes(), gen, S.options());
-    const auto read = at::normal(0.0, 1.0, S.sizes(), gen, S.options());
-    S = S + torch::sqrt(S.clamp_min(0) / rig.full_well + 1e-12) * shot + (rig.read_noise / rig.full_well) * read;
+  // Only the window's rows of PhiL and columns of PhiR: the same numbers as the whole plane cropped.
+  Rig window_rig = rig;
+  window_rig.phil = rig.phil.slice(1, g.crop[0], g.crop[0] + g.crop[2]);
+  window_rig.phir = rig.phir.slice(1, g.crop[1], g.crop[1] + g.crop[3]);
+  window_rig.vig_rows = rig.vig_rows.slice(0, g.crop[0], g.crop[0] + g.crop[2]);
+  window_rig.vig_cols = rig.vig_cols.slice(0, g.crop[1], g.crop[1] + g.crop[3]);
+  auto S = expected_signal(window_rig, rgb_to_bayer_planes(scene_linear));  // {B,4,crop_h,crop_w}, full-scale units
+  if (noise) {  // electrons ~ N(S fw, S fw) + N(0, read_noise^2): one Gaussian of the summed variance, full-scale units
+    const double read_variance = std::pow(rig.read_noise / rig.full_well, 2);
+    S = S + torch::sqrt(S.clamp_min(0) / rig.full_well + read_variance + 1e-12) *
+                at::normal(0.0, 1.0, S.sizes(), gen, S.options());
   }
   const double levels = std::pow(2.0, rig.adc_bits) - 1;
   const auto analog = (S + rig.dark) * levels;
   const auto codes = (analog + (torch::round(analog) - analog).detach()).clamp(0, levels);  // straight-through rounding
   // Stored 16-bit values (code * 2^(16 - bits)) read back in [0, 1], as load_raw_unit does.
   const auto unit = codes * (std::pow(2.0, 16 - rig.adc_bits) / 65535.0);
-  const auto window = unit.index({Slice(), Slice(), Slice(g.crop[0], g.crop[0] + g.crop[2]),
-                                  Slice(g.crop[1], g.crop[1] + g.crop[3])});
-  return double_centre(window, g.centring);
+  return double_centre(unit, g.centring);
 }
 
 Calibration load_calibration(const std::filesystem::path& path, const CameraConfig& camera) {

@@ -42,9 +42,14 @@ torch::Tensor CodePairCameraImpl::throughput_penalty() const {
   return 100.0 * excess.pow(2);
 }
 
-torch::Tensor CodePairCameraImpl::capture(const torch::Tensor& scene_linear, at::Generator& gen, bool noise) const {
+Rig CodePairCameraImpl::rig() const {
   const auto [u, v] = codes();
-  return capture_planes(separable_rig(u, v, options_.camera), scene_linear, options_.geometry, noise, gen);
+  return separable_rig(u, v, options_.camera);
+}
+
+torch::Tensor CodePairCameraImpl::capture(const torch::Tensor& scene_linear, at::Generator& gen, bool noise,
+                                          const Rig* fixed) const {
+  return capture_planes(fixed ? *fixed : rig(), scene_linear, options_.geometry, noise, gen);
 }
 
 void write_codes(const std::filesystem::path& path, const CodePairCamera& camera) {

@@ -36,8 +36,11 @@ class CodePairCameraImpl : public torch::nn::Module {
   torch::Tensor throughput() const;                       // scalar, with gradients
   // 100 * relu(|throughput - target| - tolerance)^2: 0 inside the band (as mask separable's).
   torch::Tensor throughput_penalty() const;
-  // Linear-light scenes {B,3,N,N} -> preprocessed planes {B,4,h,w} through the current codes.
-  torch::Tensor capture(const torch::Tensor& scene_linear, at::Generator& gen, bool noise = true) const;
+  Rig rig() const;  // the camera of the current codes (with gradients)
+  // Linear-light scenes {B,3,N,N} -> preprocessed planes {B,4,h,w} through the current codes, or
+  // through `fixed`, a rig() kept while the codes do not change.
+  torch::Tensor capture(const torch::Tensor& scene_linear, at::Generator& gen, bool noise = true,
+                        const Rig* fixed = nullptr) const;
   const CodesignOptions& options() const { return options_; }
 
  private:

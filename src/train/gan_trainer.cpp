@@ -340,7 +340,8 @@ torch::Tensor GanTrainer::capture_batch(const Batch& batch, int64_t step) {
   opt_camera_->zero_grad();
   const bool learning = !codes_frozen(step);
   torch::AutoGradMode grad_mode(learning);
-  auto planes = camera_->capture(batch.scene, gen);  // {B,4,h,w}
+  if (!learning && !frozen_rig_) frozen_rig_ = camera_->rig();  // the codes no longer change
+  auto planes = camera_->capture(batch.scene, gen, true, learning ? nullptr : &*frozen_rig_);  // {B,4,h,w}
   if (opt_.noise_augment > 0) planes = planes + opt_.noise_augment * at::randn(planes.sizes(), gen);
   return learning ? planes : planes.detach();
 }

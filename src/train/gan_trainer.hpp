@@ -9,6 +9,7 @@
 #include <chrono>
 #include <filesystem>
 #include <memory>
+#include <optional>
 #include <vector>
 
 #include "io/camera_config.hpp"
@@ -183,6 +184,7 @@ class GanTrainer {
   TrainState state_;
   GradientAverager* sync_ = nullptr;
   CodePairCamera camera_{nullptr};  // co-design only
+  std::optional<Rig> frozen_rig_;   // its camera once the codes are frozen (built once)
   std::unique_ptr<torch::optim::Adam> opt_camera_;
   CameraConfig camera_geometry_;
 };
