@@ -348,16 +348,10 @@ int mask_camera(int argc, char** argv) {
   for (const char* f : {"rig.mat", "calib.mat", "camera.yaml"})
     require_new_output(out / f, r.count("force") > 0, {codes_path});
   if (r.count("random-codes")) write_mat(codes_path, {{"code_rows", codes.rows}, {"code_cols", codes.cols}});
-  const auto rig = separable_rig(u, v);
   auto camera = load_camera_config(default_camera_path());
-  camera.name = out.filename().string();
   camera.raw.centring = parse_centring(r["centring"].as<std::string>(), "--centring");
-  const auto calib = calibration_of(rig, camera.raw.crop, error, r["seed"].as<uint64_t>());
-  save_rig(out / "rig.mat", rig);
-  save_calibration(out / "calib.mat", calib);
-  write_text_atomically(out / "camera.yaml", "# The reference camera with the codes of " + codes_path.string() +
-                                                 " (`flatnet mask camera`)\n" + camera_geometry_yaml(camera) +
-                                                 "calibration: calib.mat\nrig: rig.mat\n");
+  write_code_pair_camera(out, codes, camera, error, r["seed"].as<uint64_t>(),
+                         "The reference camera with the codes of " + codes_path.string() + " (`flatnet mask camera`)");
   std::cout << "camera with codes " << codes_path.string() << " (" << u.numel() << " x " << v.numel()
             << " features, mean "
             << "transmittance " << codes.throughput() << "): " << (out / "camera.yaml").string()

@@ -3,6 +3,7 @@
 #include <cmath>
 
 #include "core/error.hpp"
+#include "core/util.hpp"
 #include "io/mat.hpp"
 
 namespace flatnet {
@@ -89,6 +90,31 @@ Calibration calibration_of(const Rig& rig, const std::array<int64_t, 4>& crop, d
     Q.push_back(measure(rig.phir[c], left, w, rig.gain[c]));
   }
   return {torch::stack(P), torch::stack(Q)};
+}
+
+torch::Tensor code_throughput(const torch::Tensor& u, const torch::Tensor& v) { return (1 + u.mean() * v.mean()) / 2; }
+
+torch::Tensor throughput_penalty(const torch::Tensor& throughput, double target, double tolerance) {
+  return 100.0 * torch::relu(torch::abs(throughput - target) - tolerance).pow(2);
+}
+
+torch::Tensor straight_through_sign(const torch::Tensor& x) { return x + (torch::sign(x) - x).detach(); }
+
+void save_code_pair(const std::filesystem::path& path, const torch::Tensor& rows, const torch::Tensor& cols) {
+  write_mat(path, {{"code_rows", rows.detach().to(torch::kFloat64).view({-1, 1})},
+                   {"code_cols", cols.detach().to(torch::kFloat64).view({-1, 1})}});
+}
+
+void write_code_pair_camera(const std::filesystem::path& folder, const CodePair& codes, CameraConfig camera,
+                            double calib_error, uint64_t seed, const std::string& comment,
+                            const SeparableCameraOptions& options) {
+  std::filesystem::create_directories(folder);
+  const auto rig = separable_rig(codes.rows.to(torch::kFloat64), codes.cols.to(torch::kFloat64), options);
+  camera.name = folder.filename().string();
+  save_rig(folder / "rig.mat", rig);
+  save_calibration(folder / "calib.mat", calibration_of(rig, camera.raw.crop, calib_error, seed));
+  write_text_atomically(folder / "camera.yaml",
+                        "# " + comment + "\n" + camera_geometry_yaml(camera) + "calibration: calib.mat\nrig: rig.mat\n");
 }
 
 double CodePair::throughput() const { return (1 + rows.mean().item<double>() * cols.mean().item<double>()) / 2; }

@@ -45,6 +45,13 @@ Rig separable_rig(const torch::Tensor& u, const torch::Tensor& v, const Separabl
 // shipped calib.mat has 3 %), seeded.
 Calibration calibration_of(const Rig& rig, const std::array<int64_t, 4>& crop, double relative_error, uint64_t seed);
 
+// The mask (1 + u v^T) / 2's mean transmittance (1 + mean(u) mean(v)) / 2, differentiable.
+torch::Tensor code_throughput(const torch::Tensor& u, const torch::Tensor& v);
+// The code trainers' throughput constraint: 100 relu(|throughput - target| - tolerance)^2, 0 in the band.
+torch::Tensor throughput_penalty(const torch::Tensor& throughput, double target, double tolerance);
+// sign(x) forward, identity backward (straight-through): binary codes that still learn.
+torch::Tensor straight_through_sign(const torch::Tensor& x);
+
 // A separable mask's code pair: the mask is (1 + rows cols^T) / 2.
 struct CodePair {
   torch::Tensor rows, cols;   // {K} float64, values in [-1, 1]
@@ -54,7 +61,17 @@ struct CodePair {
 // (missing, not a vector, non-finite, values outside [-1, 1]).
 CodePair load_code_pair(const std::filesystem::path& path);
 
+// code_rows and code_cols as float64 columns (what load_code_pair reads), atomically.
+void save_code_pair(const std::filesystem::path& path, const torch::Tensor& rows, const torch::Tensor& cols);
+
 // rig.mat's variables (PhiL_b.., PhiR_b.., gain_b.., vig_rows, vig_cols, full_well, read_noise, dark, adc_bits).
 void save_rig(const std::filesystem::path& path, const Rig& rig);
+
+// The camera a code pair makes, as files in `folder`: rig.mat, calib.mat (calibration_of with
+// `calib_error` and `seed`, in `camera`'s crop) and camera.yaml (`camera`'s geometry named after the
+// folder, under the comment line `comment`). `flatnet mask camera` and co-design runs write it.
+void write_code_pair_camera(const std::filesystem::path& folder, const CodePair& codes, CameraConfig camera,
+                            double calib_error, uint64_t seed, const std::string& comment,
+                            const SeparableCameraOptions& options = {});
 
 }  // namespace flatnet

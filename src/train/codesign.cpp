@@ -2,16 +2,9 @@
 
 #include "core/error.hpp"
 #include "core/util.hpp"
-#include "io/mat.hpp"
 #include "optics/camera.hpp"
 
 namespace flatnet {
-
-namespace {
-
-torch::Tensor binarised(const torch::Tensor& x) { return x + (torch::sign(x) - x).detach(); }  // straight-through
-
-}  // namespace
 
 CodePairCameraImpl::CodePairCameraImpl(const CodesignOptions& options) : options_(options) {
   require(options_.lr > 0, "codes.lr", "must be positive");
@@ -27,19 +20,17 @@ CodePairCameraImpl::CodePairCameraImpl(const CodesignOptions& options) : options
 
 std::pair<torch::Tensor, torch::Tensor> CodePairCameraImpl::codes() const {
   auto u = torch::tanh(rows_logit_), v = torch::tanh(cols_logit_);
-  if (options_.binary) u = binarised(u), v = binarised(v);
+  if (options_.binary) u = straight_through_sign(u), v = straight_through_sign(v);
   return {u, v};
 }
 
 torch::Tensor CodePairCameraImpl::throughput() const {
   const auto [u, v] = codes();
-  return (1 + u.mean() * v.mean()) / 2;  // the mask (1 + u v^T) / 2's mean transmittance
+  return code_throughput(u, v);
 }
 
 torch::Tensor CodePairCameraImpl::throughput_penalty() const {
-  const auto excess =
-      torch::relu(torch::abs(throughput() - options_.target_throughput) - options_.throughput_tolerance);
-  return 100.0 * excess.pow(2);
+  return flatnet::throughput_penalty(throughput(), options_.target_throughput, options_.throughput_tolerance);
 }
 
 Rig CodePairCameraImpl::rig() const {
@@ -52,25 +43,14 @@ torch::Tensor CodePairCameraImpl::capture(const torch::Tensor& scene_linear, at:
   return capture_planes(fixed ? *fixed : rig(), scene_linear, options_.geometry, noise, gen);
 }
 
-void write_codes(const std::filesystem::path& path, const CodePairCamera& camera) {
+void write_code_camera(const std::filesystem::path& folder, const CodePairCamera& camera, const CameraConfig& geometry) {
   torch::NoGradGuard no_grad;
   const auto [u, v] = camera->codes();
-  write_mat(path, {{"code_rows", u.detach().to(torch::kFloat64).view({-1, 1})},
-                   {"code_cols", v.detach().to(torch::kFloat64).view({-1, 1})}});
-}
-
-void write_code_camera(const std::filesystem::path& folder, const CodePairCamera& camera, CameraConfig geometry) {
-  torch::NoGradGuard no_grad;
   std::filesystem::create_directories(folder);
-  const auto [u, v] = camera->codes();
-  const auto rig = separable_rig(u.to(torch::kFloat64), v.to(torch::kFloat64), camera->options().camera);
-  write_codes(folder / "codes.mat", camera);
-  save_rig(folder / "rig.mat", rig);
-  save_calibration(folder / "calib.mat", calibration_of(rig, geometry.raw.crop, camera->options().calib_error, 0));
-  geometry.name = folder.filename().string();
-  write_text_atomically(folder / "camera.yaml", "# The camera of the co-designed codes in codes.mat (`flatnet train` with codes.learn)\n" +
-                                                    camera_geometry_yaml(geometry) +
-                                                    "calibration: calib.mat\nrig: rig.mat\n");
+  save_code_pair(folder / "codes.mat", u, v);
+  write_code_pair_camera(folder, {u.detach(), v.detach()}, geometry, camera->options().calib_error, 0,
+                         "The camera of the co-designed codes in codes.mat (`flatnet train` with codes.learn)",
+                         camera->options().camera);
 }
 
 }  // namespace flatnet

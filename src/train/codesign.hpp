@@ -49,10 +49,9 @@ class CodePairCameraImpl : public torch::nn::Module {
 };
 TORCH_MODULE(CodePairCamera);
 
-// The current codes as a codes.mat (code_rows, code_cols, float64), and the camera they make
-// beside it (rig.mat, calib.mat with options.calib_error, camera.yaml with `camera`'s geometry),
-// as `flatnet mask camera` writes them. Every file atomically.
-void write_codes(const std::filesystem::path& path, const CodePairCamera& camera);
-void write_code_camera(const std::filesystem::path& folder, const CodePairCamera& camera, CameraConfig geometry);
+// The current codes as folder/codes.mat and the camera they make beside it (rig.mat, calib.mat
+// with options.calib_error, camera.yaml with `geometry`'s preprocessing), as `flatnet mask camera`
+// writes them (write_code_pair_camera). Every file atomically.
+void write_code_camera(const std::filesystem::path& folder, const CodePairCamera& camera, const CameraConfig& geometry);
 
 }  // namespace flatnet

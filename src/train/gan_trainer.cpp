@@ -134,11 +134,6 @@ void WeightAverage::update(int64_t step) {
 
 namespace {
 
-// gan_step's guard: thrown before any optimiser step; run() skips the step (train/nonfinite.hpp).
-[[noreturn]] void diverged(int64_t step, const std::string& what, double value) {
-  throw NonFiniteStep(what, value, step);
-}
-
 torch::Tensor logits_fp32(Discriminator& d, const torch::Tensor& x, bool bf16) {
   AutocastGuard autocast(bf16);
   return d->forward(x).to(torch::kFloat32);
@@ -176,8 +171,8 @@ StepLosses gan_step(Generator& g, Discriminator& d, Vgg16Features& vgg, torch::o
                         torch::binary_cross_entropy_with_logits(logits_fp32(d, fake.detach(), opt.bf16),
                                                                 uniform(B, 0.0, opt.fake_label_max, label_gen));
     out.discriminator = d_loss.item<double>();
-    // Guard before any optimiser step: a non-finite loss must not reach the weights.
-    if (!std::isfinite(out.discriminator)) diverged(step, "discriminator loss", out.discriminator);
+    // Guard before any optimiser step: a non-finite loss must not reach the weights (run() skips the step).
+    if (!std::isfinite(out.discriminator)) throw NonFiniteStep("discriminator loss", out.discriminator, step);
     d_loss.backward();
     if (sync) sync->average(d->parameters());
     opt_d.step();
@@ -207,7 +202,7 @@ StepLosses gan_step(Generator& g, Discriminator& d, Vgg16Features& vgg, torch::o
     add_term(opt.w_gradient, out.gradient, [&] { return gradient_loss(fake, gt); });
     const double value = loss.item<double>();
     if (!std::isfinite(value))
-      diverged(step, "generator loss (mse " + std::to_string(mse.item<double>()) + ")", value);
+      throw NonFiniteStep("generator loss (mse " + std::to_string(mse.item<double>()) + ")", value, step);
     loss.backward();
     if (sync) sync->average(g->parameters());
     opt_g.step();
@@ -309,6 +304,7 @@ std::string GanTrainer::resume(const std::filesystem::path& checkpoint) {
 void GanTrainer::set_distributed(GradientAverager* collectives) {
   sync_ = collectives;
   if (!sync_ || sync_->world_size() == 1) return;
+  require(!camera_, "codes.learn", "co-design runs in one process");
   // Same starting point everywhere, whatever each rank initialised.
   sync_->broadcast(parameters_and_buffers(*g_));
   sync_->broadcast(parameters_and_buffers(*d_));
@@ -316,7 +312,6 @@ void GanTrainer::set_distributed(GradientAverager* collectives) {
 }
 
 void GanTrainer::set_learned_camera(CodePairCamera camera, CameraConfig geometry) {
-  require(!sync_ || sync_->world_size() == 1, "codes.learn", "co-design runs in one process");
   camera_ = std::move(camera);
   camera_geometry_ = std::move(geometry);
   opt_camera_ = std::make_unique<torch::optim::Adam>(camera_->parameters(), torch::optim::AdamOptions(camera_->options().lr));
@@ -375,7 +370,8 @@ void GanTrainer::checkpoint_and_validate(TrainSummary& summary) {
   if (camera_) {  // the validation scenes through the current codes, with the same noise every time
     torch::NoGradGuard no_grad;
     auto gen = at::detail::createCPUGenerator(opt_.seed + 99);
-    for (auto& s : val_) s.meas = camera_->capture(s.scene.unsqueeze(0), gen)[0];
+    const auto rig = frozen_rig_ ? *frozen_rig_ : camera_->rig();
+    for (auto& s : val_) s.meas = camera_->capture(s.scene.unsqueeze(0), gen, true, &rig)[0];
   }
   const auto v = validate(exported(), val_, opt_.batch, opt_.out / "samples.png");
   const double secs = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
@@ -446,16 +442,15 @@ TrainSummary GanTrainer::run() {
   int64_t checkpointed = -1;
   NonFiniteGuard nonfinite((opt_.out / "latest.ckpt").string() + " (the last validation's, if the run reached one)",
                            "a lower train.lr");
+  // Batch norm's running statistics change in the forward pass: a skipped step puts them back.
+  std::vector<torch::Tensor> statistics = g_->buffers();
+  for (const auto& b : d_->buffers()) statistics.push_back(b);
   while (state_.step < opt_.iterations && !(stopping = stop())) {
     const int64_t step = state_.step;
     set_learning_rates(step);
     auto batch = loader.next();
     StepLosses l;
     bool skipped = false;
-    // Batch norm's running statistics change in the forward pass: a skipped step puts them back.
-    std::vector<torch::Tensor> statistics;
-    for (auto* m : {static_cast<torch::nn::Module*>(g_.get()), static_cast<torch::nn::Module*>(d_.get())})
-      for (const auto& b : m->buffers()) statistics.push_back(b);
     const auto statistics_before = clone_all(statistics);
     try {
       if (camera_) batch.meas = capture_batch(batch, step);

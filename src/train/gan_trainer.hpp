@@ -146,9 +146,10 @@ class GanTrainer {
   Generator& exported();
   // Co-design (train/codesign.hpp): the training source gives scenes (SimulatedPairs without a
   // rig), each batch is captured through `camera` in the graph and its codes learn with the
-  // network until codes.freeze_at; checkpoints hold them; every checkpoint writes OUT/codes.mat
-  // and OUT/camera/ (`geometry`'s preprocessing). Validation scenes are captured through the
-  // current codes with fixed noise. Call before resume() and run().
+  // network until codes.freeze_at; checkpoints hold them; every checkpoint writes OUT/camera/
+  // (codes.mat and the camera they make, with `geometry`'s preprocessing). Validation scenes are
+  // captured through the current codes with fixed noise. Call before set_distributed(), resume()
+  // and run().
   void set_learned_camera(CodePairCamera camera, CameraConfig geometry);
   // Stops after the current step and writes a checkpoint when interrupted() (core/util.hpp).
   TrainSummary run();

@@ -66,8 +66,7 @@ MaskTrainSummary train_mask(MaskModel& model, const torch::Tensor& train_scenes,
   validate(0);
   // One optimiser step on `loss`, or none when it or its gradient is not finite (train/nonfinite.hpp).
   NonFiniteGuard nonfinite("the last validation's (val.csv); the mask is written only at the end", "a lower train.lr");
-  auto train_step = [&](const torch::Tensor& loss, int64_t step) {
-    const double value = loss.item<double>();
+  auto train_step = [&](const torch::Tensor& loss, double value, int64_t step) {
     if (!std::isfinite(value)) {
       nonfinite.skip(NonFiniteStep("loss", value, step));  // throws at the limit
       return false;
@@ -93,7 +92,7 @@ MaskTrainSummary train_mask(MaskModel& model, const torch::Tensor& train_scenes,
     const auto rec = wiener(capture(x, P, cam, gen), P, log_gamma.exp(), cam);
     const auto loss = torch::mse_loss(rec, x);
     const double lv = loss.item<double>();
-    if (train_step(loss, step)) {
+    if (train_step(loss, lv, step)) {
       sum_loss += lv;
       sum_psnr += psnr_sum(rec.detach(), x) / o.batch;
       ++count;

@@ -54,10 +54,6 @@ torch::Tensor capture_and_reconstruct(const torch::Tensor& u, const torch::Tenso
   return torch::matmul(torch::matmul(VLt.t(), core), VRt);
 }
 
-torch::Tensor throughput_of(const torch::Tensor& u, const torch::Tensor& v) { return (1 + u.mean() * v.mean()) / 2; }
-
-torch::Tensor binarised(const torch::Tensor& x) { return x + (torch::sign(x) - x).detach(); }  // straight-through
-
 double mean_psnr(const torch::Tensor& rec, const torch::Tensor& truth) {
   const auto mse = (rec.clamp(0, 1) - truth).pow(2).mean({1, 2}).clamp_min(1e-12);
   return (-10.0 * torch::log10(mse)).mean().item<double>();
@@ -113,7 +109,7 @@ SeparableTrainSummary train_separable_codes(const SeparableTrainOptions& o) {
   torch::optim::Adam opt({a, b, log_lambda}, torch::optim::AdamOptions(o.lr));
   auto codes = [&]() {
     auto u = torch::tanh(a), v = torch::tanh(b);
-    if (o.binary) u = binarised(u), v = binarised(v);
+    if (o.binary) u = straight_through_sign(u), v = straight_through_sign(v);
     return std::pair<torch::Tensor, torch::Tensor>{u, v};
   };
 
@@ -135,9 +131,8 @@ SeparableTrainSummary train_separable_codes(const SeparableTrainOptions& o) {
     const auto X = train_linear.index_select(0, idx);
     const auto [u, v] = codes();
     const auto rec = capture_and_reconstruct(u, v, torch::exp(log_lambda), X, gen);
-    const auto t = throughput_of(u, v);
-    const auto excess = torch::relu(torch::abs(t - o.target_throughput) - o.throughput_tolerance);
-    const auto loss = (rec - X).pow(2).mean() + 100.0 * excess.pow(2);
+    const auto t = code_throughput(u, v);
+    const auto loss = (rec - X).pow(2).mean() + throughput_penalty(t, o.target_throughput, o.throughput_tolerance);
     opt.zero_grad();
     loss.backward();
     // An SVD with nearly equal singular values can give a non-finite gradient: that step is
@@ -169,11 +164,10 @@ SeparableTrainSummary train_separable_codes(const SeparableTrainOptions& o) {
   progress.finish();
   const auto [u, v] = codes();
   summary.lambda = std::exp(log_lambda.item<double>());
-  summary.throughput = throughput_of(u, v).item<double>();
+  summary.throughput = code_throughput(u, v).item<double>();
   summary.val_psnr = separable_psnr(u.detach(), v.detach(), summary.lambda, val, 99);
   summary.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
-  write_mat(o.out / "codes.mat", {{"code_rows", u.detach().to(torch::kFloat64).view({-1, 1})},
-                                  {"code_cols", v.detach().to(torch::kFloat64).view({-1, 1})}});
+  save_code_pair(o.out / "codes.mat", u, v);
   write_text_atomically(o.out / "lambda.txt", std::to_string(summary.lambda) + "\n");
   log.flush();
   PlotOptions po;
