@@ -177,6 +177,16 @@ TEST_CASE("separable code training: gradients move both codes and lambda, throug
   MatReader bin(o.out / "codes.mat");
   CHECK(torch::all(bin.read("code_rows").abs() == 1).item<bool>());
   CHECK(torch::all(bin.read("code_cols").abs() == 1).item<bool>());
+  // A time budget (train.minutes) stops the run early, and its codes are written as at the end.
+  o.binary = false;
+  o.iterations = 100000, o.minutes = 0.01 / 60;
+  o.out = s.dir / "budget";
+  const auto budget = train_separable_codes(o);
+  CHECK(budget.steps >= 1);
+  CHECK(budget.steps < 100000);
+  CHECK(std::filesystem::exists(o.out / "codes.mat"));
+  o.minutes = 0;
+  o.iterations = 3;
   // MLS beats random codes of the same light under Tikhonov (a sanity check of the pipeline).
   const auto scenes = load_luma_scenes({s.dir / "photos" / "p0.png", s.dir / "photos" / "p3.png"}, 256, 1);
   torch::manual_seed(5);

@@ -72,6 +72,7 @@ int mask_train(int argc, char** argv) {
   mo.rows = cam.rows, mo.cols = cam.cols;
   MaskTrainOptions to;
   to.iterations = c.integer("train.iterations");
+  to.minutes = c.num("train.minutes");
   to.batch = c.integer("train.batch");
   to.optimizer = c.str("train.optimizer");
   to.lr = c.num("train.lr");
@@ -91,13 +92,14 @@ int mask_train(int argc, char** argv) {
   const auto val = load_luma_scenes(first(val_imgs, c.integer("train.val_count")), cam.scene, 2);
   const auto claim = claim_out(r, to.out, "mask train");
   write_text_atomically(to.out / "config.yaml", c.to_yaml());
+  watch_interrupts();
   const auto s = train_mask(model, train, val, cam, to);
   std::cout << "rank " << mo.rank << " mask: validation PSNR " << std::fixed << std::setprecision(2) << s.val_psnr
             << " dB, throughput " << std::setprecision(3) << s.throughput << ", gamma " << std::scientific
             << std::setprecision(3) << s.gamma << std::defaultfloat << " after " << s.steps << " steps in "
             << format_duration(s.seconds) << "\nwrote " << (to.out / "mask.png").string()
             << ", vectors.mat, gamma.txt, log.csv, curve.png\n";
-  return 0;
+  return interrupted() ? 130 : 0;
 }
 
 // gamma tuned on the first quarter, PSNR on the rest.
@@ -283,6 +285,7 @@ int mask_separable(int argc, char** argv) {
   opt.target_throughput = c.num("codes.target_throughput");
   opt.throughput_tolerance = c.num("codes.throughput_tolerance");
   opt.iterations = c.integer("train.iterations");
+  opt.minutes = c.num("train.minutes");
   opt.batch = c.integer("train.batch");
   opt.lr = c.num("train.lr");
   opt.lambda_init = c.num("train.lambda_init");

@@ -1,11 +1,48 @@
 #include "train/csv_log.hpp"
 
+#include <fstream>
+#include <iostream>
+
 #include "core/util.hpp"
 
 namespace flatnet {
 
 CsvLog::CsvLog(std::filesystem::path path, const std::string& header) : path_(std::move(path)), text_(header + "\n") {
-  flush();  // the file exists (with its header) from the start, as it did when it was streamed
+  flush();  // the file exists (with its header) from the start
+}
+
+CsvLog CsvLog::resume(std::filesystem::path path, const std::string& header, int64_t last_step) {
+  if (!std::filesystem::exists(path)) return CsvLog(std::move(path), header);
+  std::ifstream in(path);
+  std::string line, kept = header + "\n";
+  bool first_line = true;
+  int64_t line_number = 0, dropped = 0, first_dropped = 0;
+  while (std::getline(in, line)) {
+    ++line_number;
+    if (first_line) {  // the old header gives way to the current one
+      first_line = false;
+      continue;
+    }
+    const auto field = line.substr(0, line.find(','));
+    size_t used = 0;
+    int64_t step = -1;
+    try {
+      step = std::stoll(field, &used);
+    } catch (const std::exception&) {
+      used = 0;
+    }
+    if (used == 0 || used != field.size() || step < 0) {
+      if (dropped++ == 0) first_dropped = line_number;
+      continue;
+    }
+    if (step <= last_step) kept += line + "\n";
+  }
+  if (dropped > 0)
+    std::cerr << path.string() << ": dropped " << dropped << " malformed row(s) (the first at line " << first_dropped
+              << "); training state comes from the checkpoint\n";
+  CsvLog log(std::move(path), std::move(kept), true);
+  log.flush();
+  return log;
 }
 
 void CsvLog::flush() const { write_text_atomically(path_, text_); }

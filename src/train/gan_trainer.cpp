@@ -8,58 +8,17 @@
 #include "core/util.hpp"
 #include "eval/metrics.hpp"
 #include "train/distributed.hpp"
+#include "train/loop.hpp"
 #include "train/nonfinite.hpp"
 
 namespace flatnet {
 
 namespace {
 
-// Keeps the rows of a CSV log whose first field (the step) is <= last_step; used on resume so
-// the log continues without duplicates. The checkpoint, not the log, is the run's state: rows that
-// do not start with a step (a line cut short by a crash, an edit) are dropped with a warning.
 const char* const kLogHeader =
     "step,loss,mse,ssim_loss,perceptual,adversarial,discriminator,lr,steps_per_s,feature_matching,frequency,chroma,"
     "gradient";
-
-void truncate_log(const std::filesystem::path& path, int64_t last_step, const std::string& new_header = "") {
-  if (!std::filesystem::exists(path)) return;
-  std::ifstream in(path);
-  std::string line, kept;
-  bool header = true;
-  int64_t line_number = 0, dropped = 0, first_dropped = 0;
-  while (std::getline(in, line)) {
-    ++line_number;
-    if (header) {  // a run from an older flatnet gets the current header (its rows keep their fewer fields)
-      kept += (new_header.empty() ? line : new_header) + "\n";
-      header = false;
-      continue;
-    }
-    const auto field = line.substr(0, line.find(','));
-    size_t used = 0;
-    int64_t step = -1;
-    try {
-      step = std::stoll(field, &used);
-    } catch (const std::exception&) {
-      used = 0;
-    }
-    if (used == 0 || used != field.size() || step < 0) {
-      if (dropped++ == 0) first_dropped = line_number;
-      continue;
-    }
-    if (step <= last_step) kept += line + "\n";
-  }
-  if (dropped > 0)
-    std::cerr << path.string() << ": dropped " << dropped << " malformed row(s) (the first at line " << first_dropped
-              << "); training state comes from the checkpoint\n";
-  write_text_atomically(path, kept);
-}
-
-void append_line(const std::filesystem::path& path, const std::string& header, const std::string& line) {
-  const bool fresh = !std::filesystem::exists(path);
-  std::ofstream out(path, std::ios::app);
-  if (fresh) out << header << "\n";
-  out << line << "\n";
-}
+const char* const kValHeader = "step,psnr,ssim,seconds";
 
 std::vector<torch::Tensor> clone_all(const std::vector<torch::Tensor>& tensors) {
   std::vector<torch::Tensor> out;
@@ -286,8 +245,6 @@ std::string GanTrainer::resume(const std::filesystem::path& checkpoint) {
   state_.best_psnr = std::filesystem::exists(best) ? checkpoint_best_psnr(best) : -1e9;
   auto gen = at::detail::getDefaultCPUGenerator();
   gen.set_state(state_.rng_state);
-  truncate_log(opt_.out / "log.csv", state_.step, kLogHeader);
-  truncate_log(opt_.out / "val.csv", state_.step);
   // A kill after latest.ckpt and before model.flatnet leaves the model a step behind: rewrite it.
   if (!sync_ || sync_->rank() == 0) save_model_file(opt_.out / "model.flatnet", exported(), exported_identity());
   std::ostringstream os;
@@ -376,9 +333,8 @@ void GanTrainer::checkpoint_and_validate(TrainSummary& summary) {
   const auto v = validate(exported(), val_, opt_.batch, opt_.out / "samples.png");
   const double secs = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
   summary.last_psnr = v.psnr, summary.last_ssim = v.ssim;
-  std::ostringstream line;
-  line << state_.step << "," << std::setprecision(6) << v.psnr << "," << v.ssim << "," << secs;
-  append_line(opt_.out / "val.csv", "step,psnr,ssim,seconds", line.str());
+  val_log_->add(state_.step, v.psnr, v.ssim, secs);  // 6 significant digits
+  val_log_->flush();
   const bool best = v.psnr > state_.best_psnr;
   if (best) state_.best_psnr = v.psnr;
   state_.rng_state = at::detail::getDefaultCPUGenerator().get_state();
@@ -420,100 +376,99 @@ TrainSummary GanTrainer::run() {
   if (sync_) lo.world_size = sync_->world_size(), lo.rank = sync_->rank();
   BatchLoader loader(train_, lo);
   const bool writer = !sync_ || sync_->rank() == 0;  // only rank 0 writes logs and checkpoints
-  if (writer) std::filesystem::create_directories(opt_.out);
+  const bool data_parallel = sync_ && sync_->world_size() > 1;
+  if (writer) {
+    std::filesystem::create_directories(opt_.out);
+    // A resumed run's logs keep their rows up to the checkpoint (the later ones are repeated now).
+    log_ = CsvLog::resume(opt_.out / "log.csv", kLogHeader, state_.step);
+    val_log_ = CsvLog::resume(opt_.out / "val.csv", kValHeader, state_.step);
+  }
   const bool adversarial = opt_.trains_discriminator();
   g_->train();
   d_->train();
-  Progress progress("train", opt_.iterations - state_.step, opt_.progress);
-  const auto start = std::chrono::steady_clock::now();
   StepLosses sums;  // since the last log line
   int64_t n_logged = 0;
-  run_start_ = std::chrono::steady_clock::now();
-  seconds_before_run_ = state_.train_seconds;
-  const bool budget = opt_.minutes > 0;
-  if (budget) progress.set_time_left(60.0 * opt_.minutes - trained_seconds());
-  bool over_budget = false;
-  auto stop = [&] {
-    over_budget = budget && trained_seconds() >= 60.0 * opt_.minutes;
-    const bool local = interrupted() || over_budget;
-    return sync_ ? sync_->any(local) : local;
-  };
-  bool stopping = false;
-  int64_t checkpointed = -1;
-  NonFiniteGuard nonfinite((opt_.out / "latest.ckpt").string() + " (the last validation's, if the run reached one)",
-                           "a lower train.lr");
   // Batch norm's running statistics change in the forward pass: a skipped step puts them back.
   std::vector<torch::Tensor> statistics = g_->buffers();
   for (const auto& b : d_->buffers()) statistics.push_back(b);
-  while (state_.step < opt_.iterations && !(stopping = stop())) {
-    const int64_t step = state_.step;
+
+  LoopOptions lo_opts;
+  lo_opts.first_step = state_.step;
+  lo_opts.iterations = opt_.iterations;
+  lo_opts.minutes = opt_.minutes;
+  lo_opts.seconds_before = state_.train_seconds;
+  lo_opts.log_every = opt_.log_every;
+  lo_opts.val_every = opt_.val_every;
+  lo_opts.progress = opt_.progress;
+  lo_opts.writer = writer;
+  lo_opts.last_good = (opt_.out / "latest.ckpt").string() + " (the last validation's, if the run reached one)";
+  // Data-parallel ranks must take the same steps: a skip on one rank alone would pair its next
+  // collective with another rank's current one, so there the first non-finite step stops.
+  lo_opts.skip_nonfinite = !data_parallel;
+  LoopHooks hooks;
+  hooks.step = [&](int64_t step) {
     set_learning_rates(step);
     auto batch = loader.next();
-    StepLosses l;
-    bool skipped = false;
     const auto statistics_before = clone_all(statistics);
+    StepLosses l;
     try {
       if (camera_) batch.meas = capture_batch(batch, step);
       l = gan_step(g_, d_, vgg_, *opt_g_, *opt_d_, opt_, batch, step, sync_);
       if (camera_) step_codes(step);
-      nonfinite.good();
-    } catch (const NonFiniteStep& bad) {
-      // Data-parallel ranks must take the same steps: a skip on one rank alone would pair its next
-      // collective with another rank's current one, so there the first non-finite step stops.
-      if (sync_ && sync_->world_size() > 1) nonfinite.stop(bad);
-      nonfinite.skip(bad);  // throws at the limit
-      skipped = true;
+    } catch (const NonFiniteStep&) {
       torch::NoGradGuard no_grad;
       for (size_t i = 0; i < statistics.size(); ++i) statistics[i].copy_(statistics_before[i]);
+      throw;
     }
-    if (ema_ && !skipped) ema_->update(step);
-    if (!skipped) sums += l;
-    if (sync_ && sync_->world_size() > 1) {
+    if (ema_) ema_->update(step);
+    sums += l;
+    ++n_logged;
+    if (data_parallel) {
       // Batch-norm running statistics follow rank 0's (as DistributedDataParallel's broadcast_buffers).
-      std::vector<torch::Tensor> buffers = g_->buffers(), d_buffers = d_->buffers();
-      buffers.insert(buffers.end(), d_buffers.begin(), d_buffers.end());
-      sync_->broadcast(buffers);
+      sync_->broadcast(statistics);
       if (opt_.check_sync_every > 0 && (step + 1) % opt_.check_sync_every == 0) {
         sync_->check_identical(g_->parameters(), "generator parameters after step " + std::to_string(step + 1));
         sync_->check_identical(d_->parameters(), "discriminator parameters after step " + std::to_string(step + 1));
       }
     }
-    if (!skipped) ++n_logged;
-    state_.step = step + 1;
-    progress.tick();
-    if (writer && (state_.step % opt_.log_every == 0 || state_.step == opt_.iterations)) {
-      const double elapsed = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
-      std::ostringstream line, status;
-      const auto m = sums / static_cast<double>(std::max<int64_t>(1, n_logged));
-      line << state_.step << "," << std::setprecision(6) << m.loss << "," << m.mse << "," << m.ssim << ","
-           << m.perceptual << "," << m.adversarial << "," << m.discriminator << ","
-           << static_cast<torch::optim::AdamOptions&>(opt_g_->param_groups()[0].options()).lr() << ","
-           << (state_.step - summary.first_step) / elapsed << "," << m.feature_matching << "," << m.frequency << ","
-           << m.chroma << "," << m.gradient;
-      append_line(opt_.out / "log.csv", kLogHeader, line.str());
-      status << "step " << state_.step << " loss " << std::setprecision(4) << m.loss << " mse " << m.mse;
-      if (adversarial) status << " D " << m.discriminator;
-      if (camera_) {
-        torch::NoGradGuard no_grad;
-        status << " throughput " << std::setprecision(3) << camera_->throughput().item<double>()
-               << (codes_frozen(state_.step) ? " (codes fixed)" : "");
-      }
-      if (budget) status << " | budget left " << format_duration(std::max(0.0, 60.0 * opt_.minutes - trained_seconds()));
-      progress.set_status(status.str());
-      sums = StepLosses{};
-      n_logged = 0;
+  };
+  hooks.advanced = [&](int64_t done) { state_.step = done; };
+  hooks.log = [&](int64_t done) {
+    const double elapsed = std::max(1e-9, trained_seconds() - seconds_before_run_);
+    const auto m = sums / static_cast<double>(std::max<int64_t>(1, n_logged));
+    const double lr = static_cast<torch::optim::AdamOptions&>(opt_g_->param_groups()[0].options()).lr();
+    log_->add(done, m.loss, m.mse, m.ssim, m.perceptual, m.adversarial, m.discriminator, lr,
+              (done - summary.first_step) / elapsed, m.feature_matching, m.frequency, m.chroma, m.gradient);
+    log_->flush();
+    std::ostringstream status;
+    status << "step " << done << " loss " << std::setprecision(4) << m.loss << " mse " << m.mse;
+    if (adversarial) status << " D " << m.discriminator;
+    if (camera_) {
+      torch::NoGradGuard no_grad;
+      status << " throughput " << std::setprecision(3) << camera_->throughput().item<double>()
+             << (codes_frozen(done) ? " (codes fixed)" : "");
     }
-    if (writer && (state_.step % opt_.val_every == 0 || state_.step == opt_.iterations)) {
-      checkpoint_and_validate(summary);
-      checkpointed = state_.step;
-    }
+    sums = StepLosses{};
+    n_logged = 0;
+    return status.str();
+  };
+  hooks.checkpoint = [&](int64_t) { checkpoint_and_validate(summary); };
+  if (sync_) hooks.any_rank = [&](bool local) { return sync_->any(local); };
+
+  seconds_before_run_ = state_.train_seconds;
+  TrainingLoop loop(lo_opts, hooks);
+  loop_ = &loop;
+  LoopResult r;
+  try {
+    r = loop.run();
+  } catch (...) {
+    loop_ = nullptr;
+    throw;
   }
-  // Ctrl-C or the time budget: a final checkpoint and model file, so nothing is lost.
-  if (stopping && writer && checkpointed != state_.step) checkpoint_and_validate(summary);
-  summary.budget_reached = stopping && over_budget && !interrupted();
-  progress.finish();
-  summary.last_step = state_.step;
-  summary.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  loop_ = nullptr;
+  summary.budget_reached = r.budget_reached;
+  summary.last_step = r.last_step;
+  summary.seconds = r.seconds;
   summary.steps_per_s = summary.seconds > 0 ? (summary.last_step - summary.first_step) / summary.seconds : 0;
   summary.loader_wait_s = loader.wait_seconds();
   if (summary.best_psnr < -1e8) summary.best_psnr = state_.best_psnr;

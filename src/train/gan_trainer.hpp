@@ -16,7 +16,9 @@
 #include "nn/generator.hpp"
 #include "nn/losses.hpp"
 #include "train/codesign.hpp"
+#include "train/csv_log.hpp"
 #include "train/data.hpp"
+#include "train/loop.hpp"
 #include "nn/model_file.hpp"
 
 namespace flatnet {
@@ -165,13 +167,10 @@ class GanTrainer {
   // What model.flatnet records: the run's identity with its steps, time and best validation PSNR.
   ModelIdentity exported_identity() const;
   // Training time in all: the checkpoint's record plus this run's time so far.
-  double trained_seconds() const {
-    if (run_start_ == std::chrono::steady_clock::time_point{}) return state_.train_seconds;
-    return seconds_before_run_ +
-           std::chrono::duration<double>(std::chrono::steady_clock::now() - run_start_).count();
-  }
-  std::chrono::steady_clock::time_point run_start_{};
+  double trained_seconds() const { return loop_ ? loop_->trained_seconds() : state_.train_seconds; }
+  const TrainingLoop* loop_ = nullptr;  // while run() runs: its clock
   double seconds_before_run_ = 0;
+  std::optional<CsvLog> log_, val_log_;  // log.csv, val.csv (the writer's)
 
   Generator g_;
   Discriminator d_;

@@ -1,6 +1,7 @@
 #include "train/mask_trainer.hpp"
 
 #include "train/csv_log.hpp"
+#include "train/loop.hpp"
 #include "train/nonfinite.hpp"
 
 #include <fstream>
@@ -44,8 +45,6 @@ MaskTrainSummary train_mask(MaskModel& model, const torch::Tensor& train_scenes,
   CsvLog log(o.out / "log.csv", "step,loss,psnr,gamma,throughput");
   CsvLog val_log(o.out / "val.csv", "step,val_psnr,gamma,throughput");
   Series train_curve{"train (batch)", {}, {}}, val_curve{"validation", {}, {}};
-  Progress progress("mask", o.iterations, o.progress);
-  const auto start = std::chrono::steady_clock::now();
   std::mt19937_64 rng(o.seed);
   std::uniform_int_distribution<int64_t> pick(0, n - 1);
   double sum_loss = 0, sum_psnr = 0;
@@ -64,26 +63,18 @@ MaskTrainSummary train_mask(MaskModel& model, const torch::Tensor& train_scenes,
     s.val_psnr = p, s.gamma = g, s.throughput = throughput(w);
   };
   validate(0);
-  // One optimiser step on `loss`, or none when it or its gradient is not finite (train/nonfinite.hpp).
-  NonFiniteGuard nonfinite("the last validation's (val.csv); the mask is written only at the end", "a lower train.lr");
-  auto train_step = [&](const torch::Tensor& loss, double value, int64_t step) {
-    if (!std::isfinite(value)) {
-      nonfinite.skip(NonFiniteStep("loss", value, step));  // throws at the limit
-      return false;
-    }
-    opt->zero_grad();
-    loss.backward();
-    std::vector<torch::Tensor> grads;
-    for (const auto& p : params) grads.push_back(p.grad());
-    if (!all_finite(grads)) {
-      nonfinite.skip(NonFiniteStep("loss's gradient", std::nan(""), step));
-      return false;
-    }
-    opt->step();
-    nonfinite.good();
-    return true;
-  };
-  for (int64_t step = 0; step < o.iterations; ++step) {
+
+  LoopOptions lo;
+  lo.label = "mask";
+  lo.iterations = o.iterations;
+  lo.minutes = o.minutes;
+  lo.log_every = o.log_every;
+  lo.val_every = o.val_every;
+  lo.progress = o.progress;
+  lo.last_good = "the last validation's (val.csv); the mask is written at the end";
+  LoopHooks hooks;
+  // One optimiser step, or none when the loss or its gradient is not finite (train/nonfinite.hpp).
+  hooks.step = [&](int64_t step) {
     std::vector<int64_t> idx(o.batch);
     for (auto& i : idx) i = pick(rng);
     const auto x = train_scenes.index_select(0, torch::tensor(idx));
@@ -91,30 +82,37 @@ MaskTrainSummary train_mask(MaskModel& model, const torch::Tensor& train_scenes,
     const auto P = psf_spectrum(model->window());
     const auto rec = wiener(capture(x, P, cam, gen), P, log_gamma.exp(), cam);
     const auto loss = torch::mse_loss(rec, x);
-    const double lv = loss.item<double>();
-    if (train_step(loss, lv, step)) {
-      sum_loss += lv;
-      sum_psnr += psnr_sum(rec.detach(), x) / o.batch;
-      ++count;
-    }
-    progress.tick();
-    if ((step + 1) % o.log_every == 0 && count > 0) {
-      const double g = std::exp(log_gamma.item<double>());
-      log.add(step + 1, sum_loss / count, sum_psnr / count, g, throughput(model->window().detach()));
-      train_curve.x.push_back(static_cast<double>(step + 1));
-      train_curve.y.push_back(sum_psnr / count);
-      std::ostringstream st;
-      st << "psnr " << std::fixed << std::setprecision(2) << sum_psnr / count << " gamma " << std::scientific
-         << std::setprecision(2) << g;
-      progress.set_status(st.str());
-      sum_loss = sum_psnr = 0;
-      count = 0;
-    }
-    if ((step + 1) % o.val_every == 0 || step + 1 == o.iterations) validate(step + 1);
-  }
-  progress.finish();
-  s.steps = o.iterations;
-  s.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+    const double value = loss.item<double>();
+    if (!std::isfinite(value)) throw NonFiniteStep("loss", value, step);
+    opt->zero_grad();
+    loss.backward();
+    std::vector<torch::Tensor> grads;
+    for (const auto& p : params) grads.push_back(p.grad());
+    if (!all_finite(grads)) throw NonFiniteStep("loss's gradient", std::nan(""), step);
+    opt->step();
+    sum_loss += value;
+    sum_psnr += psnr_sum(rec.detach(), x) / o.batch;
+    ++count;
+  };
+  hooks.log = [&](int64_t done) -> std::string {
+    if (count == 0) return "every step since the last log was skipped";
+    const double g = std::exp(log_gamma.item<double>());
+    log.add(done, sum_loss / count, sum_psnr / count, g, throughput(model->window().detach()));
+    train_curve.x.push_back(static_cast<double>(done));
+    train_curve.y.push_back(sum_psnr / count);
+    log.flush();
+    std::ostringstream st;
+    st << "psnr " << std::fixed << std::setprecision(2) << sum_psnr / count << " gamma " << std::scientific
+       << std::setprecision(2) << g;
+    sum_loss = sum_psnr = 0;
+    count = 0;
+    return st.str();
+  };
+  hooks.checkpoint = validate;
+  const auto r = TrainingLoop(lo, hooks).run();
+  s.steps = r.last_step;
+  s.seconds = r.seconds;
+  log.flush();
 
   torch::NoGradGuard ng;
   const auto window = model->window();

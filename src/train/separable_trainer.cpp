@@ -14,6 +14,7 @@
 #include "optics/simulator.hpp"
 #include "eval/mask_score.hpp"
 #include "train/csv_log.hpp"
+#include "train/loop.hpp"
 #include "train/mask_trainer.hpp"
 #include "train/nonfinite.hpp"
 
@@ -123,50 +124,54 @@ SeparableTrainSummary train_separable_codes(const SeparableTrainOptions& o) {
   std::cerr << "separable codes: validation PSNR at the start " << summary.val_psnr_start << " dB\n";
   Series train_curve{"train (batch)", {}, {}}, val_curve{"validation", {}, {}};
   auto gen = at::detail::createCPUGenerator(o.seed + 1);
-  Progress progress("codes", o.iterations, o.progress);
-  const auto start = std::chrono::steady_clock::now();
-  NonFiniteGuard nonfinite("the last validation's (log.csv); the codes are written only at the end", "a lower train.lr");
-  for (int64_t step = 1; step <= o.iterations && !interrupted(); ++step) {
+  double last_loss = 0, last_throughput = 0, last_val = std::nan("");
+  LoopOptions lo;
+  lo.label = "codes";
+  lo.iterations = o.iterations;
+  lo.minutes = o.minutes;
+  lo.log_every = o.log_every;
+  lo.val_every = o.val_every;
+  lo.progress = o.progress;
+  lo.last_good = "the last validation's (log.csv); the codes are written at the end";
+  LoopHooks hooks;
+  hooks.step = [&](int64_t step) {
     const auto idx = torch::randint(train_linear.size(0), {o.batch}, gen, torch::kLong);
     const auto X = train_linear.index_select(0, idx);
     const auto [u, v] = codes();
     const auto rec = capture_and_reconstruct(u, v, torch::exp(log_lambda), X, gen);
     const auto t = code_throughput(u, v);
     const auto loss = (rec - X).pow(2).mean() + throughput_penalty(t, o.target_throughput, o.throughput_tolerance);
+    last_loss = loss.item<double>(), last_throughput = t.item<double>();
     opt.zero_grad();
     loss.backward();
     // An SVD with nearly equal singular values can give a non-finite gradient: that step is
     // skipped, and kNonFiniteLimit in a row stop (train/nonfinite.hpp).
-    if (!std::isfinite(loss.item<double>()))
-      nonfinite.skip(NonFiniteStep("loss", loss.item<double>(), step));
-    else if (!all_finite({a.grad(), b.grad(), log_lambda.grad()}))
-      nonfinite.skip(NonFiniteStep("gradient of the codes or lambda", std::nan(""), step));
-    else
-      opt.step(), nonfinite.good();
-    progress.tick();
-    if (step % o.log_every == 0 || step == o.iterations) {
-      double val_psnr = std::nan("");
-      const bool validate = step % o.val_every == 0 || step == o.iterations;
-      if (validate) {
-        const auto [uv, vv] = codes();
-        val_psnr = separable_psnr(uv.detach(), vv.detach(), std::exp(log_lambda.item<double>()), val, 99);
-        val_curve.x.push_back(static_cast<double>(step));
-        val_curve.y.push_back(val_psnr);
-      }
-      train_curve.x.push_back(static_cast<double>(step));
-      train_curve.y.push_back(-10 * std::log10(std::max(1e-12, loss.item<double>())));
-      log.add(step, loss.item<double>(), t.item<double>(), std::exp(log_lambda.item<double>()), val_psnr);
-      if (validate) log.flush();  // the log on disk at each validation (CsvLog), and at the end
-      progress.set_status("loss " + std::to_string(loss.item<double>()) + " t " + std::to_string(t.item<double>()));
-    }
-    summary.steps = step;
-  }
-  progress.finish();
+    if (!std::isfinite(last_loss)) throw NonFiniteStep("loss", last_loss, step + 1);
+    if (!all_finite({a.grad(), b.grad(), log_lambda.grad()}))
+      throw NonFiniteStep("gradient of the codes or lambda", std::nan(""), step + 1);
+    opt.step();
+  };
+  hooks.checkpoint = [&](int64_t done) {  // runs before the log row of the same step
+    const auto [uv, vv] = codes();
+    last_val = separable_psnr(uv.detach(), vv.detach(), std::exp(log_lambda.item<double>()), val, 99);
+    val_curve.x.push_back(static_cast<double>(done));
+    val_curve.y.push_back(last_val);
+  };
+  hooks.log = [&](int64_t done) {
+    train_curve.x.push_back(static_cast<double>(done));
+    train_curve.y.push_back(-10 * std::log10(std::max(1e-12, last_loss)));
+    log.add(done, last_loss, last_throughput, std::exp(log_lambda.item<double>()), last_val);
+    if (!std::isnan(last_val)) log.flush();  // the log on disk at each validation (CsvLog), and at the end
+    last_val = std::nan("");
+    return "loss " + std::to_string(last_loss) + " t " + std::to_string(last_throughput);
+  };
+  const auto r = TrainingLoop(lo, hooks).run();
+  summary.steps = r.last_step;
   const auto [u, v] = codes();
   summary.lambda = std::exp(log_lambda.item<double>());
   summary.throughput = code_throughput(u, v).item<double>();
   summary.val_psnr = separable_psnr(u.detach(), v.detach(), summary.lambda, val, 99);
-  summary.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+  summary.seconds = r.seconds;
   save_code_pair(o.out / "codes.mat", u, v);
   write_text_atomically(o.out / "lambda.txt", std::to_string(summary.lambda) + "\n");
   log.flush();

@@ -25,6 +25,7 @@ struct SeparableTrainOptions {
   int64_t train_limit = 400;         // photographs loaded for training (0: all)
   int64_t val_count = 32;            // held-out-split photographs for validation
   int64_t iterations = 1000, batch = 8;
+  double minutes = 0;  // wall-clock budget (0: none); the run stops early, writing its codes
   double lr = 0.02;           // Adam, on the codes' pre-activations
   double lambda_init = 1e-4;  // Tikhonov regulariser (absolute, as recon's), learned as its log
   double target_throughput = 0.5, throughput_tolerance = 0.05;

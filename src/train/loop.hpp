@@ -1,0 +1,73 @@
+#pragma once
+// The one training loop every trainer runs (FlatNet's GAN trainer, the mask trainer, the code-pair
+// trainer). It owns what they share: the step count (from a resumed step to the last), the
+// progress bar and its status line, the wall-clock budget (train.minutes, counting the seconds a
+// resumed run trained before), Ctrl-C, the cadence of log rows and of validation + checkpoint, the
+// final checkpoint of a run stopped early, and the policy on non-finite values (train/nonfinite.hpp:
+// a bad step is skipped, kNonFiniteLimit in a row stop). A trainer says what a step, a log row and
+// a checkpoint are (LoopHooks); the loop says when.
+#include <cstdint>
+#include <functional>
+#include <string>
+
+namespace flatnet {
+
+struct LoopOptions {
+  std::string label = "train";  // the progress bar's
+  int64_t first_step = 0;       // steps done before this run (a resumed run's)
+  int64_t iterations = 1;       // the step the run ends at
+  double minutes = 0;           // wall-clock budget of the whole run, resumed parts included (0: none)
+  double seconds_before = 0;    // seconds the run trained before (resume)
+  int64_t log_every = 50, val_every = 500;
+  bool progress = true;
+  bool writer = true;  // logs and checkpoints (rank 0 of a data-parallel run; the others only step)
+  // For the non-finite error: where the last good state is, and what to change.
+  std::string last_good = "nothing was saved";
+  std::string remedy = "a lower train.lr";
+  // false: the first non-finite step stops the run (data-parallel ranks must take the same steps).
+  bool skip_nonfinite = true;
+};
+
+struct LoopHooks {
+  // One step; `step` counts the steps done before it. Throws NonFiniteStep, having changed no
+  // parameter, when a loss or gradient is not finite (the loop skips it or stops).
+  std::function<void(int64_t step)> step;
+  // After each step, taken or skipped (optional): `done` steps are done.
+  std::function<void(int64_t done)> advanced;
+  // Every log_every steps and at the last (writer only): write the log row; returns the status
+  // line shown after the progress bar.
+  std::function<std::string(int64_t done)> log;
+  // Every val_every steps, at the last, and once when the run stops early (Ctrl-C, the budget;
+  // writer only): validate and write the checkpoint. Runs before that step's log row, which may
+  // report the validation.
+  std::function<void(int64_t done)> checkpoint;
+  // Data-parallel runs (optional): whether any rank wants to stop, so that all stop together.
+  std::function<bool(bool)> any_rank;
+};
+
+struct LoopResult {
+  int64_t first_step = 0, last_step = 0;
+  double seconds = 0;           // this run's wall-clock time
+  bool budget_reached = false;  // stopped by the budget
+  bool interrupted = false;     // stopped by Ctrl-C
+  int64_t skipped = 0;          // non-finite steps skipped
+};
+
+class TrainingLoop {
+ public:
+  TrainingLoop(LoopOptions options, LoopHooks hooks);
+  LoopResult run();
+  // Seconds the run has trained, resumed parts included (what the budget and a cosine schedule
+  // over it count).
+  double trained_seconds() const;
+
+ private:
+  bool should_stop();
+
+  LoopOptions opt_;
+  LoopHooks hooks_;
+  double start_seconds_ = 0;  // steady clock at run()
+  bool over_budget_ = false;
+};
+
+}  // namespace flatnet
