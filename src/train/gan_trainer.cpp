@@ -363,6 +363,56 @@ ModelIdentity GanTrainer::exported_identity() const {
   return identity;
 }
 
+// One generator (and discriminator) step on the loader's next batch; a non-finite one puts the
+// batch-norm statistics back and rethrows (the loop skips it).
+void GanTrainer::train_step(BatchLoader& loader, int64_t step, StepTally& tally) {
+  set_learning_rates(step);
+  auto batch = loader.next();
+  const auto statistics_before = clone_all(tally.statistics);
+  StepLosses l;
+  try {
+    if (camera_) batch.meas = capture_batch(batch, step);
+    l = gan_step(g_, d_, vgg_, *opt_g_, *opt_d_, opt_, batch, step, sync_);
+    if (camera_) step_codes(step);
+  } catch (const NonFiniteStep&) {
+    torch::NoGradGuard no_grad;
+    for (size_t i = 0; i < tally.statistics.size(); ++i) tally.statistics[i].copy_(statistics_before[i]);
+    throw;
+  }
+  if (ema_) ema_->update(step);
+  tally.sums += l;
+  ++tally.steps;
+  if (sync_ && sync_->world_size() > 1) {
+    // Batch-norm running statistics follow rank 0's (as DistributedDataParallel's broadcast_buffers).
+    sync_->broadcast(tally.statistics);
+    if (opt_.check_sync_every > 0 && (step + 1) % opt_.check_sync_every == 0) {
+      sync_->check_identical(g_->parameters(), "generator parameters after step " + std::to_string(step + 1));
+      sync_->check_identical(d_->parameters(), "discriminator parameters after step " + std::to_string(step + 1));
+    }
+  }
+}
+
+// log.csv's row for the steps since the last one; returns the progress bar's status.
+std::string GanTrainer::log_row(int64_t done, int64_t first_step, StepTally& tally) {
+  const double elapsed = std::max(1e-9, trained_seconds() - seconds_before_run_);
+  const auto m = tally.sums / static_cast<double>(std::max<int64_t>(1, tally.steps));
+  const double lr = static_cast<torch::optim::AdamOptions&>(opt_g_->param_groups()[0].options()).lr();
+  log_->add(done, m.loss, m.mse, m.ssim, m.perceptual, m.adversarial, m.discriminator, lr,
+            (done - first_step) / elapsed, m.feature_matching, m.frequency, m.chroma, m.gradient);
+  log_->flush();
+  std::ostringstream status;
+  status << "step " << done << " loss " << std::setprecision(4) << m.loss << " mse " << m.mse;
+  if (opt_.trains_discriminator()) status << " D " << m.discriminator;
+  if (camera_) {
+    torch::NoGradGuard no_grad;
+    status << " throughput " << std::setprecision(3) << camera_->throughput().item<double>()
+           << (codes_frozen(done) ? " (codes fixed)" : "");
+  }
+  tally.sums = StepLosses{};
+  tally.steps = 0;
+  return status.str();
+}
+
 TrainSummary GanTrainer::run() {
   TrainSummary summary;
   summary.first_step = state_.step;
@@ -376,87 +426,40 @@ TrainSummary GanTrainer::run() {
   if (sync_) lo.world_size = sync_->world_size(), lo.rank = sync_->rank();
   BatchLoader loader(train_, lo);
   const bool writer = !sync_ || sync_->rank() == 0;  // only rank 0 writes logs and checkpoints
-  const bool data_parallel = sync_ && sync_->world_size() > 1;
   if (writer) {
     std::filesystem::create_directories(opt_.out);
     // A resumed run's logs keep their rows up to the checkpoint (the later ones are repeated now).
     log_ = CsvLog::resume(opt_.out / "log.csv", kLogHeader, state_.step);
     val_log_ = CsvLog::resume(opt_.out / "val.csv", kValHeader, state_.step);
   }
-  const bool adversarial = opt_.trains_discriminator();
   g_->train();
   d_->train();
-  StepLosses sums;  // since the last log line
-  int64_t n_logged = 0;
+  StepTally tally;  // since the last log row
   // Batch norm's running statistics change in the forward pass: a skipped step puts them back.
-  std::vector<torch::Tensor> statistics = g_->buffers();
-  for (const auto& b : d_->buffers()) statistics.push_back(b);
+  tally.statistics = g_->buffers();
+  for (const auto& b : d_->buffers()) tally.statistics.push_back(b);
 
-  LoopOptions lo_opts;
-  lo_opts.first_step = state_.step;
-  lo_opts.iterations = opt_.iterations;
-  lo_opts.minutes = opt_.minutes;
-  lo_opts.seconds_before = state_.train_seconds;
-  lo_opts.log_every = opt_.log_every;
-  lo_opts.val_every = opt_.val_every;
-  lo_opts.progress = opt_.progress;
-  lo_opts.writer = writer;
-  lo_opts.last_good = (opt_.out / "latest.ckpt").string() + " (the last validation's, if the run reached one)";
+  LoopOptions options;
+  options.first_step = state_.step;
+  options.iterations = opt_.iterations;
+  options.minutes = opt_.minutes;
+  options.seconds_before = seconds_before_run_ = state_.train_seconds;
+  options.log_every = opt_.log_every;
+  options.val_every = opt_.val_every;
+  options.progress = opt_.progress;
+  options.writer = writer;
+  options.last_good = (opt_.out / "latest.ckpt").string() + " (the last validation's, if the run reached one)";
   // Data-parallel ranks must take the same steps: a skip on one rank alone would pair its next
   // collective with another rank's current one, so there the first non-finite step stops.
-  lo_opts.skip_nonfinite = !data_parallel;
+  options.skip_nonfinite = !(sync_ && sync_->world_size() > 1);
   LoopHooks hooks;
-  hooks.step = [&](int64_t step) {
-    set_learning_rates(step);
-    auto batch = loader.next();
-    const auto statistics_before = clone_all(statistics);
-    StepLosses l;
-    try {
-      if (camera_) batch.meas = capture_batch(batch, step);
-      l = gan_step(g_, d_, vgg_, *opt_g_, *opt_d_, opt_, batch, step, sync_);
-      if (camera_) step_codes(step);
-    } catch (const NonFiniteStep&) {
-      torch::NoGradGuard no_grad;
-      for (size_t i = 0; i < statistics.size(); ++i) statistics[i].copy_(statistics_before[i]);
-      throw;
-    }
-    if (ema_) ema_->update(step);
-    sums += l;
-    ++n_logged;
-    if (data_parallel) {
-      // Batch-norm running statistics follow rank 0's (as DistributedDataParallel's broadcast_buffers).
-      sync_->broadcast(statistics);
-      if (opt_.check_sync_every > 0 && (step + 1) % opt_.check_sync_every == 0) {
-        sync_->check_identical(g_->parameters(), "generator parameters after step " + std::to_string(step + 1));
-        sync_->check_identical(d_->parameters(), "discriminator parameters after step " + std::to_string(step + 1));
-      }
-    }
-  };
+  hooks.step = [&](int64_t step) { train_step(loader, step, tally); };
   hooks.advanced = [&](int64_t done) { state_.step = done; };
-  hooks.log = [&](int64_t done) {
-    const double elapsed = std::max(1e-9, trained_seconds() - seconds_before_run_);
-    const auto m = sums / static_cast<double>(std::max<int64_t>(1, n_logged));
-    const double lr = static_cast<torch::optim::AdamOptions&>(opt_g_->param_groups()[0].options()).lr();
-    log_->add(done, m.loss, m.mse, m.ssim, m.perceptual, m.adversarial, m.discriminator, lr,
-              (done - summary.first_step) / elapsed, m.feature_matching, m.frequency, m.chroma, m.gradient);
-    log_->flush();
-    std::ostringstream status;
-    status << "step " << done << " loss " << std::setprecision(4) << m.loss << " mse " << m.mse;
-    if (adversarial) status << " D " << m.discriminator;
-    if (camera_) {
-      torch::NoGradGuard no_grad;
-      status << " throughput " << std::setprecision(3) << camera_->throughput().item<double>()
-             << (codes_frozen(done) ? " (codes fixed)" : "");
-    }
-    sums = StepLosses{};
-    n_logged = 0;
-    return status.str();
-  };
+  hooks.log = [&](int64_t done) { return log_row(done, summary.first_step, tally); };
   hooks.checkpoint = [&](int64_t) { checkpoint_and_validate(summary); };
   if (sync_) hooks.any_rank = [&](bool local) { return sync_->any(local); };
 
-  seconds_before_run_ = state_.train_seconds;
-  TrainingLoop loop(lo_opts, hooks);
+  TrainingLoop loop(options, hooks);
   loop_ = &loop;
   LoopResult r;
   try {

@@ -157,6 +157,14 @@ class GanTrainer {
   TrainSummary run();
 
  private:
+  // What a run adds up between log rows, and the batch-norm buffers a skipped step puts back.
+  struct StepTally {
+    StepLosses sums;
+    int64_t steps = 0;
+    std::vector<torch::Tensor> statistics;
+  };
+  void train_step(BatchLoader& loader, int64_t step, StepTally& tally);
+  std::string log_row(int64_t done, int64_t first_step, StepTally& tally);
   bool codes_frozen(int64_t step) const;
   // The batch's planes through the learned camera; with a graph to its codes while they learn.
   torch::Tensor capture_batch(const Batch& batch, int64_t step);
