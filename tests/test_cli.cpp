@@ -672,8 +672,16 @@ TEST_CASE("flatnet bench --rows peak: the practical peak first, then each row's 
   REQUIRE(tik["name"] == "tikhonov");
   CHECK(tik["gflop"].get<double>() > 0.1);  // batched GEMMs of 500x620 planes
   CHECK(tik["gflops"].get<double>() > 0);
-  CHECK(tik["peak_share"].get<double>() > 0);
-  CHECK(tik["peak_share"].get<double>() < 2);
+  // The share is the row's rate over its precision's peak, the faster of the two peak rows (a
+  // relation between the printed numbers; the numbers themselves are timings and go unchecked).
+  double peak = 0;
+  for (const auto& row : j["rows"]) {
+    const auto name = row["name"].get<std::string>();
+    if (name.rfind("peak_", 0) == 0 && name.size() > 4 && name.substr(name.size() - 4) == "fp32")
+      peak = std::max(peak, row["gflops"].get<double>());
+  }
+  REQUIRE(peak > 0);
+  CHECK(tik["peak_share"].get<double>() == Approx(tik["gflops"].get<double>() / peak).epsilon(1e-3));
   CHECK(j["rows"][0]["peak_share"].is_null());  // a peak row is not a share of itself
 }
 

@@ -439,16 +439,11 @@ TrainSummary GanTrainer::run() {
   tally.statistics = g_->buffers();
   for (const auto& b : d_->buffers()) tally.statistics.push_back(b);
 
-  LoopOptions options;
+  auto options = loop_schedule(opt_, "train",
+                               (opt_.out / "latest.ckpt").string() + " (the last validation's, if the run reached one)");
   options.first_step = state_.step;
-  options.iterations = opt_.iterations;
-  options.minutes = opt_.minutes;
   options.seconds_before = seconds_before_run_ = state_.train_seconds;
-  options.log_every = opt_.log_every;
-  options.val_every = opt_.val_every;
-  options.progress = opt_.progress;
   options.writer = writer;
-  options.last_good = (opt_.out / "latest.ckpt").string() + " (the last validation's, if the run reached one)";
   // Data-parallel ranks must take the same steps: a skip on one rank alone would pair its next
   // collective with another rank's current one, so there the first non-finite step stops.
   options.skip_nonfinite = !(sync_ && sync_->world_size() > 1);

@@ -9,6 +9,7 @@
 #include <cstdint>
 #include <functional>
 #include <string>
+#include <utility>
 
 namespace flatnet {
 
@@ -27,6 +28,21 @@ struct LoopOptions {
   // false: the first non-finite step stops the run (data-parallel ranks must take the same steps).
   bool skip_nonfinite = true;
 };
+
+// The loop's schedule from a trainer's options (any with iterations, minutes, log_every,
+// val_every and progress), with the progress bar's label and where the last good state is.
+template <class TrainerOptions>
+LoopOptions loop_schedule(const TrainerOptions& o, std::string label, std::string last_good) {
+  LoopOptions lo;
+  lo.label = std::move(label);
+  lo.iterations = o.iterations;
+  lo.minutes = o.minutes;
+  lo.log_every = o.log_every;
+  lo.val_every = o.val_every;
+  lo.progress = o.progress;
+  lo.last_good = std::move(last_good);
+  return lo;
+}
 
 struct LoopHooks {
   // One step; `step` counts the steps done before it. Throws NonFiniteStep, having changed no

@@ -64,14 +64,7 @@ MaskTrainSummary train_mask(MaskModel& model, const torch::Tensor& train_scenes,
   };
   validate(0);
 
-  LoopOptions lo;
-  lo.label = "mask";
-  lo.iterations = o.iterations;
-  lo.minutes = o.minutes;
-  lo.log_every = o.log_every;
-  lo.val_every = o.val_every;
-  lo.progress = o.progress;
-  lo.last_good = "the last validation's (val.csv); the mask is written at the end";
+  const auto lo = loop_schedule(o, "mask", "the last validation's (val.csv); the mask is written at the end");
   LoopHooks hooks;
   // One optimiser step, or none when the loss or its gradient is not finite (train/nonfinite.hpp).
   hooks.step = [&](int64_t step) {

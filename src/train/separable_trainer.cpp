@@ -125,14 +125,7 @@ SeparableTrainSummary train_separable_codes(const SeparableTrainOptions& o) {
   Series train_curve{"train (batch)", {}, {}}, val_curve{"validation", {}, {}};
   auto gen = at::detail::createCPUGenerator(o.seed + 1);
   double last_loss = 0, last_throughput = 0, last_val = std::nan("");
-  LoopOptions lo;
-  lo.label = "codes";
-  lo.iterations = o.iterations;
-  lo.minutes = o.minutes;
-  lo.log_every = o.log_every;
-  lo.val_every = o.val_every;
-  lo.progress = o.progress;
-  lo.last_good = "the last validation's (log.csv); the codes are written at the end";
+  const auto lo = loop_schedule(o, "codes", "the last validation's (log.csv); the codes are written at the end");
   LoopHooks hooks;
   hooks.step = [&](int64_t step) {
     const auto idx = torch::randint(train_linear.size(0), {o.batch}, gen, torch::kLong);
