@@ -19,6 +19,7 @@
 #include "io/config.hpp"
 #include "eval/mask_score.hpp"
 #include "train/mask_trainer.hpp"
+#include "train/options.hpp"
 #include "nn/model_file.hpp"
 #include "train/separable_trainer.hpp"
 
@@ -71,16 +72,7 @@ int mask_train(int argc, char** argv) {
   const auto cam = wiener_camera(c);
   mo.rows = cam.rows, mo.cols = cam.cols;
   MaskTrainOptions to;
-  to.iterations = c.integer("train.iterations");
-  to.minutes = c.num("train.minutes");
-  to.batch = c.integer("train.batch");
-  to.optimizer = c.str("train.optimizer");
-  to.lr = c.num("train.lr");
-  to.momentum = c.num("train.momentum");
-  to.gamma_init = c.num("train.gamma_init");
-  to.val_every = std::max<int64_t>(1, c.integer("train.val_every"));
-  to.log_every = std::max<int64_t>(1, c.integer("train.log_every"));
-  to.seed = mo.seed;
+  read_options(c, mask_train_fields(), to);
   to.out = r["out"].as<std::string>();
   require(to.gamma_init > 0, "train.gamma_init", "must be positive");
   MaskModel model(mo);  // validates rank, projection, throughput rule
@@ -271,28 +263,12 @@ int mask_separable(int argc, char** argv) {
   for (const auto& s : set_overrides(r)) sets.push_back(s);
   const auto c = Config::load(r.count("config") ? r["config"].as<std::string>() : "", sets, separable_defaults());
   SeparableTrainOptions opt;
-  opt.images = c.path("data.images");
-  opt.val_fraction = c.num("data.val_fraction");
-  opt.split_seed = static_cast<uint64_t>(c.integer("data.split_seed"));
-  opt.train_limit = c.integer("data.train_limit");
+  read_options(c, separable_train_fields(), opt);
   const auto init = c.str("codes.init");
   if (init == "mls")
     opt.init_codes = data_dir() / "models" / "camera" / "codes_mls.mat";
   else if (init != "random")
     opt.init_codes = c.path("codes.init");
-  opt.code_length = c.integer("codes.length");
-  opt.binary = c.flag("codes.binary");
-  opt.target_throughput = c.num("codes.target_throughput");
-  opt.throughput_tolerance = c.num("codes.throughput_tolerance");
-  opt.iterations = c.integer("train.iterations");
-  opt.minutes = c.num("train.minutes");
-  opt.batch = c.integer("train.batch");
-  opt.lr = c.num("train.lr");
-  opt.lambda_init = c.num("train.lambda_init");
-  opt.seed = static_cast<uint64_t>(c.integer("train.seed"));
-  opt.log_every = c.integer("train.log_every");
-  opt.val_every = c.integer("train.val_every");
-  opt.val_count = c.integer("train.val_count");
   require(opt.lr > 0, "train.lr", "must be positive for the code pair");
   require(opt.val_count >= 1, "train.val_count", "at least 1 (the code pair's validation needs photographs)");
   opt.out = r["out"].as<std::string>();
