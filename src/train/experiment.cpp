@@ -11,40 +11,17 @@
 #include "nn/model_file.hpp"
 #include "optics/camera.hpp"
 #include "optics/simulator.hpp"
+#include "train/options.hpp"
 
 namespace flatnet {
 
 TrainOptions train_options(const Config& c, const std::filesystem::path& out) {
   TrainOptions t;
-  t.iterations = c.integer("train.iterations");
-  t.minutes = c.num("train.minutes");
-  t.batch = c.integer("train.batch");
-  t.lr = c.num("train.lr");
-  t.lr_discriminator = c.num("train.lr_discriminator");
-  t.lr_inversion_scale = c.num("train.lr_inversion_scale");
-  t.lr_halve_every = c.integer("train.lr_halve_every");
+  read_options(c, train_fields(), t);
   t.schedule = parse_lr_schedule(c.str("train.schedule"));
-  t.w_ssim = c.num("loss.ssim");
-  t.ema_decay = c.num("train.ema_decay");
-  t.crop = c.integer("train.crop");
   require(t.crop == 0 || (t.crop >= 16 && t.crop % 16 == 0), "train.crop",
           "must be 0 or a multiple of 16 (the U-Net halves it 4 times)");
   t.bf16 = resolve_precision(c.str("train.precision"), "train.precision") == Precision::bf16;
-  t.discriminator_warmup = c.integer("train.discriminator_warmup");
-  t.noise_augment = c.num("train.noise_augment");
-  t.seed = static_cast<uint64_t>(c.integer("train.seed"));
-  t.workers = static_cast<int>(c.integer("train.workers"));
-  t.val_every = std::max<int64_t>(1, c.integer("train.val_every"));
-  t.log_every = std::max<int64_t>(1, c.integer("train.log_every"));
-  t.w_mse = c.num("loss.mse");
-  t.w_perceptual = c.num("loss.perceptual");
-  t.w_adversarial = c.num("loss.adversarial");
-  t.w_feature_matching = c.num("loss.feature_matching");
-  t.w_frequency = c.num("loss.frequency");
-  t.w_chroma = c.num("loss.chroma");
-  t.w_gradient = c.num("loss.gradient");
-  t.real_label_min = c.num("discriminator.real_label_min");
-  t.fake_label_max = c.num("discriminator.fake_label_max");
   require(t.real_label_min >= 0 && t.real_label_min <= 1 && t.fake_label_max >= 0 && t.fake_label_max <= 1,
           "discriminator", "label smoothing bounds must lie within [0, 1] (BCE needs targets in [0, 1])");
   require(t.batch >= 1 && t.iterations >= 1, "train", "batch and iterations must be positive");
@@ -53,9 +30,6 @@ TrainOptions train_options(const Config& c, const std::filesystem::path& out) {
   require(t.w_mse + t.w_perceptual + t.w_adversarial + t.w_ssim + t.w_feature_matching + t.w_frequency + t.w_chroma +
                   t.w_gradient > 0,
           "loss", "every weight is 0: nothing to train on");
-  t.channels_last = c.flag("train.channels_last");
-  t.gemm_upsample = c.flag("train.gemm_upsample");
-  t.check_sync_every = c.integer("train.check_sync_every");
   t.out = out;
   return t;
 }

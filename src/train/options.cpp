@@ -2,6 +2,41 @@
 
 namespace flatnet {
 
+const std::vector<OptionField<TrainOptions>>& train_fields() {
+  using O = TrainOptions;
+  static const std::vector<OptionField<O>> fields = {
+      {"train.iterations", &O::iterations},
+      {"train.minutes", &O::minutes},
+      {"train.batch", &O::batch},
+      {"train.lr", &O::lr},
+      {"train.lr_discriminator", &O::lr_discriminator},
+      {"train.lr_inversion_scale", &O::lr_inversion_scale},
+      {"train.lr_halve_every", &O::lr_halve_every},
+      {"train.ema_decay", &O::ema_decay},
+      {"train.crop", &O::crop},
+      {"train.discriminator_warmup", &O::discriminator_warmup},
+      {"train.noise_augment", &O::noise_augment},
+      {"train.seed", &O::seed},
+      {"train.workers", &O::workers},
+      {"train.val_every", &O::val_every},
+      {"train.log_every", &O::log_every},
+      {"train.channels_last", &O::channels_last},
+      {"train.gemm_upsample", &O::gemm_upsample},
+      {"train.check_sync_every", &O::check_sync_every},
+      {"loss.mse", &O::w_mse},
+      {"loss.ssim", &O::w_ssim},
+      {"loss.perceptual", &O::w_perceptual},
+      {"loss.adversarial", &O::w_adversarial},
+      {"loss.feature_matching", &O::w_feature_matching},
+      {"loss.frequency", &O::w_frequency},
+      {"loss.chroma", &O::w_chroma},
+      {"loss.gradient", &O::w_gradient},
+      {"discriminator.real_label_min", &O::real_label_min},
+      {"discriminator.fake_label_max", &O::fake_label_max},
+  };
+  return fields;
+}
+
 const std::vector<OptionField<MaskTrainOptions>>& mask_train_fields() {
   using O = MaskTrainOptions;
   static const std::vector<OptionField<O>> fields = {

@@ -11,6 +11,7 @@
 #include <vector>
 
 #include "io/config.hpp"
+#include "train/gan_trainer.hpp"
 #include "train/mask_trainer.hpp"
 #include "train/separable_trainer.hpp"
 
@@ -19,7 +20,9 @@ namespace flatnet {
 template <class S>
 struct OptionField {
   const char* key;
-  std::variant<double S::*, int64_t S::*, uint64_t S::*, bool S::*, std::string S::*, std::filesystem::path S::*> member;
+  std::variant<double S::*, int64_t S::*, int S::*, uint64_t S::*, bool S::*, std::string S::*,
+               std::filesystem::path S::*>
+      member;
 };
 
 // Fills every field of `s` from `c` (a missing key or a value of the wrong kind is an error naming the key).
@@ -31,6 +34,7 @@ void read_options(const Config& c, const std::vector<OptionField<S>>& fields, S&
           using T = std::decay_t<decltype(s.*member)>;
           if constexpr (std::is_same_v<T, double>) s.*member = c.num(f.key);
           else if constexpr (std::is_same_v<T, int64_t>) s.*member = c.integer(f.key);
+          else if constexpr (std::is_same_v<T, int>) s.*member = static_cast<int>(c.integer(f.key));
           else if constexpr (std::is_same_v<T, uint64_t>) s.*member = static_cast<uint64_t>(c.integer(f.key));
           else if constexpr (std::is_same_v<T, bool>) s.*member = c.flag(f.key);
           else if constexpr (std::is_same_v<T, std::string>) s.*member = c.str(f.key);
@@ -58,6 +62,10 @@ std::vector<std::string> defaults_differing(const Config& c, const std::vector<O
   return out;
 }
 
+// flatnet train: configs/defaults.yaml's train.*, loss.* and discriminator.* keys that map one to
+// one onto TrainOptions (train.schedule and train.precision are parsed by train_options). Its
+// C++ defaults are the library's (the thesis's recipe), not defaults.yaml's.
+const std::vector<OptionField<TrainOptions>>& train_fields();
 // mask train: configs/mask_defaults.yaml's train.* keys.
 const std::vector<OptionField<MaskTrainOptions>>& mask_train_fields();
 // mask separable: configs/separable_defaults.yaml (codes.init is resolved by the caller: mls, random or a file).
