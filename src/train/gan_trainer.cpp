@@ -1,6 +1,5 @@
 #include "train/gan_trainer.hpp"
 
-#include <fstream>
 #include <iomanip>
 
 #include "core/error.hpp"
@@ -394,7 +393,7 @@ void GanTrainer::train_step(BatchLoader& loader, int64_t step, StepTally& tally)
 
 // log.csv's row for the steps since the last one; returns the progress bar's status.
 std::string GanTrainer::log_row(int64_t done, int64_t first_step, StepTally& tally) {
-  const double elapsed = std::max(1e-9, trained_seconds() - seconds_before_run_);
+  const double elapsed = std::max(1e-9, loop_->elapsed_seconds());
   const auto m = tally.sums / static_cast<double>(std::max<int64_t>(1, tally.steps));
   const double lr = static_cast<torch::optim::AdamOptions&>(opt_g_->param_groups()[0].options()).lr();
   log_->add(done, m.loss, m.mse, m.ssim, m.perceptual, m.adversarial, m.discriminator, lr,
@@ -442,7 +441,7 @@ TrainSummary GanTrainer::run() {
   auto options = loop_schedule(opt_, "train",
                                (opt_.out / "latest.ckpt").string() + " (the last validation's, if the run reached one)");
   options.first_step = state_.step;
-  options.seconds_before = seconds_before_run_ = state_.train_seconds;
+  options.seconds_before = state_.train_seconds;
   options.writer = writer;
   // Data-parallel ranks must take the same steps: a skip on one rank alone would pair its next
   // collective with another rank's current one, so there the first non-finite step stops.

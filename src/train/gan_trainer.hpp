@@ -177,7 +177,6 @@ class GanTrainer {
   // Training time in all: the checkpoint's record plus this run's time so far.
   double trained_seconds() const { return loop_ ? loop_->trained_seconds() : state_.train_seconds; }
   const TrainingLoop* loop_ = nullptr;  // while run() runs: its clock
-  double seconds_before_run_ = 0;
   std::optional<CsvLog> log_, val_log_;  // log.csv, val.csv (the writer's)
 
   Generator g_;

@@ -22,7 +22,9 @@ TrainingLoop::TrainingLoop(LoopOptions options, LoopHooks hooks) : opt_(std::mov
   start_seconds_ = now_seconds();
 }
 
-double TrainingLoop::trained_seconds() const { return opt_.seconds_before + (now_seconds() - start_seconds_); }
+double TrainingLoop::elapsed_seconds() const { return now_seconds() - start_seconds_; }
+
+double TrainingLoop::trained_seconds() const { return opt_.seconds_before + elapsed_seconds(); }
 
 bool TrainingLoop::should_stop() {
   over_budget_ = opt_.minutes > 0 && trained_seconds() >= 60.0 * opt_.minutes;
@@ -67,7 +69,7 @@ LoopResult TrainingLoop::run() {
   if (stopping && opt_.writer && hooks_.checkpoint && checkpointed != step) hooks_.checkpoint(step);
   progress.finish();
   r.last_step = step;
-  r.seconds = now_seconds() - start_seconds_;
+  r.seconds = elapsed_seconds();
   r.interrupted = stopping && interrupted();
   r.budget_reached = stopping && over_budget_ && !r.interrupted;
   r.skipped = nonfinite.skipped();

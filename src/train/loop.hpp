@@ -76,6 +76,8 @@ class TrainingLoop {
   // Seconds the run has trained, resumed parts included (what the budget and a cosine schedule
   // over it count).
   double trained_seconds() const;
+  // Seconds since run() started (this process's share of trained_seconds()).
+  double elapsed_seconds() const;
 
  private:
   bool should_stop();

@@ -4,7 +4,6 @@
 #include "train/loop.hpp"
 #include "train/nonfinite.hpp"
 
-#include <fstream>
 #include <iomanip>
 #include <random>
 #include <thread>
@@ -57,7 +56,6 @@ MaskTrainSummary train_mask(MaskModel& model, const torch::Tensor& train_scenes,
     const double p = mask_psnr(w, g, val_scenes, cam, 12345);
     val_log.add(step, p, g, throughput(w));
     val_log.flush();
-    log.flush();
     val_curve.x.push_back(static_cast<double>(step));
     val_curve.y.push_back(p);
     s.val_psnr = p, s.gamma = g, s.throughput = throughput(w);
@@ -104,8 +102,7 @@ MaskTrainSummary train_mask(MaskModel& model, const torch::Tensor& train_scenes,
   hooks.checkpoint = validate;
   const auto r = TrainingLoop(lo, hooks).run();
   s.steps = r.last_step;
-  s.seconds = r.seconds;
-  log.flush();
+  s.seconds = r.seconds;  // log.csv was flushed with each row
 
   torch::NoGradGuard ng;
   const auto window = model->window();

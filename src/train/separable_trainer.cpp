@@ -144,9 +144,9 @@ SeparableTrainSummary train_separable_codes(const SeparableTrainOptions& o) {
       throw NonFiniteStep("gradient of the codes or lambda", std::nan(""), step + 1);
     opt.step();
   };
-  hooks.checkpoint = [&](int64_t done) {  // runs before the log row of the same step
+  hooks.checkpoint = [&](int64_t done) {  // runs before the log row of the same step, and at the run's end
     const auto [uv, vv] = codes();
-    last_val = separable_psnr(uv.detach(), vv.detach(), std::exp(log_lambda.item<double>()), val, 99);
+    last_val = summary.val_psnr = separable_psnr(uv.detach(), vv.detach(), std::exp(log_lambda.item<double>()), val, 99);
     val_curve.x.push_back(static_cast<double>(done));
     val_curve.y.push_back(last_val);
   };
@@ -163,7 +163,6 @@ SeparableTrainSummary train_separable_codes(const SeparableTrainOptions& o) {
   const auto [u, v] = codes();
   summary.lambda = std::exp(log_lambda.item<double>());
   summary.throughput = code_throughput(u, v).item<double>();
-  summary.val_psnr = separable_psnr(u.detach(), v.detach(), summary.lambda, val, 99);
   summary.seconds = r.seconds;
   save_code_pair(o.out / "codes.mat", u, v);
   write_text_atomically(o.out / "lambda.txt", std::to_string(summary.lambda) + "\n");
