@@ -700,6 +700,24 @@ TEST_CASE("report inversion: the thesis's Figure 3.3 from the shipped models, an
   CHECK(missing.output.find("--models") != std::string::npos);
 }
 
+TEST_CASE("flatnet options: every setting with its default, range and documentation", "[cli][config]") {
+  auto r = test::run_flatnet("options train.batch");
+  INFO(r.output);
+  REQUIRE(r.code == 0);
+  CHECK_THAT(r.output, Contains("train.batch") && Contains("scenes per step") && Contains("[1 to 4096 samples]"));
+  r = test::run_flatnet("options --for mask mask. --markdown");
+  REQUIRE(r.code == 0);
+  CHECK_THAT(r.output, Contains("| `mask.rank` | `1` | 1 to 511 |"));
+  CHECK_THAT(r.output, Contains("sigmoid \\| clamp"));  // a '|' in the text does not end the cell
+  CHECK_FALSE(Contains("train.").match(r.output));
+  r = test::run_flatnet("options nosuch.");
+  CHECK(r.code == 2);
+  CHECK_THAT(r.output, Contains("defaults.yaml") && Contains("no setting starting with 'nosuch.'"));
+  r = test::run_flatnet("options --for gan");
+  CHECK(r.code == 2);
+  CHECK_THAT(r.output, Contains("train, mask or separable"));
+}
+
 TEST_CASE("model cards: flatnet info tells what a model file holds, export records held-out scores",
           "[cli][info]") {
   test::Scratch s("info");

@@ -528,6 +528,47 @@ TEST_CASE("bf16 autocast: the enhancer runs in bf16, weights and gradients stay 
   CHECK_FALSE(at::autocast::is_cpu_enabled());  // the guard restored the thread's state
 }
 
+TEST_CASE("every setting of the defaults files is documented on its line", "[config]") {
+  const auto configs = test::source_dir() / "configs";
+  for (const char* file : {"defaults.yaml", "mask_defaults.yaml", "separable_defaults.yaml"}) {
+    const auto settings = describe_settings(configs / file);
+    CHECK(settings.size() == Config::load({}, {}, configs / file).values().size());
+    for (const auto& s : settings) {
+      INFO(file << ": " << s.key << " has no comment on its line (what `flatnet options` shows)");
+      CHECK(s.doc.size() >= 3);
+    }
+  }
+  // A range comes from config.cpp's table; the comment's continuation lines are joined.
+  const auto train = describe_settings(configs / "defaults.yaml");
+  const auto find = [&](const std::string& key) {
+    return *std::find_if(train.begin(), train.end(), [&](const SettingDoc& s) { return s.key == key; });
+  };
+  CHECK(find("train.batch").range == "1 to 4096 samples");
+  CHECK(find("train.precision").range.empty());
+  CHECK_THAT(find("train.crop").doc, Contains("multiple of 16") && Contains("validation is at full size"));
+}
+
+TEST_CASE("setting comments: sections, continuation lines, quotes and a '#' inside a value", "[config]") {
+  test::Scratch s("setting_docs");
+  const auto file = s.dir / "d.yaml";
+  std::ofstream(file) << "# a header comment\n"
+                         "a:                # a section's own comment is no setting's\n"
+                         "  b: 1            # the b\n"
+                         "                  # and more of it\n"
+                         "  # a comment line of the section, not b's\n"
+                         "  c: \"x # y\"     # the c\n"
+                         "  d: 2\n"
+                         "e: [1, 2]         # the e\n";
+  std::map<std::string, SettingDoc> got;
+  for (const auto& d : describe_settings(file)) got[d.key] = d;
+  REQUIRE(got.size() == 4);
+  CHECK(got["a.b"].doc == "the b and more of it");
+  CHECK(got["a.c"].doc == "the c");
+  CHECK(got["a.c"].default_value == "x # y");
+  CHECK(got["a.d"].doc.empty());
+  CHECK(got["e"].doc == "the e");
+}
+
 TEST_CASE("every number in the defaults files has a range rule, and every rule a key in them", "[config]") {
   const auto configs = test::source_dir() / "configs";
   std::map<std::string, std::string> keys;  // key -> its default value, over the three defaults files

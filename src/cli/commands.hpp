@@ -20,6 +20,8 @@ int demo(int argc, char** argv);
 int train(int argc, char** argv);
 int export_model(int argc, char** argv);
 int info(int argc, char** argv);
+// Every setting of a trainer's config with its default, range and documentation.
+int options(int argc, char** argv);
 // --scores SET=EVAL_DIR (or SET=.../scores.json),...: one method's means per set, as the JSON a model
 // file records (Provenance::scores). `method` empty: the only method the file scores.
 std::string recorded_scores(const std::vector<std::string>& items, const std::string& method);

@@ -2,6 +2,8 @@
 // scores `flatnet export --scores` records in a model file.
 #include <cxxopts.hpp>
 #include <iomanip>
+#include <map>
+#include <regex>
 #include <iostream>
 #include <nlohmann/json.hpp>
 #include <sstream>
@@ -183,6 +185,53 @@ int info(int argc, char** argv) {
   if (!p.written_at.empty()) line("written", p.written_at + (p.written_on.empty() ? "" : " on " + p.written_on));
   line("scores", scores_text(p.scores));
   std::cout << "(`flatnet info --json` adds the full config)\n";
+  return 0;
+}
+
+}  // namespace flatnet::cli
+
+namespace flatnet::cli {
+
+// flatnet options: every setting a trainer reads, with its default, range and documentation,
+// from the defaults file where they are declared (io/config.hpp, describe_settings).
+int options(int argc, char** argv) {
+  cxxopts::Options o("flatnet options",
+                     "Every setting of a trainer's config, with its default, its range and what it does. Set them in "
+                     "an experiment file (--config) or with --set key=value.");
+  o.add_options()("prefix", "only keys starting with this (train., loss.lr ...)", cxxopts::value<std::string>())(
+      "for", "train (flatnet train), mask (mask train) or separable (mask separable)",
+      cxxopts::value<std::string>()->default_value("train"))(
+      "defaults", "a defaults file to describe instead (a .yaml)", cxxopts::value<std::string>())(
+      "markdown", "print a Markdown table");
+  o.parse_positional({"prefix"});
+  o.positional_help("[PREFIX]");
+  add_common(o);
+  cxxopts::ParseResult r;
+  if (!parse(o, argc, argv, r)) return 0;
+  const auto which = r["for"].as<std::string>();
+  const std::map<std::string, std::string> files = {
+      {"train", "defaults.yaml"}, {"mask", "mask_defaults.yaml"}, {"separable", "separable_defaults.yaml"}};
+  require(files.count(which), "--for", "must be train, mask or separable, got '" + which + "'");
+  const std::filesystem::path file = r.count("defaults") ? std::filesystem::path(r["defaults"].as<std::string>())
+                                                         : data_dir() / "configs" / files.at(which);
+  const auto prefix = r.count("prefix") ? r["prefix"].as<std::string>() : std::string();
+  const bool markdown = r.count("markdown") > 0;
+  if (markdown) std::cout << "| key | default | range | what it does |\n|---|---|---|---|\n";
+  size_t shown = 0;
+  for (const auto& s : describe_settings(file)) {
+    if (s.key.compare(0, prefix.size(), prefix) != 0) continue;
+    ++shown;
+    const auto value = s.default_value.empty() ? std::string("\"\"") : s.default_value;
+    if (markdown) {  // a '|' in the text would end the cell
+      const auto cell = [](const std::string& text) { return std::regex_replace(text, std::regex("\\|"), "\\|"); };
+      std::cout << "| `" << s.key << "` | `" << cell(value) << "` | " << s.range << " | " << cell(s.doc) << " |\n";
+      continue;
+    }
+    std::cout << std::left << std::setw(34) << s.key << " " << std::setw(14) << value << " " << s.doc;
+    if (!s.range.empty()) std::cout << " [" << s.range << "]";
+    std::cout << "\n";
+  }
+  require(shown > 0, file, "has no setting starting with '" + prefix + "'");
   return 0;
 }
 

@@ -24,6 +24,7 @@ const std::map<std::string, std::pair<int (*)(int, char**), const char*>> kComma
     {"infer", {flatnet::cli::infer, "reconstruct raw captures with a trained model"}},
     {"export", {flatnet::cli::export_model, "checkpoint -> model file, or model -> PyTorch state_dict"}},
     {"info", {flatnet::cli::info, "what a model file holds: architecture, camera, recipe, training, scores, SHA-256"}},
+    {"options", {flatnet::cli::options, "every setting of a trainer's config: default, range, what it does"}},
     {"import", {flatnet::cli::import_model, "PyTorch state_dict (FlatNet-sep names) -> model file"}},
     {"mask", {flatnet::cli::mask, "learn FlatCam masks (train), score them (eval), compare them (report)"}},
     {"cameras", {flatnet::cli::cameras, "list the cameras Aravis can reach (GenICam: USB3 Vision, GigE Vision)"}},

@@ -2,6 +2,8 @@
 
 #include <cmath>
 #include <fstream>
+#include <regex>
+#include <sstream>
 
 #include <yaml-cpp/yaml.h>
 
@@ -151,6 +153,87 @@ void Config::check_ranges(const std::string& where) const {
     if (!problem.empty())
       throw Error(where + ": " + rule.name + " = " + it->second + " " + problem + ": " + rule.meaning);
   }
+}
+
+namespace {
+
+std::string trimmed(const std::string& s) {
+  const auto b = s.find_first_not_of(" \t"), e = s.find_last_not_of(" \t\r");
+  return b == std::string::npos ? "" : s.substr(b, e - b + 1);
+}
+
+// Where a YAML comment starts in the text after a key's colon: a '#' outside quotes, at the start
+// or after a blank (npos: none).
+size_t comment_start(const std::string& rest) {
+  char quote = 0;
+  for (size_t i = 0; i < rest.size(); ++i) {
+    const char ch = rest[i];
+    if (quote) {
+      if (ch == quote) quote = 0;
+    } else if (ch == '"' || ch == '\'') {
+      quote = ch;
+    } else if (ch == '#' && (i == 0 || rest[i - 1] == ' ' || rest[i - 1] == '\t')) {
+      return i;
+    }
+  }
+  return std::string::npos;
+}
+
+// The documentation comments of a block-style YAML file (the defaults files), by dotted key: the
+// text after '#' on a key's line, joined with the comment-only lines below it that are indented
+// deeper than the key. A key with no value on its line opens a section.
+std::map<std::string, std::string> key_comments(const std::string& text) {
+  static const std::regex key_line(R"(^( *)([A-Za-z_][A-Za-z0-9_]*):(.*)$)");
+  static const std::regex comment_line(R"(^( *)#(.*)$)");
+  std::map<std::string, std::string> docs;
+  std::vector<std::pair<size_t, std::string>> sections;  // indent, name
+  std::string last_key;
+  size_t last_indent = 0;
+  std::istringstream in(text);
+  for (std::string line; std::getline(in, line);) {
+    std::smatch m;
+    if (std::regex_match(line, m, key_line)) {
+      const size_t indent = static_cast<size_t>(m[1].length());
+      while (!sections.empty() && sections.back().first >= indent) sections.pop_back();
+      std::string key;
+      for (const auto& section : sections) key += section.second + ".";
+      key += m[2].str();
+      const std::string rest = m[3].str();
+      const auto hash = comment_start(rest);
+      const auto value = trimmed(rest.substr(0, hash));
+      last_key.clear();
+      if (value.empty()) {
+        sections.emplace_back(indent, m[2].str());
+        continue;
+      }
+      docs[key] = hash == std::string::npos ? "" : trimmed(rest.substr(hash + 1));
+      last_key = key;
+      last_indent = indent;
+    } else if (std::regex_match(line, m, comment_line) && !last_key.empty() &&
+               static_cast<size_t>(m[1].length()) > last_indent) {
+      auto& doc = docs[last_key];
+      doc += (doc.empty() ? "" : " ") + trimmed(m[2].str());
+    } else {
+      last_key.clear();
+    }
+  }
+  return docs;
+}
+
+}  // namespace
+
+std::vector<SettingDoc> describe_settings(const std::filesystem::path& defaults) {
+  const auto config = Config::load({}, {}, defaults);
+  const auto docs = key_comments(read_file(defaults));
+  std::vector<SettingDoc> out;
+  for (const auto& [key, value] : config.values()) {
+    SettingDoc d{key, value, "", ""};
+    for (const auto& rule : range_rules())
+      if (key == rule.name) d.range = rule.meaning;
+    if (const auto it = docs.find(key); it != docs.end()) d.doc = it->second;
+    out.push_back(d);
+  }
+  return out;
 }
 
 std::string nearest_key(const std::string& key, const std::vector<std::string>& known) {

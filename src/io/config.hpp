@@ -54,6 +54,17 @@ class Config {
   std::map<std::string, std::filesystem::path> bases_;
 };
 
+// One setting of a defaults file as `flatnet options` lists it: its default, its range (the
+// number table in config.cpp; empty for text, flags and paths) and its documentation (the comment
+// on the key's line in the file, joined with the comment lines indented below it). The defaults
+// file is where a setting's default and documentation are declared, the range table where its
+// range is, and a trainer's option table (train/options.hpp) binds it to the struct member it
+// fills; a test holds the three together.
+struct SettingDoc {
+  std::string key, default_value, range, doc;
+};
+std::vector<SettingDoc> describe_settings(const std::filesystem::path& defaults);
+
 // The known key nearest to `key` by edit distance (for "did you mean" messages).
 std::string nearest_key(const std::string& key, const std::vector<std::string>& known);
 

@@ -2,8 +2,9 @@
 // A trainer's options bound to its config keys in one table: each row names the YAML key and the
 // member it fills. The CLI reads a config through the table (no hand-written copy per key), and a
 // test holds the struct's C++ defaults equal to its defaults file's (configs/*_defaults.yaml),
-// so a library caller and a command-line user start from the same settings. Ranges are the
-// config's (io/config.cpp), checked when the config is loaded.
+// so a library caller and a command-line user start from the same settings. A setting's default and
+// documentation are declared on its line of the defaults file and its range in io/config.cpp's
+// table, checked when the config is loaded (`flatnet options` shows all three).
 #include <filesystem>
 #include <string>
 #include <type_traits>
