@@ -10,6 +10,7 @@
 #include "helpers.hpp"
 #include "io/image.hpp"
 #include "io/mat.hpp"
+#include "io/safetensors.hpp"
 #include "optics/simulator.hpp"
 #include "eval/mask_score.hpp"
 #include "train/mask_trainer.hpp"
@@ -114,6 +115,65 @@ TEST_CASE("mask training: gradients reach U, V and gamma, and the outputs are wr
   CHECK((back - m->window().detach()).abs().max().item<double>() < 1.0 / 65535 + 1e-6);
 }
 
+TEST_CASE("mask training resumes from its checkpoint as if never stopped, and refuses checkpoints that do not fit",
+          "[mask][resume]") {
+  test::Scratch s("maskresume");
+  WienerCamera cam;
+  cam.rows = cam.cols = 128, cam.scene = 64;
+  MaskOptions mo;
+  mo.elements = 31, mo.upsample = 4, mo.rows = cam.rows, mo.cols = cam.cols, mo.rank = 2;
+  torch::manual_seed(3);
+  const auto train = torch::rand({6, 64, 64}), val = torch::rand({2, 64, 64});
+  for (const char* optimizer : {"sgd", "adam"}) {
+    INFO(optimizer);
+    MaskTrainOptions t;
+    t.iterations = 6, t.batch = 2, t.optimizer = optimizer, t.lr = 1e-2, t.val_every = 2, t.log_every = 1;
+    t.progress = false;
+    t.out = s.dir / (std::string("straight_") + optimizer);
+    MaskModel straight(mo);
+    const auto full = train_mask(straight, train, val, cam, t);
+    // The same run stopped after 4 steps (at a validation, so the logs match row for row), resumed to 6.
+    t.out = s.dir / (std::string("split_") + optimizer);
+    t.iterations = 4;
+    MaskModel first(mo);
+    train_mask(first, train, val, cam, t);
+    CHECK(has_mask_checkpoint(t.out));
+    t.iterations = 6, t.resume = true;
+    MaskModel second(mo);  // a fresh model: the checkpoint brings its state
+    const auto resumed = train_mask(second, train, val, cam, t);
+    CHECK(resumed.steps == 6);
+    CHECK(torch::equal(straight->U, second->U));
+    CHECK(torch::equal(straight->V, second->V));
+    CHECK(resumed.gamma == full.gamma);
+    CHECK(read_file_text(t.out / "val.csv") == read_file_text(s.dir / (std::string("straight_") + optimizer) / "val.csv"));
+    CHECK(read_file_text(t.out / "log.csv") == read_file_text(s.dir / (std::string("straight_") + optimizer) / "log.csv"));
+  }
+  const auto run = s.dir / "split_sgd";
+  MaskTrainOptions t;
+  t.iterations = 8, t.batch = 2, t.val_every = 2, t.log_every = 1, t.progress = false, t.resume = true, t.out = run;
+  // Another rank, another optimiser, a damaged file, NaN weights: refused, naming the file and why.
+  MaskOptions rank1 = mo;
+  rank1.rank = 1;
+  MaskModel other(rank1);
+  CHECK_THROWS_WITH(train_mask(other, train, val, cam, t), Contains("latest.ckpt") && Contains("mask.rank"));
+  t.optimizer = "adam";
+  MaskModel m(mo);
+  CHECK_THROWS_WITH(train_mask(m, train, val, cam, t), Contains("latest.ckpt") && Contains("train.optimizer sgd"));
+  t.optimizer = "sgd";
+  const auto bytes = read_file_text(run / "latest.ckpt");
+  write_text_atomically(run / "latest.ckpt", bytes.substr(0, bytes.size() / 2));
+  CHECK_THROWS_WITH(train_mask(m, train, val, cam, t), Contains("latest.ckpt"));
+  auto st = read_safetensors(s.dir / "split_adam" / "latest.ckpt");
+  std::vector<std::pair<std::string, torch::Tensor>> tensors = st.tensors;
+  for (auto& [name, tensor] : tensors)
+    if (name == "param.U") tensor = torch::full_like(tensor, std::nan(""));
+  write_safetensors(run / "latest.ckpt", tensors, st.metadata);
+  t.optimizer = "adam";
+  CHECK_THROWS_WITH(train_mask(m, train, val, cam, t), Contains("param.U") && Contains("NaN"));
+  std::filesystem::remove(run / "latest.ckpt");
+  CHECK_THROWS_WITH(train_mask(m, train, val, cam, t), Contains("nothing to resume"));
+}
+
 TEST_CASE("mask commands refuse bad input with exit code 2", "[mask][cli]") {
   test::Scratch s("maskcli");
   const auto photos = s.dir / "photos";
@@ -141,6 +201,26 @@ TEST_CASE("mask commands refuse bad input with exit code 2", "[mask][cli]") {
   INFO(r.output);
   CHECK(r.code == 0);
   CHECK_THAT(r.output, Contains("throughput 0.02"));
+  // --resume: needs a checkpoint, takes the run's own config; a run is not restarted over by accident.
+  const std::string tiny = " --set data.images=" + q(photos) + " --set data.val_fraction=0.5 --set train.val_count=1" +
+                           " --set train.iterations=2 --set train.val_every=1 --set train.batch=1 --threads 1";
+  r = test::run_flatnet("mask train --resume --out " + q(s.dir / "run"));
+  CHECK(r.code == 2);
+  CHECK_THAT(r.output, Contains("nothing to resume"));
+  r = test::run_flatnet("mask train --out " + q(s.dir / "run") + tiny);
+  INFO(r.output);
+  REQUIRE(r.code == 0);
+  r = test::run_flatnet("mask train --out " + q(s.dir / "run") + tiny);
+  CHECK(r.code == 2);
+  CHECK_THAT(r.output, Contains("already holds a mask training run") && Contains("--resume"));
+  r = test::run_flatnet("mask train --resume --config " + q(test::source_dir() / "configs" / "mask_rank1.yaml") +
+                        " --out " + q(s.dir / "run"));
+  CHECK(r.code == 2);
+  CHECK_THAT(r.output, Contains("own config"));
+  r = test::run_flatnet("mask train --resume --set train.iterations=3 --threads 1 --out " + q(s.dir / "run"));
+  INFO(r.output);
+  CHECK(r.code == 0);
+  CHECK_THAT(r.output, Contains("after 3 steps"));
 }
 
 TEST_CASE("separable code training: gradients move both codes and lambda, throughput held, binary codes are +-1",

@@ -51,14 +51,23 @@ int mask_train(int argc, char** argv) {
   cxxopts::Options o("flatnet mask train", "Learn a rank-k amplitude mask end to end through Wiener deconvolution.");
   o.add_options()("config", "experiment config (configs/mask_rank1.yaml, ...)", cxxopts::value<std::string>())(
       "set", "override a setting (repeatable)", cxxopts::value<std::vector<std::string>>())(
-      "out", "output folder", cxxopts::value<std::string>());
+      "out", "output folder", cxxopts::value<std::string>())(
+      "resume", "continue the run in --out from its latest.ckpt, with its own config (--set changes single settings)");
   add_force_folder(o);
   add_common(o);
   cxxopts::ParseResult r;
   if (!parse(o, argc, argv, r)) return 0;
   require(r.count("out"), "mask train", "--out DIR is required");
+  const std::filesystem::path out = r["out"].as<std::string>();
+  const bool resume = r.count("resume") > 0;
   const auto sets = set_overrides(r);
-  const auto c = Config::load(r.count("config") ? r["config"].as<std::string>() : "", sets, mask_defaults());
+  require(!resume || !r.count("config"), "--resume",
+          "continues with the run's own config (" + (out / "config.yaml").string() + "); change single settings with --set");
+  require(!resume || has_mask_checkpoint(out), out / "latest.ckpt", "nothing to resume (no checkpoint)");
+  require(resume || r.count("force") || !has_mask_checkpoint(out), out,
+          "already holds a mask training run; continue it with --resume, or start afresh with --force");
+  const auto c = resume ? Config::load(out / "config.yaml", sets, mask_defaults())
+                        : Config::load(r.count("config") ? r["config"].as<std::string>() : "", sets, mask_defaults());
   MaskOptions mo;
   mo.elements = c.integer("mask.elements");
   mo.rank = c.integer("mask.rank");
@@ -73,7 +82,8 @@ int mask_train(int argc, char** argv) {
   mo.rows = cam.rows, mo.cols = cam.cols;
   MaskTrainOptions to;
   read_options(c, mask_train_fields(), to);
-  to.out = r["out"].as<std::string>();
+  to.out = out;
+  to.resume = resume;
   require(to.gamma_init > 0, "train.gamma_init", "must be positive");
   MaskModel model(mo);  // validates rank, projection, throughput rule
   auto [train_imgs, val_imgs] =
@@ -90,7 +100,8 @@ int mask_train(int argc, char** argv) {
             << " dB, throughput " << std::setprecision(3) << s.throughput << ", gamma " << std::scientific
             << std::setprecision(3) << s.gamma << std::defaultfloat << " after " << s.steps << " steps in "
             << format_duration(s.seconds) << "\nwrote " << (to.out / "mask.png").string()
-            << ", vectors.mat, gamma.txt, log.csv, curve.png\n";
+            << ", vectors.mat, gamma.txt, log.csv, curve.png, latest.ckpt\n";
+  if (interrupted()) std::cerr << "interrupted: continue with `flatnet mask train --out " << to.out.string() << " --resume`\n";
   return interrupted() ? 130 : 0;
 }
 

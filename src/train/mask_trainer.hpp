@@ -19,8 +19,12 @@ struct MaskTrainOptions {
   double minutes = 0;  // wall-clock budget (0: none); the run stops early, writing its mask
   int64_t val_every = 500, log_every = 50;
   uint64_t seed = 0;
-  std::filesystem::path out;  // mask.png, vectors.mat, gamma.txt, log.csv, val.csv, curve.png
+  std::filesystem::path out;  // mask.png, vectors.mat, gamma.txt, log.csv, val.csv, curve.png, latest.ckpt
   bool progress = true;
+  // Continue the run in `out` from its latest.ckpt (written at every validation, at the end and
+  // when stopped early): the mask, the regulariser, the optimiser's state, the data order and the
+  // logs up to that step, so that a resumed run takes the steps the straight run would have.
+  bool resume = false;
 };
 
 struct MaskTrainSummary {
@@ -30,6 +34,9 @@ struct MaskTrainSummary {
 
 MaskTrainSummary train_mask(MaskModel& model, const torch::Tensor& train_scenes, const torch::Tensor& val_scenes,
                             const WienerCamera& cam, const MaskTrainOptions& options);
+
+// Whether `out` holds a mask training checkpoint (latest.ckpt) to resume.
+bool has_mask_checkpoint(const std::filesystem::path& out);
 
 // Writes a mask window {rows, cols} in [0,1] as a 16-bit PNG (65535 = fully transparent).
 void write_mask_png(const std::filesystem::path& path, const torch::Tensor& window);
