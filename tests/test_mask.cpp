@@ -419,6 +419,39 @@ TEST_CASE("mask separable takes a config like the other trainers: defaults, shor
   CHECK(MatReader(s.dir / "from_file" / "codes.mat").read("code_rows").numel() == 63);
 }
 
+TEST_CASE("mask separable resumes from its checkpoint as if never stopped", "[mask][separable][cli][resume]") {
+  test::Scratch s("separable_resume");
+  const auto photos = test::make_photos(s.dir / "photos");
+  const std::string base = "mask separable --images " + q(photos) +
+                           " --set data.val_fraction=0.5 --set data.train_limit=2 --set train.val_every=2"
+                           " --set train.log_every=1 --batch 1 --val-count 1 --threads 1";
+  auto r = test::run_flatnet(base + " --iterations 4 --out " + q(s.dir / "straight"));
+  REQUIRE(r.code == 0);
+  r = test::run_flatnet(base + " --iterations 2 --out " + q(s.dir / "split"));
+  REQUIRE(r.code == 0);
+  r = test::run_flatnet(base + " --iterations 4 --out " + q(s.dir / "split"));  // not restarted by accident
+  CHECK(r.code == 2);
+  CHECK_THAT(r.output, Contains("--resume"));
+  r = test::run_flatnet("mask separable --resume --iterations 4 --threads 1 --out " + q(s.dir / "split"));
+  INFO(r.output);
+  REQUIRE(r.code == 0);
+  CHECK_THAT(r.output, Contains("4 steps"));
+  CHECK(read_file_text(s.dir / "split" / "log.csv") == read_file_text(s.dir / "straight" / "log.csv"));
+  CHECK(torch::equal(MatReader(s.dir / "split" / "codes.mat").read("code_rows"),
+                     MatReader(s.dir / "straight" / "codes.mat").read("code_rows")));
+  CHECK(read_file_text(s.dir / "split" / "lambda.txt") == read_file_text(s.dir / "straight" / "lambda.txt"));
+  // A mask trainer's checkpoint is not a code pair's.
+  std::filesystem::create_directories(s.dir / "other");
+  std::filesystem::copy_file(s.dir / "split" / "latest.ckpt", s.dir / "other" / "latest.ckpt");
+  std::filesystem::copy_file(s.dir / "split" / "config.yaml", s.dir / "other" / "config.yaml");
+  auto st = read_safetensors(s.dir / "other" / "latest.ckpt");
+  st.metadata["format"] = "flatnet-mask-checkpoint";
+  write_safetensors(s.dir / "other" / "latest.ckpt", st.tensors, st.metadata);
+  r = test::run_flatnet("mask separable --resume --force --threads 1 --out " + q(s.dir / "other"));
+  CHECK(r.code == 2);
+  CHECK_THAT(r.output, Contains("latest.ckpt") && Contains("not a checkpoint of this trainer"));
+}
+
 TEST_CASE("the mask and code-pair trainers' options start where their defaults files do, and read every key",
           "[mask][config]") {
   const auto configs = test::source_dir() / "configs";

@@ -259,7 +259,10 @@ int mask_separable(int argc, char** argv) {
       "iterations", "train.iterations", cxxopts::value<std::string>())("batch", "train.batch", cxxopts::value<std::string>())(
       "lr", "train.lr", cxxopts::value<std::string>())("lambda", "train.lambda_init", cxxopts::value<std::string>())(
       "train-limit", "data.train_limit (0: all)", cxxopts::value<std::string>())(
-      "val-count", "train.val_count", cxxopts::value<std::string>())("seed", "train.seed", cxxopts::value<std::string>());
+      "val-count", "train.val_count", cxxopts::value<std::string>())("seed", "train.seed", cxxopts::value<std::string>())(
+      "resume", "continue the run in --out from its latest.ckpt, with its own config (--set and the shortcut flags "
+                "change single settings)");
+  add_force_folder(o);
   add_common(o);
   cxxopts::ParseResult r;
   if (!parse(o, argc, argv, r)) return 0;
@@ -272,7 +275,18 @@ int mask_separable(int argc, char** argv) {
     if (r.count(flag)) sets.push_back(key + "=" + r[flag].as<std::string>());
   if (r.count("binary")) sets.push_back("codes.binary=true");
   for (const auto& s : set_overrides(r)) sets.push_back(s);
-  const auto c = Config::load(r.count("config") ? r["config"].as<std::string>() : "", sets, separable_defaults());
+  const std::filesystem::path out = r["out"].as<std::string>();
+  const bool resume = r.count("resume") > 0;
+  require(!resume || !r.count("config"), "--resume",
+          "continues with the run's own config (" + (out / "config.yaml").string() + "); change single settings with --set");
+  require(!resume || has_separable_checkpoint(out), out / "latest.ckpt", "nothing to resume (no checkpoint)");
+  const bool force = r.count("force") > 0;
+  require(resume || force || !has_separable_checkpoint(out), out,
+          "already holds a code-pair training run; continue it with --resume, or start afresh with --force");
+  require(resume || force || !std::filesystem::exists(out / "codes.mat"), out,
+          "already holds learned codes; choose another --out (or --force)");
+  const auto c = resume ? Config::load(out / "config.yaml", sets, separable_defaults())
+                        : Config::load(r.count("config") ? r["config"].as<std::string>() : "", sets, separable_defaults());
   SeparableTrainOptions opt;
   read_options(c, separable_train_fields(), opt);
   const auto init = c.str("codes.init");
@@ -282,9 +296,8 @@ int mask_separable(int argc, char** argv) {
     opt.init_codes = c.path("codes.init");
   require(opt.lr > 0, "train.lr", "must be positive for the code pair");
   require(opt.val_count >= 1, "train.val_count", "at least 1 (the code pair's validation needs photographs)");
-  opt.out = r["out"].as<std::string>();
-  require(!std::filesystem::exists(opt.out / "codes.mat"), opt.out,
-          "already holds learned codes; choose another --out");
+  opt.out = out;
+  opt.resume = resume;
   const auto claim = claim_out(r, opt.out, "mask separable");
   write_text_atomically(opt.out / "config.yaml", c.to_yaml());
   watch_interrupts();
@@ -292,6 +305,8 @@ int mask_separable(int argc, char** argv) {
   std::cout << "separable codes: " << s.steps << " steps in " << format_duration(s.seconds) << "; validation PSNR "
             << s.val_psnr_start << " -> " << s.val_psnr << " dB (Tikhonov, linear light), lambda " << s.lambda
             << ", throughput " << s.throughput << "; wrote " << (opt.out / "codes.mat").string() << "\n";
+  if (interrupted())
+    std::cerr << "interrupted: continue with `flatnet mask separable --out " << opt.out.string() << " --resume`\n";
   return interrupted() ? 130 : 0;
 }
 

@@ -47,4 +47,19 @@ CsvLog CsvLog::resume(std::filesystem::path path, const std::string& header, int
 
 void CsvLog::flush() const { write_text_atomically(path_, text_); }
 
+std::vector<std::pair<double, double>> CsvLog::read_column(const std::filesystem::path& path, size_t column) {
+  std::vector<std::pair<double, double>> out;
+  std::istringstream in(read_file_text(path));
+  std::string line;
+  std::getline(in, line);  // the header
+  while (std::getline(in, line)) {
+    std::vector<std::string> fields;
+    std::stringstream ss(line);
+    for (std::string f; std::getline(ss, f, ',');) fields.push_back(f);
+    if (fields.size() <= column || !is_decimal_number(fields[0]) || !is_decimal_number(fields[column])) continue;
+    out.emplace_back(std::strtod(fields[0].c_str(), nullptr), std::strtod(fields[column].c_str(), nullptr));
+  }
+  return out;
+}
+
 }  // namespace flatnet

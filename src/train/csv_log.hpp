@@ -8,6 +8,8 @@
 #include <filesystem>
 #include <sstream>
 #include <string>
+#include <utility>
+#include <vector>
 
 namespace flatnet {
 
@@ -31,6 +33,9 @@ class CsvLog {
     text_ += row.str() + "\n";
   }
   void flush() const;
+  // (step, value) of the rows of a log file whose first field and field `column` are numbers
+  // (a resumed run's curves from its kept rows).
+  static std::vector<std::pair<double, double>> read_column(const std::filesystem::path& path, size_t column);
   const std::filesystem::path& path() const { return path_; }
 
  private:

@@ -3,6 +3,7 @@
 #include "train/csv_log.hpp"
 #include "train/loop.hpp"
 #include "train/nonfinite.hpp"
+#include "train/trainer_checkpoint.hpp"
 
 #include <fstream>
 #include <iomanip>
@@ -16,7 +17,6 @@
 #include "eval/plot.hpp"
 #include "io/image.hpp"
 #include "io/mat.hpp"
-#include "io/safetensors.hpp"
 
 namespace flatnet {
 
@@ -26,126 +26,16 @@ void write_mask_png(const std::filesystem::path& path, const torch::Tensor& wind
 
 namespace {
 
-constexpr const char* kMaskCheckpointFormat = "flatnet-mask-checkpoint";
-
-std::filesystem::path checkpoint_path(const std::filesystem::path& out) { return out / "latest.ckpt"; }
-
-std::string state_key(const torch::Tensor& p) { return c10::guts::to_string(p.unsafeGetTensorImpl()); }
-
-// What a run needs to continue: the parameters (the model's, then log gamma), the optimiser's
-// state per parameter (by its index in `params`: LibTorch keys it by address), the step, the
-// seconds trained and the data order's generator.
-struct MaskRunState {
-  std::vector<torch::Tensor>& params;
-  std::vector<std::string> names;  // of `params`
-  torch::optim::Optimizer& opt;
-  const std::string& optimizer;  // sgd | adam
-  std::mt19937_64& rng;
-};
-
-void write_mask_checkpoint(const std::filesystem::path& path, const MaskRunState& run, int64_t step, double seconds) {
-  std::vector<std::pair<std::string, torch::Tensor>> tensors;
-  for (size_t i = 0; i < run.params.size(); ++i) {
-    tensors.emplace_back("param." + run.names[i], run.params[i].detach());
-    const auto it = run.opt.state().find(state_key(run.params[i]));
-    if (it == run.opt.state().end()) continue;  // no step taken yet
-    const auto base = "optimizer." + run.names[i] + ".";
-    if (run.optimizer == "sgd") {
-      const auto& st = static_cast<const torch::optim::SGDParamState&>(*it->second);
-      if (st.momentum_buffer().defined()) tensors.emplace_back(base + "momentum_buffer", st.momentum_buffer());
-    } else {
-      const auto& st = static_cast<const torch::optim::AdamParamState&>(*it->second);
-      tensors.emplace_back(base + "step", torch::tensor(st.step(), torch::kInt64));
-      tensors.emplace_back(base + "exp_avg", st.exp_avg());
-      tensors.emplace_back(base + "exp_avg_sq", st.exp_avg_sq());
-    }
-  }
-  std::ostringstream rng_state, secs;
-  rng_state << run.rng;
-  secs << std::setprecision(17) << seconds;
-  write_safetensors(path, tensors,
-                    {{"format", kMaskCheckpointFormat},
-                     {"step", std::to_string(step)},
-                     {"train_seconds", secs.str()},
-                     {"optimizer", run.optimizer},
-                     {"rng", rng_state.str()}});
-}
-
-// The stored tensor `name`, shaped like `like` and finite, or an Error naming the checkpoint.
-torch::Tensor stored_like(const SafeTensors& st, const std::string& name, const torch::Tensor& like,
-                          const std::filesystem::path& path) {
-  const auto* t = st.find(name);
-  require(t != nullptr, path, "lacks '" + name + "' (not a checkpoint of this mask trainer?)");
-  require(t->sizes() == like.sizes(), path,
-          "'" + name + "' is " + c10::str(t->sizes()) + ", this run's " + c10::str(like.sizes()) +
-              " (another mask.rank or mask.elements?)");
-  require(t->is_floating_point() && torch::isfinite(*t).all().item<bool>(), path,
-          "'" + name + "' holds NaN or infinity, or is not a floating-point tensor");
-  return t->to(like.scalar_type()).clone();
-}
-
-// Restores `run` from the checkpoint; returns {step, seconds trained}.
-std::pair<int64_t, double> read_mask_checkpoint(const std::filesystem::path& path, const MaskRunState& run) {
-  const auto st = read_safetensors(path);
-  require(st.meta("format", path) == kMaskCheckpointFormat, path,
-          "is not a mask training checkpoint (format '" + st.meta("format", path) + "')");
-  const auto& optimizer = st.meta("optimizer", path);
-  require(optimizer == run.optimizer, path,
-          "the run trained with train.optimizer " + optimizer + "; it cannot change to " + run.optimizer + " on resume");
-  const auto& step_text = st.meta("step", path);
-  const auto& seconds_text = st.meta("train_seconds", path);
-  require(is_decimal_number(step_text) && step_text.find_first_of(".eE-") == std::string::npos &&
-              step_text.size() <= 12,
-          path, "step '" + step_text.substr(0, 40) + "' is not a step count");
-  require(is_decimal_number(seconds_text) && std::strtod(seconds_text.c_str(), nullptr) >= 0, path,
-          "train_seconds '" + seconds_text.substr(0, 40) + "' is not a duration");
-  std::istringstream rng_state(st.meta("rng", path));
-  rng_state >> run.rng;
-  require(!rng_state.fail(), path, "rng is not the state of the data order's generator");
-  torch::NoGradGuard ng;
-  for (size_t i = 0; i < run.params.size(); ++i) {
-    const auto& p = run.params[i];
-    p.copy_(stored_like(st, "param." + run.names[i], p, path));
-    const auto base = "optimizer." + run.names[i] + ".";
-    run.opt.state().erase(state_key(p));
-    if (run.optimizer == "sgd") {
-      if (!st.find(base + "momentum_buffer")) continue;
-      auto state = std::make_unique<torch::optim::SGDParamState>();
-      state->momentum_buffer(stored_like(st, base + "momentum_buffer", p, path));
-      run.opt.state()[state_key(p)] = std::move(state);
-    } else {
-      const auto* step = st.find(base + "step");
-      if (!step) continue;
-      require(step->numel() == 1 && step->scalar_type() == torch::kInt64 && step->item<int64_t>() >= 0, path,
-              "'" + base + "step' is not one non-negative integer");
-      auto state = std::make_unique<torch::optim::AdamParamState>();
-      state->step(step->item<int64_t>());
-      state->exp_avg(stored_like(st, base + "exp_avg", p, path));
-      state->exp_avg_sq(stored_like(st, base + "exp_avg_sq", p, path));
-      run.opt.state()[state_key(p)] = std::move(state);
-    }
-  }
-  return {std::stoll(step_text), std::strtod(seconds_text.c_str(), nullptr)};
-}
-
-// A curve from a log's kept rows: its first column against column `column`.
+// A resumed run's curve: the kept rows of its log.
 void add_rows(Series& curve, const std::filesystem::path& csv, size_t column) {
-  std::ifstream in(csv);
-  std::string line;
-  std::getline(in, line);  // the header
-  while (std::getline(in, line)) {
-    std::vector<std::string> fields;
-    std::stringstream ss(line);
-    for (std::string f; std::getline(ss, f, ',');) fields.push_back(f);
-    if (fields.size() <= column || !is_decimal_number(fields[0]) || !is_decimal_number(fields[column])) continue;
-    curve.x.push_back(std::strtod(fields[0].c_str(), nullptr));
-    curve.y.push_back(std::strtod(fields[column].c_str(), nullptr));
-  }
+  for (const auto& [x, y] : CsvLog::read_column(csv, column)) curve.x.push_back(x), curve.y.push_back(y);
 }
 
 }  // namespace
 
-bool has_mask_checkpoint(const std::filesystem::path& out) { return std::filesystem::exists(checkpoint_path(out)); }
+bool has_mask_checkpoint(const std::filesystem::path& out) {
+  return std::filesystem::exists(trainer_checkpoint_path(out));
+}
 
 MaskTrainSummary train_mask(MaskModel& model, const torch::Tensor& train_scenes, const torch::Tensor& val_scenes,
                             const WienerCamera& cam, const MaskTrainOptions& o) {
@@ -167,15 +57,21 @@ MaskTrainSummary train_mask(MaskModel& model, const torch::Tensor& train_scenes,
 
   const auto n = train_scenes.size(0);
   std::mt19937_64 rng(o.seed);
-  std::vector<std::string> names;
-  for (const auto& p : model->named_parameters()) names.push_back(p.key());
-  names.push_back("log_gamma");
-  const MaskRunState run{params, names, *opt, o.optimizer, rng};
+  TrainerState state;
+  for (const auto& p : model->named_parameters()) state.params.emplace_back(p.key(), p.value());
+  state.params.emplace_back("log_gamma", log_gamma);
+  state.optimizer = opt.get(), state.optimizer_kind = o.optimizer;
+  state.format = "flatnet-mask-checkpoint", state.size_hint = "another mask.rank or mask.elements?";
+  const auto checkpoint = trainer_checkpoint_path(o.out);
   int64_t first_step = 0;
   double seconds_before = 0;
   if (o.resume) {
-    require(has_mask_checkpoint(o.out), checkpoint_path(o.out), "nothing to resume (no checkpoint)");
-    std::tie(first_step, seconds_before) = read_mask_checkpoint(checkpoint_path(o.out), run);
+    require(has_mask_checkpoint(o.out), checkpoint, "nothing to resume (no checkpoint)");
+    const auto restored = read_trainer_checkpoint(checkpoint, state);
+    first_step = restored.step, seconds_before = restored.seconds;
+    std::istringstream rng_state(restored.file.meta("rng", checkpoint));
+    rng_state >> rng;  // the data order
+    require(!rng_state.fail(), checkpoint, "rng is not the state of the data order's generator");
   }
   const char* log_header = "step,loss,psnr,gamma,throughput";
   const char* val_header = "step,val_psnr,gamma,throughput";
@@ -208,7 +104,7 @@ MaskTrainSummary train_mask(MaskModel& model, const torch::Tensor& train_scenes,
   if (!o.resume) validate(0);
   else score();  // the resumed state's, for a run that takes no more steps
 
-  auto lo = loop_schedule(o, "mask", "the last checkpoint (" + checkpoint_path(o.out).string() + ")");
+  auto lo = loop_schedule(o, "mask", "the last checkpoint (" + checkpoint.string() + ")");
   lo.first_step = first_step;
   lo.seconds_before = seconds_before;
   std::unique_ptr<TrainingLoop> loop;
@@ -251,7 +147,9 @@ MaskTrainSummary train_mask(MaskModel& model, const torch::Tensor& train_scenes,
   };
   hooks.checkpoint = [&](int64_t done) {
     validate(done);
-    write_mask_checkpoint(checkpoint_path(o.out), run, done, loop->trained_seconds());
+    std::ostringstream rng_state;
+    rng_state << rng;
+    write_trainer_checkpoint(checkpoint, state, done, loop->trained_seconds(), {{"rng", rng_state.str()}});
   };
   loop = std::make_unique<TrainingLoop>(lo, hooks);
   const auto r = loop->run();

@@ -2,6 +2,7 @@
 
 #include <cmath>
 #include <iostream>
+#include <iomanip>
 #include <sstream>
 #include <thread>
 
@@ -17,6 +18,7 @@
 #include "train/loop.hpp"
 #include "train/mask_trainer.hpp"
 #include "train/nonfinite.hpp"
+#include "train/trainer_checkpoint.hpp"
 
 namespace flatnet {
 
@@ -82,6 +84,10 @@ double separable_psnr(const torch::Tensor& u, const torch::Tensor& v, double lam
   return sum / X.size(0);
 }
 
+bool has_separable_checkpoint(const std::filesystem::path& out) {
+  return std::filesystem::exists(trainer_checkpoint_path(out));
+}
+
 SeparableTrainSummary train_separable_codes(const SeparableTrainOptions& o) {
   require(o.iterations >= 1 && o.batch >= 1, "separable training", "iterations and batch must be positive");
   require(!o.out.empty(), "separable training", "an output folder is needed");
@@ -115,17 +121,47 @@ SeparableTrainSummary train_separable_codes(const SeparableTrainOptions& o) {
   };
 
   std::filesystem::create_directories(o.out);
-  CsvLog log(o.out / "log.csv", "step,loss,throughput,lambda,val_psnr");
+  auto gen = at::detail::createCPUGenerator(o.seed + 1);
+  TrainerState state;
+  state.params = {{"a", a}, {"b", b}, {"log_lambda", log_lambda}};
+  state.optimizer = &opt, state.optimizer_kind = "adam";
+  state.format = "flatnet-codes-checkpoint", state.size_hint = "another codes.length or codes.init?";
+  const auto checkpoint = trainer_checkpoint_path(o.out);
   SeparableTrainSummary summary;
-  {
+  int64_t first_step = 0;
+  double seconds_before = 0;
+  if (o.resume) {
+    require(has_separable_checkpoint(o.out), checkpoint, "nothing to resume (no checkpoint)");
+    const auto restored = read_trainer_checkpoint(checkpoint, state);
+    first_step = restored.step, seconds_before = restored.seconds;
+    // The data order's and the noise's generator, checked before LibTorch reads it.
+    const auto* rng = restored.file.find("rng");
+    const auto expected = gen.get_state();
+    require(rng && rng->scalar_type() == torch::kUInt8 && rng->sizes() == expected.sizes(), checkpoint,
+            "'rng' is not the state of the data and noise generator");
+    gen.set_state(*rng);
+    const auto start = restored.file.meta("val_psnr_start", checkpoint);
+    require(is_decimal_number(start), checkpoint, "val_psnr_start '" + start.substr(0, 40) + "' is not a number");
+    summary.val_psnr_start = std::strtod(start.c_str(), nullptr);
+  } else {
     const auto [u, v] = codes();
     summary.val_psnr_start = separable_psnr(u.detach(), v.detach(), std::exp(log_lambda.item<double>()), val, 99);
+    std::cerr << "separable codes: validation PSNR at the start " << summary.val_psnr_start << " dB\n";
   }
-  std::cerr << "separable codes: validation PSNR at the start " << summary.val_psnr_start << " dB\n";
+  const char* header = "step,loss,throughput,lambda,val_psnr";
+  CsvLog log = o.resume ? CsvLog::resume(o.out / "log.csv", header, first_step) : CsvLog(o.out / "log.csv", header);
   Series train_curve{"train (batch)", {}, {}}, val_curve{"validation", {}, {}};
-  auto gen = at::detail::createCPUGenerator(o.seed + 1);
+  if (o.resume) {
+    log.flush();
+    for (const auto& [x, loss] : CsvLog::read_column(log.path(), 1))
+      train_curve.x.push_back(x), train_curve.y.push_back(-10 * std::log10(std::max(1e-12, loss)));
+    for (const auto& [x, psnr] : CsvLog::read_column(log.path(), 4)) val_curve.x.push_back(x), val_curve.y.push_back(psnr);
+  }
   double last_loss = 0, last_throughput = 0, last_val = std::nan("");
-  const auto lo = loop_schedule(o, "codes", "the last validation's (log.csv); the codes are written at the end");
+  auto lo = loop_schedule(o, "codes", "the last checkpoint (" + checkpoint.string() + ")");
+  lo.first_step = first_step;
+  lo.seconds_before = seconds_before;
+  std::unique_ptr<TrainingLoop> loop;
   LoopHooks hooks;
   hooks.step = [&](int64_t step) {
     const auto idx = torch::randint(train_linear.size(0), {o.batch}, gen, torch::kLong);
@@ -149,6 +185,10 @@ SeparableTrainSummary train_separable_codes(const SeparableTrainOptions& o) {
     last_val = summary.val_psnr = separable_psnr(uv.detach(), vv.detach(), std::exp(log_lambda.item<double>()), val, 99);
     val_curve.x.push_back(static_cast<double>(done));
     val_curve.y.push_back(last_val);
+    std::ostringstream start;
+    start << std::setprecision(17) << summary.val_psnr_start;
+    write_trainer_checkpoint(checkpoint, state, done, loop->trained_seconds(), {{"val_psnr_start", start.str()}},
+                             {{"rng", gen.get_state()}});
   };
   hooks.log = [&](int64_t done) {
     train_curve.x.push_back(static_cast<double>(done));
@@ -158,12 +198,14 @@ SeparableTrainSummary train_separable_codes(const SeparableTrainOptions& o) {
     last_val = std::nan("");
     return "loss " + std::to_string(last_loss) + " t " + std::to_string(last_throughput);
   };
-  const auto r = TrainingLoop(lo, hooks).run();
+  loop = std::make_unique<TrainingLoop>(lo, hooks);
+  const auto r = loop->run();
   summary.steps = r.last_step;
   const auto [u, v] = codes();
   summary.lambda = std::exp(log_lambda.item<double>());
   summary.throughput = code_throughput(u, v).item<double>();
-  summary.seconds = r.seconds;
+  summary.seconds = loop->trained_seconds();
+  if (o.resume && r.last_step == first_step) summary.val_psnr = separable_psnr(u.detach(), v.detach(), summary.lambda, val, 99);
   save_code_pair(o.out / "codes.mat", u, v);
   write_text_atomically(o.out / "lambda.txt", std::to_string(summary.lambda) + "\n");
   log.flush();

@@ -32,8 +32,11 @@ struct SeparableTrainOptions {
   bool binary = false;
   uint64_t seed = 0;
   int64_t log_every = 25, val_every = 100;
-  std::filesystem::path out;  // codes.mat, lambda.txt, log.csv, curve.png
+  std::filesystem::path out;  // codes.mat, lambda.txt, log.csv, curve.png, latest.ckpt
   bool progress = true;
+  // Continue the run in `out` from its latest.ckpt (written at every validation, at the end and
+  // when stopped early): codes, lambda, Adam's moments, the step and the data and noise generator.
+  bool resume = false;
 };
 
 struct SeparableTrainSummary {
@@ -42,6 +45,8 @@ struct SeparableTrainSummary {
 };
 
 SeparableTrainSummary train_separable_codes(const SeparableTrainOptions& options);
+// Whether `out` holds a code-pair training checkpoint (latest.ckpt) to resume.
+bool has_separable_checkpoint(const std::filesystem::path& out);
 
 // Validation PSNR (linear light, clamped to [0,1]) of a code pair with Tikhonov at `lambda`, on
 // scenes {N,S,S} (sRGB luma in [0,1]) with the noise of `seed`.
