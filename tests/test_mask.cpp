@@ -10,6 +10,7 @@
 #include "helpers.hpp"
 #include "io/image.hpp"
 #include "io/mat.hpp"
+#include "nn/model_file.hpp"
 #include "io/safetensors.hpp"
 #include "optics/simulator.hpp"
 #include "eval/mask_score.hpp"
@@ -475,4 +476,27 @@ TEST_CASE("the mask and code-pair trainers' options start where their defaults f
   SeparableTrainOptions separable_options;
   CHECK_THROWS_WITH(read_options(mask, separable_train_fields(), separable_options),
                     Contains("codes.length"));
+}
+
+TEST_CASE("the model's, light's, co-design's, mask's and Wiener camera's options start where the defaults files do",
+          "[mask][config]") {
+  const auto configs = test::source_dir() / "configs";
+  const auto train = Config::load({}, {}, configs / "defaults.yaml");
+  const auto mask = Config::load({}, {}, configs / "mask_defaults.yaml");
+  for (const auto& differing :
+       {defaults_differing(train, unet_fields(), "model.unet."), defaults_differing(train, dncnn_fields(), "model.dncnn."),
+        defaults_differing(train, rcan_fields(), "model.rcan."),
+        defaults_differing(train, nafnet_fields(), "model.nafnet."),
+        defaults_differing(train, light_fields(), "data.light."), defaults_differing(train, codesign_fields(), "codes."),
+        defaults_differing(mask, mask_fields(), "mask."), defaults_differing(mask, wiener_camera_fields(), "camera.")}) {
+    INFO((differing.empty() ? std::string() : differing.front()));
+    CHECK(differing.empty());
+  }
+  // A nested table reads under its prefix, and names the whole key.
+  const auto changed = defaults_differing(Config::load({}, {"model.rcan.blocks=3"}, configs / "defaults.yaml"),
+                                          rcan_fields(), "model.rcan.");
+  REQUIRE(changed.size() == 1);
+  CHECK_THAT(changed.front(), Contains("model.rcan.blocks") && Contains("3"));
+  WienerCamera cam;
+  CHECK_THROWS_WITH(read_options(train, wiener_camera_fields(), cam, "camera."), Contains("camera.rows"));
 }

@@ -32,11 +32,7 @@ std::filesystem::path separable_defaults() { return data_dir() / "configs" / "se
 
 WienerCamera wiener_camera(const Config& c) {
   WienerCamera cam;
-  cam.rows = c.integer("camera.rows");
-  cam.cols = c.integer("camera.cols");
-  cam.scene = c.integer("camera.scene");
-  cam.noise_sigma = c.num("camera.noise_sigma");
-  cam.photons = c.num("camera.photons");
+  read_options(c, wiener_camera_fields(), cam, "camera.");
   require(cam.noise_sigma > 0, "camera.noise_sigma", "must be positive, got " + c.str("camera.noise_sigma"));
   require(cam.scene <= cam.rows && cam.scene <= cam.cols, "camera.scene", "must fit in the sensor");
   return cam;
@@ -69,13 +65,9 @@ int mask_train(int argc, char** argv) {
   const auto c = resume ? Config::load(out / "config.yaml", sets, mask_defaults())
                         : Config::load(r.count("config") ? r["config"].as<std::string>() : "", sets, mask_defaults());
   MaskOptions mo;
-  mo.elements = c.integer("mask.elements");
-  mo.rank = c.integer("mask.rank");
-  mo.upsample = c.integer("mask.upsample");
+  read_options(c, mask_fields(), mo, "mask.");
   mo.projection = parse_mask_projection(c.str("mask.projection"));
   mo.throughput = parse_throughput_rule(c.str("mask.throughput"));
-  mo.target = c.num("mask.target_throughput");
-  mo.binary = c.flag("mask.binary");
   mo.init = parse_mask_init(c.str("mask.init"));
   mo.seed = static_cast<uint64_t>(c.integer("train.seed"));
   const auto cam = wiener_camera(c);

@@ -484,24 +484,44 @@ GeneratorOptions generator_options(const Config& c, const CameraConfig& camera, 
   o.level_input = c.flag("model.level_input");
   const int64_t enhancer_inputs = o.level_input ? 8 : 4;  // first stage (+ light level)
   o.unet.in_channels = o.dncnn.in_channels = o.rcan.in_channels = o.nafnet.in_channels = enhancer_inputs;
-  o.nafnet.width = c.integer("model.nafnet.width");
-  o.nafnet.enc_blocks = c.integer("model.nafnet.enc_blocks");
-  o.nafnet.middle_blocks = c.integer("model.nafnet.middle_blocks");
-  o.nafnet.dec_blocks = c.integer("model.nafnet.dec_blocks");
   o.enhancer = parse_enhancer(c.str("model.enhancer"));
-  o.unet.width = c.integer("model.unet.width");
+  read_options(c, unet_fields(), o.unet, "model.unet.");
+  read_options(c, dncnn_fields(), o.dncnn, "model.dncnn.");
+  read_options(c, rcan_fields(), o.rcan, "model.rcan.");
+  read_options(c, nafnet_fields(), o.nafnet, "model.nafnet.");
   o.unet.bn_momentum = o.bn_momentum;
-  o.dncnn.layers = c.integer("model.dncnn.layers");
-  o.dncnn.width = c.integer("model.dncnn.width");
-  o.rcan.groups = c.integer("model.rcan.groups");
-  o.rcan.blocks = c.integer("model.rcan.blocks");
-  o.rcan.width = c.integer("model.rcan.width");
-  o.rcan.reduction = c.integer("model.rcan.reduction");
   require(o.unet.width >= 1 && o.dncnn.width >= 1 && o.rcan.width >= 1 && o.nafnet.width >= 1, "config",
           "model widths must be positive");
   require(o.scene % 16 == 0, "camera", "scene_size must be divisible by 16 for the U-Net");
   check_camera_for_model(o, camera);
   return o;
+}
+
+const std::vector<OptionField<UNetOptions>>& unet_fields() {
+  static const std::vector<OptionField<UNetOptions>> fields = {{"width", &UNetOptions::width}};
+  return fields;
+}
+
+const std::vector<OptionField<DnCNNOptions>>& dncnn_fields() {
+  static const std::vector<OptionField<DnCNNOptions>> fields = {{"layers", &DnCNNOptions::layers},
+                                                                {"width", &DnCNNOptions::width}};
+  return fields;
+}
+
+const std::vector<OptionField<RCANOptions>>& rcan_fields() {
+  using O = RCANOptions;
+  static const std::vector<OptionField<O>> fields = {
+      {"groups", &O::groups}, {"blocks", &O::blocks}, {"width", &O::width}, {"reduction", &O::reduction}};
+  return fields;
+}
+
+const std::vector<OptionField<NAFNetOptions>>& nafnet_fields() {
+  using O = NAFNetOptions;
+  static const std::vector<OptionField<O>> fields = {{"width", &O::width},
+                                                     {"enc_blocks", &O::enc_blocks},
+                                                     {"middle_blocks", &O::middle_blocks},
+                                                     {"dec_blocks", &O::dec_blocks}};
+  return fields;
 }
 
 DiscriminatorOptions discriminator_options(const Config& c) {

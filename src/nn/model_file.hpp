@@ -15,6 +15,7 @@
 #include "nn/generator.hpp"
 #include "nn/losses.hpp"
 #include "io/config.hpp"
+#include "io/options.hpp"
 
 namespace flatnet {
 
@@ -22,6 +23,12 @@ namespace flatnet {
 // initial weights (model.inversion.init; the calibration for transpose and naive models);
 // without, only the shapes (weights come from a file).
 GeneratorOptions generator_options(const Config& config, const CameraConfig& camera, bool initialise);
+// The enhancers' option tables (io/options.hpp), keys under model.unet., model.dncnn., model.rcan.
+// and model.nafnet.; generator_options reads through them.
+const std::vector<OptionField<UNetOptions>>& unet_fields();
+const std::vector<OptionField<DnCNNOptions>>& dncnn_fields();
+const std::vector<OptionField<RCANOptions>>& rcan_fields();
+const std::vector<OptionField<NAFNetOptions>>& nafnet_fields();
 DiscriminatorOptions discriminator_options(const Config& config);
 
 // Where a model file came from, beside its weights (metadata strings; empty when not known, as in

@@ -62,12 +62,7 @@ std::pair<std::shared_ptr<const PairSource>, std::shared_ptr<const PairSource>> 
         split_image_files(c.path("data.images"), c.num("data.val_fraction"), c.integer("data.split_seed"));
     const auto seed = static_cast<uint64_t>(c.integer("train.seed"));
     LightAugment light;
-    light.exposure_probability = c.num("data.light.exposure_probability");
-    light.exposure_min = c.num("data.light.exposure_min");
-    light.exposure_max = c.num("data.light.exposure_max");
-    light.lamp_probability = c.num("data.light.lamp_probability");
-    light.lamp_min = c.num("data.light.lamp_min");
-    light.lamp_max = c.num("data.light.lamp_max");
+    read_options(c, light_fields(), light, "data.light.");
     require(light.exposure_min > 0 && light.exposure_min <= light.exposure_max && light.lamp_min > 0 &&
                 light.lamp_min <= light.lamp_max,
             "data.light", "needs 0 < exposure_min <= exposure_max and 0 < lamp_min <= lamp_max");
@@ -85,12 +80,7 @@ CodesignOptions codesign_options(const Config& c, const CameraConfig& camera) {
   CodesignOptions o;
   const auto init = c.str("codes.init");
   o.init_codes = init == "mls" ? data_dir() / "models" / "camera" / "codes_mls.mat" : c.path("codes.init");
-  o.lr = c.num("codes.lr");
-  o.binary = c.flag("codes.binary");
-  o.target_throughput = c.num("codes.target_throughput");
-  o.throughput_tolerance = c.num("codes.throughput_tolerance");
-  o.freeze_at = c.num("codes.freeze_at");
-  o.calib_error = c.num("codes.calib_error");
+  read_options(c, codesign_fields(), o, "codes.");
   o.geometry = camera.raw;
   require(camera.scene_size == o.camera.scene, "data.camera",
           "co-design builds the reference camera's sensor and optics, whose scene is " +

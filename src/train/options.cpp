@@ -72,4 +72,45 @@ const std::vector<OptionField<SeparableTrainOptions>>& separable_train_fields() 
   return fields;
 }
 
+const std::vector<OptionField<LightAugment>>& light_fields() {
+  using O = LightAugment;
+  static const std::vector<OptionField<O>> fields = {
+      {"exposure_probability", &O::exposure_probability}, {"exposure_min", &O::exposure_min},
+      {"exposure_max", &O::exposure_max},                 {"lamp_probability", &O::lamp_probability},
+      {"lamp_min", &O::lamp_min},                         {"lamp_max", &O::lamp_max},
+  };
+  return fields;
+}
+
+const std::vector<OptionField<CodesignOptions>>& codesign_fields() {
+  using O = CodesignOptions;
+  static const std::vector<OptionField<O>> fields = {
+      {"lr", &O::lr},
+      {"binary", &O::binary},
+      {"target_throughput", &O::target_throughput},
+      {"throughput_tolerance", &O::throughput_tolerance},
+      {"freeze_at", &O::freeze_at},
+      {"calib_error", &O::calib_error},
+  };
+  return fields;
+}
+
+const std::vector<OptionField<MaskOptions>>& mask_fields() {
+  using O = MaskOptions;
+  static const std::vector<OptionField<O>> fields = {
+      {"elements", &O::elements}, {"rank", &O::rank},     {"upsample", &O::upsample},
+      {"target_throughput", &O::target}, {"binary", &O::binary},
+  };
+  return fields;
+}
+
+const std::vector<OptionField<WienerCamera>>& wiener_camera_fields() {
+  using O = WienerCamera;
+  static const std::vector<OptionField<O>> fields = {
+      {"rows", &O::rows}, {"cols", &O::cols}, {"scene", &O::scene}, {"noise_sigma", &O::noise_sigma},
+      {"photons", &O::photons},
+  };
+  return fields;
+}
+
 }  // namespace flatnet

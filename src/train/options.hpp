@@ -1,67 +1,18 @@
 #pragma once
-// A trainer's options bound to its config keys in one table: each row names the YAML key and the
-// member it fills. The CLI reads a config through the table (no hand-written copy per key), and a
-// test holds the struct's C++ defaults equal to its defaults file's (configs/*_defaults.yaml),
-// so a library caller and a command-line user start from the same settings. A setting's default and
-// documentation are declared on its line of the defaults file and its range in io/config.cpp's
-// table, checked when the config is loaded (`flatnet options` shows all three).
-#include <filesystem>
-#include <string>
-#include <type_traits>
-#include <variant>
+// The trainers' option tables (io/options.hpp): TrainOptions, the mask and code-pair trainers', and
+// the structs their configs also fill (the light augmentation, co-design, the mask, the Wiener
+// camera). A test holds each struct's C++ defaults to its defaults file where they should agree.
 #include <vector>
 
-#include "io/config.hpp"
+#include "io/options.hpp"
+#include "optics/mask.hpp"
+#include "optics/simulator.hpp"
+#include "train/codesign.hpp"
 #include "train/gan_trainer.hpp"
 #include "train/mask_trainer.hpp"
 #include "train/separable_trainer.hpp"
 
 namespace flatnet {
-
-template <class S>
-struct OptionField {
-  const char* key;
-  std::variant<double S::*, int64_t S::*, int S::*, uint64_t S::*, bool S::*, std::string S::*,
-               std::filesystem::path S::*>
-      member;
-};
-
-// Fills every field of `s` from `c` (a missing key or a value of the wrong kind is an error naming the key).
-template <class S>
-void read_options(const Config& c, const std::vector<OptionField<S>>& fields, S& s) {
-  for (const auto& f : fields)
-    std::visit(
-        [&](auto member) {
-          using T = std::decay_t<decltype(s.*member)>;
-          if constexpr (std::is_same_v<T, double>) s.*member = c.num(f.key);
-          else if constexpr (std::is_same_v<T, int64_t>) s.*member = c.integer(f.key);
-          else if constexpr (std::is_same_v<T, int>) s.*member = static_cast<int>(c.integer(f.key));
-          else if constexpr (std::is_same_v<T, uint64_t>) s.*member = static_cast<uint64_t>(c.integer(f.key));
-          else if constexpr (std::is_same_v<T, bool>) s.*member = c.flag(f.key);
-          else if constexpr (std::is_same_v<T, std::string>) s.*member = c.str(f.key);
-          else s.*member = c.path(f.key);
-        },
-        f.member);
-}
-
-// "key: struct X, config Y" for every field whose default in S{} differs from `c`'s value (paths
-// are not compared: a defaults file's are relative to the project).
-template <class S>
-std::vector<std::string> defaults_differing(const Config& c, const std::vector<OptionField<S>>& fields) {
-  std::vector<std::string> out;
-  const S defaults{};
-  S from_config{};
-  read_options(c, fields, from_config);
-  for (const auto& f : fields)
-    std::visit(
-        [&](auto member) {
-          using T = std::decay_t<decltype(defaults.*member)>;
-          if constexpr (!std::is_same_v<T, std::filesystem::path>)
-            if (!(defaults.*member == from_config.*member)) out.push_back(std::string(f.key) + ": the struct's default differs from " + c.str(f.key));
-        },
-        f.member);
-  return out;
-}
 
 // flatnet train: configs/defaults.yaml's train.*, loss.* and discriminator.* keys that map one to
 // one onto TrainOptions (train.schedule and train.precision are parsed by train_options). Its
@@ -71,5 +22,13 @@ const std::vector<OptionField<TrainOptions>>& train_fields();
 const std::vector<OptionField<MaskTrainOptions>>& mask_train_fields();
 // mask separable: configs/separable_defaults.yaml (codes.init is resolved by the caller: mls, random or a file).
 const std::vector<OptionField<SeparableTrainOptions>>& separable_train_fields();
+
+// data.light.* (flatnet train): the random scene light.
+const std::vector<OptionField<LightAugment>>& light_fields();
+// codes.* (flatnet train with codes.learn): co-design's numbers (codes.init is resolved by the caller).
+const std::vector<OptionField<CodesignOptions>>& codesign_fields();
+// mask.* and camera.* (mask train; mask.projection, .throughput and .init are parsed by the caller).
+const std::vector<OptionField<MaskOptions>>& mask_fields();
+const std::vector<OptionField<WienerCamera>>& wiener_camera_fields();
 
 }  // namespace flatnet
