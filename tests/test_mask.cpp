@@ -17,6 +17,7 @@
 #include "train/mask_trainer.hpp"
 #include "train/options.hpp"
 #include "train/separable_trainer.hpp"
+#include "train/trainer_checkpoint.hpp"
 
 using namespace flatnet;
 using Catch::Matchers::Contains;
@@ -138,7 +139,7 @@ TEST_CASE("mask training resumes from its checkpoint as if never stopped, and re
     t.iterations = 4;
     MaskModel first(mo);
     train_mask(first, train, val, cam, t);
-    CHECK(has_mask_checkpoint(t.out));
+    CHECK(has_trainer_checkpoint(t.out));
     t.iterations = 6, t.resume = true;
     MaskModel second(mo);  // a fresh model: the checkpoint brings its state
     const auto resumed = train_mask(second, train, val, cam, t);

@@ -22,6 +22,7 @@
 #include "train/options.hpp"
 #include "nn/model_file.hpp"
 #include "train/separable_trainer.hpp"
+#include "train/trainer_checkpoint.hpp"
 
 namespace flatnet::cli {
 
@@ -59,8 +60,8 @@ int mask_train(int argc, char** argv) {
   const auto sets = set_overrides(r);
   require(!resume || !r.count("config"), "--resume",
           "continues with the run's own config (" + (out / "config.yaml").string() + "); change single settings with --set");
-  require(!resume || has_mask_checkpoint(out), out / "latest.ckpt", "nothing to resume (no checkpoint)");
-  require(resume || r.count("force") || !has_mask_checkpoint(out), out,
+  require(!resume || has_trainer_checkpoint(out), out / "latest.ckpt", "nothing to resume (no checkpoint)");
+  require(resume || r.count("force") || !has_trainer_checkpoint(out), out,
           "already holds a mask training run; continue it with --resume, or start afresh with --force");
   const auto c = resume ? Config::load(out / "config.yaml", sets, mask_defaults())
                         : Config::load(r.count("config") ? r["config"].as<std::string>() : "", sets, mask_defaults());
@@ -271,9 +272,9 @@ int mask_separable(int argc, char** argv) {
   const bool resume = r.count("resume") > 0;
   require(!resume || !r.count("config"), "--resume",
           "continues with the run's own config (" + (out / "config.yaml").string() + "); change single settings with --set");
-  require(!resume || has_separable_checkpoint(out), out / "latest.ckpt", "nothing to resume (no checkpoint)");
+  require(!resume || has_trainer_checkpoint(out), out / "latest.ckpt", "nothing to resume (no checkpoint)");
   const bool force = r.count("force") > 0;
-  require(resume || force || !has_separable_checkpoint(out), out,
+  require(resume || force || !has_trainer_checkpoint(out), out,
           "already holds a code-pair training run; continue it with --resume, or start afresh with --force");
   require(resume || force || !std::filesystem::exists(out / "codes.mat"), out,
           "already holds learned codes; choose another --out (or --force)");

@@ -33,10 +33,6 @@ void add_rows(Series& curve, const std::filesystem::path& csv, size_t column) {
 
 }  // namespace
 
-bool has_mask_checkpoint(const std::filesystem::path& out) {
-  return std::filesystem::exists(trainer_checkpoint_path(out));
-}
-
 MaskTrainSummary train_mask(MaskModel& model, const torch::Tensor& train_scenes, const torch::Tensor& val_scenes,
                             const WienerCamera& cam, const MaskTrainOptions& o) {
   require(cam.noise_sigma > 0 || cam.photons > 0, "camera.noise_sigma",
@@ -66,7 +62,6 @@ MaskTrainSummary train_mask(MaskModel& model, const torch::Tensor& train_scenes,
   int64_t first_step = 0;
   double seconds_before = 0;
   if (o.resume) {
-    require(has_mask_checkpoint(o.out), checkpoint, "nothing to resume (no checkpoint)");
     const auto restored = read_trainer_checkpoint(checkpoint, state);
     first_step = restored.step, seconds_before = restored.seconds;
     std::istringstream rng_state(restored.file.meta("rng", checkpoint));

@@ -35,9 +35,6 @@ struct MaskTrainSummary {
 MaskTrainSummary train_mask(MaskModel& model, const torch::Tensor& train_scenes, const torch::Tensor& val_scenes,
                             const WienerCamera& cam, const MaskTrainOptions& options);
 
-// Whether `out` holds a mask training checkpoint (latest.ckpt) to resume.
-bool has_mask_checkpoint(const std::filesystem::path& out);
-
 // Writes a mask window {rows, cols} in [0,1] as a 16-bit PNG (65535 = fully transparent).
 void write_mask_png(const std::filesystem::path& path, const torch::Tensor& window);
 

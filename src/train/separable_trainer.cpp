@@ -84,10 +84,6 @@ double separable_psnr(const torch::Tensor& u, const torch::Tensor& v, double lam
   return sum / X.size(0);
 }
 
-bool has_separable_checkpoint(const std::filesystem::path& out) {
-  return std::filesystem::exists(trainer_checkpoint_path(out));
-}
-
 SeparableTrainSummary train_separable_codes(const SeparableTrainOptions& o) {
   require(o.iterations >= 1 && o.batch >= 1, "separable training", "iterations and batch must be positive");
   require(!o.out.empty(), "separable training", "an output folder is needed");
@@ -131,7 +127,6 @@ SeparableTrainSummary train_separable_codes(const SeparableTrainOptions& o) {
   int64_t first_step = 0;
   double seconds_before = 0;
   if (o.resume) {
-    require(has_separable_checkpoint(o.out), checkpoint, "nothing to resume (no checkpoint)");
     const auto restored = read_trainer_checkpoint(checkpoint, state);
     first_step = restored.step, seconds_before = restored.seconds;
     // The data order's and the noise's generator, checked before LibTorch reads it.

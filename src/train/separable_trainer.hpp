@@ -45,8 +45,6 @@ struct SeparableTrainSummary {
 };
 
 SeparableTrainSummary train_separable_codes(const SeparableTrainOptions& options);
-// Whether `out` holds a code-pair training checkpoint (latest.ckpt) to resume.
-bool has_separable_checkpoint(const std::filesystem::path& out);
 
 // Validation PSNR (linear light, clamped to [0,1]) of a code pair with Tikhonov at `lambda`, on
 // scenes {N,S,S} (sRGB luma in [0,1]) with the noise of `seed`.

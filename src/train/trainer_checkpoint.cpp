@@ -81,6 +81,7 @@ void write_trainer_checkpoint(const std::filesystem::path& path, const TrainerSt
 }
 
 RestoredTraining read_trainer_checkpoint(const std::filesystem::path& path, const TrainerState& state) {
+  require(std::filesystem::exists(path), path, "nothing to resume (no checkpoint)");
   RestoredTraining r;
   r.file = read_safetensors(path);
   const auto& st = r.file;

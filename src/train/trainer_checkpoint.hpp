@@ -28,6 +28,10 @@ struct TrainerState {
 };
 
 inline std::filesystem::path trainer_checkpoint_path(const std::filesystem::path& out) { return out / "latest.ckpt"; }
+// Whether the run folder `out` holds a checkpoint to resume.
+inline bool has_trainer_checkpoint(const std::filesystem::path& out) {
+  return std::filesystem::exists(trainer_checkpoint_path(out));
+}
 
 // Written atomically. `extra` tensors and `metadata` are the trainer's own.
 void write_trainer_checkpoint(const std::filesystem::path& path, const TrainerState& state, int64_t step,
@@ -40,7 +44,8 @@ struct RestoredTraining {
   SafeTensors file;  // for the trainer's own extras
 };
 
-// Restores the parameters and the optimiser's state of `state` from `path`.
+// Restores the parameters and the optimiser's state of `state` from `path` (a missing file: "nothing
+// to resume").
 RestoredTraining read_trainer_checkpoint(const std::filesystem::path& path, const TrainerState& state);
 
 }  // namespace flatnet
