@@ -188,10 +188,6 @@ int info(int argc, char** argv) {
   return 0;
 }
 
-}  // namespace flatnet::cli
-
-namespace flatnet::cli {
-
 // flatnet options: every setting a trainer reads, with its default, range and documentation,
 // from the defaults file where they are declared (io/config.hpp, describe_settings).
 int options(int argc, char** argv) {
@@ -223,7 +219,8 @@ int options(int argc, char** argv) {
     ++shown;
     const auto value = s.default_value.empty() ? std::string("\"\"") : s.default_value;
     if (markdown) {  // a '|' in the text would end the cell
-      const auto cell = [](const std::string& text) { return std::regex_replace(text, std::regex("\\|"), "\\|"); };
+      static const std::regex pipe("\\|");
+      const auto cell = [](const std::string& text) { return std::regex_replace(text, pipe, "\\|"); };
       std::cout << "| `" << s.key << "` | `" << cell(value) << "` | " << s.range << " | " << cell(s.doc) << " |\n";
       continue;
     }

@@ -44,6 +44,21 @@ std::vector<std::filesystem::path> first(const std::vector<std::filesystem::path
                                                        : std::vector<std::filesystem::path>(v.begin(), v.begin() + n);
 }
 
+// The config of a trainer's run in `out`: with --resume the run's own (out/config.yaml) under
+// `sets`, else --config's or the defaults'. Refuses --resume without a checkpoint or with --config,
+// and a new run over a run's checkpoint without --force; `run` names the run in that message.
+Config run_config(const cxxopts::ParseResult& r, const std::filesystem::path& out, const std::vector<std::string>& sets,
+                  const std::filesystem::path& defaults, const std::string& run) {
+  const bool resume = r.count("resume") > 0;
+  require(!resume || !r.count("config"), "--resume",
+          "continues with the run's own config (" + (out / "config.yaml").string() + "); change single settings with --set");
+  require(!resume || has_trainer_checkpoint(out), out / "latest.ckpt", "nothing to resume (no checkpoint)");
+  require(resume || r.count("force") || !has_trainer_checkpoint(out), out,
+          "already holds a " + run + "; continue it with --resume, or start afresh with --force");
+  return resume ? Config::load(out / "config.yaml", sets, defaults)
+                : Config::load(r.count("config") ? r["config"].as<std::string>() : "", sets, defaults);
+}
+
 int mask_train(int argc, char** argv) {
   cxxopts::Options o("flatnet mask train", "Learn a rank-k amplitude mask end to end through Wiener deconvolution.");
   o.add_options()("config", "experiment config (configs/mask_rank1.yaml, ...)", cxxopts::value<std::string>())(
@@ -57,14 +72,7 @@ int mask_train(int argc, char** argv) {
   require(r.count("out"), "mask train", "--out DIR is required");
   const std::filesystem::path out = r["out"].as<std::string>();
   const bool resume = r.count("resume") > 0;
-  const auto sets = set_overrides(r);
-  require(!resume || !r.count("config"), "--resume",
-          "continues with the run's own config (" + (out / "config.yaml").string() + "); change single settings with --set");
-  require(!resume || has_trainer_checkpoint(out), out / "latest.ckpt", "nothing to resume (no checkpoint)");
-  require(resume || r.count("force") || !has_trainer_checkpoint(out), out,
-          "already holds a mask training run; continue it with --resume, or start afresh with --force");
-  const auto c = resume ? Config::load(out / "config.yaml", sets, mask_defaults())
-                        : Config::load(r.count("config") ? r["config"].as<std::string>() : "", sets, mask_defaults());
+  const auto c = run_config(r, out, set_overrides(r), mask_defaults(), "mask training run");
   MaskOptions mo;
   read_options(c, mask_fields(), mo, "mask.");
   mo.projection = parse_mask_projection(c.str("mask.projection"));
@@ -270,16 +278,9 @@ int mask_separable(int argc, char** argv) {
   for (const auto& s : set_overrides(r)) sets.push_back(s);
   const std::filesystem::path out = r["out"].as<std::string>();
   const bool resume = r.count("resume") > 0;
-  require(!resume || !r.count("config"), "--resume",
-          "continues with the run's own config (" + (out / "config.yaml").string() + "); change single settings with --set");
-  require(!resume || has_trainer_checkpoint(out), out / "latest.ckpt", "nothing to resume (no checkpoint)");
-  const bool force = r.count("force") > 0;
-  require(resume || force || !has_trainer_checkpoint(out), out,
-          "already holds a code-pair training run; continue it with --resume, or start afresh with --force");
-  require(resume || force || !std::filesystem::exists(out / "codes.mat"), out,
+  const auto c = run_config(r, out, sets, separable_defaults(), "code-pair training run");
+  require(resume || r.count("force") || !std::filesystem::exists(out / "codes.mat"), out,
           "already holds learned codes; choose another --out (or --force)");
-  const auto c = resume ? Config::load(out / "config.yaml", sets, separable_defaults())
-                        : Config::load(r.count("config") ? r["config"].as<std::string>() : "", sets, separable_defaults());
   SeparableTrainOptions opt;
   read_options(c, separable_train_fields(), opt);
   const auto init = c.str("codes.init");

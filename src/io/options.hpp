@@ -52,7 +52,7 @@ template <class S>
 std::vector<std::string> defaults_differing(const Config& c, const std::vector<OptionField<S>>& fields,
                                             const std::string& prefix = "") {
   std::vector<std::string> out;
-  const S defaults{};
+  static const S defaults{};  // static: GCC 12 cannot see through the member pointers and warns of a local
   S from_config{};
   read_options(c, fields, from_config, prefix);
   for (const auto& f : fields)

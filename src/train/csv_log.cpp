@@ -47,9 +47,9 @@ CsvLog CsvLog::resume(std::filesystem::path path, const std::string& header, int
 
 void CsvLog::flush() const { write_text_atomically(path_, text_); }
 
-std::vector<std::pair<double, double>> CsvLog::read_column(const std::filesystem::path& path, size_t column) {
+std::vector<std::pair<double, double>> CsvLog::column(size_t column) const {
   std::vector<std::pair<double, double>> out;
-  std::istringstream in(read_file_text(path));
+  std::istringstream in(text_);
   std::string line;
   std::getline(in, line);  // the header
   while (std::getline(in, line)) {

@@ -33,9 +33,9 @@ class CsvLog {
     text_ += row.str() + "\n";
   }
   void flush() const;
-  // (step, value) of the rows of a log file whose first field and field `column` are numbers
-  // (a resumed run's curves from its kept rows).
-  static std::vector<std::pair<double, double>> read_column(const std::filesystem::path& path, size_t column);
+  // (step, value) of the rows whose first field and field `index` are numbers (a resumed run's
+  // curves from the rows it kept).
+  std::vector<std::pair<double, double>> column(size_t index) const;
   const std::filesystem::path& path() const { return path_; }
 
  private:

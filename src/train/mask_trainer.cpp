@@ -26,9 +26,9 @@ void write_mask_png(const std::filesystem::path& path, const torch::Tensor& wind
 
 namespace {
 
-// A resumed run's curve: the kept rows of its log.
-void add_rows(Series& curve, const std::filesystem::path& csv, size_t column) {
-  for (const auto& [x, y] : CsvLog::read_column(csv, column)) curve.x.push_back(x), curve.y.push_back(y);
+// A resumed run's curve: the rows its log kept.
+void add_rows(Series& curve, const CsvLog& log, size_t column) {
+  for (const auto& [x, y] : log.column(column)) curve.x.push_back(x), curve.y.push_back(y);
 }
 
 }  // namespace
@@ -74,11 +74,8 @@ MaskTrainSummary train_mask(MaskModel& model, const torch::Tensor& train_scenes,
   CsvLog val_log =
       o.resume ? CsvLog::resume(o.out / "val.csv", val_header, first_step) : CsvLog(o.out / "val.csv", val_header);
   Series train_curve{"train (batch)", {}, {}}, val_curve{"validation", {}, {}};
-  if (o.resume) {
-    log.flush(), val_log.flush();
-    add_rows(train_curve, log.path(), 2);
-    add_rows(val_curve, val_log.path(), 1);
-  }
+  add_rows(train_curve, log, 2);  // a resumed run's rows up to its checkpoint (none for a new run)
+  add_rows(val_curve, val_log, 1);
   std::uniform_int_distribution<int64_t> pick(0, n - 1);
   double sum_loss = 0, sum_psnr = 0;
   int64_t count = 0;
@@ -97,7 +94,6 @@ MaskTrainSummary train_mask(MaskModel& model, const torch::Tensor& train_scenes,
     val_curve.y.push_back(s.val_psnr);
   };
   if (!o.resume) validate(0);
-  else score();  // the resumed state's, for a run that takes no more steps
 
   auto lo = loop_schedule(o, "mask", "the last checkpoint (" + checkpoint.string() + ")");
   lo.first_step = first_step;
@@ -148,6 +144,7 @@ MaskTrainSummary train_mask(MaskModel& model, const torch::Tensor& train_scenes,
   };
   loop = std::make_unique<TrainingLoop>(lo, hooks);
   const auto r = loop->run();
+  if (r.last_step == first_step && o.resume) score();  // a resumed run with no step left: its state's scores
   s.steps = r.last_step;
   s.seconds = loop->trained_seconds();  // log.csv was flushed with each row
 

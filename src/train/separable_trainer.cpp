@@ -146,12 +146,9 @@ SeparableTrainSummary train_separable_codes(const SeparableTrainOptions& o) {
   const char* header = "step,loss,throughput,lambda,val_psnr";
   CsvLog log = o.resume ? CsvLog::resume(o.out / "log.csv", header, first_step) : CsvLog(o.out / "log.csv", header);
   Series train_curve{"train (batch)", {}, {}}, val_curve{"validation", {}, {}};
-  if (o.resume) {
-    log.flush();
-    for (const auto& [x, loss] : CsvLog::read_column(log.path(), 1))
-      train_curve.x.push_back(x), train_curve.y.push_back(-10 * std::log10(std::max(1e-12, loss)));
-    for (const auto& [x, psnr] : CsvLog::read_column(log.path(), 4)) val_curve.x.push_back(x), val_curve.y.push_back(psnr);
-  }
+  for (const auto& [x, loss] : log.column(1))  // a resumed run's rows up to its checkpoint (none for a new run)
+    train_curve.x.push_back(x), train_curve.y.push_back(-10 * std::log10(std::max(1e-12, loss)));
+  for (const auto& [x, psnr] : log.column(4)) val_curve.x.push_back(x), val_curve.y.push_back(psnr);
   double last_loss = 0, last_throughput = 0, last_val = std::nan("");
   auto lo = loop_schedule(o, "codes", "the last checkpoint (" + checkpoint.string() + ")");
   lo.first_step = first_step;
@@ -200,7 +197,8 @@ SeparableTrainSummary train_separable_codes(const SeparableTrainOptions& o) {
   summary.lambda = std::exp(log_lambda.item<double>());
   summary.throughput = code_throughput(u, v).item<double>();
   summary.seconds = loop->trained_seconds();
-  if (o.resume && r.last_step == first_step) summary.val_psnr = separable_psnr(u.detach(), v.detach(), summary.lambda, val, 99);
+  if (r.last_step == first_step && o.resume)  // a resumed run with no step left: its state's score
+    summary.val_psnr = separable_psnr(u.detach(), v.detach(), summary.lambda, val, 99);
   save_code_pair(o.out / "codes.mat", u, v);
   write_text_atomically(o.out / "lambda.txt", std::to_string(summary.lambda) + "\n");
   log.flush();
