@@ -178,6 +178,13 @@ TEST_CASE("config: defaults, base files, --set, unknown keys with a suggestion, 
   CHECK(c.num("loss.perceptual") == Approx(1.2));  // untouched default
   CHECK_THROWS_WITH(Config::load(s.dir / "exp.yaml", {"train.itrations=5"}),
                     Contains("unknown setting 'train.itrations'") && Contains("train.iterations"));
+  // Far from every key: no guess, the section's keys instead (a guess like 'data.images' misleads).
+  CHECK_THROWS_WITH(Config::load(s.dir / "exp.yaml", {"train.optimiser_kind=adam"}),
+                    Contains("unknown setting 'train.optimiser_kind'") && !Contains("did you mean") &&
+                        Contains("train settings: ") && Contains("iterations") && !Contains("unet"));
+  CHECK_THROWS_WITH(Config::load(s.dir / "exp.yaml", {"colour.saturation=2"}), Contains("`flatnet options` lists them"));
+  CHECK(nearest_key("lr", {"train.lr", "data.images"}) == "train.lr");
+  CHECK(nearest_key("train.optimizer", {"train.lr", "data.images"}).empty());
   std::ofstream(s.dir / "bad.yaml") << "model:\n  unet:\n    widht: 3\n";
   CHECK_THROWS_WITH(Config::load(s.dir / "bad.yaml"), Contains("bad.yaml") && Contains("model.unet.width"));
   CHECK_THROWS_WITH(Config::load(s.dir / "exp.yaml", {"train.batch=four"}).integer("train.batch"),

@@ -246,7 +246,22 @@ std::string nearest_key(const std::string& key, const std::vector<std::string>& 
     const size_t d = std::min(edit_distance(key, k), edit_distance(last, klast) + 1);
     if (d < best_d) best_d = d, best = k;
   }
-  return best;
+  // A typo is a few edits away; anything further is another word, not worth suggesting.
+  const size_t close = std::max<size_t>(2, last.size() / 3);
+  return best_d <= close ? best : std::string();
+}
+
+std::string unknown_key_hint(const std::string& key, const std::vector<std::string>& known) {
+  const auto nearest = nearest_key(key, known);
+  if (!nearest.empty()) return "did you mean '" + nearest + "'?";
+  const auto dot = key.find('.');
+  const auto section = key.substr(0, dot == std::string::npos ? key.size() : dot + 1);
+  std::string same_section;
+  for (const auto& k : known)
+    if (dot != std::string::npos && k.rfind(section, 0) == 0)
+      same_section += (same_section.empty() ? "" : ", ") + k.substr(section.size());
+  if (same_section.empty()) return "no setting is near it; `flatnet options` lists them";
+  return "this command's " + section.substr(0, section.size() - 1) + " settings: " + same_section;
 }
 
 std::filesystem::path Config::default_path() { return data_dir() / "configs" / "defaults.yaml"; }
@@ -303,7 +318,7 @@ void Config::assign(const std::string& key, const std::string& value, const std:
                                       std::to_string(key.size()) + " characters)");
     std::vector<std::string> known;
     for (const auto& kv : values_) known.push_back(kv.first);
-    throw Error(where + ": unknown setting '" + key + "' (did you mean '" + nearest_key(key, known) + "'?)");
+    throw Error(where + ": unknown setting '" + key + "' (" + unknown_key_hint(key, known) + ")");
   }
   values_[key] = value;
   bases_[key] = base;

@@ -65,7 +65,9 @@ struct SettingDoc {
 };
 std::vector<SettingDoc> describe_settings(const std::filesystem::path& defaults);
 
-// The known key nearest to `key` by edit distance (for "did you mean" messages).
+// The known key nearest to `key` by edit distance, or "" when none is a typo's distance away.
 std::string nearest_key(const std::string& key, const std::vector<std::string>& known);
+// What to tell a user who gave an unknown key: the nearest key, else the known keys of its section.
+std::string unknown_key_hint(const std::string& key, const std::vector<std::string>& known);
 
 }  // namespace flatnet
