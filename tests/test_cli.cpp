@@ -230,7 +230,8 @@ TEST_CASE("train, export, import and infer from the command line, and bad input 
                                         q(test::source_dir() / "configs" / "sim_calibfree.yaml"));
   CHECK(other_config.code == 2);
   CHECK_THAT(other_config.output,
-             Contains("--resume continues with the run's own config") && Contains("model.inversion.init"));
+             Contains("--resume continues with the run's own config") && Contains("model.inversion.init") &&
+                 Contains("--config: ") && Contains("with --set key=value") && !Contains("experiment."));
   CHECK(read_bytes(s.dir / "run" / "config.yaml") == config_before);
   auto wider = test::run_flatnet("train --out " + q(s.dir / "run") + " --resume --set model.unet.width=4");
   CHECK(wider.code == 2);

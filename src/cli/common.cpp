@@ -30,7 +30,8 @@ const std::vector<std::pair<std::string, std::string>>& flag_of_key() {
       {"experiment.force", "--force"},                  {"experiment.init_from", "--init-from"},
       {"experiment.reinit", "--reinit"},
       {"output_role.dir", "--out"},                     {"set output_role.force", "add --force"},
-      {"output_role.force", "--force"},
+      {"output_role.force", "--force"},                 {"experiment.config", "--config"},
+      {"experiment.sets", "--set"},
   };
   return table;
 }

@@ -107,16 +107,16 @@ Vgg16Features vgg_if_needed(const Config& c) {
   return load_vgg16(c.path("loss.vgg_file"), c.flag("loss.vgg_normalize"));
 }
 
-// "key (run: a, --config: b), ..." for every setting in which two configs differ (paths compared
+// "key (run: a, experiment.config: b), ..." for every setting in which two configs differ (paths compared
 // resolved, as a checkpoint records them); empty when they agree.
 std::string differing_settings(const Config& run, const Config& given) {
   const auto a = Config::from_text(run.to_yaml(), "run").values();
-  const auto b = Config::from_text(given.to_yaml(), "--config").values();
+  const auto b = Config::from_text(given.to_yaml(), "experiment.config").values();
   std::string out;
   for (const auto& [key, value] : a) {
     const auto it = b.find(key);
     if (it != b.end() && it->second != value)
-      out += (out.empty() ? "" : ", ") + key + " (run: " + value + ", --config: " + it->second + ")";
+      out += (out.empty() ? "" : ", ") + key + " (run: " + value + ", experiment.config: " + it->second + ")";
   }
   return out;
 }
@@ -214,12 +214,12 @@ ExperimentResult run_experiment(const ExperimentOptions& o) {
     require(std::filesystem::exists(latest), latest, "nothing to resume (no checkpoint)");
     config = checkpoint_settings(latest).first;
     for (const auto& s : sets) config.set(s);
-    config.check_ranges("--set");
+    config.check_ranges("experiment.sets");
     if (!o.config.empty()) {  // the same command line again is fine; another config is not silently ignored
       const auto differences = differing_settings(config, Config::load(o.config, sets));
-      require(differences.empty(), "--config",
-              "--resume continues with the run's own config (" + (out / "config.yaml").string() +
-                  "), which differs in " + differences + "; change single settings with --set key=value");
+      require(differences.empty(), "experiment.config",
+              "experiment.resume continues with the run's own config (" + (out / "config.yaml").string() +
+                  "), which differs in " + differences + "; change single settings with experiment.sets key=value");
     }
   } else {
     require(!writer || o.force || !std::filesystem::exists(latest), out,
