@@ -40,7 +40,7 @@ TEST_CASE("output folders: one role each, never a folder of foreign files, --for
   CHECK(std::filesystem::exists(dir / kOutputMarker));
   CHECK(claim_output_folder(dir, role("infer", "model a")).existed());  // a rerun
   CHECK_THROWS_WITH(claim_output_folder(dir, role("infer", "model b")),
-                    Contains(dir.string()) && Contains("other settings") && Contains("set output_role.force") &&
+                    Contains(dir.string()) && Contains("other settings") && Contains("add output_role.force") &&
                         !Contains("--force"));  // a library caller is told the option, not a flag
   CHECK_THROWS_WITH(claim_output_folder(dir, role("mask train")),
                     Contains("holds the output of `flatnet infer`") && Contains("output_role.force"));

@@ -29,9 +29,8 @@ const std::vector<std::pair<std::string, std::string>>& flag_of_key() {
       {"experiment.rank", "--rank"},                    {"experiment.resume", "--resume"},
       {"experiment.force", "--force"},                  {"experiment.init_from", "--init-from"},
       {"experiment.reinit", "--reinit"},
-      {"output_role.dir", "--out"},                     {"set output_role.force", "add --force"},
-      {"output_role.force", "--force"},                 {"experiment.config", "--config"},
-      {"experiment.sets", "--set"},
+      {"output_role.dir", "--out"},                     {"output_role.force", "--force"},
+      {"experiment.config", "--config"},                {"experiment.sets", "--set"},
   };
   return table;
 }

@@ -136,7 +136,7 @@ OutputClaim claim_output_folder(const fs::path& dir, const OutputRole& role) {
     m.settings = role.settings;
   }
   const auto [foreign, example] = foreign_entries(dir);
-  const auto hint = role.force ? std::string() : std::string("; choose another folder, or set output_role.force to write into it anyway");
+  const auto hint = role.force ? std::string() : std::string("; choose another folder, or add output_role.force to write into it anyway");
   if (marked && m.command != role.command && !role.force)
     throw Error(dir, "holds the output of `flatnet " + m.command + "`, not of `flatnet " + role.command + "`" + hint);
   if (marked && m.command == role.command && !role.settings.empty() && m.settings != role.settings && !role.force)

@@ -255,13 +255,13 @@ std::string unknown_key_hint(const std::string& key, const std::vector<std::stri
   const auto nearest = nearest_key(key, known);
   if (!nearest.empty()) return "did you mean '" + nearest + "'?";
   const auto dot = key.find('.');
-  const auto section = key.substr(0, dot == std::string::npos ? key.size() : dot + 1);
+  const auto section = key.substr(0, dot + 1);  // "train." (empty for a key without a section)
   std::string same_section;
-  for (const auto& k : known)
-    if (dot != std::string::npos && k.rfind(section, 0) == 0)
-      same_section += (same_section.empty() ? "" : ", ") + k.substr(section.size());
+  if (dot != std::string::npos)
+    for (const auto& k : known)
+      if (k.rfind(section, 0) == 0) same_section += (same_section.empty() ? "" : ", ") + k.substr(section.size());
   if (same_section.empty()) return "no setting is near it; `flatnet options` lists them";
-  return "this command's " + section.substr(0, section.size() - 1) + " settings: " + same_section;
+  return "this command's " + key.substr(0, dot) + " settings: " + same_section;
 }
 
 std::filesystem::path Config::default_path() { return data_dir() / "configs" / "defaults.yaml"; }
