@@ -35,6 +35,58 @@ TEST_CASE("cpuinfo flags decide whether bf16 is native", "[precision]") {
   CHECK_FALSE(cpu_features().summary().empty());
 }
 
+TEST_CASE("oneDNN's effective ISA decides what the CPU can do, so a cap and a missing kernel are alike",
+          "[precision]") {
+  // dnnl_cpu_isa_t values (oneDNN 2.6): avx2 0x7, avx512_core 0x27, avx512_core_bf16 0xe7, amx 0x3e7.
+  const auto zen4 = parse_cpuinfo("model name : AMD EPYC\nflags : avx2 avx512f avx512cd avx512bw avx512dq avx512vl avx512_bf16\n");
+  const auto native = with_onednn_isa(zen4, 0xe7);
+  CHECK(native.native_bf16());
+  CHECK(native.onednn_bf16);
+  CHECK_FALSE(native.onednn_capped);
+  CHECK(native.onednn_isa == "avx512_core_bf16");
+  // ONEDNN_MAX_CPU_ISA=AVX2 on the same CPU: no AVX-512, no bf16 kernels, auto is fp32.
+  const auto capped = with_onednn_isa(zen4, 0x7);
+  CHECK_FALSE(capped.native_bf16());
+  CHECK_FALSE(capped.avx512_core);
+  CHECK_FALSE(capped.onednn_bf16);
+  CHECK(capped.onednn_capped);
+  CHECK(resolve_precision("auto", capped, "--precision") == Precision::fp32);
+  CHECK_THAT(describe_precision(Precision::bf16, capped), Contains("LibTorch's own kernels") && Contains("avx2"));
+  CHECK_THAT(capped.summary(), Contains("oneDNN capped at avx2"));
+  // A real AVX2 CPU (Zen 3) is not "capped": it never had more.
+  const auto zen3 = with_onednn_isa(parse_cpuinfo("model name : AMD EPYC 7B13\nflags : avx2 fma\n"), 0x7);
+  CHECK_FALSE(zen3.onednn_capped);
+  CHECK_FALSE(zen3.onednn_bf16);
+  // AVX-512 without bf16 (Skylake): oneDNN emulates bf16.
+  const auto skx = with_onednn_isa(parse_cpuinfo("model name : X\nflags : avx512f avx512cd avx512bw avx512dq avx512vl\n"), 0x67);
+  CHECK(skx.onednn_bf16);
+  CHECK_THAT(describe_precision(Precision::bf16, skx), Contains("emulated by oneDNN"));
+  // OpenBLAS follows the cap: its AVX-512 kernels give way to Haswell's.
+  CHECK(better_openblas_core("SkylakeX", capped, nullptr) == "Haswell");
+  CHECK(better_openblas_core("Cooperlake", capped, nullptr) == "Haswell");
+  CHECK(better_openblas_core("Haswell", capped, nullptr).empty());
+  CHECK(better_openblas_core("SkylakeX", capped, "SkylakeX").empty());  // the user's choice stands
+  CHECK(better_openblas_core("Zen", zen3, nullptr).empty());
+}
+
+TEST_CASE("bf16 convolutions run on every CPU kind: LibTorch's own kernels where oneDNN has none", "[precision][bf16]") {
+  // Under ONEDNN_MAX_CPU_ISA=AVX2 (or below AVX-512) LibTorch would hand bf16 convolutions to
+  // oneDNN and fail; inside a Bf16KernelScope they run on LibTorch's kernels.
+  torch::manual_seed(4);
+  const auto x = torch::randn({1, 8, 12, 12}), w = torch::randn({8, 8, 3, 3}) * 0.2;
+  const auto fp32 = torch::conv2d(x, w, {}, 1, 1);
+  const bool mkldnn_before = at::globalContext().userEnabledMkldnn();
+  torch::Tensor bf16;
+  {
+    AutocastGuard autocast(true);  // holds a Bf16KernelScope
+    if (!cpu_features().onednn_bf16) CHECK_FALSE(at::globalContext().userEnabledMkldnn());
+    bf16 = torch::conv2d(x, w, {}, 1, 1);
+  }
+  CHECK(at::globalContext().userEnabledMkldnn() == mkldnn_before);  // restored
+  CHECK(bf16.scalar_type() == torch::kBFloat16);
+  CHECK((bf16.to(torch::kFloat32) - fp32).abs().max().item<double>() <= 0.02 * fp32.abs().max().item<double>());
+}
+
 TEST_CASE("OpenBLAS gets its SkylakeX kernels on AVX-512 CPUs it predates, unless the user chose", "[precision][blas]") {
   const auto avx512 = parse_cpuinfo("model name : X\nflags : fpu avx2 avx512f avx512cd avx512bw avx512dq avx512vl\n");
   const auto avx2 = parse_cpuinfo("model name : X\nflags : fpu avx2 fma\n");
@@ -134,6 +186,9 @@ TEST_CASE("a short bf16 autocast training run tracks the fp32 loss curve", "[pre
 
 TEST_CASE("oneDNN convolutions (prepacked weights, fused bias and ReLU) compute the convolution",
           "[precision][bf16][onednn]") {
+  if (!cpu_features().onednn_bf16)
+    SKIP_TEST("oneDNN has no bf16 convolution on " + cpu_features().onednn_isa + " (" + cpu_features().summary() +
+              "); it needs AVX-512");
   // bf16 inputs and weights, so the reference sees exactly the values oneDNN sees; only the
   // accumulation and the output's rounding to bf16 differ.
   torch::manual_seed(3);
@@ -173,7 +228,9 @@ TEST_CASE("bf16 inference with the onednn lever agrees with LibTorch's bf16 path
   libtorch_bf16->prepare_inference(parse_inference_levers("fold,channels-last,gemm-up,bf16"));
   CHECK(OneDnnConv::built() == before);
   onednn_bf16->prepare_inference(parse_inference_levers("fold,channels-last,gemm-up,bf16,onednn"));
-  CHECK(OneDnnConv::built() == before + 19);  // 9 double convolutions and the output convolution
+  // Where oneDNN has no bf16 kernels the lever stands down: LibTorch's own bf16 path runs instead.
+  const int64_t lever_convs = cpu_features().onednn_bf16 ? 19 : 0;  // 9 double convolutions + the output one
+  CHECK(OneDnnConv::built() == before + lever_convs);
   c10::InferenceMode guard;
   const auto Y = torch::randn({2, 4, 20, 24}) * 0.1;
   const auto a = fp32->forward(Y), b = libtorch_bf16->forward(Y), c = onednn_bf16->forward(Y);

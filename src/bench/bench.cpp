@@ -369,7 +369,7 @@ BenchRow run_bench_row(const std::string& name, const BenchOptions& o) {
     row.per_second = 1000.0 / row.median_ms;
   } else if (name == "simulator") {
     const auto camera = load_camera_config(default_camera_path());
-    const auto rig = load_rig(camera.rig);
+    const auto rig = load_camera_rig(camera);
     const auto scene = torch::rand({3, kScene, kScene});
     auto gen = at::detail::createCPUGenerator(0);
     c10::InferenceMode guard;
@@ -395,7 +395,7 @@ BenchRow run_bench_row(const std::string& name, const BenchOptions& o) {
     row = mask_row(o);
   } else if (name == "loader") {
     const auto camera = load_camera_config(default_camera_path());
-    auto rig = std::make_shared<const Rig>(load_rig(camera.rig));
+    auto rig = std::make_shared<const Rig>(load_camera_rig(camera));
     std::vector<std::filesystem::path> images;  // the golden scenes shipped with the tests
     for (const auto& p : list_images(data_dir() / "tests" / "data" / "golden", {".png"}))
       if (p.stem().string().find("_scene") != std::string::npos) images.push_back(p);

@@ -1,20 +1,102 @@
+#include <iomanip>
 #include <iostream>
+#include <sstream>
 
 #include "cli/commands.hpp"
 #include "core/error.hpp"
 #include "core/util.hpp"
 #include "io/image.hpp"
 #include "io/raw.hpp"
+#include "io/dataset.hpp"
+#include "io/yaml_text.hpp"
 #include "optics/calibrate.hpp"
+#include "optics/calibrate_dataset.hpp"
 
 namespace flatnet::cli {
+
+namespace {
+
+// `flatnet calibrate --dataset DIR`: the calibration identified from display-capture pairs
+// (optics/calibrate_dataset.hpp), written with a camera.yaml beside it and the fit per channel.
+int calibrate_from_dataset(const cxxopts::ParseResult& r) {
+  const auto camera = camera_from(r);
+  const std::filesystem::path out = r["out"].as<std::string>();
+  require(out.extension() == ".mat", "--out", "the calibration is a .mat file (FlatNet's layout), got '" + out.string() + "'");
+  require_new_output(out, r.count("force") > 0);
+  std::vector<Pair> pairs;
+  if (r.count("meas-list") || r.count("gt-list")) {  // FlatNet's own list files
+    require(r.count("meas-list") && r.count("gt-list"), "--meas-list", "give both --meas-list and --gt-list");
+    DatasetLists lists{r["meas-list"].as<std::string>(), r["gt-list"].as<std::string>(), {}};
+    if (r.count("root")) lists.root = r["root"].as<std::string>();
+    pairs = read_pairs(lists);
+  } else {
+    const std::filesystem::path dir = r["dataset"].as<std::string>();
+    for (const auto& split : {"train", "val"}) {
+      const auto lists = split_lists(dir, split);
+      if (!std::filesystem::exists(lists.meas_list)) continue;
+      const auto part = read_pairs(lists);
+      pairs.insert(pairs.end(), part.begin(), part.end());
+      if (r["split"].as<std::string>() == split) break;
+    }
+    require(!pairs.empty(), dir, "holds no train_meas.txt / val_meas.txt lists (FlatNet's layout); or give --meas-list and --gt-list");
+  }
+  const auto limit = r["limit"].as<int64_t>();
+  require(limit >= 0, "--limit", "0 (all) or more");
+  if (limit > 0 && static_cast<int64_t>(pairs.size()) > limit) pairs.resize(static_cast<size_t>(limit));
+  const auto N = camera.scene_size;
+  auto load = [&](int64_t i) {
+    const auto& p = pairs[static_cast<size_t>(i)];
+    auto gt = read_rgb(p.gt);
+    if (gt.size(1) != N || gt.size(2) != N) gt = resize(gt, N, N).clamp(0, 1);
+    const auto window = raw_window(load_raw_unit(p.meas, camera.raw), camera.raw);  // {4,rows,cols}
+    return CapturePair{without_level(double_centre(window, camera.raw.centring), camera.raw.centring),
+                       rgb_to_bayer_planes(srgb_to_linear(gt)), window.mean({1, 2})};
+  };
+  DatasetCalibrationOptions o;
+  o.iterations = r["iterations"].as<int>();
+  o.seed = r["seed"].as<uint64_t>();
+  o.cache_bytes = static_cast<int64_t>(r["cache-mb"].as<double>() * (1 << 20));
+  require(o.iterations >= 1 && o.cache_bytes >= 0, "calibrate", "--iterations >= 1 and --cache-mb >= 0");
+  std::cerr << "calibrate: " << pairs.size() << " display-capture pairs, " << camera.raw.crop[2] << "x"
+            << camera.raw.crop[3] << " planes, " << N << "x" << N << " scenes\n";
+  const auto fit = calibrate_from_pairs(static_cast<int64_t>(pairs.size()), load, camera.raw.crop[2],
+                                        camera.raw.crop[3], N, o);
+  save_calibration(out, fit.calib);
+  // A camera.yaml beside it: the geometry given, with this calibration (and no rig: a camera known
+  // only from its data).
+  auto known = camera;
+  known.rig.clear();
+  known.noise_gain = fit.noise_gain, known.noise_floor = fit.noise_floor, known.dark = fit.dark;
+  const auto yaml_path = out.parent_path() / "camera.yaml";
+  std::ostringstream fit_text;
+  fit_text << "# identified by `flatnet calibrate --dataset` from " << fit.pairs << " display-capture pairs, "
+           << fit.iterations << " alternating steps; relative fit residual per channel (b, gb, gr, r):";
+  for (const double v : fit.residual) fit_text << " " << std::setprecision(4) << v;
+  write_text_atomically(yaml_path, fit_text.str() + "\n" + camera_geometry_yaml(known) +
+                                       "calibration: " + yaml_quoted(out.filename().string()) + "\n");
+  std::cout << "wrote " << out.string() << " and " << yaml_path.string() << " from " << fit.pairs << " pairs ("
+            << fit.iterations << " steps)\nfit residual ||Y - P X Q^T - s a b^T|| / ||Y||:";
+  for (int c = 0; c < 4; ++c) std::cout << " " << kChannelNames[c] << " " << std::setprecision(4) << fit.residual[c];
+  std::cout << "\nsensor noise: variance " << fit.noise_gain << " x (level - " << fit.dark << ") + " << fit.noise_floor
+            << " (full well about " << (fit.noise_gain > 0 ? 1 / fit.noise_gain : 0) << " electrons)\n";
+  if (!camera.rig.empty()) {  // a simulated camera: how close to its true response
+    const auto err = calibration_error(fit.calib, ideal_calibration(load_camera_rig(camera), camera.raw));
+    std::cout << "relative error against the rig's true response: P " << 100 * err.p << " %, Q " << 100 * err.q
+              << " %, forward model " << 100 * err.forward << " %\n";
+  }
+  return 0;
+}
+
+}  // namespace
 
 int calibrate(int argc, char** argv) {
   cxxopts::Options o("flatnet calibrate",
                      "FlatCam calibration (Asif et al. 2017) from separable Hadamard pattern captures.\n"
                      "  simulated:  flatnet calibrate --rig RIG.mat|CAMERA.yaml --out calib.mat\n"
                      "  real:       flatnet calibrate --write-patterns DIR   (show each, capture it as DIR2/NAME.png)\n"
-                     "              flatnet calibrate --captures DIR2 --camera CAMERA.yaml --out calib.mat");
+                     "              flatnet calibrate --captures DIR2 --camera CAMERA.yaml --out calib.mat\n"
+                     "  from data:  flatnet calibrate --dataset DIR --camera GEOMETRY.yaml --out calib.mat\n"
+                     "              (display-capture pairs in FlatNet's layout, or --meas-list/--gt-list [--root])");
   o.add_options()("rig", "simulate the captures with this rig (.mat) or camera (.yaml)", cxxopts::value<std::string>())(
       "captures", "folder of real captures, one PNG per pattern name", cxxopts::value<std::string>())(
       "write-patterns", "write the pattern images for display into this folder and stop",
@@ -27,6 +109,16 @@ int calibrate(int argc, char** argv) {
       "seed", "noise seed (simulated)", cxxopts::value<uint64_t>()->default_value("0"))(
       "level", "display code (sRGB, 1..255) of the patterns' bright parts",
       cxxopts::value<int>()->default_value(std::to_string(kDefaultPatternLevel)));
+  o.add_options("from display-capture pairs")(
+      "dataset", "dataset folder in FlatNet's layout (train_meas.txt, train_gt.txt, ...)", cxxopts::value<std::string>())(
+      "meas-list", "FlatNet's own capture list (with --gt-list)", cxxopts::value<std::string>())(
+      "gt-list", "FlatNet's own photograph list", cxxopts::value<std::string>())(
+      "root", "folder the lists' lines are relative to (default: the lists' folder)", cxxopts::value<std::string>())(
+      "split", "train (the train list only) or all (train and val)", cxxopts::value<std::string>()->default_value("train"))(
+      "limit", "use the first N pairs (0: all)", cxxopts::value<int64_t>()->default_value("0"))(
+      "iterations", "alternating least-squares steps at most", cxxopts::value<int>()->default_value("40"))(
+      "cache-mb", "decoded pairs kept in memory (the rest are re-read each pass)",
+      cxxopts::value<double>()->default_value("2048"));
   add_common(o);
   cxxopts::ParseResult r;
   if (!parse(o, argc, argv, r)) return 0;
@@ -47,7 +139,11 @@ int calibrate(int argc, char** argv) {
     return 0;
   }
   require(r.count("out"), "calibrate", "--out FILE.mat is required");
-  require(r.count("rig") + r.count("captures") == 1, "calibrate", "give exactly one of --rig or --captures");
+  require(r.count("rig") + r.count("captures") + (r.count("dataset") || r.count("meas-list")) == 1, "calibrate",
+          "give exactly one of --rig, --captures or --dataset (--meas-list)");
+  require(r["split"].as<std::string>() == "train" || r["split"].as<std::string>() == "all", "--split",
+          "expected train or all");
+  if (r.count("dataset") || r.count("meas-list")) return calibrate_from_dataset(r);
   const std::filesystem::path out = r["out"].as<std::string>();
   require_new_output(out, r.count("force") > 0);
 
@@ -56,7 +152,7 @@ int calibrate(int argc, char** argv) {
   if (r.count("rig")) {
     const auto camera = load_camera_config(r["rig"].as<std::string>());
     require(!camera.rig.empty(), r["rig"].as<std::string>(), "names no rig to simulate with");
-    const auto rig = load_rig(camera.rig);
+    const auto rig = load_camera_rig(camera);
     const bool noise = r["noise"].as<std::string>() == "on";
     const int average = std::max(1, r["average"].as<int>());
     auto capture = rig_pattern_capture(rig, camera.raw, level, noise, average,

@@ -38,12 +38,22 @@ const std::vector<std::pair<std::string, std::string>>& flag_of_key() {
 bool is_name_char(char c) { return std::isalnum(static_cast<unsigned char>(c)) || c == '_'; }
 }  // namespace
 
+// Whether position `at` of `text` lies inside '...': quoted text is what the user typed or a file
+// held (`unknown setting 'experiment.source_camera'`), and is shown as it was.
+bool inside_quotes(const std::string& text, size_t at) {
+  bool open = false;
+  for (size_t i = 0; i < at; ++i)
+    if (text[i] == '\'' && (open || i == 0 || !is_name_char(text[i - 1]))) open = !open;  // not an apostrophe
+  return open;
+}
+
 std::string with_flags(const std::string& message) {
   std::string text = message;
   for (const auto& [key, flag] : flag_of_key()) {
     for (size_t at = text.find(key); at != std::string::npos; at = text.find(key, at)) {
       const size_t end = at + key.size();
-      const bool whole = (at == 0 || !is_name_char(text[at - 1])) && (end == text.size() || !is_name_char(text[end]));
+      const bool whole = (at == 0 || !is_name_char(text[at - 1])) && (end == text.size() || !is_name_char(text[end])) &&
+                         !inside_quotes(text, at);
       if (whole) {
         text.replace(at, key.size(), flag);
         at += flag.size();

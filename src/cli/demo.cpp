@@ -66,7 +66,7 @@ int demo(int argc, char** argv) {
   sim.val_fraction = 0;
   sim.size = camera.scene_size;
   sim.camera = std::filesystem::weakly_canonical(camera.rig).string();
-  const auto srep = simulate_dataset(load_rig(camera.rig), sim);
+  const auto srep = simulate_dataset(load_camera_rig(camera), sim);
 
   std::cout << "[2/3] reconstructing\n";
   const auto calib = load_calibration(camera.calibration, camera);

@@ -163,7 +163,10 @@ int info(int argc, char** argv) {
   }
   const auto& p = m.provenance;
   std::cout << std::left;
-  auto line = [](const char* label, const std::string& text) { std::cout << std::setw(10) << label << text << "\n"; };
+  // Every string here comes from the file: escaped, so metadata cannot drive the terminal.
+  auto line = [](const char* label, const std::string& text) {
+    std::cout << std::setw(10) << label << printable(text) << "\n";
+  };
   line("file", path.string() + " (" + std::to_string(bytes) + " bytes)");
   line("sha256", hash);
   line("kind", std::string(checkpoint ? "training checkpoint" : "model file") + ", format " +

@@ -21,7 +21,8 @@ int recon(int argc, char** argv) {
       "input", "raw capture PNG or folder of them", cxxopts::value<std::string>())("out", "output folder",
                                                                                    cxxopts::value<std::string>())(
       "lambda", "regularisation weight (default: the camera file's)", cxxopts::value<double>()->default_value("0"))(
-      "batch", "captures per batch", cxxopts::value<int>()->default_value("8"));
+      "batch", "captures per batch", cxxopts::value<int>()->default_value("8"))(
+      "require-fit", "refuse (exit 2) when a capture does not fit the calibration's camera (OUT/camera_fit.csv)");
   add_force_folder(o);
   add_common(o);
   cxxopts::ParseResult r;
@@ -40,10 +41,14 @@ int recon(int argc, char** argv) {
   const auto captures = collect_captures(r["input"].as<std::string>());
   check_output_names(captures, opt.out);  // before the calibration's SVDs
   auto built = make_reconstructor(spec);
+  opt.fit = built.fit.get();
+  opt.require_fit = r.count("require-fit") > 0;
+  require(!opt.require_fit || opt.fit, "--require-fit", "cannot judge the captures: " + built.no_fit);
   const auto claim = claim_out(r, opt.out, "recon");
   const auto rep = reconstruct_files(*built.engine, built.camera, captures, opt);
   std::cout << spec.method << ": " << rep.count << " captures -> " << opt.out.string() << " (" << rep.ms_per_capture
             << " ms per capture reconstruction, " << rep.seconds << " s in all)\n";
+  if (built.fit && rep.misfits > 0) std::cerr << "warning: " << camera_fit_warning(rep, *built.fit) << "\n";
   return 0;
 }
 

@@ -33,7 +33,7 @@ int simulate(int argc, char** argv) {
   require(noise == "on" || noise == "off", "--noise", "must be on or off");
   const auto camera = camera_from(r);
   require(!camera.rig.empty(), camera.name, "this camera has no rig (true response) to simulate with");
-  const auto rig = load_rig(camera.rig);
+  const auto rig = load_camera_rig(camera);
   SimulateOptions opt;
   opt.images = r["images"].as<std::string>();
   opt.out = r["out"].as<std::string>();

@@ -198,7 +198,8 @@ int infer(int argc, char** argv) {
       "levers",
       "exact inference speed-ups: none, or a list of fold, channels-last, gemm-up, onednn (bf16 and onednn: see "
       "--precision)",
-      cxxopts::value<std::string>()->default_value("fold,channels-last,gemm-up,onednn"));
+      cxxopts::value<std::string>()->default_value("fold,channels-last,gemm-up,onednn"))(
+      "require-fit", "refuse (exit 2) when a capture does not fit the model's camera (OUT/camera_fit.csv)");
   add_force_folder(o);
   add_precision(o);
   add_common(o);
@@ -226,9 +227,19 @@ int infer(int argc, char** argv) {
   const auto claim = claim_out(r, opt.out, "infer", "model " + file_fingerprint(spec.model));
   if (engine == "opencv")
     std::cerr << "engine: " << built.engine->describe() << " (--levers and --precision apply to libtorch)\n";
+  opt.fit = built.fit.get();
+  opt.require_fit = r.count("require-fit") > 0;
+  require(!opt.require_fit || opt.fit, "--require-fit", "cannot judge the captures: " + built.no_fit);
+  if (built.fit)
+    std::cerr << "camera: the model is for camera '" << printable(built.fit->camera_name())
+              << "'; each capture's fit to it goes to camera_fit.csv\n";
+  else
+    std::cerr << "camera: no camera fit (" << printable(built.no_fit) << ")\n";
   const auto rep = reconstruct_files(*built.engine, built.camera, captures, opt);
   std::cout << "flatnet: " << rep.count << " captures -> " << opt.out.string() << " (" << rep.captures_per_s
-            << " images/s, " << rep.ms_per_capture << " ms per image in the network)\n";
+            << " images/s, " << rep.ms_per_capture << " ms per image in the network; the first batch, which sets it up, "
+            << rep.first_batch_ms << " ms per image)\n";
+  if (built.fit && rep.misfits > 0) std::cerr << "warning: " << camera_fit_warning(rep, *built.fit) << "\n";
   return 0;
 }
 

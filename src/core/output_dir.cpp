@@ -2,6 +2,7 @@
 
 #include <fcntl.h>
 #include <sys/file.h>
+#include <sys/stat.h>
 #include <unistd.h>
 
 #include <cstring>
@@ -52,8 +53,17 @@ std::pair<size_t, std::string> foreign_entries(const fs::path& dir) {
 
 int lock_folder(const fs::path& dir, const OutputRole& role) {
   const auto path = dir / kOutputLock;
-  const int fd = ::open(path.c_str(), O_RDWR | O_CREAT | O_CLOEXEC, 0644);
+  // O_NOFOLLOW: a lock that is a symlink (planted, or copied in) is refused, never followed, so no
+  // file outside the folder is truncated or written; O_NONBLOCK: a fifo does not block the open.
+  const int fd = ::open(path.c_str(), O_RDWR | O_CREAT | O_CLOEXEC | O_NOFOLLOW | O_NONBLOCK | O_NOCTTY, 0644);
+  if (fd < 0 && errno == ELOOP)
+    throw Error(path, "is a symbolic link; flatnet never writes through links it did not make (remove it)");
   require(fd >= 0, path, std::string("cannot be created (") + std::strerror(errno) + ")");
+  struct stat st {};
+  if (::fstat(fd, &st) != 0 || !S_ISREG(st.st_mode) || st.st_nlink > 1) {
+    ::close(fd);
+    throw Error(path, "is not a plain file of its own (a fifo, device or hard link); remove it");
+  }
   if (::flock(fd, LOCK_EX | LOCK_NB) != 0) {
     std::string holder(512, '\0');
     const auto n = ::pread(fd, holder.data(), holder.size(), 0);

@@ -1,10 +1,14 @@
 #include "core/precision.hpp"
 
+#include <atomic>
 #include <fstream>
+#include <mutex>
 #include <set>
 #include <sstream>
 
+#include <ATen/Context.h>
 #include <ATen/autocast_mode.h>
+#include <oneapi/dnnl/dnnl.h>
 #if defined(__linux__)
 #include <sys/syscall.h>
 #include <unistd.h>
@@ -41,12 +45,40 @@ CpuFeatures parse_cpuinfo(const std::string& text) {
   return f;
 }
 
+namespace {
+// oneDNN's ISA masks (dnnl_cpu_isa_t): each ISA's value holds the bits of those below it.
+bool isa_has(unsigned isa, unsigned level) { return (isa & level) == level; }
+
+std::string isa_name(unsigned isa) {
+  const std::pair<unsigned, const char*> names[] = {
+      {dnnl_cpu_isa_avx512_core_amx, "avx512_core_amx"}, {dnnl_cpu_isa_avx512_core_bf16, "avx512_core_bf16"},
+      {dnnl_cpu_isa_avx512_core_vnni, "avx512_core_vnni"}, {dnnl_cpu_isa_avx512_core, "avx512_core"},
+      {dnnl_cpu_isa_avx2_vnni, "avx2_vnni"}, {dnnl_cpu_isa_avx2, "avx2"}, {dnnl_cpu_isa_avx, "avx"},
+      {dnnl_cpu_isa_sse41, "sse41"}};
+  for (const auto& [level, name] : names)
+    if (isa_has(isa, level)) return name;
+  return "";
+}
+}  // namespace
+
+CpuFeatures with_onednn_isa(CpuFeatures cpu, unsigned isa) {
+  cpu.onednn_isa = isa_name(isa);
+  if (cpu.onednn_isa.empty()) return cpu;  // oneDNN says nothing it knows: keep the flags
+  const bool had = cpu.avx512_core || cpu.avx512_bf16 || cpu.amx_bf16;
+  if (!isa_has(isa, dnnl_cpu_isa_avx512_core_amx)) cpu.amx_bf16 = false;
+  if (!isa_has(isa, dnnl_cpu_isa_avx512_core_bf16)) cpu.avx512_bf16 = false;
+  cpu.onednn_bf16 = isa_has(isa, dnnl_cpu_isa_avx512_core);
+  if (!cpu.onednn_bf16) cpu.avx512f = cpu.avx512_core = false;
+  cpu.onednn_capped = had && !(cpu.avx512_core || cpu.avx512_bf16 || cpu.amx_bf16);
+  return cpu;
+}
+
 const CpuFeatures& cpu_features() {
   static const CpuFeatures features = [] {
     std::ifstream in("/proc/cpuinfo");
     std::stringstream text;
     text << in.rdbuf();
-    return parse_cpuinfo(text.str());
+    return with_onednn_isa(parse_cpuinfo(text.str()), static_cast<unsigned>(dnnl_get_effective_cpu_isa()));
   }();
   return features;
 }
@@ -64,6 +96,7 @@ std::string CpuFeatures::summary() const {
   if (avx512_bf16) s += " avx512_bf16";
   if (amx_bf16) s += " amx_bf16";
   if (!avx512f && !avx512_bf16 && !amx_bf16) s += " (no AVX-512, no native bf16)";
+  if (onednn_capped) s += " [oneDNN capped at " + onednn_isa + "]";
   return s;
 }
 
@@ -81,7 +114,31 @@ Precision resolve_precision(const std::string& choice, const std::string& what) 
 std::string describe_precision(Precision p, const CpuFeatures& cpu) {
   if (p == Precision::fp32) return "fp32";
   if (cpu.native_bf16()) return "bf16 (" + cpu.bf16_engine() + ")";
-  return "bf16 (emulated: about 3x slower than fp32 on this CPU)";
+  if (cpu.onednn_bf16) return "bf16 (emulated by oneDNN: about 3x slower than fp32 on this CPU)";
+  return "bf16 (LibTorch's own kernels: oneDNN has no bf16 on " +
+         (cpu.onednn_isa.empty() ? std::string("this CPU") : cpu.onednn_isa) +
+         "; several times slower than fp32, which --precision fp32 or auto runs)";
+}
+
+namespace {
+std::atomic<int> g_bf16_scopes{0};
+bool g_mkldnn_before = true;
+std::mutex g_bf16_scope_mutex;
+}  // namespace
+
+Bf16KernelScope::Bf16KernelScope(bool enabled) : active_(enabled && !cpu_features().onednn_bf16) {
+  if (!active_) return;
+  std::lock_guard<std::mutex> lock(g_bf16_scope_mutex);
+  if (g_bf16_scopes++ == 0) {
+    g_mkldnn_before = at::globalContext().userEnabledMkldnn();
+    at::globalContext().setUserEnabledMkldnn(false);
+  }
+}
+
+Bf16KernelScope::~Bf16KernelScope() {
+  if (!active_) return;
+  std::lock_guard<std::mutex> lock(g_bf16_scope_mutex);
+  if (--g_bf16_scopes == 0) at::globalContext().setUserEnabledMkldnn(g_mkldnn_before);
 }
 
 bool request_amx_permission() {
@@ -94,7 +151,7 @@ bool request_amx_permission() {
 #endif
 }
 
-AutocastGuard::AutocastGuard(bool enabled) : enabled_(enabled) {
+AutocastGuard::AutocastGuard(bool enabled) : enabled_(enabled), kernels_(enabled) {
   if (!enabled_) return;
   prev_enabled_ = at::autocast::is_cpu_enabled();
   prev_dtype_ = static_cast<int>(at::autocast::get_autocast_cpu_dtype());

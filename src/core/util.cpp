@@ -170,13 +170,15 @@ uint64_t stable_hash(const std::string& s, uint64_t seed) { return stable_hash(s
 
 namespace {
 std::atomic<bool> g_interrupted{false};
-// The first Ctrl-C or SIGTERM asks the loop to finish its item; a second one ends the process at
-// once (a user who presses Ctrl-C twice means it; a blocked read never sees the flag).
+std::atomic<int> g_items_in_progress{0};  // live FinishItemOnInterrupt scopes
+// Inside a FinishItemOnInterrupt scope, the first Ctrl-C or SIGTERM asks the loop to finish its item
+// and save; a second one ends the process at once (a user who presses Ctrl-C twice means it).
+// Outside one (loading files, parsing configs, writing results), there is nothing to finish: the
+// signal's default action ends the process at once (exit status 130 or 143).
 void on_interrupt_signal(int sig) {
-  if (g_interrupted.exchange(true)) {
-    std::signal(sig, SIG_DFL);
-    std::raise(sig);
-  }
+  if (g_items_in_progress.load() > 0 && !g_interrupted.exchange(true)) return;
+  std::signal(sig, SIG_DFL);
+  std::raise(sig);
 }
 }  // namespace
 
@@ -185,6 +187,9 @@ void watch_interrupts() {
   std::signal(SIGINT, on_interrupt_signal);
   std::signal(SIGTERM, on_interrupt_signal);
 }
+
+FinishItemOnInterrupt::FinishItemOnInterrupt() { ++g_items_in_progress; }
+FinishItemOnInterrupt::~FinishItemOnInterrupt() { --g_items_in_progress; }
 
 bool interrupted() { return g_interrupted; }
 
@@ -324,7 +329,18 @@ std::string read_file_text(const fs::path& path, uint64_t max_bytes) {
   const auto size = static_cast<uint64_t>(st.st_size);
   require(size <= max_bytes, path,
           "is " + std::to_string(size) + " bytes, over the limit of " + std::to_string(max_bytes) + " for this kind of file");
-  std::string bytes(size, '\0');
+  // A sparse file (holes that read as zeros) claims a size its disk blocks do not hold: 5 GiB of
+  // nothing would be allocated and read. Real files fill their blocks (compression aside: 1/8).
+  const auto on_disk = static_cast<uint64_t>(st.st_blocks) * 512;
+  require(size <= (64ull << 20) || on_disk >= size / 8, path,
+          "is sparse: it claims " + std::to_string(size) + " bytes and holds " + std::to_string(on_disk) +
+              " on disk (a damaged or hostile file)");
+  std::string bytes;
+  try {
+    bytes.assign(size, '\0');
+  } catch (const std::bad_alloc&) {
+    throw Error(path, "is " + std::to_string(size) + " bytes; there is not enough memory to read it");
+  }
   size_t done = 0;
   while (done < size) {
     const auto n = ::read(fd, bytes.data() + done, size - done);
@@ -394,6 +410,33 @@ std::string number_problem(const std::string& text, const NumberRule& rule) {
   if (!std::isfinite(v)) return "is not a finite decimal number";
   if (v < rule.lo || v > rule.hi) return "is out of range";
   return "";
+}
+
+std::string printable(const std::string& text) {
+  std::string out;
+  out.reserve(text.size());
+  for (const unsigned char c : text) {
+    if (c < 0x20 || c == 0x7f) {
+      char hex[5];
+      std::snprintf(hex, sizeof hex, "\\x%02x", c);
+      out += hex;
+    } else {
+      out += static_cast<char>(c);
+    }
+  }
+  return out;
+}
+
+void require_plain_name(const std::string& name, const std::string& what) {
+  auto refuse = [&](const std::string& why) {
+    throw Error(what, "'" + printable(name) + "' " + why + "; a name becomes one file or folder name inside the output folder");
+  };
+  if (name.empty()) refuse("is empty");
+  if (name.size() > 128) refuse("is longer than 128 bytes");
+  if (name.find('/') != std::string::npos || name.find('\\') != std::string::npos) refuse("holds a path separator");
+  if (name.front() == '.') refuse("starts with '.' (hidden, or a parent folder)");
+  for (const unsigned char c : name)
+    if (c < 0x20 || c == 0x7f) refuse("holds a control character");
 }
 
 }  // namespace flatnet

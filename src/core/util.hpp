@@ -73,11 +73,22 @@ void single_threaded_worker();
 // waited on), and a file over `max_bytes` is refused before anything that size is allocated.
 // Errors name the file: missing, a folder, not a regular file, too large, unreadable.
 constexpr uint64_t kMaxInputBytes = 16ull << 30;
+// Model files and checkpoints: the paper-width generator's checkpoint with its moments is ~1.5 GB.
+constexpr uint64_t kMaxModelFileBytes = 4ull << 30;
 std::string read_file_text(const fs::path& path, uint64_t max_bytes = kMaxInputBytes);
 std::vector<char> read_bytes(const fs::path& path, uint64_t max_bytes = kMaxInputBytes);
 // The same checks without reading, for files a library opens itself (images, .mat, YAML): errors
 // name a missing file, a folder, or a fifo, socket or device (which would block or never end).
 void require_regular_file(const fs::path& path);
+
+// Names that become one path component (a report's method and set names, a camera's name in a file
+// name): non-empty, at most 128 bytes, no separator ('/' or '\\'), no control character, not hidden
+// (a leading '.', which also rules out "." and ".."). A name is data, never a path: `flatnet report
+// --methods ../x=M` must not write outside --out. Throws naming `what` and the name (escaped).
+void require_plain_name(const std::string& name, const std::string& what);
+// A string from a file or flag made safe to print on a terminal: control bytes (ESC, CR, BEL, ...) and
+// DEL become \xNN, so a model file's metadata cannot move the cursor or retitle the window.
+std::string printable(const std::string& text);
 
 // Stable 64-bit hash (FNV-1a) for deterministic per-item seeds and content checksums.
 uint64_t stable_hash(const std::string& s, uint64_t seed = 0);
@@ -89,10 +100,19 @@ std::string file_fingerprint(const fs::path& path);
 // read in 1 MiB pieces. Errors name the file.
 std::string sha256_hex(const fs::path& path);
 
-// Ctrl-C / SIGTERM for the long loops (training, capture, collection, live view): after
-// watch_interrupts(), interrupted() turns true and the loop finishes its current item.
+// Ctrl-C / SIGTERM for the long loops (training, capture, collection, live view). After
+// watch_interrupts(), a signal that arrives inside a FinishItemOnInterrupt scope turns interrupted()
+// true and the loop finishes its current item (a training step, a frame) and saves; anywhere else it
+// ends the process at once, with the signal's status (130, 143), as a second signal always does.
 void watch_interrupts();
 bool interrupted();
+class FinishItemOnInterrupt {
+ public:
+  FinishItemOnInterrupt();
+  ~FinishItemOnInterrupt();
+  FinishItemOnInterrupt(const FinishItemOnInterrupt&) = delete;
+  FinishItemOnInterrupt& operator=(const FinishItemOnInterrupt&) = delete;
+};
 
 // A one-line progress bar on stderr: "label  12/100 [#####     ] 3.2 it/s ETA 00:27".
 class Progress {

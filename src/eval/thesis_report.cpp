@@ -64,11 +64,16 @@ std::string method_key(const ReportOptions& o, const ReportMethod& m, const Repo
 
 // Keeps the cached reconstructions in `dir` only when they were made by the same method settings
 // (method.txt); otherwise they go, and the method runs again.
+// A folder is emptied only when its method.txt says flatnet made it, and never through a link.
 void reuse_only_same_method(const fs::path& dir, const std::string& key, const std::string& name) {
+  for (const auto& p : {dir.parent_path(), dir})
+    require(!fs::is_symlink(p), p, "is a symbolic link; flatnet report writes only into folders it made");
   const auto record = dir / "method.txt";
-  const bool same = fs::exists(record) && read_file_text(record, 1 << 16) == key;
+  const bool ours = fs::is_regular_file(fs::symlink_status(record));
+  const bool same = ours && read_file_text(record, 1 << 16) == key;
   if (!same && fs::exists(dir) && !fs::is_empty(dir)) {
-    std::cerr << "  " << name << ": the reconstructions on disk were made by another model or settings; remade\n";
+    require(ours, dir, "holds files that flatnet report did not write (no method.txt); move them or choose another --out");
+    std::cerr << "  " << printable(name) << ": the reconstructions on disk were made by another model or settings; remade\n";
     fs::remove_all(dir);
   }
   fs::create_directories(dir);
@@ -89,9 +94,13 @@ void reconstruct_missing(const ReportOptions& o, const ReportMethod& m, const st
   bo.label = m.name;
   if (m.kind == "model") {
     auto model = load_model_file(m.model);
+    std::string no_fit;
+    const auto fit = model_camera_fit(model, no_fit);
+    bo.fit = fit.get();
     auto engine = make_flatnet(model.generator, model.camera, o.levers, m.name);
     const auto rep = reconstruct_files(*engine, model.camera, missing, bo);
     record_timing(dir, rep.ms_per_capture, rep.count);
+    if (fit && rep.misfits > 0) std::cerr << "  " << printable(m.name) << ": warning: " << camera_fit_warning(rep, *fit) << "\n";
   } else {
     bo.batch = 8;
     auto engine = make_classical(*calib, o.camera, {parse_classical_method(m.kind), 0.0});
@@ -132,14 +141,18 @@ ReportMethod parse_report_method(const std::string& spec) {
   require(eq != std::string::npos && eq > 0 && eq + 1 < spec.size(), "report.methods",
           "'" + spec + "': expected tikhonov, tv or NAME=MODEL.flatnet");
   ReportMethod m{spec.substr(0, eq), "model", spec.substr(eq + 1)};
+  require_plain_name(m.name, "report.methods");
   require(fs::exists(m.model), m.model, "no such model file");
   return m;
 }
 
 ReportSet parse_report_set(const std::string& spec) {
   const auto eq = spec.find('=');
-  ReportSet s = eq == std::string::npos ? ReportSet{fs::path(spec).filename().string(), spec}
-                                        : ReportSet{spec.substr(0, eq), spec.substr(eq + 1)};
+  const auto folder = fs::path(spec).lexically_normal();  // "sets/dim/" names the set "dim"
+  ReportSet s = eq == std::string::npos
+                    ? ReportSet{(folder.has_filename() ? folder : folder.parent_path()).filename().string(), spec}
+                    : ReportSet{spec.substr(0, eq), spec.substr(eq + 1)};
+  require_plain_name(s.name, "report.sets");
   require(fs::is_directory(s.dir / "gt"), s.dir,
           "not an evaluation set (no gt/ folder; make one with `flatnet simulate --only val`)");
   return s;
@@ -147,9 +160,14 @@ ReportSet parse_report_set(const std::string& spec) {
 
 std::string make_report(const ReportOptions& o) {
   require(!o.methods.empty() && !o.sets.empty(), "report", "at least one method and one set are needed");
+  for (const auto& m : o.methods) require_plain_name(m.name, "report.methods");  // each names a folder in --out
+  for (const auto& set : o.sets) require_plain_name(set.name, "report.sets");
   for (size_t i = 0; i < o.methods.size(); ++i)
     for (size_t j = 0; j < i; ++j)
       require(o.methods[i].name != o.methods[j].name, "report.methods", "two methods are named '" + o.methods[i].name + "'");
+  for (size_t i = 0; i < o.sets.size(); ++i)
+    for (size_t j = 0; j < i; ++j)
+      require(o.sets[i].name != o.sets[j].name, "report.sets", "two sets are named '" + printable(o.sets[i].name) + "'");
   fs::create_directories(o.out);
   std::unique_ptr<Calibration> calib;
   for (const auto& m : o.methods)
@@ -167,8 +185,9 @@ std::string make_report(const ReportOptions& o) {
      << (o.niqe_model.empty() ? "(none)" : o.niqe_model.string())
      << ". Values are mean ± standard deviation over the images. Ma et al.'s score needs regression forests that are "
      << "not available here, so there is no perceptual index (PI); NIQE is reported alone. Time: milliseconds per "
-        "image "
-     << "in the method itself, no file I/O, on " << o.machine << ".\n\n";
+        "image in the method itself, in steady state (no file I/O; the first batch, which also sets the engine up, "
+        "left out), as `flatnet infer` and `flatnet recon` report it, on "
+     << o.machine << ".\n\n";
   std::vector<HtmlSet> pages;
   for (size_t si = 0; si < o.sets.size(); ++si) {
     const auto& set = o.sets[si];

@@ -77,6 +77,7 @@ CaptureReport capture_frames(FrameSource& source, const CaptureOptions& opt) {
   rep.first_index = next_index(opt.out, opt.prefix);
   Progress progress("capture", opt.frames, opt.progress);
   const auto start = std::chrono::steady_clock::now();
+  const FinishItemOnInterrupt finish_frame;  // Ctrl-C ends this frame, then the loop
   for (int i = 0; i < opt.frames && !interrupted(); ++i) {
     std::vector<uint64_t> ids;
     const auto mean = average_frames(source, opt.average, FrameSource::Clock::now(), &ids);

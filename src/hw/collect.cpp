@@ -24,6 +24,7 @@ CollectReport collect(const std::vector<CollectItem>& items, FrameSource& source
   const int64_t planned = opt.limit > 0 ? std::min<int64_t>(opt.limit, todo.size()) : static_cast<int64_t>(todo.size());
   Progress progress("collect", planned, opt.progress);
   const auto start = std::chrono::steady_clock::now();
+  const FinishItemOnInterrupt finish_frame;  // Ctrl-C ends this frame, then the loop
   for (int64_t i = 0; i < planned; ++i) {
     if (interrupted()) break;
     const auto& item = *todo[i];

@@ -4,6 +4,7 @@
 #include <ostream>
 
 #include "core/error.hpp"
+#include "core/util.hpp"
 #include "hw/capture.hpp"
 #include "io/raw.hpp"
 
@@ -22,6 +23,7 @@ LiveStats run_live(FrameSource& source, Reconstructor& engine, Display* display,
   auto last_report = start;
   int64_t frames_at_report = 0;
   std::string overlay;
+  const FinishItemOnInterrupt finish_frame;  // Ctrl-C ends this frame, then the loop
   while (!interrupted()) {
     if (opt.frames > 0 && s.frames >= opt.frames) break;
     if (opt.seconds > 0 && std::chrono::duration<double>(Clock::now() - start).count() >= opt.seconds) break;

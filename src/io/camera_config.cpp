@@ -40,7 +40,8 @@ namespace {
 
 const std::vector<std::string> kKnownKeys = {"name",        "raw_height", "raw_width",       "adc_bits",
                                              "rotation",    "crop",       "centring",        "scene_size",
-                                             "calibration", "rig",        "tikhonov_lambda", "tv_lambda"};
+                                             "calibration", "rig",        "tikhonov_lambda", "tv_lambda",
+                                             "noise_gain",  "noise_floor", "dark"};
 
 void validate(const CameraConfig& c, const std::filesystem::path& path) {
   const auto& g = c.raw;
@@ -56,6 +57,9 @@ void validate(const CameraConfig& c, const std::filesystem::path& path) {
   require(std::isfinite(g.rotation) && std::abs(g.rotation) <= 360, path,
           "rotation must be a finite angle within [-360, 360] degrees");
   require(c.scene_size > 0 && c.scene_size <= 4096, path, "scene_size must lie within 1..4096");
+  require(std::isfinite(c.noise_gain) && std::isfinite(c.noise_floor) && std::isfinite(c.dark) && c.noise_gain >= 0 &&
+              c.noise_gain < 1 && c.noise_floor >= 0 && c.noise_floor < 1 && c.dark >= 0 && c.dark < 1,
+          path, "noise_gain, noise_floor and dark are full-scale quantities within [0, 1)");
   // Above ~1e4 the SVD filter s / (s^2 + lambda) is ~0 for any real camera: black images, not an answer.
   require(std::isfinite(c.tikhonov_lambda) && std::isfinite(c.tv_lambda) && c.tikhonov_lambda > 0 &&
               c.tv_lambda > 0 && c.tikhonov_lambda <= 1e4 && c.tv_lambda <= 1e4,
@@ -90,7 +94,7 @@ CameraConfig camera_from_yaml_text(const std::string& text, const std::filesyste
 std::string camera_geometry_yaml(const CameraConfig& c) {
   const auto& g = c.raw;
   std::ostringstream os;
-  os << "name: " << c.name << "\n"
+  os << "name: " << yaml_quoted(c.name) << "\n"
      << "raw_height: " << g.raw_height << "\nraw_width: " << g.raw_width << "\n"
      << "adc_bits: " << g.adc_bits << "\n";
   os.precision(17);
@@ -99,6 +103,8 @@ std::string camera_geometry_yaml(const CameraConfig& c) {
      << "centring: " << centring_name(g.centring) << "\n"
      << "scene_size: " << c.scene_size << "\n"
      << "tikhonov_lambda: " << c.tikhonov_lambda << "\ntv_lambda: " << c.tv_lambda << "\n";
+  if (c.knows_noise())
+    os << "noise_gain: " << c.noise_gain << "\nnoise_floor: " << c.noise_floor << "\ndark: " << c.dark << "\n";
   return os.str();
 }
 
@@ -128,6 +134,9 @@ CameraConfig camera_from_node(const YAML::Node& y, const std::filesystem::path& 
     if (y["rig"]) c.rig = base / y["rig"].as<std::string>();
     if (y["tikhonov_lambda"]) c.tikhonov_lambda = y["tikhonov_lambda"].as<double>();
     if (y["tv_lambda"]) c.tv_lambda = y["tv_lambda"].as<double>();
+    if (y["noise_gain"]) c.noise_gain = y["noise_gain"].as<double>();
+    if (y["noise_floor"]) c.noise_floor = y["noise_floor"].as<double>();
+    if (y["dark"]) c.dark = y["dark"].as<double>();
   } catch (const YAML::Exception& e) {
     throw Error(path, std::string("bad value: ") + e.what());
   }

@@ -38,6 +38,12 @@ struct CameraConfig {
   std::filesystem::path rig;          // true response (simulated cameras only); may be empty
   double tikhonov_lambda = 1e-4;      // default regulariser for this calibration
   double tv_lambda = 1e-4;            // default TV weight
+  // The sensor's noise, in full-scale units (raw / (2^16 - 1)): a pixel reading v has variance
+  // noise_gain * (v - dark) + noise_floor (photon noise of a Poisson count, then read noise and the
+  // ADC's rounding). noise_gain = 1 / full well; noise_floor = (read noise / full well)^2 + lsb^2/12.
+  // 0 = unknown. `flatnet calibrate --dataset` measures them; the camera fit (optics/camera_fit) needs them.
+  double noise_gain = 0, noise_floor = 0, dark = 0;
+  bool knows_noise() const { return noise_gain > 0; }
 };
 
 // Reads a camera YAML file; relative paths inside it are resolved against the file's folder.

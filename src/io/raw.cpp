@@ -66,11 +66,14 @@ torch::Tensor without_level(const torch::Tensor& planes, Centring mode) {
   return mode == Centring::level ? planes - planes.mean({-2, -1}, true) : planes;
 }
 
-torch::Tensor preprocess_raw(const torch::Tensor& raw_unit, const RawGeometry& g) {
+torch::Tensor raw_window(const torch::Tensor& raw_unit, const RawGeometry& g) {
   auto planes = bayer_split(raw_unit.to(torch::kFloat32));  // {4,512,640}
   planes = rotate_planes(planes, g.rotation);
-  planes = planes.index({Slice(), Slice(g.crop[0], g.crop[0] + g.crop[2]), Slice(g.crop[1], g.crop[1] + g.crop[3])});
-  return double_centre(planes, g.centring).contiguous();  // {4,500,620}
+  return planes.index({Slice(), Slice(g.crop[0], g.crop[0] + g.crop[2]), Slice(g.crop[1], g.crop[1] + g.crop[3])});
+}
+
+torch::Tensor preprocess_raw(const torch::Tensor& raw_unit, const RawGeometry& g) {
+  return double_centre(raw_window(raw_unit, g), g.centring).contiguous();  // {4,500,620}
 }
 
 torch::Tensor load_raw_unit(const std::filesystem::path& path, const RawGeometry& g) {

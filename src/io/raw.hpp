@@ -34,6 +34,9 @@ torch::Tensor double_centre(const torch::Tensor& planes, Centring mode);
 // DC of Centring::level; other modes unchanged). Tikhonov, TV and calibration read these.
 torch::Tensor without_level(const torch::Tensor& planes, Centring mode);
 
+// Full-scale raw frame ({H,W}, values in [0,1]) -> the window's planes {4, crop_h, crop_w} before
+// centring: the light each pixel read (the camera fit's noise model needs it).
+torch::Tensor raw_window(const torch::Tensor& raw_unit, const RawGeometry& g);
 // Full-scale raw frame ({H,W}, values in [0,1]) -> measurement planes {4, crop_h, crop_w}.
 torch::Tensor preprocess_raw(const torch::Tensor& raw_unit, const RawGeometry& g);
 

@@ -62,10 +62,16 @@ uint64_t little_endian_u64(const char* p) {
 // Parses the header, refusing nesting deeper than a tensor's shape list and any name given twice
 // within one object (JSON allows both; a reader that took the last of two names would disagree
 // with one that took the first).
-json parse_header(const std::string& text, const std::filesystem::path& path) {
+// Keys are counted while parsing, so a header of millions of tiny keys is refused before its
+// document is built (nlohmann's objects cost ~100 bytes a key).
+json parse_header(const std::string& text, const std::filesystem::path& path, int64_t max_keys) {
   std::vector<std::set<std::string>> keys;
+  int64_t key_count = 0;
   auto check = [&](int depth, json::parse_event_t event, json& parsed) {
     if (depth > 3) throw Error(path, "safetensors header nests deeper than a tensor's shape (hostile file?)");
+    if (event == json::parse_event_t::key && ++key_count > max_keys)
+      throw Error(path, "safetensors header holds more than " + std::to_string(max_keys) +
+                            " keys (tensors and metadata), over the limit");
     if (event == json::parse_event_t::object_start) keys.emplace_back();
     if (event == json::parse_event_t::object_end && !keys.empty()) keys.pop_back();
     if (event == json::parse_event_t::key && !keys.empty() && !keys.back().insert(parsed.get<std::string>()).second)
@@ -201,7 +207,8 @@ SafeTensors parse_safetensors(const std::string& bytes, const std::filesystem::p
     throw Error(path, "truncated: the safetensors header claims " + std::to_string(n) + " bytes, the file holds " +
                           std::to_string(bytes.size() - 8));
   if (n < 2 || bytes[8] != '{') throw Error(path, "is not a safetensors file (its header is not a JSON object)");
-  const auto header = parse_header(bytes.substr(8, n), path);
+  // Each tensor's entry has 4 keys (its name, dtype, shape, data_offsets); metadata up to its own limit.
+  const auto header = parse_header(bytes.substr(8, n), path, 4 * (limits.max_tensors + 1) + limits.max_metadata_keys);
   if (!header.is_object()) throw Error(path, "safetensors header is not a JSON object");
   if (static_cast<int64_t>(header.size()) > limits.max_tensors + 1)
     throw Error(path, "safetensors header lists " + std::to_string(header.size()) + " tensors, over the limit");
@@ -210,6 +217,9 @@ SafeTensors parse_safetensors(const std::string& bytes, const std::filesystem::p
   for (const auto& [name, v] : header.items()) {
     if (name == "__metadata__") {
       if (!v.is_object()) throw Error(path, "__metadata__ is not an object");
+      if (static_cast<int64_t>(v.size()) > limits.max_metadata_keys)
+        throw Error(path, "__metadata__ holds " + std::to_string(v.size()) + " keys, over the limit of " +
+                              std::to_string(limits.max_metadata_keys));
       for (const auto& [k, s] : v.items()) {
         if (!s.is_string()) throw Error(path, "__metadata__ '" + k + "' is not a string");
         out.metadata[k] = s.get<std::string>();

@@ -37,6 +37,7 @@ struct SafeTensorsLimits {
   uint64_t max_header_bytes = 100u << 20;  // the specification's own limit (100 MB)
   uint64_t max_file_bytes = 16ull << 30;   // 16 GiB: far above any flatnet model
   int64_t max_tensors = 100000;
+  int64_t max_metadata_keys = 4096;  // flatnet writes ~20; other tools a handful
 };
 
 // A flatnet extension inside __metadata__ (other readers ignore it): zlib's CRC-32 of the byte

@@ -794,7 +794,7 @@ std::string PyValue::describe() const {
 }
 
 PyRef read_torch_file(const std::filesystem::path& path) {
-  const auto raw = read_bytes(path);
+  const auto raw = read_bytes(path, kMaxModelFileBytes);
   const std::string bytes(raw.begin(), raw.end());
   if (bytes.size() >= 4 && bytes.compare(0, 4, "PK\x03\x04") == 0) return read_zip(path, false);
   if (bytes.size() >= 2 && static_cast<unsigned char>(bytes[0]) == 0x80) return read_legacy(path, bytes);
@@ -889,6 +889,13 @@ bool verify_zip_crcs(const std::filesystem::path& path) {
     // Other entries (a TorchScript archive's code/, which flatnet never reads) are skipped.
     const bool read_later = name.size() >= 8 && (name.compare(name.size() - 8, 8, "data.pkl") == 0 ||
                                                  name.find("/data/") != std::string::npos);
+    // LibTorch's reader inflates the archive's version record itself when it opens the file, into a
+    // buffer of the size the entry declares (a bomb declares 1 GiB); a version is a few digits.
+    const bool version_record = name == "version" || (name.size() > 8 && name.compare(name.size() - 8, 8, "/version") == 0);
+    const uint64_t declared = uncompressed32 == 0xFFFFFFFF ? ~uint64_t{0} : uncompressed32;
+    if (version_record && (declared > 64 || compressed > 4096))
+      throw Error(path, "zip entry '" + name + "' claims " + std::to_string(declared) +
+                            " bytes; an archive's version record is a few digits (a zip bomb?)");
     if (method != 0 && !read_later) continue;
     if (method != 0 || compressed != (uncompressed32 == 0xFFFFFFFF ? compressed : uncompressed32))
       throw Error(path, "zip entry '" + name +

@@ -9,18 +9,25 @@ namespace flatnet {
 namespace {
 
 constexpr int kMaxYamlDepth = 32;
+// Nodes a document may expand to, aliases counted at every use: defaults.yaml has ~200. A "billion
+// laughs" alias bomb of 600 bytes expands to 10^9 nodes; the walk stops at the bound, so it and every
+// later walk of the same tree stays bounded.
+constexpr int64_t kMaxYamlNodes = 100000;
 
-void check_keys(const YAML::Node& node, const std::filesystem::path& where, int depth) {
+void check_keys(const YAML::Node& node, const std::filesystem::path& where, int depth, int64_t& nodes) {
   require(depth <= kMaxYamlDepth, where, "YAML nests deeper than " + std::to_string(kMaxYamlDepth) + " levels");
+  require(++nodes <= kMaxYamlNodes, where,
+          "YAML expands to more than " + std::to_string(kMaxYamlNodes) +
+              " nodes (aliases that repeat aliases?); flatnet's files need a few hundred");
   if (node.IsMap()) {
     std::set<std::string> seen;
     for (const auto& kv : node) {
       const auto key = kv.first.IsScalar() ? kv.first.Scalar() : std::string("(a non-scalar key)");
-      require(seen.insert(key).second, where, "YAML key '" + key + "' is given twice in one mapping");
-      check_keys(kv.second, where, depth + 1);
+      require(seen.insert(key).second, where, "YAML key '" + printable(key) + "' is given twice in one mapping");
+      check_keys(kv.second, where, depth + 1, nodes);
     }
   } else if (node.IsSequence()) {
-    for (const auto& item : node) check_keys(item, where, depth + 1);
+    for (const auto& item : node) check_keys(item, where, depth + 1, nodes);
   }
 }
 
@@ -39,8 +46,15 @@ YAML::Node parse_yaml_document(const std::string& text, const std::filesystem::p
   require(documents.size() <= 1, where,
           "holds " + std::to_string(documents.size()) + " YAML documents ('---'); flatnet reads one");
   if (documents.empty()) return YAML::Node();
-  check_keys(documents.front(), where, 0);
+  int64_t nodes = 0;
+  check_keys(documents.front(), where, 0, nodes);
   return documents.front();
+}
+
+std::string yaml_quoted(const std::string& text) {
+  YAML::Emitter e;
+  e << YAML::DoubleQuoted << text;
+  return e.c_str();
 }
 
 YAML::Node load_yaml_file(const std::filesystem::path& path) {

@@ -15,6 +15,9 @@ constexpr uint64_t kMaxYamlBytes = 1u << 20;  // 1 MiB: defaults.yaml is 6 KB
 
 // Parses `text` (from `where`, named in errors).
 YAML::Node parse_yaml_document(const std::string& text, const std::filesystem::path& where);
+// A string as one double-quoted YAML scalar (escapes included), for YAML written by hand: a camera
+// named `FlatCam: lab v2` or `#1` must read back as that name, not as a mapping or a comment.
+std::string yaml_quoted(const std::string& text);
 // Reads and parses a YAML file: a regular file of at most kMaxYamlBytes.
 YAML::Node load_yaml_file(const std::filesystem::path& path);
 

@@ -596,6 +596,7 @@ torch::Tensor GeneratorImpl::enhance(const torch::Tensor& first, const torch::Te
   {
     // bf16 autocast covers BN and the enhancer only; the first stage ran in fp32 before it.
     AutocastGuard autocast(autocast_bf16_ && !levers_.bf16);
+    const Bf16KernelScope bf16_kernels(levers_.bf16);  // bf16 weights: kernels that run them here
     auto x = bn_->forward(first);  // {B,4,H,W}
     if (level.defined())           // {B,8,H,W}: the level as four constant channels
       x = torch::cat({x, level.to(x.scalar_type()).expand({-1, -1, x.size(2), x.size(3)})}, 1);
@@ -651,6 +652,8 @@ void weights_to_channels_last(torch::nn::Module& module) {
   for (auto& p : module.parameters())
     if (p.dim() == 4) p.set_data(p.contiguous(at::MemoryFormat::ChannelsLast));
 }
+
+bool InferenceLevers::onednn_active() const { return onednn && bf16 && fold_batchnorm && cpu_features().onednn_bf16; }
 
 InferenceLevers parse_inference_levers(const std::string& s) {
   InferenceLevers l{false, false, false, false, false};

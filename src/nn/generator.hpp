@@ -184,7 +184,8 @@ struct InferenceLevers {
   bool gemm_upsample = true;
   bool onednn = true;
   // onednn acts only on folded bf16 models.
-  bool onednn_active() const { return onednn && bf16 && fold_batchnorm; }
+  // oneDNN's own bf16 convolutions need its bf16 kernels (AVX-512 and up, no ISA cap).
+  bool onednn_active() const;
 };
 // "none" or a comma list of fold, channels-last, gemm-up, bf16, onednn.
 InferenceLevers parse_inference_levers(const std::string& s);

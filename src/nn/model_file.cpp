@@ -19,6 +19,7 @@
 #include "core/precision.hpp"
 #include "core/util.hpp"
 #include "optics/camera.hpp"
+#include "nn/optimizer_state.hpp"
 #include "optics/codes.hpp"
 
 namespace flatnet {
@@ -174,7 +175,7 @@ Stored read_format1(const std::filesystem::path& path) {
 }
 
 Stored read_stored(const std::filesystem::path& path, const std::string& expected_format) {
-  const auto bytes = read_file_text(path);
+  const auto bytes = read_file_text(path, kMaxModelFileBytes);
   Stored s;
   if (looks_like_safetensors(bytes)) {
     auto st = parse_safetensors(bytes, path);
@@ -322,7 +323,8 @@ ModelFile read_generator(const std::filesystem::path& path, const std::string& f
     m.provenance.trained_steps = text("step");
     m.provenance.train_seconds = text("train_seconds");
     const auto best = text("best_psnr");  // -1e9 before the first validation
-    m.provenance.best_val_psnr = best.empty() || std::stod(best) < -1e8 ? "" : best;
+    const bool scored = is_decimal_number(best) && std::strtod(best.c_str(), nullptr) >= -1e8;
+    m.provenance.best_val_psnr = scored ? best : "";
     m.provenance.source = "checkpoint " + path.filename().string() + (average ? " (moving average)" : "");
   }
   if (used_average) *used_average = average;
@@ -407,8 +409,8 @@ void load_optimizer(const Stored& s, const std::string& prefix, torch::optim::Ad
     } catch (const nlohmann::json::exception&) {
       throw Error(path, prefix + " group " + std::to_string(i) + " lacks lr, betas, eps, weight_decay or amsgrad");
     }
-    require(std::isfinite(o.lr()) && o.lr() >= 0 && std::isfinite(o.eps()), path,
-            prefix + " group " + std::to_string(i) + " has a non-finite or negative learning rate");
+    require_adam_options(std::get<0>(o.betas()), std::get<1>(o.betas()), o.eps(), o.lr(), o.weight_decay(), path,
+                         prefix + " group " + std::to_string(i));
     const auto& params = ours[i].params();
     require(g.contains("params") && g["params"].is_array() && g["params"].size() == params.size(), path,
             prefix + " group " + std::to_string(i) + " lists other parameters than the trainer's");
@@ -444,7 +446,11 @@ void load_optimizer(const Stored& s, const std::string& prefix, torch::optim::Ad
       st->step(step.item<int64_t>());
       st->exp_avg(moment("exp_avg", true));
       st->exp_avg_sq(moment("exp_avg_sq", true));
-      if (auto mx = moment("max_exp_avg_sq", false); mx.defined()) st->max_exp_avg_sq(mx);
+      require_adam_moments(st->step(), st->exp_avg(), st->exp_avg_sq(), path, prefix + " '" + name + ".");
+      if (auto mx = moment("max_exp_avg_sq", false); mx.defined()) {
+        require(mx.min().item<double>() >= 0, path, prefix + " '" + name + ".max_exp_avg_sq' holds negative values");
+        st->max_exp_avg_sq(mx);
+      }
       opt.state()[state_key(p)] = std::move(st);
     }
   }
@@ -572,12 +578,22 @@ void save_checkpoint(const std::filesystem::path& path, Generator& g, Discrimina
   meta["step"] = std::to_string(state.step);
   meta["best_psnr"] = format_number(state.best_psnr);
   meta["train_seconds"] = format_number(state.train_seconds);
+  if (!state.run_id.empty()) meta["run_id"] = state.run_id;
   tensors.emplace_back("rng_state", state.rng_state);
   write_safetensors(path, tensors, meta);
 }
 
 std::pair<Config, CameraConfig> checkpoint_settings(const std::filesystem::path& path) {
   return settings(read_stored(path, kCheckpointFormat), path);
+}
+
+std::string checkpoint_run_id(const std::filesystem::path& path) {
+  const auto s = read_stored(path, kCheckpointFormat);
+  const auto it = s.meta.find("run_id");
+  if (it == s.meta.end()) return "";
+  require(it->second.size() == 16 && it->second.find_first_not_of("0123456789abcdef") == std::string::npos, path,
+          "run_id is not 16 hex digits");
+  return it->second;
 }
 
 TrainState load_checkpoint(const std::filesystem::path& path, Generator& g, Discriminator& d, torch::optim::Adam& opt_g,
@@ -593,6 +609,7 @@ TrainState load_checkpoint(const std::filesystem::path& path, Generator& g, Disc
   load_module(s, "discriminator", *d, path);
   if (camera.module) load_module(s, "camera", *camera.module, path);
   TrainState st;
+  if (const auto id = s.meta.find("run_id"); id != s.meta.end()) st.run_id = id->second;
   st.optimizers_restored = s.version >= 2;
   if (st.optimizers_restored) {  // format 1 kept LibTorch's own optimiser archives; their moments start afresh
     load_optimizer(s, "optimizer_generator", opt_g, *g, path);
@@ -608,9 +625,8 @@ TrainState load_checkpoint(const std::filesystem::path& path, Generator& g, Disc
     require(std::isfinite(st.train_seconds) && st.train_seconds >= 0, path, "train_seconds is not a duration");
   }
   const auto rng = s.tensors.find("rng_state");
-  require(rng != s.tensors.end() && rng->second.scalar_type() == torch::kUInt8 &&
-              rng->second.numel() == at::detail::getDefaultCPUGenerator().get_state().numel(),
-          path, "has no valid rng_state");
+  require(rng != s.tensors.end(), path, "has no rng_state");
+  require_cpu_generator_state(rng->second, path, "rng_state");
   st.rng_state = rng->second;
   return st;
 }
@@ -620,7 +636,7 @@ double checkpoint_best_psnr(const std::filesystem::path& path) {
 }
 
 bool is_checkpoint_file(const std::filesystem::path& path) {
-  const auto bytes = read_file_text(path);
+  const auto bytes = read_file_text(path, kMaxModelFileBytes);
   if (looks_like_safetensors(bytes)) {
     const auto st = parse_safetensors(bytes, path);
     const auto it = st.metadata.find("format");
@@ -635,7 +651,7 @@ bool is_checkpoint_file(const std::filesystem::path& path) {
 }
 
 int model_file_version(const std::filesystem::path& path) {
-  const auto bytes = read_file_text(path);
+  const auto bytes = read_file_text(path, kMaxModelFileBytes);
   if (looks_like_safetensors(bytes)) return kFormatVersion;
   return bytes.compare(0, 4, "PK\x03\x04") == 0 ? 1 : 0;
 }

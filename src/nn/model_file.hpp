@@ -76,6 +76,7 @@ struct TrainState {
   torch::Tensor rng_state;  // the default CPU generator's state
   bool optimizers_restored = true;  // false after loading a format-1 checkpoint (moments start afresh)
   double train_seconds = 0;         // wall-clock training time so far (train.minutes counts it)
+  std::string run_id;               // the run that wrote it (16 hex digits; "" in older files)
 };
 
 // A co-design run's learned camera (train/codesign.hpp): its parameters ("camera.") and their
@@ -96,6 +97,8 @@ bool is_checkpoint_file(const std::filesystem::path& path);
 int model_file_version(const std::filesystem::path& path);
 // The config and camera a checkpoint holds (to rebuild the networks before load_checkpoint).
 std::pair<Config, CameraConfig> checkpoint_settings(const std::filesystem::path& path);
+// The run id a checkpoint records ("" for files written before run ids).
+std::string checkpoint_run_id(const std::filesystem::path& path);
 // `ema` is filled from the checkpoint's average when it has one, else from its generator.
 // A checkpoint without a camera is refused when `camera` is given (and the reverse).
 TrainState load_checkpoint(const std::filesystem::path& path, Generator& g, Discriminator& d, torch::optim::Adam& opt_g,

@@ -436,6 +436,66 @@ OnnxExportReport export_onnx(const std::filesystem::path& path, Generator& gener
   return {graph->node_size(), graph->initializer_size(), static_cast<int64_t>(bytes.size())};
 }
 
+namespace {
+
+// Bytes per element of an ONNX data type, 0 for types a flatnet graph never holds (strings...).
+int64_t onnx_element_bytes(int type) {
+  using T = onnx::TensorProto;
+  switch (type) {
+    case T::FLOAT: case T::INT32: case T::UINT32: return 4;
+    case T::DOUBLE: case T::INT64: case T::UINT64: return 8;
+    case T::FLOAT16: case T::BFLOAT16: case T::INT16: case T::UINT16: return 2;
+    case T::INT8: case T::UINT8: case T::BOOL: return 1;
+    default: return 0;
+  }
+}
+
+// The values a tensor holds in its typed field (when it has no raw_data), counted.
+int64_t onnx_typed_count(const onnx::TensorProto& t) {
+  using T = onnx::TensorProto;
+  switch (t.data_type()) {
+    case T::FLOAT: return t.float_data_size();
+    case T::DOUBLE: return t.double_data_size();
+    case T::INT64: return t.int64_data_size();
+    case T::UINT32: case T::UINT64: return t.uint64_data_size();
+    default: return t.int32_data_size();  // INT32, INT16, INT8, UINT16, UINT8, BOOL, FLOAT16, BFLOAT16
+  }
+}
+
+// A tensor's declared shape against the bytes it holds, before any engine (OpenCV DNN) reads it: a
+// file declaring [256,1024,1024] over 4 bytes would make the engine read far past its buffer.
+void check_onnx_tensor(const onnx::TensorProto& t, const std::filesystem::path& path) {
+  const auto name = "ONNX tensor '" + printable(t.name().substr(0, 80)) + "'";
+  require(t.data_location() != onnx::TensorProto::EXTERNAL && t.external_data_size() == 0, path,
+          name + " keeps its data in another file; flatnet reads self-contained ONNX files only");
+  const int64_t bytes_per = onnx_element_bytes(t.data_type());
+  require(bytes_per > 0, path, name + " has data type " + std::to_string(t.data_type()) + ", which flatnet's graphs never hold");
+  int64_t numel = 1;
+  for (const auto d : t.dims()) {
+    require(d >= 0 && d <= (int64_t{1} << 31) && numel <= (int64_t{1} << 34) / std::max<int64_t>(d, 1), path,
+            name + " declares an impossible shape");
+    numel *= d;
+  }
+  const int64_t held = t.has_raw_data() ? static_cast<int64_t>(t.raw_data().size()) : onnx_typed_count(t) * bytes_per;
+  require(held == numel * bytes_per, path,
+          name + " declares " + std::to_string(numel) + " values (" + std::to_string(numel * bytes_per) +
+              " bytes) and holds " + std::to_string(held) + " bytes");
+}
+
+void check_onnx_tensors(const onnx::GraphProto& g, const std::filesystem::path& path) {
+  for (const auto& t : g.initializer()) check_onnx_tensor(t, path);
+  require(g.sparse_initializer_size() == 0, path, "holds sparse initializers, which flatnet's graphs never hold");
+  for (const auto& node : g.node())
+    for (const auto& a : node.attribute()) {
+      require(a.type() != onnx::AttributeProto::GRAPH && a.type() != onnx::AttributeProto::GRAPHS, path,
+              "node '" + printable(node.name().substr(0, 80)) + "' holds a subgraph, which flatnet's graphs never hold");
+      if (a.has_t()) check_onnx_tensor(a.t(), path);
+      for (const auto& t : a.tensors()) check_onnx_tensor(t, path);
+    }
+}
+
+}  // namespace
+
 OnnxModelInfo read_onnx_info(const std::filesystem::path& path) {
   const auto bytes = read_bytes(path);
   onnx::ModelProto model;
@@ -448,6 +508,7 @@ OnnxModelInfo read_onnx_info(const std::filesystem::path& path) {
     else if (p.key() == kLevelKey)
       info.level_input = p.value() == "1";
   const auto& g = model.graph();
+  check_onnx_tensors(g, path);
   auto dims = [](const onnx::ValueInfoProto& v) {
     std::vector<int64_t> d;
     for (const auto& dim : v.type().tensor_type().shape().dim()) d.push_back(dim.dim_value());

@@ -1,6 +1,7 @@
 #include "optics/camera.hpp"
 
 #include "core/error.hpp"
+#include "core/util.hpp"
 #include "io/image.hpp"
 #include "io/mat.hpp"
 #include "io/raw.hpp"
@@ -48,6 +49,23 @@ Rig load_rig(const std::filesystem::path& path) {
   rig.adc_bits = static_cast<int>(mat.read_scalar("adc_bits"));
   require(rig.full_well > 0 && rig.read_noise >= 0 && rig.adc_bits >= 1 && rig.adc_bits <= 16, path,
           "implausible sensor constants (full_well > 0, read_noise >= 0, 1 <= adc_bits <= 16)");
+  return rig;
+}
+
+Rig load_camera_rig(const CameraConfig& camera) {
+  require(!camera.rig.empty(), camera.name, "this camera names no rig (rig.mat, its true response)");
+  auto rig = load_rig(camera.rig);
+  require(rig.scene_size() == camera.scene_size, camera.rig,
+          "models a " + std::to_string(rig.scene_size()) + "-pixel scene, and camera '" + printable(camera.name) +
+              "' says scene_size " + std::to_string(camera.scene_size));
+  // The rig makes whole Bayer planes (raw / 2); the camera's crop must lie inside them.
+  const auto rows = rig.phil.size(1), cols = rig.phir.size(1);
+  const auto& crop = camera.raw.crop;
+  require(crop[0] + crop[2] <= rows && crop[1] + crop[3] <= cols, camera.rig,
+          "makes " + std::to_string(rows) + "x" + std::to_string(cols) + " planes, and camera '" +
+              printable(camera.name) + "' crops rows " + std::to_string(crop[0]) + ".." +
+              std::to_string(crop[0] + crop[2] - 1) + ", columns " + std::to_string(crop[1]) + ".." +
+              std::to_string(crop[1] + crop[3] - 1));
   return rig;
 }
 

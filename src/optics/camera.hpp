@@ -29,6 +29,9 @@ struct Rig {
 
 // Reads rig.mat (PhiL_c, PhiR_c, gain_c, vig_rows, vig_cols, full_well, read_noise, dark, adc_bits).
 Rig load_rig(const std::filesystem::path& path);
+// The camera's rig (camera.rig), checked against the camera that names it: its scene size and its
+// planes' size (the crop) must agree, or the error names both files.
+Rig load_camera_rig(const CameraConfig& camera);
 
 // Noise-free expected signal for linear-light scene planes. {B,4,N,N} -> {B,4,plane_h,plane_w}.
 torch::Tensor expected_signal(const Rig& rig, const torch::Tensor& scene_planes);

@@ -2,7 +2,9 @@
 
 #include <fnmatch.h>
 
+#include <iomanip>
 #include <map>
+#include <sstream>
 #include <set>
 
 #include "core/error.hpp"
@@ -65,24 +67,86 @@ void check_output_names(const std::vector<std::filesystem::path>& captures, cons
   }
 }
 
+namespace {
+
+// A CSV field: quoted when it holds a comma, a quote or a line break (file names may).
+std::string csv_field(const std::string& text) {
+  if (text.find_first_of(",\"\r\n") == std::string::npos) return text;
+  std::string quoted = "\"";
+  for (const char c : text) quoted += c == '"' ? std::string("\"\"") : std::string(1, c);
+  return quoted + "\"";
+}
+
+struct FitRow {
+  std::string name;
+  CameraFitResult result;
+};
+
+void note_fit(BatchReport& report, const FitRow& row) {
+  if (row.result.matches) return;
+  ++report.misfits;
+  if (row.result.fit > report.worst_fit || report.worst.empty()) report.worst = row.name, report.worst_fit = row.result.fit;
+}
+
+void write_fit_csv(const std::filesystem::path& path, const std::vector<FitRow>& rows) {
+  std::ostringstream csv;
+  csv << "name,fit,matches\n";
+  for (const auto& r : rows) csv << csv_field(r.name) << "," << std::setprecision(6) << r.result.fit << "," << (r.result.matches ? 1 : 0) << "\n";
+  write_text_atomically(path, csv.str());
+}
+
+// --require-fit: every capture is measured before anything is reconstructed.
+void require_all_fit(const CameraFit& fit, const std::vector<std::filesystem::path>& captures, const RawGeometry& g) {
+  BatchReport probe;
+  probe.count = static_cast<int64_t>(captures.size());
+  for (const auto& c : captures) note_fit(probe, {c.filename().string(), fit.measure(load_raw_unit(c, g))});
+  if (probe.misfits > 0) throw Error("recon.require_fit", camera_fit_warning(probe, fit));
+}
+
+}  // namespace
+
+std::string camera_fit_warning(const BatchReport& report, const CameraFit& fit) {
+  if (report.misfits == 0) return "";
+  std::ostringstream line;
+  line << std::setprecision(3) << report.misfits << " of " << report.count
+       << " captures do not fit camera '" << printable(fit.camera_name()) << "' (worst: " << printable(report.worst)
+       << ", fit " << report.worst_fit << " against <= " << fit.threshold()
+       << "): they were taken with another camera, and their reconstructions show no scene. Calibrate your camera "
+          "(flatnet calibrate --dataset) and adapt the model to it (flatnet train --init-from MODEL --reinit "
+          "inversion); docs/own-camera.md";
+  return line.str();
+}
+
 BatchReport reconstruct_files(Reconstructor& engine, const CameraConfig& camera,
                               const std::vector<std::filesystem::path>& captures, const BatchOptions& opt) {
   require(!captures.empty(), "recon.input", "no captures to reconstruct");
   require(opt.batch >= 1, "recon.batch", "must be at least 1");
   check_output_names(captures, opt.out);
+  if (opt.fit && opt.require_fit) require_all_fit(*opt.fit, captures, camera.raw);
   std::filesystem::create_directories(opt.out);
   c10::InferenceMode no_grad;
   BatchReport report;
+  std::vector<FitRow> fits;
   Progress progress(opt.label, static_cast<int64_t>(captures.size()), opt.progress);
   const auto start = std::chrono::steady_clock::now();
-  double engine_s = 0;
+  double engine_s = 0, first_batch_s = 0;
+  int64_t first_batch_count = 0;
   for (size_t first = 0; first < captures.size(); first += opt.batch) {
     const size_t last = std::min(captures.size(), first + static_cast<size_t>(opt.batch));
     std::vector<torch::Tensor> planes;
-    for (size_t i = first; i < last; ++i) planes.push_back(load_capture(captures[i], camera.raw).planes);
+    for (size_t i = first; i < last; ++i) {
+      const auto raw = load_raw_unit(captures[i], camera.raw);
+      planes.push_back(preprocess_raw(raw, camera.raw));
+      if (opt.fit) {
+        fits.push_back({captures[i].filename().string(), opt.fit->measure(raw)});
+        note_fit(report, fits.back());
+      }
+    }
     const auto t0 = std::chrono::steady_clock::now();
     const auto images = engine.reconstruct(torch::stack(planes));  // {B,4,rows,cols} -> {B,3,N,N}
-    engine_s += std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+    const double batch_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+    engine_s += batch_s;
+    if (first == 0) first_batch_s = batch_s, first_batch_count = static_cast<int64_t>(last - first);
     for (size_t i = first; i < last; ++i) {
       auto name = captures[i].filename();
       write_rgb8(opt.out / name.replace_extension(".png"), images[static_cast<int64_t>(i - first)]);
@@ -91,8 +155,12 @@ BatchReport reconstruct_files(Reconstructor& engine, const CameraConfig& camera,
     progress.tick(static_cast<int64_t>(last - first));
   }
   progress.finish();
+  if (opt.fit) write_fit_csv(opt.out / "camera_fit.csv", fits);
   report.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
-  report.ms_per_capture = 1000.0 * engine_s / report.count;
+  report.first_batch_ms = 1000.0 * first_batch_s / std::max<int64_t>(1, first_batch_count);
+  report.ms_per_capture = report.count > first_batch_count
+                              ? 1000.0 * (engine_s - first_batch_s) / static_cast<double>(report.count - first_batch_count)
+                              : report.first_batch_ms;
   report.captures_per_s = report.count / std::max(1e-9, report.seconds);
   return report;
 }

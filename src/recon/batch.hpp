@@ -5,6 +5,7 @@
 #include <vector>
 
 #include "io/camera_config.hpp"
+#include "optics/camera_fit.hpp"
 #include "recon/reconstructor.hpp"
 
 namespace flatnet {
@@ -22,14 +23,28 @@ struct BatchOptions {
   int batch = 4;              // captures per reconstruct() call
   bool progress = true;
   std::string label = "recon";  // the progress line's name
+  // The camera fit of each capture (optics/camera_fit.hpp), written to OUT/camera_fit.csv; null: none.
+  const CameraFit* fit = nullptr;
+  bool require_fit = false;  // refuse (before reconstructing anything) when a capture does not fit
 };
 
 struct BatchReport {
   int64_t count = 0;
-  double ms_per_capture = 0;  // the engine alone (no file I/O)
+  int64_t misfits = 0;         // captures whose camera fit failed
+  std::string worst;           // the worst-fitting capture's name, and its fit
+  double worst_fit = 0;
+  // The engine alone (no file I/O), in steady state: when there is more than one batch the first is
+  // left out, since it also sets the engine up (weights reordered, buffers first touched: seconds
+  // for a paper-width model). first_batch_ms is that batch's time per capture.
+  double ms_per_capture = 0;
+  double first_batch_ms = 0;
   double captures_per_s = 0;  // everything, file I/O included
   double seconds = 0;
 };
+
+// One line for the user when captures do not fit the camera ("" when all fit): how many, the worst,
+// and what to do.
+std::string camera_fit_warning(const BatchReport& report, const CameraFit& fit);
 
 // `camera` is the preprocessing the engine expects (BuiltReconstructor::camera).
 BatchReport reconstruct_files(Reconstructor& engine, const CameraConfig& camera,

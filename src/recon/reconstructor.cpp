@@ -7,6 +7,7 @@
 #include <opencv2/core/version.hpp>
 
 #include "core/error.hpp"
+#include "core/util.hpp"
 #include "io/image.hpp"
 #include "io/raw.hpp"
 #include "nn/model_file.hpp"
@@ -112,6 +113,52 @@ std::unique_ptr<Reconstructor> make_opencv(const std::filesystem::path& onnx_fil
   return r;
 }
 
+std::shared_ptr<const CameraFit> camera_fit_of(const CameraConfig& camera, std::string& why) {
+  if (camera.calibration.empty() || !std::filesystem::exists(camera.calibration)) {
+    why = "camera '" + camera.name + "' names no calibration here";
+    return nullptr;
+  }
+  if (!camera.knows_noise()) {
+    why = "camera '" + camera.name + "' has no noise model (noise_gain; flatnet calibrate --dataset measures it)";
+    return nullptr;
+  }
+  return std::make_shared<const CameraFit>(load_calibration(camera.calibration, camera), camera);
+}
+
+namespace {
+
+// The camera a model was trained with: its file's camera when that names a calibration, else the
+// camera file its training config names (data.camera), when it is here and has the same geometry.
+// The camera a model was trained with: its file's camera when that names a calibration; else the
+// camera file its training config names (data.camera), or, when that path is not on this machine
+// (a model trained elsewhere), the file of the same name among flatnet's own cameras
+// (configs/cameras): either only when its name and geometry are the model's.
+CameraConfig training_camera(const ModelFile& m) {
+  if (!m.camera.calibration.empty()) return m.camera;
+  const auto recorded = m.config.path("data.camera");
+  if (recorded.empty()) return m.camera;
+  std::vector<std::filesystem::path> candidates{recorded};
+  try {
+    candidates.push_back(data_dir() / "configs" / "cameras" / recorded.filename());
+  } catch (const Error&) {  // an installation without its data folder: the recorded path alone
+  }
+  for (const auto& path : candidates) {
+    if (!std::filesystem::is_regular_file(path)) continue;
+    auto cam = load_camera_config(path);
+    const bool same = cam.name == m.camera.name && cam.raw.crop == m.camera.raw.crop &&
+                      cam.scene_size == m.camera.scene_size && cam.raw.raw_height == m.camera.raw.raw_height &&
+                      cam.raw.raw_width == m.camera.raw.raw_width;
+    if (same) return cam;
+  }
+  return m.camera;
+}
+
+}  // namespace
+
+std::shared_ptr<const CameraFit> model_camera_fit(const ModelFile& model, std::string& why) {
+  return camera_fit_of(training_camera(model), why);
+}
+
 BuiltReconstructor make_reconstructor(const ReconstructorSpec& spec) {
   if (spec.method == "tikhonov" || spec.method == "tv") {
     const auto calib_path = spec.calibration.empty() ? spec.camera.calibration : spec.calibration;
@@ -119,18 +166,29 @@ BuiltReconstructor make_reconstructor(const ReconstructorSpec& spec) {
     ClassicalOptions o;
     o.method = parse_classical_method(spec.method);
     o.lambda = spec.lambda;
-    return {make_classical(load_calibration(calib_path, spec.camera), spec.camera, o), spec.camera};
+    const auto calib = load_calibration(calib_path, spec.camera);
+    BuiltReconstructor built{make_classical(calib, spec.camera, o), spec.camera, nullptr, ""};
+    if (spec.camera.knows_noise())
+      built.fit = std::make_shared<const CameraFit>(calib, spec.camera);
+    else
+      built.no_fit = "camera '" + spec.camera.name + "' has no noise model";
+    return built;
   }
   if (spec.method == "flatnet") {
     auto m = load_model_file(spec.model);
     const auto camera = spec.use_camera ? spec.camera : m.camera;
-    return {make_flatnet(m.generator, camera, spec.levers, "FlatNet " + spec.model.filename().string()), camera};
+    BuiltReconstructor built{make_flatnet(m.generator, camera, spec.levers, "FlatNet " + spec.model.filename().string()),
+                             camera, nullptr, ""};
+    built.fit = model_camera_fit(m, built.no_fit);
+    return built;
   }
   if (spec.method == "opencv") {
     auto r = std::make_unique<OpenCvReconstructor>(spec.model);
     const auto camera = spec.use_camera ? spec.camera : r->engine().camera();
     r->engine().check_camera(camera);
-    return {std::move(r), camera};
+    BuiltReconstructor built{std::move(r), camera, nullptr, "an ONNX file carries no calibration to judge by"};
+    built.fit = camera_fit_of(camera, built.no_fit);  // the camera given, or the ONNX file's own
+    return built;
   }
   throw Error("recon.method", "must be tikhonov, tv, flatnet or opencv, got '" + spec.method + "'");
 }

@@ -11,7 +11,9 @@
 #include <torch/torch.h>
 
 #include "io/camera_config.hpp"
+#include "optics/camera_fit.hpp"
 #include "nn/generator.hpp"
+#include "nn/model_file.hpp"
 #include "optics/camera.hpp"
 
 namespace flatnet {
@@ -62,9 +64,19 @@ struct ReconstructorSpec {
 struct BuiltReconstructor {
   std::unique_ptr<Reconstructor> engine;
   CameraConfig camera;  // the preprocessing its input must have (the spec's, or the model's own)
+  // Whether a capture fits the camera this engine is for (its calibration, or the camera a model
+  // was trained with); null when that camera's calibration or noise model is not known here, and
+  // `no_fit` says why.
+  std::shared_ptr<const CameraFit> fit;
+  std::string no_fit;
 };
 // Errors name what is missing or wrong (an unknown method, no calibration, a model file that is
 // not one, a camera that does not match the model).
 BuiltReconstructor make_reconstructor(const ReconstructorSpec& spec);
+// The camera fit for `camera` (its calibration and noise model), or null with the reason in `why`.
+std::shared_ptr<const CameraFit> camera_fit_of(const CameraConfig& camera, std::string& why);
+// The same for the camera a model was trained with: its file's camera when that names a calibration,
+// else the camera file its training config names (data.camera), when it is here with the same geometry.
+std::shared_ptr<const CameraFit> model_camera_fit(const ModelFile& model, std::string& why);
 
 }  // namespace flatnet

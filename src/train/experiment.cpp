@@ -1,7 +1,11 @@
 #include "train/experiment.hpp"
 
+#include <cmath>
+
 #include <iostream>
 #include <fstream>
+#include <iomanip>
+#include <random>
 #include <sstream>
 
 #include "core/error.hpp"
@@ -57,7 +61,7 @@ std::pair<std::shared_ptr<const PairSource>, std::shared_ptr<const PairSource>> 
     const bool codesign = c.flag("codes.learn");  // the trainer captures through the codes it learns: no rig
     require(codesign || !camera.rig.empty(), "data.camera",
             "names no rig; on-the-fly simulation needs the true response");
-    auto rig = codesign ? nullptr : std::make_shared<const Rig>(load_rig(camera.rig));
+    auto rig = codesign ? nullptr : std::make_shared<const Rig>(load_camera_rig(camera));
     auto [train_images, val_images] =
         split_image_files(c.path("data.images"), c.num("data.val_fraction"), c.integer("data.split_seed"));
     const auto seed = static_cast<uint64_t>(c.integer("train.seed"));
@@ -125,9 +129,31 @@ std::string differing_settings(const Config& run, const Config& given) {
 std::vector<std::filesystem::path> run_files(const std::filesystem::path& out) {
   std::vector<std::filesystem::path> found;
   for (const char* name : {"latest.ckpt", "best.ckpt", "model.flatnet", "log.csv", "val.csv", "config.yaml",
-                           "samples.png", "curve.png"})
+                           "samples.png", "curve.png", "run_id.txt"})
     if (std::filesystem::exists(out / name)) found.push_back(out / name);
   return found;
+}
+
+// A new run's id: 16 hex digits from the system's entropy source.
+std::string new_run_id() {
+  std::random_device entropy;
+  std::ostringstream id;
+  id << std::hex << std::setfill('0') << std::setw(8) << entropy() << std::setw(8) << entropy();
+  return id.str();
+}
+
+// A run folder records its run's id (run_id.txt) and every checkpoint carries it: a latest.ckpt of
+// another run, copied in, would resume that run's weights under this folder's best.ckpt and logs.
+void require_checkpoint_of_this_run(const std::filesystem::path& out, const std::filesystem::path& latest, bool force) {
+  const auto record = out / "run_id.txt";
+  if (force || !std::filesystem::exists(record)) return;  // runs from before run ids: nothing to compare
+  auto folder_id = read_file_text(record, 256);
+  while (!folder_id.empty() && (folder_id.back() == '\n' || folder_id.back() == '\r')) folder_id.pop_back();
+  const auto file_id = checkpoint_run_id(latest);
+  require(file_id == folder_id, latest,
+          "belongs to another run (run id " + (file_id.empty() ? std::string("none") : file_id) + "; this folder's run is " +
+              printable(folder_id.substr(0, 16)) +
+              "); it was copied in from elsewhere? Set experiment.force to resume it here anyway");
 }
 
 // Memory the machine can still give (MemAvailable), in bytes; 0 when unknown.
@@ -198,6 +224,26 @@ double training_bytes_per_sample(const Config& c, const CameraConfig& camera) {
   return 4.0 * floats;
 }
 
+// Memory a run holds whatever its batch: the generator's parameters with their gradients, Adam's two
+// moments and the moving average (5 copies, float32). The U-Net's parameters grow with the square of
+// its width: ~31 M at width 64 (Ronneberger et al.'s 64..1024), 124 M at the paper's 128.
+double training_fixed_bytes(const Config& c, const CameraConfig& camera) {
+  const auto square = [](double x) { return x * x; };
+  const auto enhancer = c.str("model.enhancer");
+  double params = 0;
+  if (enhancer == "dncnn")
+    params = 9.0 * c.integer("model.dncnn.layers") * square(c.integer("model.dncnn.width"));
+  else if (enhancer == "rcan")
+    params = 2 * 9.0 * c.integer("model.rcan.groups") * c.integer("model.rcan.blocks") * square(c.integer("model.rcan.width"));
+  else if (enhancer == "nafnet")
+    params = 31e6 * square(c.integer("model.nafnet.width") / 64.0);
+  else
+    params = 31e6 * square(c.integer("model.unet.width") / 64.0);
+  // The first stage: W1 {rows,N} and W2 {cols,N} per Bayer plane.
+  params += 4.0 * (camera.raw.crop[2] + camera.raw.crop[3]) * camera.scene_size;
+  return 5 * 4.0 * params;
+}
+
 ExperimentResult run_experiment(const ExperimentOptions& o) {
   std::ostream& log = o.log ? *o.log : std::cerr;
   const auto& dist = o.distributed;
@@ -212,6 +258,7 @@ ExperimentResult run_experiment(const ExperimentOptions& o) {
   Config config;
   if (resume) {
     require(std::filesystem::exists(latest), latest, "nothing to resume (no checkpoint)");
+    require_checkpoint_of_this_run(out, latest, o.force);
     config = checkpoint_settings(latest).first;
     for (const auto& s : sets) config.set(s);
     config.check_ranges("experiment.sets");
@@ -241,10 +288,16 @@ ExperimentResult run_experiment(const ExperimentOptions& o) {
   // A batch that cannot fit is refused before it fills the machine's memory (an estimate; see
   // training_bytes_per_sample).
   if (const double available = available_memory_bytes(); available > 0) {
-    const double need = training_bytes_per_sample(config, camera) * static_cast<double>(opts.batch);
+    const double fixed = training_fixed_bytes(config, camera);
+    const auto gb = [](double bytes) { return std::to_string(static_cast<int64_t>(std::ceil(bytes / 1e9))); };
+    const auto enhancer = config.str("model.enhancer");
+    require(fixed < 0.9 * available, "model." + (enhancer == "rcan" || enhancer == "dncnn" || enhancer == "nafnet" ? enhancer : std::string("unet")) + ".width",
+            "this model's weights, gradients and optimiser state need about " + gb(fixed) +
+                " GB, and this machine has " + gb(available) + " GB available; choose a smaller width");
+    const double need = fixed + training_bytes_per_sample(config, camera) * static_cast<double>(opts.batch);
     require(need < 0.9 * available, "train.batch",
-            std::to_string(opts.batch) + " samples need about " + std::to_string(static_cast<int64_t>(need / 1e9)) +
-                " GB for training, and this machine has " + std::to_string(static_cast<int64_t>(available / 1e9)) +
+            std::to_string(opts.batch) + " samples need about " + gb(need) + " GB for training (" + gb(fixed) +
+                " of them for the model and its optimiser), and this machine has " + gb(available) +
                 " GB available; lower train.batch (or train.crop)");
   }
   require(opts.crop <= camera.scene_size, "train.crop",
@@ -291,9 +344,11 @@ ExperimentResult run_experiment(const ExperimentOptions& o) {
     trainer.set_learned_camera(learned, camera);
   }
   if (resume) log << trainer.resume(latest) << "\n";  // every rank reads rank 0's checkpoint (a shared folder)
+  if (trainer.run_id().empty()) trainer.set_run_id(new_run_id());  // a new run, or one from before run ids
   if (writer) {  // after a resume succeeded: a refused one changes nothing
     std::filesystem::create_directories(out);
     write_text_atomically(out / "config.yaml", config.to_yaml());
+    write_text_atomically(out / "run_id.txt", trainer.run_id() + "\n");
   }
   trainer.set_distributed(group.get());
   log << "training on " << train_src->size() << " pairs, " << opts.iterations << " steps of batch " << opts.batch

@@ -144,6 +144,9 @@ class GanTrainer {
   // best.ckpt's (next to it), and model.flatnet is rewritten from the restored weights. Returns
   // one line saying what was restored.
   std::string resume(const std::filesystem::path& checkpoint);
+  // The id of a new run, recorded in every checkpoint it writes (a resume keeps the checkpoint's).
+  void set_run_id(std::string id) { state_.run_id = std::move(id); }
+  const std::string& run_id() const { return state_.run_id; }
   // The weights that are validated and exported: the moving average when train.ema_decay > 0.
   Generator& exported();
   // Co-design (train/codesign.hpp): the training source gives scenes (SimulatedPairs without a

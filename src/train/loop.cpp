@@ -33,6 +33,7 @@ bool TrainingLoop::should_stop() {
 }
 
 LoopResult TrainingLoop::run() {
+  const FinishItemOnInterrupt finish_step;  // Ctrl-C ends the step, then the checkpoint below
   start_seconds_ = now_seconds();
   LoopResult r;
   r.first_step = r.last_step = opt_.first_step;

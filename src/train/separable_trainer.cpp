@@ -8,6 +8,7 @@
 
 #include "core/error.hpp"
 #include "core/util.hpp"
+#include "nn/optimizer_state.hpp"
 #include "eval/plot.hpp"
 #include "io/image.hpp"
 #include "io/mat.hpp"
@@ -131,9 +132,8 @@ SeparableTrainSummary train_separable_codes(const SeparableTrainOptions& o) {
     first_step = restored.step, seconds_before = restored.seconds;
     // The data order's and the noise's generator, checked before LibTorch reads it.
     const auto* rng = restored.file.find("rng");
-    const auto expected = gen.get_state();
-    require(rng && rng->scalar_type() == torch::kUInt8 && rng->sizes() == expected.sizes(), checkpoint,
-            "'rng' is not the state of the data and noise generator");
+    require(rng != nullptr, checkpoint, "lacks 'rng', the state of the data and noise generator");
+    require_cpu_generator_state(*rng, checkpoint, "rng");
     gen.set_state(*rng);
     const auto start = restored.file.meta("val_psnr_start", checkpoint);
     require(is_decimal_number(start), checkpoint, "val_psnr_start '" + start.substr(0, 40) + "' is not a number");

@@ -5,6 +5,7 @@
 
 #include "core/error.hpp"
 #include "core/util.hpp"
+#include "nn/optimizer_state.hpp"
 
 namespace flatnet {
 
@@ -45,6 +46,7 @@ void restore_optimizer_state(const SafeTensors& st, const TrainerState& state, c
   s->step(step->item<int64_t>());
   s->exp_avg(stored_like(st, base + "exp_avg", p, path, state.size_hint));
   s->exp_avg_sq(stored_like(st, base + "exp_avg_sq", p, path, state.size_hint));
+  require_adam_moments(s->step(), s->exp_avg(), s->exp_avg_sq(), path, base);
   slots[state_key(p)] = std::move(s);
 }
 

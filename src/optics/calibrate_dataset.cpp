@@ -1,0 +1,201 @@
+#include "optics/calibrate_dataset.hpp"
+
+#include <cmath>
+#include <iomanip>
+#include <limits>
+#include <sstream>
+
+#include "core/error.hpp"
+#include "core/util.hpp"
+
+namespace flatnet {
+
+namespace {
+
+// The pairs, decoded once where the memory budget allows and read again in every pass otherwise.
+class PairStream {
+ public:
+  PairStream(int64_t count, std::function<CapturePair(int64_t)> load, int64_t rows, int64_t cols, int64_t scene,
+             int64_t cache_bytes)
+      : count_(count), load_(std::move(load)), rows_(rows), cols_(cols), scene_(scene) {
+    const int64_t pair_bytes = 4 * 4 * (rows * cols + scene * scene);
+    cached_ = std::min<int64_t>(count, std::max<int64_t>(0, cache_bytes) / pair_bytes);
+  }
+  int64_t size() const { return count_; }
+  CapturePair get(int64_t i) {
+    if (i < static_cast<int64_t>(cache_.size())) return cache_[static_cast<size_t>(i)];
+    auto p = checked(i);
+    if (i < cached_ && i == static_cast<int64_t>(cache_.size())) cache_.push_back(p);
+    return p;
+  }
+
+ private:
+  CapturePair checked(int64_t i) {
+    auto p = load_(i);
+    const auto where = "calibrate.dataset pair " + std::to_string(i);
+    require(p.meas.defined() && p.meas.sizes() == torch::IntArrayRef({4, rows_, cols_}), where,
+            "capture planes are not {4," + std::to_string(rows_) + "," + std::to_string(cols_) + "}");
+    require(p.scene.defined() && p.scene.sizes() == torch::IntArrayRef({4, scene_, scene_}), where,
+            "scene planes are not {4," + std::to_string(scene_) + "," + std::to_string(scene_) + "}");
+    p.meas = p.meas.to(torch::kFloat32).contiguous();
+    if (p.level.defined()) {
+      require(p.level.numel() == 4, where, "level is not one value per plane");
+      p.level = p.level.to(torch::kFloat64).flatten();
+    }
+    p.scene = p.scene.to(torch::kFloat32).contiguous();
+    require(torch::isfinite(p.meas).all().item<bool>() && torch::isfinite(p.scene).all().item<bool>(), where,
+            "holds NaN or infinity");
+    return p;
+  }
+  int64_t count_;
+  std::function<CapturePair(int64_t)> load_;
+  int64_t rows_, cols_, scene_, cached_ = 0;
+  std::vector<CapturePair> cache_;
+};
+
+constexpr int64_t kNoisePairs = 64;
+
+// The normal equations of one step of (2), Y_i ~ F Z_i + s_i M (F {4,m,N}, Z_i {4,N,k}, M {4,m,k}),
+// accumulated over the pairs.
+struct Sums {
+  torch::Tensor A, B, Sz;        // sum Z Z^T {4,N,N}, sum Y Z^T {4,m,N}, sum s Z {4,N,k}; float64
+  torch::Tensor Sy, S2, norm;    // sum s Y {4,m,k}, sum s^2 {4}, sum ||Y||^2 {4}
+  std::vector<std::pair<double, double>> noise;  // (level, residual energy per pixel), a pair's channel each
+};
+
+// Each pair's scene split into its sum s {4} and its zero-mean rest Xz {4,N,N}, eq. (2).
+std::pair<torch::Tensor, torch::Tensor> split_scene(const torch::Tensor& X) {
+  const auto s = X.sum({1, 2});
+  return {s, X - (s / static_cast<double>(X.size(1) * X.size(2))).view({4, 1, 1})};
+}
+
+// `design(pair)` gives the step's (Y_i, Z_i); F and M, where defined, are the current model, whose
+// residual the first pairs report against their light level (the sensor's noise).
+Sums accumulate(PairStream& pairs, const torch::Tensor& F, const torch::Tensor& M,
+                const std::function<std::pair<torch::Tensor, torch::Tensor>(const CapturePair&)>& design) {
+  Sums sums;
+  for (int64_t i = 0; i < pairs.size(); ++i) {
+    const auto pair = pairs.get(i);
+    const auto [Y, Z] = design(pair);  // {4,m,k}, {4,N,k}
+    const auto s = split_scene(pair.scene).first.view({4, 1, 1});
+    const auto f64 = [](const torch::Tensor& t) { return t.to(torch::kFloat64); };
+    const auto A = f64(torch::matmul(Z, Z.transpose(1, 2))), B = f64(torch::matmul(Y, Z.transpose(1, 2)));
+    const auto Sz = f64(s * Z), Sy = f64(s * Y), S2 = f64(s.square().flatten()), norm = f64(Y.square().sum({1, 2}));
+    if (i == 0) {
+      sums.A = A, sums.B = B, sums.Sz = Sz, sums.Sy = Sy, sums.S2 = S2, sums.norm = norm;
+    } else {
+      sums.A += A, sums.B += B, sums.Sz += Sz, sums.Sy += Sy, sums.S2 += S2, sums.norm += norm;
+    }
+    if (F.defined() && pair.level.defined() && i < kNoisePairs) {
+      const auto energy = f64((Y - torch::matmul(F, Z) - s * M).square().sum({1, 2}));
+      // The centred planes keep (m-1)(k-1) of the m k pixels' noise, and the fit takes some along:
+      // its m N + k N + m k parameters, shared by all pairs, absorb that many noise terms.
+      const double m = static_cast<double>(Y.size(1)), k = static_cast<double>(Y.size(2));
+      const double n = static_cast<double>(Z.size(1));
+      const double kept = std::max(1.0, (m - 1) * (k - 1) - (m * n + k * n + m * k) / static_cast<double>(pairs.size()));
+      for (int c = 0; c < 4; ++c) sums.noise.emplace_back(pair.level[c].item<double>(), energy[c].item<double>() / kept);
+    }
+  }
+  return sums;
+}
+
+// The model's residual over all pairs from the sums alone (F, M float64):
+// sum ||Y - F Z - s M||^2 = |Y|^2 - 2<F,B> - 2<M,Sy> + <F A, F> + 2<F Sz, M> + S2 |M|^2.
+torch::Tensor residual_energy(const Sums& t, const torch::Tensor& F, const torch::Tensor& M) {
+  const auto dot = [](const torch::Tensor& a, const torch::Tensor& b) { return (a * b).sum({1, 2}); };
+  return (t.norm - 2 * dot(F, t.B) - 2 * dot(M, t.Sy) + dot(torch::matmul(F, t.A), F) +
+          2 * dot(torch::matmul(F, t.Sz), M) + t.S2 * M.square().sum({1, 2}))
+      .clamp_min(0);
+}
+
+// One step: F and M minimising sum ||Y - F Z - s M||^2, M eliminated (the header's formula).
+std::pair<torch::Tensor, torch::Tensor> solve_step(const Sums& t, double ridge) {
+  const auto S2 = t.S2.clamp_min(1e-30).view({4, 1, 1});
+  const auto gram = t.A - torch::matmul(t.Sz, t.Sz.transpose(1, 2)) / S2;        // {4,N,N}
+  const auto rhs = t.B - torch::matmul(t.Sy, t.Sz.transpose(1, 2)) / S2;          // {4,m,N}
+  const auto dim = gram.size(1);
+  const auto mean_diag = gram.diagonal(0, 1, 2).mean(1).clamp_min(1e-30);
+  const auto regularised = gram + ridge * mean_diag.view({4, 1, 1}) * torch::eye(dim, gram.options()).unsqueeze(0);
+  const auto F = torch::linalg_solve(regularised, rhs.transpose(1, 2)).transpose(1, 2);  // gram is symmetric
+  const auto M = (t.Sy - torch::matmul(F, t.Sz)) / S2;
+  return {F, M};
+}
+
+// P X Q^T is unchanged by P*k, Q/k: each channel's factors are given equal norms.
+void balance(torch::Tensor& P, torch::Tensor& Q) {
+  const auto k = (Q.flatten(1).norm(2, 1) / P.flatten(1).norm(2, 1).clamp_min(1e-30)).sqrt().view({4, 1, 1});
+  P = P * k;
+  Q = Q / k;
+}
+
+// var = gain * level + offset by least squares over (level, residual per pixel); then the camera's
+// form gain * (level - dark) + floor with dark, floor >= 0.
+void fit_noise(const std::vector<std::pair<double, double>>& points, DatasetCalibration& out) {
+  if (points.size() < 8) return;
+  double n = 0, sx = 0, sy = 0, sxx = 0, sxy = 0;
+  for (const auto& [x, y] : points) n += 1, sx += x, sy += y, sxx += x * x, sxy += x * y;
+  const double det = n * sxx - sx * sx;
+  if (det <= 0) return;
+  const double gain = (n * sxy - sx * sy) / det, offset = (sy - gain * sx) / n;
+  if (!(gain > 0) || !std::isfinite(gain)) return;
+  out.noise_gain = gain;
+  out.noise_floor = std::max(0.0, offset);
+  out.dark = offset < 0 ? -offset / gain : 0.0;
+}
+
+}  // namespace
+
+DatasetCalibration calibrate_from_pairs(int64_t count, const std::function<CapturePair(int64_t)>& load, int64_t rows,
+                                        int64_t cols, int64_t scene, const DatasetCalibrationOptions& o) {
+  require(count >= 1, "calibrate.dataset", "no pairs to calibrate from");
+  require(o.iterations >= 1 && o.ridge >= 0 && o.tolerance >= 0, "calibrate.dataset",
+          "iterations >= 1, ridge >= 0 and tolerance >= 0 are needed");
+  PairStream pairs(count, load, rows, cols, scene, o.cache_bytes);
+  auto gen = at::detail::createCPUGenerator(o.seed);
+  auto Q = at::randn({4, cols, scene}, gen) / std::sqrt(static_cast<double>(cols));  // a random start
+  torch::Tensor P, M;  // float32 for the passes
+  DatasetCalibration result;
+  result.pairs = count;
+  Progress progress("calibrate", o.iterations, o.progress);
+  double last = std::numeric_limits<double>::infinity();
+  // P-step: Y ~ P (Xz Q^T) + s M.   Q-step: Y^T ~ Q (P Xz)^T + s M^T.
+  const auto p_design = [&](const CapturePair& p) {
+    return std::make_pair(p.meas, torch::matmul(split_scene(p.scene).second, Q.transpose(1, 2)));
+  };
+  const auto q_design = [&](const CapturePair& p) {
+    return std::make_pair(p.meas.transpose(1, 2), torch::matmul(P, split_scene(p.scene).second).transpose(1, 2));
+  };
+  for (int it = 0; it <= o.iterations; ++it) {
+    // The P-step's pass also scores the current (P, Q, M).
+    const auto sums = accumulate(pairs, P, M, p_design);
+    if (P.defined()) {
+      const auto energy = residual_energy(sums, P.to(torch::kFloat64), M.to(torch::kFloat64));
+      const auto rel = (energy / sums.norm.clamp_min(1e-30)).sqrt();
+      for (int c = 0; c < 4; ++c) result.residual[c] = rel[c].item<double>();
+      const double total = std::sqrt(energy.sum().item<double>() / std::max(1e-30, sums.norm.sum().item<double>()));
+      std::ostringstream status;
+      status << "residual " << std::setprecision(4) << total;
+      progress.set_status(status.str());
+      progress.tick();
+      result.iterations = it;
+      fit_noise(sums.noise, result);
+      if (last - total < o.tolerance * last || it == o.iterations) break;
+      last = total;
+    }
+    auto [F, Mp] = solve_step(sums, o.ridge);
+    P = F.to(torch::kFloat32);
+    M = Mp.to(torch::kFloat32);
+    const auto qsums = accumulate(pairs, {}, {}, q_design);
+    auto [G, Mq] = solve_step(qsums, o.ridge);
+    Q = G.to(torch::kFloat32);
+    M = Mq.transpose(1, 2).to(torch::kFloat32);
+    balance(P, Q);
+  }
+  progress.finish();
+  result.calib.P = P.to(torch::kFloat64);
+  result.calib.Q = Q.to(torch::kFloat64);
+  result.uniform_response = M;
+  return result;
+}
+
+}  // namespace flatnet

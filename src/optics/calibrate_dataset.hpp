@@ -1,0 +1,63 @@
+#pragma once
+// A FlatCam's calibration identified from the display-capture pairs its users already hold, instead
+// of 4N Hadamard pattern captures (optics/calibrate.hpp).
+//
+// After double-centring, each Bayer channel c of a capture of scene X (linear light, {N,N}) is
+//   Y = P X Q^T + s(X) a b^T + E,        s(X) = sum of X's pixels,                         (1)
+// the separable coded part (FlatNet thesis eq. 2.2) plus the light through the mask's open part,
+// whose smooth vignetting survives the centring as one rank-1 image scaled by the scene's total
+// light (camera README, "The true response"). Split each scene into its mean and the rest,
+// X = (s / N^2) 1 1^T + Xz: then (1) reads
+//   Y = P Xz Q^T + s M + E,              M = P 1 1^T Q^T / N^2 + a b^T,                    (2)
+// where M, the camera's response to a uniform scene, is a free {rows,cols} matrix. (2) is bilinear
+// in P and Q and linear in M: for fixed Q, P and M solve one least-squares problem shared by all
+// rows ("500 + 620 small problems" with one Gram matrix), M eliminated in closed form; then Q for
+// fixed P. Alternating least squares converges in a few passes to the calibration, up to the scale
+// split P*k, Q/k that no capture can tell apart. (Fitting a and b as factors instead converges
+// slowly: s a b^T and the coded part's mean both scale with s.) With Z_i = Xz_i Q^T, the sums
+//   A = sum Z Z^T, B = sum Y Z^T, Sz = sum s Z, Sy = sum s Y, S2 = sum s^2
+// give P = (B - Sy Sz^T / S2)(A - Sz Sz^T / S2 + rI)^-1 and M = (Sy - P Sz) / S2.
+// The pairs are streamed: those that fit the memory budget stay decoded, the rest are read again in
+// every pass, so thousands of pairs run in bounded memory.
+#include <array>
+#include <cstdint>
+#include <functional>
+
+#include <torch/torch.h>
+
+#include "optics/camera.hpp"
+
+namespace flatnet {
+
+struct CapturePair {
+  torch::Tensor meas;   // {4,rows,cols} preprocessed (double-centred) capture planes
+  torch::Tensor scene;  // {4,N,N} the scene shown, linear light, per Bayer channel
+  torch::Tensor level;  // {4} the window's mean raw value per plane (full scale); optional
+};
+
+struct DatasetCalibrationOptions {
+  int iterations = 30;         // alternating passes at most (each reads the pairs twice)
+  double tolerance = 1e-4;     // stop when the relative residual improves by less than this
+  double ridge = 1e-6;         // r above, relative to the Gram matrix's mean diagonal
+  uint64_t seed = 0;           // the random start of Q
+  int64_t cache_bytes = 2ll << 30;  // decoded pairs kept in memory; the rest are re-read
+  bool progress = true;
+};
+
+struct DatasetCalibration {
+  Calibration calib;                // P {4,rows,N}, Q {4,cols,N}, float64
+  torch::Tensor uniform_response;      // M {4,rows,cols}: the planes a uniform unit scene gives, per unit of s
+  std::array<double, 4> residual{};    // ||Y - model (2)|| / ||Y|| per channel over all pairs (b, gb, gr, r)
+  // The sensor's noise, from what the model leaves of each pair against its light level (when the
+  // pairs carry levels): residual energy per pixel = noise_gain * (level - dark) + noise_floor.
+  double noise_gain = 0, noise_floor = 0, dark = 0;
+  int64_t pairs = 0;
+  int iterations = 0;
+};
+
+// Fits (2) to `count` pairs read by `load(i)`. Errors name the pair's index when its planes are not
+// {4,rows,cols} and {4,N,N}, or hold NaN.
+DatasetCalibration calibrate_from_pairs(int64_t count, const std::function<CapturePair(int64_t)>& load, int64_t rows,
+                                        int64_t cols, int64_t scene, const DatasetCalibrationOptions& options);
+
+}  // namespace flatnet

@@ -1,0 +1,49 @@
+#pragma once
+// Does a capture come from this camera? A model or a calibration is only good for captures of the
+// camera it describes; captures of another camera give images with no trace of the scene, silently.
+//
+// The physics: every capture of the camera is, after double-centring, Y = P X Q^T + s a b^T + E
+// (optics/calibrate_dataset.hpp, eq. 1). P X Q^T lies in the span of U (P's column space) and V
+// (Q's): the N^2-dimensional space {U C V^T}. So the part of Y outside that space, after its one
+// strongest rank-1 component (the open part's light) is set aside, is the sensor's noise E alone,
+// whose energy the camera's own noise model predicts from the light each pixel read:
+//   var(pixel) = noise_gain * (v - dark) + noise_floor        (io/camera_config.hpp)
+//   E||R||^2  ~= sum(var) * dof / (h w) - mean(var) (sqrt(h-1) + sqrt(w-1))^2,
+// dof = (h-1)(w-1) - N^2 (the centred planes lose a row and a column of freedom; the last term is
+// the noise a rank-1 fit takes along). fit = ||R||^2 / E||R||^2: 1 for this camera's captures, up
+// to chance (its standard deviation is sqrt(2 / dof) over the four channels) and calibration error;
+// above 1 when the light was coded by another mask, which puts most of its energy outside the span.
+// A plain energy ratio cannot tell: noisy captures of the right camera keep only 0.3-0.5 of their
+// energy in the span, since the noise fills every dimension.
+#include <string>
+
+#include <torch/torch.h>
+
+#include "io/camera_config.hpp"
+#include "optics/camera.hpp"
+
+namespace flatnet {
+
+struct CameraFitResult {
+  double fit = 0;        // unexplained energy over what the noise model predicts (1: a perfect fit)
+  bool matches = false;  // fit <= the threshold
+  double saturated = 0;  // share of the window's pixels at full scale (their noise is clipped)
+};
+
+class CameraFit {
+ public:
+  // Errors name the camera when it has no noise model (noise_gain: run `flatnet calibrate --dataset`
+  // or write the sensor's values into its .yaml) or the calibration does not match its geometry.
+  CameraFit(const Calibration& calib, const CameraConfig& camera);
+  // raw_unit: the whole raw frame, {H,W}, full scale [0,1] (io/raw.hpp load_raw_unit).
+  CameraFitResult measure(const torch::Tensor& raw_unit) const;
+  double threshold() const { return threshold_; }
+  const std::string& camera_name() const { return camera_.name; }
+
+ private:
+  torch::Tensor U_, V_;  // {4,h,N}, {4,w,N} orthonormal, float32
+  CameraConfig camera_;
+  double threshold_ = 0;
+};
+
+}  // namespace flatnet

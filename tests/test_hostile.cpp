@@ -1,0 +1,258 @@
+// Hostile inputs, third round (issue 40): names that would become paths, lock files that are links,
+// files that lie about their sizes, YAML that expands without bound, checkpoints whose state breaks
+// its own rules, and strings that would drive the terminal. Each case failed before its fix.
+#include "catch_torch.hpp"
+
+#include <sys/stat.h>
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <chrono>
+#include <csignal>
+#include <fstream>
+
+#include <onnx/onnx_pb.h>
+
+#include "core/error.hpp"
+#include "core/output_dir.hpp"
+#include "core/util.hpp"
+#include "eval/thesis_report.hpp"
+#include "helpers.hpp"
+#include "io/camera_config.hpp"
+#include "io/torch_file.hpp"
+#include "io/yaml_text.hpp"
+#include "nn/onnx_export.hpp"
+#include "nn/optimizer_state.hpp"
+
+using namespace flatnet;
+using Catch::Matchers::Contains;
+
+namespace {
+
+void write_file(const std::filesystem::path& p, const std::string& bytes) {
+  std::ofstream(p, std::ios::binary).write(bytes.data(), static_cast<std::streamsize>(bytes.size()));
+}
+
+std::string read_file(const std::filesystem::path& p) {
+  std::ifstream in(p, std::ios::binary);
+  return std::string(std::istreambuf_iterator<char>(in), {});
+}
+
+std::string q(const std::filesystem::path& p) { return "'" + p.string() + "'"; }
+
+}  // namespace
+
+TEST_CASE("a name from a flag or a file becomes one path component or is refused", "[safe][hostile]") {
+  for (const std::string good : {"tikhonov", "flatnet-transpose", "lab v2", "dim_room.2"}) CHECK_NOTHROW(require_plain_name(good, "report.sets"));
+  for (const std::string& bad : std::vector<std::string>{"", "..", ".", "../x", "/tmp/x", "a/b", "a\\b", ".hidden",
+                                                         "a\x1b[2Jb", std::string(200, 'a')})
+    CHECK_THROWS_WITH(require_plain_name(bad, "report.methods"), Contains("report.methods"));
+  CHECK_THROWS_WITH(parse_report_set("../other=/tmp"), Contains("report.sets") && Contains("separator"));
+}
+
+TEST_CASE("flatnet report: method and set names never leave --out, and folders it did not write are never emptied",
+          "[safe][hostile][cli]") {
+  test::Scratch s("hostile_report");
+  const auto victim = s.dir / "victim";
+  std::filesystem::create_directories(victim);
+  write_file(victim / "precious.txt", "keep me");
+  const auto set = s.dir / "set";
+  std::filesystem::create_directories(set / "gt");
+  std::filesystem::create_directories(set / "meas");
+  std::filesystem::copy_file(test::data_dir() / "golden" / "bsds_16052_raw.png", set / "meas" / "a.png");
+  std::filesystem::copy_file(test::data_dir() / "golden" / "bsds_16052_scene.png", set / "gt" / "a.png");
+  const auto model = test::source_dir() / "models" / "flatnet-sim-transpose.flatnet";
+  for (const auto& spec : {"--methods " + q(victim) + "=" + q(model) + " --sets " + q(set),
+                           "--methods tikhonov --sets " + q("../victim=" + set.string()),
+                           "--methods " + q("../victim=" + model.string()) + " --sets " + q(set)}) {
+    INFO(spec);
+    const auto r = test::run_flatnet("report " + spec + " --out " + q(s.dir / "out"));
+    CHECK(r.code == 2);
+    CHECK_THAT(r.output, Contains("a name becomes one file or folder name"));
+  }
+  CHECK(read_file(victim / "precious.txt") == "keep me");
+  // A folder inside --out that flatnet report did not make (no method.txt) is not emptied.
+  ReportOptions o;
+  o.out = s.dir / "out2";
+  o.methods = {{"tikhonov", "tikhonov", {}}};
+  o.sets = {{"set", set}};
+  o.camera = load_camera_config(test::source_dir() / "configs" / "cameras" / "sim.yaml");
+  o.progress = false;
+  std::filesystem::create_directories(o.out / "set" / "tikhonov");
+  write_file(o.out / "set" / "tikhonov" / "mine.png", "not flatnet's");
+  CHECK_THROWS_WITH(make_report(o), Contains("did not write"));
+  CHECK(read_file(o.out / "set" / "tikhonov" / "mine.png") == "not flatnet's");
+}
+
+TEST_CASE("an output folder's lock is never followed through a link", "[safe][hostile]") {
+  test::Scratch s("hostile_lock");
+  const auto victim = s.dir / "victim.txt";
+  write_file(victim, "the user's file");
+  const auto out = s.dir / "out";
+  std::filesystem::create_directories(out);
+  std::filesystem::create_symlink(victim, out / kOutputLock);
+  OutputRole role;
+  role.command = "recon";
+  CHECK_THROWS_WITH(claim_output_folder(out, role), Contains(kOutputLock) && Contains("symbolic link"));
+  role.force = true;
+  CHECK_THROWS_WITH(claim_output_folder(out, role), Contains("symbolic link"));
+  CHECK(read_file(victim) == "the user's file");
+}
+
+TEST_CASE("ONNX tensors are checked against their bytes before any engine reads them", "[safe][hostile][onnx]") {
+  test::Scratch s("hostile_onnx");
+  auto graph_with = [&](const std::vector<int64_t>& dims, size_t bytes) {
+    onnx::ModelProto m;
+    m.set_ir_version(8);
+    auto* g = m.mutable_graph();
+    auto* t = g->add_initializer();
+    t->set_name("w");
+    t->set_data_type(onnx::TensorProto::FLOAT);
+    for (auto d : dims) t->add_dims(d);
+    t->set_raw_data(std::string(bytes, '\0'));
+    auto add_io = [](onnx::ValueInfoProto* v, const char* name, std::vector<int64_t> shape) {
+      v->set_name(name);
+      auto* tt = v->mutable_type()->mutable_tensor_type();
+      tt->set_elem_type(onnx::TensorProto::FLOAT);
+      for (auto d : shape) tt->mutable_shape()->add_dim()->set_dim_value(d);
+    };
+    add_io(g->add_input(), "meas", {1, 4, 20, 24});
+    add_io(g->add_output(), "image", {1, 3, 16, 16});
+    std::string out;
+    m.SerializeToString(&out);
+    const auto path = s.dir / ("m" + std::to_string(bytes) + ".onnx");
+    write_file(path, out);
+    return path;
+  };
+  CHECK_THROWS_WITH(read_onnx_info(graph_with({256, 1024, 1024}, 4)),
+                    Contains("ONNX tensor 'w'") && Contains("holds 4 bytes"));
+  CHECK_THROWS_WITH(read_onnx_info(graph_with({1, 3, 256, 256}, 4)), Contains("holds 4 bytes"));
+  CHECK_THROWS_WITH(read_onnx_info(graph_with({-1, 4}, 16)), Contains("impossible shape"));
+  CHECK_NOTHROW(read_onnx_info(graph_with({2, 3}, 24)));  // an honest tensor passes
+  // The CLI refuses it in one line, before OpenCV DNN sees the file.
+  const auto r = test::run_flatnet("infer --engine opencv --model " + q(graph_with({256, 1024, 1024}, 4)) +
+                                   " --input " + q(s.dir / "none.png") + " --out " + q(s.dir / "out"));
+  CHECK(r.code == 2);
+}
+
+TEST_CASE("YAML: an alias bomb is refused at once, in every reader", "[safe][hostile][yaml]") {
+  // Nine levels of nine aliases each: 9^9 = 387 M nodes from ~600 bytes.
+  std::string bomb = "a: &a [x, x, x, x, x, x, x, x, x]\n";
+  for (char c = 'b'; c <= 'i'; ++c) {
+    const std::string prev(1, static_cast<char>(c - 1));
+    bomb += std::string(1, c) + ": &" + c + " [*" + prev + ", *" + prev + ", *" + prev + ", *" + prev + ", *" + prev +
+            ", *" + prev + ", *" + prev + ", *" + prev + ", *" + prev + "]\n";
+  }
+  const auto start = std::chrono::steady_clock::now();
+  CHECK_THROWS_WITH(parse_yaml_document(bomb, "bomb.yaml"), Contains("bomb.yaml") && Contains("expands to more than"));
+  CHECK_THROWS_WITH(camera_from_yaml_text(bomb, "camera.yaml"), Contains("expands to more than"));
+  CHECK(std::chrono::steady_clock::now() - start < std::chrono::seconds(5));
+  test::Scratch s("hostile_yaml");
+  write_file(s.dir / "bomb.yaml", bomb);
+  const auto r = test::run_flatnet("train --config " + q(s.dir / "bomb.yaml") + " --out " + q(s.dir / "run"));
+  CHECK(r.code == 2);
+  CHECK_THAT(r.output, Contains("expands to more than"));
+}
+
+TEST_CASE("names flatnet writes into YAML read back as the same names", "[safe][hostile][yaml]") {
+  for (const std::string name : {"FlatCam: lab v2", "#1", "- x", "\"quoted\"", "a 'b' c", "yes", "~", "[1, 2]",
+                                 "{a: b}", "line\nbreak", "&anchor", "*alias", "tab\there", "!tag"}) {
+    INFO(name);
+    CameraConfig c;
+    c.name = name;
+    const auto back = camera_from_yaml_text(camera_geometry_yaml(c), "camera");
+    CHECK(back.name == name);
+  }
+}
+
+TEST_CASE("checkpoint state is checked by its own rules: Adam's moments and betas, step, the generator's state",
+          "[safe][hostile][train]") {
+  const auto ok = torch::ones({3}), negative = -torch::ones({3});
+  CHECK_NOTHROW(require_adam_moments(5, ok, ok, "run/latest.ckpt", "optimizer.u."));
+  CHECK_THROWS_WITH(require_adam_moments(5, ok, negative, "run/latest.ckpt", "optimizer.u."),
+                    Contains("run/latest.ckpt") && Contains("exp_avg_sq") && Contains("negative"));
+  CHECK_THROWS_WITH(require_adam_moments(-5, ok, ok, "run/latest.ckpt", "optimizer.u."), Contains("step"));
+  CHECK_THROWS_WITH(require_adam_moments(1, ok * NAN, ok, "ck", "m."), Contains("NaN"));
+  CHECK_NOTHROW(require_adam_options(0.9, 0.999, 1e-8, 1e-4, 0, "ck", "group 0"));
+  CHECK_THROWS_WITH(require_adam_options(7.5, -3, 1e-8, 1e-4, 0, "ck", "group 0"), Contains("betas"));
+  CHECK_THROWS_WITH(require_adam_options(0.9, 0.999, 0, 1e-4, 0, "ck", "group 0"), Contains("eps"));
+  const auto state = at::detail::getDefaultCPUGenerator().get_state();
+  CHECK_NOTHROW(require_cpu_generator_state(state, "ck", "rng_state"));
+  CHECK_THROWS_WITH(require_cpu_generator_state(torch::full_like(state, 0xff), "run/latest.ckpt", "rng_state"),
+                    Contains("run/latest.ckpt") && Contains("rng_state") && Contains("not a valid state"));
+  CHECK_THROWS_WITH(require_cpu_generator_state(state.slice(0, 0, 10), "ck", "rng"), Contains("bytes expected"));
+}
+
+TEST_CASE("a torch.save archive whose version record claims a gigabyte is refused before LibTorch inflates it",
+          "[safe][hostile][torchfile]") {
+  if (!test::python_has_torch() && std::system("/usr/bin/python3 -c 'import zipfile' >/dev/null 2>&1") != 0)
+    SKIP_TEST("no /usr/bin/python3 to write the zip file");
+  test::Scratch s("hostile_zip");
+  const auto path = s.dir / "bomb.pt";
+  // Python's zipfile, as another tool writes it: a tiny pickle, and a 64 MiB version record deflated.
+  const auto r = test::run_shell(
+      "/usr/bin/python3 -c \"import zipfile, sys; z = zipfile.ZipFile(sys.argv[1], 'w'); "
+      "z.writestr('archive/data.pkl', b'\\x80\\x02}q\\x00.'); "
+      "z.writestr('archive/version', b'3' * (64 << 20), compress_type=zipfile.ZIP_DEFLATED); z.close()\" " +
+      q(path));
+  REQUIRE(r.code == 0);
+  CHECK(std::filesystem::file_size(path) < (1 << 20));
+  CHECK_THROWS_WITH(read_torch_file(path), Contains("bomb.pt") && Contains("version record"));
+}
+
+TEST_CASE("strings from files are escaped before they reach a terminal", "[safe][hostile]") {
+  CHECK(printable("plain text, ünïcode") == "plain text, ünïcode");
+  CHECK(printable("\x1b]0;title\x07\x1b[2J") == "\\x1b]0;title\\x07\\x1b[2J");
+  CHECK(printable("a\rb\nc\x7f") == "a\\x0db\\x0ac\\x7f");
+  // The CLI's one-line errors escape what a file or flag held.
+  test::Scratch s("hostile_tty");
+  const auto r = test::run_flatnet("info " + q(s.dir / "\x1b[31mred.flatnet"));
+  CHECK(r.code == 2);
+  CHECK(r.output.find('\x1b') == std::string::npos);
+  CHECK_THAT(r.output, Contains("\\x1b[31mred.flatnet"));
+}
+
+TEST_CASE("a setting that is not a config key is named as the user typed it", "[safe][hostile][cli]") {
+  test::Scratch s("hostile_key");
+  const auto r = test::run_flatnet("train --config " + q(test::source_dir() / "configs" / "sim_transpose.yaml") +
+                                   " --set experiment.source_camera=X --out " + q(s.dir / "run"));
+  CHECK(r.code == 2);
+  CHECK_THAT(r.output, Contains("'experiment.source_camera'"));
+  CHECK_THAT(r.output, !Contains("'--source-camera'"));
+}
+
+TEST_CASE("the training memory check counts the model's weights and optimiser state", "[safe][hostile][cli]") {
+  test::Scratch s("hostile_width");
+  const auto r = test::run_flatnet("train --config " + q(test::source_dir() / "configs" / "sim_transpose.yaml") +
+                                   " --set model.unet.width=1024 --out " + q(s.dir / "run"));
+  CHECK(r.code == 2);
+  CHECK_THAT(r.output, Contains("model.unet.width") && Contains("optimiser state"));
+  CHECK_FALSE(std::filesystem::exists(s.dir / "run" / "latest.ckpt"));
+}
+
+TEST_CASE("SIGTERM outside a training step ends a command at once, and inside one the step finishes first",
+          "[safe][hostile]") {
+  // In a child process: the handler as the CLI installs it, then the signal.
+  auto child = [](bool inside_step) {
+    const pid_t pid = ::fork();
+    if (pid == 0) {
+      watch_interrupts();
+      if (inside_step) {
+        const FinishItemOnInterrupt step;
+        std::raise(SIGTERM);
+        ::_exit(interrupted() ? 42 : 1);  // the step went on, and the loop will see the flag
+      }
+      std::raise(SIGTERM);  // loading a config, say: nothing to finish
+      ::_exit(0);           // not reached
+    }
+    int status = 0;
+    ::waitpid(pid, &status, 0);
+    return status;
+  };
+  const int outside = child(false);
+  CHECK(WIFSIGNALED(outside));
+  CHECK(WTERMSIG(outside) == SIGTERM);  // a shell reports 143
+  const int inside = child(true);
+  REQUIRE(WIFEXITED(inside));
+  CHECK(WEXITSTATUS(inside) == 42);
+}

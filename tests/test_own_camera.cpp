@@ -1,0 +1,122 @@
+// Your own FlatCam (docs/own-camera.md), at a tiny scale: a camera known only from its display-capture
+// pairs is calibrated from them (`calibrate --dataset`), a model trains on them, and `infer` says each
+// capture fits that camera; captures of another camera are flagged, and --require-fit refuses them.
+#include "catch_torch.hpp"
+
+#include <fstream>
+
+#include "core/util.hpp"
+#include "helpers.hpp"
+#include "io/camera_config.hpp"
+#include "io/image.hpp"
+#include "io/mat.hpp"
+#include "optics/calibrate.hpp"
+#include "optics/camera.hpp"
+
+using namespace flatnet;
+using Catch::Matchers::Contains;
+using test::q;
+
+namespace {
+
+// A 32-pixel FlatCam in the geometry of tests/data/cameras/tiny.yaml (64x80 planes, a 60x76 window):
+// binary masks with about half their features open, the sensor noise of the reference camera.
+void write_tiny_rig(const std::filesystem::path& path, uint64_t seed) {
+  auto gen = at::detail::createCPUGenerator(seed);
+  std::map<std::string, torch::Tensor> vars;
+  for (const char* c : {"b", "gb", "gr", "r"}) {
+    vars[std::string("PhiL_") + c] = (at::rand({64, 32}, gen) > 0.5).to(torch::kFloat64) * 0.06;
+    vars[std::string("PhiR_") + c] = (at::rand({80, 32}, gen) > 0.5).to(torch::kFloat64) * 0.06;
+    vars[std::string("gain_") + c] = torch::full({1, 1}, 1.0, torch::kFloat64);
+  }
+  vars["vig_rows"] = torch::linspace(1e-4, 2e-4, 64, torch::kFloat64).view({1, 64});
+  vars["vig_cols"] = torch::linspace(1e-4, 2e-4, 80, torch::kFloat64).view({1, 80});
+  vars["full_well"] = torch::full({1, 1}, 40000.0, torch::kFloat64);
+  vars["read_noise"] = torch::full({1, 1}, 4.0, torch::kFloat64);
+  vars["dark"] = torch::full({1, 1}, 0.02, torch::kFloat64);
+  vars["adc_bits"] = torch::full({1, 1}, 10.0, torch::kFloat64);
+  write_mat(path, vars);
+}
+
+// The tiny geometry, plus what a camera file may add.
+void write_camera(const std::filesystem::path& path, const std::string& extra) {
+  std::ifstream in(test::data_dir() / "cameras" / "tiny.yaml");
+  std::string text((std::istreambuf_iterator<char>(in)), {});
+  std::ofstream(path) << text << extra;
+}
+
+}  // namespace
+
+TEST_CASE("own camera: calibrate from the dataset, train, infer, and the camera fit says which captures fit",
+          "[cli][own-camera]") {
+  test::Scratch s("own_camera");
+  // The physical camera (its rig stands in for the world) and another one.
+  for (const auto& [name, seed] : std::vector<std::pair<std::string, uint64_t>>{{"truth", 1}, {"other", 2}}) {
+    std::filesystem::create_directories(s.dir / name);
+    write_tiny_rig(s.dir / name / "rig.mat", seed);
+    write_camera(s.dir / name / "camera.yaml", "rig: rig.mat\n");
+  }
+  write_camera(s.dir / "geometry.yaml", "");  // what the user knows: the sensor's geometry alone
+  const auto photos = s.dir / "photos";
+  std::filesystem::create_directories(photos);
+  auto gen = at::detail::createCPUGenerator(9);
+  for (int i = 0; i < 96; ++i)  // random pictures: every spatial frequency is shown, so every one is identified
+    write_rgb8(photos / ("p" + std::to_string(100 + i) + ".png"), at::rand({3, 32, 32}, gen));
+  auto r = test::run_flatnet("simulate --images " + q(photos) + " --camera " + q(s.dir / "truth" / "camera.yaml") +
+                             " --size 32 --val-fraction 0.25 --seed 3 --out " + q(s.dir / "ds"));
+  INFO(r.output);
+  REQUIRE(r.code == 0);
+  r = test::run_flatnet("simulate --images " + q(photos) + " --camera " + q(s.dir / "other" / "camera.yaml") +
+                        " --size 32 --val-fraction 1 --only val --limit 6 --seed 4 --out " + q(s.dir / "other_ds"));
+  REQUIRE(r.code == 0);
+
+  // 1. The calibration from the pairs: FlatNet's layout, a camera.yaml with the noise model beside it.
+  r = test::run_flatnet("calibrate --dataset " + q(s.dir / "ds") + " --camera " + q(s.dir / "geometry.yaml") +
+                        " --out " + q(s.dir / "cal" / "calib.mat") + " --iterations 30");
+  INFO(r.output);
+  REQUIRE(r.code == 0);
+  CHECK_THAT(r.output, Contains("from 72 pairs") && Contains("fit residual"));
+  const auto camera = load_camera_config(s.dir / "cal" / "camera.yaml");
+  CHECK(camera.knows_noise());
+  CHECK(camera.rig.empty());
+  CHECK(camera.noise_gain == Approx(1 / 40000.0).epsilon(0.3));
+  const auto estimate = load_calibration(camera.calibration, camera);
+  const auto truth_camera = load_camera_config(s.dir / "truth" / "camera.yaml");
+  const auto err = calibration_error(estimate, ideal_calibration(load_camera_rig(truth_camera), truth_camera.raw));
+  CHECK(err.forward < 0.1);
+
+  // 2. A model for it, trained on its pairs alone (a few steps).
+  r = test::run_flatnet("train --config " + q(test::source_dir() / "configs" / "sim_transpose.yaml") + test::kOnDisk +
+                        " --set data.dataset=" + q(s.dir / "ds") + " --set data.camera=" + q(s.dir / "cal" / "camera.yaml") +
+                        " --set model.unet.width=2 --set model.level_input=false --set train.crop=0"
+                        " --set train.iterations=2 --set train.val_every=2 --out " + q(s.dir / "run"));
+  INFO(r.output);
+  REQUIRE(r.code == 0);
+  const auto model = s.dir / "run" / "model.flatnet";
+
+  // 3. Its own camera's captures fit; another camera's do not, and --require-fit refuses them.
+  r = test::run_flatnet("infer --model " + q(model) + " --input " + q(s.dir / "ds" / "val_meas.txt") + " --out " +
+                        q(s.dir / "rec"));
+  INFO(r.output);
+  REQUIRE(r.code == 0);
+  CHECK_THAT(r.output, Contains("for camera 'tiny'"));
+  auto rows = read_lines(s.dir / "rec" / "camera_fit.csv");
+  REQUIRE(rows.size() == 25);
+  CHECK(rows[0] == "name,fit,matches");
+  for (size_t i = 1; i < rows.size(); ++i) CHECK(rows[i].substr(rows[i].size() - 2) == ",1");
+  CHECK_THAT(r.output, !Contains("do not fit"));
+
+  r = test::run_flatnet("infer --model " + q(model) + " --input " + q(s.dir / "other_ds" / "val_meas.txt") +
+                        " --out " + q(s.dir / "rec_other"));
+  REQUIRE(r.code == 0);
+  CHECK_THAT(r.output, Contains("6 of 6 captures do not fit camera 'tiny'") && Contains("calibrate --dataset"));
+  rows = read_lines(s.dir / "rec_other" / "camera_fit.csv");
+  REQUIRE(rows.size() == 7);
+  for (size_t i = 1; i < rows.size(); ++i) CHECK(rows[i].substr(rows[i].size() - 2) == ",0");
+
+  r = test::run_flatnet("infer --require-fit --model " + q(model) + " --input " + q(s.dir / "other_ds" / "val_meas.txt") +
+                        " --out " + q(s.dir / "refused"));
+  CHECK(r.code == 2);
+  CHECK_THAT(r.output, Contains("do not fit"));
+  CHECK_FALSE(std::filesystem::exists(s.dir / "refused"));
+}
