@@ -43,12 +43,13 @@ fit_of() {  # SET INPUT: Tikhonov through the reference camera; the fit lands in
   local out=$runs/fit-$1
   [ -f "$out/camera_fit.csv" ] ||
     "$flatnet" recon --method tikhonov --camera "$reference" --input "$2" --out "$out" --force > /dev/null 2>&1 || true
-  awk -F, 'NR > 1 { n++; m += $3; if ($2 > max || n == 1) max = $2; if ($2 < min || n == 1) min = $2 }
-           END { printf "| %d | %d | %.4f | %.4f |", n, m, min, max }' "$out/camera_fit.csv"
+  awk -F, 'NR > 1 { n++; m += $3; if ($2 == "nan") { s++; next }; j++
+                     if (j == 1 || $2 > max) max = $2; if (j == 1 || $2 < min) min = $2 }
+           END { printf "| %d | %d | %d | %.4f | %.4f |", n, m, s, min, max }' "$out/camera_fit.csv"
 }
 {
-  echo "| set | captures | fit the reference camera | lowest fit | highest fit |"
-  echo "|---|---|---|---|---|"
+  echo "| set | captures | fit the reference camera | saturated (not judged) | lowest fit | highest fit |"
+  echo "|---|---|---|---|---|---|"
   for set in reference dim lamp learned random; do
     echo "| $set $(fit_of "$set" "$runs/$set/val_meas.txt")"
   done

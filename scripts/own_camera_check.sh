@@ -3,7 +3,7 @@
 #   camera     random +-1 codes (`flatnet mask camera --random-codes 7 --centring level`): a FlatCam no
 #              shipped model saw; its rig stands in for the world and is used only to simulate
 #   pairs      TRAIN display captures of the first photographs; held-out: HELDOUT captures of the last
-#   calibrate  `calibrate --dataset` from 100, 250 and TRAIN pairs, against the rig's truth
+#   calibrate  `calibrate --dataset` from 100 and TRAIN pairs, against the rig's truth
 #   Tikhonov   on the held-out captures with each calibration, beside the ideal one (the rig's exact
 #              response), the 3 %-error one a careful Hadamard procedure gives (`mask camera`'s calib.mat)
 #              and the simulated Hadamard procedure itself (`calibrate --rig`: 4 x 256 noisy captures)
@@ -25,13 +25,13 @@ cam=$runs/cam
 [ -f "$runs/cam-exact/camera.yaml" ] ||
   "$flatnet" mask camera --codes "$cam/codes.mat" --calib-error 0 --centring level --out "$runs/cam-exact" > /dev/null
 # What the user knows: the geometry (the rig line stays only so that calibrate can print its error).
-grep -v -E '^(calibration|noise_gain|noise_floor|dark):' "$cam/camera.yaml" > "$runs/geometry.yaml"
+grep -v -E '^(calibration|noise_gain|noise_floor|dark):' "$cam/camera.yaml" | sed "s|^rig: .*|rig: $cam/rig.mat|" > "$runs/geometry.yaml"
 
 photo_folder() {  # NAME FIRST COUNT: symlinks to a slice of the sorted photographs
   local dir=$runs/photos-$1
   [ -d "$dir" ] && return 0
   mkdir -p "$dir"
-  find "$photos" -maxdepth 1 -type f | sort | tail -n +"$2" | head -n "$3" | while read -r f; do ln -s "$f" "$dir/"; done
+  find "$photos" -maxdepth 1 -type f | sort | sed -n "$2,$(($2 + $3 - 1))p" | while read -r f; do ln -s "$f" "$dir/"; done
 }
 total=$(find "$photos" -maxdepth 1 -type f | wc -l)
 photo_folder train 1 "$train"
@@ -48,7 +48,7 @@ calibrate() {  # PAIRS
   /usr/bin/time -f "%e s, %M KB" "$flatnet" calibrate --dataset "$runs/ds" --camera "$runs/geometry.yaml" --limit "$1" \
     --out "$out/calib.mat" > "$out/log.txt" 2>&1
 }
-for n in 100 250 "$train"; do calibrate "$n"; done
+for n in 100 "$train"; do calibrate "$n"; done
 [ -f "$runs/cal-hadamard/calib.mat" ] || { mkdir -p "$runs/cal-hadamard" &&
   "$flatnet" calibrate --rig "$cam/camera.yaml" --out "$runs/cal-hadamard/calib.mat" > "$runs/cal-hadamard/log.txt" 2>&1; }
 
@@ -59,7 +59,7 @@ tikhonov() {  # NAME CALIB
 tikhonov exact "$runs/cam-exact/calib.mat"
 tikhonov hadamard-3pct "$cam/calib.mat"
 tikhonov hadamard-sim "$runs/cal-hadamard/calib.mat"
-for n in 100 250 "$train"; do tikhonov "dataset-$n" "$runs/cal-$n/calib.mat"; done
+for n in 100 "$train"; do tikhonov "dataset-$n" "$runs/cal-$n/calib.mat"; done
 
 if [ "$minutes" != 0 ]; then
   run=$runs/adapt-${minutes}min
@@ -82,7 +82,7 @@ fi
 "$flatnet" eval --gt "$runs/heldout/gt" --out "$runs/rec" > "$runs/eval.txt" 2>&1 || true
 {
   echo "calibration errors (forward model, against the rig's truth):"
-  for n in 100 250 "$train"; do echo "  dataset $n pairs: $(grep -h 'relative error' "$runs/cal-$n/log.txt" || true) ($(tail -1 "$runs/cal-$n/log.txt"))"; done
+  for n in 100 "$train"; do echo "  dataset $n pairs: $(grep -h 'relative error' "$runs/cal-$n/log.txt" || true) ($(tail -1 "$runs/cal-$n/log.txt"))"; done
   echo "  simulated Hadamard (1024 captures): $(grep -h 'relative error' "$runs/cal-hadamard/log.txt" || true)"
   echo
   cat "$runs/eval.txt"

@@ -1,6 +1,8 @@
 #pragma once
 // Shared test helpers: paths to fixtures and the shared data, a scratch folder, running the CLI.
 #include <filesystem>
+#include <fstream>
+#include <iterator>
 #include <string>
 
 namespace test {
@@ -44,6 +46,15 @@ bool python_has_torch();
 
 // Two photographs (the golden scenes) copied into `dir`, which is created; returns `dir`.
 fs::path make_photos(const fs::path& dir);
+
+// A file's bytes, written and read as they are (for hand-made hostile files).
+inline void write_file(const fs::path& p, const std::string& bytes) {
+  std::ofstream(p, std::ios::binary).write(bytes.data(), static_cast<std::streamsize>(bytes.size()));
+}
+inline std::string read_file(const fs::path& p) {
+  std::ifstream in(p, std::ios::binary);
+  return std::string(std::istreambuf_iterator<char>(in), {});
+}
 
 // A path quoted for a shell command line.
 inline std::string q(const fs::path& p) { return "'" + p.string() + "'"; }

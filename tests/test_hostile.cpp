@@ -26,21 +26,9 @@
 
 using namespace flatnet;
 using Catch::Matchers::Contains;
-
-namespace {
-
-void write_file(const std::filesystem::path& p, const std::string& bytes) {
-  std::ofstream(p, std::ios::binary).write(bytes.data(), static_cast<std::streamsize>(bytes.size()));
-}
-
-std::string read_file(const std::filesystem::path& p) {
-  std::ifstream in(p, std::ios::binary);
-  return std::string(std::istreambuf_iterator<char>(in), {});
-}
-
-std::string q(const std::filesystem::path& p) { return "'" + p.string() + "'"; }
-
-}  // namespace
+using test::read_file;
+using test::q;
+using test::write_file;
 
 TEST_CASE("a name from a flag or a file becomes one path component or is refused", "[safe][hostile]") {
   for (const std::string good : {"tikhonov", "flatnet-transpose", "lab v2", "dim_room.2"}) CHECK_NOTHROW(require_plain_name(good, "report.sets"));

@@ -22,17 +22,10 @@
 
 using namespace flatnet;
 using Catch::Matchers::Contains;
+using test::read_file;
+using test::write_file;
 
 namespace {
-
-void write_file(const std::filesystem::path& p, const std::string& bytes) {
-  std::ofstream(p, std::ios::binary).write(bytes.data(), static_cast<std::streamsize>(bytes.size()));
-}
-
-std::string read_file(const std::filesystem::path& p) {
-  std::ifstream in(p, std::ios::binary);
-  return std::string(std::istreambuf_iterator<char>(in), {});
-}
 
 // A safetensors file from a header given as JSON text and a byte buffer.
 std::string handmade(const std::string& header, const std::string& buffer) {

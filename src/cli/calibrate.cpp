@@ -1,5 +1,6 @@
 #include <iomanip>
 #include <iostream>
+#include <optional>
 #include <sstream>
 
 #include "cli/commands.hpp"
@@ -40,6 +41,10 @@ int calibrate_from_dataset(const cxxopts::ParseResult& r) {
     }
     require(!pairs.empty(), dir, "holds no train_meas.txt / val_meas.txt lists (FlatNet's layout); or give --meas-list and --gt-list");
   }
+  // A simulated camera's truth, for the error printed at the end: read now, so that a missing rig
+  // is named before the fit runs.
+  std::optional<Calibration> truth;
+  if (!camera.rig.empty()) truth = ideal_calibration(load_camera_rig(camera), camera.raw);
   const auto limit = r["limit"].as<int64_t>();
   require(limit >= 0, "--limit", "0 (all) or more");
   if (limit > 0 && static_cast<int64_t>(pairs.size()) > limit) pairs.resize(static_cast<size_t>(limit));
@@ -79,8 +84,8 @@ int calibrate_from_dataset(const cxxopts::ParseResult& r) {
   for (int c = 0; c < 4; ++c) std::cout << " " << kChannelNames[c] << " " << std::setprecision(4) << fit.residual[c];
   std::cout << "\nsensor noise: variance " << fit.noise_gain << " x (level - " << fit.dark << ") + " << fit.noise_floor
             << " (full well about " << (fit.noise_gain > 0 ? 1 / fit.noise_gain : 0) << " electrons)\n";
-  if (!camera.rig.empty()) {  // a simulated camera: how close to its true response
-    const auto err = calibration_error(fit.calib, ideal_calibration(load_camera_rig(camera), camera.raw));
+  if (truth) {  // a simulated camera: how close to its true response
+    const auto err = calibration_error(fit.calib, *truth);
     std::cout << "relative error against the rig's true response: P " << 100 * err.p << " %, Q " << 100 * err.q
               << " %, forward model " << 100 * err.forward << " %\n";
   }

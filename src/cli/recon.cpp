@@ -49,6 +49,7 @@ int recon(int argc, char** argv) {
   std::cout << spec.method << ": " << rep.count << " captures -> " << opt.out.string() << " (" << rep.ms_per_capture
             << " ms per capture reconstruction, " << rep.seconds << " s in all)\n";
   if (built.fit && rep.misfits > 0) std::cerr << "warning: " << camera_fit_warning(rep, *built.fit) << "\n";
+  if (built.fit && rep.unjudged > 0) std::cerr << "note: " << camera_fit_note(rep) << "\n";
   return 0;
 }
 

@@ -240,6 +240,7 @@ int infer(int argc, char** argv) {
             << " images/s, " << rep.ms_per_capture << " ms per image in the network; the first batch, which sets it up, "
             << rep.first_batch_ms << " ms per image)\n";
   if (built.fit && rep.misfits > 0) std::cerr << "warning: " << camera_fit_warning(rep, *built.fit) << "\n";
+  if (built.fit && rep.unjudged > 0) std::cerr << "note: " << camera_fit_note(rep) << "\n";
   return 0;
 }
 

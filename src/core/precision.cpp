@@ -126,6 +126,13 @@ bool g_mkldnn_before = true;
 std::mutex g_bf16_scope_mutex;
 }  // namespace
 
+void use_bf16_kernels_for_process() {
+  if (cpu_features().onednn_bf16) return;
+  std::lock_guard<std::mutex> lock(g_bf16_scope_mutex);
+  at::globalContext().setUserEnabledMkldnn(false);
+  g_mkldnn_before = false;  // open scopes restore "off" too
+}
+
 Bf16KernelScope::Bf16KernelScope(bool enabled) : active_(enabled && !cpu_features().onednn_bf16) {
   if (!active_) return;
   std::lock_guard<std::mutex> lock(g_bf16_scope_mutex);
@@ -153,6 +160,7 @@ bool request_amx_permission() {
 
 AutocastGuard::AutocastGuard(bool enabled) : enabled_(enabled), kernels_(enabled) {
   if (!enabled_) return;
+  use_bf16_kernels_for_process();  // autocast means training: its backward pass runs after this guard
   prev_enabled_ = at::autocast::is_cpu_enabled();
   prev_dtype_ = static_cast<int>(at::autocast::get_autocast_cpu_dtype());
   at::autocast::set_cpu_enabled(true);

@@ -44,6 +44,8 @@ std::string describe_precision(Precision p, const CpuFeatures& cpu = cpu_feature
 // AVX-512, or capped), LibTorch's oneDNN path is switched off so that its own kernels run them
 // (LibTorch 1.13 asks cpuinfo, not oneDNN, and would call oneDNN anyway: "could not create a
 // primitive descriptor iterator"). Nested and thread-safe by count; a no-op where oneDNN has bf16.
+// The same for the rest of the process: bf16 training, whose backward pass runs outside any scope.
+void use_bf16_kernels_for_process();
 class Bf16KernelScope {
  public:
   explicit Bf16KernelScope(bool enabled = true);
@@ -61,7 +63,8 @@ bool request_amx_permission();
 
 // bf16 autocast on the CPU for the current thread while alive (torch.autocast('cpu',
 // torch.bfloat16) in C++): convolutions and matmuls run in bf16, parameters stay fp32 and get
-// fp32 gradients. Leaving the outermost guard clears the cast cache (stale casts of updated
+// fp32 gradients. Where oneDNN has no bf16 kernels, the first enabled guard switches LibTorch's
+// oneDNN path off for the process (use_bf16_kernels_for_process): the backward pass comes later. Leaving the outermost guard clears the cast cache (stale casts of updated
 // weights would otherwise be reused). Enabled = false makes it a no-op.
 class AutocastGuard {
  public:

@@ -615,6 +615,11 @@ void GeneratorImpl::prepare_training(const InferenceLevers& levers) {
   apply_levers(l, false);
 }
 
+void GeneratorImpl::set_autocast_bf16(bool on) {
+  autocast_bf16_ = on;
+  if (on) use_bf16_kernels_for_process();
+}
+
 void GeneratorImpl::prepare_inference(const InferenceLevers& levers) {
   eval();
   apply_levers(levers, true);

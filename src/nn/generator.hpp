@@ -212,7 +212,9 @@ class GeneratorImpl : public torch::nn::Module {
   void prepare_training(const InferenceLevers& levers);
   // Mixed precision for training: the BN and enhancer run under bf16 autocast (weights, their
   // gradients and Adam's state stay fp32); the inversion's matmuls and the output sigmoid stay fp32.
-  void set_autocast_bf16(bool on) { autocast_bf16_ = on; }
+  // Where oneDNN has no bf16 kernels this also switches LibTorch's oneDNN path off for the process
+  // (core/precision: the backward pass runs outside any scope the forward pass holds).
+  void set_autocast_bf16(bool on);
   bool autocast_bf16() const { return autocast_bf16_; }
 
  private:

@@ -108,14 +108,19 @@ torch::Tensor residual_energy(const Sums& t, const torch::Tensor& F, const torch
       .clamp_min(0);
 }
 
-// One step: F and M minimising sum ||Y - F Z - s M||^2, M eliminated (the header's formula).
-std::pair<torch::Tensor, torch::Tensor> solve_step(const Sums& t, double ridge) {
+// One step: F and M minimising sum ||Y - F Z - s M||^2 + r ||F||^2, M eliminated (the header's
+// formula). r per channel: `prior` = sigma^2 / mean(F^2) once the noise is known (the MAP estimate
+// for Gaussian noise and a Gaussian prior on F's entries: directions the photographs hardly show,
+// their fine detail, shrink to zero instead of fitting the noise); before, `ridge` times the Gram
+// matrix's mean diagonal.
+std::pair<torch::Tensor, torch::Tensor> solve_step(const Sums& t, double ridge, const torch::Tensor& prior) {
   const auto S2 = t.S2.clamp_min(1e-30).view({4, 1, 1});
   const auto gram = t.A - torch::matmul(t.Sz, t.Sz.transpose(1, 2)) / S2;        // {4,N,N}
   const auto rhs = t.B - torch::matmul(t.Sy, t.Sz.transpose(1, 2)) / S2;          // {4,m,N}
   const auto dim = gram.size(1);
   const auto mean_diag = gram.diagonal(0, 1, 2).mean(1).clamp_min(1e-30);
-  const auto regularised = gram + ridge * mean_diag.view({4, 1, 1}) * torch::eye(dim, gram.options()).unsqueeze(0);
+  const auto r = prior.defined() ? prior.to(torch::kFloat64) : ridge * mean_diag;
+  const auto regularised = gram + r.view({4, 1, 1}) * torch::eye(dim, gram.options()).unsqueeze(0);
   const auto F = torch::linalg_solve(regularised, rhs.transpose(1, 2)).transpose(1, 2);  // gram is symmetric
   const auto M = (t.Sy - torch::matmul(F, t.Sz)) / S2;
   return {F, M};
@@ -165,11 +170,17 @@ DatasetCalibration calibrate_from_pairs(int64_t count, const std::function<Captu
   const auto q_design = [&](const CapturePair& p) {
     return std::make_pair(p.meas.transpose(1, 2), torch::matmul(P, split_scene(p.scene).second).transpose(1, 2));
   };
+  torch::Tensor noise_var;  // {4} the residual per pixel: the noise, once a model exists
+  const double pixels = static_cast<double>(count * rows * cols);
+  const auto prior_for = [&](const torch::Tensor& F) {
+    return noise_var.defined() ? noise_var / F.to(torch::kFloat64).square().mean({1, 2}).clamp_min(1e-30) : torch::Tensor();
+  };
   for (int it = 0; it <= o.iterations; ++it) {
     // The P-step's pass also scores the current (P, Q, M).
     const auto sums = accumulate(pairs, P, M, p_design);
     if (P.defined()) {
       const auto energy = residual_energy(sums, P.to(torch::kFloat64), M.to(torch::kFloat64));
+      noise_var = energy / pixels;
       const auto rel = (energy / sums.norm.clamp_min(1e-30)).sqrt();
       for (int c = 0; c < 4; ++c) result.residual[c] = rel[c].item<double>();
       const double total = std::sqrt(energy.sum().item<double>() / std::max(1e-30, sums.norm.sum().item<double>()));
@@ -182,11 +193,11 @@ DatasetCalibration calibrate_from_pairs(int64_t count, const std::function<Captu
       if (last - total < o.tolerance * last || it == o.iterations) break;
       last = total;
     }
-    auto [F, Mp] = solve_step(sums, o.ridge);
+    auto [F, Mp] = solve_step(sums, o.ridge, P.defined() ? prior_for(P) : torch::Tensor());
     P = F.to(torch::kFloat32);
     M = Mp.to(torch::kFloat32);
     const auto qsums = accumulate(pairs, {}, {}, q_design);
-    auto [G, Mq] = solve_step(qsums, o.ridge);
+    auto [G, Mq] = solve_step(qsums, o.ridge, prior_for(Q));
     Q = G.to(torch::kFloat32);
     M = Mq.transpose(1, 2).to(torch::kFloat32);
     balance(P, Q);

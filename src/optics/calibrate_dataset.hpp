@@ -38,7 +38,8 @@ struct CapturePair {
 struct DatasetCalibrationOptions {
   int iterations = 30;         // alternating passes at most (each reads the pairs twice)
   double tolerance = 1e-4;     // stop when the relative residual improves by less than this
-  double ridge = 1e-6;         // r above, relative to the Gram matrix's mean diagonal
+  double ridge = 1e-6;         // r above for the first step, relative to the Gram matrix's mean diagonal;
+                               // then r = noise variance / mean square of the factor (a Gaussian prior)
   uint64_t seed = 0;           // the random start of Q
   int64_t cache_bytes = 2ll << 30;  // decoded pairs kept in memory; the rest are re-read
   bool progress = true;

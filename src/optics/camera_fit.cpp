@@ -1,6 +1,8 @@
 #include "optics/camera_fit.hpp"
 
+#include <algorithm>
 #include <cmath>
+#include <vector>
 
 #include "core/error.hpp"
 #include "core/util.hpp"
@@ -11,16 +13,37 @@ namespace flatnet {
 namespace {
 
 // The largest singular value squared of each {h,w} matrix, by power iteration on R^T R (the
-// open part's rank-1 light dominates it when present; otherwise the noise's largest).
+// open part's rank-1 light dominates it when present; otherwise the noise's largest). Plain loops on
+// one thread: 30 pairs of matrix-vector products are far too small to share between threads, and
+// LibTorch's parallel batched products of one column cost a scheduler slice each on a busy machine.
 torch::Tensor top_singular_squared(const torch::Tensor& R) {
-  auto v = torch::ones({R.size(0), R.size(2), 1}, R.options()) / std::sqrt(static_cast<double>(R.size(2)));
-  torch::Tensor norm2;
-  for (int i = 0; i < 30; ++i) {
-    const auto w = torch::matmul(R.transpose(1, 2), torch::matmul(R, v));  // {4,w,1}
-    norm2 = (v * w).sum({1, 2});                                           // v^T R^T R v
-    v = w / w.norm(2, {1, 2}, true).clamp_min(1e-30);
+  const auto Rc = R.to(torch::kFloat64).contiguous();
+  const int64_t channels = Rc.size(0), h = Rc.size(1), w = Rc.size(2);
+  auto out = torch::zeros({channels}, torch::kFloat64);
+  std::vector<double> v(static_cast<size_t>(w)), u(static_cast<size_t>(h)), next(static_cast<size_t>(w));
+  for (int64_t c = 0; c < channels; ++c) {
+    const double* m = Rc.data_ptr<double>() + c * h * w;
+    std::fill(v.begin(), v.end(), 1.0 / std::sqrt(static_cast<double>(w)));
+    double norm2 = 0;
+    for (int it = 0; it < 30; ++it) {
+      for (int64_t i = 0; i < h; ++i) {  // u = R v
+        double acc = 0;
+        for (int64_t j = 0; j < w; ++j) acc += m[i * w + j] * v[static_cast<size_t>(j)];
+        u[static_cast<size_t>(i)] = acc;
+      }
+      std::fill(next.begin(), next.end(), 0.0);  // next = R^T u
+      for (int64_t i = 0; i < h; ++i)
+        for (int64_t j = 0; j < w; ++j) next[static_cast<size_t>(j)] += m[i * w + j] * u[static_cast<size_t>(i)];
+      double vw = 0, nn = 0;
+      for (int64_t j = 0; j < w; ++j) vw += v[static_cast<size_t>(j)] * next[static_cast<size_t>(j)], nn += next[static_cast<size_t>(j)] * next[static_cast<size_t>(j)];
+      norm2 = vw;  // v^T R^T R v, v of unit length
+      if (nn <= 0) break;
+      const double inv = 1 / std::sqrt(nn);
+      for (int64_t j = 0; j < w; ++j) v[static_cast<size_t>(j)] = next[static_cast<size_t>(j)] * inv;
+    }
+    out[c] = norm2;
   }
-  return norm2;
+  return out;
 }
 
 }  // namespace
@@ -53,7 +76,10 @@ CameraFitResult CameraFit::measure(const torch::Tensor& raw_unit) const {
   const auto R = (Y - inside).to(torch::kFloat64);
   const auto unexplained = R.square().sum() - top_singular_squared(R).sum();
   // The noise model, pixel by pixel: clipped pixels carry no noise.
-  const auto saturated = window >= 1.0f - 1e-6f;
+  // Full scale is the ADC's top code as stored: (2^bits - 1) * 2^(16 - bits) / 65535 (0.99902 at 10 bits).
+  const int bits = g.adc_bits;
+  const double top = static_cast<double>(((1 << bits) - 1) * (1 << (16 - bits))) / 65535.0;
+  const auto saturated = window >= static_cast<float>(top - 0.5 / 65535.0);
   const auto var = torch::where(saturated, torch::zeros_like(window),
                                 (window - camera_.dark).clamp_min(0) * camera_.noise_gain + camera_.noise_floor)
                        .to(torch::kFloat64);
@@ -66,7 +92,10 @@ CameraFitResult CameraFit::measure(const torch::Tensor& raw_unit) const {
   CameraFitResult r;
   r.fit = unexplained.item<double>() / std::max(1e-30, expected.sum().item<double>());
   r.saturated = saturated.to(torch::kFloat32).mean().item<double>();
-  r.matches = std::isfinite(r.fit) && r.fit <= threshold_;
+  // A capture with clipped pixels breaks the noise model (a clipped pixel reads no noise, and the
+  // clipping itself is no P X Q^T): beyond 1 % of the window it cannot be judged, and is not flagged.
+  r.judged = r.saturated <= 0.01;
+  r.matches = !r.judged || (std::isfinite(r.fit) && r.fit <= threshold_);
   return r;
 }
 

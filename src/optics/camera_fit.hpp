@@ -28,6 +28,7 @@ struct CameraFitResult {
   double fit = 0;        // unexplained energy over what the noise model predicts (1: a perfect fit)
   bool matches = false;  // fit <= the threshold
   double saturated = 0;  // share of the window's pixels at full scale (their noise is clipped)
+  bool judged = true;    // false when over 1 % of the pixels are saturated: matches is then true
 };
 
 class CameraFit {

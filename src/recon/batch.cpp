@@ -2,6 +2,7 @@
 
 #include <fnmatch.h>
 
+#include <cmath>
 #include <iomanip>
 #include <map>
 #include <sstream>
@@ -83,6 +84,7 @@ struct FitRow {
 };
 
 void note_fit(BatchReport& report, const FitRow& row) {
+  if (!row.result.judged) ++report.unjudged;
   if (row.result.matches) return;
   ++report.misfits;
   if (row.result.fit > report.worst_fit || report.worst.empty()) report.worst = row.name, report.worst_fit = row.result.fit;
@@ -91,7 +93,9 @@ void note_fit(BatchReport& report, const FitRow& row) {
 void write_fit_csv(const std::filesystem::path& path, const std::vector<FitRow>& rows) {
   std::ostringstream csv;
   csv << "name,fit,matches\n";
-  for (const auto& r : rows) csv << csv_field(r.name) << "," << std::setprecision(6) << r.result.fit << "," << (r.result.matches ? 1 : 0) << "\n";
+  for (const auto& r : rows)  // a saturated capture's fit means nothing: written as nan, and not flagged
+    csv << csv_field(r.name) << "," << std::setprecision(6) << (r.result.judged ? r.result.fit : std::nan("")) << ","
+        << (r.result.matches ? 1 : 0) << "\n";
   write_text_atomically(path, csv.str());
 }
 
@@ -104,6 +108,12 @@ void require_all_fit(const CameraFit& fit, const std::vector<std::filesystem::pa
 }
 
 }  // namespace
+
+std::string camera_fit_note(const BatchReport& report) {
+  if (report.unjudged == 0) return "";
+  return std::to_string(report.unjudged) + " of " + std::to_string(report.count) +
+         " captures have over 1 % of their pixels at full scale: their camera fit is not judged (nan in camera_fit.csv)";
+}
 
 std::string camera_fit_warning(const BatchReport& report, const CameraFit& fit) {
   if (report.misfits == 0) return "";

@@ -31,6 +31,7 @@ struct BatchOptions {
 struct BatchReport {
   int64_t count = 0;
   int64_t misfits = 0;         // captures whose camera fit failed
+  int64_t unjudged = 0;        // captures too saturated for the camera fit to judge
   std::string worst;           // the worst-fitting capture's name, and its fit
   double worst_fit = 0;
   // The engine alone (no file I/O), in steady state: when there is more than one batch the first is
@@ -45,6 +46,8 @@ struct BatchReport {
 // One line for the user when captures do not fit the camera ("" when all fit): how many, the worst,
 // and what to do.
 std::string camera_fit_warning(const BatchReport& report, const CameraFit& fit);
+// One line when saturated captures were not judged ("" when none).
+std::string camera_fit_note(const BatchReport& report);
 
 // `camera` is the preprocessing the engine expects (BuiltReconstructor::camera).
 BatchReport reconstruct_files(Reconstructor& engine, const CameraConfig& camera,
