@@ -158,7 +158,7 @@ bool request_amx_permission() {
 #endif
 }
 
-AutocastGuard::AutocastGuard(bool enabled) : enabled_(enabled), kernels_(enabled) {
+AutocastGuard::AutocastGuard(bool enabled) : enabled_(enabled) {
   if (!enabled_) return;
   use_bf16_kernels_for_process();  // autocast means training: its backward pass runs after this guard
   prev_enabled_ = at::autocast::is_cpu_enabled();

@@ -76,7 +76,6 @@ class AutocastGuard {
  private:
   bool enabled_, prev_enabled_ = false;
   int prev_dtype_ = 0;
-  Bf16KernelScope kernels_;
 };
 
 // Switches autocast off for the current thread while alive (for stages that must stay fp32 inside

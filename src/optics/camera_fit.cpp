@@ -64,6 +64,7 @@ CameraFit::CameraFit(const Calibration& calib, const CameraConfig& camera) : cam
   // Chance alone: the pooled energy of 4 * dof noise terms has relative deviation sqrt(2 / (4 dof)).
   // Six deviations, and 1 % for calibration error and the noise model's own.
   threshold_ = 1 + 6 * std::sqrt(2 / (4 * dof)) + 0.01;
+  outside_share_ = (dof - std::pow(std::sqrt(h - 1) + std::sqrt(w - 1), 2)) / (h * w);
 }
 
 CameraFitResult CameraFit::measure(const torch::Tensor& raw_unit) const {
@@ -83,14 +84,9 @@ CameraFitResult CameraFit::measure(const torch::Tensor& raw_unit) const {
   const auto var = torch::where(saturated, torch::zeros_like(window),
                                 (window - camera_.dark).clamp_min(0) * camera_.noise_gain + camera_.noise_floor)
                        .to(torch::kFloat64);
-  const double h = static_cast<double>(window.size(1)), w = static_cast<double>(window.size(2));
-  const double n = static_cast<double>(U_.size(2));
-  const double dof = (h - 1) * (w - 1) - n * n;
-  const auto per_channel_var = var.sum({1, 2});  // {4}
-  const auto expected = per_channel_var * (dof / (h * w)) -
-                        per_channel_var / (h * w) * std::pow(std::sqrt(h - 1) + std::sqrt(w - 1), 2);
+  const double expected = var.sum().item<double>() * outside_share_;
   CameraFitResult r;
-  r.fit = unexplained.item<double>() / std::max(1e-30, expected.sum().item<double>());
+  r.fit = unexplained.item<double>() / std::max(1e-30, expected);
   r.saturated = saturated.to(torch::kFloat32).mean().item<double>();
   // A capture with clipped pixels breaks the noise model (a clipped pixel reads no noise, and the
   // clipping itself is no P X Q^T): beyond 1 % of the window it cannot be judged, and is not flagged.

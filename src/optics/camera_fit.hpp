@@ -45,6 +45,9 @@ class CameraFit {
   torch::Tensor U_, V_;  // {4,h,N}, {4,w,N} orthonormal, float32
   CameraConfig camera_;
   double threshold_ = 0;
+  // Of a pixel's noise variance, the share expected outside the span: dof / (h w), less what the
+  // rank-1 component takes, (sqrt(h-1) + sqrt(w-1))^2 / (h w).
+  double outside_share_ = 0;
 };
 
 }  // namespace flatnet

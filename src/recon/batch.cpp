@@ -99,12 +99,19 @@ void write_fit_csv(const std::filesystem::path& path, const std::vector<FitRow>&
   write_text_atomically(path, csv.str());
 }
 
-// --require-fit: every capture is measured before anything is reconstructed.
-void require_all_fit(const CameraFit& fit, const std::vector<std::filesystem::path>& captures, const RawGeometry& g) {
+// --require-fit: every capture is measured before anything is reconstructed; the fits are kept for
+// camera_fit.csv, so the batch loop does not measure them again.
+std::vector<FitRow> require_all_fit(const CameraFit& fit, const std::vector<std::filesystem::path>& captures,
+                                    const RawGeometry& g) {
   BatchReport probe;
   probe.count = static_cast<int64_t>(captures.size());
-  for (const auto& c : captures) note_fit(probe, {c.filename().string(), fit.measure(load_raw_unit(c, g))});
+  std::vector<FitRow> rows;
+  for (const auto& c : captures) {
+    rows.push_back({c.filename().string(), fit.measure(load_raw_unit(c, g))});
+    note_fit(probe, rows.back());
+  }
   if (probe.misfits > 0) throw Error("recon.require_fit", camera_fit_warning(probe, fit));
+  return rows;
 }
 
 }  // namespace
@@ -132,11 +139,12 @@ BatchReport reconstruct_files(Reconstructor& engine, const CameraConfig& camera,
   require(!captures.empty(), "recon.input", "no captures to reconstruct");
   require(opt.batch >= 1, "recon.batch", "must be at least 1");
   check_output_names(captures, opt.out);
-  if (opt.fit && opt.require_fit) require_all_fit(*opt.fit, captures, camera.raw);
+  std::vector<FitRow> fits;  // in capture order
+  if (opt.fit && opt.require_fit) fits = require_all_fit(*opt.fit, captures, camera.raw);
+  const bool measured = !fits.empty();
   std::filesystem::create_directories(opt.out);
   c10::InferenceMode no_grad;
   BatchReport report;
-  std::vector<FitRow> fits;
   Progress progress(opt.label, static_cast<int64_t>(captures.size()), opt.progress);
   const auto start = std::chrono::steady_clock::now();
   double engine_s = 0, first_batch_s = 0;
@@ -148,8 +156,8 @@ BatchReport reconstruct_files(Reconstructor& engine, const CameraConfig& camera,
       const auto raw = load_raw_unit(captures[i], camera.raw);
       planes.push_back(preprocess_raw(raw, camera.raw));
       if (opt.fit) {
-        fits.push_back({captures[i].filename().string(), opt.fit->measure(raw)});
-        note_fit(report, fits.back());
+        if (!measured) fits.push_back({captures[i].filename().string(), opt.fit->measure(raw)});
+        note_fit(report, fits[i]);
       }
     }
     const auto t0 = std::chrono::steady_clock::now();
