@@ -247,6 +247,15 @@ TEST_CASE("train, export, import and infer from the command line, and bad input 
   fresh = test::run_flatnet(base + " --set train.iterations=1 --set train.val_every=1 --out " + q(s.dir / "dead") + " --force");
   CHECK(fresh.code == 0);
   CHECK(read_lines(s.dir / "dead" / "val.csv").size() == 2);  // header and this run's one row
+  // Another run's checkpoint copied in: refused, naming both runs and --force; the folder unchanged.
+  const auto own_checkpoint = read_bytes(s.dir / "run" / "latest.ckpt");
+  std::filesystem::copy_file(s.dir / "dead" / "latest.ckpt", s.dir / "run" / "latest.ckpt",
+                             std::filesystem::copy_options::overwrite_existing);
+  auto mixed = test::run_flatnet("train --out " + q(s.dir / "run") + " --resume --set train.iterations=2");
+  CHECK(mixed.code == 2);
+  CHECK_THAT(mixed.output, Contains("latest.ckpt") && Contains("belongs to another run") && Contains("--force"));
+  CHECK(read_bytes(s.dir / "run" / "config.yaml") == config_before);
+  test::write_file(s.dir / "run" / "latest.ckpt", std::string(own_checkpoint.begin(), own_checkpoint.end()));
   // A log row cut short (a crash while writing) does not block the resume.
   std::ofstream(s.dir / "run" / "log.csv", std::ios::app) << "2,0.5,0.";
   std::ofstream(s.dir / "run" / "log.csv", std::ios::app) << "\ngarbage\n";

@@ -23,6 +23,8 @@
 #include "io/yaml_text.hpp"
 #include "nn/onnx_export.hpp"
 #include "nn/optimizer_state.hpp"
+#include "optics/camera.hpp"
+#include "optics/simulator.hpp"
 
 using namespace flatnet;
 using Catch::Matchers::Contains;
@@ -151,6 +153,34 @@ TEST_CASE("names flatnet writes into YAML read back as the same names", "[safe][
     const auto back = camera_from_yaml_text(camera_geometry_yaml(c), "camera");
     CHECK(back.name == name);
   }
+}
+
+TEST_CASE("a dataset's settings record reads back as written, whatever its folder is called",
+          "[safe][hostile][yaml][optics]") {
+  test::Scratch s("simrecord");
+  const auto rig = load_rig(test::rig_path());
+  SimulateOptions o;
+  o.images = test::make_photos(s.dir / "photos: a #b\nc - d");
+  o.out = s.dir / "out";
+  o.limit = 1, o.workers = 1;
+  simulate_dataset(rig, o);
+  const auto record = parse_yaml_document(read_file(o.out / "simulate.yaml"), "simulate.yaml");
+  CHECK(record["images"].Scalar() == std::filesystem::weakly_canonical(o.images).string());
+  CHECK(record["lamp_gain"].Scalar() == "-");
+  CHECK_NOTHROW(simulate_dataset(rig, o));  // the same settings: a rerun, not "other settings"
+  o.seed = 7;
+  CHECK_THROWS_WITH(simulate_dataset(rig, o), Contains("other settings") && Contains("seed 0 -> 7"));
+  // A record written before values were quoted ("lamp_gain: -" reads as a YAML list) still matches.
+  o.seed = 0;
+  o.images = test::make_photos(s.dir / "plain");
+  o.out = s.dir / "out_before_quoting";
+  simulate_dataset(rig, o);
+  std::string unquoted;
+  for (const auto& kv : parse_yaml_document(read_file(o.out / "simulate.yaml"), "simulate.yaml"))
+    unquoted += kv.first.Scalar() + ": " + kv.second.Scalar() + "\n";
+  CHECK_THAT(unquoted, Contains("lamp_gain: -\n"));
+  write_file(o.out / "simulate.yaml", unquoted);
+  CHECK_NOTHROW(simulate_dataset(rig, o));
 }
 
 TEST_CASE("checkpoint state is checked by its own rules: Adam's moments and betas, step, the generator's state",

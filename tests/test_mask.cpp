@@ -153,6 +153,19 @@ TEST_CASE("mask training resumes from its checkpoint as if never stopped, and re
   const auto run = s.dir / "split_sgd";
   MaskTrainOptions t;
   t.iterations = 8, t.batch = 2, t.val_every = 2, t.log_every = 1, t.progress = false, t.resume = true, t.out = run;
+  // Another run's checkpoint (the straight run's, of the same settings) copied in: refused, naming
+  // the setting that resumes it anyway; with it, the run goes on as that run.
+  std::filesystem::copy_file(s.dir / "straight_sgd" / "latest.ckpt", run / "latest.ckpt",
+                             std::filesystem::copy_options::overwrite_existing);
+  {
+    MaskModel m(mo);
+    CHECK_THROWS_WITH(train_mask(m, train, val, cam, t),
+                      Contains("latest.ckpt") && Contains("belongs to another run") && Contains("--force"));
+    t.force = true;
+    CHECK(train_mask(m, train, val, cam, t).steps == 8);
+    CHECK(read_file_text(run / "run_id.txt") == read_file_text(s.dir / "straight_sgd" / "run_id.txt"));
+    t.force = false;
+  }
   // Another rank, another optimiser, a damaged file, NaN weights: refused, naming the file and why.
   MaskOptions rank1 = mo;
   rank1.rank = 1;

@@ -85,6 +85,7 @@ int mask_train(int argc, char** argv) {
   read_options(c, mask_train_fields(), to);
   to.out = out;
   to.resume = resume;
+  to.force = r.count("force") > 0;
   require(to.gamma_init > 0, "train.gamma_init", "must be positive");
   MaskModel model(mo);  // validates rank, projection, throughput rule
   auto [train_imgs, val_imgs] =
@@ -292,6 +293,7 @@ int mask_separable(int argc, char** argv) {
   require(opt.val_count >= 1, "train.val_count", "at least 1 (the code pair's validation needs photographs)");
   opt.out = out;
   opt.resume = resume;
+  opt.force = r.count("force") > 0;
   const auto claim = claim_out(r, opt.out, "mask separable");
   write_text_atomically(opt.out / "config.yaml", c.to_yaml());
   watch_interrupts();

@@ -10,6 +10,7 @@
 #include "core/error.hpp"
 #include "core/util.hpp"
 #include "io/image.hpp"
+#include "io/yaml_text.hpp"
 
 namespace flatnet {
 
@@ -143,12 +144,29 @@ std::vector<std::pair<std::string, std::string>> dataset_settings(const Simulate
           {"lamp_gain", opt.lamp ? number(opt.lamp_gain) : "-"}};
 }
 
+// The record as YAML (values are written quoted: a folder named "a: b #c" or holding a newline reads
+// back as itself); a record that is not a mapping of scalars, as from before quoting, line by line.
 std::map<std::string, std::string> read_settings(const std::filesystem::path& file) {
   std::map<std::string, std::string> out;
+  try {
+    const auto doc = parse_yaml_document(read_file_text(file, 1 << 20), file);
+    bool scalars = doc.IsMap();
+    for (const auto& kv : doc.IsMap() ? doc : YAML::Node())
+      if (kv.first.IsScalar() && (kv.second.IsScalar() || kv.second.IsNull()))
+        out[kv.first.Scalar()] = kv.second.IsNull() ? "" : kv.second.Scalar();
+      else
+        scalars = false;  // an unquoted "lamp_gain: -" of an older record reads as a list
+    if (scalars) return out;
+  } catch (const Error&) {
+  }
+  out.clear();
   for (const auto& line : read_lines(file)) {
     if (line.empty() || line[0] == '#') continue;
-    const auto colon = line.find(": ");
-    if (colon != std::string::npos) out[line.substr(0, colon)] = line.substr(colon + 2);
+    const auto colon = line.find(':');  // keys hold no colon; "camera:" is an empty value
+    if (colon == std::string::npos) continue;
+    auto value = line.substr(colon + 1);
+    if (!value.empty() && value[0] == ' ') value.erase(0, 1);
+    out[line.substr(0, colon)] = value;
   }
   return out;
 }
@@ -183,7 +201,7 @@ void check_and_record_settings(const SimulateOptions& opt) {
               << "this run's settings in simulate.yaml\n";
   }
   std::string text = "# the settings of `flatnet simulate` that made this dataset (a rerun must match them)\n";
-  for (const auto& [key, value] : settings) text += key + ": " + value + "\n";
+  for (const auto& [key, value] : settings) text += key + ": " + yaml_quoted(value) + "\n";
   std::filesystem::create_directories(opt.out);
   write_text_atomically(record, text);
 }

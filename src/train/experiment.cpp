@@ -16,6 +16,7 @@
 #include "optics/camera.hpp"
 #include "optics/simulator.hpp"
 #include "train/options.hpp"
+#include "train/run_id.hpp"
 
 namespace flatnet {
 
@@ -134,28 +135,6 @@ std::vector<std::filesystem::path> run_files(const std::filesystem::path& out) {
   return found;
 }
 
-// A new run's id: 16 hex digits from the system's entropy source.
-std::string new_run_id() {
-  std::random_device entropy;
-  std::ostringstream id;
-  id << std::hex << std::setfill('0') << std::setw(8) << entropy() << std::setw(8) << entropy();
-  return id.str();
-}
-
-// A run folder records its run's id (run_id.txt) and every checkpoint carries it: a latest.ckpt of
-// another run, copied in, would resume that run's weights under this folder's best.ckpt and logs.
-void require_checkpoint_of_this_run(const std::filesystem::path& out, const std::filesystem::path& latest, bool force) {
-  const auto record = out / "run_id.txt";
-  if (force || !std::filesystem::exists(record)) return;  // runs from before run ids: nothing to compare
-  auto folder_id = read_file_text(record, 256);
-  while (!folder_id.empty() && (folder_id.back() == '\n' || folder_id.back() == '\r')) folder_id.pop_back();
-  const auto file_id = checkpoint_run_id(latest);
-  require(file_id == folder_id, latest,
-          "belongs to another run (run id " + (file_id.empty() ? std::string("none") : file_id) + "; this folder's run is " +
-              printable(folder_id.substr(0, 16)) +
-              "); it was copied in from elsewhere? Set experiment.force to resume it here anyway");
-}
-
 // Memory the machine can still give (MemAvailable), in bytes; 0 when unknown.
 double available_memory_bytes() {
   std::ifstream in("/proc/meminfo");  // procfs reports size 0: read as a stream
@@ -258,7 +237,7 @@ ExperimentResult run_experiment(const ExperimentOptions& o) {
   Config config;
   if (resume) {
     require(std::filesystem::exists(latest), latest, "nothing to resume (no checkpoint)");
-    require_checkpoint_of_this_run(out, latest, o.force);
+    if (!o.force) require_checkpoint_of_this_run(out, checkpoint_run_id(latest), latest, "experiment.force");
     config = checkpoint_settings(latest).first;
     for (const auto& s : sets) config.set(s);
     config.check_ranges("experiment.sets");
@@ -348,7 +327,7 @@ ExperimentResult run_experiment(const ExperimentOptions& o) {
   if (writer) {  // after a resume succeeded: a refused one changes nothing
     std::filesystem::create_directories(out);
     write_text_atomically(out / "config.yaml", config.to_yaml());
-    write_text_atomically(out / "run_id.txt", trainer.run_id() + "\n");
+    record_run_id(out, trainer.run_id());
   }
   trainer.set_distributed(group.get());
   log << "training on " << train_src->size() << " pairs, " << opts.iterations << " steps of batch " << opts.batch

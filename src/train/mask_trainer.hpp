@@ -25,6 +25,8 @@ struct MaskTrainOptions {
   // when stopped early): the mask, the regulariser, the optimiser's state, the data order and the
   // logs up to that step, so that a resumed run takes the steps the straight run would have.
   bool resume = false;
+  // With resume: continue a latest.ckpt of another run too (its run id differs from OUT/run_id.txt).
+  bool force = false;
 };
 
 struct MaskTrainSummary {

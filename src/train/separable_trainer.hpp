@@ -37,6 +37,8 @@ struct SeparableTrainOptions {
   // Continue the run in `out` from its latest.ckpt (written at every validation, at the end and
   // when stopped early): codes, lambda, Adam's moments, the step and the data and noise generator.
   bool resume = false;
+  // With resume: continue a latest.ckpt of another run too (its run id differs from OUT/run_id.txt).
+  bool force = false;
 };
 
 struct SeparableTrainSummary {

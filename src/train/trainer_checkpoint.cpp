@@ -6,6 +6,7 @@
 #include "core/error.hpp"
 #include "core/util.hpp"
 #include "nn/optimizer_state.hpp"
+#include "train/run_id.hpp"
 
 namespace flatnet {
 
@@ -79,6 +80,7 @@ void write_trainer_checkpoint(const std::filesystem::path& path, const TrainerSt
   meta["step"] = std::to_string(step);
   meta["train_seconds"] = secs.str();
   meta["optimizer"] = state.optimizer_kind;
+  if (!state.run_id.empty()) meta["run_id"] = state.run_id;
   write_safetensors(path, tensors, meta);
 }
 
@@ -103,6 +105,10 @@ RestoredTraining read_trainer_checkpoint(const std::filesystem::path& path, cons
           "train_seconds '" + seconds_text.substr(0, 40) + "' is not a duration");
   r.step = std::stoll(step_text);
   r.seconds = std::strtod(seconds_text.c_str(), nullptr);
+  if (const auto id = st.metadata.find("run_id"); id != st.metadata.end()) {
+    require(is_run_id(id->second), path, "run_id is not 16 hex digits");
+    r.run_id = id->second;
+  }
   torch::NoGradGuard no_grad;
   for (const auto& [name, p] : state.params) {
     const auto value = stored_like(st, "param." + name, p, path, state.size_hint);

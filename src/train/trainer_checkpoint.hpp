@@ -25,6 +25,7 @@ struct TrainerState {
   std::string optimizer_kind;  // sgd | adam
   std::string format;          // the trainer's file format name, e.g. "flatnet-mask-checkpoint"
   std::string size_hint;       // what a parameter of another shape means ("another mask.rank?")
+  std::string run_id;          // the run that writes it (train/run_id.hpp); "" writes none
 };
 
 inline std::filesystem::path trainer_checkpoint_path(const std::filesystem::path& out) { return out / "latest.ckpt"; }
@@ -41,6 +42,7 @@ void write_trainer_checkpoint(const std::filesystem::path& path, const TrainerSt
 struct RestoredTraining {
   int64_t step = 0;
   double seconds = 0;
+  std::string run_id;  // the run that wrote it; "" in files from before run ids
   SafeTensors file;  // for the trainer's own extras
 };
 
