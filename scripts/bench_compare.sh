@@ -11,7 +11,8 @@
 # Environment: THREADS (default: all cores), LEVERS (flatnet's inference levers, default
 # fold,channels-last,gemm-up,onednn), PYTHON (default /usr/bin/python3), FLATNET_BIN (default
 # build/flatnet), PRECISION (flatnet's, default both), SWEEP=1 also times each
-# inference lever alone (C++ only).
+# inference lever alone (C++ only), PY_BEST=0 skips Python's autocast path (on CPUs where bf16 is only
+# emulated it is tens of times slower than its fp32, and fp32 is both sides' best).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 rows=${1:-tikhonov,infer_paper,infer_cpu,train_paper,train_cpu,mask_step}
@@ -28,7 +29,8 @@ tmp=$(mktemp -d)
 trap 'rm -rf "$tmp"' EXIT
 
 bf16_flags=$(grep -m1 '^flags' /proc/cpuinfo | tr ' ' '\n' | grep -E '^(avx512f|avx512_bf16|amx_bf16)$' | tr '\n' ' ' || true)
-echo "machine: $(grep -m1 'model name' /proc/cpuinfo | cut -d: -f2 | sed 's/^ //'), $(nproc) cores, $threads threads, flags: ${bf16_flags:-none of avx512f avx512_bf16 amx_bf16}, $(date -u +%Y-%m-%d)"
+isa_cap=${ONEDNN_MAX_CPU_ISA:-${DNNL_MAX_CPU_ISA:-}}
+echo "machine: $(grep -m1 'model name' /proc/cpuinfo | cut -d: -f2 | sed 's/^ //'), $(nproc) cores, $threads threads, flags: ${bf16_flags:-none of avx512f avx512_bf16 amx_bf16}${isa_cap:+ (oneDNN capped at $isa_cap, both sides)}, $(date -u +%Y-%m-%d)"
 # Python runs on the OpenBLAS kernels flatnet runs on (core/blas.hpp: flatnet asks for SkylakeX where
 # OpenBLAS 0.3.21 falls back to slower ones), so that both sides' fp32 GEMMs are the same code.
 blas_core=$("$bin" bench --rows peak_gemm_fp32 --repeats 1 --warmup 0 --threads 1 | sed -n 's/^blas: OpenBLAS \([A-Za-z0-9]*\).*/\1/p')
@@ -41,7 +43,7 @@ for row in "${row_list[@]}"; do
     "$bin" bench --rows "$row" --repeats "$repeats" --threads "$threads" --levers "$levers" --precision "$precision" \
       --json "$tmp/cpp_${row}_$k.json" > /dev/null
     "$py" scripts/bench_reference.py --rows "$row" --repeats "$repeats" --threads "$threads" --json "$tmp/py_${row}_$k.json" > /dev/null
-    case "$row" in infer_*|train_*)
+    case "${PY_BEST:-1}$row" in 1infer_*|1train_*)
       "$py" scripts/bench_reference.py --rows "$row" --repeats "$repeats" --threads "$threads" --best \
         --json "$tmp/pybest_${row}_$k.json" > /dev/null ;;
     esac

@@ -117,7 +117,7 @@ std::string describe_precision(Precision p, const CpuFeatures& cpu) {
   if (cpu.onednn_bf16) return "bf16 (emulated by oneDNN: about 3x slower than fp32 on this CPU)";
   return "bf16 (LibTorch's own kernels: oneDNN has no bf16 on " +
          (cpu.onednn_isa.empty() ? std::string("this CPU") : cpu.onednn_isa) +
-         "; several times slower than fp32, which --precision fp32 or auto runs)";
+         "; tens of times slower than fp32, which --precision fp32 or auto runs)";
 }
 
 namespace {
