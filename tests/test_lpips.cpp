@@ -151,7 +151,7 @@ TEST_CASE("flatnet eval --lpips: a column with the files, one line and the other
   std::ifstream csv(s.dir / "rec" / "metrics.csv");
   std::string header;
   std::getline(csv, header);
-  CHECK(header == "image,method,psnr,ssim,mean_output,mean_truth,colour_kept,detail_kept,lpips_alex");
+  CHECK(header == "image,method,psnr,ssim,mean_output,mean_truth,colour_kept,detail_kept,lpips_alex,stripes");
   std::ifstream json(s.dir / "rec" / "scores.json");
   const std::string scores((std::istreambuf_iterator<char>(json)), {});
   CHECK_THAT(scores, Contains("\"lpips_net\": \"alex\""));

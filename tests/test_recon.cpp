@@ -112,7 +112,7 @@ TEST_CASE("eval reports spread over images and brightness: a reconstruction that
   CHECK(scores[0].psnr_sd > 0);  // brighter images lose more to halving: PSNR varies
   CHECK(format_table(scores).find("+-") != std::string::npos);
   CHECK(read_lines(s.dir / "out" / "metrics.csv").at(0) ==
-        "image,method,psnr,ssim,mean_output,mean_truth,colour_kept,detail_kept");
+        "image,method,psnr,ssim,mean_output,mean_truth,colour_kept,detail_kept,stripes");
   // Halving the image halves its colourfulness and detail (both are linear in the values, up to
   // 8-bit rounding); a white image keeps neither.
   CHECK(scores[0].colour_kept == Approx(0.5).margin(0.02));
@@ -132,6 +132,21 @@ TEST_CASE("colourfulness and detail match their definitions (Hasler-Suesstrunk 2
   CHECK(colourfulness(grey) == Approx(0.0).margin(1e-12));  // a grey image has no colour
   CHECK(luma_detail(torch::full({3, 16, 16}, 0.3)) == Approx(0.0).margin(1e-12));
   CHECK(luma_detail(x.flip(2)) == Approx(luma_detail(x)).epsilon(1e-9));  // a mirror image has the same detail
+}
+
+TEST_CASE("stripe energy: rows and columns that stand out from their trend, in 8-bit codes", "[eval]") {
+  const auto truth = read_rgb(test::data_dir() / "golden" / "inet_n02980441_castle_scene.png").slice(1, 0, 64).slice(2, 0, 64);
+  CHECK(stripe_energy(truth, truth) == Approx(0.0).margin(1e-12));
+  // Rows alternating 0, +4, 0, -4 codes: 2.1221 (a Python loop over the same definition).
+  const auto rows = torch::tensor({0.0, 1.0, 0.0, -1.0}, torch::kFloat64).repeat(16).view({1, 64, 1});
+  const auto striped = truth.to(torch::kFloat64) + 4.0 / 255 * rows;
+  CHECK(stripe_energy(striped, truth) == Approx(2.1220818537564097).epsilon(1e-9));
+  CHECK(stripe_energy(truth + 4.0 / 255 * rows.view({1, 1, 64}), truth) == Approx(2.1220818537564097).epsilon(1e-9));
+  // A constant error is all trend; a slow tilt of 13 codes across the image almost all (0.147).
+  CHECK(stripe_energy(truth.to(torch::kFloat64) + 0.1, truth) == Approx(0.0).margin(1e-9));
+  const auto tilt = 0.05 * torch::arange(64, torch::kFloat64).view({1, 64, 1}) / 64;
+  CHECK(stripe_energy(truth.to(torch::kFloat64) + tilt, truth) == Approx(0.1473242524111722).epsilon(1e-9));
+  CHECK_THROWS(stripe_energy(truth, truth.slice(1, 0, 32)));
 }
 
 TEST_CASE("reconstructions never overwrite a capture, and two captures of one name are refused", "[recon][outputs]") {

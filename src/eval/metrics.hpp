@@ -23,6 +23,13 @@ double colourfulness(const torch::Tensor& rgb);
 // Detail: the mean Sobel gradient magnitude of the luma (0.299 R + 0.587 G + 0.114 B), over the
 // pixels whose 3x3 neighbourhood lies inside the image. 0 for a flat image.
 double luma_detail(const torch::Tensor& rgb);
+// Stripe energy of an output against its truth, both {3,H,W} in [0,1], in 8-bit codes: the error
+// image's row means and column means (per channel), each less its smooth trend (a centred moving
+// average over 15 samples, the window shrinking at the ends), as one RMS over both profiles and the
+// channels, times 255. Stripes along rows or columns (an inversion's periodic artefacts) stand out in
+// those profiles; a constant or slowly varying error, and noise that averages out along a row, do
+// not. 0 for a perfect output.
+double stripe_energy(const torch::Tensor& output, const torch::Tensor& truth);
 
 // Contact sheet: one row per image, ground truth then each method; labels above the columns.
 // images[row][col] are {3,H,W} in [0,1]. Written as an 8-bit PNG.

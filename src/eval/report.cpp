@@ -106,6 +106,7 @@ Scored score_image(const torch::Tensor& rec, const Truth& truth, Scorers& scorer
   // Ratios to the truth; a truth without colour (or detail) has no ratio: NaN, left out of the mean.
   r.image.colour_kept = truth.colour > 1e-6 ? colourfulness(rec) / truth.colour : std::nan("");
   r.image.detail_kept = truth.detail > 1e-6 ? luma_detail(rec) / truth.detail : std::nan("");
+  r.image.stripes = stripe_energy(rec, truth.image);
   if (scorers.with_lpips) {
     torch::NoGradGuard no_grad;
     r.image.lpips = scorers.lpips->forward(rec.unsqueeze(0), truth.image.unsqueeze(0)).item<double>();  // {1,3,H,W}
@@ -113,10 +114,11 @@ Scored score_image(const torch::Tensor& rec, const Truth& truth, Scorers& scorer
   return r;
 }
 
-// metrics.csv: image,method,psnr,ssim,mean_output,mean_truth[,niqe],colour_kept,detail_kept[,lpips_NET]
+// metrics.csv: image,method,psnr,ssim,mean_output,mean_truth[,niqe],colour_kept,detail_kept[,lpips_NET],stripes
+// (stripes last: scripts that read the earlier columns by position keep working).
 std::string csv_header(const Scorers& scorers) {
   return std::string("image,method,psnr,ssim,mean_output,mean_truth") + (scorers.with_niqe ? ",niqe" : "") +
-         ",colour_kept,detail_kept" + (scorers.with_lpips ? ",lpips_" + scorers.lpips_net : "") + "\n";
+         ",colour_kept,detail_kept" + (scorers.with_lpips ? ",lpips_" + scorers.lpips_net : "") + ",stripes\n";
 }
 
 void write_csv_row(std::ostream& csv, const Scored& r, const Scorers& scorers) {
@@ -125,14 +127,14 @@ void write_csv_row(std::ostream& csv, const Scored& r, const Scorers& scorers) {
   if (scorers.with_niqe) csv << "," << r.image.niqe;
   csv << "," << r.image.colour_kept << "," << r.image.detail_kept;
   if (scorers.with_lpips) csv << "," << r.image.lpips;
-  csv << "\n";
+  csv << "," << r.image.stripes << "\n";
 }
 
 // One method's running totals over the images, and its MethodScore (and mean row) at the end.
 struct MethodTotals {
   int64_t count = 0;
   double psnr = 0, psnr_sq = 0, ssim = 0, ssim_sq = 0, out = 0, truth = 0;  // plain sums over every image
-  FiniteStats niqe, colour, detail, lpips;
+  FiniteStats niqe, colour, detail, lpips, stripes;
 
   void add(const Scored& r) {
     ++count;
@@ -140,7 +142,7 @@ struct MethodTotals {
     ssim += r.image.ssim, ssim_sq += r.image.ssim * r.image.ssim;
     out += r.mean_out, truth += r.mean_truth;
     niqe.add(r.image.niqe), colour.add(r.image.colour_kept), detail.add(r.image.detail_kept);
-    lpips.add(r.image.lpips);
+    lpips.add(r.image.lpips), stripes.add(r.image.stripes);
   }
 
   MethodScore finish(const std::string& method, const Scorers& scorers) const {
@@ -155,6 +157,7 @@ struct MethodTotals {
     if (scorers.with_niqe && niqe.n > 0) s.niqe = niqe.mean(), s.niqe_sd = niqe.sd();
     if (colour.n > 0) s.colour_kept = colour.mean();
     if (detail.n > 0) s.detail_kept = detail.mean();
+    if (stripes.n > 0) s.stripes = stripes.mean();
     if (scorers.with_lpips) {
       s.lpips_net = scorers.lpips_net;
       if (lpips.n > 0) s.lpips = lpips.mean(), s.lpips_sd = lpips.sd();
@@ -171,14 +174,14 @@ struct MethodTotals {
     }
     csv << "," << s.colour_kept << "," << s.detail_kept;
     if (scorers.with_lpips) csv << "," << s.lpips;
-    csv << "\n";
+    csv << "," << s.stripes << "\n";
   }
 };
 
 // The truth's own NIQE row (per image and mean): its other columns are empty.
 void write_truth_row(std::ostream& csv, const std::string& image, double mean_truth, double niqe,
                      const Scorers& scorers) {
-  csv << image << ",ground truth,,,," << mean_truth << "," << niqe << ",," << (scorers.with_lpips ? "," : "") << "\n";
+  csv << image << ",ground truth,,,," << mean_truth << "," << niqe << ",," << (scorers.with_lpips ? "," : "") << ",\n";
 }
 
 std::vector<Method> chosen_methods(const EvalOptions& opt) {
@@ -252,7 +255,7 @@ std::vector<MethodScore> evaluate(const EvalOptions& opt, std::vector<ImageScore
     truth.count = truth_niqe.n;
     truth.psnr = truth.ssim = truth.psnr_sd = truth.ssim_sd = truth.brightness = std::nan("");
     truth.niqe = truth_niqe.mean(), truth.niqe_sd = truth_niqe.sd();
-    csv << "mean,ground truth,,,,," << truth.niqe << ",," << (scorers.with_lpips ? "," : "") << "\n";
+    csv << "mean,ground truth,,,,," << truth.niqe << ",," << (scorers.with_lpips ? "," : "") << ",\n";
     scores.push_back(truth);
   }
   write_text_atomically(opt.out / "metrics.csv", csv.str());
@@ -271,7 +274,7 @@ std::string scores_json(const std::vector<MethodScore>& scores) {
                      {"psnr_sd", number(s.psnr_sd)}, {"ssim", number(s.ssim)},
                      {"ssim_sd", number(s.ssim_sd)}, {"brightness", number(s.brightness)},
                      {"niqe", number(s.niqe)},       {"colour_kept", number(s.colour_kept)},
-                     {"detail_kept", number(s.detail_kept)}};
+                     {"detail_kept", number(s.detail_kept)}, {"stripes", number(s.stripes)}};
     if (!s.lpips_net.empty()) all[s.method]["lpips"] = number(s.lpips), all[s.method]["lpips_net"] = s.lpips_net;
   }
   return all.dump(2) + "\n";
@@ -295,7 +298,7 @@ std::string format_table(const std::vector<MethodScore>& scores) {
      << std::setw(16) << "SSIM" << std::setw(12) << "brightness" << std::setw(9) << "colour" << std::setw(9)
      << "detail" << (any_niqe ? "            NIQE" : "");
   if (!lpips_net.empty()) os << std::setw(17) << "LPIPS " + lpips_net;
-  os << "\n";
+  os << std::setw(9) << "stripes" << "\n";
   auto ratio = [](double v) {
     std::ostringstream o;
     if (std::isfinite(v))
@@ -315,7 +318,7 @@ std::string format_table(const std::vector<MethodScore>& scores) {
        << std::setw(9) << ratio(s.colour_kept) << std::setw(9) << ratio(s.detail_kept);
     if (any_niqe) os << std::setw(16) << pm(s.niqe, s.niqe_sd, 2);
     if (!lpips_net.empty()) os << std::setw(17) << pm(s.lpips, s.lpips_sd, 3);
-    os << "\n";
+    os << std::setw(9) << ratio(s.stripes) << "\n";
   }
   return os.str();
 }

@@ -23,6 +23,8 @@ struct MethodScore {
   // over images of output / truth (images whose truth has none are left out). 1 keeps it all; a
   // blurry grey regressor scores well below 1.
   double colour_kept = std::nan(""), detail_kept = std::nan("");
+  // Stripe energy (eval/metrics.hpp, 8-bit codes; lower is better, 0 for the truth): the mean over images.
+  double stripes = std::nan("");
   // LPIPS v0.1 (nn/lpips.hpp; lower is closer to the truth) and its backbone; NaN without one.
   double lpips = std::nan(""), lpips_sd = std::nan("");
   std::string lpips_net;
@@ -32,7 +34,7 @@ struct MethodScore {
 struct ImageScore {
   std::string image, method;
   double psnr = 0, ssim = 0, niqe = std::nan(""), colour_kept = std::nan(""), detail_kept = std::nan(""),
-         lpips = std::nan("");
+         lpips = std::nan(""), stripes = std::nan("");
 };
 
 struct EvalOptions {
@@ -52,7 +54,7 @@ struct EvalOptions {
 std::vector<MethodScore> evaluate(const EvalOptions& options, std::vector<ImageScore>* per_image = nullptr);
 std::string format_table(const std::vector<MethodScore>& scores);
 // {"METHOD": {"images": N, "psnr": ..., "psnr_sd", "ssim", "ssim_sd", "brightness", "niqe",
-// "colour_kept", "detail_kept", "lpips" (+ "lpips_net")}, ...}; a metric that is not defined is null. What a model file's
+// "colour_kept", "detail_kept", "stripes", "lpips" (+ "lpips_net")}, ...}; a metric that is not defined is null. What a model file's
 // recorded scores hold (`flatnet export --scores`).
 std::string scores_json(const std::vector<MethodScore>& scores);
 
