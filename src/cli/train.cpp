@@ -236,10 +236,9 @@ int infer(int argc, char** argv) {
   else
     std::cerr << "camera: no camera fit (" << printable(built.no_fit) << ")\n";
   const auto rep = reconstruct_files(*built.engine, built.camera, captures, opt);
-  const bool one_batch = rep.ms_per_capture == rep.first_batch_ms;  // no steady-state batch to time apart
   std::cout << "flatnet: " << rep.count << " captures -> " << opt.out.string() << " (" << rep.captures_per_s
             << " images/s, " << rep.ms_per_capture << " ms per image in the network";
-  if (one_batch)
+  if (!rep.steady_state)
     std::cout << ", set-up included: one batch)\n";
   else
     std::cout << "; the first batch, which sets it up, " << rep.first_batch_ms << " ms per image)\n";

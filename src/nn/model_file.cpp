@@ -583,17 +583,16 @@ void save_checkpoint(const std::filesystem::path& path, Generator& g, Discrimina
   write_safetensors(path, tensors, meta);
 }
 
-std::pair<Config, CameraConfig> checkpoint_settings(const std::filesystem::path& path) {
-  return settings(read_stored(path, kCheckpointFormat), path);
-}
-
-std::string checkpoint_run_id(const std::filesystem::path& path) {
+CheckpointSettings checkpoint_settings(const std::filesystem::path& path) {
   const auto s = read_stored(path, kCheckpointFormat);
-  const auto it = s.meta.find("run_id");
-  if (it == s.meta.end()) return "";
-  require(it->second.size() == 16 && it->second.find_first_not_of("0123456789abcdef") == std::string::npos, path,
-          "run_id is not 16 hex digits");
-  return it->second;
+  CheckpointSettings out;
+  std::tie(out.config, out.camera) = settings(s, path);
+  if (const auto it = s.meta.find("run_id"); it != s.meta.end()) {
+    require(it->second.size() == 16 && it->second.find_first_not_of("0123456789abcdef") == std::string::npos, path,
+            "run_id is not 16 hex digits");
+    out.run_id = it->second;
+  }
+  return out;
 }
 
 TrainState load_checkpoint(const std::filesystem::path& path, Generator& g, Discriminator& d, torch::optim::Adam& opt_g,

@@ -95,10 +95,14 @@ double checkpoint_best_psnr(const std::filesystem::path& path);
 bool is_checkpoint_file(const std::filesystem::path& path);
 // 2 for a safetensors model file or checkpoint, 1 for a format-1 TorchScript archive, 0 otherwise.
 int model_file_version(const std::filesystem::path& path);
-// The config and camera a checkpoint holds (to rebuild the networks before load_checkpoint).
-std::pair<Config, CameraConfig> checkpoint_settings(const std::filesystem::path& path);
-// The run id a checkpoint records ("" for files written before run ids).
-std::string checkpoint_run_id(const std::filesystem::path& path);
+// What a checkpoint holds besides its tensors, from one read: the config and camera (to rebuild the
+// networks before load_checkpoint) and the run that wrote it.
+struct CheckpointSettings {
+  Config config;
+  CameraConfig camera;
+  std::string run_id;  // 16 hex digits; "" for files written before run ids
+};
+CheckpointSettings checkpoint_settings(const std::filesystem::path& path);
 // `ema` is filled from the checkpoint's average when it has one, else from its generator.
 // A checkpoint without a camera is refused when `camera` is given (and the reverse).
 TrainState load_checkpoint(const std::filesystem::path& path, Generator& g, Discriminator& d, torch::optim::Adam& opt_g,

@@ -176,7 +176,8 @@ BatchReport reconstruct_files(Reconstructor& engine, const CameraConfig& camera,
   if (opt.fit) write_fit_csv(opt.out / "camera_fit.csv", fits);
   report.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
   report.first_batch_ms = 1000.0 * first_batch_s / std::max<int64_t>(1, first_batch_count);
-  report.ms_per_capture = report.count > first_batch_count
+  report.steady_state = report.count > first_batch_count;
+  report.ms_per_capture = report.steady_state
                               ? 1000.0 * (engine_s - first_batch_s) / static_cast<double>(report.count - first_batch_count)
                               : report.first_batch_ms;
   report.captures_per_s = report.count / std::max(1e-9, report.seconds);

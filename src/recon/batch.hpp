@@ -39,6 +39,7 @@ struct BatchReport {
   // for a paper-width model). first_batch_ms is that batch's time per capture.
   double ms_per_capture = 0;
   double first_batch_ms = 0;
+  bool steady_state = false;  // ms_per_capture leaves the first batch out (there was more than one)
   double captures_per_s = 0;  // everything, file I/O included
   double seconds = 0;
 };

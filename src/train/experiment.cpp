@@ -237,8 +237,9 @@ ExperimentResult run_experiment(const ExperimentOptions& o) {
   Config config;
   if (resume) {
     require(std::filesystem::exists(latest), latest, "nothing to resume (no checkpoint)");
-    if (!o.force) require_checkpoint_of_this_run(out, checkpoint_run_id(latest), latest, "experiment.force");
-    config = checkpoint_settings(latest).first;
+    auto stored = checkpoint_settings(latest);  // one read: the run id and the settings
+    if (!o.force) require_checkpoint_of_this_run(out, stored.run_id, latest, "experiment.force");
+    config = std::move(stored.config);
     for (const auto& s : sets) config.set(s);
     config.check_ranges("experiment.sets");
     if (!o.config.empty()) {  // the same command line again is fine; another config is not silently ignored

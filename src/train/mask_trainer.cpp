@@ -68,11 +68,9 @@ MaskTrainSummary train_mask(MaskModel& model, const torch::Tensor& train_scenes,
     std::istringstream rng_state(restored.file.meta("rng", checkpoint));
     rng_state >> rng;  // the data order
     require(!rng_state.fail(), checkpoint, "rng is not the state of the data order's generator");
-    if (!o.force) require_checkpoint_of_this_run(o.out, restored.run_id, checkpoint, "--force");
     state.run_id = restored.run_id;
   }
-  if (state.run_id.empty()) state.run_id = new_run_id();  // a new run, or one from before run ids
-  record_run_id(o.out, state.run_id);
+  state.run_id = settle_run_id(o.out, o.resume, state.run_id, checkpoint, o.force);
   const char* log_header = "step,loss,psnr,gamma,throughput";
   const char* val_header = "step,val_psnr,gamma,throughput";
   CsvLog log = o.resume ? CsvLog::resume(o.out / "log.csv", log_header, first_step) : CsvLog(o.out / "log.csv", log_header);

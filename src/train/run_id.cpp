@@ -42,4 +42,12 @@ void require_checkpoint_of_this_run(const std::filesystem::path& out, const std:
               "); it was copied in from elsewhere? Set " + force_key + " to resume it here anyway");
 }
 
+std::string settle_run_id(const std::filesystem::path& out, bool resuming, const std::string& resumed_id,
+                          const std::filesystem::path& checkpoint, bool force) {
+  if (resuming && !force) require_checkpoint_of_this_run(out, resumed_id, checkpoint, "--force");
+  const auto id = resuming && !resumed_id.empty() ? resumed_id : new_run_id();
+  record_run_id(out, id);
+  return id;
+}
+
 }  // namespace flatnet

@@ -21,6 +21,12 @@ std::string folder_run_id(const std::filesystem::path& out);
 // Writes OUT/run_id.txt atomically.
 void record_run_id(const std::filesystem::path& out, const std::string& id);
 
+// The id a mask or code-pair run goes on under, recorded in OUT/run_id.txt: when resuming, the
+// checkpoint's `resumed_id` (refused when the folder records another run, unless `force`; a new id
+// for a checkpoint from before run ids), else a new one.
+std::string settle_run_id(const std::filesystem::path& out, bool resuming, const std::string& resumed_id,
+                          const std::filesystem::path& checkpoint, bool force);
+
 // Refuses `checkpoint` (whose run id is `checkpoint_id`, "" for files from before run ids) when the
 // folder `out` records another run, naming both ids and `force_key`, the setting that resumes it
 // anyway. A folder without a record accepts any checkpoint.

@@ -139,15 +139,13 @@ SeparableTrainSummary train_separable_codes(const SeparableTrainOptions& o) {
     const auto start = restored.file.meta("val_psnr_start", checkpoint);
     require(is_decimal_number(start), checkpoint, "val_psnr_start '" + start.substr(0, 40) + "' is not a number");
     summary.val_psnr_start = std::strtod(start.c_str(), nullptr);
-    if (!o.force) require_checkpoint_of_this_run(o.out, restored.run_id, checkpoint, "--force");
     state.run_id = restored.run_id;
   } else {
     const auto [u, v] = codes();
     summary.val_psnr_start = separable_psnr(u.detach(), v.detach(), std::exp(log_lambda.item<double>()), val, 99);
     std::cerr << "separable codes: validation PSNR at the start " << summary.val_psnr_start << " dB\n";
   }
-  if (state.run_id.empty()) state.run_id = new_run_id();  // a new run, or one from before run ids
-  record_run_id(o.out, state.run_id);
+  state.run_id = settle_run_id(o.out, o.resume, state.run_id, checkpoint, o.force);
   const char* header = "step,loss,throughput,lambda,val_psnr";
   CsvLog log = o.resume ? CsvLog::resume(o.out / "log.csv", header, first_step) : CsvLog(o.out / "log.csv", header);
   Series train_curve{"train (batch)", {}, {}}, val_curve{"validation", {}, {}};
