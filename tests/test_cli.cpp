@@ -782,8 +782,11 @@ TEST_CASE("model cards: flatnet info tells what a model file holds, export recor
   CHECK(j["scores"]["heldout"]["psnr"].get<double>() > 0);
   CHECK(j["scores"]["heldout"]["niqe"].is_null());
   CHECK(j["parameters"].get<int64_t>() > 0);
+  CHECK_THAT(j["model_spec"].get<std::string>(), Contains("width: 2"));
+  CHECK_THAT(j["config"].get<std::string>(), Contains("train:"));
   r = test::run_flatnet("info " + q(scored));
   CHECK_THAT(r.output, Contains("heldout") && Contains("(2 images)"));
+  CHECK_THAT(r.output, !Contains("\\x0a"));  // the scores' own line breaks are not escaped
   // Same weights as the file it was made from.
   auto a = load_model_file(model), b = load_model_file(scored);
   for (const auto& p : a.generator->named_parameters())

@@ -8,6 +8,7 @@
 #include "io/image.hpp"
 #include "io/mat.hpp"
 #include "io/raw.hpp"
+#include "nn/checkpoint.hpp"
 #include "nn/model_file.hpp"
 #include "optics/camera.hpp"
 #include "optics/separable_camera.hpp"

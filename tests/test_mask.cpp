@@ -498,9 +498,7 @@ TEST_CASE("the model's, light's, co-design's, mask's and Wiener camera's options
   const auto train = Config::load({}, {}, configs / "defaults.yaml");
   const auto mask = Config::load({}, {}, configs / "mask_defaults.yaml");
   for (const auto& differing :
-       {defaults_differing(train, unet_fields(), "model.unet."), defaults_differing(train, dncnn_fields(), "model.dncnn."),
-        defaults_differing(train, rcan_fields(), "model.rcan."),
-        defaults_differing(train, nafnet_fields(), "model.nafnet."),
+       {defaults_differing(train, model_spec_fields(), "model."),
         defaults_differing(train, light_fields(), "data.light."), defaults_differing(train, codesign_fields(), "codes."),
         defaults_differing(mask, mask_fields(), "mask."), defaults_differing(mask, wiener_camera_fields(), "camera.")}) {
     INFO((differing.empty() ? std::string() : differing.front()));
@@ -508,7 +506,7 @@ TEST_CASE("the model's, light's, co-design's, mask's and Wiener camera's options
   }
   // A nested table reads under its prefix, and names the whole key.
   const auto changed = defaults_differing(Config::load({}, {"model.rcan.blocks=3"}, configs / "defaults.yaml"),
-                                          rcan_fields(), "model.rcan.");
+                                          model_spec_fields(), "model.");
   REQUIRE(changed.size() == 1);
   CHECK_THAT(changed.front(), Contains("model.rcan.blocks") && Contains("3"));
   WienerCamera cam;

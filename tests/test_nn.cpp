@@ -12,6 +12,7 @@
 #include "nn/generator.hpp"
 #include "nn/losses.hpp"
 #include "io/config.hpp"
+#include "nn/checkpoint.hpp"
 #include "nn/model_file.hpp"
 
 using namespace flatnet;

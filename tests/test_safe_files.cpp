@@ -239,29 +239,41 @@ torch.jit.save(torch.jit.script(Evil()), sys.argv[1])
   CHECK_THROWS_WITH(init_generator_from(s.dir / "evil.flatnet", g), Contains("evil.flatnet"));
 }
 
-TEST_CASE("a model file's config is checked against its weights before the network is built", "[safe][model]") {
+TEST_CASE("a model file's spec is checked against its weights before the network is built", "[safe][model]") {
   test::Scratch s("sizes");
   const auto config = tiny_config();
   const auto camera = test::tiny_camera();
   auto g = test::random_generator(config, camera);
   save_model_file(s.dir / "m.flatnet", g, config, camera);
-  auto tamper = [&](const std::string& name, const std::string& key, const std::string& from, const std::string& to) {
+  // `legacy`: as files from before the typed spec, whose embedded training config describes the model.
+  auto tamper = [&](const std::string& name, const std::string& key, const std::string& from, const std::string& to,
+                    bool legacy = false) {
     auto st = read_safetensors(s.dir / "m.flatnet");
+    if (legacy) st.metadata.erase("model_spec");
     auto& text = st.metadata.at(key);
     const auto at = text.find(from);
     REQUIRE(at != std::string::npos);
     text.replace(at, from.size(), to);
     write_safetensors(s.dir / name, st.tensors, st.metadata);
   };
-  tamper("wide.flatnet", "config", "width: 2\n", "width: 4096\n");
+  tamper("wide.flatnet", "model_spec", "width: 2\n", "width: 4096\n");
   CHECK_THROWS_WITH(load_model_file(s.dir / "wide.flatnet"),
                     Contains("wide.flatnet") && Contains("model.unet.width = 4096 disagrees with the weights"));
+  tamper("old-wide.flatnet", "config", "width: 2\n", "width: 4096\n", /*legacy=*/true);
+  CHECK_THROWS_WITH(load_model_file(s.dir / "old-wide.flatnet"),
+                    Contains("old-wide.flatnet") && Contains("model.unet.width = 4096 disagrees with the weights"));
+  // The training config is a record beside a stored spec: a width written there is not read.
+  tamper("recipe.flatnet", "config", "width: 2\n", "width: 4096\n");
+  CHECK(load_model_file(s.dir / "recipe.flatnet").spec.unet_width == 2);
+  tamper("future.flatnet", "model_spec", "unet:\n", "warp: 9\n  unet:\n");
+  CHECK_THROWS_WITH(load_model_file(s.dir / "future.flatnet"),
+                    Contains("future.flatnet") && Contains("model.warp") && Contains("newer"));
   tamper("scene.flatnet", "camera", "scene_size: 16", "scene_size: 4096");
   CHECK_THROWS_WITH(load_model_file(s.dir / "scene.flatnet"),
                     Contains("scene.flatnet") && Contains("scene_size = 4096 disagrees"));
   tamper("bigscene.flatnet", "camera", "scene_size: 16", "scene_size: 4194304");
   CHECK_THROWS_WITH(load_model_file(s.dir / "bigscene.flatnet"), Contains("bigscene.flatnet") && Contains("1..4096"));
-  tamper("hex.flatnet", "config", "width: 2\n", "width: 0x2\n");
+  tamper("hex.flatnet", "model_spec", "width: 2\n", "width: 0x2\n");
   CHECK_THROWS_WITH(load_model_file(s.dir / "hex.flatnet"), Contains("hex.flatnet") && Contains("model.unet.width"));
 }
 

@@ -11,6 +11,7 @@
 #include "cli/commands.hpp"
 #include "core/error.hpp"
 #include "core/util.hpp"
+#include "nn/checkpoint.hpp"
 #include "nn/model_file.hpp"
 
 namespace flatnet::cli {
@@ -23,37 +24,28 @@ std::string join(const std::vector<std::string>& items, const std::string& separ
   return out;
 }
 
-std::string join_nonzero_losses(const Config& c) {
+// "1 mse + 0.2 ssim" from the recorded training config ("not recorded" without one).
+std::string join_nonzero_losses(const ModelFile& m) {
   std::string out;
   for (const char* term : {"mse", "ssim", "perceptual", "adversarial", "feature_matching", "frequency", "chroma",
                            "gradient"}) {
-    const double w = c.num(std::string("loss.") + term);
-    if (w == 0) continue;
+    const auto text = m.recorded(std::string("loss.") + term);
+    if (text.empty() || !is_decimal_number(text) || std::strtod(text.c_str(), nullptr) == 0) continue;
     std::ostringstream os;
-    os << (out.empty() ? "" : " + ") << w << " " << term;
+    os << (out.empty() ? "" : " + ") << std::strtod(text.c_str(), nullptr) << " " << term;
     out += os.str();
   }
-  return out.empty() ? "none" : out;
+  return out.empty() ? (m.recipe.empty() ? "not recorded" : "none") : out;
 }
 
-std::string enhancer_text(const Config& c) {
-  const auto e = c.str("model.enhancer");
+// A recorded setting (a number as C++ prints it), or "?" where the file does not record it.
+std::string recorded_or_unknown(const ModelFile& m, const std::string& key) {
+  const auto value = m.recorded(key);
+  if (value.empty()) return "?";
+  if (!is_decimal_number(value)) return value;
   std::ostringstream os;
-  if (e == "unet") os << "U-Net, width " << c.integer("model.unet.width");
-  if (e == "dncnn") os << "DnCNN, " << c.integer("model.dncnn.layers") << " layers of " << c.integer("model.dncnn.width");
-  if (e == "rcan")
-    os << "RCAN, " << c.integer("model.rcan.groups") << " groups x " << c.integer("model.rcan.blocks") << " blocks of "
-       << c.integer("model.rcan.width");
-  if (e == "nafnet")
-    os << "NAFNet, width " << c.integer("model.nafnet.width") << ", blocks " << c.integer("model.nafnet.enc_blocks")
-       << "/" << c.integer("model.nafnet.middle_blocks") << "/" << c.integer("model.nafnet.dec_blocks");
+  os << std::strtod(value.c_str(), nullptr);
   return os.str();
-}
-
-std::string first_stage_text(const Config& c) {
-  if (c.str("model.input") == "tikhonov") return "fixed Tikhonov filter (the naive model)";
-  return "trainable inversion W1^T Y W2 (" + c.str("model.inversion.init") + " init, " +
-         (c.flag("model.inversion.shared") ? "one pair for all channels" : "one pair per Bayer channel") + ")";
 }
 
 // "12000 steps, 4 h 0 min of training, best validation PSNR 19.89 dB"
@@ -71,7 +63,7 @@ std::string training_text(const Provenance& p) {
 std::string scores_text(const std::string& json_text) {
   if (json_text.empty()) return "none recorded (flatnet export --scores SET=EVAL_DIR records them)";
   const auto all = nlohmann::json::parse(json_text, nullptr, false);
-  if (all.is_discarded() || !all.is_object()) return "(unreadable: " + json_text.substr(0, 60) + ")";
+  if (all.is_discarded() || !all.is_object()) return "(unreadable: " + printable(json_text.substr(0, 60)) + ")";
   std::ostringstream os;
   os << std::fixed;
   for (const auto& [set, s] : all.items()) {
@@ -81,7 +73,7 @@ std::string scores_text(const std::string& json_text) {
       v << std::fixed << std::setprecision(digits) << s[key].get<double>();
       return v.str();
     };
-    os << "\n  " << std::left << std::setw(10) << set << " PSNR " << value("psnr", 2) << " dB, SSIM "
+    os << "\n  " << std::left << std::setw(10) << printable(set) << " PSNR " << value("psnr", 2) << " dB, SSIM "
        << value("ssim", 3) << ", NIQE " << value("niqe", 2) << ", colour kept " << value("colour_kept", 2)
        << ", detail kept " << value("detail_kept", 2) << " (" << value("images", 0) << " images)";
   }
@@ -130,7 +122,7 @@ int info(int argc, char** argv) {
   const bool checkpoint = is_checkpoint_file(path);
   bool average = false;
   auto m = checkpoint ? model_from_checkpoint(path, &average) : load_model_file(path);
-  const auto& c = m.config;
+  const auto& spec = m.spec;
   int64_t parameters = 0;
   for (const auto& p : m.generator->parameters()) parameters += p.numel();
   const auto& cam = m.camera;
@@ -144,13 +136,14 @@ int info(int argc, char** argv) {
         {"sha256", hash},
         {"kind", checkpoint ? "checkpoint" : "model"},
         {"format_version", m.format_version},
-        {"first_stage", first_stage_text(c)},
-        {"enhancer", enhancer_text(c)},
-        {"level_input", c.flag("model.level_input")},
+        {"first_stage", first_stage_text(spec)},
+        {"enhancer", enhancer_text(spec)},
+        {"level_input", spec.level_input},
         {"parameters", parameters},
         {"camera", {{"name", cam.name}, {"crop", {cam.raw.crop[2], cam.raw.crop[3]}}, {"scene", cam.scene_size}}},
-        {"losses", join_nonzero_losses(c)},
-        {"config", c.to_yaml()},
+        {"losses", join_nonzero_losses(m)},
+        {"model_spec", model_spec_yaml(spec)},
+        {"config", m.recipe},
     };
     for (const auto& [key, field] : provenance_fields()) {
       const auto& value = m.provenance.*field;
@@ -171,23 +164,26 @@ int info(int argc, char** argv) {
   line("sha256", hash);
   line("kind", std::string(checkpoint ? "training checkpoint" : "model file") + ", format " +
                    std::to_string(m.format_version) + (checkpoint && average ? " (its moving average shown)" : ""));
-  line("model", first_stage_text(c) + " -> " + enhancer_text(c) +
-                    (c.flag("model.level_input") ? ", light level as input" : "") + "; " +
+  line("model", first_stage_text(spec) + " -> " + enhancer_text(spec) +
+                    (spec.level_input ? ", light level as input" : "") + "; " +
                     std::to_string(parameters) + " parameters");
   line("camera", cam.name + ": " + std::to_string(cam.raw.crop[2]) + "x" + std::to_string(cam.raw.crop[3]) +
                      " measurement -> " + std::to_string(cam.scene_size) + "x" + std::to_string(cam.scene_size) +
-                     " scene (data.camera " + c.str("data.camera") + ")");
-  line("data", c.str("data.source") == "simulate" ? "simulated display captures of " + c.str("data.images")
-                                                  : "captures in " + c.str("data.dataset"));
+                     " scene (data.camera " + recorded_or_unknown(m, "data.camera") + ")");
+  const auto source = m.recorded("data.source");
+  line("data", source == "simulate" ? "simulated display captures of " + recorded_or_unknown(m, "data.images")
+               : source == "dataset" ? "captures in " + recorded_or_unknown(m, "data.dataset")
+                                     : "not recorded");
   std::ostringstream recipe;
-  recipe << join_nonzero_losses(c) << "; batch " << c.integer("train.batch") << ", crop " << c.integer("train.crop")
-         << ", lr " << c.num("train.lr") << ", precision " << c.str("train.precision");
+  recipe << join_nonzero_losses(m) << "; batch " << recorded_or_unknown(m, "train.batch") << ", crop "
+         << recorded_or_unknown(m, "train.crop") << ", lr " << recorded_or_unknown(m, "train.lr") << ", precision "
+         << recorded_or_unknown(m, "train.precision");
   line("recipe", recipe.str());
   line("training", training_text(p));
   if (!p.source.empty()) line("source", p.source);
   if (!p.written_at.empty()) line("written", p.written_at + (p.written_on.empty() ? "" : " on " + p.written_on));
-  line("scores", scores_text(p.scores));
-  std::cout << "(`flatnet info --json` adds the full config)\n";
+  std::cout << std::setw(10) << "scores" << scores_text(p.scores) << "\n";  // escaped piece by piece
+  std::cout << "(`flatnet info --json` adds the model spec and the recorded training config)\n";
   return 0;
 }
 

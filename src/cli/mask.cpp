@@ -230,7 +230,7 @@ int mask_report(int argc, char** argv) {
       // The steps it trained (files from before 2026-11-24 record only the configured count,
       // which a run with a time budget never reaches).
       const auto steps = model.provenance.trained_steps.empty()
-                             ? model.config.str("train.iterations") + " steps configured"
+                             ? model.recorded("train.iterations") + " steps configured"
                              : model.provenance.trained_steps + " steps";
       it->flatnet =
           CameraModel{[generator](const torch::Tensor& planes) mutable { return generator->forward(planes); },

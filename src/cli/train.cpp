@@ -7,6 +7,7 @@
 #include "core/util.hpp"
 #include "io/dataset.hpp"
 #include "optics/simulator.hpp"
+#include "nn/checkpoint.hpp"
 #include "nn/model_file.hpp"
 #include "nn/onnx_export.hpp"
 #include "recon/batch.hpp"
@@ -148,7 +149,7 @@ int export_model(int argc, char** argv) {
                                  : "model.load_state_dict(torch.load(path))")
               << ")\n";
   } else {
-    save_model_file(out, m.generator, m.config, m.camera, m.provenance);
+    save_model_file(out, m.generator, model_identity(m));
     std::cout << "wrote model " << out.string() << (r.count("scores") ? " with its scores" : "") << "\n";
   }
   return 0;
@@ -199,7 +200,10 @@ int infer(int argc, char** argv) {
       "exact inference speed-ups: none, or a list of fold, channels-last, gemm-up, onednn (bf16 and onednn: see "
       "--precision)",
       cxxopts::value<std::string>()->default_value("fold,channels-last,gemm-up,onednn"))(
-      "require-fit", "refuse (exit 2) when a capture does not fit the model's camera (OUT/camera_fit.csv)");
+      "require-fit", "refuse (exit 2) when a capture does not fit the model's camera (OUT/camera_fit.csv)")(
+      "self-ensemble",
+      "average the enhancer over the image and its three flips (test-time self-ensemble; about 4x the enhancer's "
+      "time; libtorch engine)");
   add_force_folder(o);
   add_precision(o);
   add_common(o);
@@ -216,6 +220,9 @@ int infer(int argc, char** argv) {
   if (spec.use_camera) spec.camera = load_camera_config(r["camera"].as<std::string>());
   spec.levers = parse_inference_levers(r["levers"].as<std::string>());
   if (precision_from(r) == Precision::bf16) spec.levers.bf16 = true;  // the enhancer in bf16; inversion, sigmoid fp32
+  spec.levers.self_ensemble = r.count("self-ensemble") > 0;
+  require(!spec.levers.self_ensemble || engine == "libtorch", "--self-ensemble",
+          "runs on the libtorch engine (an ONNX file holds the plain model)");
   BatchOptions opt;
   opt.out = r["out"].as<std::string>();
   opt.batch = std::max(1, r["batch"].as<int>());

@@ -79,8 +79,8 @@ std::string write_inversion_report(const InversionReportOptions& opt) {
     auto camera = model.camera;
     camera.calibration = opt.calibration;  // for the initialisation (transpose) and the products
     const auto calib = load_calibration(opt.calibration, camera);  // checks its sizes against the model's camera
-    const int channel = channel_index(model.config.str("model.inversion.channel"));
-    Generator initial(generator_options(model.config, camera, /*initialise=*/true));
+    const int channel = channel_index(model.spec.inversion_channel);
+    Generator initial(generator_options(model.spec, camera, /*initialise=*/true));
     const auto [W1_before, W2_before] = inversion_of(initial, channel, file);
     const auto [W1_after, W2_after] = inversion_of(model.generator, channel, file);
     const auto PhiL = calib.P[channel], PhiR = calib.Q[channel];  // {rows,N}, {cols,N}
@@ -88,7 +88,7 @@ std::string write_inversion_report(const InversionReportOptions& opt) {
     const auto [left_after, la] = inversion_product(W1_after, PhiL);
     const auto [right_before, rb] = inversion_product(W2_before, PhiR);
     const auto [right_after, ra] = inversion_product(W2_after, PhiR);
-    const auto init = model.config.str("model.inversion.init");
+    const auto& init = model.spec.inversion_init;
     md << "| " << name << " | " << init << " | W1^T PhiL | " << share(lb.diagonal) << " | " << share(la.diagonal)
        << " | " << share(lb.band) << " | " << share(la.band) << " (" << la.offset << ") |\n"
        << "| " << name << " | " << init << " | W2^T PhiR | " << share(rb.diagonal) << " | " << share(ra.diagonal)

@@ -92,20 +92,6 @@ const std::vector<NumberRule>& range_rules() {
       {"data.light.exposure_max", 1e-6, 1e6, "a positive factor"},
       {"data.light.lamp_min", 1e-6, 1e6, "a positive factor"},
       {"data.light.lamp_max", 1e-6, 1e6, "a positive factor"},
-      {"model.unet.width", 1, 4096, "1 to 4096 filters"},
-      {"model.dncnn.layers", 3, 1000, "3 to 1000 layers"},
-      {"model.nafnet.width", 1, 4096, "1 to 4096 channels"},
-      {"model.nafnet.enc_blocks", 0, 1000, "0 to 1000 blocks"},
-      {"model.nafnet.middle_blocks", 0, 1000, "0 to 1000 blocks"},
-      {"model.nafnet.dec_blocks", 0, 1000, "0 to 1000 blocks"},
-      {"model.dncnn.width", 1, 4096, "1 to 4096 filters"},
-      {"model.rcan.groups", 1, 1000, "1 to 1000"},
-      {"model.rcan.blocks", 1, 1000, "1 to 1000"},
-      {"model.rcan.width", 1, 4096, "1 to 4096 filters"},
-      {"model.rcan.reduction", 1, 4096, "1 to 4096"},
-      {"model.bn_momentum", 0, 1, "0 to 1"},
-      {"model.inversion.lambda", 1e-12, 1e6, "a positive regulariser"},
-      {"model.inversion.slope", 1e-3, 1e3, "a positive slope (sensor pixels per scene pixel)"},
       {"loss.mse", 0, 1e6, "a weight, 0 or more"},
       {"loss.ssim", 0, 1e6, "a weight, 0 or more"},
       {"loss.perceptual", 0, 1e6, "a weight, 0 or more"},
@@ -139,19 +125,56 @@ const std::vector<NumberRule>& range_rules() {
 
 }  // namespace
 
+namespace {
+
+std::vector<RangeRow>& registered_ranges() {
+  static std::vector<RangeRow> rows;
+  return rows;
+}
+
+// config.cpp's table, then the rows the owning layers registered.
+std::vector<RangeRow> all_ranges() {
+  std::vector<RangeRow> rows;
+  for (const auto& rule : range_rules()) rows.push_back({rule.name, rule.lo, rule.hi, rule.meaning});
+  for (const auto& row : registered_ranges()) rows.push_back(row);
+  return rows;
+}
+
+}  // namespace
+
+bool register_ranges(const std::vector<RangeRow>& rows) {
+  auto& all = registered_ranges();
+  all.insert(all.end(), rows.begin(), rows.end());
+  return true;
+}
+
+std::string range_problem(const std::string& text, const RangeRow& row) {
+  return number_problem(text, NumberRule{row.key.c_str(), row.lo, row.hi, row.meaning.c_str()});
+}
+
+std::map<std::string, std::string> flat_yaml(const std::string& text, const std::filesystem::path& where) {
+  std::map<std::string, std::string> flat;
+  try {
+    flatten(parse_yaml(text, where), "", flat);
+  } catch (const YAML::Exception& e) {
+    throw Error(where, std::string("invalid settings: ") + e.what());
+  }
+  return flat;
+}
+
 std::vector<std::string> Config::ranged_keys() {
   std::vector<std::string> keys;
-  for (const auto& rule : range_rules()) keys.push_back(rule.name);
+  for (const auto& row : all_ranges()) keys.push_back(row.key);
   return keys;
 }
 
 void Config::check_ranges(const std::string& where) const {
-  for (const auto& rule : range_rules()) {
-    const auto it = values_.find(rule.name);
+  for (const auto& row : all_ranges()) {
+    const auto it = values_.find(row.key);
     if (it == values_.end()) continue;
-    const auto problem = number_problem(it->second, rule);
+    const auto problem = range_problem(it->second, row);
     if (!problem.empty())
-      throw Error(where + ": " + rule.name + " = " + it->second + " " + problem + ": " + rule.meaning);
+      throw Error(where + ": " + row.key + " = " + it->second + " " + problem + ": " + row.meaning);
   }
 }
 
@@ -228,8 +251,8 @@ std::vector<SettingDoc> describe_settings(const std::filesystem::path& defaults)
   std::vector<SettingDoc> out;
   for (const auto& [key, value] : config.values()) {
     SettingDoc d{key, value, "", ""};
-    for (const auto& rule : range_rules())
-      if (key == rule.name) d.range = rule.meaning;
+    for (const auto& row : all_ranges())
+      if (key == row.key) d.range = row.meaning;
     if (const auto it = docs.find(key); it != docs.end()) d.doc = it->second;
     out.push_back(d);
   }
@@ -284,6 +307,13 @@ Config Config::from_text(const std::string& yaml, const std::filesystem::path& w
   Config c = load({}, {}, defaults);
   c.merge_node_text(yaml, where, {});
   c.check_ranges(where.string());
+  return c;
+}
+
+Config Config::from_values(const std::map<std::string, std::string>& values, const std::string& where) {
+  Config c;
+  c.values_ = values;
+  c.check_ranges(where);
   return c;
 }
 

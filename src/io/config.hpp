@@ -11,6 +11,20 @@
 
 namespace flatnet {
 
+// A number setting's range, declared by the layer that owns the setting (its option table's row,
+// io/option_table.hpp) and registered here, so that every config is checked when it is loaded,
+// whichever layer reads the key later.
+struct RangeRow {
+  std::string key;
+  double lo, hi;
+  std::string meaning;  // "1 to 4096 filters"
+};
+// Adds rows to the checks Config::check_ranges makes. Returns true, for a registration at namespace
+// scope in the owning layer (`const bool registered = register_ranges(...)`).
+bool register_ranges(const std::vector<RangeRow>& rows);
+// "" when `text` is a finite decimal number within the row's range, else what is wrong.
+std::string range_problem(const std::string& text, const RangeRow& row);
+
 class Config {
  public:
   // defaults.yaml, then `experiment` (may be empty) and its bases, then the `sets` ("a.b=value").
@@ -20,6 +34,9 @@ class Config {
   static Config from_text(const std::string& yaml, const std::filesystem::path& where,
                           const std::filesystem::path& defaults = default_path());
   static std::filesystem::path default_path();  // data_dir()/configs/defaults.yaml
+  // Settings as given by dotted key, with no defaults file (a model file's stored spec, whose
+  // schema supplies every key); ranges checked, errors naming `where`. No value is a relative path.
+  static Config from_values(const std::map<std::string, std::string>& values, const std::string& where);
 
   // Overrides one key ("a.b=value"); `where` names the source in errors.
   void set(const std::string& assignment, const std::string& where = "--set");
@@ -34,9 +51,10 @@ class Config {
   static bool is_path_key(const std::string& key);
 
   // Throws (naming `where`, the key and its range) unless every number is finite and in its
-  // range (config.cpp's table); load and from_text call it, and so must code that calls set().
+  // range (config.cpp's table and the rows the layers register); load and from_text call it, and
+  // so must code that calls set().
   void check_ranges(const std::string& where = "--set") const;
-  // The keys config.cpp's range table checks (a test holds it and the defaults files together).
+  // The keys whose ranges are checked (a test holds them and the defaults files together).
   static std::vector<std::string> ranged_keys();
 
   // Every key with its value, as nested YAML (what checkpoints and model files embed).
@@ -53,6 +71,10 @@ class Config {
   std::map<std::string, std::string> values_;  // dotted key -> scalar text
   std::map<std::string, std::filesystem::path> bases_;
 };
+
+// A YAML mapping's scalars by dotted key ("model.unet.width" -> "32"), as written: no defaults
+// merged, no path resolved (errors name `where`).
+std::map<std::string, std::string> flat_yaml(const std::string& text, const std::filesystem::path& where);
 
 // One setting of a defaults file as `flatnet options` lists it: its default, its range (the
 // number table in config.cpp; empty for text, flags and paths) and its documentation (the comment

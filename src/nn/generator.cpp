@@ -600,12 +600,35 @@ torch::Tensor GeneratorImpl::enhance(const torch::Tensor& first, const torch::Te
     auto x = bn_->forward(first);  // {B,4,H,W}
     if (level.defined())           // {B,8,H,W}: the level as four constant channels
       x = torch::cat({x, level.to(x.scalar_type()).expand({-1, -1, x.size(2), x.size(3)})}, 1);
+    if (levers_.self_ensemble && !is_training()) return self_ensemble(x);
     if (levers_.channels_last) x = x.contiguous(at::MemoryFormat::ChannelsLast);
     if (levers_.bf16) x = x.to(torch::kBFloat16);
     y = enhancer_.forward<torch::Tensor>(x);  // {B,3,H,W} logits
   }
   if (!levers_.bf16 && !levers_.channels_last && y.scalar_type() == torch::kFloat32) return torch::sigmoid(y);
   return torch::sigmoid(y.to(torch::kFloat32)).contiguous();  // the sigmoid (and any loss after it) in fp32
+}
+
+torch::Tensor flip_ensemble(const std::function<torch::Tensor(const torch::Tensor&)>& f, const torch::Tensor& x) {
+  const std::vector<std::vector<int64_t>> flips = {{}, {3}, {2}, {2, 3}};  // identity, horizontal, vertical, both
+  std::vector<torch::Tensor> views;
+  for (const auto& dims : flips) views.push_back(dims.empty() ? x : torch::flip(x, dims));
+  const auto parts = f(torch::cat(views, 0)).chunk(static_cast<int64_t>(flips.size()), 0);  // 4 x {B,C',H,W}
+  auto sum = parts[0].contiguous();
+  for (size_t i = 1; i < flips.size(); ++i) sum = sum + torch::flip(parts[i], flips[i]);  // each flip undone
+  return sum / static_cast<double>(flips.size());
+}
+
+torch::Tensor GeneratorImpl::self_ensemble(const torch::Tensor& x) {  // {B,C,H,W} -> {B,3,H,W} in [0,1]
+  // The level channels are constant over the image, so the flips leave them as they are.
+  return flip_ensemble(
+      [this](const torch::Tensor& batch) {  // {4B,C,H,W}
+        auto in = levers_.channels_last ? batch.contiguous(at::MemoryFormat::ChannelsLast) : batch;
+        if (levers_.bf16) in = in.to(torch::kBFloat16);
+        return torch::sigmoid(enhancer_.forward<torch::Tensor>(in).to(torch::kFloat32));  // images, then averaged
+      },
+      x)
+      .contiguous();
 }
 
 void GeneratorImpl::prepare_training(const InferenceLevers& levers) {
@@ -650,6 +673,7 @@ void GeneratorImpl::apply_levers(const InferenceLevers& levers, bool for_inferen
   levers_.fold_batchnorm = levers_.fold_batchnorm || levers.fold_batchnorm;
   levers_.channels_last = levers.channels_last;
   levers_.bf16 = levers.bf16;
+  levers_.self_ensemble = for_inference && levers.self_ensemble;
 }
 
 void weights_to_channels_last(torch::nn::Module& module) {

@@ -3,6 +3,7 @@
 // FlatCam model followed by a perceptual-enhancement network. Module and parameter names follow
 // FlatNet's models.py (PhiL, PhiR, bn, inc, down1..4, up1..4, outc), so that, with the prefixes
 // `inversion.` and `enhancer.` dropped, a state_dict interchanges with FlatNet's own release.
+#include <functional>
 #include <string>
 
 #include <torch/torch.h>
@@ -183,10 +184,20 @@ struct InferenceLevers {
   bool bf16 = false;
   bool gemm_upsample = true;
   bool onednn = true;
+  // Not a speed-up and not exact (so not in parse_inference_levers's list): test-time
+  // self-ensemble, the enhancer run on the first stage's image and its horizontal, vertical and
+  // double flips (one batch of 4B), each output flipped back and the four images averaged.
+  // About 4x the enhancer's time; `infer --self-ensemble`.
+  bool self_ensemble = false;
   // onednn acts only on folded bf16 models.
   // oneDNN's own bf16 convolutions need its bf16 kernels (AVX-512 and up, no ISA cap).
   bool onednn_active() const;
 };
+// Test-time self-ensemble (Timofte et al. 2016): the mean over the identity and the horizontal,
+// vertical and double flips T of T^-1(f(T(x))), with f run once on the four views as one batch.
+// x {B,C,H,W} -> {B,C',H,W}; a flip-equivariant f gives f(x).
+torch::Tensor flip_ensemble(const std::function<torch::Tensor(const torch::Tensor&)>& f, const torch::Tensor& x);
+
 // "none" or a comma list of fold, channels-last, gemm-up, bf16, onednn.
 InferenceLevers parse_inference_levers(const std::string& s);
 
@@ -222,6 +233,9 @@ class GeneratorImpl : public torch::nn::Module {
   void check_measurement(const torch::Tensor& Y) const;
   // {B,4,H,W} first-stage output (+ {B,4,1,1} light level when level_input) -> {B,3,H,W} in [0,1]
   torch::Tensor enhance(const torch::Tensor& first, const torch::Tensor& level);
+  // The enhancer's input {B,C,H,W} -> the mean of its four flipped runs, {B,3,H,W} in [0,1]
+  // (InferenceLevers::self_ensemble).
+  torch::Tensor self_ensemble(const torch::Tensor& x);
   // {B,4,rows,cols} -> the planes without their DC and {B,4,1,1} the DC, in the first stage's
   // channel order (r, gr, gb, b); an undefined level without level_input.
   std::pair<torch::Tensor, torch::Tensor> split_level(const torch::Tensor& Y) const;

@@ -1,35 +1,24 @@
 #pragma once
 // What a trained model is on disk.
 //  - Model file (`flatnet infer --model`): one self-contained safetensors file with the generator's
-//    weights, the merged config that describes its architecture, and the camera preprocessing it
-//    was trained for. Format tag "flatnet-model", version 2 (version 1, a TorchScript archive, is
-//    read as data and rewritten by `flatnet export --model OLD --out NEW`). Nothing loaded runs code.
-//  - Checkpoint (`flatnet train`, resumable): the same plus the discriminator, both optimisers,
-//    the step, the best validation PSNR and the RNG state. Format tag "flatnet-checkpoint".
+//    weights, its typed spec (nn/model_spec: architecture, widths, inversion), the camera
+//    preprocessing it was trained for, and the training config as a record. It reads the same with
+//    no configs folder: the spec is not read over today's defaults. Files written before the spec
+//    carried their training config instead; its model section is converted when read. Format tag
+//    "flatnet-model", version 2 (version 1, a TorchScript archive, is read as data and rewritten by
+//    `flatnet export --model OLD --out NEW`). Nothing loaded runs code (nn/stored_file).
+//  - Checkpoint (nn/checkpoint.hpp): the same plus the training state.
 //  - State dict (`flatnet export --state-dict`, `flatnet import`): a torch.save-compatible dict of
 //    tensors with FlatNet-sep's parameter names (PhiL, PhiR, bn.*, inc.*, down1.*, ..., outc.*).
 #include <filesystem>
 #include <string>
 
 #include "io/camera_config.hpp"
-#include "nn/generator.hpp"
-#include "nn/losses.hpp"
 #include "io/config.hpp"
-#include "io/options.hpp"
+#include "nn/generator.hpp"
+#include "nn/model_spec.hpp"
 
 namespace flatnet {
-
-// The generator a config describes for a camera. With `initialise`, the first stage gets its
-// initial weights (model.inversion.init; the calibration for transpose and naive models);
-// without, only the shapes (weights come from a file).
-GeneratorOptions generator_options(const Config& config, const CameraConfig& camera, bool initialise);
-// The enhancers' option tables (io/options.hpp), keys under model.unet., model.dncnn., model.rcan.
-// and model.nafnet.; generator_options reads through them.
-const std::vector<OptionField<UNetOptions>>& unet_fields();
-const std::vector<OptionField<DnCNNOptions>>& dncnn_fields();
-const std::vector<OptionField<RCANOptions>>& rcan_fields();
-const std::vector<OptionField<NAFNetOptions>>& nafnet_fields();
-DiscriminatorOptions discriminator_options(const Config& config);
 
 // Where a model file came from, beside its weights (metadata strings; empty when not known, as in
 // files from before 2026-11-24 or imported state dicts). `flatnet info` prints them.
@@ -47,21 +36,28 @@ std::vector<std::pair<std::string, std::string Provenance::*>> provenance_fields
 
 struct ModelFile {
   Generator generator{nullptr};
-  Config config;
-  CameraConfig camera;
+  ModelSpec spec;      // what the weights are
+  CameraConfig camera;  // the preprocessing it was trained for
+  std::string recipe;  // the training config as recorded (YAML; a record, never read over defaults)
   int format_version = 2;  // 1: a TorchScript archive from before 2026-11 (read as data)
   Provenance provenance;
+
+  // A setting of the recorded training config as text ("data.camera" -> its path); "" when the
+  // file does not record it.
+  std::string recorded(const std::string& key) const;
 };
 
-// What a model file or checkpoint records beside its weights: the merged config that describes the
-// architecture (YAML text, as Config::to_yaml writes it) and the camera preprocessing. Trainers
-// carry this, not the Config object.
+// What a model file or checkpoint records beside its weights: the training config (YAML text, as
+// Config::to_yaml writes it; a checkpoint resumes from it, a model file keeps it as a record), the
+// generator's spec and the camera preprocessing. Trainers carry this, not the Config object.
 struct ModelIdentity {
   std::string config_yaml;
+  ModelSpec spec;
   CameraConfig camera;
   Provenance provenance;  // written_at and written_on are filled in when a file is written
 };
 ModelIdentity model_identity(const Config& config, const CameraConfig& camera);
+ModelIdentity model_identity(const ModelFile& model);  // to write it again (export)
 
 void save_model_file(const std::filesystem::path& path, Generator& generator, const ModelIdentity& identity);
 void save_model_file(const std::filesystem::path& path, Generator& generator, const Config& config,
@@ -70,47 +66,10 @@ void save_model_file(const std::filesystem::path& path, Generator& generator, co
 // reverse), a newer format version, weights missing or of the wrong shape.
 ModelFile load_model_file(const std::filesystem::path& path);
 
-struct TrainState {
-  int64_t step = 0;         // optimiser steps done
-  double best_psnr = -1e9;  // best validation PSNR so far
-  torch::Tensor rng_state;  // the default CPU generator's state
-  bool optimizers_restored = true;  // false after loading a format-1 checkpoint (moments start afresh)
-  double train_seconds = 0;         // wall-clock training time so far (train.minutes counts it)
-  std::string run_id;               // the run that wrote it (16 hex digits; "" in older files)
-};
-
-// A co-design run's learned camera (train/codesign.hpp): its parameters ("camera.") and their
-// optimiser ("optimizer_camera.") travel in the checkpoint; both null for other runs.
-struct CheckpointCamera {
-  torch::nn::Module* module = nullptr;
-  torch::optim::Adam* optimizer = nullptr;
-};
-// `ema`, when given, is the moving average of the generator's weights (saved as "generator_ema").
-void save_checkpoint(const std::filesystem::path& path, Generator& g, Discriminator& d, torch::optim::Adam& opt_g,
-                     torch::optim::Adam& opt_d, const TrainState& state, const ModelIdentity& identity,
-                     Generator* ema = nullptr, const CheckpointCamera& camera = {});
-// The best validation PSNR a checkpoint records (best.ckpt: the PSNR of the weights it holds).
-double checkpoint_best_psnr(const std::filesystem::path& path);
 // Whether a flatnet file (format 1 or 2) is a training checkpoint rather than a model file.
 bool is_checkpoint_file(const std::filesystem::path& path);
 // 2 for a safetensors model file or checkpoint, 1 for a format-1 TorchScript archive, 0 otherwise.
 int model_file_version(const std::filesystem::path& path);
-// What a checkpoint holds besides its tensors, from one read: the config and camera (to rebuild the
-// networks before load_checkpoint) and the run that wrote it.
-struct CheckpointSettings {
-  Config config;
-  CameraConfig camera;
-  std::string run_id;  // 16 hex digits; "" for files written before run ids
-};
-CheckpointSettings checkpoint_settings(const std::filesystem::path& path);
-// `ema` is filled from the checkpoint's average when it has one, else from its generator.
-// A checkpoint without a camera is refused when `camera` is given (and the reverse).
-TrainState load_checkpoint(const std::filesystem::path& path, Generator& g, Discriminator& d, torch::optim::Adam& opt_g,
-                           torch::optim::Adam& opt_d, Generator* ema = nullptr, const CheckpointCamera& camera = {});
-// A checkpoint's generator as a model file (what `flatnet export` does): the moving average of
-// the weights when the run kept one, else the live weights. `used_average` tells which.
-ModelFile model_from_checkpoint(const std::filesystem::path& path, bool* used_average = nullptr);
-
 // Copies a model file's generator weights into `g` (`flatnet train --init-from`): every tensor
 // must exist with the same shape, else an error naming the file, the tensor and both shapes.
 // One exception: a model without model.level_input into a generator with it; the enhancer's first

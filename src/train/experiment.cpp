@@ -12,6 +12,7 @@
 #include "core/precision.hpp"
 #include "core/util.hpp"
 #include "io/dataset.hpp"
+#include "nn/checkpoint.hpp"
 #include "nn/model_file.hpp"
 #include "optics/camera.hpp"
 #include "optics/simulator.hpp"
@@ -162,7 +163,7 @@ void initialise_from_model(const ExperimentOptions& o, const Config& config, con
     log << "initialised from " << o.init_from.string() << " (fresh optimisers)\n";
   if (o.reinit_inversion && transfer) {
     auto source_camera = o.source_camera;
-    if (source_camera.empty()) source_camera = load_model_file(o.init_from).config.path("data.camera");
+    if (source_camera.empty()) source_camera = load_model_file(o.init_from).recorded("data.camera");
     require(std::filesystem::exists(source_camera), "experiment.source_camera",
             "the camera " + o.init_from.string() + " was trained for (" + source_camera.string() +
                 ") is not here; name its camera .yaml with experiment.source_camera");

@@ -19,6 +19,7 @@
 #include "train/csv_log.hpp"
 #include "train/data.hpp"
 #include "train/loop.hpp"
+#include "nn/checkpoint.hpp"
 #include "nn/model_file.hpp"
 
 namespace flatnet {

@@ -1,10 +1,10 @@
 #pragma once
-// The trainers' option tables (io/options.hpp): TrainOptions, the mask and code-pair trainers', and
+// The trainers' option tables (io/option_table.hpp): TrainOptions, the mask and code-pair trainers', and
 // the structs their configs also fill (the light augmentation, co-design, the mask, the Wiener
 // camera). A test holds each struct's C++ defaults to its defaults file where they should agree.
 #include <vector>
 
-#include "io/options.hpp"
+#include "io/option_table.hpp"
 #include "optics/mask.hpp"
 #include "optics/simulator.hpp"
 #include "train/codesign.hpp"

@@ -1,14 +1,16 @@
 #pragma once
-// An options struct bound to its config keys in one table: each row names the YAML key (relative
-// to a prefix, for nested structs: "width" under "model.unet.") and the member it fills.
-// read_options fills a struct through its table (no hand-written line per key), and
-// defaults_differing lets a test hold the struct's C++ defaults to its defaults file. A setting's
-// default and documentation are declared on its line of the defaults file and its range in
-// io/config.cpp's table, checked when the config is loaded (`flatnet options` lists all three).
-// The tables live beside the structs' readers: nn/model_file (the generator's), train/options
-// (the trainers', the light augmentation's, co-design's, the mask's and its camera's).
+// The option schema: an options struct bound to its config keys in one table. Each row names the
+// YAML key (relative to a prefix: "unet.width" under "model."), the member it fills and, in the
+// sections that declare them there (nn/model_spec: the model section), the number's range and a
+// one-line doc; the default is the struct's own (S{}). read_options fills a struct through its
+// table (no hand-written line per key), check_options holds every number to its row's range, and
+// defaults_differing lets a test hold the struct's defaults to its defaults file. Sections whose
+// rows carry no range yet are range-checked by io/config.cpp's table.
+// The tables live beside the structs' readers: nn/model_spec (the model's), train/options (the
+// trainers', the light augmentation's, co-design's, the mask's and its camera's).
 #include <cstdint>
 #include <filesystem>
+#include <limits>
 #include <string>
 #include <type_traits>
 #include <variant>
@@ -24,7 +26,22 @@ struct OptionField {
   std::variant<double S::*, int64_t S::*, int S::*, uint64_t S::*, bool S::*, std::string S::*,
                std::filesystem::path S::*>
       member;
+  // Numbers only: the allowed range and what it means ("1 to 4096 filters"); no range when
+  // `range` is empty. Text values are checked by their readers (an enhancer's name, a channel).
+  double lo = -std::numeric_limits<double>::infinity();
+  double hi = std::numeric_limits<double>::infinity();
+  const char* range = "";
+  const char* doc = "";  // one line: what the setting does
 };
+
+// The range rows of a table as the config's range checks take them (io/config.hpp), keys prefixed.
+template <class S>
+std::vector<RangeRow> range_rows(const std::vector<OptionField<S>>& fields, const std::string& prefix = "") {
+  std::vector<RangeRow> out;
+  for (const auto& f : fields)
+    if (*f.range) out.push_back({prefix + f.key, f.lo, f.hi, f.range});
+  return out;
+}
 
 // Fills every field of `s` from `c`, each key read as `prefix` + its row's key (a missing key or a
 // value of the wrong kind is an error naming the key).

@@ -1,0 +1,65 @@
+#pragma once
+// The generator spec: what a model is, as typed settings (the `model:` section of a config), and
+// the generator it describes for a camera. A model file stores this spec (nn/model_file), not the
+// training config read over today's defaults, so that it reads the same with no configs folder and
+// whatever later training keys are renamed. Each setting is one row of model_spec_fields(): its
+// key, the member it fills, its range and one line of doc; its default is ModelSpec{}'s (a test
+// holds them to configs/defaults.yaml). The rows' ranges check every config when it is loaded.
+#include <filesystem>
+#include <string>
+#include <vector>
+
+#include "io/camera_config.hpp"
+#include "io/config.hpp"
+#include "io/option_table.hpp"
+#include "nn/generator.hpp"
+#include "nn/losses.hpp"
+
+namespace flatnet {
+
+struct ModelSpec {
+  std::string input = "inversion";         // inversion (FlatNet) | tikhonov (the naive model)
+  std::string inversion_init = "transpose";  // transpose | pinv | calibfree | flatnet-toeplitz | random | transfer
+  bool inversion_shared = true;            // one W1/W2 pair for the four channels
+  std::string inversion_channel = "gb";    // calibration channel for a shared transpose or pinv start
+  double inversion_slope = 2.2;            // calibfree: shadow shift, sensor pixels per scene pixel
+  int64_t inversion_seed = 0;              // calibfree / random: seed of the pseudo-random matrices
+  double inversion_lambda = 1.0e-2;        // pinv, transfer: regulariser relative to s_max^2
+  std::filesystem::path inversion_toeplitz_file;  // flatnet-toeplitz: phil_toep_slope22.mat
+  std::string enhancer = "unet";           // unet | dncnn | rcan | nafnet
+  bool level_input = false;                // the enhancer also reads each plane's light level
+  double bn_momentum = 0.99;               // PyTorch convention (FlatNet: 0.99)
+  int64_t unet_width = 128;
+  int64_t dncnn_layers = 19, dncnn_width = 64;
+  int64_t nafnet_width = 16, nafnet_enc_blocks = 1, nafnet_middle_blocks = 1, nafnet_dec_blocks = 1;
+  int64_t rcan_groups = 5, rcan_blocks = 10, rcan_width = 64, rcan_reduction = 16;
+};
+
+// The schema's rows for the model section, keys relative to "model." ("unet.width").
+const std::vector<OptionField<ModelSpec>>& model_spec_fields();
+
+// The spec a config's `model:` section describes (a value out of range or of the wrong kind: an
+// error naming the key).
+ModelSpec model_spec(const Config& config);
+// The spec as YAML ("model:" with its settings nested, as configs write them); what model files store.
+std::string model_spec_yaml(const ModelSpec& spec);
+// A spec from YAML text with a `model:` section: the `model_spec` a model file stores, or the
+// config that files written before it embedded (converted once, when read: its other sections are
+// ignored, and a key it lacks, from before that key existed, takes the spec's default). Errors name
+// `where` and the key: a value out of range or of the wrong kind, or, with `strict` (a stored
+// spec), a model key this flatnet does not know (a file from a newer flatnet).
+ModelSpec parse_model_spec(const std::string& yaml, const std::filesystem::path& where, bool strict);
+
+// The generator a spec describes for a camera. With `initialise`, the first stage gets its
+// initial weights (model.inversion.init; the calibration for transpose and naive models);
+// without, only the shapes (weights come from a file).
+GeneratorOptions generator_options(const ModelSpec& spec, const CameraConfig& camera, bool initialise);
+GeneratorOptions generator_options(const Config& config, const CameraConfig& camera, bool initialise);
+DiscriminatorOptions discriminator_options(const Config& config);
+
+// "trainable inversion W1^T Y W2 (transpose init, one pair for all channels)", "U-Net, width 32":
+// what `flatnet info` and the model cards say a model is.
+std::string first_stage_text(const ModelSpec& spec);
+std::string enhancer_text(const ModelSpec& spec);
+
+}  // namespace flatnet
