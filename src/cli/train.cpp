@@ -223,6 +223,10 @@ int infer(int argc, char** argv) {
   spec.levers.self_ensemble = r.count("self-ensemble") > 0;
   require(!spec.levers.self_ensemble || engine == "libtorch", "--self-ensemble",
           "runs on the libtorch engine (an ONNX file holds the plain model)");
+  if (spec.levers.self_ensemble && load_model_file(spec.model).spec.inversion_init == "calibfree")
+    std::cerr << "warning: --self-ensemble assumes an enhancer that works the same on a flipped image; a "
+                 "calibration-free model's first stage shifts the scene and its enhancer undoes the shift, so flips "
+                 "hurt it (the shipped one: -1.24 dB on the held-out set, docs/evaluation.md)\n";
   BatchOptions opt;
   opt.out = r["out"].as<std::string>();
   opt.batch = std::max(1, r["batch"].as<int>());
