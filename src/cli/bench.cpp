@@ -33,6 +33,43 @@ void print_profile(const BenchRow& row, int top) {
   std::cout << std::flush;
 }
 
+// --rows as a list ("peak" expands to the peak rows; empty: every row), the peak rows first so that
+// every other row can be given its share of the peak.
+std::vector<std::string> rows_to_run(const std::string& list) {
+  std::vector<std::string> rows;
+  if (list.empty()) {
+    rows = bench_row_names();
+  } else {
+    std::stringstream in(list);
+    for (std::string item; std::getline(in, item, ',');) {
+      if (item != "peak") {
+        rows.push_back(item);
+        continue;
+      }
+      for (const auto& p : peak_row_names()) rows.push_back(p);
+    }
+  }
+  std::stable_partition(rows.begin(), rows.end(), [](const std::string& n) { return n.rfind("peak_", 0) == 0; });
+  return rows;
+}
+
+void print_row(const BenchRow& row, double gflops, double share) {
+  std::cout << std::left << std::setw(15) << row.name << std::right << std::fixed << std::setprecision(2)
+            << std::setw(10) << row.median_ms << std::setw(12) << row.min_ms << std::setprecision(0) << std::setw(12)
+            << row.peak_rss_mb << std::setprecision(2) << std::setw(12) << row.per_second << std::setw(10)
+            << fixed(gflops, 1) << std::setw(8) << fixed(100 * share, 1) << "  " << row.what << std::endl;
+}
+
+nlohmann::json row_json(const BenchRow& row, double gflops, double share) {
+  auto number = [](double v) { return std::isfinite(v) ? nlohmann::json(v) : nlohmann::json(nullptr); };
+  return {{"name", row.name},           {"what", row.what},
+          {"median_ms", row.median_ms}, {"min_ms", row.min_ms},
+          {"runs_ms", row.ms},          {"peak_rss_mb", row.peak_rss_mb},
+          {"per_second", row.per_second}, {"gflop", number(row.gflop)},
+          {"gflops", number(gflops)},   {"peak_kind", row.peak_kind},
+          {"peak_share", number(share)}};
+}
+
 }  // namespace
 
 int bench(int argc, char** argv) {
@@ -71,22 +108,7 @@ int bench(int argc, char** argv) {
   if (r.count("json"))  // its folder made (as the writer would) before the rows run, not after minutes of them
     std::filesystem::create_directories(std::filesystem::absolute(r["json"].as<std::string>()).parent_path());
   require(!opt.profile_shapes || opt.profile, "bench", "--profile-shapes goes with --profile N");
-  std::vector<std::string> rows;
-  if (r.count("rows")) {
-    std::stringstream in(r["rows"].as<std::string>());
-    std::string item;
-    while (std::getline(in, item, ',')) {
-      if (item != "peak") {
-        rows.push_back(item);
-        continue;
-      }
-      for (const auto& p : peak_row_names()) rows.push_back(p);
-    }
-  } else {
-    rows = bench_row_names();
-  }
-  // The peak rows first, so that every other row can be given its share of the peak.
-  std::stable_partition(rows.begin(), rows.end(), [](const std::string& n) { return n.rfind("peak_", 0) == 0; });
+  const auto rows = rows_to_run(r.count("rows") ? r["rows"].as<std::string>() : std::string());
   const auto choice = r["precision"].as<std::string>();
   std::vector<bool> precisions;  // bf16 or not, per pass over a precision-dependent row
   if (choice == "both")
@@ -125,22 +147,8 @@ int bench(int argc, char** argv) {
     const double gflops = row.gflops();
     const auto peak = peak_gflops.find(row.peak_kind);
     const double share = peak != peak_gflops.end() && !is_peak ? gflops / peak->second : std::nan("");
-    std::cout << std::left << std::setw(15) << row.name << std::right << std::fixed << std::setprecision(2)
-              << std::setw(10) << row.median_ms << std::setw(12) << row.min_ms << std::setprecision(0) << std::setw(12)
-              << row.peak_rss_mb << std::setprecision(2) << std::setw(12) << row.per_second << std::setw(10)
-              << fixed(gflops, 1) << std::setw(8) << fixed(100 * share, 1) << "  " << row.what << std::endl;
-    auto number = [](double v) { return std::isfinite(v) ? nlohmann::json(v) : nlohmann::json(nullptr); };
-    out["rows"].push_back({{"name", row.name},
-                           {"what", row.what},
-                           {"median_ms", row.median_ms},
-                           {"min_ms", row.min_ms},
-                           {"runs_ms", row.ms},
-                           {"peak_rss_mb", row.peak_rss_mb},
-                           {"per_second", row.per_second},
-                           {"gflop", number(row.gflop)},
-                           {"gflops", number(gflops)},
-                           {"peak_kind", row.peak_kind},
-                           {"peak_share", number(share)}});
+    print_row(row, gflops, share);
+    out["rows"].push_back(row_json(row, gflops, share));
     if (!opt.profile) continue;
     print_profile(row, profile_top);
     auto& ops = out["rows"].back()["profile"] = nlohmann::json::array();

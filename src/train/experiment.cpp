@@ -224,19 +224,16 @@ double training_fixed_bytes(const Config& c, const CameraConfig& camera) {
   return 5 * 4.0 * params;
 }
 
-ExperimentResult run_experiment(const ExperimentOptions& o) {
-  std::ostream& log = o.log ? *o.log : std::cerr;
-  const auto& dist = o.distributed;
-  require(!o.out.empty(), "experiment.out", "an output folder is required");
-  require(dist.world_size >= 1 && dist.rank >= 0 && dist.rank < dist.world_size, "experiment.rank",
-          "must lie in [0, world size " + std::to_string(dist.world_size) + ")");
-  const bool writer = dist.rank == 0;
+namespace {
+
+// The run's config: a resumed run's own (its checkpoint's, with experiment.sets on top; another
+// experiment.config is refused), or a new run's (after checking that experiment.out holds no other run).
+Config settle_config(const ExperimentOptions& o, bool writer) {
   const auto& out = o.out;
   const auto& sets = o.sets;
   const auto latest = out / "latest.ckpt";
-  const bool resume = o.resume;
   Config config;
-  if (resume) {
+  if (o.resume) {
     require(std::filesystem::exists(latest), latest, "nothing to resume (no checkpoint)");
     auto stored = checkpoint_settings(latest);  // one read: the run id and the settings
     if (!o.force) require_checkpoint_of_this_run(out, stored.run_id, latest, "experiment.force");
@@ -249,38 +246,57 @@ ExperimentResult run_experiment(const ExperimentOptions& o) {
               "experiment.resume continues with the run's own config (" + (out / "config.yaml").string() +
                   "), which differs in " + differences + "; change single settings with experiment.sets key=value");
     }
-  } else {
-    require(!writer || o.force || !std::filesystem::exists(latest), out,
-            "already holds a training run; continue it with experiment.resume, choose another experiment.out, or set experiment.force to "
-            "start afresh (deleting it)");
-    const auto old = run_files(out);
-    if (writer && !o.force && !old.empty())
-      throw Error(out, "holds the files of another run that never reached its first checkpoint (" +
-                           old.front().filename().string() +
-                           " ...); set experiment.force to start afresh (deleting them) or choose another experiment.out");
-    config = Config::load(o.config, sets);
+    return config;
   }
+  require(!writer || o.force || !std::filesystem::exists(latest), out,
+          "already holds a training run; continue it with experiment.resume, choose another experiment.out, or set experiment.force to "
+          "start afresh (deleting it)");
+  const auto old = run_files(out);
+  if (writer && !o.force && !old.empty())
+    throw Error(out, "holds the files of another run that never reached its first checkpoint (" +
+                         old.front().filename().string() +
+                         " ...); set experiment.force to start afresh (deleting them) or choose another experiment.out");
+  return Config::load(o.config, sets);
+}
+
+// A model or batch that cannot fit is refused before it fills the machine's memory (an estimate;
+// see training_bytes_per_sample).
+void require_memory_for(const Config& config, const CameraConfig& camera, const TrainOptions& opts) {
+  const double available = available_memory_bytes();
+  if (available <= 0) return;
+  const double fixed = training_fixed_bytes(config, camera);
+  const auto gb = [](double bytes) { return std::to_string(static_cast<int64_t>(std::ceil(bytes / 1e9))); };
+  const auto enhancer = config.str("model.enhancer");
+  require(fixed < 0.9 * available, "model." + (enhancer == "rcan" || enhancer == "dncnn" || enhancer == "nafnet" ? enhancer : std::string("unet")) + ".width",
+          "this model's weights, gradients and optimiser state need about " + gb(fixed) +
+              " GB, and this machine has " + gb(available) + " GB available; choose a smaller width");
+  const double need = fixed + training_bytes_per_sample(config, camera) * static_cast<double>(opts.batch);
+  require(need < 0.9 * available, "train.batch",
+          std::to_string(opts.batch) + " samples need about " + gb(need) + " GB for training (" + gb(fixed) +
+              " of them for the model and its optimiser), and this machine has " + gb(available) +
+              " GB available; lower train.batch (or train.crop)");
+}
+
+}  // namespace
+
+ExperimentResult run_experiment(const ExperimentOptions& o) {
+  std::ostream& log = o.log ? *o.log : std::cerr;
+  const auto& dist = o.distributed;
+  require(!o.out.empty(), "experiment.out", "an output folder is required");
+  require(dist.world_size >= 1 && dist.rank >= 0 && dist.rank < dist.world_size, "experiment.rank",
+          "must lie in [0, world size " + std::to_string(dist.world_size) + ")");
+  const bool writer = dist.rank == 0;
+  const auto& out = o.out;
+  const auto latest = out / "latest.ckpt";
+  const bool resume = o.resume;
+  Config config = settle_config(o, writer);
   require(!(resume && !o.init_from.empty()), "experiment.init_from", "starts a new run; it cannot be combined with experiment.resume");
   require_no_light_augment_on_disk(config);
   // Everything that can fail on bad input is checked before anything is written.
   const auto camera = camera_of(config);
   auto vgg = vgg_if_needed(config);
   auto opts = train_options(config, out);
-  // A batch that cannot fit is refused before it fills the machine's memory (an estimate; see
-  // training_bytes_per_sample).
-  if (const double available = available_memory_bytes(); available > 0) {
-    const double fixed = training_fixed_bytes(config, camera);
-    const auto gb = [](double bytes) { return std::to_string(static_cast<int64_t>(std::ceil(bytes / 1e9))); };
-    const auto enhancer = config.str("model.enhancer");
-    require(fixed < 0.9 * available, "model." + (enhancer == "rcan" || enhancer == "dncnn" || enhancer == "nafnet" ? enhancer : std::string("unet")) + ".width",
-            "this model's weights, gradients and optimiser state need about " + gb(fixed) +
-                " GB, and this machine has " + gb(available) + " GB available; choose a smaller width");
-    const double need = fixed + training_bytes_per_sample(config, camera) * static_cast<double>(opts.batch);
-    require(need < 0.9 * available, "train.batch",
-            std::to_string(opts.batch) + " samples need about " + gb(need) + " GB for training (" + gb(fixed) +
-                " of them for the model and its optimiser), and this machine has " + gb(available) +
-                " GB available; lower train.batch (or train.crop)");
-  }
+  require_memory_for(config, camera, opts);
   require(opts.crop <= camera.scene_size, "train.crop",
           std::to_string(opts.crop) + " exceeds the camera's " + std::to_string(camera.scene_size) +
               "-pixel scene (0: whole scenes)");
