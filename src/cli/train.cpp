@@ -223,10 +223,6 @@ int infer(int argc, char** argv) {
   spec.levers.self_ensemble = r.count("self-ensemble") > 0;
   require(!spec.levers.self_ensemble || engine == "libtorch", "--self-ensemble",
           "runs on the libtorch engine (an ONNX file holds the plain model)");
-  if (spec.levers.self_ensemble && load_model_file(spec.model).spec.inversion_init == "calibfree")
-    std::cerr << "warning: --self-ensemble assumes an enhancer that works the same on a flipped image; a "
-                 "calibration-free model's first stage shifts the scene and its enhancer undoes the shift, so flips "
-                 "hurt it (the shipped one: -1.24 dB on the held-out set, docs/evaluation.md)\n";
   BatchOptions opt;
   opt.out = r["out"].as<std::string>();
   opt.batch = std::max(1, r["batch"].as<int>());
@@ -234,6 +230,7 @@ int infer(int argc, char** argv) {
   const auto captures = collect_captures(r["input"].as<std::string>());
   check_output_names(captures, opt.out);  // never over a capture, even with --force
   auto built = make_reconstructor(spec);
+  if (!built.warning.empty()) std::cerr << "warning: " << built.warning << "\n";
   // One folder holds one model's reconstructions: a rerun with another model is refused, not mixed.
   const auto claim = claim_out(r, opt.out, "infer", "model " + file_fingerprint(spec.model));
   if (engine == "opencv")

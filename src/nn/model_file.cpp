@@ -22,10 +22,8 @@ ModelIdentity model_identity(const Config& config, const CameraConfig& camera) {
 ModelIdentity model_identity(const ModelFile& m) { return {m.recipe, m.spec, m.camera, m.provenance}; }
 
 std::string ModelFile::recorded(const std::string& key) const {
-  if (recipe.empty()) return "";
-  const auto values = flat_yaml(recipe, "the model file's recorded config");
-  const auto it = values.find(key);
-  return it == values.end() ? "" : it->second;
+  const auto it = recipe_values.find(key);
+  return it == recipe_values.end() ? "" : it->second;
 }
 
 std::vector<std::pair<std::string, std::string Provenance::*>> provenance_fields() {

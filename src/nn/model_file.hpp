@@ -11,6 +11,7 @@
 //  - State dict (`flatnet export --state-dict`, `flatnet import`): a torch.save-compatible dict of
 //    tensors with FlatNet-sep's parameter names (PhiL, PhiR, bn.*, inc.*, down1.*, ..., outc.*).
 #include <filesystem>
+#include <map>
 #include <string>
 
 #include "io/camera_config.hpp"
@@ -39,6 +40,7 @@ struct ModelFile {
   ModelSpec spec;      // what the weights are
   CameraConfig camera;  // the preprocessing it was trained for
   std::string recipe;  // the training config as recorded (YAML; a record, never read over defaults)
+  std::map<std::string, std::string> recipe_values;  // the recipe by dotted key, parsed once when read
   int format_version = 2;  // 1: a TorchScript archive from before 2026-11 (read as data)
   Provenance provenance;
 

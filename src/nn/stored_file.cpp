@@ -216,6 +216,7 @@ ModelFile read_generator(const Stored& s, const std::filesystem::path& path, boo
   m.spec = spec;
   m.camera = camera;
   m.recipe = s.text("config", path);
+  m.recipe_values = flat_yaml(m.recipe, path);
   m.format_version = s.version;
   m.provenance = provenance_of(s);
   const bool checkpoint = s.text("format", path) == kCheckpointFormat;

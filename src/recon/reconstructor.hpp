@@ -69,6 +69,9 @@ struct BuiltReconstructor {
   // `no_fit` says why.
   std::shared_ptr<const CameraFit> fit;
   std::string no_fit;
+  // What the caller should tell the user before reconstructing ("" when nothing): a lever the
+  // model is known to suffer from.
+  std::string warning = "";
 };
 // Errors name what is missing or wrong (an unknown method, no calibration, a model file that is
 // not one, a camera that does not match the model).
