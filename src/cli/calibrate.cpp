@@ -62,6 +62,10 @@ int calibrate_from_dataset(const cxxopts::ParseResult& r) {
   o.seed = r["seed"].as<uint64_t>();
   o.cache_bytes = static_cast<int64_t>(r["cache-mb"].as<double>() * (1 << 20));
   require(o.iterations >= 1 && o.cache_bytes >= 0, "calibrate", "--iterations >= 1 and --cache-mb >= 0");
+  const auto structure = r["structure"].as<std::string>();
+  require(structure == "shift" || structure == "free", "calibrate",
+          "--structure is shift (a FlatCam's shadow moves with the scene) or free, not '" + structure + "'");
+  o.structure = structure == "shift" ? FactorStructure::Shift : FactorStructure::Free;
   std::cerr << "calibrate: " << pairs.size() << " display-capture pairs, " << camera.raw.crop[2] << "x"
             << camera.raw.crop[3] << " planes, " << N << "x" << N << " scenes\n";
   const auto fit = calibrate_from_pairs(static_cast<int64_t>(pairs.size()), load, camera.raw.crop[2],
@@ -77,6 +81,9 @@ int calibrate_from_dataset(const cxxopts::ParseResult& r) {
   fit_text << "# identified by `flatnet calibrate --dataset` from " << fit.pairs << " display-capture pairs, "
            << fit.iterations << " alternating steps; relative fit residual per channel (b, gb, gr, r):";
   for (const double v : fit.residual) fit_text << " " << std::setprecision(4) << v;
+  if (o.structure == FactorStructure::Shift && !fit.structure_rejected)
+    fit_text << "\n# the shadow moves " << std::setprecision(6) << fit.shift_rows << " sensor pixels per scene row, "
+             << fit.shift_cols << " per scene column";
   write_text_atomically(yaml_path, fit_text.str() + "\n" + camera_geometry_yaml(known) +
                                        "calibration: " + yaml_quoted(out.filename().string()) + "\n");
   std::cout << "wrote " << out.string() << " and " << yaml_path.string() << " from " << fit.pairs << " pairs ("
@@ -84,6 +91,14 @@ int calibrate_from_dataset(const cxxopts::ParseResult& r) {
   for (int c = 0; c < 4; ++c) std::cout << " " << kChannelNames[c] << " " << std::setprecision(4) << fit.residual[c];
   std::cout << "\nsensor noise: variance " << fit.noise_gain << " x (level - " << fit.dark << ") + " << fit.noise_floor
             << " (full well about " << (fit.noise_gain > 0 ? 1 / fit.noise_gain : 0) << " electrons)\n";
+  if (fit.structure_rejected)
+    std::cout << "shift structure rejected: it explains " << std::setprecision(3) << fit.structure_explains
+              << " of what free factors explain (a mask that is not one moving shadow?); free factors were fitted, "
+                 "which need thousands of pairs\n";
+  else if (o.structure == FactorStructure::Shift)
+    std::cout << "shift structure: the shadow moves " << std::setprecision(6) << fit.shift_rows
+              << " sensor pixels per scene row, " << fit.shift_cols << " per scene column; it explains "
+              << std::setprecision(3) << fit.structure_explains << " of what free factors explain\n";
   if (truth) {  // a simulated camera: how close to its true response
     const auto err = calibration_error(fit.calib, *truth);
     std::cout << "relative error against the rig's true response: P " << 100 * err.p << " %, Q " << 100 * err.q
@@ -122,6 +137,9 @@ int calibrate(int argc, char** argv) {
       "split", "train (the train list only) or all (train and val)", cxxopts::value<std::string>()->default_value("train"))(
       "limit", "use the first N pairs (0: all)", cxxopts::value<int64_t>()->default_value("0"))(
       "iterations", "alternating least-squares steps at most", cxxopts::value<int>()->default_value("40"))(
+      "structure", "shift: each factor's columns are one profile moved by a shift found from the data (a FlatCam's "
+      "shadow; few pairs suffice); free: every entry free (any separable camera; needs many pairs)",
+      cxxopts::value<std::string>()->default_value("shift"))(
       "cache-mb", "decoded pairs kept in memory (the rest are re-read each pass)",
       cxxopts::value<double>()->default_value("2048"));
   add_common(o);

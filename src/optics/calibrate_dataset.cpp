@@ -54,6 +54,7 @@ class PairStream {
 };
 
 constexpr int64_t kNoisePairs = 64;
+constexpr double kStructureExplainsAtLeast = 0.7;  // of the coded energy the free factors explain
 
 // The normal equations of one step of (2), Y_i ~ F Z_i + s_i M (F {4,m,N}, Z_i {4,N,k}, M {4,m,k}),
 // accumulated over the pairs.
@@ -108,22 +109,81 @@ torch::Tensor residual_energy(const Sums& t, const torch::Tensor& F, const torch
       .clamp_min(0);
 }
 
-// One step: F and M minimising sum ||Y - F Z - s M||^2 + r ||F||^2, M eliminated (the header's
+// The normal equations of one step with M eliminated (the header's formula): gram {4,N,N}, rhs {4,m,N}.
+std::pair<torch::Tensor, torch::Tensor> reduced(const Sums& t) {
+  const auto S2 = t.S2.clamp_min(1e-30).view({4, 1, 1});
+  return {t.A - torch::matmul(t.Sz, t.Sz.transpose(1, 2)) / S2, t.B - torch::matmul(t.Sy, t.Sz.transpose(1, 2)) / S2};
+}
+
+// M for a given F: (Sy - F Sz) / S2.
+torch::Tensor uniform_for(const Sums& t, const torch::Tensor& F) {
+  return (t.Sy - torch::matmul(F, t.Sz)) / t.S2.clamp_min(1e-30).view({4, 1, 1});
+}
+
+// One free step: F and M minimising sum ||Y - F Z - s M||^2 + r ||F||^2, M eliminated (the header's
 // formula). r per channel: `prior` = sigma^2 / mean(F^2) once the noise is known (the MAP estimate
 // for Gaussian noise and a Gaussian prior on F's entries: directions the photographs hardly show,
 // their fine detail, shrink to zero instead of fitting the noise); before, `ridge` times the Gram
 // matrix's mean diagonal.
 std::pair<torch::Tensor, torch::Tensor> solve_step(const Sums& t, double ridge, const torch::Tensor& prior) {
-  const auto S2 = t.S2.clamp_min(1e-30).view({4, 1, 1});
-  const auto gram = t.A - torch::matmul(t.Sz, t.Sz.transpose(1, 2)) / S2;        // {4,N,N}
-  const auto rhs = t.B - torch::matmul(t.Sy, t.Sz.transpose(1, 2)) / S2;          // {4,m,N}
+  const auto [gram, rhs] = reduced(t);
   const auto dim = gram.size(1);
   const auto mean_diag = gram.diagonal(0, 1, 2).mean(1).clamp_min(1e-30);
   const auto r = prior.defined() ? prior.to(torch::kFloat64) : ridge * mean_diag;
   const auto regularised = gram + r.view({4, 1, 1}) * torch::eye(dim, gram.options()).unsqueeze(0);
   const auto F = torch::linalg_solve(regularised, rhs.transpose(1, 2)).transpose(1, 2);  // gram is symmetric
-  const auto M = (t.Sy - torch::matmul(F, t.Sz)) / S2;
-  return {F, M};
+  return {F, uniform_for(t, F)};
+}
+
+// One structured step (optics/shift_structure.hpp). The shift is searched on the first structured
+// step, searched again on the next (the other factor is structured by then, which sharpens the
+// search), then kept. The green
+// channel gb, with the most light, chooses it for all four.
+struct StructuredFactor {
+  double shift = 0;
+  torch::Tensor profile;  // {4,L}: the warm start of the next step
+  int steps = 0;
+};
+
+// noise_var {4}: the noise's variance per capture value, for the search's penalty (undefined: none).
+std::pair<torch::Tensor, torch::Tensor> solve_structured_step(const Sums& t, const ShiftFitOptions& o,
+                                                              const torch::Tensor& noise_var, StructuredFactor& state) {
+  const auto [gram, rhs] = reduced(t);
+  if (state.steps < 2) {
+    const auto g = gram.narrow(0, 1, 1), h = rhs.narrow(0, 1, 1);
+    const double sigma2 = noise_var.defined() ? noise_var[1].item<double>() : 0.0;
+    state.shift = search_shift(g, h, o, sigma2);
+    state.profile = torch::Tensor();
+  }
+  ++state.steps;
+  auto fit = fit_shift_factor(gram, rhs, state.shift, o, o.fit_iterations, state.profile);
+  state.profile = fit.profile;
+  return {fit.factor, uniform_for(t, fit.factor)};
+}
+
+// -J of a factor on a step's reduced normal equations, summed over the channels: the energy of the
+// captures' coded part that it explains.
+double explained(const std::pair<torch::Tensor, torch::Tensor>& normal, const torch::Tensor& F) {
+  const auto& [gram, rhs] = normal;
+  return (2 * (F * rhs).sum() - (torch::matmul(F, gram) * F).sum()).item<double>();
+}
+
+// A P-step with the shift structure. The first one is judged against the free step on the same sums:
+// free factors explain more (they fit some noise too: the structured model explains 0.92 of it on the
+// reference-class camera), but a camera whose mask is no moving shadow leaves the structure far
+// behind, and then free factors are fitted from there on.
+std::pair<torch::Tensor, torch::Tensor> structured_or_free_step(const Sums& t, const DatasetCalibrationOptions& o,
+                                                                const torch::Tensor& noise_var,
+                                                                const torch::Tensor& prior, StructuredFactor& state,
+                                                                DatasetCalibration& result) {
+  auto step = solve_structured_step(t, o.shift, noise_var, state);
+  if (state.steps > 1) return step;
+  auto free = solve_step(t, o.ridge, prior);
+  const auto normal = reduced(t);
+  result.structure_explains = explained(normal, step.first) / std::max(1e-300, explained(normal, free.first));
+  if (result.structure_explains >= kStructureExplainsAtLeast) return step;
+  result.structure_rejected = true;
+  return free;
 }
 
 // P X Q^T is unchanged by P*k, Q/k: each channel's factors are given equal norms.
@@ -175,7 +235,9 @@ DatasetCalibration calibrate_from_pairs(int64_t count, const std::function<Captu
   const auto prior_for = [&](const torch::Tensor& F) {
     return noise_var.defined() ? noise_var / F.to(torch::kFloat64).square().mean({1, 2}).clamp_min(1e-30) : torch::Tensor();
   };
+  StructuredFactor p_shape, q_shape;
   for (int it = 0; it <= o.iterations; ++it) {
+    const bool structured = o.structure == FactorStructure::Shift && it >= o.free_passes && !result.structure_rejected;
     // The P-step's pass also scores the current (P, Q, M).
     const auto sums = accumulate(pairs, P, M, p_design);
     if (P.defined()) {
@@ -186,6 +248,7 @@ DatasetCalibration calibrate_from_pairs(int64_t count, const std::function<Captu
       const double total = std::sqrt(energy.sum().item<double>() / std::max(1e-30, sums.norm.sum().item<double>()));
       std::ostringstream status;
       status << "residual " << std::setprecision(4) << total;
+      if (p_shape.steps > 0) status << ", shifts " << p_shape.shift << " " << q_shape.shift;
       progress.set_status(status.str());
       progress.tick();
       result.iterations = it;
@@ -193,15 +256,22 @@ DatasetCalibration calibrate_from_pairs(int64_t count, const std::function<Captu
       if (last - total < o.tolerance * last || it == o.iterations) break;
       last = total;
     }
-    auto [F, Mp] = solve_step(sums, o.ridge, P.defined() ? prior_for(P) : torch::Tensor());
+    // A step that changes the model's form (free to structured, a new shift) is not compared with the last.
+    if (structured && p_shape.steps < 2) last = std::numeric_limits<double>::infinity();
+    auto [F, Mp] = structured ? structured_or_free_step(sums, o, noise_var, prior_for(P), p_shape, result)
+                              : solve_step(sums, o.ridge, P.defined() ? prior_for(P) : torch::Tensor());
     P = F.to(torch::kFloat32);
     M = Mp.to(torch::kFloat32);
     const auto qsums = accumulate(pairs, {}, {}, q_design);
-    auto [G, Mq] = solve_step(qsums, o.ridge, prior_for(Q));
+    auto [G, Mq] = structured && !result.structure_rejected
+                       ? solve_structured_step(qsums, o.shift, noise_var, q_shape)
+                       : solve_step(qsums, o.ridge, prior_for(Q));
     Q = G.to(torch::kFloat32);
     M = Mq.transpose(1, 2).to(torch::kFloat32);
     balance(P, Q);
   }
+  result.shift_rows = result.structure_rejected ? 0 : p_shape.shift;
+  result.shift_cols = result.structure_rejected ? 0 : q_shape.shift;
   progress.finish();
   result.calib.P = P.to(torch::kFloat64);
   result.calib.Q = Q.to(torch::kFloat64);

@@ -17,6 +17,12 @@
 // slowly: s a b^T and the coded part's mean both scale with s.) With Z_i = Xz_i Q^T, the sums
 //   A = sum Z Z^T, B = sum Y Z^T, Sz = sum s Z, Sy = sum s Y, S2 = sum s^2
 // give P = (B - Sy Sz^T / S2)(A - Sz Sz^T / S2 + rI)^-1 and M = (Sy - P Sz) / S2.
+// Free factors have 128,000 unknowns each (FlatNet's P), more than a few hundred noisy photographs
+// pin down: their fine detail, which photographs hardly show, stays unknown. So after `free_passes`
+// free steps each factor is fitted with the shift structure of a FlatCam (optics/shift_structure.hpp:
+// column j is column 0's shadow moved by j * shift pixels), about 1,000 unknowns, the shift found from
+// the data; `FactorStructure::Free` keeps the free fit for a camera without that structure, and a
+// structured model that explains less than 0.7 of what the free one explains is rejected for it.
 // The pairs are streamed: those that fit the memory budget stay decoded, the rest are read again in
 // every pass, so thousands of pairs run in bounded memory.
 #include <array>
@@ -26,6 +32,7 @@
 #include <torch/torch.h>
 
 #include "optics/camera.hpp"
+#include "optics/shift_structure.hpp"
 
 namespace flatnet {
 
@@ -35,6 +42,8 @@ struct CapturePair {
   torch::Tensor level;  // {4} the window's mean raw value per plane (full scale); optional
 };
 
+enum class FactorStructure { Shift, Free };
+
 struct DatasetCalibrationOptions {
   int iterations = 30;         // alternating passes at most (each reads the pairs twice)
   double tolerance = 1e-4;     // stop when the relative residual improves by less than this
@@ -43,6 +52,9 @@ struct DatasetCalibrationOptions {
   uint64_t seed = 0;           // the random start of Q
   int64_t cache_bytes = 2ll << 30;  // decoded pairs kept in memory; the rest are re-read
   bool progress = true;
+  FactorStructure structure = FactorStructure::Shift;
+  int free_passes = 2;         // free steps before the structured ones (they give the shift search its start)
+  ShiftFitOptions shift;
 };
 
 struct DatasetCalibration {
@@ -54,6 +66,12 @@ struct DatasetCalibration {
   double noise_gain = 0, noise_floor = 0, dark = 0;
   int64_t pairs = 0;
   int iterations = 0;
+  // The shadow's move per scene pixel, in sensor pixels (signed), when the fit is structured; else 0.
+  double shift_rows = 0, shift_cols = 0;
+  // The coded energy the structured P explains over what the free P explains, at the first structured
+  // step; below 0.7 the structure is rejected and free factors are fitted.
+  double structure_explains = 0;
+  bool structure_rejected = false;
 };
 
 // Fits (2) to `count` pairs read by `load(i)`. Errors name the pair's index when its planes are not

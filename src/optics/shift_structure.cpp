@@ -1,0 +1,145 @@
+#include "optics/shift_structure.hpp"
+
+#include <cmath>
+#include <limits>
+#include <vector>
+
+#include "core/error.hpp"
+
+namespace flatnet {
+
+namespace {
+
+// Where each entry (i,j) of a factor reads the profile: samples k and k + 1, weights 1 - w and w (eq. 1).
+struct Sampling {
+  torch::Tensor index;   // {2 m N} long: k for every entry, then k + 1
+  torch::Tensor weight;  // {2 m N} float64: 1 - w, then w
+  int64_t length = 0;    // the profile's samples
+};
+
+Sampling sampling(int64_t rows, int64_t scene, double shift, double spacing) {
+  require(std::isfinite(shift) && shift != 0 && spacing > 0, "calibrate.dataset",
+          "a shift structure needs a non-zero shift and a positive spacing");
+  const auto f64 = torch::TensorOptions().dtype(torch::kFloat64);
+  const auto pos = torch::arange(rows, f64).view({rows, 1}) + torch::arange(scene, f64).view({1, scene}) * shift;
+  const double lowest = shift < 0 ? static_cast<double>(scene - 1) * shift : 0.0;
+  const auto u = ((pos - lowest) / spacing).flatten();
+  const auto floor = u.floor();
+  const auto k = floor.to(torch::kLong);
+  const auto w = u - floor;
+  Sampling s;
+  s.index = torch::cat({k, k + 1});
+  s.weight = torch::cat({1 - w, w});
+  s.length = k.max().item<int64_t>() + 2;
+  return s;
+}
+
+torch::Tensor centre_columns(const torch::Tensor& F) { return F - F.mean(1, true); }
+
+// F(f) {C,m,N} from the profile {C,L}.
+torch::Tensor expand(const torch::Tensor& f, const Sampling& s, int64_t rows, int64_t scene) {
+  return (f.index_select(1, s.index) * s.weight).view({f.size(0), 2, rows, scene}).sum(1);
+}
+
+// The adjoint of expand: {C,m,N} -> {C,L}. (scatter_add_ along a row is several times faster here
+// than index_add_ on dimension 1.)
+torch::Tensor gather_back(const torch::Tensor& R, const Sampling& s) {
+  const auto r = R.reshape({R.size(0), -1}).repeat({1, 2}) * s.weight;
+  return torch::zeros({R.size(0), s.length}, R.options()).scatter_add_(1, s.index.expand({R.size(0), -1}), r);
+}
+
+// J of eq. (2) per channel.
+torch::Tensor objective(const torch::Tensor& F, const torch::Tensor& G, const torch::Tensor& H) {
+  return (torch::matmul(F, G) * F).sum({1, 2}) - 2 * (F * H).sum({1, 2});
+}
+
+}  // namespace
+
+torch::Tensor shift_factor(const torch::Tensor& profile, int64_t rows, int64_t scene, double shift, double spacing) {
+  return centre_columns(expand(profile, sampling(rows, scene, shift, spacing), rows, scene));
+}
+
+ShiftFactor fit_shift_factor(const torch::Tensor& G, const torch::Tensor& H, double shift, const ShiftFitOptions& o,
+                             int max_iterations, const torch::Tensor& warm) {
+  const auto g = G.to(torch::kFloat64), h = H.to(torch::kFloat64);  // {C,N,N}, {C,m,N}
+  const int64_t rows = h.size(1), scene = h.size(2);
+  const auto s = sampling(rows, scene, shift, o.spacing);
+  // The profile's constant is invisible in centred captures (C F(f + a) = C F(f)); a whisper of ridge
+  // keeps it at zero.
+  const auto ridge = (1e-10 * static_cast<double>(rows * scene) / static_cast<double>(s.length)) *
+                     g.diagonal(0, 1, 2).mean(1, true).clamp_min(1e-300);  // {C,1}
+  const auto normal = [&](const torch::Tensor& f) {  // the normal equations' operator on f
+    return gather_back(torch::matmul(centre_columns(expand(f, s, rows, scene)), g), s) + ridge * f;
+  };
+  const auto b = gather_back(h, s);
+  auto x = warm.defined() && warm.sizes() == b.sizes() ? warm.to(torch::kFloat64).clone() : torch::zeros_like(b);
+  auto r = b - normal(x);
+  auto p = r.clone();
+  auto rr = r.square().sum(1, true);
+  const auto stop = (o.cg_tolerance * b.norm(2, 1, true)).square();
+  for (int it = 0; it < max_iterations && (rr > stop).any().item<bool>(); ++it) {
+    const auto Ap = normal(p);
+    const auto alpha = rr / (p * Ap).sum(1, true).clamp_min(1e-300);
+    x += alpha * p;
+    r -= alpha * Ap;
+    const auto next = r.square().sum(1, true);
+    p = r + (next / rr.clamp_min(1e-300)) * p;
+    rr = next;
+  }
+  ShiftFactor out;
+  out.shift = shift;
+  out.profile = x;
+  out.factor = centre_columns(expand(x, s, rows, scene));
+  out.objective = objective(out.factor, g, h);
+  return out;
+}
+
+double search_shift(const torch::Tensor& G, const torch::Tensor& H, const ShiftFitOptions& o, double sigma2,
+                    double around, double relative_width) {
+  require(o.min_shift > 0 && o.max_shift > o.min_shift && o.grid_step > 0 && o.shift_tolerance > 0, "calibrate.dataset",
+          "the shift search needs 0 < min_shift < max_shift and positive steps");
+  const auto cost = [&](double shift, int iterations) {
+    const auto fit = fit_shift_factor(G, H, shift, o, iterations);
+    const auto channels = static_cast<double>(fit.profile.size(0)), samples = static_cast<double>(fit.profile.size(1));
+    return fit.objective.sum().item<double>() + 2 * sigma2 * samples * channels;
+  };
+  double lo = 0, hi = 0;
+  if (around != 0) {
+    lo = around * (1 - relative_width), hi = around * (1 + relative_width);
+  } else {
+    // The coarse grid, one sign at a time: the bracket is the best point's two neighbours.
+    double best = std::numeric_limits<double>::infinity();
+    for (const double sign : {-1.0, 1.0}) {
+      std::vector<double> grid;
+      for (double a = o.min_shift; a <= o.max_shift * (1 + 1e-9); a *= 1 + o.grid_step) grid.push_back(sign * a);
+      for (size_t i = 0; i < grid.size(); ++i) {
+        const double j = cost(grid[i], o.search_iterations);
+        if (j < best) {
+          best = j;
+          lo = grid[i > 0 ? i - 1 : i];
+          hi = grid[i + 1 < grid.size() ? i + 1 : i];
+        }
+      }
+    }
+  }
+  if (lo > hi) std::swap(lo, hi);
+  // Golden-section search on [lo, hi].
+  const double ratio = (std::sqrt(5.0) - 1) / 2;
+  double a = lo, b = hi;
+  double c = b - ratio * (b - a), d = a + ratio * (b - a);
+  double fc = cost(c, o.fit_iterations), fd = cost(d, o.fit_iterations);
+  while (b - a > o.shift_tolerance * std::max(std::abs(a), std::abs(b))) {
+    if (fc < fd) {
+      b = d, d = c, fd = fc;
+      c = b - ratio * (b - a);
+      fc = cost(c, o.fit_iterations);
+    } else {
+      a = c, c = d, fc = fd;
+      d = a + ratio * (b - a);
+      fd = cost(d, o.fit_iterations);
+    }
+  }
+  return fc < fd ? c : d;
+}
+
+}  // namespace flatnet

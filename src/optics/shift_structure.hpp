@@ -1,0 +1,58 @@
+#pragma once
+// The shift structure of a FlatCam factor (P or Q of Y = P X Q^T), used to identify a calibration
+// from few, noisy display captures (optics/calibrate_dataset.hpp).
+//
+// One step along a scene axis moves the mask's shadow by a fixed distance on the sensor, so column j
+// of a factor is column 0 moved by j * shift sensor pixels (camera README, "Building this camera":
+// the shadow of scene column j sits at t + (N - 1 - j) + offset mask features):
+//   F[i,j] = f(i + j * shift),                                                             (1)
+// one profile f (the mask's code seen through the pixels' area and the optics' blur) sampled every
+// `spacing` sensor pixels and interpolated linearly. (1) has about m + N |shift| unknowns where the
+// free factor has m N: about 1,000 against 128,000 for FlatNet's 500 x 256 P, which is what lets a few
+// hundred noisy photographs identify it. What (1) leaves out (vignetting, edge effects of the blur)
+// is a few per cent of the factor: 5.5 % on the reference camera's P with spacing 1.
+//
+// The fit: given one alternating step's normal equations (G = sum Z Z^T {N,N}, H = sum Y Z^T {m,N}
+// per channel, the uniform-light term already eliminated), minimise
+//   J(f) = tr(C F G F^T) - 2 <F, H>,     F = F(f),  C = I - 1 1^T / m (captures are centred),  (2)
+// by conjugate gradients on f. The least J over f is a smooth, single-welled function of the shift
+// around the true one, so the shift is found on a coarse geometric grid over both signs, then by
+// golden-section search.
+#include <torch/torch.h>
+
+namespace flatnet {
+
+struct ShiftFitOptions {
+  double spacing = 1.0;         // sensor pixels between the profile's samples
+  double min_shift = 0.5;       // |shift| searched, sensor pixels per scene pixel
+  double max_shift = 8.0;
+  double grid_step = 0.1;       // the coarse grid's relative step
+  double shift_tolerance = 2e-4;  // golden-section search ends at this relative bracket
+  int search_iterations = 100;  // conjugate-gradient steps per trial shift on the coarse grid
+  int fit_iterations = 400;     // ... in the golden-section search and the final fit
+  double cg_tolerance = 1e-7;   // ... or until the residual falls below this, relative
+};
+
+struct ShiftFactor {
+  double shift = 0;          // sensor pixels per scene pixel, signed
+  torch::Tensor profile;     // {C,L} f per channel, float64
+  torch::Tensor factor;      // {C,m,N} the centred factor C F(f), float64
+  torch::Tensor objective;   // {C} J at the fit, float64
+};
+
+// The centred factor C F(f) of (1) for a profile {C,L}.
+torch::Tensor shift_factor(const torch::Tensor& profile, int64_t rows, int64_t scene, double shift, double spacing);
+
+// The least-squares profile (2) for one shift. G {C,N,N}, H {C,m,N}; `warm` a profile {C,L} to start from.
+ShiftFactor fit_shift_factor(const torch::Tensor& G, const torch::Tensor& H, double shift, const ShiftFitOptions& o,
+                             int max_iterations, const torch::Tensor& warm = {});
+
+// The shift of least J + 2 sigma2 L, summed over the channels of G and H: the coarse grid over both
+// signs (or, when `around` is non-zero, a bracket of `relative_width` around it), then golden-section
+// search. Larger shifts mean longer profiles (L samples), and each sample fitted to noise alone lowers
+// J by sigma2, the noise's variance per capture value: Akaike's penalty 2 sigma2 L keeps noisy pairs
+// from choosing the most flexible structure. sigma2 = 0 compares J alone.
+double search_shift(const torch::Tensor& G, const torch::Tensor& H, const ShiftFitOptions& o, double sigma2 = 0,
+                    double around = 0, double relative_width = 0);
+
+}  // namespace flatnet
