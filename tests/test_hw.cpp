@@ -345,6 +345,12 @@ TEST_CASE("fake camera: live view with Tikhonov and with a FlatNet model", "[hw]
   auto r = test::run_flatnet("live --device fake --no-window --frames 6 --frame-rate 100");
   REQUIRE(r.code == 0);
   CHECK_THAT(r.output, Contains("Tikhonov") && Contains("live: 6 frames"));
+  // The fake camera's test pattern is no FlatCam capture: the camera fit says so, once, and counts it.
+  CHECK_THAT(r.output, Contains("warning: live: frame 1 does not fit camera 'sim'") &&
+                           Contains("camera fit measured on 1 of 6 frames (one a second): 1 did not fit"));
+  r = test::run_flatnet("live --device fake --no-window --frames 6 --frame-rate 100 --require-fit");
+  CHECK(r.code == 2);
+  CHECK_THAT(r.output, Contains("live.require_fit: frame 1 does not fit camera 'sim'"));
   r = test::run_flatnet("live --device fake --no-window --frames 2 --model " +
                         q(test::source_dir() / "models" / "flatnet-sim-transpose.flatnet"));
   REQUIRE(r.code == 0);

@@ -260,7 +260,8 @@ int live(int argc, char** argv) {
       "frames", "stop after this many frames (0: until Esc, q or Ctrl-C)",
       cxxopts::value<int64_t>()->default_value("0"))("seconds", "stop after this long (0: no limit)",
                                                      cxxopts::value<double>()->default_value("0"))(
-      "scale", "magnification of the reconstruction on screen", cxxopts::value<int>()->default_value("2"));
+      "scale", "magnification of the reconstruction on screen", cxxopts::value<int>()->default_value("2"))(
+      "require-fit", "stop (exit 2) when a frame does not fit the camera the reconstruction is for");
   add_precision(o);
   add_camera_flags(o);
   add_common(o);
@@ -291,6 +292,11 @@ int live(int argc, char** argv) {
   opt.frames = r["frames"].as<int64_t>();
   opt.seconds = r["seconds"].as<double>();
   opt.log = display ? nullptr : &std::cout;
+  opt.fit = built.fit.get();
+  opt.warn = &std::cerr;
+  opt.require_fit = r.count("require-fit") > 0;
+  require(!opt.require_fit || opt.fit, "--require-fit", "cannot judge the frames: " + built.no_fit);
+  if (!opt.fit) std::cerr << "note: live: frames are not judged against the camera: " << built.no_fit << "\n";
   watch_interrupts();
   std::cout << "live: " << built.engine->describe() << ", camera " << source->describe()["device"].get<std::string>()
             << " (" << source->format().name << "); Esc, q or Ctrl-C stops\n";
@@ -298,6 +304,12 @@ int live(int argc, char** argv) {
   std::cout << "live: " << s.frames << " frames, " << s.fps << " fps (per frame: grab " << s.grab_ms
             << " ms, preprocess " << s.preprocess_ms << " ms, reconstruct " << s.reconstruct_ms << " ms, show "
             << s.show_ms << " ms)\n";
+  if (s.fit_checks > 0) {
+    std::cout << "live: camera fit measured on " << s.fit_checks << " of " << s.frames << " frames (one a second): "
+              << s.misfits << " did not fit camera '" << printable(built.fit->camera_name()) << "'";
+    if (s.misfits > 0) std::cout << " (worst fit " << std::setprecision(3) << s.worst_fit << ")";
+    std::cout << "\n";
+  }
   return 0;
 }
 

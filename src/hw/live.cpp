@@ -1,7 +1,9 @@
 #include "hw/live.hpp"
 
+#include <algorithm>
 #include <iomanip>
 #include <ostream>
+#include <sstream>
 
 #include "core/error.hpp"
 #include "core/util.hpp"
@@ -13,6 +15,29 @@ namespace flatnet {
 namespace {
 using Clock = std::chrono::steady_clock;
 double ms_since(Clock::time_point t) { return std::chrono::duration<double, std::milli>(Clock::now() - t).count(); }
+
+// One frame's camera fit, counted in `s`; the text the overlay shows. The first misfit is said on
+// opt.warn, or ends the view under require_fit.
+std::string judge_frame(const CameraFit& fit, const torch::Tensor& raw_unit, const LiveOptions& opt, LiveStats& s) {
+  const auto result = fit.measure(raw_unit);
+  ++s.fit_checks;
+  std::ostringstream text;
+  text << std::fixed << std::setprecision(2);
+  if (!result.judged) return "camera fit: not judged (saturated)";
+  if (result.matches) {
+    text << "camera fit " << result.fit;
+    return text.str();
+  }
+  ++s.misfits;
+  s.worst_fit = std::max(s.worst_fit, result.fit);
+  std::ostringstream line;
+  line << std::setprecision(3) << "frame " << s.frames + 1 << " does not fit camera '" << printable(fit.camera_name())
+       << "' (fit " << result.fit << " against <= " << fit.threshold() << "): " << misfit_advice();
+  require(!opt.require_fit, "live.require_fit", line.str());
+  if (s.misfits == 1 && opt.warn) *opt.warn << "warning: live: " << line.str() << std::endl;
+  text << "NOT camera '" << printable(fit.camera_name()) << "' (fit " << result.fit << ")";
+  return text.str();
+}
 }  // namespace
 
 LiveStats run_live(FrameSource& source, Reconstructor& engine, Display* display, const LiveOptions& opt) {
@@ -22,7 +47,8 @@ LiveStats run_live(FrameSource& source, Reconstructor& engine, Display* display,
   const auto start = Clock::now();
   auto last_report = start;
   int64_t frames_at_report = 0;
-  std::string overlay;
+  std::string overlay, fit_text;
+  auto last_fit = start;
   const FinishItemOnInterrupt finish_frame;  // Ctrl-C ends this frame, then the loop
   while (!interrupted()) {
     if (opt.frames > 0 && s.frames >= opt.frames) break;
@@ -37,8 +63,13 @@ LiveStats run_live(FrameSource& source, Reconstructor& engine, Display* display,
                   std::to_string(opt.geometry.raw_height) + " (set live.region or use the matching camera .yaml)");
     }
     t = Clock::now();
-    const auto planes = preprocess_raw(codes_to_unit(frame.codes, source.format().bits), opt.geometry);
+    const auto unit = codes_to_unit(frame.codes, source.format().bits);
+    const auto planes = preprocess_raw(unit, opt.geometry);
     prep += ms_since(t);
+    if (opt.fit && (s.frames == 0 || std::chrono::duration<double>(Clock::now() - last_fit).count() >= opt.fit_seconds)) {
+      fit_text = judge_frame(*opt.fit, unit, opt, s);
+      last_fit = Clock::now();
+    }
     t = Clock::now();
     const auto image = engine.reconstruct(planes.unsqueeze(0))[0];  // {4,h,w} -> {3,N,N}
     recon += ms_since(t);
@@ -54,6 +85,7 @@ LiveStats run_live(FrameSource& source, Reconstructor& engine, Display* display,
       std::ostringstream text;
       text << std::fixed << std::setprecision(1) << (s.frames - frames_at_report) / since << " fps (reconstruct "
            << recon / s.frames << " ms)";
+      if (!fit_text.empty()) text << ", " << fit_text;
       overlay = text.str();
       if (opt.log) *opt.log << "live: " << overlay << std::endl;
       last_report = Clock::now();

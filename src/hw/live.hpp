@@ -4,6 +4,7 @@
 #include <iosfwd>
 
 #include "io/camera_config.hpp"
+#include "optics/camera_fit.hpp"
 #include "hw/camera_device.hpp"
 #include "hw/display.hpp"
 #include "recon/reconstructor.hpp"
@@ -15,12 +16,20 @@ struct LiveOptions {
   int64_t frames = 0;           // stop after this many frames (0: until Esc/q/Ctrl-C or `seconds`)
   double seconds = 0;           // stop after this long (0: no limit)
   std::ostream* log = nullptr;  // where to print the rate once a second (e.g. --no-window)
+  // Whether the frames fit the camera the engine is for (optics/camera_fit.hpp): measured on the first
+  // frame and then every `fit_seconds`; shown on screen, a misfit said once on `warn`. null: not judged.
+  const CameraFit* fit = nullptr;
+  double fit_seconds = 1.0;
+  bool require_fit = false;      // a frame that does not fit ends the view with an error instead
+  std::ostream* warn = nullptr;  // where the misfit line goes (stderr)
 };
 
 struct LiveStats {
   int64_t frames = 0;
   double fps = 0;  // frames shown per second of wall time, end to end
   double grab_ms = 0, preprocess_ms = 0, reconstruct_ms = 0, show_ms = 0;  // means per frame
+  int64_t fit_checks = 0, misfits = 0;  // frames whose camera fit was measured, and those that did not fit
+  double worst_fit = 0;
 };
 
 // Each frame: preprocess as `options.geometry`, reconstruct one capture with `engine`, show.

@@ -31,6 +31,13 @@ struct CameraFitResult {
   bool judged = true;    // false when over 1 % of the pixels are saturated: matches is then true
 };
 
+// What a user does about captures that do not fit: one sentence, shared by infer, recon and live.
+inline const char* misfit_advice() {
+  return "they were taken with another camera, and their reconstructions show no scene. Calibrate your camera "
+         "(flatnet calibrate --dataset) and adapt the model to it (flatnet train --init-from MODEL --reinit "
+         "inversion); docs/own-camera.md";
+}
+
 class CameraFit {
  public:
   // Errors name the camera when it has no noise model (noise_gain: run `flatnet calibrate --dataset`

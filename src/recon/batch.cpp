@@ -128,9 +128,7 @@ std::string camera_fit_warning(const BatchReport& report, const CameraFit& fit) 
   line << std::setprecision(3) << report.misfits << " of " << report.count
        << " captures do not fit camera '" << printable(fit.camera_name()) << "' (worst: " << printable(report.worst)
        << ", fit " << report.worst_fit << " against <= " << fit.threshold()
-       << "): they were taken with another camera, and their reconstructions show no scene. Calibrate your camera "
-          "(flatnet calibrate --dataset) and adapt the model to it (flatnet train --init-from MODEL --reinit "
-          "inversion); docs/own-camera.md";
+       << "): " << misfit_advice();
   return line.str();
 }
 
