@@ -54,7 +54,7 @@ class PairStream {
 };
 
 constexpr int64_t kNoisePairs = 64;
-constexpr double kStructureExplainsAtLeast = 0.7;  // of the coded energy the free factors explain
+constexpr double kStructureExplainsAtLeast = 0.4;  // of the coded energy the free factors explain
 
 // The normal equations of one step of (2), Y_i ~ F Z_i + s_i M (F {4,m,N}, Z_i {4,N,k}, M {4,m,k}),
 // accumulated over the pairs.
@@ -169,9 +169,10 @@ double explained(const std::pair<torch::Tensor, torch::Tensor>& normal, const to
 }
 
 // A P-step with the shift structure. The first one is judged against the free step on the same sums:
-// free factors explain more (they fit some noise too: the structured model explains 0.92 of it on the
-// reference-class camera), but a camera whose mask is no moving shadow leaves the structure far
-// behind, and then free factors are fitted from there on.
+// free factors explain more (they fit some noise, and the vignetting the structure leaves out: the
+// structured model explains 0.76 of it on a random-code camera built like the reference one, from
+// 490 pairs), but a camera whose mask is no moving shadow leaves the structure far behind (random
+// factors: 0.16), and then free factors are fitted from there on.
 std::pair<torch::Tensor, torch::Tensor> structured_or_free_step(const Sums& t, const DatasetCalibrationOptions& o,
                                                                 const torch::Tensor& noise_var,
                                                                 const torch::Tensor& prior, StructuredFactor& state,
