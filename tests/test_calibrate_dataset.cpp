@@ -151,7 +151,7 @@ TEST_CASE("a FlatCam's factors and shifts are identified from pairs too noisy fo
   o.iterations = 12;
   const auto shaped = calibrate_from_pairs(60, load, kShiftRows, kShiftCols, kShiftScene, o);
   CHECK_FALSE(shaped.structure_rejected);
-  CHECK(shaped.structure_explains > 0.4);
+  CHECK(shaped.structure_explains > 0.3);
   CHECK(shaped.shift_rows == Approx(kShiftP).margin(1e-2));  // 0.16 pixel over the 16 columns
   CHECK(shaped.shift_cols == Approx(kShiftQ).margin(1e-2));  // 0.16 pixel over the 16 columns
   const auto shaped_err = calibration_error(shaped.calib, {P, Q});

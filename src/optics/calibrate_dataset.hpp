@@ -22,7 +22,7 @@
 // free steps each factor is fitted with the shift structure of a FlatCam (optics/shift_structure.hpp:
 // column j is column 0's shadow moved by j * shift pixels), about 1,000 unknowns, the shift found from
 // the data; `FactorStructure::Free` keeps the free fit for a camera without that structure, and a
-// structured model that explains less than 0.4 of what the free one explains is rejected for it.
+// structured model that explains less than 0.3 of what the free one explains is rejected for it.
 // The pairs are streamed: those that fit the memory budget stay decoded, the rest are read again in
 // every pass, so thousands of pairs run in bounded memory.
 #include <array>
@@ -69,7 +69,7 @@ struct DatasetCalibration {
   // The shadow's move per scene pixel, in sensor pixels (signed), when the fit is structured; else 0.
   double shift_rows = 0, shift_cols = 0;
   // The coded energy the structured P explains over what the free P explains, at the first structured
-  // step; below 0.4 the structure is rejected and free factors are fitted.
+  // step; below 0.3 the structure is rejected and free factors are fitted.
   double structure_explains = 0;
   bool structure_rejected = false;
 };

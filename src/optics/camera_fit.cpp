@@ -81,8 +81,11 @@ CameraFitResult CameraFit::measure(const torch::Tensor& raw_unit) const {
   const int bits = g.adc_bits;
   const double top = static_cast<double>(((1 << bits) - 1) * (1 << (16 - bits))) / 65535.0;
   const auto saturated = window >= static_cast<float>(top - 0.5 / 65535.0);
+  // The ADC's rounding is noise every pixel has, whatever the fitted floor says: (1 LSB)^2 / 12.
+  const double lsb = 1.0 / static_cast<double>((1 << bits) - 1);
+  const double floor = std::max(camera_.noise_floor, lsb * lsb / 12);
   const auto var = torch::where(saturated, torch::zeros_like(window),
-                                (window - camera_.dark).clamp_min(0) * camera_.noise_gain + camera_.noise_floor)
+                                (window - camera_.dark).clamp_min(0) * camera_.noise_gain + floor)
                        .to(torch::kFloat64);
   const double expected = var.sum().item<double>() * outside_share_;
   CameraFitResult r;
