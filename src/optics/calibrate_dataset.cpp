@@ -146,8 +146,7 @@ std::pair<torch::Tensor, torch::Tensor> solve_step(const Sums& t, double ridge, 
 
 // One structured step (optics/shift_structure.hpp). The shift is searched on the first structured
 // step, searched again on the next (the other factor is structured by then, which sharpens the
-// search), then kept. The green
-// channel gb, with the most light, chooses it for all four.
+// search), then kept. The green channel gb, with the most light, chooses it for all four.
 struct StructuredFactor {
   double shift = 0;
   torch::Tensor profile;  // {4,L}: the warm start of the next step
@@ -212,10 +211,10 @@ void balance(torch::Tensor& P, torch::Tensor& Q) {
 
 // What the model leaves of a pair is the sensor's noise, linear in the light (gain * level + offset),
 // plus the calibration's own error, which scales with the coded light's energy (kappa * coded): a
-// structured fit leaves a few per cent of each factor out, and without that term bright pairs would
-// tilt the noise line (measured: a negative offset, a "dark level" of 0.12 that made dim captures of
-// the camera look foreign). Least squares on the three, then the camera's form
-// gain * (level - dark) + floor with dark, floor >= 0.
+// structured fit leaves a few per cent of each factor out. Least squares on the three, then the
+// camera's form gain * (level - dark) + floor with dark, floor >= 0. Known gap: on the random-code
+// camera the line still comes out tilted (dark 0.106 against the sensor's 0.02, with or without the
+// third term), which makes some dim captures of that camera look foreign (docs/own-camera.md).
 void fit_noise(const std::vector<NoisePoint>& points, DatasetCalibration& out) {
   if (points.size() < 8) return;
   auto A = torch::zeros({static_cast<int64_t>(points.size()), 3}, torch::kFloat64);

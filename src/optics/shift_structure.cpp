@@ -94,8 +94,7 @@ ShiftFactor fit_shift_factor(const torch::Tensor& G, const torch::Tensor& H, dou
   return out;
 }
 
-double search_shift(const torch::Tensor& G, const torch::Tensor& H, const ShiftFitOptions& o, double sigma2,
-                    double around, double relative_width) {
+double search_shift(const torch::Tensor& G, const torch::Tensor& H, const ShiftFitOptions& o, double sigma2) {
   require(o.min_shift > 0 && o.max_shift > o.min_shift && o.grid_step > 0 && o.shift_tolerance > 0, "calibrate.dataset",
           "the shift search needs 0 < min_shift < max_shift and positive steps");
   const auto cost = [&](double shift, int iterations) {
@@ -103,22 +102,17 @@ double search_shift(const torch::Tensor& G, const torch::Tensor& H, const ShiftF
     const auto channels = static_cast<double>(fit.profile.size(0)), samples = static_cast<double>(fit.profile.size(1));
     return fit.objective.sum().item<double>() + 2 * sigma2 * samples * channels;
   };
-  double lo = 0, hi = 0;
-  if (around != 0) {
-    lo = around * (1 - relative_width), hi = around * (1 + relative_width);
-  } else {
-    // The coarse grid, one sign at a time: the bracket is the best point's two neighbours.
-    double best = std::numeric_limits<double>::infinity();
-    for (const double sign : {-1.0, 1.0}) {
-      std::vector<double> grid;
-      for (double a = o.min_shift; a <= o.max_shift * (1 + 1e-9); a *= 1 + o.grid_step) grid.push_back(sign * a);
-      for (size_t i = 0; i < grid.size(); ++i) {
-        const double j = cost(grid[i], o.search_iterations);
-        if (j < best) {
-          best = j;
-          lo = grid[i > 0 ? i - 1 : i];
-          hi = grid[i + 1 < grid.size() ? i + 1 : i];
-        }
+  // The coarse grid, one sign at a time: the bracket is the best point's two neighbours.
+  double lo = 0, hi = 0, best = std::numeric_limits<double>::infinity();
+  for (const double sign : {-1.0, 1.0}) {
+    std::vector<double> grid;
+    for (double a = o.min_shift; a <= o.max_shift * (1 + 1e-9); a *= 1 + o.grid_step) grid.push_back(sign * a);
+    for (size_t i = 0; i < grid.size(); ++i) {
+      const double j = cost(grid[i], o.search_iterations);
+      if (j < best) {
+        best = j;
+        lo = grid[i > 0 ? i - 1 : i];
+        hi = grid[i + 1 < grid.size() ? i + 1 : i];
       }
     }
   }

@@ -48,11 +48,9 @@ ShiftFactor fit_shift_factor(const torch::Tensor& G, const torch::Tensor& H, dou
                              int max_iterations, const torch::Tensor& warm = {});
 
 // The shift of least J + 2 sigma2 L, summed over the channels of G and H: the coarse grid over both
-// signs (or, when `around` is non-zero, a bracket of `relative_width` around it), then golden-section
-// search. Larger shifts mean longer profiles (L samples), and each sample fitted to noise alone lowers
+// signs, then golden-section search between the best point's neighbours. Larger shifts mean longer profiles (L samples), and each sample fitted to noise alone lowers
 // J by sigma2, the noise's variance per capture value: Akaike's penalty 2 sigma2 L keeps noisy pairs
 // from choosing the most flexible structure. sigma2 = 0 compares J alone.
-double search_shift(const torch::Tensor& G, const torch::Tensor& H, const ShiftFitOptions& o, double sigma2 = 0,
-                    double around = 0, double relative_width = 0);
+double search_shift(const torch::Tensor& G, const torch::Tensor& H, const ShiftFitOptions& o, double sigma2 = 0);
 
 }  // namespace flatnet
