@@ -598,7 +598,7 @@ TEST_CASE("every number in the defaults files has a range rule, and every rule a
   };
   for (const auto& [key, value] : keys) {
     if (!is_number(value) || key.size() >= 4 && key.compare(key.size() - 4, 4, "seed") == 0) continue;
-    INFO(key << " = " << value << " has no range rule (src/io/config.cpp)");
+    INFO(key << " = " << value << " has no range rule (its option table's row)");
     CHECK(std::find(ranged.begin(), ranged.end(), key) != ranged.end());
   }
 }

@@ -283,6 +283,16 @@ TEST_CASE("inversion products: an exact inverse is all diagonal, a shifted one i
   CHECK(p2[5][0].item<double>() == Approx(1.0));  // row i = 5 (W's column 5 is Phi's column 0): offset i - j = 5
   CHECK(s2.offset == 5);
   CHECK_THROWS(inversion_product(q, q.slice(1, 0, 8)));
+  // Stray rows: an output row that inverts nothing (W's zero columns 0-4) or a far-away scene row.
+  CHECK(exact.stray_rows.empty());
+  CHECK(s2.stray_rows == std::vector<int64_t>{0, 1, 2, 3, 4});
+  auto one_wrong = q.clone();
+  one_wrong.select(1, 9).copy_(q.select(1, 2));  // output row 9 shows scene row 2
+  const auto [p3, s3] = inversion_product(one_wrong, q);
+  CHECK(s3.offset == 0);
+  CHECK(s3.stray_rows == std::vector<int64_t>{9});
+  CHECK(index_ranges({0, 1, 2, 4, 7, 8, 9}) == "0-2, 4, 7-9");
+  CHECK(index_ranges({}) == "none");
 }
 
 TEST_CASE("Tikhonov through oneDNN's GEMM equals the reference products, batches and broadcasts included",

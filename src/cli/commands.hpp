@@ -5,6 +5,7 @@
 #include <vector>
 
 #include "io/camera_config.hpp"
+#include "io/option_table.hpp"
 #include "core/output_dir.hpp"
 #include "core/precision.hpp"
 #include "nn/lpips.hpp"
@@ -40,6 +41,30 @@ int bench(int argc, char** argv);
 // caller never passed a flag. The CLI's user knows them as flags; this rewrites each key in an
 // error's text as the flag that sets it (`--val-fraction`, `--method`).
 std::string with_flags(const std::string& message);
+
+// Flags from an option table: each row with a flag becomes --flag (a switch for a true/false
+// setting, else a value), its help the row's key and doc, so flag and key never drift apart.
+template <class S>
+void add_row_flags(cxxopts::Options& options, const std::vector<OptionField<S>>& fields, const std::string& prefix = "") {
+  for (const auto& f : fields) {
+    if (!*f.flag) continue;
+    const auto help = prefix + f.key + (*f.doc ? std::string(": ") + f.doc : std::string());
+    if (std::holds_alternative<bool S::*>(f.member)) options.add_options()(f.flag, help + " (sets it true)");
+    else options.add_options()(f.flag, help, cxxopts::value<std::string>());
+  }
+}
+// The given row flags as `key=value` settings, in the table's order.
+template <class S>
+std::vector<std::string> row_flag_settings(const cxxopts::ParseResult& r, const std::vector<OptionField<S>>& fields,
+                                           const std::string& prefix = "") {
+  std::vector<std::string> sets;
+  for (const auto& f : fields) {
+    if (!*f.flag || !r.count(f.flag)) continue;
+    const bool is_switch = std::holds_alternative<bool S::*>(f.member);
+    sets.push_back(prefix + f.key + "=" + (is_switch ? std::string("true") : r[f.flag].template as<std::string>()));
+  }
+  return sets;
+}
 
 // Shared flag handling.
 void add_common(cxxopts::Options& options);  // --threads, --help

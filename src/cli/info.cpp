@@ -13,6 +13,7 @@
 #include "core/util.hpp"
 #include "nn/checkpoint.hpp"
 #include "nn/model_file.hpp"
+#include "train/options.hpp"
 
 namespace flatnet::cli {
 
@@ -169,14 +170,15 @@ int info(int argc, char** argv) {
                     std::to_string(parameters) + " parameters");
   line("camera", cam.name + ": " + std::to_string(cam.raw.crop[2]) + "x" + std::to_string(cam.raw.crop[3]) +
                      " measurement -> " + std::to_string(cam.scene_size) + "x" + std::to_string(cam.scene_size) +
-                     " scene (data.camera " + recorded_or_unknown(m, "data.camera") + ")");
+                     " scene (" + data_key(&DataOptions::camera) + " " + recorded_or_unknown(m, data_key(&DataOptions::camera)) + ")");
   const auto source = m.recorded("data.source");
-  line("data", source == "simulate" ? "simulated display captures of " + recorded_or_unknown(m, "data.images")
-               : source == "dataset" ? "captures in " + recorded_or_unknown(m, "data.dataset")
+  line("data", source == "simulate" ? "simulated display captures of " + recorded_or_unknown(m, data_key(&DataOptions::images))
+               : source == "dataset" ? "captures in " + recorded_or_unknown(m, data_key(&DataOptions::dataset))
                                      : "not recorded");
   std::ostringstream recipe;
-  recipe << join_nonzero_losses(m) << "; batch " << recorded_or_unknown(m, "train.batch") << ", crop "
-         << recorded_or_unknown(m, "train.crop") << ", lr " << recorded_or_unknown(m, "train.lr") << ", precision "
+  recipe << join_nonzero_losses(m) << "; batch " << recorded_or_unknown(m, train_key(&TrainOptions::batch)) << ", crop "
+         << recorded_or_unknown(m, train_key(&TrainOptions::crop)) << ", lr "
+         << recorded_or_unknown(m, train_key(&TrainOptions::lr)) << ", precision "
          << recorded_or_unknown(m, "train.precision");
   line("recipe", recipe.str());
   line("training", training_text(p));

@@ -78,22 +78,23 @@ int mask_train(int argc, char** argv) {
   mo.projection = parse_mask_projection(c.str("mask.projection"));
   mo.throughput = parse_throughput_rule(c.str("mask.throughput"));
   mo.init = parse_mask_init(c.str("mask.init"));
-  mo.seed = static_cast<uint64_t>(c.integer("train.seed"));
-  const auto cam = wiener_camera(c);
-  mo.rows = cam.rows, mo.cols = cam.cols;
   MaskTrainOptions to;
   read_options(c, mask_train_fields(), to);
+  mo.seed = to.seed;
+  const auto cam = wiener_camera(c);
+  mo.rows = cam.rows, mo.cols = cam.cols;
   to.out = out;
   to.resume = resume;
   to.force = r.count("force") > 0;
   require(to.gamma_init > 0, "train.gamma_init", "must be positive");
   MaskModel model(mo);  // validates rank, projection, throughput rule
-  auto [train_imgs, val_imgs] =
-      split_image_files(c.path("data.images"), c.num("data.val_fraction"), c.integer("data.split_seed"));
-  std::cerr << "loading " << first(train_imgs, c.integer("data.train_limit")).size() << " training and "
-            << first(val_imgs, c.integer("train.val_count")).size() << " validation photographs...\n";
-  const auto train = load_luma_scenes(first(train_imgs, c.integer("data.train_limit")), cam.scene, 2);
-  const auto val = load_luma_scenes(first(val_imgs, c.integer("train.val_count")), cam.scene, 2);
+  PhotoSplit photos;
+  read_options(c, photo_split_fields(), photos);
+  auto [train_imgs, val_imgs] = split_image_files(photos.images, photos.val_fraction, photos.split_seed);
+  std::cerr << "loading " << first(train_imgs, photos.train_limit).size() << " training and "
+            << first(val_imgs, photos.val_count).size() << " validation photographs...\n";
+  const auto train = load_luma_scenes(first(train_imgs, photos.train_limit), cam.scene, 2);
+  const auto val = load_luma_scenes(first(val_imgs, photos.val_count), cam.scene, 2);
   const auto claim = claim_out(r, to.out, "mask train");
   write_text_atomically(to.out / "config.yaml", c.to_yaml());
   watch_interrupts();
@@ -230,7 +231,7 @@ int mask_report(int argc, char** argv) {
       // The steps it trained (files from before 2026-11-24 record only the configured count,
       // which a run with a time budget never reaches).
       const auto steps = model.provenance.trained_steps.empty()
-                             ? model.recorded("train.iterations") + " steps configured"
+                             ? model.recorded(train_key(&TrainOptions::iterations)) + " steps configured"
                              : model.provenance.trained_steps + " steps";
       it->flatnet =
           CameraModel{[generator](const torch::Tensor& planes) mutable { return generator->forward(planes); },
@@ -255,27 +256,17 @@ int mask_separable(int argc, char** argv) {
   o.add_options()("config", "experiment config overriding configs/separable_defaults.yaml", cxxopts::value<std::string>())(
       "set", "override a setting, key=value (repeatable)", cxxopts::value<std::vector<std::string>>())(
       "out", "folder for codes.mat, lambda.txt, log.csv, curve.png, config.yaml", cxxopts::value<std::string>())(
-      "images", "data.images: photographs (the training side of simulate's split is used)",
-      cxxopts::value<std::string>())("init", "codes.init: mls, random, or a codes .mat", cxxopts::value<std::string>())(
-      "binary", "codes.binary=true: sign(u), sign(v) forward, straight-through gradients (a fabricable 0/1 mask)")(
-      "iterations", "train.iterations", cxxopts::value<std::string>())("batch", "train.batch", cxxopts::value<std::string>())(
-      "lr", "train.lr", cxxopts::value<std::string>())("lambda", "train.lambda_init", cxxopts::value<std::string>())(
-      "train-limit", "data.train_limit (0: all)", cxxopts::value<std::string>())(
-      "val-count", "train.val_count", cxxopts::value<std::string>())("seed", "train.seed", cxxopts::value<std::string>())(
+      "init", codes_init_key() + ": mls, random, or a codes .mat", cxxopts::value<std::string>())(
       "resume", "continue the run in --out from its latest.ckpt, with its own config (--set and the shortcut flags "
                 "change single settings)");
+  add_row_flags(o, separable_train_fields());
   add_force_folder(o);
   add_common(o);
   cxxopts::ParseResult r;
   if (!parse(o, argc, argv, r)) return 0;
   require(r.count("out"), "mask separable", "--out DIR is required");
-  std::vector<std::string> sets;
-  for (const auto& [flag, key] : std::vector<std::pair<std::string, std::string>>{
-           {"images", "data.images"}, {"init", "codes.init"}, {"iterations", "train.iterations"},
-           {"batch", "train.batch"}, {"lr", "train.lr"}, {"lambda", "train.lambda_init"},
-           {"train-limit", "data.train_limit"}, {"val-count", "train.val_count"}, {"seed", "train.seed"}})
-    if (r.count(flag)) sets.push_back(key + "=" + r[flag].as<std::string>());
-  if (r.count("binary")) sets.push_back("codes.binary=true");
+  auto sets = row_flag_settings(r, separable_train_fields());
+  if (r.count("init")) sets.push_back(codes_init_key() + "=" + r["init"].as<std::string>());
   for (const auto& s : set_overrides(r)) sets.push_back(s);
   const std::filesystem::path out = r["out"].as<std::string>();
   const bool resume = r.count("resume") > 0;
@@ -284,13 +275,15 @@ int mask_separable(int argc, char** argv) {
           "already holds learned codes; choose another --out (or --force)");
   SeparableTrainOptions opt;
   read_options(c, separable_train_fields(), opt);
-  const auto init = c.str("codes.init");
+  const auto init = c.str(codes_init_key());
   if (init == "mls")
     opt.init_codes = data_dir() / "models" / "camera" / "codes_mls.mat";
   else if (init != "random")
-    opt.init_codes = c.path("codes.init");
-  require(opt.lr > 0, "train.lr", "must be positive for the code pair");
-  require(opt.val_count >= 1, "train.val_count", "at least 1 (the code pair's validation needs photographs)");
+    opt.init_codes = c.path(codes_init_key());
+  const auto& rows = separable_train_fields();
+  require(opt.lr > 0, key_of(rows, &SeparableTrainOptions::lr), "must be positive for the code pair");
+  require(opt.val_count >= 1, key_of(rows, &SeparableTrainOptions::val_count),
+          "at least 1 (the code pair's validation needs photographs)");
   opt.out = out;
   opt.resume = resume;
   opt.force = r.count("force") > 0;

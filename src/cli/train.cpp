@@ -10,6 +10,7 @@
 #include "nn/checkpoint.hpp"
 #include "nn/model_file.hpp"
 #include "nn/onnx_export.hpp"
+#include "train/options.hpp"
 #include "recon/batch.hpp"
 #include "train/distributed.hpp"
 #include "train/experiment.hpp"
@@ -173,7 +174,7 @@ int import_model(int argc, char** argv) {
   const auto sets = set_overrides(r);
   auto config = Config::load(r.count("config") ? r["config"].as<std::string>() : "", sets);
   const auto camera = r.count("camera") ? load_camera_config(r["camera"].as<std::string>())
-                                        : load_camera_config(config.path("data.camera"));
+                                        : load_camera_config(config.path(data_key(&DataOptions::camera)));
   Generator g(generator_options(config, camera, false));
   const auto rep = import_state_dict(r["state-dict"].as<std::string>(), g);
   save_model_file(out, g, config, camera);

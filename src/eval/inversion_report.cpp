@@ -31,7 +31,26 @@ std::pair<torch::Tensor, ProductStats> inversion_product(const torch::Tensor& W,
     if (band > s.band + 1e-12 || (band > s.band - 1e-12 && centre > best_centre))
       s.band = std::max(s.band, band), s.offset = -d, best_centre = centre;  // i - j = offset
   }
+  // Row i's band: columns j with |i - j - offset| <= 2.
+  const auto i = torch::arange(n, torch::kLong).unsqueeze(1), j = torch::arange(n, torch::kLong).unsqueeze(0);
+  const auto in_band = (i - j - s.offset).abs() <= 2;
+  const auto row_band = (energy * in_band).sum(1), row_total = energy.sum(1).clamp_min(1e-300);
+  const auto stray = (row_band / row_total < 0.25).nonzero().flatten();
+  for (int64_t k = 0; k < stray.numel(); ++k) s.stray_rows.push_back(stray[k].item<int64_t>());
   return {product, s};
+}
+
+std::string index_ranges(const std::vector<int64_t>& sorted) {
+  if (sorted.empty()) return "none";
+  std::ostringstream o;
+  for (size_t a = 0; a < sorted.size();) {
+    size_t b = a;
+    while (b + 1 < sorted.size() && sorted[b + 1] == sorted[b] + 1) ++b;
+    o << (a ? ", " : "") << sorted[a];
+    if (b > a) o << "-" << sorted[b];
+    a = b + 1;
+  }
+  return o.str();
 }
 
 namespace {
@@ -53,6 +72,11 @@ torch::Tensor shown(const torch::Tensor& product) {  // |product| / max, as an R
   return (a / a.max().clamp_min(1e-30)).unsqueeze(0).repeat({3, 1, 1});
 }
 
+// "10 of 256: 28, 164-173".
+std::string stray_text(const std::vector<int64_t>& rows, int64_t n) {
+  return std::to_string(rows.size()) + " of " + std::to_string(n) + (rows.empty() ? "" : ": " + index_ranges(rows));
+}
+
 std::string share(double v) {
   std::ostringstream o;
   o << std::fixed << std::setprecision(3) << v;
@@ -68,10 +92,12 @@ std::string write_inversion_report(const InversionReportOptions& opt) {
      << "Products of the first stage's W1, W2 with the camera's calibration, `W1^T PhiL` and `W2^T PhiR` "
         "({N,N}): an identity would invert the camera exactly. Energy share: squared entries on the diagonal "
         "over all squared entries; band: within 2 of the diagonal i - j = offset, at the offset where it is largest "
-        "(a shifted diagonal reproduces the scene shifted, still an inverse). `inversion.png`: one row per model, |product| scaled "
+        "(a shifted diagonal reproduces the scene shifted, still an inverse). Stray rows: output rows whose band holds under "
+        "a quarter of their energy after training; they mix far-away scene rows, and the enhancer draws a stripe "
+        "there. `inversion.png`: one row per model, |product| scaled "
         "to its largest entry, before training (the initialisation the model's config describes) and after.\n\n"
-     << "| model | init | product | diagonal before | diagonal after | band before | band after (offset) |\n"
-     << "|---|---|---|---|---|---|---|\n";
+     << "| model | init | product | diagonal before | diagonal after | band before | band after (offset) | stray rows |\n"
+     << "|---|---|---|---|---|---|---|---|\n";
   std::vector<std::vector<torch::Tensor>> rows;
   std::vector<std::string> names;
   for (const auto& [name, file] : opt.models) {
@@ -90,9 +116,11 @@ std::string write_inversion_report(const InversionReportOptions& opt) {
     const auto [right_after, ra] = inversion_product(W2_after, PhiR);
     const auto& init = model.spec.inversion_init;
     md << "| " << name << " | " << init << " | W1^T PhiL | " << share(lb.diagonal) << " | " << share(la.diagonal)
-       << " | " << share(lb.band) << " | " << share(la.band) << " (" << la.offset << ") |\n"
+       << " | " << share(lb.band) << " | " << share(la.band) << " (" << la.offset << ") | "
+       << stray_text(la.stray_rows, W1_after.size(1)) << " |\n"
        << "| " << name << " | " << init << " | W2^T PhiR | " << share(rb.diagonal) << " | " << share(ra.diagonal)
-       << " | " << share(rb.band) << " | " << share(ra.band) << " (" << ra.offset << ") |\n";
+       << " | " << share(rb.band) << " | " << share(ra.band) << " (" << ra.offset << ") | "
+       << stray_text(ra.stray_rows, W2_after.size(1)) << " |\n";
     rows.push_back({shown(left_before), shown(left_after), shown(right_before), shown(right_after)});
     names.push_back(name);
   }

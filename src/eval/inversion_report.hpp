@@ -20,7 +20,13 @@ struct ProductStats {
   // inversion may reproduce the scene shifted (calibration-free models do), which is still an inverse.
   double band = 0;
   int64_t offset = 0;
+  // Output rows whose band (at that offset) holds under a quarter of the row's energy: rows the
+  // inversion does not invert, so they mix far-away scene rows; the enhancer sees a whole-row error
+  // there, and a model with such rows draws a stripe at them (issue: calibration-free stripes).
+  std::vector<int64_t> stray_rows;
 };
+// "3, 28-30, 164-173": sorted indices as ranges ("none" when empty).
+std::string index_ranges(const std::vector<int64_t>& sorted);
 // W {rows,N}, Phi {rows,N} -> W^T Phi {N,N} and its statistics.
 std::pair<torch::Tensor, ProductStats> inversion_product(const torch::Tensor& W, const torch::Tensor& Phi);
 

@@ -16,13 +16,6 @@ namespace flatnet {
 namespace {
 
 // Flattens a YAML mapping into dotted keys with scalar (or flow-sequence) text values.
-// Keys whose values are file or folder paths (Config::path resolves them against the folder of the
-// file that set them; to_yaml writes them resolved). No other value is ever treated as a path.
-const std::vector<std::string> kPathKeys = {
-    "data.camera",     "data.dataset",   "data.images", "data.root",      "data.train_gt",
-    "data.train_meas", "data.val_gt",    "data.val_meas", "loss.vgg_file", "model.inversion.toeplitz_file",
-    "codes.init"};
-
 void flatten(const YAML::Node& node, const std::string& prefix, std::map<std::string, std::string>& out) {
   for (const auto& kv : node) {
     const auto key = prefix.empty() ? kv.first.as<std::string>() : prefix + "." + kv.first.as<std::string>();
@@ -61,68 +54,6 @@ size_t edit_distance(const std::string& a, const std::string& b) {
   return prev[b.size()];
 }
 
-// The one place where config numbers are checked, for every experiment file, --set and embedded
-// config alike. Keys a config does not have (the mask trainer's defaults differ from FlatNet's)
-// are skipped. Every number must also be finite.
-const std::vector<NumberRule>& range_rules() {
-  static const std::vector<NumberRule> rules = {
-      {"train.iterations", 1, 1e9, "1 to 1e9 steps"},
-      {"train.minutes", 0, 1e6, "0 (no budget) or minutes of wall-clock training"},
-      {"train.batch", 1, 4096, "1 to 4096 samples"},
-      {"train.lr", 0, 10, "0 (frozen) to 10"},
-      {"train.lr_discriminator", 0, 10, "0 (frozen) to 10"},
-      {"train.lr_inversion_scale", 0, 1e6, "0 (frozen inversion) or a positive factor"},
-      {"train.momentum", 0, 1, "0 to 1"},
-      {"train.lr_halve_every", 1, 1e9, "1 or more steps"},
-      {"train.ema_decay", 0, 0.999999, "0 (off) or a decay below 1"},
-      {"train.crop", 0, 65536, "0 (whole scenes) or a crop size"},
-      {"train.check_sync_every", 0, 1e9, "0 (off) or a number of steps"},
-      {"train.discriminator_warmup", 0, 1e9, "0 or more steps"},
-      {"train.noise_augment", 0, 10, "0 to 10 (a standard deviation)"},
-      {"train.workers", 1, 256, "1 to 256 data threads"},
-      {"train.val_every", 1, 1e9, "1 or more steps"},
-      {"train.val_count", 0, 1e9, "0 (all) or more images"},
-      {"train.log_every", 1, 1e9, "1 or more steps"},
-      {"train.gamma_init", 1e-30, 1e6, "a positive regulariser"},
-      {"data.val_fraction", 0, 1, "0 to 1"},
-      {"data.train_limit", 0, 1e9, "0 (all) or more photographs"},
-      {"data.light.exposure_probability", 0, 1, "a probability, 0 to 1"},
-      {"data.light.lamp_probability", 0, 1, "a probability, 0 to 1"},
-      {"data.light.exposure_min", 1e-6, 1e6, "a positive factor"},
-      {"data.light.exposure_max", 1e-6, 1e6, "a positive factor"},
-      {"data.light.lamp_min", 1e-6, 1e6, "a positive factor"},
-      {"data.light.lamp_max", 1e-6, 1e6, "a positive factor"},
-      {"loss.mse", 0, 1e6, "a weight, 0 or more"},
-      {"loss.ssim", 0, 1e6, "a weight, 0 or more"},
-      {"loss.perceptual", 0, 1e6, "a weight, 0 or more"},
-      {"loss.adversarial", 0, 1e6, "a weight, 0 or more"},
-      {"loss.feature_matching", 0, 1e6, "a weight, 0 or more"},
-      {"loss.frequency", 0, 1e6, "a weight, 0 or more"},
-      {"loss.chroma", 0, 1e6, "a weight, 0 or more"},
-      {"loss.gradient", 0, 1e6, "a weight, 0 or more"},
-      {"discriminator.width", 1, 4096, "1 to 4096 filters"},
-      {"discriminator.real_label_min", 0, 1, "0 to 1"},
-      {"discriminator.fake_label_max", 0, 1, "0 to 1"},
-      {"mask.elements", 2, 65536, "2 or more elements"},
-      {"codes.length", 2, 65536, "2 or more elements"},
-      {"codes.target_throughput", 1e-3, 1, "a share of light, above 0 and at most 1"},
-      {"codes.throughput_tolerance", 0, 1, "0 to 1"},
-      {"codes.lr", 1e-9, 10, "a positive learning rate"},
-      {"codes.freeze_at", 0, 1, "a share of the run, 0 to 1"},
-      {"codes.calib_error", 0, 1, "0 to 1 (0.03: 3 %)"},
-      {"train.lambda_init", 1e-12, 1e6, "a positive regulariser"},
-      {"mask.rank", 1, 511, "1 to 511"},
-      {"mask.upsample", 1, 64, "1 to 64 sensor pixels per element"},
-      {"mask.target_throughput", 1e-3, 1, "a share of light, above 0 and at most 1"},
-      {"camera.rows", 1, 1e5, "a sensor size"},
-      {"camera.cols", 1, 1e5, "a sensor size"},
-      {"camera.scene", 1, 1e5, "a scene size"},
-      {"camera.noise_sigma", 0, 10, "0 to 10"},
-      {"camera.photons", 0, 1e12, "0 (off) or a photon count"},
-  };
-  return rules;
-}
-
 }  // namespace
 
 namespace {
@@ -132,11 +63,11 @@ std::vector<RangeRow>& registered_ranges() {
   return rows;
 }
 
-// config.cpp's table, then the rows the owning layers registered.
+// The number rows the owning layers registered (their option tables; path rows left out).
 std::vector<RangeRow> all_ranges() {
   std::vector<RangeRow> rows;
-  for (const auto& rule : range_rules()) rows.push_back({rule.name, rule.lo, rule.hi, rule.meaning});
-  for (const auto& row : registered_ranges()) rows.push_back(row);
+  for (const auto& row : registered_ranges())
+    if (!row.path) rows.push_back(row);
   return rows;
 }
 
@@ -392,11 +323,13 @@ bool Config::flag(const std::string& key) const {
 }
 
 bool Config::is_path_key(const std::string& key) {
-  return std::find(kPathKeys.begin(), kPathKeys.end(), key) != kPathKeys.end();
+  for (const auto& row : registered_ranges())
+    if (row.path && row.key == key) return true;
+  return false;
 }
 
 std::filesystem::path Config::path(const std::string& key) const {
-  if (!is_path_key(key)) throw Error("config: setting '" + key + "' is not a path (config.cpp's kPathKeys)");
+  if (!is_path_key(key)) throw Error("config: setting '" + key + "' is not a path (no option table binds it to a path)");
   const auto& v = lookup(key);
   if (v.empty()) return {};
   std::filesystem::path p(v);

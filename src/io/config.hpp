@@ -16,8 +16,9 @@ namespace flatnet {
 // whichever layer reads the key later.
 struct RangeRow {
   std::string key;
-  double lo, hi;
-  std::string meaning;  // "1 to 4096 filters"
+  double lo = 0, hi = 0;
+  std::string meaning;  // "1 to 4096 filters"; empty for a path row
+  bool path = false;    // the value is a file or folder (Config::path), not a number
 };
 // Adds rows to the checks Config::check_ranges makes. Returns true, for a registration at namespace
 // scope in the owning layer (`const bool registered = register_ranges(...)`).
@@ -72,7 +73,7 @@ class Config {
   std::map<std::string, std::filesystem::path> bases_;
 };
 
-// A YAML mapping's scalars by dotted key ("model.unet.width" -> "32"), as written: no defaults
+// A YAML mapping's scalars by dotted key (model.unet.width -> 32), as written: no defaults
 // merged, no path resolved (errors name `where`).
 std::map<std::string, std::string> flat_yaml(const std::string& text, const std::filesystem::path& where);
 

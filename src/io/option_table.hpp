@@ -11,6 +11,7 @@
 #include <cstdint>
 #include <filesystem>
 #include <limits>
+#include <stdexcept>
 #include <string>
 #include <type_traits>
 #include <variant>
@@ -31,16 +32,30 @@ struct OptionField {
   double lo = -std::numeric_limits<double>::infinity();
   double hi = std::numeric_limits<double>::infinity();
   const char* range = "";
-  const char* doc = "";  // one line: what the setting does
+  const char* doc = "";   // one line: what the setting does
+  const char* flag = "";  // the command-line flag that sets it ("lr" for --lr), where a command has one
 };
 
-// The range rows of a table as the config's range checks take them (io/config.hpp), keys prefixed.
+// The rows a table registers with the config (io/config.hpp), keys prefixed: each number's range,
+// and each path-typed member as a path key (its value resolved against the file that set it).
 template <class S>
 std::vector<RangeRow> range_rows(const std::vector<OptionField<S>>& fields, const std::string& prefix = "") {
   std::vector<RangeRow> out;
-  for (const auto& f : fields)
+  for (const auto& f : fields) {
     if (*f.range) out.push_back({prefix + f.key, f.lo, f.hi, f.range});
+    if (std::holds_alternative<std::filesystem::path S::*>(f.member))
+      out.push_back({prefix + f.key, 0, 0, "", /*path=*/true});
+  }
   return out;
+}
+
+// The config key of the row that binds `member` (prefixed): what an error names instead of a
+// key spelled again by hand. A member no row binds is a programming error.
+template <class S, class T>
+std::string key_of(const std::vector<OptionField<S>>& fields, T S::*member, const std::string& prefix = "") {
+  for (const auto& f : fields)
+    if (const auto* m = std::get_if<T S::*>(&f.member); m && *m == member) return prefix + f.key;
+  throw std::logic_error("option table: no row binds this member");
 }
 
 // Fills every field of `s` from `c`, each key read as `prefix` + its row's key (a missing key or a

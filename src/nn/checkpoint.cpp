@@ -8,6 +8,7 @@
 #include "core/error.hpp"
 #include "core/util.hpp"
 #include "io/safetensors.hpp"
+#include "nn/model_spec.hpp"
 #include "nn/optimizer_state.hpp"
 #include "nn/stored_file.hpp"
 
@@ -159,8 +160,8 @@ std::pair<Config, CameraConfig> training_settings(const Stored& s, const std::fi
   auto camera = detail::stored_model(s, path).second;
   if (const auto d = s.under("discriminator"); !d.empty()) {
     const auto it = d.find("convs.0.weight");
-    require(it != d.end() && it->second.dim() == 4 && it->second.size(0) == config.integer("discriminator.width"),
-            path, "discriminator.width disagrees with the discriminator's weights");
+    require(it != d.end() && it->second.dim() == 4 && it->second.size(0) == discriminator_options(config).width,
+            path, discriminator_key(&DiscriminatorOptions::width) + " disagrees with the discriminator's weights");
   }
   return {config, camera};
 }

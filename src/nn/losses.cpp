@@ -78,7 +78,7 @@ std::pair<torch::Tensor, torch::Tensor> Vgg16FeaturesImpl::forward(const torch::
 
 Vgg16Features load_vgg16(const std::filesystem::path& weights, bool normalize) {
   if (weights.empty() || !std::filesystem::exists(weights))
-    throw Error(weights.empty() ? std::filesystem::path("loss.vgg_file") : weights,
+    throw Error(weights.empty() ? std::filesystem::path("(no VGG-16 weights file named)") : weights,
                 "VGG-16 weights not found; the perceptual loss needs them. Make the file with "
                 "`python3 models/convert_vgg16.py` where torchvision can download its weights (or point "
                 "loss.vgg_file at torchvision's own vgg16-397923af.pth), or train without the perceptual loss: "

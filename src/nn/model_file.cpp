@@ -26,6 +26,9 @@ std::string ModelFile::recorded(const std::string& key) const {
   return it == recipe_values.end() ? "" : it->second;
 }
 
+// The training config's camera key (train/options' data table; a model file is read below that layer).
+std::filesystem::path ModelFile::recorded_camera() const { return recorded("data.camera"); }
+
 std::vector<std::pair<std::string, std::string Provenance::*>> provenance_fields() {
   return {{"trained_steps", &Provenance::trained_steps}, {"train_seconds", &Provenance::train_seconds},
           {"best_val_psnr", &Provenance::best_val_psnr}, {"written_at", &Provenance::written_at},
@@ -104,7 +107,7 @@ void init_generator_from(const std::filesystem::path& model, Generator& g, Gener
 }
 
 void transfer_inversion(const std::filesystem::path& source, const CalibrationPair& c, double lambda, Generator& g) {
-  require(lambda > 0 && std::isfinite(lambda), "model.inversion.lambda", "must be positive");
+  require(lambda > 0 && std::isfinite(lambda), model_key(&ModelSpec::inversion_lambda), "must be positive");
   const auto m = load_model_file(source);
   const auto old_params = m.generator->named_parameters();
   const auto* old_l = old_params.find("inversion.PhiL");

@@ -44,9 +44,11 @@ struct ModelFile {
   int format_version = 2;  // 1: a TorchScript archive from before 2026-11 (read as data)
   Provenance provenance;
 
-  // A setting of the recorded training config as text ("data.camera" -> its path); "" when the
-  // file does not record it.
+  // A setting of the recorded training config as text (its data.camera -> the camera file's
+  // path); "" when the file does not record it.
   std::string recorded(const std::string& key) const;
+  // The camera file the recorded training config names (data.camera); empty when not recorded.
+  std::filesystem::path recorded_camera() const;
 };
 
 // What a model file or checkpoint records beside its weights: the training config (YAML text, as

@@ -225,10 +225,23 @@ GeneratorOptions generator_options(const Config& config, const CameraConfig& cam
   return generator_options(model_spec(config), camera, initialise);
 }
 
+const std::vector<OptionField<DiscriminatorOptions>>& discriminator_fields() {
+  using O = DiscriminatorOptions;
+  static const std::vector<OptionField<O>> fields = {
+      {"kind", &O::kind, 0, 0, "", "thesis (4 stride-2 layers) | flatnet (models.py's 3 layers)"},
+      {"width", &O::width, 1, 4096, "1 to 4096 filters", "filters of its first layer"},
+  };
+  return fields;
+}
+
+namespace {
+const bool kDiscriminatorRangesRegistered = register_ranges(range_rows(discriminator_fields(), "discriminator."));
+}  // namespace
+
 DiscriminatorOptions discriminator_options(const Config& c) {
+  (void)kDiscriminatorRangesRegistered;
   DiscriminatorOptions o;
-  o.kind = c.str("discriminator.kind");
-  o.width = c.integer("discriminator.width");
+  read_options(c, discriminator_fields(), o, "discriminator.");
   return o;
 }
 

@@ -38,6 +38,10 @@ struct ModelSpec {
 // The schema's rows for the model section, keys relative to "model." ("unet.width").
 const std::vector<OptionField<ModelSpec>>& model_spec_fields();
 
+// A model row's config key: model_key(&ModelSpec::unet_width) is "model.unet.width".
+template <class T>
+std::string model_key(T ModelSpec::*member) { return key_of(model_spec_fields(), member, "model."); }
+
 // The spec a config's `model:` section describes (a value out of range or of the wrong kind: an
 // error naming the key).
 ModelSpec model_spec(const Config& config);
@@ -56,6 +60,12 @@ ModelSpec parse_model_spec(const std::string& yaml, const std::filesystem::path&
 GeneratorOptions generator_options(const ModelSpec& spec, const CameraConfig& camera, bool initialise);
 GeneratorOptions generator_options(const Config& config, const CameraConfig& camera, bool initialise);
 DiscriminatorOptions discriminator_options(const Config& config);
+// The discriminator section's rows (keys relative to "discriminator."), and a row's key.
+const std::vector<OptionField<DiscriminatorOptions>>& discriminator_fields();
+template <class T>
+std::string discriminator_key(T DiscriminatorOptions::*member) {
+  return key_of(discriminator_fields(), member, "discriminator.");
+}
 
 // "trainable inversion W1^T Y W2 (transpose init, one pair for all channels)", "U-Net, width 32":
 // what `flatnet info` and the model cards say a model is.

@@ -181,7 +181,7 @@ void check_sizes_against_weights(const ModelSpec& spec, const CameraConfig& came
     expect("tikhonov.UR", 1, cols, "camera crop width");
   }
   const auto count = static_cast<int64_t>(g.size());
-  if (spec.enhancer == "unet") expect("enhancer.outc.conv.weight", 1, spec.unet_width, "model.unet.width");
+  if (spec.enhancer == "unet") expect("enhancer.outc.conv.weight", 1, spec.unet_width, model_key(&ModelSpec::unet_width));
   if (spec.enhancer == "dncnn") {
     expect("enhancer.body.0.weight", 0, spec.dncnn_width, "model.dncnn.width");
     require(spec.dncnn_layers <= count, path, "model.dncnn.layers exceeds the weights the file holds");

@@ -135,7 +135,7 @@ namespace {
 // (configs/cameras): either only when its name and geometry are the model's.
 CameraConfig training_camera(const ModelFile& m) {
   if (!m.camera.calibration.empty()) return m.camera;
-  const std::filesystem::path recorded = m.recorded("data.camera");
+  const std::filesystem::path recorded = m.recorded_camera();
   if (recorded.empty()) return m.camera;
   std::vector<std::filesystem::path> candidates{recorded};
   try {

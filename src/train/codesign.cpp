@@ -3,14 +3,15 @@
 #include "core/error.hpp"
 #include "core/util.hpp"
 #include "optics/camera.hpp"
+#include "train/options.hpp"
 
 namespace flatnet {
 
 CodePairCameraImpl::CodePairCameraImpl(const CodesignOptions& options) : options_(options) {
   require(options_.lr > 0, "codes.lr", "must be positive");
-  require(options_.freeze_at >= 0 && options_.freeze_at <= 1, "codes.freeze_at", "must lie in [0, 1]");
+  require(options_.freeze_at >= 0 && options_.freeze_at <= 1, codes_key(&CodesignOptions::freeze_at), "must lie in [0, 1]");
   require(options_.target_throughput > 0 && options_.target_throughput < 1 && options_.throughput_tolerance >= 0,
-          "codes.target_throughput", "needs 0 < target < 1 and a tolerance >= 0");
+          codes_key(&CodesignOptions::target_throughput), "needs 0 < target < 1 and a tolerance >= 0");
   const auto start = load_code_pair(options_.init_codes);
   // tanh saturates at +-1: a +-1 code starts at +-0.95, where its gradient is still alive.
   auto logit = [](const torch::Tensor& c) { return torch::atanh(c.to(torch::kFloat32).clamp(-0.95, 0.95)); };

@@ -21,11 +21,35 @@
 
 namespace flatnet {
 
+namespace {
+
+DataOptions data_options(const Config& c) {
+  DataOptions d;
+  read_options(c, data_fields(), d, "data.");
+  return d;
+}
+
+LightAugment light_options(const Config& c) {
+  LightAugment light;
+  read_options(c, light_fields(), light, "data.light.");
+  return light;
+}
+
+// The width setting of the model's enhancer (what a user lowers when the model does not fit).
+std::string enhancer_width_key(const ModelSpec& spec) {
+  if (spec.enhancer == "dncnn") return model_key(&ModelSpec::dncnn_width);
+  if (spec.enhancer == "rcan") return model_key(&ModelSpec::rcan_width);
+  if (spec.enhancer == "nafnet") return model_key(&ModelSpec::nafnet_width);
+  return model_key(&ModelSpec::unet_width);
+}
+
+}  // namespace
+
 TrainOptions train_options(const Config& c, const std::filesystem::path& out) {
   TrainOptions t;
   read_options(c, train_fields(), t);
   t.schedule = parse_lr_schedule(c.str("train.schedule"));
-  require(t.crop == 0 || (t.crop >= 16 && t.crop % 16 == 0), "train.crop",
+  require(t.crop == 0 || (t.crop >= 16 && t.crop % 16 == 0), train_key(&TrainOptions::crop),
           "must be 0 or a multiple of 16 (the U-Net halves it 4 times)");
   t.bf16 = resolve_precision(c.str("train.precision"), "train.precision") == Precision::bf16;
   require(t.real_label_min >= 0 && t.real_label_min <= 1 && t.fake_label_max >= 0 && t.fake_label_max <= 1,
@@ -43,32 +67,30 @@ TrainOptions train_options(const Config& c, const std::filesystem::path& out) {
 // Training and validation sources the config describes.
 std::pair<std::shared_ptr<const PairSource>, std::shared_ptr<const PairSource>> data_sources(
     const Config& c, const CameraConfig& camera) {
-  const auto source = c.str("data.source");
+  const auto d = data_options(c);
+  const auto& source = d.source;
   if (source == "dataset") {
     DatasetLists train, val;
-    const auto dir = c.path("data.dataset");
-    if (!dir.empty()) {
-      train = split_lists(dir, "train");
-      val = split_lists(dir, "val");
+    if (!d.dataset.empty()) {
+      train = split_lists(d.dataset, "train");
+      val = split_lists(d.dataset, "val");
     } else {
-      require(!c.str("data.train_meas").empty(), "data",
-              "set data.dataset, or data.train_meas/train_gt/val_meas/val_gt");
-      train = {c.path("data.train_meas"), c.path("data.train_gt"), c.path("data.root")};
-      val = {c.path("data.val_meas"), c.path("data.val_gt"), c.path("data.root")};
+      require(!d.train_meas.empty(), "data", "set " + data_key(&DataOptions::dataset) + ", or the four list files (" +
+                                                  data_key(&DataOptions::train_meas) + " ...)");
+      train = {d.train_meas, d.train_gt, d.root};
+      val = {d.val_meas, d.val_gt, d.root};
     }
     return {std::make_shared<DiskPairs>(read_pairs(train), camera),
             std::make_shared<DiskPairs>(read_pairs(val), camera)};
   }
   if (source == "simulate") {
     const bool codesign = c.flag("codes.learn");  // the trainer captures through the codes it learns: no rig
-    require(codesign || !camera.rig.empty(), "data.camera",
+    require(codesign || !camera.rig.empty(), data_key(&DataOptions::camera),
             "names no rig; on-the-fly simulation needs the true response");
     auto rig = codesign ? nullptr : std::make_shared<const Rig>(load_camera_rig(camera));
-    auto [train_images, val_images] =
-        split_image_files(c.path("data.images"), c.num("data.val_fraction"), c.integer("data.split_seed"));
-    const auto seed = static_cast<uint64_t>(c.integer("train.seed"));
-    LightAugment light;
-    read_options(c, light_fields(), light, "data.light.");
+    auto [train_images, val_images] = split_image_files(d.images, d.val_fraction, d.split_seed);
+    const auto seed = train_options(c, {}).seed;
+    const auto light = light_options(c);
     require(light.exposure_min > 0 && light.exposure_min <= light.exposure_max && light.lamp_min > 0 &&
                 light.lamp_min <= light.lamp_max,
             "data.light", "needs 0 < exposure_min <= exposure_max and 0 < lamp_min <= lamp_max");
@@ -84,15 +106,16 @@ std::pair<std::shared_ptr<const PairSource>, std::shared_ptr<const PairSource>> 
 
 CodesignOptions codesign_options(const Config& c, const CameraConfig& camera) {
   CodesignOptions o;
-  const auto init = c.str("codes.init");
-  o.init_codes = init == "mls" ? data_dir() / "models" / "camera" / "codes_mls.mat" : c.path("codes.init");
+  const auto init = c.str(codes_init_key());
+  o.init_codes = init == "mls" ? data_dir() / "models" / "camera" / "codes_mls.mat" : c.path(codes_init_key());
   read_options(c, codesign_fields(), o, "codes.");
   o.geometry = camera.raw;
-  require(camera.scene_size == o.camera.scene, "data.camera",
+  const auto camera_key = data_key(&DataOptions::camera);
+  require(camera.scene_size == o.camera.scene, camera_key,
           "co-design builds the reference camera's sensor and optics, whose scene is " +
               std::to_string(o.camera.scene) + " pixels; this camera's is " + std::to_string(camera.scene_size));
-  require(c.str("data.source") == "simulate", "codes.learn", "needs data.source: simulate (photographs in data.images)");
-  require(camera.raw.rotation == 0, "data.camera",
+  require(data_options(c).source == "simulate", "codes.learn", "needs data.source: simulate (photographs in data.images)");
+  require(camera.raw.rotation == 0, camera_key,
           "co-design simulates unrotated captures; this camera's rotation is " + std::to_string(camera.raw.rotation));
   return o;
 }
@@ -100,17 +123,21 @@ CodesignOptions codesign_options(const Config& c, const CameraConfig& camera) {
 namespace {
 
 void require_no_light_augment_on_disk(const Config& c) {
-  if (c.str("data.source") == "dataset" &&
-      (c.num("data.light.exposure_probability") > 0 || c.num("data.light.lamp_probability") > 0))
+  const auto light = light_options(c);
+  if (data_options(c).source == "dataset" && (light.exposure_probability > 0 || light.lamp_probability > 0))
     throw Error(
         "data.light: light augmentation simulates each sample; it needs data.source: simulate (with data.images)");
 }
 
-CameraConfig camera_of(const Config& c) { return load_camera_config(c.path("data.camera")); }
+CameraConfig camera_of(const Config& c) { return load_camera_config(data_options(c).camera); }
 
-Vgg16Features vgg_if_needed(const Config& c) {
-  if (c.num("loss.perceptual") <= 0) return Vgg16Features(nullptr);
-  return load_vgg16(c.path("loss.vgg_file"), c.flag("loss.vgg_normalize"));
+Vgg16Features vgg_if_needed(const Config& c, const TrainOptions& t) {
+  if (t.w_perceptual <= 0) return Vgg16Features(nullptr);
+  PerceptualOptions p;
+  read_options(c, perceptual_fields(), p, "loss.");
+  require(!p.vgg_file.empty(), key_of(perceptual_fields(), &PerceptualOptions::vgg_file, "loss."),
+          "names no VGG-16 weights file, which " + train_key(&TrainOptions::w_perceptual) + " > 0 needs");
+  return load_vgg16(p.vgg_file, p.vgg_normalize);
 }
 
 // "key (run: a, experiment.config: b), ..." for every setting in which two configs differ (paths compared
@@ -153,17 +180,18 @@ double available_memory_bytes() {
 // reproduce the model's first stage through this camera.
 void initialise_from_model(const ExperimentOptions& o, const Config& config, const CameraConfig& camera, Generator& g,
                            std::ostream& log) {
-  const bool transfer = config.str("model.inversion.init") == "transfer";
+  const auto spec = model_spec(config);
+  const bool transfer = spec.inversion_init == "transfer";
   init_generator_from(o.init_from, g, o.reinit_inversion ? GeneratorPart::enhancer : GeneratorPart::all);
   if (o.reinit_inversion)
     log << "initialised from " << o.init_from.string() << ": its enhancer (with the level path) and batch norm; "
-        << "the first stage afresh for this camera (model.inversion.init " << config.str("model.inversion.init")
+        << "the first stage afresh for this camera (model.inversion.init " << spec.inversion_init
         << "); fresh optimisers and discriminator\n";
   else
     log << "initialised from " << o.init_from.string() << " (fresh optimisers)\n";
   if (o.reinit_inversion && transfer) {
     auto source_camera = o.source_camera;
-    if (source_camera.empty()) source_camera = load_model_file(o.init_from).recorded("data.camera");
+    if (source_camera.empty()) source_camera = load_model_file(o.init_from).recorded_camera();
     require(std::filesystem::exists(source_camera), "experiment.source_camera",
             "the camera " + o.init_from.string() + " was trained for (" + source_camera.string() +
                 ") is not here; name its camera .yaml with experiment.source_camera");
@@ -173,7 +201,7 @@ void initialise_from_model(const ExperimentOptions& o, const Config& config, con
     const auto old_calib = load_calibration(source.calibration, source);
     const auto new_calib = load_calibration(camera.calibration, camera);
     transfer_inversion(o.init_from, {old_calib.P, old_calib.Q, new_calib.P, new_calib.Q},
-                       config.num("model.inversion.lambda"), g);
+                       spec.inversion_lambda, g);
     log << "first stage transferred from " << o.init_from.string() << " (camera " << source_camera.string()
         << ") to this camera: W^T P_new ~ W_old^T P_old\n";
   }
@@ -181,8 +209,7 @@ void initialise_from_model(const ExperimentOptions& o, const Config& config, con
 
 }  // namespace
 
-double training_bytes_per_sample(const Config& c, const CameraConfig& camera) {
-  const int64_t crop = c.integer("train.crop");
+double training_bytes_per_sample(const ModelSpec& m, int64_t crop, const CameraConfig& camera) {
   const double side = static_cast<double>(crop > 0 ? crop : camera.scene_size);
   const double pixels = side * side;
   // Activations kept for the backward pass and their gradients, float32. Measured on the U-Net
@@ -190,14 +217,11 @@ double training_bytes_per_sample(const Config& c, const CameraConfig& camera) {
   // is 71 MB, i.e. ~34 floats per first-level channel and pixel. DnCNN and RCAN keep about 8
   // floats per layer, channel and pixel (conv, batch norm, ReLU and their gradients).
   double floats = 0;
-  const auto enhancer = c.str("model.enhancer");
-  if (enhancer == "dncnn") floats = 8.0 * c.integer("model.dncnn.layers") * c.integer("model.dncnn.width") * pixels;
-  else if (enhancer == "rcan")
-    floats = 8.0 * 3 * c.integer("model.rcan.groups") * c.integer("model.rcan.blocks") * c.integer("model.rcan.width") * pixels;
-  else if (enhancer == "nafnet")  // ~40 floats per channel and pixel per block; each level has half the U-Net's
-    floats = 40.0 * c.integer("model.nafnet.width") * pixels * 2 *
-             (c.integer("model.nafnet.enc_blocks") + c.integer("model.nafnet.dec_blocks") + 1);
-  else floats = 34.0 * c.integer("model.unet.width") * pixels;
+  if (m.enhancer == "dncnn") floats = 8.0 * m.dncnn_layers * m.dncnn_width * pixels;
+  else if (m.enhancer == "rcan") floats = 8.0 * 3 * m.rcan_groups * m.rcan_blocks * m.rcan_width * pixels;
+  else if (m.enhancer == "nafnet")  // ~40 floats per channel and pixel per block; each level has half the U-Net's
+    floats = 40.0 * m.nafnet_width * pixels * 2 * (m.nafnet_enc_blocks + m.nafnet_dec_blocks + 1);
+  else floats = 34.0 * m.unet_width * pixels;
   // The first stage: the measurement, W1^T Y and the scene, per Bayer plane, with gradients.
   const double rows = camera.raw.crop[2], cols = camera.raw.crop[3], n = camera.scene_size;
   floats += 3.0 * 4 * (rows * cols + n * cols + n * n);
@@ -207,18 +231,13 @@ double training_bytes_per_sample(const Config& c, const CameraConfig& camera) {
 // Memory a run holds whatever its batch: the generator's parameters with their gradients, Adam's two
 // moments and the moving average (5 copies, float32). The U-Net's parameters grow with the square of
 // its width: ~31 M at width 64 (Ronneberger et al.'s 64..1024), 124 M at the paper's 128.
-double training_fixed_bytes(const Config& c, const CameraConfig& camera) {
+double training_fixed_bytes(const ModelSpec& m, const CameraConfig& camera) {
   const auto square = [](double x) { return x * x; };
-  const auto enhancer = c.str("model.enhancer");
   double params = 0;
-  if (enhancer == "dncnn")
-    params = 9.0 * c.integer("model.dncnn.layers") * square(c.integer("model.dncnn.width"));
-  else if (enhancer == "rcan")
-    params = 2 * 9.0 * c.integer("model.rcan.groups") * c.integer("model.rcan.blocks") * square(c.integer("model.rcan.width"));
-  else if (enhancer == "nafnet")
-    params = 31e6 * square(c.integer("model.nafnet.width") / 64.0);
-  else
-    params = 31e6 * square(c.integer("model.unet.width") / 64.0);
+  if (m.enhancer == "dncnn") params = 9.0 * m.dncnn_layers * square(m.dncnn_width);
+  else if (m.enhancer == "rcan") params = 2 * 9.0 * m.rcan_groups * m.rcan_blocks * square(m.rcan_width);
+  else if (m.enhancer == "nafnet") params = 31e6 * square(m.nafnet_width / 64.0);
+  else params = 31e6 * square(m.unet_width / 64.0);
   // The first stage: W1 {rows,N} and W2 {cols,N} per Bayer plane.
   params += 4.0 * (camera.raw.crop[2] + camera.raw.crop[3]) * camera.scene_size;
   return 5 * 4.0 * params;
@@ -261,17 +280,16 @@ Config settle_config(const ExperimentOptions& o, bool writer) {
 
 // A model or batch that cannot fit is refused before it fills the machine's memory (an estimate;
 // see training_bytes_per_sample).
-void require_memory_for(const Config& config, const CameraConfig& camera, const TrainOptions& opts) {
+void require_memory_for(const ModelSpec& spec, const CameraConfig& camera, const TrainOptions& opts) {
   const double available = available_memory_bytes();
   if (available <= 0) return;
-  const double fixed = training_fixed_bytes(config, camera);
+  const double fixed = training_fixed_bytes(spec, camera);
   const auto gb = [](double bytes) { return std::to_string(static_cast<int64_t>(std::ceil(bytes / 1e9))); };
-  const auto enhancer = config.str("model.enhancer");
-  require(fixed < 0.9 * available, "model." + (enhancer == "rcan" || enhancer == "dncnn" || enhancer == "nafnet" ? enhancer : std::string("unet")) + ".width",
+  require(fixed < 0.9 * available, enhancer_width_key(spec),
           "this model's weights, gradients and optimiser state need about " + gb(fixed) +
               " GB, and this machine has " + gb(available) + " GB available; choose a smaller width");
-  const double need = fixed + training_bytes_per_sample(config, camera) * static_cast<double>(opts.batch);
-  require(need < 0.9 * available, "train.batch",
+  const double need = fixed + training_bytes_per_sample(spec, opts.crop, camera) * static_cast<double>(opts.batch);
+  require(need < 0.9 * available, train_key(&TrainOptions::batch),
           std::to_string(opts.batch) + " samples need about " + gb(need) + " GB for training (" + gb(fixed) +
               " of them for the model and its optimiser), and this machine has " + gb(available) +
               " GB available; lower train.batch (or train.crop)");
@@ -294,10 +312,11 @@ ExperimentResult run_experiment(const ExperimentOptions& o) {
   require_no_light_augment_on_disk(config);
   // Everything that can fail on bad input is checked before anything is written.
   const auto camera = camera_of(config);
-  auto vgg = vgg_if_needed(config);
   auto opts = train_options(config, out);
-  require_memory_for(config, camera, opts);
-  require(opts.crop <= camera.scene_size, "train.crop",
+  auto vgg = vgg_if_needed(config, opts);
+  const auto spec = model_spec(config);
+  require_memory_for(spec, camera, opts);
+  require(opts.crop <= camera.scene_size, train_key(&TrainOptions::crop),
           std::to_string(opts.crop) + " exceeds the camera's " + std::to_string(camera.scene_size) +
               "-pixel scene (0: whole scenes)");
   CodePairCamera learned{nullptr};  // co-design: the camera whose codes learn with the network
@@ -308,7 +327,7 @@ ExperimentResult run_experiment(const ExperimentOptions& o) {
   auto [train_src, val_src] = data_sources(config, camera);
   torch::manual_seed(opts.seed);
   require(!o.reinit_inversion || !o.init_from.empty(), "experiment.reinit", "re-initialises part of a experiment.init_from model");
-  const bool transfer = config.str("model.inversion.init") == "transfer";
+  const bool transfer = spec.inversion_init == "transfer";
   require(!transfer || resume || o.reinit_inversion, "model.inversion.init",
           "transfer makes the first stage from a trained model's: use it with experiment.init_from MODEL experiment.reinit inversion");
   Generator g(generator_options(config, camera, !resume && (o.init_from.empty() || o.reinit_inversion)));
@@ -321,10 +340,9 @@ ExperimentResult run_experiment(const ExperimentOptions& o) {
   }
   Discriminator d(discriminator_options(config));
   log << "loading "
-      << (config.integer("train.val_count") > 0 ? std::min(config.integer("train.val_count"), val_src->size())
-                                                : val_src->size())
+      << (opts.val_count > 0 ? std::min(opts.val_count, val_src->size()) : val_src->size())
       << " validation samples...\n";
-  auto val = load_all(*val_src, config.integer("train.val_count"), std::max(1, opts.workers));
+  auto val = load_all(*val_src, opts.val_count, std::max(1, opts.workers));
   if (writer && !resume)
     for (const auto& f : run_files(out)) std::filesystem::remove(f);  // --force: the old run's files go
   std::unique_ptr<ProcessGroup> group;
@@ -335,8 +353,8 @@ ExperimentResult run_experiment(const ExperimentOptions& o) {
   }
   GanTrainer trainer(g, d, vgg, train_src, std::move(val), opts, model_identity(config, camera));
   if (learned) {
-    log << "co-design: codes from " << config.str("codes.init") << " (throughput "
-        << learned->throughput().item<double>() << "), learned until " << config.num("codes.freeze_at") * 100
+    log << "co-design: codes from " << config.str(codes_init_key()) << " (throughput "
+        << learned->throughput().item<double>() << "), learned until " << codesign_options(config, camera).freeze_at * 100
         << " % of the run; their camera in " << (out / "camera").string() << "\n";
     trainer.set_learned_camera(learned, camera);
   }
@@ -350,8 +368,7 @@ ExperimentResult run_experiment(const ExperimentOptions& o) {
   trainer.set_distributed(group.get());
   log << "training on " << train_src->size() << " pairs, " << opts.iterations << " steps of batch " << opts.batch
       << (dist.world_size > 1 ? " per rank x " + std::to_string(dist.world_size) + " ranks" : "") << " ("
-      << config.str("model.input") << " + " << config.str("model.enhancer") << ", width "
-      << config.integer("model.unet.width") << ")\n";
+      << spec.input << " + " << enhancer_text(spec) << ")\n";
   ExperimentResult result;
   result.writer = writer;
   result.summary = trainer.run();

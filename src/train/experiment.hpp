@@ -11,6 +11,7 @@
 #include <vector>
 
 #include "io/config.hpp"
+#include "nn/model_spec.hpp"
 #include "train/data.hpp"
 #include "train/distributed.hpp"
 #include "train/gan_trainer.hpp"
@@ -39,7 +40,7 @@ struct ExperimentResult {
 
 // Estimated bytes one training sample needs (activations for the backward pass and their
 // gradients); run_experiment refuses a batch whose estimate exceeds 90 % of the available memory.
-double training_bytes_per_sample(const Config& config, const CameraConfig& camera);
+double training_bytes_per_sample(const ModelSpec& model, int64_t crop, const CameraConfig& camera);
 
 // Everything that can fail on bad input (config keys and ranges, the camera, VGG weights, data)
 // is checked before anything is written. Stops early, with a checkpoint, when interrupted().

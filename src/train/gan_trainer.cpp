@@ -9,6 +9,7 @@
 #include "train/distributed.hpp"
 #include "train/loop.hpp"
 #include "train/nonfinite.hpp"
+#include "train/options.hpp"
 
 namespace flatnet {
 
@@ -210,7 +211,7 @@ GanTrainer::GanTrainer(Generator generator, Discriminator discriminator, Vgg16Fe
       opt_(std::move(options)),
       identity_(std::move(identity)) {
   require(opt_.iterations > 0 && opt_.batch > 0, "train", "iterations and batch must be positive");
-  require(opt_.w_perceptual <= 0 || !vgg_.is_empty(), "loss.perceptual", "a perceptual weight needs VGG-16 weights");
+  require(opt_.w_perceptual <= 0 || !vgg_.is_empty(), train_key(&TrainOptions::w_perceptual), "a perceptual weight needs VGG-16 weights");
   g_->prepare_training({false, opt_.channels_last, false, opt_.gemm_upsample});
   if (opt_.channels_last && !vgg_.is_empty()) weights_to_channels_last(*vgg_);
   // Two parameter groups: the inversion may learn at its own rate.
@@ -225,7 +226,7 @@ GanTrainer::GanTrainer(Generator generator, Discriminator discriminator, Vgg16Fe
   opt_d_ = std::make_unique<torch::optim::Adam>(d_->parameters(), torch::optim::AdamOptions(opt_.lr_discriminator));
   g_->set_autocast_bf16(opt_.bf16);
   // The one check of the decay for library callers (a config's value is range-checked when it loads).
-  require(opt_.ema_decay >= 0 && opt_.ema_decay < 1, "train.ema_decay", "must lie in [0, 1)");
+  require(opt_.ema_decay >= 0 && opt_.ema_decay < 1, train_key(&TrainOptions::ema_decay), "must lie in [0, 1)");
   if (opt_.ema_decay > 0) {
     ema_ = std::make_unique<WeightAverage>(g_, opt_.ema_decay);
     ema_->average()->set_autocast_bf16(opt_.bf16);

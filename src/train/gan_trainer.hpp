@@ -43,6 +43,7 @@ struct TrainOptions {
   uint64_t seed = 0;
   int workers = 1;
   int64_t val_every = 500, log_every = 10;
+  int64_t val_count = 64;  // validation samples loaded by the caller (0: all)
   double w_mse = 1.0, w_perceptual = 1.2, w_adversarial = 0.6;
   double w_ssim = 0.0;  // weight of the structural term 1 - SSIM
   // Terms that need no downloaded weights (nn/losses.hpp): feature matching on the discriminator's

@@ -3,6 +3,7 @@
 #include "train/csv_log.hpp"
 #include "train/loop.hpp"
 #include "train/nonfinite.hpp"
+#include "train/options.hpp"
 #include "train/run_id.hpp"
 #include "train/trainer_checkpoint.hpp"
 
@@ -205,7 +206,7 @@ MaskTrainSummary train_mask(MaskModel& model, const torch::Tensor& train_scenes,
                             const WienerCamera& cam, const MaskTrainOptions& o) {
   require(cam.noise_sigma > 0 || cam.photons > 0, "camera.noise_sigma",
           "must be positive (a noise-free design is degenerate)");
-  require(train_scenes.size(0) > 0 && val_scenes.size(0) > 0, "data.images", "no training or validation images");
+  require(train_scenes.size(0) > 0 && val_scenes.size(0) > 0, key_of(photo_split_fields(), &PhotoSplit::images), "no training or validation images");
   std::filesystem::create_directories(o.out);
   return MaskTrainer(model, train_scenes, val_scenes, cam, o).run();
 }

@@ -2,6 +2,8 @@
 // The trainers' option tables (io/option_table.hpp): TrainOptions, the mask and code-pair trainers', and
 // the structs their configs also fill (the light augmentation, co-design, the mask, the Wiener
 // camera). A test holds each struct's C++ defaults to its defaults file where they should agree.
+#include <filesystem>
+#include <string>
 #include <vector>
 
 #include "io/option_table.hpp"
@@ -14,11 +16,37 @@
 
 namespace flatnet {
 
+// data.* of flatnet train: where the pairs come from.
+struct DataOptions {
+  std::string source = "dataset";  // dataset | simulate
+  std::filesystem::path camera, dataset, images, root, train_meas, train_gt, val_meas, val_gt;
+  double val_fraction = 0.1;
+  int64_t split_seed = 1;
+};
+
+// loss.vgg_file and loss.vgg_normalize: the perceptual loss's network.
+struct PerceptualOptions {
+  std::filesystem::path vgg_file;
+  bool vgg_normalize = false;
+};
+
+// mask train: which photographs it trains and validates on (simulate's split).
+struct PhotoSplit {
+  std::filesystem::path images;
+  double val_fraction = 0.1;
+  int64_t split_seed = 1;
+  int64_t train_limit = 0, val_count = 32;
+};
+
 // flatnet train: configs/defaults.yaml's train.*, loss.* and discriminator.* keys that map one to
 // one onto TrainOptions (train.schedule and train.precision are parsed by train_options). Its
 // C++ defaults are the library's (the thesis's recipe), not defaults.yaml's.
 const std::vector<OptionField<TrainOptions>>& train_fields();
-// mask train: configs/mask_defaults.yaml's train.* keys.
+// data.* (prefix "data.") and loss.vgg_* (prefix "loss.") of flatnet train.
+const std::vector<OptionField<DataOptions>>& data_fields();
+const std::vector<OptionField<PerceptualOptions>>& perceptual_fields();
+// mask train: configs/mask_defaults.yaml's train.* keys, and its photographs.
+const std::vector<OptionField<PhotoSplit>>& photo_split_fields();
 const std::vector<OptionField<MaskTrainOptions>>& mask_train_fields();
 // mask separable: configs/separable_defaults.yaml (codes.init is resolved by the caller: mls, random or a file).
 const std::vector<OptionField<SeparableTrainOptions>>& separable_train_fields();
@@ -30,5 +58,20 @@ const std::vector<OptionField<CodesignOptions>>& codesign_fields();
 // mask.* and camera.* (mask train; mask.projection, .throughput and .init are parsed by the caller).
 const std::vector<OptionField<MaskOptions>>& mask_fields();
 const std::vector<OptionField<WienerCamera>>& wiener_camera_fields();
+
+// Registers every table's ranges and path keys with the config (io/config.hpp); runs once, at
+// start-up, and is safe to call again.
+bool register_training_settings();
+// codes.init: mls, random or a codes .mat (no struct member holds it as written).
+std::string codes_init_key();
+
+// The key of the row binding a member, as errors name it: train_key(&TrainOptions::crop) is
+// "train.crop".
+template <class T>
+std::string train_key(T TrainOptions::*member) { return key_of(train_fields(), member); }
+template <class T>
+std::string data_key(T DataOptions::*member) { return key_of(data_fields(), member, "data."); }
+template <class T>
+std::string codes_key(T CodesignOptions::*member) { return key_of(codesign_fields(), member, "codes."); }
 
 }  // namespace flatnet
