@@ -8,7 +8,9 @@
 # Each set is reconstructed with Tikhonov through the reference camera (configs/cameras/sim_level.yaml,
 # the camera the shipped models were trained with): recon writes camera_fit.csv, as infer does.
 # Usage: scripts/camera_fit_check.sh [RUNS_DIR] [PHOTOS_DIR] [COUNT]   (COUNT images per set, default 250)
-# Writes RUNS_DIR/camera_fit.md.
+#   JUDGE=CAMERA.yaml: judge with that camera instead (e.g. one `flatnet calibrate --dataset` identified,
+#   noise model included); its results go to RUNS_DIR/judge-NAME/.
+# Writes RUNS_DIR/camera_fit.md (RUNS_DIR/judge-NAME/camera_fit.md with JUDGE).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 runs=${1:-$HOME/flatnet-runs/camera-fit}
@@ -16,7 +18,10 @@ photos=${2:-../shared/data/images/train}
 count=${3:-250}
 flatnet=${FLATNET:-$PWD/build/flatnet}
 reference=configs/cameras/sim_level.yaml
-mkdir -p "$runs"
+judge=${JUDGE:-$reference}
+fits=$runs
+[ -z "${JUDGE:-}" ] || fits=$runs/judge-$(basename "$(dirname "$JUDGE")")
+mkdir -p "$runs" "$fits"
 
 make_camera() {  # NAME ARGS...: a camera folder from `flatnet mask camera`, made once
   local dir=$runs/cam-$1
@@ -39,10 +44,10 @@ simulate lamp "$reference" --lamp --lamp-gain 20
 simulate learned "$runs/cam-learned/camera.yaml"
 simulate random "$runs/cam-random/camera.yaml"
 
-fit_of() {  # SET INPUT: Tikhonov through the reference camera; the fit lands in camera_fit.csv
-  local out=$runs/fit-$1
+fit_of() {  # SET INPUT: Tikhonov through the judging camera; the fit lands in camera_fit.csv
+  local out=$fits/fit-$1
   [ -f "$out/camera_fit.csv" ] ||
-    "$flatnet" recon --method tikhonov --camera "$reference" --input "$2" --out "$out" --force > /dev/null 2>&1 || true
+    "$flatnet" recon --method tikhonov --camera "$judge" --input "$2" --out "$out" --force > /dev/null 2>&1 || true
   awk -F, 'NR > 1 { n++; m += $3; if ($2 == "nan") { s++; next }; j++
                      if (j == 1 || $2 > max) max = $2; if (j == 1 || $2 < min) min = $2 }
            END { printf "| %d | %d | %d | %.4f | %.4f |", n, m, s, min, max }' "$out/camera_fit.csv"
@@ -56,4 +61,4 @@ fit_of() {  # SET INPUT: Tikhonov through the reference camera; the fit lands in
   if ls ../shared/data/flatnet/fc_*.png > /dev/null 2>&1; then
     echo "| FlatNet prototype $(fit_of prototype '../shared/data/flatnet/fc_*.png')"
   fi
-} | tee "$runs/camera_fit.md"
+} | tee "$fits/camera_fit.md"

@@ -82,6 +82,10 @@ TEST_CASE("own camera: calibrate from the dataset, train, infer, and the camera 
   CHECK(camera.knows_noise());
   CHECK(camera.rig.empty());
   CHECK(camera.noise_gain == Approx(1 / 40000.0).epsilon(0.3));
+  // The camera fit's threshold covers the pairs' own spread: at least the statistic's own, bounded.
+  CHECK(camera.fit_threshold >= 1.0);
+  CHECK(camera.fit_threshold < 3.0);
+  CHECK_THAT(r.output, Contains("camera fit: its own pairs fit up to the threshold"));
   const auto estimate = load_calibration(camera.calibration, camera);
   const auto truth_camera = load_camera_config(s.dir / "truth" / "camera.yaml");
   const auto err = calibration_error(estimate, ideal_calibration(load_camera_rig(truth_camera), truth_camera.raw));
@@ -121,4 +125,19 @@ TEST_CASE("own camera: calibrate from the dataset, train, infer, and the camera 
   CHECK(r.code == 2);
   CHECK_THAT(r.output, Contains("do not fit"));
   CHECK_FALSE(std::filesystem::exists(s.dir / "refused"));
+}
+
+TEST_CASE("a camera file's fit_threshold is read, written back and range-checked", "[optics][own-camera]") {
+  test::Scratch s("fit_threshold");
+  const auto base = read_file_text(test::source_dir() / "configs" / "cameras" / "sim.yaml", 1 << 20);
+  const auto write = [&](const std::string& extra) {
+    std::ofstream(s.dir / "cam.yaml") << base << "\n" << extra;
+    return s.dir / "cam.yaml";
+  };
+  CHECK(load_camera_config(write("")).fit_threshold == 0);  // absent: the statistic's own
+  const auto camera = load_camera_config(write("fit_threshold: 1.5\n"));
+  CHECK(camera.fit_threshold == 1.5);
+  CHECK_THAT(camera_geometry_yaml(camera), Contains("fit_threshold: 1.5"));
+  CHECK_THROWS_WITH(load_camera_config(write("fit_threshold: 0.5\n")), Contains("fit_threshold"));
+  CHECK_THROWS_WITH(load_camera_config(write("fit_threshold: .nan\n")), Contains("fit_threshold"));
 }

@@ -41,7 +41,8 @@ namespace {
 const std::vector<std::string> kKnownKeys = {"name",        "raw_height", "raw_width",       "adc_bits",
                                              "rotation",    "crop",       "centring",        "scene_size",
                                              "calibration", "rig",        "tikhonov_lambda", "tv_lambda",
-                                             "noise_gain",  "noise_floor", "dark"};
+                                             "noise_gain",  "noise_floor", "dark",
+                                             "fit_threshold"};
 
 void validate(const CameraConfig& c, const std::filesystem::path& path) {
   const auto& g = c.raw;
@@ -60,6 +61,8 @@ void validate(const CameraConfig& c, const std::filesystem::path& path) {
   require(std::isfinite(c.noise_gain) && std::isfinite(c.noise_floor) && std::isfinite(c.dark) && c.noise_gain >= 0 &&
               c.noise_gain < 1 && c.noise_floor >= 0 && c.noise_floor < 1 && c.dark >= 0 && c.dark < 1,
           path, "noise_gain, noise_floor and dark are full-scale quantities within [0, 1)");
+  require(std::isfinite(c.fit_threshold) && (c.fit_threshold == 0 || (c.fit_threshold >= 1 && c.fit_threshold <= 1e3)),
+          path, "fit_threshold is 0 (the camera fit's own) or a ratio within [1, 1000]");
   // Above ~1e4 the SVD filter s / (s^2 + lambda) is ~0 for any real camera: black images, not an answer.
   require(std::isfinite(c.tikhonov_lambda) && std::isfinite(c.tv_lambda) && c.tikhonov_lambda > 0 &&
               c.tv_lambda > 0 && c.tikhonov_lambda <= 1e4 && c.tv_lambda <= 1e4,
@@ -105,6 +108,7 @@ std::string camera_geometry_yaml(const CameraConfig& c) {
      << "tikhonov_lambda: " << c.tikhonov_lambda << "\ntv_lambda: " << c.tv_lambda << "\n";
   if (c.knows_noise())
     os << "noise_gain: " << c.noise_gain << "\nnoise_floor: " << c.noise_floor << "\ndark: " << c.dark << "\n";
+  if (c.fit_threshold > 0) os << "fit_threshold: " << c.fit_threshold << "\n";
   return os.str();
 }
 
@@ -137,6 +141,7 @@ CameraConfig camera_from_node(const YAML::Node& y, const std::filesystem::path& 
     if (y["noise_gain"]) c.noise_gain = y["noise_gain"].as<double>();
     if (y["noise_floor"]) c.noise_floor = y["noise_floor"].as<double>();
     if (y["dark"]) c.dark = y["dark"].as<double>();
+    if (y["fit_threshold"]) c.fit_threshold = y["fit_threshold"].as<double>();
   } catch (const YAML::Exception& e) {
     throw Error(path, std::string("bad value: ") + e.what());
   }

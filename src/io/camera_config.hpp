@@ -43,6 +43,12 @@ struct CameraConfig {
   // ADC's rounding). noise_gain = 1 / full well; noise_floor = (read noise / full well)^2 + lsb^2/12.
   // 0 = unknown. `flatnet calibrate --dataset` measures them; the camera fit (optics/camera_fit) needs them.
   double noise_gain = 0, noise_floor = 0, dark = 0;
+  // The camera fit's threshold when the calibration is itself an estimate with error (0: the
+  // statistic's own, set by chance alone). A calibration identified from display-capture pairs
+  // leaves 10-15 % of each capture's coded light unexplained, and how much lands outside its span
+  // varies from scene to scene; `flatnet calibrate --dataset` measures that spread on its own pairs
+  // and writes the threshold that covers it.
+  double fit_threshold = 0;
   bool knows_noise() const { return noise_gain > 0; }
 };
 

@@ -1,5 +1,6 @@
 #include "optics/calibrate_dataset.hpp"
 
+#include <algorithm>
 #include <cmath>
 #include <iomanip>
 #include <limits>
@@ -7,6 +8,7 @@
 
 #include "core/error.hpp"
 #include "core/util.hpp"
+#include "optics/camera_fit.hpp"
 
 namespace flatnet {
 
@@ -56,18 +58,11 @@ class PairStream {
 constexpr int64_t kNoisePairs = 64;
 constexpr double kStructureExplainsAtLeast = 0.3;  // of the coded energy the free factors explain
 
-// What one pair's channel leaves of the model: its light level, the coded part's energy per pixel
-// and the residual energy per pixel.
-struct NoisePoint {
-  double level, coded, residual;
-};
-
 // The normal equations of one step of (2), Y_i ~ F Z_i + s_i M (F {4,m,N}, Z_i {4,N,k}, M {4,m,k}),
 // accumulated over the pairs.
 struct Sums {
   torch::Tensor A, B, Sz;        // sum Z Z^T {4,N,N}, sum Y Z^T {4,m,N}, sum s Z {4,N,k}; float64
   torch::Tensor Sy, S2, norm;    // sum s Y {4,m,k}, sum s^2 {4}, sum ||Y||^2 {4}
-  std::vector<NoisePoint> noise;  // a pair's channel each
 };
 
 // Each pair's scene split into its sum s {4} and its zero-mean rest Xz {4,N,N}, eq. (2).
@@ -76,9 +71,8 @@ std::pair<torch::Tensor, torch::Tensor> split_scene(const torch::Tensor& X) {
   return {s, X - (s / static_cast<double>(X.size(1) * X.size(2))).view({4, 1, 1})};
 }
 
-// `design(pair)` gives the step's (Y_i, Z_i); F and M, where defined, are the current model, whose
-// residual the first pairs report against their light level (the sensor's noise).
-Sums accumulate(PairStream& pairs, const torch::Tensor& F, const torch::Tensor& M,
+// `design(pair)` gives the step's (Y_i, Z_i).
+Sums accumulate(PairStream& pairs,
                 const std::function<std::pair<torch::Tensor, torch::Tensor>(const CapturePair&)>& design) {
   Sums sums;
   for (int64_t i = 0; i < pairs.size(); ++i) {
@@ -92,18 +86,6 @@ Sums accumulate(PairStream& pairs, const torch::Tensor& F, const torch::Tensor& 
       sums.A = A, sums.B = B, sums.Sz = Sz, sums.Sy = Sy, sums.S2 = S2, sums.norm = norm;
     } else {
       sums.A += A, sums.B += B, sums.Sz += Sz, sums.Sy += Sy, sums.S2 += S2, sums.norm += norm;
-    }
-    if (F.defined() && pair.level.defined() && i < kNoisePairs) {
-      const auto coded = torch::matmul(F, Z);  // {4,m,k}
-      const auto energy = f64((Y - coded - s * M).square().sum({1, 2}));
-      const auto coded_energy = f64(coded.square().mean({1, 2}));
-      // The centred planes keep (m-1)(k-1) of the m k pixels' noise, and the fit takes some along:
-      // its m N + k N + m k parameters, shared by all pairs, absorb that many noise terms.
-      const double m = static_cast<double>(Y.size(1)), k = static_cast<double>(Y.size(2));
-      const double n = static_cast<double>(Z.size(1));
-      const double kept = std::max(1.0, (m - 1) * (k - 1) - (m * n + k * n + m * k) / static_cast<double>(pairs.size()));
-      for (int c = 0; c < 4; ++c)
-        sums.noise.push_back({pair.level[c].item<double>(), coded_energy[c].item<double>(), energy[c].item<double>() / kept});
     }
   }
   return sums;
@@ -209,27 +191,52 @@ void balance(torch::Tensor& P, torch::Tensor& Q) {
   Q = Q / k;
 }
 
-// What the model leaves of a pair is the sensor's noise, linear in the light (gain * level + offset),
-// plus the calibration's own error, which scales with the coded light's energy (kappa * coded): a
-// structured fit leaves a few per cent of each factor out. Least squares on the three, then the
-// camera's form gain * (level - dark) + floor with dark, floor >= 0. Known gap: on the random-code
-// camera the line still comes out tilted (dark 0.106 against the sensor's 0.02, with or without the
-// third term), which makes some dim captures of that camera look foreign (docs/own-camera.md).
-void fit_noise(const std::vector<NoisePoint>& points, DatasetCalibration& out) {
-  if (points.size() < 8) return;
-  auto A = torch::zeros({static_cast<int64_t>(points.size()), 3}, torch::kFloat64);
-  auto b = torch::zeros({static_cast<int64_t>(points.size()), 1}, torch::kFloat64);
-  for (size_t i = 0; i < points.size(); ++i) {
-    const auto row = static_cast<int64_t>(i);
-    A[row][0] = points[i].level, A[row][1] = 1.0, A[row][2] = points[i].coded, b[row][0] = points[i].residual;
+// The noise model as the camera fit (optics/camera_fit.hpp) will test captures against it: each of
+// the first pairs' energy outside the calibration's span, per pixel and per share of a pixel's noise
+// expected there, against the plane's light level (gain * (mean v - dark) + floor summed over the
+// pixels v is a line in the level); least squares, then dark, floor >= 0. The residual against the
+// shown scene, fitted before, holds the calibration's whole error, which grows with the light and
+// tilted the line (135 of 150 dim captures of the camera itself flagged). Outside the span only part
+// of that error is left, but how much varies from scene to scene (the fit of the camera's own
+// captures spreads over 0.65-1.2 with a 100-pair calibration): the pairs' own fits set the camera
+// fit's threshold, their largest with a margin, or their mean plus five deviations if larger.
+void fit_noise_outside_span(PairStream& pairs, const torch::Tensor& P, const torch::Tensor& Q,
+                            DatasetCalibration& out) {
+  const auto U = std::get<0>(torch::linalg_qr(P.to(torch::kFloat64))).to(torch::kFloat32);
+  const auto V = std::get<0>(torch::linalg_qr(Q.to(torch::kFloat64))).to(torch::kFloat32);
+  const int64_t h = U.size(1), w = V.size(1);
+  const double per_pixel = outside_share(h, w, U.size(2)) * static_cast<double>(h * w);
+  std::vector<double> levels, energies;  // per plane
+  for (int64_t i = 0; i < std::min<int64_t>(pairs.size(), kNoisePairs); ++i) {
+    const auto pair = pairs.get(i);
+    if (!pair.level.defined()) return;
+    const auto outside = unexplained_energy(pair.meas, U, V) / per_pixel;  // {4}
+    for (int c = 0; c < 4; ++c) levels.push_back(pair.level[c].item<double>()), energies.push_back(outside[c].item<double>());
   }
-  const auto scale = A.abs().amax(0).clamp_min(1e-30);  // columns of similar size for the solve
-  const auto x = std::get<0>(torch::linalg_lstsq(A / scale, b)).flatten() / scale;
+  if (energies.size() < 8) return;
+  const auto n = static_cast<int64_t>(energies.size());
+  auto A = torch::ones({n, 2}, torch::kFloat64);
+  A.select(1, 0).copy_(torch::tensor(levels, torch::kFloat64));
+  const auto x = std::get<0>(torch::linalg_lstsq(A, torch::tensor(energies, torch::kFloat64).unsqueeze(1))).flatten();
   const double gain = x[0].item<double>(), offset = x[1].item<double>();
   if (!(gain > 0) || !std::isfinite(gain) || !std::isfinite(offset)) return;
   out.noise_gain = gain;
   out.noise_floor = std::max(0.0, offset);
   out.dark = offset < 0 ? -offset / gain : 0.0;
+  // Each pair's fit as the camera fit computes it (four planes pooled, the level per plane).
+  std::vector<double> fits;
+  for (size_t i = 0; i + 4 <= energies.size(); i += 4) {
+    double seen = 0, expected = 0;
+    for (size_t c = i; c < i + 4; ++c)
+      seen += energies[c], expected += std::max(0.0, levels[c] - out.dark) * gain + out.noise_floor;
+    fits.push_back(seen / std::max(expected, 1e-30));
+  }
+  double mean = 0, square = 0;
+  for (double f : fits) mean += f, square += f * f;
+  mean /= static_cast<double>(fits.size());
+  const double deviation = std::sqrt(std::max(0.0, square / static_cast<double>(fits.size()) - mean * mean));
+  const double largest = *std::max_element(fits.begin(), fits.end());
+  out.fit_threshold = std::max({1.0, 1.1 * largest, mean + 5 * deviation});
 }
 
 }  // namespace
@@ -263,7 +270,7 @@ DatasetCalibration calibrate_from_pairs(int64_t count, const std::function<Captu
   for (int it = 0; it <= o.iterations; ++it) {
     const bool structured = o.structure == FactorStructure::Shift && it >= o.free_passes && !result.structure_rejected;
     // The P-step's pass also scores the current (P, Q, M).
-    const auto sums = accumulate(pairs, P, M, p_design);
+    const auto sums = accumulate(pairs, p_design);
     if (P.defined()) {
       const auto energy = residual_energy(sums, P.to(torch::kFloat64), M.to(torch::kFloat64));
       noise_var = energy / pixels;
@@ -276,7 +283,6 @@ DatasetCalibration calibrate_from_pairs(int64_t count, const std::function<Captu
       progress.set_status(status.str());
       progress.tick();
       result.iterations = it;
-      fit_noise(sums.noise, result);
       if (last - total < o.tolerance * last || it == o.iterations) break;
       last = total;
     }
@@ -286,7 +292,7 @@ DatasetCalibration calibrate_from_pairs(int64_t count, const std::function<Captu
                               : solve_step(sums, o.ridge, P.defined() ? prior_for(P) : torch::Tensor());
     P = F.to(torch::kFloat32);
     M = Mp.to(torch::kFloat32);
-    const auto qsums = accumulate(pairs, {}, {}, q_design);
+    const auto qsums = accumulate(pairs, q_design);
     auto [G, Mq] = structured && !result.structure_rejected
                        ? solve_structured_step(qsums, o.shift, noise_var, q_shape)
                        : solve_step(qsums, o.ridge, prior_for(Q));
@@ -297,6 +303,7 @@ DatasetCalibration calibrate_from_pairs(int64_t count, const std::function<Captu
   result.shift_rows = result.structure_rejected ? 0 : p_shape.shift;
   result.shift_cols = result.structure_rejected ? 0 : q_shape.shift;
   progress.finish();
+  fit_noise_outside_span(pairs, P, Q, result);
   result.calib.P = P.to(torch::kFloat64);
   result.calib.Q = Q.to(torch::kFloat64);
   result.uniform_response = M;

@@ -61,9 +61,11 @@ struct DatasetCalibration {
   Calibration calib;                // P {4,rows,N}, Q {4,cols,N}, float64
   torch::Tensor uniform_response;      // M {4,rows,cols}: the planes a uniform unit scene gives, per unit of s
   std::array<double, 4> residual{};    // ||Y - model (2)|| / ||Y|| per channel over all pairs (b, gb, gr, r)
-  // The sensor's noise, from what the model leaves of each pair against its light level (when the
-  // pairs carry levels): residual energy per pixel = noise_gain * (level - dark) + noise_floor.
+  // The sensor's noise (when the pairs carry levels), from the first pairs' energy outside the
+  // calibration's span against their light level, as the camera fit measures it: variance per
+  // pixel = noise_gain * (level - dark) + noise_floor.
   double noise_gain = 0, noise_floor = 0, dark = 0;
+  double fit_threshold = 0;  // the camera fit's threshold that covers the pairs' own spread (CameraConfig)
   int64_t pairs = 0;
   int iterations = 0;
   // The shadow's move per scene pixel, in sensor pixels (signed), when the fit is structured; else 0.

@@ -48,6 +48,19 @@ torch::Tensor top_singular_squared(const torch::Tensor& R) {
 
 }  // namespace
 
+torch::Tensor unexplained_energy(const torch::Tensor& Y, const torch::Tensor& U, const torch::Tensor& V) {
+  const auto inside = torch::matmul(torch::matmul(U, torch::matmul(torch::matmul(U.transpose(1, 2), Y), V)),
+                                    V.transpose(1, 2));  // {4,h,w}: U U^T Y V V^T
+  const auto R = (Y - inside).to(torch::kFloat64);
+  return R.square().sum({1, 2}) - top_singular_squared(R);
+}
+
+double outside_share(int64_t h, int64_t w, int64_t n) {
+  const double hd = static_cast<double>(h), wd = static_cast<double>(w), nd = static_cast<double>(n);
+  const double dof = (hd - 1) * (wd - 1) - nd * nd;
+  return (dof - std::pow(std::sqrt(hd - 1) + std::sqrt(wd - 1), 2)) / (hd * wd);
+}
+
 CameraFit::CameraFit(const Calibration& calib, const CameraConfig& camera) : camera_(camera) {
   require(camera.knows_noise(), camera.name,
           "this camera has no noise model (noise_gain, noise_floor, dark); `flatnet calibrate --dataset` measures it");
@@ -63,8 +76,8 @@ CameraFit::CameraFit(const Calibration& calib, const CameraConfig& camera) : cam
   require(dof > 1000, camera.name, "the capture window is too small beside the scene to test a capture's fit");
   // Chance alone: the pooled energy of 4 * dof noise terms has relative deviation sqrt(2 / (4 dof)).
   // Six deviations, and 1 % for calibration error and the noise model's own.
-  threshold_ = 1 + 6 * std::sqrt(2 / (4 * dof)) + 0.01;
-  outside_share_ = (dof - std::pow(std::sqrt(h - 1) + std::sqrt(w - 1), 2)) / (h * w);
+  threshold_ = std::max(1 + 6 * std::sqrt(2 / (4 * dof)) + 0.01, camera.fit_threshold);
+  outside_share_ = outside_share(U_.size(1), V_.size(1), U_.size(2));
 }
 
 CameraFitResult CameraFit::measure(const torch::Tensor& raw_unit) const {
@@ -72,10 +85,7 @@ CameraFitResult CameraFit::measure(const torch::Tensor& raw_unit) const {
   const auto& g = camera_.raw;
   const auto window = raw_window(raw_unit, g);                       // {4,h,w}: the light each pixel read
   const auto Y = without_level(double_centre(window, g.centring), g.centring);  // the separable model's planes
-  const auto inside = torch::matmul(torch::matmul(U_, torch::matmul(torch::matmul(U_.transpose(1, 2), Y), V_)),
-                                    V_.transpose(1, 2));  // {4,h,w}: U U^T Y V V^T
-  const auto R = (Y - inside).to(torch::kFloat64);
-  const auto unexplained = R.square().sum() - top_singular_squared(R).sum();
+  const auto unexplained = unexplained_energy(Y, U_, V_).sum();
   // The noise model, pixel by pixel: clipped pixels carry no noise.
   // Full scale is the ADC's top code as stored: (2^bits - 1) * 2^(16 - bits) / 65535 (0.99902 at 10 bits).
   const int bits = g.adc_bits;

@@ -38,6 +38,15 @@ inline const char* misfit_advice() {
          "inversion); docs/own-camera.md";
 }
 
+// The statistic's two halves, shared with calibrate --dataset (which fits the noise model on them, so
+// that the camera fit and the noise model it tests against measure the same thing):
+// each plane's energy outside span(U) x span(V), its strongest rank-1 component set aside
+// (Y {4,h,w}; U {4,h,N}, V {4,w,N} orthonormal) -> {4} float64;
+torch::Tensor unexplained_energy(const torch::Tensor& Y, const torch::Tensor& U, const torch::Tensor& V);
+// and the share of a pixel's noise variance expected there: dof / (h w), less what the rank-1
+// component takes, (sqrt(h-1) + sqrt(w-1))^2 / (h w), dof = (h-1)(w-1) - N^2.
+double outside_share(int64_t h, int64_t w, int64_t n);
+
 class CameraFit {
  public:
   // Errors name the camera when it has no noise model (noise_gain: run `flatnet calibrate --dataset`
@@ -52,9 +61,7 @@ class CameraFit {
   torch::Tensor U_, V_;  // {4,h,N}, {4,w,N} orthonormal, float32
   CameraConfig camera_;
   double threshold_ = 0;
-  // Of a pixel's noise variance, the share expected outside the span: dof / (h w), less what the
-  // rank-1 component takes, (sqrt(h-1) + sqrt(w-1))^2 / (h w).
-  double outside_share_ = 0;
+  double outside_share_ = 0;  // outside_share(h, w, N)
 };
 
 }  // namespace flatnet
