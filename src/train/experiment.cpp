@@ -89,7 +89,7 @@ std::pair<std::shared_ptr<const PairSource>, std::shared_ptr<const PairSource>> 
             "names no rig; on-the-fly simulation needs the true response");
     auto rig = codesign ? nullptr : std::make_shared<const Rig>(load_camera_rig(camera));
     auto [train_images, val_images] = split_image_files(d.images, d.val_fraction, d.split_seed);
-    const auto seed = train_options(c, {}).seed;
+    const auto seed = static_cast<uint64_t>(c.integer(train_key(&TrainOptions::seed)));
     const auto light = light_options(c);
     require(light.exposure_min > 0 && light.exposure_min <= light.exposure_max && light.lamp_min > 0 &&
                 light.lamp_min <= light.lamp_max,
@@ -320,9 +320,11 @@ ExperimentResult run_experiment(const ExperimentOptions& o) {
           std::to_string(opts.crop) + " exceeds the camera's " + std::to_string(camera.scene_size) +
               "-pixel scene (0: whole scenes)");
   CodePairCamera learned{nullptr};  // co-design: the camera whose codes learn with the network
+  CodesignOptions codesign;
   if (config.flag("codes.learn")) {
     require(dist.world_size == 1, "codes.learn", "co-design runs in one process");
-    learned = CodePairCamera(codesign_options(config, camera));
+    codesign = codesign_options(config, camera);
+    learned = CodePairCamera(codesign);
   }
   auto [train_src, val_src] = data_sources(config, camera);
   torch::manual_seed(opts.seed);
@@ -354,7 +356,7 @@ ExperimentResult run_experiment(const ExperimentOptions& o) {
   GanTrainer trainer(g, d, vgg, train_src, std::move(val), opts, model_identity(config, camera));
   if (learned) {
     log << "co-design: codes from " << config.str(codes_init_key()) << " (throughput "
-        << learned->throughput().item<double>() << "), learned until " << codesign_options(config, camera).freeze_at * 100
+        << learned->throughput().item<double>() << "), learned until " << codesign.freeze_at * 100
         << " % of the run; their camera in " << (out / "camera").string() << "\n";
     trainer.set_learned_camera(learned, camera);
   }

@@ -193,28 +193,22 @@ namespace {
 // codes.init is "mls", "random" or a codes .mat: a path when it names a file (its reader decides).
 const std::vector<RangeRow> kCodesInitRow = {{"codes.init", 0, 0, "", /*path=*/true}};
 
-}  // namespace
+// Every table's ranges and path keys, registered with the config (io/config.hpp) at start-up.
+const bool kRegistered = [] {
+  register_ranges(range_rows(train_fields()));
+  register_ranges(range_rows(data_fields(), "data."));
+  register_ranges(range_rows(perceptual_fields(), "loss."));
+  register_ranges(range_rows(mask_train_fields()));
+  register_ranges(range_rows(photo_split_fields()));
+  register_ranges(range_rows(separable_train_fields()));
+  register_ranges(range_rows(light_fields(), "data.light."));
+  register_ranges(range_rows(codesign_fields(), "codes."));
+  register_ranges(range_rows(mask_fields(), "mask."));
+  register_ranges(range_rows(wiener_camera_fields(), "camera."));
+  register_ranges(kCodesInitRow);
+  return true;
+}();
 
-bool register_training_settings() {
-  static const bool done = [] {
-    register_ranges(range_rows(train_fields()));
-    register_ranges(range_rows(data_fields(), "data."));
-    register_ranges(range_rows(perceptual_fields(), "loss."));
-    register_ranges(range_rows(mask_train_fields()));
-    register_ranges(range_rows(photo_split_fields()));
-    register_ranges(range_rows(separable_train_fields()));
-    register_ranges(range_rows(light_fields(), "data.light."));
-    register_ranges(range_rows(codesign_fields(), "codes."));
-    register_ranges(range_rows(mask_fields(), "mask."));
-    register_ranges(range_rows(wiener_camera_fields(), "camera."));
-    register_ranges(kCodesInitRow);
-    return true;
-  }();
-  return done;
-}
-
-namespace {
-const bool kRegistered = register_training_settings();
 }  // namespace
 
 std::string codes_init_key() { return kCodesInitRow.front().key; }

@@ -59,9 +59,6 @@ const std::vector<OptionField<CodesignOptions>>& codesign_fields();
 const std::vector<OptionField<MaskOptions>>& mask_fields();
 const std::vector<OptionField<WienerCamera>>& wiener_camera_fields();
 
-// Registers every table's ranges and path keys with the config (io/config.hpp); runs once, at
-// start-up, and is safe to call again.
-bool register_training_settings();
 // codes.init: mls, random or a codes .mat (no struct member holds it as written).
 std::string codes_init_key();
 
