@@ -5,6 +5,7 @@
 
 #include <nlohmann/json.hpp>
 
+#include "core/error.hpp"
 #include "core/output_dir.hpp"
 #include "core/util.hpp"
 #include "helpers.hpp"
@@ -23,6 +24,17 @@ using test::q;
 
 using test::make_photos;
 }  // namespace
+
+TEST_CASE("errors mark the options they name: what() shows the key, a front end renders it its own way", "[cli]") {
+  const Error e(option_key("simulate.lamp_gain") + ": must lie in (0, 10000]; see " + option_key("train.batch"));
+  CHECK(std::string(e.what()) == "simulate.lamp_gain: must lie in (0, 10000]; see train.batch");
+  CHECK(e.render([](const std::string& key) { return "<" + key + ">"; }) ==
+        "<simulate.lamp_gain>: must lie in (0, 10000]; see <train.batch>");
+  // A key spelled in plain text is text: nothing guesses names (a file called simulate.out stays so).
+  CHECK(Error("simulate.out: exists").render([](const std::string&) { return "--out"; }) == "simulate.out: exists");
+  CHECK(render_option_keys(std::string("a ") + kOptionMark + "b") == std::string("a ") + kOptionMark + "b");  // unpaired
+  CHECK_THROWS_WITH(require_option(false, "recon.batch", "must be at least 1"), "recon.batch: must be at least 1");
+}
 
 TEST_CASE("simulate, recon and eval end to end, and simulate resumes deterministically", "[cli][e2e]") {
   test::Scratch s("e2e");
@@ -186,6 +198,10 @@ TEST_CASE("bad input: one clear line, exit code 2", "[cli][errors]") {
   CHECK_THAT(r.output, Contains("--lambda: 'nan' is not a valid value"));
   r = test::run_flatnet("simulate --images x --out y --val-fraction=half");
   CHECK_THAT(r.output, Contains("--val-fraction: 'half' is not a valid value"));
+  // A library error names the option's key; the command shows its flag (no text is searched for names).
+  r = test::run_flatnet("simulate --images x --out y --lamp-gain -1");
+  CHECK(r.code == 2);
+  CHECK_THAT(r.output, Contains("--lamp-gain: must lie in (0, 10000]") && !Contains("simulate.lamp_gain"));
   // A folder of raw captures given to eval as reconstructions: refused, not scored.
   std::filesystem::create_directories(s.dir / "gt_one");
   std::filesystem::create_directories(s.dir / "raw_one");

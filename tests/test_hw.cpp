@@ -350,7 +350,7 @@ TEST_CASE("fake camera: live view with Tikhonov and with a FlatNet model", "[hw]
                            Contains("camera fit measured on 1 of 6 frames (one a second): 1 did not fit"));
   r = test::run_flatnet("live --device fake --no-window --frames 6 --frame-rate 100 --require-fit");
   CHECK(r.code == 2);
-  CHECK_THAT(r.output, Contains("live.require_fit: frame 1 does not fit camera 'sim'"));
+  CHECK_THAT(r.output, Contains("--require-fit: frame 1 does not fit camera 'sim'"));
   r = test::run_flatnet("live --device fake --no-window --frames 2 --model " +
                         q(test::source_dir() / "models" / "flatnet-sim-transpose.flatnet"));
   REQUIRE(r.code == 0);

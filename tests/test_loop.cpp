@@ -154,10 +154,12 @@ TEST_CASE("a resumed run's CSV log keeps its rows up to the checkpoint, under th
   const auto path = s.dir / "log.csv";
   std::ofstream(path) << "step,loss\n1,0.5\n2,0.4\n2x,cut\n3,0.3\ngarbage\n4,0.2\n";
   auto log = CsvLog::resume(path, "step,loss,psnr", 3);
-  CHECK(read_file_text(path, 1 << 20) == "step,loss,psnr\n1,0.5\n2,0.4\n3,0.3\n");  // written at once
+  // Rows written before the header gained a column get it empty (not recorded), so every row has the
+  // header's columns.
+  CHECK(read_file_text(path, 1 << 20) == "step,loss,psnr\n1,0.5,\n2,0.4,\n3,0.3,\n");  // written at once
   log.add(4, 0.25, 19.5);
   log.flush();
-  CHECK(read_file_text(path, 1 << 20) == "step,loss,psnr\n1,0.5\n2,0.4\n3,0.3\n4,0.25,19.5\n");
+  CHECK(read_file_text(path, 1 << 20) == "step,loss,psnr\n1,0.5,\n2,0.4,\n3,0.3,\n4,0.25,19.5\n");
   // No file yet: a fresh log.
   CsvLog::resume(s.dir / "new.csv", "step,psnr", 10);
   CHECK(read_file_text(s.dir / "new.csv", 1 << 20) == "step,psnr\n");

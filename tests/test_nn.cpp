@@ -495,6 +495,27 @@ TEST_CASE("the terms see what they are for: chroma ignores a luma change, gradie
   CHECK(gradient_loss(blur5, y).item<double>() > gradient_loss(blur3, y).item<double>());
 }
 
+TEST_CASE("the stripe term is eval's stripe energy (squared, over 255^2), ignores an offset, and has a gradient",
+          "[nn][loss]") {
+  const auto y = read_rgb(test::data_dir() / "golden" / "inet_n02980441_castle_scene.png").unsqueeze(0);  // {1,3,H,W}
+  // Rows 4 codes brighter every fourth row: a periodic stripe the trend does not follow.
+  const auto rows = (torch::arange(y.size(2)) % 4 == 0).to(torch::kFloat32).view({1, 1, -1, 1});
+  const auto striped = y + 4.0 / 255 * rows;
+  const double energy = stripe_energy(striped[0], y[0]);
+  REQUIRE(energy > 1.0);
+  CHECK(255 * std::sqrt(stripe_loss(striped, y).item<double>()) == Approx(energy).epsilon(1e-4));
+  CHECK(stripe_loss(y + 0.05, y).item<double>() == Approx(0.0).margin(1e-10));  // no stripe in an offset
+  // A batch is the mean of its images (equal sizes).
+  const auto pair = stripe_loss(torch::cat({striped, y}), torch::cat({y, y})).item<double>();
+  CHECK(pair == Approx(stripe_loss(striped, y).item<double>() / 2).epsilon(1e-5));
+  const auto x = striped.clone().requires_grad_(true);
+  stripe_loss(x, y).backward();
+  REQUIRE(x.grad().defined());
+  CHECK(torch::isfinite(x.grad()).all().item<bool>());
+  // Descending the gradient lowers the stripes.
+  CHECK(stripe_loss(striped - 1e4 * x.grad(), y).item<double>() < stripe_loss(striped, y).item<double>());
+}
+
 TEST_CASE("inversion crops equal the matching window of the whole first stage", "[nn]") {
   torch::manual_seed(9);
   const auto o = tiny_options(4);

@@ -123,7 +123,7 @@ TEST_CASE("own camera: calibrate from the dataset, train, infer, and the camera 
   r = test::run_flatnet("infer --require-fit --model " + q(model) + " --input " + q(s.dir / "other_ds" / "val_meas.txt") +
                         " --out " + q(s.dir / "refused"));
   CHECK(r.code == 2);
-  CHECK_THAT(r.output, Contains("do not fit"));
+  CHECK_THAT(r.output, Contains("--require-fit: ") && Contains("do not fit"));
   CHECK_FALSE(std::filesystem::exists(s.dir / "refused"));
 }
 

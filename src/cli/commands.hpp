@@ -36,11 +36,12 @@ int capture_calibration(int argc, char** argv);
 int live(int argc, char** argv);
 int bench(int argc, char** argv);
 
-// Library errors name options by their keys, `<options>.<field>` (`simulate.val_fraction` for
-// SimulateOptions::val_fraction, `experiment.init_from`, `recon.method`): a library
-// caller never passed a flag. The CLI's user knows them as flags; this rewrites each key in an
-// error's text as the flag that sets it (`--val-fraction`, `--method`).
-std::string with_flags(const std::string& message);
+// Library errors mark the options they name by key, `<options>.<field>` (`simulate.val_fraction`
+// for SimulateOptions::val_fraction, `experiment.init_from`; core/error.hpp option_key): a library
+// caller never passed a flag. The CLI's user knows them as flags: a key shows as the running
+// command's flag named after its field (`--val-fraction`, `--init-from`) when the command has one
+// (parse() records them), else as the key. main renders every Error through this.
+std::string flag_or_key(const std::string& key);
 
 // Flags from an option table: each row with a flag becomes --flag (a switch for a true/false
 // setting, else a value), its help the row's key and doc, so flag and key never drift apart.

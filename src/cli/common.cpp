@@ -1,4 +1,7 @@
+#include <algorithm>
 #include <cctype>
+#include <map>
+#include <set>
 #include <cmath>
 #include <iostream>
 
@@ -9,60 +12,20 @@
 namespace flatnet::cli {
 
 namespace {
-// Option keys the library layers name in errors, and the flag of each. A key is rewritten only as a
-// whole word (not inside a longer name such as thesis_report.methods).
-const std::vector<std::pair<std::string, std::string>>& flag_of_key() {
-  static const std::vector<std::pair<std::string, std::string>> table = {
-      {"simulate.val_fraction", "--val-fraction"}, {"simulate.exposure", "--exposure"},
-      {"simulate.lamp_gain", "--lamp-gain"},       {"simulate.size", "--size"},
-      {"simulate.only", "--only"},                 {"simulate.out", "--out"},
-      {"simulate.force", "--force"},               {"recon.method", "--method"},
-      {"recon.calib", "--calib"},                  {"recon.out", "--out"},
-      {"recon.input", "--input"},                  {"recon.batch", "--batch"},
-      {"report.methods", "--methods"},             {"recon.camera", "--camera"},
-      {"infer.levers", "--levers"},                {"eval.out", "--out"},
-      {"mask_report.out", "--out"},                {"mask_report.noise", "--noise"},
-      {"capture.timeout_ms", "--timeout-ms"},      {"capture.average", "--average"},
-      {"capture.frames", "--frames"},              {"collect.images", "--images"},
-      {"collect.display", "--display"},            {"live.region", "--region"},
-      {"experiment.source_camera", "--source-camera"},  {"experiment.out", "--out"},
-      {"experiment.rank", "--rank"},                    {"experiment.resume", "--resume"},
-      {"experiment.force", "--force"},                  {"experiment.init_from", "--init-from"},
-      {"experiment.reinit", "--reinit"},
-      {"output_role.dir", "--out"},                     {"output_role.force", "--force"},
-      {"experiment.config", "--config"},                {"experiment.sets", "--set"},
-  };
-  return table;
+// The long flags of the running command, recorded by parse().
+std::set<std::string>& registered_flags() {
+  static std::set<std::string> flags;
+  return flags;
 }
-
-bool is_name_char(char c) { return std::isalnum(static_cast<unsigned char>(c)) || c == '_'; }
 }  // namespace
 
-// Whether position `at` of `text` lies inside '...': quoted text is what the user typed or a file
-// held (`unknown setting 'experiment.source_camera'`), and is shown as it was.
-bool inside_quotes(const std::string& text, size_t at) {
-  bool open = false;
-  for (size_t i = 0; i < at; ++i)
-    if (text[i] == '\'' && (open || i == 0 || !is_name_char(text[i - 1]))) open = !open;  // not an apostrophe
-  return open;
-}
-
-std::string with_flags(const std::string& message) {
-  std::string text = message;
-  for (const auto& [key, flag] : flag_of_key()) {
-    for (size_t at = text.find(key); at != std::string::npos; at = text.find(key, at)) {
-      const size_t end = at + key.size();
-      const bool whole = (at == 0 || !is_name_char(text[at - 1])) && (end == text.size() || !is_name_char(text[end])) &&
-                         !inside_quotes(text, at);
-      if (whole) {
-        text.replace(at, key.size(), flag);
-        at += flag.size();
-      } else {
-        at += key.size();
-      }
-    }
-  }
-  return text;
+std::string flag_or_key(const std::string& key) {
+  // The two options whose flag is not their field's name.
+  static const std::map<std::string, std::string> renamed = {{"output_role.dir", "out"}, {"experiment.sets", "set"}};
+  const auto it = renamed.find(key);
+  std::string flag = it != renamed.end() ? it->second : key.substr(key.rfind('.') + 1);
+  std::replace(flag.begin(), flag.end(), '_', '-');
+  return registered_flags().count(flag) ? "--" + flag : key;
 }
 
 void add_common(cxxopts::Options& options) {
@@ -104,6 +67,9 @@ void check_numbers(const cxxopts::ParseResult& result) {
 }  // namespace
 
 bool parse(cxxopts::Options& options, int argc, char** argv, cxxopts::ParseResult& result) {
+  for (const auto& group : options.groups())
+    for (const auto& option : options.group_help(group).options)
+      for (const auto& name : option.l) registered_flags().insert(name);
   try {
     result = options.parse(argc, argv);
   } catch (const cxxopts::exceptions::incorrect_argument_type& e) {

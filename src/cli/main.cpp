@@ -66,7 +66,7 @@ int main(int argc, char** argv) {
   try {
     return it->second.first(argc - 1, argv + 1);
   } catch (const flatnet::Error& e) {
-    std::cerr << "flatnet " << command << ": error: " << flatnet::printable(flatnet::cli::with_flags(e.what())) << "\n";
+    std::cerr << "flatnet " << command << ": error: " << flatnet::printable(e.render(flatnet::cli::flag_or_key)) << "\n";
   } catch (const cxxopts::exceptions::exception& e) {
     std::cerr << "flatnet " << command << ": error: " << flatnet::printable(e.what()) << "\n";
   } catch (const std::filesystem::filesystem_error& e) {  // "PATH: reason", as flatnet's own errors

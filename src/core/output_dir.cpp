@@ -122,7 +122,7 @@ void OutputClaim::release() noexcept {
 }
 
 OutputClaim claim_output_folder(const fs::path& dir, const OutputRole& role) {
-  require(!dir.empty(), "output_role.dir", "an output folder is required");
+  require(!dir.empty(), option_key("output_role.dir"), "an output folder is required");
   OutputClaim claim;
   claim.dir_ = dir;
   claim.exceptions_at_claim_ = std::uncaught_exceptions();
@@ -146,7 +146,7 @@ OutputClaim claim_output_folder(const fs::path& dir, const OutputRole& role) {
     m.settings = role.settings;
   }
   const auto [foreign, example] = foreign_entries(dir);
-  const auto hint = role.force ? std::string() : std::string("; choose another folder, or add output_role.force to write into it anyway");
+  const auto hint = role.force ? std::string() : std::string("; choose another folder, or add " + option_key("output_role.force") + " to write into it anyway");
   if (marked && m.command != role.command && !role.force)
     throw Error(dir, "holds the output of `flatnet " + m.command + "`, not of `flatnet " + role.command + "`" + hint);
   if (marked && m.command == role.command && !role.settings.empty() && m.settings != role.settings && !role.force)

@@ -80,7 +80,7 @@ torch::Tensor truth_for(const std::filesystem::path& gt_path, const std::filesys
   require(std::abs(rec_aspect / gt_aspect - 1) < 0.01, rec_path,
           "is " + std::to_string(rec.size(2)) + "x" + std::to_string(rec.size(1)) + ", its ground truth " +
               std::to_string(truth.size(2)) + "x" + std::to_string(truth.size(1)) +
-              ": not a reconstruction of that scene (is eval.out a folder of reconstructions?)");
+              ": not a reconstruction of that scene (is " + option_key("eval.out") + " a folder of reconstructions?)");
   return resize(truth, rec.size(1), rec.size(2));
 }
 

@@ -138,10 +138,10 @@ void write_figure(const fs::path& path, const ReportSet& set, const std::vector<
 ReportMethod parse_report_method(const std::string& spec) {
   if (spec == "tikhonov" || spec == "tv") return {spec, spec, {}};
   const auto eq = spec.find('=');
-  require(eq != std::string::npos && eq > 0 && eq + 1 < spec.size(), "report.methods",
+  require(eq != std::string::npos && eq > 0 && eq + 1 < spec.size(), option_key("report.methods"),
           "'" + spec + "': expected tikhonov, tv or NAME=MODEL.flatnet");
   ReportMethod m{spec.substr(0, eq), "model", spec.substr(eq + 1)};
-  require_plain_name(m.name, "report.methods");
+  require_plain_name(m.name, option_key("report.methods"));
   require(fs::exists(m.model), m.model, "no such model file");
   return m;
 }
@@ -152,7 +152,7 @@ ReportSet parse_report_set(const std::string& spec) {
   ReportSet s = eq == std::string::npos
                     ? ReportSet{(folder.has_filename() ? folder : folder.parent_path()).filename().string(), spec}
                     : ReportSet{spec.substr(0, eq), spec.substr(eq + 1)};
-  require_plain_name(s.name, "report.sets");
+  require_plain_name(s.name, option_key("report.sets"));
   require(fs::is_directory(s.dir / "gt"), s.dir,
           "not an evaluation set (no gt/ folder; make one with `flatnet simulate --only val`)");
   return s;
@@ -160,14 +160,14 @@ ReportSet parse_report_set(const std::string& spec) {
 
 std::string make_report(const ReportOptions& o) {
   require(!o.methods.empty() && !o.sets.empty(), "report", "at least one method and one set are needed");
-  for (const auto& m : o.methods) require_plain_name(m.name, "report.methods");  // each names a folder in --out
-  for (const auto& set : o.sets) require_plain_name(set.name, "report.sets");
+  for (const auto& m : o.methods) require_plain_name(m.name, option_key("report.methods"));  // each names a folder in --out
+  for (const auto& set : o.sets) require_plain_name(set.name, option_key("report.sets"));
   for (size_t i = 0; i < o.methods.size(); ++i)
     for (size_t j = 0; j < i; ++j)
-      require(o.methods[i].name != o.methods[j].name, "report.methods", "two methods are named '" + o.methods[i].name + "'");
+      require(o.methods[i].name != o.methods[j].name, option_key("report.methods"), "two methods are named '" + o.methods[i].name + "'");
   for (size_t i = 0; i < o.sets.size(); ++i)
     for (size_t j = 0; j < i; ++j)
-      require(o.sets[i].name != o.sets[j].name, "report.sets", "two sets are named '" + printable(o.sets[i].name) + "'");
+      require(o.sets[i].name != o.sets[j].name, option_key("report.sets"), "two sets are named '" + printable(o.sets[i].name) + "'");
   fs::create_directories(o.out);
   std::unique_ptr<Calibration> calib;
   for (const auto& m : o.methods)

@@ -33,7 +33,7 @@ std::string judge_frame(const CameraFit& fit, const torch::Tensor& raw_unit, con
   std::ostringstream line;
   line << std::setprecision(3) << "frame " << s.frames + 1 << " does not fit camera '" << printable(fit.camera_name())
        << "' (fit " << result.fit << " against <= " << fit.threshold() << "): " << misfit_advice();
-  require(!opt.require_fit, "live.require_fit", line.str());
+  require(!opt.require_fit, option_key("live.require_fit"), line.str());
   if (s.misfits == 1 && opt.warn) *opt.warn << "warning: live: " << line.str() << std::endl;
   text << "NOT camera '" << printable(fit.camera_name()) << "' (fit " << result.fit << ")";
   return text.str();
@@ -60,7 +60,7 @@ LiveStats run_live(FrameSource& source, Reconstructor& engine, Display* display,
       require(frame.codes.size(0) == opt.geometry.raw_height && frame.codes.size(1) == opt.geometry.raw_width, "camera",
               "frames are " + std::to_string(frame.codes.size(1)) + "x" + std::to_string(frame.codes.size(0)) +
                   " but the camera file expects " + std::to_string(opt.geometry.raw_width) + "x" +
-                  std::to_string(opt.geometry.raw_height) + " (set live.region or use the matching camera .yaml)");
+                  std::to_string(opt.geometry.raw_height) + " (set " + option_key("live.region") + " or use the matching camera .yaml)");
     }
     t = Clock::now();
     const auto unit = codes_to_unit(frame.codes, source.format().bits);

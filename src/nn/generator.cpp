@@ -701,7 +701,7 @@ InferenceLevers parse_inference_levers(const std::string& s) {
     else if (item == "onednn")
       l.onednn = true;
     else
-      throw Error("infer.levers: expected none or a list of fold, channels-last, gemm-up, bf16, onednn; got '" + item +
+      throw Error(option_key("infer.levers") + ": expected none or a list of fold, channels-last, gemm-up, bf16, onednn; got '" + item +
                   "'");
   }
   return l;

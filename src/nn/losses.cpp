@@ -186,6 +186,19 @@ torch::Tensor gradient_loss(const torch::Tensor& x_in, const torch::Tensor& y_in
   return 0.5 * (torch::l1_loss(dx(x), dx(y)) + torch::l1_loss(dy(x), dy(y)));
 }
 
+torch::Tensor stripe_loss(const torch::Tensor& x_in, const torch::Tensor& y_in) {
+  TORCH_CHECK(x_in.sizes() == y_in.sizes() && x_in.dim() == 4, "stripe_loss: equal {B,C,H,W} inputs expected, got ",
+              x_in.sizes(), " and ", y_in.sizes());
+  AutocastOffGuard fp32;
+  const auto error = x_in.to(torch::kFloat32) - y_in.to(torch::kFloat32);  // {B,C,H,W}
+  auto less_trend = [](const torch::Tensor& profile) {                       // {B,C,L}
+    // Padding not counted: the window shrinks at the ends, as in eval's stripe_energy.
+    return profile - torch::avg_pool1d(profile, {15}, {1}, {7}, /*ceil_mode=*/false, /*count_include_pad=*/false);
+  };
+  const auto rows = less_trend(error.mean(3)), cols = less_trend(error.mean(2));  // {B,C,H}, {B,C,W}
+  return (rows.square().sum() + cols.square().sum()) / static_cast<double>(rows.numel() + cols.numel());
+}
+
 torch::Tensor ssim_loss(const torch::Tensor& x_in, const torch::Tensor& y_in) {
   TORCH_CHECK(x_in.sizes() == y_in.sizes() && x_in.dim() == 4 && x_in.size(2) >= 11 && x_in.size(3) >= 11,
               "ssim_loss: equal {B,C,H,W} inputs of at least 11x11 expected, got ", x_in.sizes(), " and ",

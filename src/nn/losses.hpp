@@ -84,4 +84,11 @@ torch::Tensor chroma_loss(const torch::Tensor& x, const torch::Tensor& y);
 // y, per channel. A blurred edge costs in proportion to the contrast lost, not its square.
 torch::Tensor gradient_loss(const torch::Tensor& x, const torch::Tensor& y);
 
+// Stripe term: the mean square of the error image's row means and column means, per channel, each
+// less its smooth trend (a centred moving average over 15 samples, the window shrinking at the
+// ends). The same profiles as eval's stripe_energy: for one image, stripe_energy = 255 sqrt(this).
+// Row and column stripes (an inversion's periodic artefacts) cost here; noise that averages out
+// along a row, and a slowly varying error, do not.
+torch::Tensor stripe_loss(const torch::Tensor& x, const torch::Tensor& y);
+
 }  // namespace flatnet

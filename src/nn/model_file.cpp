@@ -84,7 +84,7 @@ void init_generator_from(const std::filesystem::path& model, Generator& g, Gener
   };
   if (part == GeneratorPart::enhancer)
     require(m.generator->options().input == g->options().input, model,
-            "its first stage (model.input) differs from this config's; experiment.reinit inversion keeps the stage's kind");
+            "its first stage (model.input) differs from this config's; " + option_key("experiment.reinit") + " inversion keeps the stage's kind");
   detail::fill_module(*g, model, "weight", [&](const std::string& name, bool buffer) {
     if (part == GeneratorPart::enhancer && first_stage(name)) {
       const auto* own = buffer ? our_buffers.find(name) : ours.find(name);

@@ -34,7 +34,7 @@ class PairStream {
  private:
   CapturePair checked(int64_t i) {
     auto p = load_(i);
-    const auto where = "calibrate.dataset pair " + std::to_string(i);
+    const auto where = option_key("calibrate.dataset") + " pair " + std::to_string(i);
     require(p.meas.defined() && p.meas.sizes() == torch::IntArrayRef({4, rows_, cols_}), where,
             "capture planes are not {4," + std::to_string(rows_) + "," + std::to_string(cols_) + "}");
     require(p.scene.defined() && p.scene.sizes() == torch::IntArrayRef({4, scene_, scene_}), where,
@@ -243,8 +243,8 @@ void fit_noise_outside_span(PairStream& pairs, const torch::Tensor& P, const tor
 
 DatasetCalibration calibrate_from_pairs(int64_t count, const std::function<CapturePair(int64_t)>& load, int64_t rows,
                                         int64_t cols, int64_t scene, const DatasetCalibrationOptions& o) {
-  require(count >= 1, "calibrate.dataset", "no pairs to calibrate from");
-  require(o.iterations >= 1 && o.ridge >= 0 && o.tolerance >= 0, "calibrate.dataset",
+  require(count >= 1, option_key("calibrate.dataset"), "no pairs to calibrate from");
+  require(o.iterations >= 1 && o.ridge >= 0 && o.tolerance >= 0, option_key("calibrate.dataset"),
           "iterations >= 1, ridge >= 0 and tolerance >= 0 are needed");
   PairStream pairs(count, load, rows, cols, scene, o.cache_bytes);
   auto gen = at::detail::createCPUGenerator(o.seed);

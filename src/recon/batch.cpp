@@ -61,10 +61,10 @@ void check_output_names(const std::vector<std::filesystem::path>& captures, cons
     const auto [it, fresh] = writer_of.emplace(target, c);
     if (!fresh)
       throw Error(c, "has the same name as " + it->second.string() + ": both would be written to " + target.string() +
-                         " (reconstruct them into separate recon.out folders)");
+                         " (reconstruct them into separate " + option_key("recon.out") + " folders)");
     if (inputs.count(target))
-      throw Error("recon.out", "writing " + target.string() +
-                                 " would overwrite a capture being read; choose another recon.out folder");
+      throw Error(option_key("recon.out"), "writing " + target.string() +
+                                 " would overwrite a capture being read; choose another " + option_key("recon.out") + " folder");
   }
 }
 
@@ -110,7 +110,7 @@ std::vector<FitRow> require_all_fit(const CameraFit& fit, const std::vector<std:
     rows.push_back({c.filename().string(), fit.measure(load_raw_unit(c, g))});
     note_fit(probe, rows.back());
   }
-  if (probe.misfits > 0) throw Error("recon.require_fit", camera_fit_warning(probe, fit));
+  if (probe.misfits > 0) throw Error(option_key("recon.require_fit"), camera_fit_warning(probe, fit));
   return rows;
 }
 
@@ -134,8 +134,8 @@ std::string camera_fit_warning(const BatchReport& report, const CameraFit& fit) 
 
 BatchReport reconstruct_files(Reconstructor& engine, const CameraConfig& camera,
                               const std::vector<std::filesystem::path>& captures, const BatchOptions& opt) {
-  require(!captures.empty(), "recon.input", "no captures to reconstruct");
-  require(opt.batch >= 1, "recon.batch", "must be at least 1");
+  require(!captures.empty(), option_key("recon.input"), "no captures to reconstruct");
+  require(opt.batch >= 1, option_key("recon.batch"), "must be at least 1");
   check_output_names(captures, opt.out);
   std::vector<FitRow> fits;  // in capture order
   if (opt.fit && opt.require_fit) fits = require_all_fit(*opt.fit, captures, camera.raw);

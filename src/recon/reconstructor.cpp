@@ -78,7 +78,7 @@ class OpenCvReconstructor final : public Reconstructor {
 ClassicalMethod parse_classical_method(const std::string& name) {
   if (name == "tikhonov") return ClassicalMethod::tikhonov;
   if (name == "tv") return ClassicalMethod::tv;
-  throw Error("recon.method", "must be tikhonov or tv, got '" + name + "'");
+  throw Error(option_key("recon.method"), "must be tikhonov or tv, got '" + name + "'");
 }
 
 std::string classical_method_name(ClassicalMethod method) {
@@ -162,7 +162,7 @@ std::shared_ptr<const CameraFit> model_camera_fit(const ModelFile& model, std::s
 BuiltReconstructor make_reconstructor(const ReconstructorSpec& spec) {
   if (spec.method == "tikhonov" || spec.method == "tv") {
     const auto calib_path = spec.calibration.empty() ? spec.camera.calibration : spec.calibration;
-    require(!calib_path.empty(), "recon.calib", "no calibration: pass one, or use a camera file that names one");
+    require(!calib_path.empty(), option_key("recon.calib"), "no calibration: pass one, or use a camera file that names one");
     ClassicalOptions o;
     o.method = parse_classical_method(spec.method);
     o.lambda = spec.lambda;
@@ -195,7 +195,7 @@ BuiltReconstructor make_reconstructor(const ReconstructorSpec& spec) {
     built.fit = camera_fit_of(camera, built.no_fit);  // the camera given, or the ONNX file's own
     return built;
   }
-  throw Error("recon.method", "must be tikhonov, tv, flatnet or opencv, got '" + spec.method + "'");
+  throw Error(option_key("recon.method"), "must be tikhonov, tv, flatnet or opencv, got '" + spec.method + "'");
 }
 
 }  // namespace flatnet

@@ -1,5 +1,6 @@
 #include "train/csv_log.hpp"
 
+#include <algorithm>
 #include <fstream>
 #include <iostream>
 
@@ -10,6 +11,10 @@ namespace flatnet {
 CsvLog::CsvLog(std::filesystem::path path, const std::string& header) : path_(std::move(path)), text_(header + "\n") {
   flush();  // the file exists (with its header) from the start
 }
+
+namespace {
+std::ptrdiff_t columns(const std::string& row) { return std::count(row.begin(), row.end(), ',') + 1; }
+}  // namespace
 
 CsvLog CsvLog::resume(std::filesystem::path path, const std::string& header, int64_t last_step) {
   if (!std::filesystem::exists(path)) return CsvLog(std::move(path), header);
@@ -35,7 +40,11 @@ CsvLog CsvLog::resume(std::filesystem::path path, const std::string& header, int
       if (dropped++ == 0) first_dropped = line_number;
       continue;
     }
-    if (step <= last_step) kept += line + "\n";
+    if (step > last_step) continue;
+    // A row from before the header gained columns (a run resumed by a newer flatnet): the new columns
+    // empty, not recorded, so that every row has the header's columns.
+    for (auto n = columns(line); n < columns(header); ++n) line += ",";
+    kept += line + "\n";
   }
   if (dropped > 0)
     std::cerr << path.string() << ": dropped " << dropped << " malformed row(s) (the first at line " << first_dropped

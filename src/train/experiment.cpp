@@ -58,7 +58,8 @@ TrainOptions train_options(const Config& c, const std::filesystem::path& out) {
   require(t.w_mse >= 0 && t.w_perceptual >= 0 && t.w_adversarial >= 0 && t.w_ssim >= 0, "loss",
           "weights must be non-negative");
   require(t.w_mse + t.w_perceptual + t.w_adversarial + t.w_ssim + t.w_feature_matching + t.w_frequency + t.w_chroma +
-                  t.w_gradient > 0,
+                  t.w_gradient + t.w_stripe >
+              0,
           "loss", "every weight is 0: nothing to train on");
   t.out = out;
   return t;
@@ -144,12 +145,12 @@ Vgg16Features vgg_if_needed(const Config& c, const TrainOptions& t) {
 // resolved, as a checkpoint records them); empty when they agree.
 std::string differing_settings(const Config& run, const Config& given) {
   const auto a = Config::from_text(run.to_yaml(), "run").values();
-  const auto b = Config::from_text(given.to_yaml(), "experiment.config").values();
+  const auto b = Config::from_text(given.to_yaml(), option_key("experiment.config")).values();
   std::string out;
   for (const auto& [key, value] : a) {
     const auto it = b.find(key);
     if (it != b.end() && it->second != value)
-      out += (out.empty() ? "" : ", ") + key + " (run: " + value + ", experiment.config: " + it->second + ")";
+      out += (out.empty() ? "" : ", ") + key + " (run: " + value + ", " + option_key("experiment.config") + ": " + it->second + ")";
   }
   return out;
 }
@@ -192,9 +193,9 @@ void initialise_from_model(const ExperimentOptions& o, const Config& config, con
   if (o.reinit_inversion && transfer) {
     auto source_camera = o.source_camera;
     if (source_camera.empty()) source_camera = load_model_file(o.init_from).recorded_camera();
-    require(std::filesystem::exists(source_camera), "experiment.source_camera",
+    require(std::filesystem::exists(source_camera), option_key("experiment.source_camera"),
             "the camera " + o.init_from.string() + " was trained for (" + source_camera.string() +
-                ") is not here; name its camera .yaml with experiment.source_camera");
+                ") is not here; name its camera .yaml with " + option_key("experiment.source_camera"));
     const auto source = load_camera_config(source_camera);
     require(!source.calibration.empty() && !camera.calibration.empty(), "model.inversion.init",
             "transfer needs both cameras' calibrations");
@@ -255,26 +256,26 @@ Config settle_config(const ExperimentOptions& o, bool writer) {
   if (o.resume) {
     require(std::filesystem::exists(latest), latest, "nothing to resume (no checkpoint)");
     auto stored = checkpoint_settings(latest);  // one read: the run id and the settings
-    if (!o.force) require_checkpoint_of_this_run(out, stored.run_id, latest, "experiment.force");
+    if (!o.force) require_checkpoint_of_this_run(out, stored.run_id, latest, option_key("experiment.force"));
     config = std::move(stored.config);
     for (const auto& s : sets) config.set(s);
-    config.check_ranges("experiment.sets");
+    config.check_ranges(option_key("experiment.sets"));
     if (!o.config.empty()) {  // the same command line again is fine; another config is not silently ignored
       const auto differences = differing_settings(config, Config::load(o.config, sets));
-      require(differences.empty(), "experiment.config",
-              "experiment.resume continues with the run's own config (" + (out / "config.yaml").string() +
-                  "), which differs in " + differences + "; change single settings with experiment.sets key=value");
+      require(differences.empty(), option_key("experiment.config"),
+              option_key("experiment.resume") + " continues with the run's own config (" + (out / "config.yaml").string() +
+                  "), which differs in " + differences + "; change single settings with " + option_key("experiment.sets") + " key=value");
     }
     return config;
   }
   require(!writer || o.force || !std::filesystem::exists(latest), out,
-          "already holds a training run; continue it with experiment.resume, choose another experiment.out, or set experiment.force to "
+          "already holds a training run; continue it with " + option_key("experiment.resume") + ", choose another " + option_key("experiment.out") + ", or set " + option_key("experiment.force") + " to "
           "start afresh (deleting it)");
   const auto old = run_files(out);
   if (writer && !o.force && !old.empty())
     throw Error(out, "holds the files of another run that never reached its first checkpoint (" +
                          old.front().filename().string() +
-                         " ...); set experiment.force to start afresh (deleting them) or choose another experiment.out");
+                         " ...); set " + option_key("experiment.force") + " to start afresh (deleting them) or choose another " + option_key("experiment.out"));
   return Config::load(o.config, sets);
 }
 
@@ -300,15 +301,15 @@ void require_memory_for(const ModelSpec& spec, const CameraConfig& camera, const
 ExperimentResult run_experiment(const ExperimentOptions& o) {
   std::ostream& log = o.log ? *o.log : std::cerr;
   const auto& dist = o.distributed;
-  require(!o.out.empty(), "experiment.out", "an output folder is required");
-  require(dist.world_size >= 1 && dist.rank >= 0 && dist.rank < dist.world_size, "experiment.rank",
+  require(!o.out.empty(), option_key("experiment.out"), "an output folder is required");
+  require(dist.world_size >= 1 && dist.rank >= 0 && dist.rank < dist.world_size, option_key("experiment.rank"),
           "must lie in [0, world size " + std::to_string(dist.world_size) + ")");
   const bool writer = dist.rank == 0;
   const auto& out = o.out;
   const auto latest = out / "latest.ckpt";
   const bool resume = o.resume;
   Config config = settle_config(o, writer);
-  require(!(resume && !o.init_from.empty()), "experiment.init_from", "starts a new run; it cannot be combined with experiment.resume");
+  require(!(resume && !o.init_from.empty()), option_key("experiment.init_from"), "starts a new run; it cannot be combined with " + option_key("experiment.resume"));
   require_no_light_augment_on_disk(config);
   // Everything that can fail on bad input is checked before anything is written.
   const auto camera = camera_of(config);
@@ -328,10 +329,10 @@ ExperimentResult run_experiment(const ExperimentOptions& o) {
   }
   auto [train_src, val_src] = data_sources(config, camera);
   torch::manual_seed(opts.seed);
-  require(!o.reinit_inversion || !o.init_from.empty(), "experiment.reinit", "re-initialises part of a experiment.init_from model");
+  require(!o.reinit_inversion || !o.init_from.empty(), option_key("experiment.reinit"), "re-initialises part of a " + option_key("experiment.init_from") + " model");
   const bool transfer = spec.inversion_init == "transfer";
   require(!transfer || resume || o.reinit_inversion, "model.inversion.init",
-          "transfer makes the first stage from a trained model's: use it with experiment.init_from MODEL experiment.reinit inversion");
+          "transfer makes the first stage from a trained model's: use it with " + option_key("experiment.init_from") + " MODEL " + option_key("experiment.reinit") + " inversion");
   Generator g(generator_options(config, camera, !resume && (o.init_from.empty() || o.reinit_inversion)));
   if (!o.init_from.empty()) initialise_from_model(o, config, camera, g, log);
 

@@ -48,6 +48,7 @@ const std::vector<OptionField<TrainOptions>>& train_fields() {
       {"loss.frequency", &O::w_frequency, WEIGHT, "focal frequency loss"},
       {"loss.chroma", &O::w_chroma, WEIGHT, "CIELAB a*, b*"},
       {"loss.gradient", &O::w_gradient, WEIGHT, "image differences"},
+      {"loss.stripe", &O::w_stripe, WEIGHT, "the error's row and column means less their trend"},
       {"discriminator.real_label_min", &O::real_label_min, SHARE, "real targets ~ U(min, 1)"},
       {"discriminator.fake_label_max", &O::fake_label_max, SHARE, "fake targets ~ U(0, max)"},
   };
