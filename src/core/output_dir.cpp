@@ -122,7 +122,7 @@ void OutputClaim::release() noexcept {
 }
 
 OutputClaim claim_output_folder(const fs::path& dir, const OutputRole& role) {
-  require(!dir.empty(), option_key("output_role.dir"), "an output folder is required");
+  require_option(!dir.empty(), "output_role.dir", "an output folder is required");
   OutputClaim claim;
   claim.dir_ = dir;
   claim.exceptions_at_claim_ = std::uncaught_exceptions();

@@ -372,10 +372,10 @@ std::string write_mask_report(const MaskReportOptions& opt) {
           "has nothing to report (no Wiener sections, no code pairs)");
   {  // its figures are PNGs: written among the photographs, they would become photographs next time
     std::error_code a, b;
-    require(std::filesystem::weakly_canonical(opt.out, a) != std::filesystem::weakly_canonical(opt.images, b), option_key("mask_report.out"),
+    require_option(std::filesystem::weakly_canonical(opt.out, a) != std::filesystem::weakly_canonical(opt.images, b), "mask_report.out",
             "is the photographs folder; the report's PNGs would join the photographs (choose another folder)");
   }
-  require(std::isfinite(opt.noise) && opt.noise > 0, option_key("mask_report.noise"), "must be positive");
+  require_option(std::isfinite(opt.noise) && opt.noise > 0, "mask_report.noise", "must be positive");
   const auto held_out = split_image_files(opt.images, 0.1, 1).second;
   require(opt.tune_count >= 1 && static_cast<int64_t>(held_out.size()) > opt.tune_count, opt.images,
           "too few held-out photographs (" + std::to_string(held_out.size()) + ") for " +

@@ -3,6 +3,7 @@
 #include <opencv2/imgproc.hpp>
 
 #include "io/image.hpp"
+#include "nn/losses.hpp"
 
 namespace flatnet {
 
@@ -51,27 +52,12 @@ double luma_detail(const torch::Tensor& rgb) {
   return (gx * gx + gy * gy).sqrt().mean().item<double>();
 }
 
-namespace {
-
-// p {C,N} less its centred moving average over 2k+1 samples (fewer at the ends).
-torch::Tensor less_trend(const torch::Tensor& p, int64_t k) {
-  const int64_t n = p.size(1);
-  const auto sums = torch::cat({torch::zeros({p.size(0), 1}, p.options()), p.cumsum(1)}, 1);  // {C,N+1}
-  const auto i = torch::arange(n, torch::kLong);
-  const auto lo = (i - k).clamp_min(0), hi = (i + k + 1).clamp_max(n);
-  const auto trend = (sums.index_select(1, hi) - sums.index_select(1, lo)) / (hi - lo).to(p.scalar_type());
-  return p - trend;
-}
-
-}  // namespace
-
 double stripe_energy(const torch::Tensor& output, const torch::Tensor& truth) {
   TORCH_CHECK(output.dim() == 3 && output.size(0) == 3 && output.sizes() == truth.sizes(),
               "stripe energy: expects two {3,H,W} images of one size, got ", output.sizes(), " and ", truth.sizes());
-  const auto error = (output.to(torch::kFloat64) - truth.to(torch::kFloat64));  // {3,H,W}
-  const auto rows = less_trend(error.mean(2), 7), cols = less_trend(error.mean(1), 7);  // {3,H}, {3,W}
-  const double squares = rows.pow(2).sum().item<double>() + cols.pow(2).sum().item<double>();
-  return 255.0 * std::sqrt(squares / static_cast<double>(rows.numel() + cols.numel()));
+  // The training term's profiles (nn/losses.hpp), in float64.
+  const auto squares = stripe_loss(output.to(torch::kFloat64).unsqueeze(0), truth.to(torch::kFloat64).unsqueeze(0));
+  return 255.0 * std::sqrt(squares.item<double>());
 }
 
 void write_contact_sheet(const std::filesystem::path& path, const std::vector<std::string>& column_labels,

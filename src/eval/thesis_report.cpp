@@ -138,7 +138,7 @@ void write_figure(const fs::path& path, const ReportSet& set, const std::vector<
 ReportMethod parse_report_method(const std::string& spec) {
   if (spec == "tikhonov" || spec == "tv") return {spec, spec, {}};
   const auto eq = spec.find('=');
-  require(eq != std::string::npos && eq > 0 && eq + 1 < spec.size(), option_key("report.methods"),
+  require_option(eq != std::string::npos && eq > 0 && eq + 1 < spec.size(), "report.methods",
           "'" + spec + "': expected tikhonov, tv or NAME=MODEL.flatnet");
   ReportMethod m{spec.substr(0, eq), "model", spec.substr(eq + 1)};
   require_plain_name(m.name, option_key("report.methods"));
@@ -164,10 +164,10 @@ std::string make_report(const ReportOptions& o) {
   for (const auto& set : o.sets) require_plain_name(set.name, option_key("report.sets"));
   for (size_t i = 0; i < o.methods.size(); ++i)
     for (size_t j = 0; j < i; ++j)
-      require(o.methods[i].name != o.methods[j].name, option_key("report.methods"), "two methods are named '" + o.methods[i].name + "'");
+      require_option(o.methods[i].name != o.methods[j].name, "report.methods", "two methods are named '" + o.methods[i].name + "'");
   for (size_t i = 0; i < o.sets.size(); ++i)
     for (size_t j = 0; j < i; ++j)
-      require(o.sets[i].name != o.sets[j].name, option_key("report.sets"), "two sets are named '" + printable(o.sets[i].name) + "'");
+      require_option(o.sets[i].name != o.sets[j].name, "report.sets", "two sets are named '" + printable(o.sets[i].name) + "'");
   fs::create_directories(o.out);
   std::unique_ptr<Calibration> calib;
   for (const auto& m : o.methods)

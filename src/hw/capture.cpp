@@ -39,7 +39,7 @@ int64_t next_index(const std::filesystem::path& dir, const std::string& prefix) 
 
 torch::Tensor average_frames(FrameSource& source, int k, FrameSource::Clock::time_point not_before,
                              std::vector<uint64_t>* ids) {
-  require(k >= 1, option_key("capture.average"), "must be at least 1");
+  require_option(k >= 1, "capture.average", "must be at least 1");
   torch::Tensor sum;
   for (int i = 0; i < k; ++i) {
     const auto frame = source.next_frame(not_before);
@@ -71,7 +71,7 @@ void write_raw_capture(const std::filesystem::path& png, const torch::Tensor& me
 }
 
 CaptureReport capture_frames(FrameSource& source, const CaptureOptions& opt) {
-  require(opt.frames >= 1, option_key("capture.frames"), "must be at least 1");
+  require_option(opt.frames >= 1, "capture.frames", "must be at least 1");
   std::filesystem::create_directories(opt.out);
   CaptureReport rep;
   rep.first_index = next_index(opt.out, opt.prefix);

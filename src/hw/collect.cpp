@@ -50,7 +50,7 @@ CollectReport collect(const std::vector<CollectItem>& items, FrameSource& source
 
 CollectReport collect_dataset(const std::vector<std::filesystem::path>& images, FrameSource& source, Display& display,
                               const DatasetCollectOptions& opt) {
-  require(!images.empty(), option_key("collect.images"), "no photographs to show");
+  require_option(!images.empty(), "collect.images", "no photographs to show");
   std::vector<CollectItem> items;
   std::vector<std::string> names;
   for (const auto& image : images) {

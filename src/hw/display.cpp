@@ -84,7 +84,7 @@ class WindowDisplay final : public Display {
 
 std::unique_ptr<Display> make_display(const DisplayOptions& options) {
   if (options.kind == "none") return std::make_unique<HeadlessDisplay>();
-  require(options.kind == "window", option_key("collect.display"), "expected window or none, got '" + options.kind + "'");
+  require_option(options.kind == "window", "collect.display", "expected window or none, got '" + options.kind + "'");
   return std::make_unique<WindowDisplay>(options);
 }
 

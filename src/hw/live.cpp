@@ -33,7 +33,7 @@ std::string judge_frame(const CameraFit& fit, const torch::Tensor& raw_unit, con
   std::ostringstream line;
   line << std::setprecision(3) << "frame " << s.frames + 1 << " does not fit camera '" << printable(fit.camera_name())
        << "' (fit " << result.fit << " against <= " << fit.threshold() << "): " << misfit_advice();
-  require(!opt.require_fit, option_key("live.require_fit"), line.str());
+  require_option(!opt.require_fit, "live.require_fit", line.str());
   if (s.misfits == 1 && opt.warn) *opt.warn << "warning: live: " << line.str() << std::endl;
   text << "NOT camera '" << printable(fit.camera_name()) << "' (fit " << result.fit << ")";
   return text.str();

@@ -190,9 +190,11 @@ torch::Tensor stripe_loss(const torch::Tensor& x_in, const torch::Tensor& y_in) 
   TORCH_CHECK(x_in.sizes() == y_in.sizes() && x_in.dim() == 4, "stripe_loss: equal {B,C,H,W} inputs expected, got ",
               x_in.sizes(), " and ", y_in.sizes());
   AutocastOffGuard fp32;
-  const auto error = x_in.to(torch::kFloat32) - y_in.to(torch::kFloat32);  // {B,C,H,W}
+  // fp32 at least (float64 stays: eval's stripe_energy scores through this).
+  const auto type = x_in.scalar_type() == torch::kFloat64 ? torch::kFloat64 : torch::kFloat32;
+  const auto error = x_in.to(type) - y_in.to(type);  // {B,C,H,W}
   auto less_trend = [](const torch::Tensor& profile) {                       // {B,C,L}
-    // Padding not counted: the window shrinks at the ends, as in eval's stripe_energy.
+    // Padding not counted: the window shrinks at the ends.
     return profile - torch::avg_pool1d(profile, {15}, {1}, {7}, /*ceil_mode=*/false, /*count_include_pad=*/false);
   };
   const auto rows = less_trend(error.mean(3)), cols = less_trend(error.mean(2));  // {B,C,H}, {B,C,W}

@@ -243,8 +243,8 @@ void fit_noise_outside_span(PairStream& pairs, const torch::Tensor& P, const tor
 
 DatasetCalibration calibrate_from_pairs(int64_t count, const std::function<CapturePair(int64_t)>& load, int64_t rows,
                                         int64_t cols, int64_t scene, const DatasetCalibrationOptions& o) {
-  require(count >= 1, option_key("calibrate.dataset"), "no pairs to calibrate from");
-  require(o.iterations >= 1 && o.ridge >= 0 && o.tolerance >= 0, option_key("calibrate.dataset"),
+  require_option(count >= 1, "calibrate.dataset", "no pairs to calibrate from");
+  require_option(o.iterations >= 1 && o.ridge >= 0 && o.tolerance >= 0, "calibrate.dataset",
           "iterations >= 1, ridge >= 0 and tolerance >= 0 are needed");
   PairStream pairs(count, load, rows, cols, scene, o.cache_bytes);
   auto gen = at::detail::createCPUGenerator(o.seed);

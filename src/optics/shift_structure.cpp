@@ -18,7 +18,7 @@ struct Sampling {
 };
 
 Sampling sampling(int64_t rows, int64_t scene, double shift, double spacing) {
-  require(std::isfinite(shift) && shift != 0 && spacing > 0, option_key("calibrate.dataset"),
+  require_option(std::isfinite(shift) && shift != 0 && spacing > 0, "calibrate.dataset",
           "a shift structure needs a non-zero shift and a positive spacing");
   const auto f64 = torch::TensorOptions().dtype(torch::kFloat64);
   const auto pos = torch::arange(rows, f64).view({rows, 1}) + torch::arange(scene, f64).view({1, scene}) * shift;
@@ -95,7 +95,7 @@ ShiftFactor fit_shift_factor(const torch::Tensor& G, const torch::Tensor& H, dou
 }
 
 double search_shift(const torch::Tensor& G, const torch::Tensor& H, const ShiftFitOptions& o, double sigma2) {
-  require(o.min_shift > 0 && o.max_shift > o.min_shift && o.grid_step > 0 && o.shift_tolerance > 0, option_key("calibrate.dataset"),
+  require_option(o.min_shift > 0 && o.max_shift > o.min_shift && o.grid_step > 0 && o.shift_tolerance > 0, "calibrate.dataset",
           "the shift search needs 0 < min_shift < max_shift and positive steps");
   const auto cost = [&](double shift, int iterations) {
     const auto fit = fit_shift_factor(G, H, shift, o, iterations);

@@ -232,12 +232,12 @@ bool reusable_pair(const Rig& rig, const std::filesystem::path& meas, const std:
 }  // namespace
 
 SimulateReport simulate_dataset(const Rig& rig, const SimulateOptions& opt) {
-  require(opt.val_fraction >= 0 && opt.val_fraction <= 1, option_key("simulate.val_fraction"), "must be within [0, 1]");
-  require(std::isfinite(opt.exposure) && opt.exposure > 0 && opt.exposure <= 100, option_key("simulate.exposure"),
+  require_option(opt.val_fraction >= 0 && opt.val_fraction <= 1, "simulate.val_fraction", "must be within [0, 1]");
+  require_option(std::isfinite(opt.exposure) && opt.exposure > 0 && opt.exposure <= 100, "simulate.exposure",
           "must lie in (0, 100] (scene light relative to the display's)");
-  require(std::isfinite(opt.lamp_gain) && opt.lamp_gain > 0 && opt.lamp_gain <= 1e4, option_key("simulate.lamp_gain"),
+  require_option(std::isfinite(opt.lamp_gain) && opt.lamp_gain > 0 && opt.lamp_gain <= 1e4, "simulate.lamp_gain",
           "must lie in (0, 10000]");
-  require(opt.size == rig.scene_size(), option_key("simulate.size"),
+  require_option(opt.size == rig.scene_size(), "simulate.size",
           "the rig's matrices take " + std::to_string(rig.scene_size()) + "x" + std::to_string(rig.scene_size()) +
               " scenes, got " + std::to_string(opt.size));
   auto images = list_images(opt.images, kImageExtensions);
@@ -248,7 +248,7 @@ SimulateReport simulate_dataset(const Rig& rig, const SimulateOptions& opt) {
   for (size_t i = 1; i < names.size(); ++i)
     require(names[i] != names[i - 1], images[i], "two images share the name " + names[i]);
   const auto all_names = names;
-  require(opt.only == "all" || opt.only == "train" || opt.only == "val", option_key("simulate.only"), "must be all, train or val");
+  require_option(opt.only == "all" || opt.only == "train" || opt.only == "val", "simulate.only", "must be all, train or val");
   if (opt.only != "all") {  // keep one side of the split; the lists below still use the split of all names
     const auto [train, val] = split_train_val(names, opt.val_fraction, opt.seed);
     const auto& keep = opt.only == "val" ? val : train;

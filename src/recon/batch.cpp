@@ -134,8 +134,8 @@ std::string camera_fit_warning(const BatchReport& report, const CameraFit& fit) 
 
 BatchReport reconstruct_files(Reconstructor& engine, const CameraConfig& camera,
                               const std::vector<std::filesystem::path>& captures, const BatchOptions& opt) {
-  require(!captures.empty(), option_key("recon.input"), "no captures to reconstruct");
-  require(opt.batch >= 1, option_key("recon.batch"), "must be at least 1");
+  require_option(!captures.empty(), "recon.input", "no captures to reconstruct");
+  require_option(opt.batch >= 1, "recon.batch", "must be at least 1");
   check_output_names(captures, opt.out);
   std::vector<FitRow> fits;  // in capture order
   if (opt.fit && opt.require_fit) fits = require_all_fit(*opt.fit, captures, camera.raw);

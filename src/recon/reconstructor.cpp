@@ -162,7 +162,7 @@ std::shared_ptr<const CameraFit> model_camera_fit(const ModelFile& model, std::s
 BuiltReconstructor make_reconstructor(const ReconstructorSpec& spec) {
   if (spec.method == "tikhonov" || spec.method == "tv") {
     const auto calib_path = spec.calibration.empty() ? spec.camera.calibration : spec.calibration;
-    require(!calib_path.empty(), option_key("recon.calib"), "no calibration: pass one, or use a camera file that names one");
+    require_option(!calib_path.empty(), "recon.calib", "no calibration: pass one, or use a camera file that names one");
     ClassicalOptions o;
     o.method = parse_classical_method(spec.method);
     o.lambda = spec.lambda;

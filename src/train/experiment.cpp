@@ -193,7 +193,7 @@ void initialise_from_model(const ExperimentOptions& o, const Config& config, con
   if (o.reinit_inversion && transfer) {
     auto source_camera = o.source_camera;
     if (source_camera.empty()) source_camera = load_model_file(o.init_from).recorded_camera();
-    require(std::filesystem::exists(source_camera), option_key("experiment.source_camera"),
+    require_option(std::filesystem::exists(source_camera), "experiment.source_camera",
             "the camera " + o.init_from.string() + " was trained for (" + source_camera.string() +
                 ") is not here; name its camera .yaml with " + option_key("experiment.source_camera"));
     const auto source = load_camera_config(source_camera);
@@ -262,7 +262,7 @@ Config settle_config(const ExperimentOptions& o, bool writer) {
     config.check_ranges(option_key("experiment.sets"));
     if (!o.config.empty()) {  // the same command line again is fine; another config is not silently ignored
       const auto differences = differing_settings(config, Config::load(o.config, sets));
-      require(differences.empty(), option_key("experiment.config"),
+      require_option(differences.empty(), "experiment.config",
               option_key("experiment.resume") + " continues with the run's own config (" + (out / "config.yaml").string() +
                   "), which differs in " + differences + "; change single settings with " + option_key("experiment.sets") + " key=value");
     }
@@ -301,15 +301,15 @@ void require_memory_for(const ModelSpec& spec, const CameraConfig& camera, const
 ExperimentResult run_experiment(const ExperimentOptions& o) {
   std::ostream& log = o.log ? *o.log : std::cerr;
   const auto& dist = o.distributed;
-  require(!o.out.empty(), option_key("experiment.out"), "an output folder is required");
-  require(dist.world_size >= 1 && dist.rank >= 0 && dist.rank < dist.world_size, option_key("experiment.rank"),
+  require_option(!o.out.empty(), "experiment.out", "an output folder is required");
+  require_option(dist.world_size >= 1 && dist.rank >= 0 && dist.rank < dist.world_size, "experiment.rank",
           "must lie in [0, world size " + std::to_string(dist.world_size) + ")");
   const bool writer = dist.rank == 0;
   const auto& out = o.out;
   const auto latest = out / "latest.ckpt";
   const bool resume = o.resume;
   Config config = settle_config(o, writer);
-  require(!(resume && !o.init_from.empty()), option_key("experiment.init_from"), "starts a new run; it cannot be combined with " + option_key("experiment.resume"));
+  require_option(!(resume && !o.init_from.empty()), "experiment.init_from", "starts a new run; it cannot be combined with " + option_key("experiment.resume"));
   require_no_light_augment_on_disk(config);
   // Everything that can fail on bad input is checked before anything is written.
   const auto camera = camera_of(config);
@@ -329,7 +329,7 @@ ExperimentResult run_experiment(const ExperimentOptions& o) {
   }
   auto [train_src, val_src] = data_sources(config, camera);
   torch::manual_seed(opts.seed);
-  require(!o.reinit_inversion || !o.init_from.empty(), option_key("experiment.reinit"), "re-initialises part of a " + option_key("experiment.init_from") + " model");
+  require_option(!o.reinit_inversion || !o.init_from.empty(), "experiment.reinit", "re-initialises part of a " + option_key("experiment.init_from") + " model");
   const bool transfer = spec.inversion_init == "transfer";
   require(!transfer || resume || o.reinit_inversion, "model.inversion.init",
           "transfer makes the first stage from a trained model's: use it with " + option_key("experiment.init_from") + " MODEL " + option_key("experiment.reinit") + " inversion");
