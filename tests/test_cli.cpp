@@ -10,6 +10,7 @@
 #include "core/util.hpp"
 #include "helpers.hpp"
 #include "io/image.hpp"
+#include "io/config.hpp"
 #include "io/mat.hpp"
 #include "nn/model_file.hpp"
 #include "bench/bench.hpp"
@@ -34,6 +35,43 @@ TEST_CASE("errors mark the options they name: what() shows the key, a front end 
   CHECK(Error("simulate.out: exists").render([](const std::string&) { return "--out"; }) == "simulate.out: exists");
   CHECK(render_option_keys(std::string("a ") + kOptionMark + "b") == std::string("a ") + kOptionMark + "b");  // unpaired
   CHECK_THROWS_WITH(require_option(false, "recon.batch", "must be at least 1"), "recon.batch: must be at least 1");
+  // A user's file name or value is data: marks in it show as an escape and are never rendered.
+  const auto hostile = std::string("x") + kOptionMark + "experiment.out" + kOptionMark + "y";
+  const Error from_path(std::filesystem::path(hostile), "no such file");
+  CHECK(std::string(from_path.what()) == "x\\x1eexperiment.out\\x1ey: no such file");
+  CHECK(from_path.render([](const std::string&) { return "--out"; }) == from_path.what());
+  // A label the code wrote is text, and its marks are kept: Error(option_key(k), reason) names k.
+  CHECK(Error(option_key("recon.require_fit"), "6 of 6 captures do not fit")
+            .render([](const std::string&) { return "--require-fit"; }) == "--require-fit: 6 of 6 captures do not fit");
+  CHECK_THROWS_WITH(require(false, option_key("recon.out"), "is the input"), "recon.out: is the input");
+  CHECK_THROWS_WITH(require(false, std::filesystem::path(hostile), "is the input"),
+                    "x\\x1eexperiment.out\\x1ey: is the input");
+  CHECK_THROWS_WITH(Config::load({}, {"train.lr=" + hostile}), Contains("train.lr = x\\x1eexperiment.out\\x1ey is not"));
+  CHECK_THROWS_WITH(Config::load({}, {hostile + "=1"}), Contains("unknown setting 'x\\x1eexperiment.out\\x1ey'"));
+}
+
+TEST_CASE("train's flags come from its option rows: --iterations, --minutes, --batch, --lr, --precision", "[cli]") {
+  test::Scratch s("train_flags");
+  const auto help = test::run_flatnet("train --help");
+  REQUIRE(help.code == 0);
+  CHECK_THAT(help.output, Contains("--minutes") && Contains("train.minutes: wall-clock budget") &&
+                              Contains("--precision") && Contains("train.precision: auto"));
+  const std::string train =
+      "train --config " + q(test::source_dir() / "configs" / "sim_transpose.yaml") + " --out " + q(s.dir / "run");
+  // A flag's value is checked by its row's range, and an error names the flag the user typed.
+  auto r = test::run_flatnet(train + " --batch 0");
+  CHECK(r.code == 2);
+  CHECK_THAT(r.output, Contains("--batch: '0' is out of range: 1 to 4096 per batch"));
+  r = test::run_flatnet(train + " --precision fp16");
+  CHECK(r.code == 2);
+  CHECK_THAT(r.output, Contains("--precision: expected auto, fp32 or bf16, got 'fp16'"));
+  CHECK_FALSE(std::filesystem::exists(s.dir / "run" / "latest.ckpt"));
+  r = test::run_flatnet(train + " --iterations 1e99");  // the flag sets its row's key
+  CHECK(r.code == 2);
+  CHECK_THAT(r.output, Contains("train.iterations = 1e99 is out of range"));
+  // --set comes last and wins over a flag, as in `mask separable`.
+  r = test::run_flatnet(train + " --batch 2 --set train.batch=0");
+  CHECK_THAT(r.output, Contains("train.batch = 0 is out of range"));
 }
 
 TEST_CASE("simulate, recon and eval end to end, and simulate resumes deterministically", "[cli][e2e]") {

@@ -40,7 +40,7 @@ namespace {
 const std::vector<NumberRule>& number_rules() {
   static const std::vector<NumberRule> rules = {
       {"threads", 0, 1024, "0 (all cores) to 1024"},
-      {"batch", 1, 4096, "1 to 4096 captures"},
+      {"batch", 1, 4096, "1 to 4096 per batch"},
       {"workers", 1, 256, "1 to 256"},
       {"average", 1, 100000, "at least 1 frame"},
       {"lambda", 1e-12, 1e6, "a positive regulariser (leave it out for the camera file's)"},
@@ -59,7 +59,7 @@ void check_numbers(const cxxopts::ParseResult& result) {
     for (const auto& rule : number_rules()) {
       if (kv.key() != rule.name) continue;
       const auto problem = number_problem(kv.value(), rule);
-      if (!problem.empty()) throw Error("--" + kv.key(), "'" + kv.value() + "' " + problem + ": " + rule.meaning);
+      if (!problem.empty()) throw Error("--" + kv.key(), "'" + unmarked(kv.value()) + "' " + problem + ": " + rule.meaning);
     }
   }
 }

@@ -179,7 +179,7 @@ int info(int argc, char** argv) {
   recipe << join_nonzero_losses(m) << "; batch " << recorded_or_unknown(m, train_key(&TrainOptions::batch)) << ", crop "
          << recorded_or_unknown(m, train_key(&TrainOptions::crop)) << ", lr "
          << recorded_or_unknown(m, train_key(&TrainOptions::lr)) << ", precision "
-         << recorded_or_unknown(m, "train.precision");
+         << recorded_or_unknown(m, train_key(&TrainOptions::precision));
   line("recipe", recipe.str());
   line("training", training_text(p));
   if (!p.source.empty()) line("source", p.source);

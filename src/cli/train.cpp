@@ -36,8 +36,8 @@ int train(int argc, char** argv) {
       "with --init-from: 'inversion' keeps the model's enhancer (and level path) and initialises the first stage "
       "afresh for this run's camera, from its calibration or geometry (model.inversion.init): adapting a model to "
       "another camera",
-      cxxopts::value<std::string>())("precision", "auto|fp32|bf16: overrides train.precision",
-                                     cxxopts::value<std::string>());
+      cxxopts::value<std::string>());
+  add_row_flags(o, train_fields());  // --iterations, --minutes, --batch, --lr, --precision
   o.add_options("distributed (defaults: torchrun's WORLD_SIZE, RANK, MASTER_ADDR, MASTER_PORT)")(
       "world-size", "processes in the job", cxxopts::value<int>())(
       "rank", "this process, 0..world-size-1", cxxopts::value<int>())("master-addr", "host of rank 0 (rendezvous)",
@@ -53,8 +53,8 @@ int train(int argc, char** argv) {
   e.out = r["out"].as<std::string>();
   e.force = r.count("force") > 0;
   if (r.count("config")) e.config = r["config"].as<std::string>();
-  e.sets = set_overrides(r);
-  if (r.count("precision")) e.sets.push_back("train.precision=" + r["precision"].as<std::string>());
+  e.sets = row_flag_settings(r, train_fields());
+  for (const auto& s : set_overrides(r)) e.sets.push_back(s);  // --set last: it wins, as in `mask separable`
   e.resume = r.count("resume") > 0;
   if (r.count("init-from")) e.init_from = r["init-from"].as<std::string>();
   if (r.count("reinit")) {
@@ -91,7 +91,7 @@ int train(int argc, char** argv) {
             << "\nmodel: " << (e.out / "model.flatnet").string() << "\n";
   if (s.budget_reached)
     std::cout << "stopped at the time budget (train.minutes); a larger budget continues it: `flatnet train --out "
-              << e.out.string() << " --resume --set train.minutes=N`\n";
+              << e.out.string() << " --resume --minutes N`\n";
   if (interrupted()) {
     std::cout << "interrupted: continue with `flatnet train --out " << e.out.string() << " --resume`\n";
     return 130;

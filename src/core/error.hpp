@@ -19,6 +19,14 @@ inline constexpr char kOptionMark = '\x1e';  // ASCII record separator: brackets
 // `key` marked as an option inside an error's text.
 inline std::string option_key(const std::string& key) { return kOptionMark + key + kOptionMark; }
 
+// `text` (user data: a file name, a value) with any mark shown as the escape `\x1e`, so that nothing a
+// user wrote is ever rendered as an option.
+inline std::string unmarked(const std::string& text) {
+  std::string out;
+  for (const char c : text) out += c == kOptionMark ? std::string("\\x1e") : std::string(1, c);
+  return out;
+}
+
 // `marked` with each marked key replaced by name(key) (the key itself when `name` is empty).
 inline std::string render_option_keys(const std::string& marked,
                                       const std::function<std::string(const std::string&)>& name = {}) {
@@ -37,8 +45,12 @@ inline std::string render_option_keys(const std::string& marked,
 class Error : public std::runtime_error {
  public:
   explicit Error(const std::string& what) : std::runtime_error(render_option_keys(what)), marked_(what) {}
-  // "<path>: <reason>"
-  Error(const std::filesystem::path& where, const std::string& reason) : Error(where.string() + ": " + reason) {}
+  // "<where>: <reason>". A label the code wrote (a command, a flag, a marked key) comes as text; a
+  // file comes as a path, and a path is the user's data: a mark inside its name shows escaped.
+  Error(const std::string& where, const std::string& reason) : Error(where + ": " + reason) {}
+  Error(const char* where, const std::string& reason) : Error(std::string(where) + ": " + reason) {}
+  Error(const std::filesystem::path& where, const std::string& reason)
+      : Error(unmarked(where.string()) + ": " + reason) {}
   // The message with each marked option shown as name(key).
   std::string render(const std::function<std::string(const std::string&)>& name) const {
     return render_option_keys(marked_, name);
@@ -48,8 +60,14 @@ class Error : public std::runtime_error {
   std::string marked_;
 };
 
-// Throws Error(where, reason) unless cond holds.
+// Throws Error(where, reason) unless cond holds (where: a file, or a label the code wrote).
 inline void require(bool cond, const std::filesystem::path& where, const std::string& reason) {
+  if (!cond) throw Error(where, reason);
+}
+inline void require(bool cond, const std::string& where, const std::string& reason) {
+  if (!cond) throw Error(where, reason);
+}
+inline void require(bool cond, const char* where, const std::string& reason) {
   if (!cond) throw Error(where, reason);
 }
 

@@ -104,7 +104,7 @@ Precision resolve_precision(const std::string& choice, const CpuFeatures& cpu, c
   if (choice == "fp32") return Precision::fp32;
   if (choice == "bf16") return Precision::bf16;
   if (choice == "auto") return cpu.native_bf16() ? Precision::bf16 : Precision::fp32;
-  throw Error(what + ": expected auto, fp32 or bf16, got '" + choice + "'");
+  throw Error(what + ": expected auto, fp32 or bf16, got '" + unmarked(choice) + "'");
 }
 
 Precision resolve_precision(const std::string& choice, const std::string& what) {

@@ -51,7 +51,7 @@ TrainOptions train_options(const Config& c, const std::filesystem::path& out) {
   t.schedule = parse_lr_schedule(c.str("train.schedule"));
   require(t.crop == 0 || (t.crop >= 16 && t.crop % 16 == 0), train_key(&TrainOptions::crop),
           "must be 0 or a multiple of 16 (the U-Net halves it 4 times)");
-  t.bf16 = resolve_precision(c.str("train.precision"), "train.precision") == Precision::bf16;
+  t.bf16 = resolve_precision(t.precision, option_key(train_key(&TrainOptions::precision))) == Precision::bf16;
   require(t.real_label_min >= 0 && t.real_label_min <= 1 && t.fake_label_max >= 0 && t.fake_label_max <= 1,
           "discriminator", "label smoothing bounds must lie within [0, 1] (BCE needs targets in [0, 1])");
   require(t.batch >= 1 && t.iterations >= 1, "train", "batch and iterations must be positive");
@@ -337,7 +337,7 @@ ExperimentResult run_experiment(const ExperimentOptions& o) {
   if (!o.init_from.empty()) initialise_from_model(o, config, camera, g, log);
 
   if (writer) {
-    const auto p = resolve_precision(config.str("train.precision"), "train.precision");
+    const auto p = opts.bf16 ? Precision::bf16 : Precision::fp32;  // train_options resolved it for this CPU
     if (p == Precision::bf16) request_amx_permission();
     log << "precision: " << describe_precision(p) << "\n";
   }

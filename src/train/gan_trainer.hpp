@@ -55,6 +55,7 @@ struct TrainOptions {
   double ema_decay =
       0.0;            // exponential moving average of the generator's weights (0: off); used to validate and export
   int64_t crop = 0;   // the enhancer trains on random crop x crop windows of the first stage (0: whole scenes)
+  std::string precision = "auto";  // auto | fp32 | bf16, as configured; resolved into bf16 for this CPU
   bool bf16 = false;  // bf16 autocast for the enhancer and discriminator (fp32 master weights and Adam state)
   double real_label_min = 0.7, fake_label_max = 0.3;
   bool channels_last = true;     // exact speed-ups (InferenceLevers): NHWC activations,

@@ -15,11 +15,13 @@ constexpr double kBig = 1e9;
 const std::vector<OptionField<TrainOptions>>& train_fields() {
   using O = TrainOptions;
   static const std::vector<OptionField<O>> fields = {
-      {"train.iterations", &O::iterations, STEPS("1 to 1e9 steps"), "optimiser steps"},
+      {"train.iterations", &O::iterations, STEPS("1 to 1e9 steps"), "optimiser steps", "iterations"},
       {"train.minutes", &O::minutes, 0, 1e6, "0 (no budget) or minutes of wall-clock training",
-       "wall-clock budget, resumes included"},
-      {"train.batch", &O::batch, 1, 4096, "1 to 4096 samples", "scenes per step"},
-      {"train.lr", &O::lr, 0, 10, "0 (frozen) to 10", "Adam, generator"},
+       "wall-clock budget, resumes included", "minutes"},
+      {"train.batch", &O::batch, 1, 4096, "1 to 4096 samples", "scenes per step", "batch"},
+      {"train.lr", &O::lr, 0, 10, "0 (frozen) to 10", "Adam, generator", "lr"},
+      {"train.precision", &O::precision, 0, 0, "", "auto (bf16 where the CPU has AMX or AVX512-BF16) | fp32 | bf16",
+       "precision"},
       {"train.lr_discriminator", &O::lr_discriminator, 0, 10, "0 (frozen) to 10", "Adam, discriminator"},
       {"train.lr_inversion_scale", &O::lr_inversion_scale, 0, 1e6, "0 (frozen inversion) or a positive factor",
        "the inversion's learning rate relative to lr"},
