@@ -1,11 +1,11 @@
 #pragma once
 // The option schema: an options struct bound to its config keys in one table. Each row names the
-// YAML key (relative to a prefix: "unet.width" under "model."), the member it fills and, in the
-// sections that declare them there (nn/model_spec: the model section), the number's range and a
-// one-line doc; the default is the struct's own (S{}). read_options fills a struct through its
-// table (no hand-written line per key), check_options holds every number to its row's range, and
-// defaults_differing lets a test hold the struct's defaults to its defaults file. Sections whose
-// rows carry no range yet are range-checked by io/config.cpp's table.
+// YAML key (relative to a prefix: "unet.width" under "model."), the member it fills, a number's
+// range with what it means, a one-line doc and, optionally, the command-line flag that sets it; the
+// default is the struct's own (S{}). read_options fills a struct through its table (no hand-written
+// line per key), range_rows registers the ranges with the config (io/config.hpp register_ranges,
+// the only range table), and defaults_differing lets a test hold the struct's defaults to its
+// defaults file.
 // The tables live beside the structs' readers: nn/model_spec (the model's), train/options (the
 // trainers', the light augmentation's, co-design's, the mask's and its camera's).
 #include <cstdint>
