@@ -59,7 +59,7 @@ void check_numbers(const cxxopts::ParseResult& result) {
     for (const auto& rule : number_rules()) {
       if (kv.key() != rule.name) continue;
       const auto problem = number_problem(kv.value(), rule);
-      if (!problem.empty()) throw Error("--" + kv.key(), "'" + unmarked(kv.value()) + "' " + problem + ": " + rule.meaning);
+      if (!problem.empty()) throw Error("--" + kv.key(), "'" + printable(kv.value()) + "' " + problem + ": " + rule.meaning);
     }
   }
 }

@@ -105,7 +105,7 @@ void Config::check_ranges(const std::string& where) const {
     if (it == values_.end()) continue;
     const auto problem = range_problem(it->second, row);
     if (!problem.empty())
-      throw Error(where + ": " + row.key + " = " + unmarked(it->second) + " " + problem + ": " + row.meaning);
+      throw Error(where + ": " + row.key + " = " + printable(it->second) + " " + problem + ": " + row.meaning);
   }
 }
 
@@ -228,7 +228,7 @@ Config Config::load(const std::filesystem::path& experiment, const std::vector<s
   for (const auto& kv : c.values_) c.bases_[kv.first] = defaults.parent_path().parent_path();
   if (!experiment.empty()) c.merge_file(experiment, 0);
   for (const auto& s : sets) c.set(s);
-  c.check_ranges((experiment.empty() ? std::string("config") : unmarked(experiment.string())) +
+  c.check_ranges((experiment.empty() ? std::string("config") : printable(experiment.string())) +
                  (sets.empty() ? "" : " with --set or a flag"));
   return c;
 }
@@ -255,7 +255,7 @@ void Config::merge_file(const std::filesystem::path& file, int depth) {
   const auto text = read_file(file);
   const auto node = parse_yaml(text, file);
   if (node["base"]) merge_file(file.parent_path() / node["base"].as<std::string>(), depth + 1);
-  merge_node_text(text, unmarked(file.string()), file.parent_path());  // the name shown in errors
+  merge_node_text(text, printable(file.string()), file.parent_path());  // the name shown in errors
 }
 
 void Config::merge_node_text(const std::string& yaml, const std::filesystem::path& where,
@@ -275,11 +275,11 @@ void Config::merge_node_text(const std::string& yaml, const std::filesystem::pat
 void Config::assign(const std::string& key, const std::string& value, const std::string& where,
                     const std::filesystem::path& base) {
   if (!values_.count(key)) {
-    if (key.size() > 200) throw Error(where + ": unknown setting '" + unmarked(key.substr(0, 60)) + "...' (" +
+    if (key.size() > 200) throw Error(where + ": unknown setting '" + printable(key.substr(0, 60)) + "...' (" +
                                       std::to_string(key.size()) + " characters)");
     std::vector<std::string> known;
     for (const auto& kv : values_) known.push_back(kv.first);
-    throw Error(where + ": unknown setting '" + unmarked(key) + "' (" + unknown_key_hint(key, known) + ")");
+    throw Error(where + ": unknown setting '" + printable(key) + "' (" + unknown_key_hint(key, known) + ")");
   }
   values_[key] = value;
   bases_[key] = base;
@@ -287,13 +287,13 @@ void Config::assign(const std::string& key, const std::string& value, const std:
 
 void Config::set(const std::string& assignment, const std::string& where) {
   const auto eq = assignment.find('=');
-  if (eq == std::string::npos || eq == 0) throw Error(where + ": expected key=value, got '" + unmarked(assignment) + "'");
+  if (eq == std::string::npos || eq == 0) throw Error(where + ": expected key=value, got '" + printable(assignment) + "'");
   assign(assignment.substr(0, eq), assignment.substr(eq + 1), where, std::filesystem::current_path());
 }
 
 const std::string& Config::lookup(const std::string& key) const {
   const auto it = values_.find(key);
-  if (it == values_.end()) throw Error("config: no setting '" + unmarked(key) + "' in defaults.yaml");
+  if (it == values_.end()) throw Error("config: no setting '" + printable(key) + "' in defaults.yaml");
   return it->second;
 }
 
@@ -305,13 +305,13 @@ double Config::num(const std::string& key) const {
     const double d = std::strtod(v.c_str(), nullptr);
     if (std::isfinite(d)) return d;
   }
-  throw Error("config: setting '" + key + "' must be a finite decimal number, got '" + unmarked(v) + "'");
+  throw Error("config: setting '" + key + "' must be a finite decimal number, got '" + printable(v) + "'");
 }
 
 int64_t Config::integer(const std::string& key) const {
   const double d = num(key);
   if (d != std::floor(d) || std::abs(d) > 9.0e15)
-    throw Error("config: setting '" + key + "' must be an integer, got '" + unmarked(lookup(key)) + "'");
+    throw Error("config: setting '" + key + "' must be an integer, got '" + printable(lookup(key)) + "'");
   return static_cast<int64_t>(d);
 }
 
@@ -319,7 +319,7 @@ bool Config::flag(const std::string& key) const {
   const auto& v = lookup(key);
   if (v == "true" || v == "on" || v == "yes" || v == "1") return true;
   if (v == "false" || v == "off" || v == "no" || v == "0") return false;
-  throw Error("config: setting '" + key + "' must be true or false, got '" + unmarked(v) + "'");
+  throw Error("config: setting '" + key + "' must be true or false, got '" + printable(v) + "'");
 }
 
 bool Config::is_path_key(const std::string& key) {
