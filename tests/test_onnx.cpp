@@ -30,7 +30,7 @@ Generator variant(const std::vector<std::string>& sets, const CameraConfig& came
 }
 
 // The generators both engine tests export: every first stage, with and without the light level,
-// and the U-Net and DnCNN enhancers.
+// the measurement pre-processor, and the U-Net, DnCNN and NAFNet enhancers.
 struct ExportCase {
   const char* what;
   std::vector<std::string> sets;
@@ -47,6 +47,9 @@ std::vector<ExportCase> export_cases() {
        {"model.unet.width=4", "model.input=tikhonov", "model.level_input=true"},
        level},
       {"inversion, DnCNN", {"model.enhancer=dncnn", "model.dncnn.layers=4", "model.dncnn.width=3"}, plain},
+      {"measurement pre-processor, inversion, light level, U-Net",
+       {"model.unet.width=4", "model.preprocessor.width=3", "model.preprocessor.depth=3", "model.level_input=true"},
+       level},
       {"inversion, light level, NAFNet", {"model.enhancer=nafnet", "model.nafnet.width=4", "model.level_input=true"},
        level},
   };

@@ -255,3 +255,58 @@ TEST_CASE("train --init-from a model without the level adds it with zero weights
   CHECK_THROWS_WITH(init_generator_from(s.dir / "level.flatnet", plain),
                     Contains("level.flatnet") && Contains("inc.conv.conv.0.weight"));
 }
+
+// ---- The measurement pre-processor (model.preprocessor.*) ---------------------------------------
+
+TEST_CASE("a measurement pre-processor: identity when new, positively homogeneous, gradients reach it",
+          "[quality][preprocessor]") {
+  PreprocessorOptions o;
+  o.width = 3;
+  o.depth = 3;
+  MeasurementPreprocessor pre(o);
+  const auto Y = torch::randn({2, 4, 20, 24});
+  CHECK(torch::equal(pre->forward(Y), Y));  // the last convolution starts at zero
+  {
+    torch::NoGradGuard ng;
+    for (auto& p : pre->parameters()) p.uniform_(-0.3, 0.3);
+  }
+  const auto out = pre->forward(Y);  // {2,4,20,24}
+  CHECK(out.sizes() == Y.sizes());
+  REQUIRE((out - Y).abs().max().item<double>() > 1e-3);  // a live residual
+  // No biases: a brighter exposure of the same capture gives the same output, brighter.
+  CHECK(torch::allclose(pre->forward(7.5 * Y), 7.5 * out, 1e-4, 1e-5));
+  CHECK(pre->named_parameters().size() == 3);  // three weights, no biases
+  // In a generator, on whole captures and on crops: every parameter learns.
+  const auto config = Config::load({}, {"model.unet.width=2", "model.preprocessor.width=3", "model.bn_momentum=0.1"});
+  auto g = test::random_generator(config, tiny_camera());
+  g->train();
+  test::check_all_gradients(*g, g->forward(Y).mean() + g->forward_crops(Y, {{0, 0}, {0, 0}}, 16).mean());
+  CHECK_THROWS_WITH(Config::load({}, {"model.preprocessor.depth=1"}), Contains("model.preprocessor.depth"));
+  CHECK_THROWS_WITH(Config::load({}, {"model.preprocessor.width=-1"}), Contains("model.preprocessor.width"));
+  CHECK_THROWS_WITH(Config::load({}, {"model.preprocessor.width=100000"}), Contains("0 (none) to 256 filters"));
+}
+
+TEST_CASE("train --init-from a model without a pre-processor adds one as the identity; a model file keeps it",
+          "[quality][preprocessor]") {
+  test::Scratch s("preprocessor_init");
+  const auto cam = tiny_camera();
+  const auto without = Config::load({}, {"model.unet.width=2", "model.bn_momentum=0.1"});
+  const auto with = Config::load({}, {"model.unet.width=2", "model.preprocessor.width=4", "model.bn_momentum=0.1"});
+  auto old_model = test::random_generator(without, cam);
+  save_model_file(s.dir / "old.flatnet", old_model, without, cam);
+  Generator g(generator_options(with, cam, false));
+  init_generator_from(s.dir / "old.flatnet", g);
+  g->eval();
+  const auto Y = torch::randn({2, 4, 20, 24});
+  CHECK(torch::allclose(g->forward(Y), old_model->forward(Y), 1e-5, 1e-6));  // the same function at step 0
+  // Trained, saved and read back: the spec names it, the weights and the output come back.
+  auto trained = test::random_generator(with, cam);
+  save_model_file(s.dir / "pre.flatnet", trained, with, cam);
+  auto m = load_model_file(s.dir / "pre.flatnet");
+  CHECK(m.spec.preprocessor_width == 4);
+  CHECK(m.spec.preprocessor_depth == 2);
+  CHECK(first_stage_text(m.spec).find("measurement pre-processor") != std::string::npos);
+  m.generator->eval();
+  CHECK(torch::allclose(m.generator->forward(Y), trained->forward(Y), 1e-5, 1e-6));
+  CHECK_FALSE(torch::allclose(trained->forward(Y), old_model->forward(Y), 1e-3, 1e-3));
+}

@@ -499,6 +499,30 @@ torch::Tensor NAFNetImpl::forward(const torch::Tensor& input) {
 
 // ---- Generator -----------------------------------------------------------------------------------
 
+MeasurementPreprocessorImpl::MeasurementPreprocessorImpl(const PreprocessorOptions& o)
+    : negative_slope_(o.negative_slope), convs_(register_module("convs", nn::ModuleList())) {
+  TORCH_CHECK(o.width >= 1 && o.depth >= 2, "pre-processor: width >= 1 and depth >= 2 expected, got ", o.width, ", ",
+              o.depth);
+  for (int64_t i = 0; i < o.depth; ++i) {
+    const int64_t in = i == 0 ? 4 : o.width, out = i + 1 == o.depth ? 4 : o.width;
+    convs_->push_back(nn::Conv2d(nn::Conv2dOptions(in, out, 3).padding(1).bias(false)));
+  }
+  torch::NoGradGuard no_grad;
+  convs_->ptr<nn::Conv2dImpl>(o.depth - 1)->weight.zero_();  // g = 0: the identity at the start
+}
+
+torch::Tensor MeasurementPreprocessorImpl::forward(const torch::Tensor& Y) {  // {B,4,rows,cols}
+  // Channels-last: with 4 to `width` channels over 310,000 pixels, LibTorch's default layout runs
+  // these convolutions 3-4x slower (measured, Python and C++ alike).
+  auto h = Y.contiguous(at::MemoryFormat::ChannelsLast);
+  const auto n = convs_->size();
+  for (size_t i = 0; i < n; ++i) {
+    h = convs_->ptr<nn::Conv2dImpl>(i)->forward(h);  // {B,width,rows,cols}, the last {B,4,rows,cols}
+    if (i + 1 < n) h = torch::leaky_relu(h, negative_slope_);
+  }
+  return Y + h.contiguous();
+}
+
 GeneratorImpl::GeneratorImpl(const GeneratorOptions& o) : options_(o) {
   if (o.input == InputStage::inversion) {
     inversion_ = register_module("inversion", FlatInversion(o.inversion));
@@ -522,6 +546,9 @@ GeneratorImpl::GeneratorImpl(const GeneratorOptions& o) : options_(o) {
       enhancer_ = nn::AnyModule(register_module("enhancer", NAFNet(o.nafnet)));
       break;
   }
+  // Registered last, so the other parameters keep their order with or without it.
+  if (o.preprocessor.width > 0)
+    preprocessor_ = register_module("preprocessor", MeasurementPreprocessor(o.preprocessor));
 }
 
 void GeneratorImpl::check_measurement(const torch::Tensor& Y) const {
@@ -556,15 +583,19 @@ torch::Tensor GeneratorImpl::first_stage_of(const torch::Tensor& planes) {
   return inversion_ ? inversion_->forward(planes) : tikhonov_->forward(planes);
 }
 
+torch::Tensor GeneratorImpl::preprocessed(const torch::Tensor& planes) {
+  return preprocessor_ ? preprocessor_->forward(planes) : planes;
+}
+
 torch::Tensor GeneratorImpl::first_stage(const torch::Tensor& Y) {
   check_measurement(Y);
-  return first_stage_of(split_level(Y).first);
+  return first_stage_of(preprocessed(split_level(Y).first));
 }
 
 torch::Tensor GeneratorImpl::forward(const torch::Tensor& Y) {
   check_measurement(Y);
   const auto [planes, level] = split_level(Y);
-  return enhance(first_stage_of(planes), level);
+  return enhance(first_stage_of(preprocessed(planes)), level);
 }
 
 torch::Tensor GeneratorImpl::forward_crops(const torch::Tensor& Y,
@@ -575,7 +606,8 @@ torch::Tensor GeneratorImpl::forward_crops(const torch::Tensor& Y,
     TORCH_CHECK(r >= 0 && c >= 0 && r + size <= options_.scene && c + size <= options_.scene, "generator: crop at (", r,
                 ",", c, ") leaves the ", options_.scene, "x", options_.scene, " scene");
   check_measurement(Y);
-  const auto [planes, level] = split_level(Y);
+  const auto [raw_planes, level] = split_level(Y);
+  const auto planes = preprocessed(raw_planes);  // the whole capture: each window sees all of it
   if (inversion_) return enhance(inversion_->forward_crops(planes, corners, size), level);
   return enhance(crop_windows(first_stage_of(planes), corners, size), level);
 }

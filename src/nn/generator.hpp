@@ -54,6 +54,31 @@ class TikhonovLayerImpl : public torch::nn::Module {
 };
 TORCH_MODULE(TikhonovLayer);
 
+// ---- Measurement pre-processor ------------------------------------------------------------------
+// A small residual CNN on the measurement planes before the first stage: the pre-processor of
+// LenslessPiCam's modular reconstruction (Perron et al., IEEE TCI 2025), which learns in the
+// domain where the sensor's noise is white and the model's error (stray light, calibration error)
+// is smooth:  Y' = Y + g(Y),  g = conv_depth o (leaky_relu o conv_i)...  (3x3, 4 -> width -> 4).
+// No biases, so g is positively homogeneous (g(aY) = a g(Y), a > 0): it treats a capture alike at
+// every exposure. Its last convolution starts at zero, so a new pre-processor is the identity and
+// a trained model gains one without changing what it computes (train --init-from).
+struct PreprocessorOptions {
+  int64_t width = 0;  // 0: none
+  int64_t depth = 2;  // convolutions, >= 2
+  double negative_slope = 0.01;
+};
+
+class MeasurementPreprocessorImpl : public torch::nn::Module {
+ public:
+  explicit MeasurementPreprocessorImpl(const PreprocessorOptions& options);
+  torch::Tensor forward(const torch::Tensor& Y);  // {B,4,rows,cols} -> {B,4,rows,cols}
+
+ private:
+  double negative_slope_;
+  torch::nn::ModuleList convs_;
+};
+TORCH_MODULE(MeasurementPreprocessor);
+
 // ---- U-Net (FlatNet's models.py) ----------------------------------------------------------------
 struct UNetOptions {
   int64_t in_channels = 4;
@@ -149,6 +174,7 @@ enum class Enhancer { unet, dncnn, rcan, nafnet };
 
 struct GeneratorOptions {
   InputStage input = InputStage::inversion;
+  PreprocessorOptions preprocessor;  // on the planes, before the first stage (width 0: none)
   InversionOptions inversion;  // input == inversion
   torch::Tensor tik_P, tik_Q;  // input == tikhonov: calibration {4,rows,N},{4,cols,N}
   double tik_lambda = 1e-4;
@@ -240,9 +266,11 @@ class GeneratorImpl : public torch::nn::Module {
   // channel order (r, gr, gb, b); an undefined level without level_input.
   std::pair<torch::Tensor, torch::Tensor> split_level(const torch::Tensor& Y) const;
   torch::Tensor first_stage_of(const torch::Tensor& planes);  // inversion or Tikhonov, on planes without the level
+  torch::Tensor preprocessed(const torch::Tensor& planes);    // the pre-processor's output, or the planes
   void apply_levers(const InferenceLevers& levers, bool for_inference);
   bool autocast_bf16_ = false;
   InferenceLevers levers_{false, false, false, false, false};
+  MeasurementPreprocessor preprocessor_{nullptr};  // null without one
   FlatInversion inversion_{nullptr};
   TikhonovLayer tikhonov_{nullptr};
   torch::nn::BatchNorm2d bn_{nullptr};

@@ -91,6 +91,8 @@ void init_generator_from(const std::filesystem::path& model, Generator& g, Gener
       return own->detach().clone();  // this camera's, as initialised
     }
     const auto* t = buffer ? their_buffers.find(name) : theirs.find(name);
+    if (!t && name.rfind("preprocessor.", 0) == 0)
+      return ours.find(name)->detach().clone();  // a pre-processor the file lacks starts as the identity
     if (!t)
       throw Error(model,
                   "has no '" + name + "': its architecture (model.input, model.enhancer) differs from this config's");

@@ -28,6 +28,10 @@ const std::vector<OptionField<ModelSpec>>& model_spec_fields() {
       {"inversion.lambda", &S::inversion_lambda, 1e-12, 1e6, "a positive regulariser",
        "pinv, transfer: regulariser relative to s_max^2"},
       {"inversion.toeplitz_file", &S::inversion_toeplitz_file, 0, 0, "", "flatnet-toeplitz: phil_toep_slope22.mat"},
+      // At full measurement size (500x620) each filter is a 1.2 MB plane per capture: 256 is 0.3 GB.
+      {"preprocessor.width", &S::preprocessor_width, 0, 256, "0 (none) to 256 filters",
+       "measurement-domain residual CNN before the first stage; 0: none"},
+      {"preprocessor.depth", &S::preprocessor_depth, 2, 64, "2 to 64 convolutions", "the pre-processor's 3x3 convolutions"},
       {"enhancer", &S::enhancer, 0, 0, "", "unet | dncnn | rcan | nafnet"},
       {"level_input", &S::level_input, 0, 0, "", "the enhancer also reads each plane's light level"},
       {"bn_momentum", &S::bn_momentum, 0, 1, "0 to 1", "BatchNorm momentum, PyTorch's convention"},
@@ -198,6 +202,8 @@ GeneratorOptions generator_options(const ModelSpec& s, const CameraConfig& camer
     o.tik_Q = calib.Q;
     o.tik_lambda = camera.tikhonov_lambda;
   }
+  o.preprocessor.width = s.preprocessor_width;
+  o.preprocessor.depth = s.preprocessor_depth;
   o.level_input = s.level_input;
   const int64_t enhancer_inputs = o.level_input ? 8 : 4;  // first stage (+ light level)
   o.unet.in_channels = o.dncnn.in_channels = o.rcan.in_channels = o.nafnet.in_channels = enhancer_inputs;
@@ -258,8 +264,12 @@ std::string enhancer_text(const ModelSpec& s) {
 }
 
 std::string first_stage_text(const ModelSpec& s) {
-  if (s.input == "tikhonov") return "fixed Tikhonov filter (the naive model)";
-  return "trainable inversion W1^T Y W2 (" + s.inversion_init + " init, " +
+  const std::string pre = s.preprocessor_width > 0 ? "measurement pre-processor (" +
+                                                         std::to_string(s.preprocessor_depth) + " convolutions, width " +
+                                                         std::to_string(s.preprocessor_width) + "), then "
+                                                   : "";
+  if (s.input == "tikhonov") return pre + "fixed Tikhonov filter (the naive model)";
+  return pre + "trainable inversion W1^T Y W2 (" + s.inversion_init + " init, " +
          (s.inversion_shared ? "one pair for all channels" : "one pair per Bayer channel") + ")";
 }
 

@@ -26,6 +26,8 @@ struct ModelSpec {
   int64_t inversion_seed = 0;              // calibfree / random: seed of the pseudo-random matrices
   double inversion_lambda = 1.0e-2;        // pinv, transfer: regulariser relative to s_max^2
   std::filesystem::path inversion_toeplitz_file;  // flatnet-toeplitz: phil_toep_slope22.mat
+  int64_t preprocessor_width = 0;          // measurement-domain pre-processor's filters (0: none)
+  int64_t preprocessor_depth = 2;          // its convolutions
   std::string enhancer = "unet";           // unet | dncnn | rcan | nafnet
   bool level_input = false;                // the enhancer also reads each plane's light level
   double bn_momentum = 0.99;               // PyTorch convention (FlatNet: 0.99)

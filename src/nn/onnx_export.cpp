@@ -144,6 +144,7 @@ class GeneratorGraph {
       level = mean->output(0);                         // {B,4,1,1}
       planes = b_.op("Sub", {meas, level}, "planes");  // {B,4,rows,cols}
     }
+    if (o.preprocessor.width > 0) planes = preprocessor(planes);
     auto x = reversed_channels(first_stage(planes));  // {B,4,N,N}
     x = batch_norm(x, "bn");
     if (o.level_input) {  // {B,8,N,N}
@@ -182,6 +183,21 @@ class GeneratorGraph {
     auto parts = b_.split_channels(x, 4, "ch");
     std::reverse(parts.begin(), parts.end());
     return b_.concat_channels(parts, "reversed");
+  }
+
+  // MeasurementPreprocessor: Y + g(Y), g its convolutions with leaky ReLUs between them.
+  std::string preprocessor(const std::string& planes) {
+    const auto& o = g_.options().preprocessor;
+    std::string h = planes;
+    for (int64_t i = 0; i < o.depth; ++i) {
+      const auto name = "preprocessor.convs." + std::to_string(i);
+      h = conv(h, *module_as<torch::nn::Conv2dImpl>(name), nullptr, name);
+      if (i + 1 == o.depth) break;
+      auto* relu = b_.node("LeakyRelu", {h}, "pre_relu");
+      GraphBuilder::attr_float(relu, "alpha", o.negative_slope);
+      h = relu->output(0);
+    }
+    return b_.op("Add", {planes, h}, "preprocessed");
   }
 
   // FlatNet eq. 3 per channel, X_c = leaky_relu(PhiL_c^T Y_c PhiR_c), or the fixed Tikhonov filter
