@@ -512,8 +512,8 @@ MeasurementPreprocessorImpl::MeasurementPreprocessorImpl(const PreprocessorOptio
 }
 
 torch::Tensor MeasurementPreprocessorImpl::forward(const torch::Tensor& Y) {  // {B,4,rows,cols}
-  // Channels-last: with 4 to `width` channels over 310,000 pixels, LibTorch's default layout runs
-  // these convolutions 3-4x slower (measured, Python and C++ alike).
+  // Channels-last: with 4 to `width` channels over 310,000 pixels, the default layout runs these
+  // convolutions 3-4x slower (measured with Python torch 1.13, one thread, batch 8, width 8).
   auto h = Y.contiguous(at::MemoryFormat::ChannelsLast);
   const auto n = convs_->size();
   for (size_t i = 0; i < n; ++i) {

@@ -56,9 +56,9 @@ TORCH_MODULE(TikhonovLayer);
 
 // ---- Measurement pre-processor ------------------------------------------------------------------
 // A small residual CNN on the measurement planes before the first stage: the pre-processor of
-// LenslessPiCam's modular reconstruction (Perron et al., IEEE TCI 2025), which learns in the
-// domain where the sensor's noise is white and the model's error (stray light, calibration error)
-// is smooth:  Y' = Y + g(Y),  g = conv_depth o (leaky_relu o conv_i)...  (3x3, 4 -> width -> 4).
+// LenslessPiCam's modular reconstruction (Perron et al., IEEE TCI 2025), which learns where the
+// sensor's noise is still white and before the inversion spreads a defect over the whole image:
+//   Y' = Y + g(Y),  g = conv_depth o (leaky_relu o conv_i)...  (3x3, 4 -> width -> 4).
 // No biases, so g is positively homogeneous (g(aY) = a g(Y), a > 0): it treats a capture alike at
 // every exposure. Its last convolution starts at zero, so a new pre-processor is the identity and
 // a trained model gains one without changing what it computes (train --init-from).

@@ -264,10 +264,10 @@ std::string enhancer_text(const ModelSpec& s) {
 }
 
 std::string first_stage_text(const ModelSpec& s) {
-  const std::string pre = s.preprocessor_width > 0 ? "measurement pre-processor (" +
-                                                         std::to_string(s.preprocessor_depth) + " convolutions, width " +
-                                                         std::to_string(s.preprocessor_width) + "), then "
-                                                   : "";
+  std::string pre;
+  if (s.preprocessor_width > 0)
+    pre = "measurement pre-processor (" + std::to_string(s.preprocessor_depth) + " convolutions, width " +
+          std::to_string(s.preprocessor_width) + "), then ";
   if (s.input == "tikhonov") return pre + "fixed Tikhonov filter (the naive model)";
   return pre + "trainable inversion W1^T Y W2 (" + s.inversion_init + " init, " +
          (s.inversion_shared ? "one pair for all channels" : "one pair per Bayer channel") + ")";
