@@ -286,7 +286,7 @@ TEST_CASE("a measurement pre-processor: identity when new, positively homogeneou
   CHECK_THROWS_WITH(Config::load({}, {"model.preprocessor.width=100000"}), Contains("0 (none) to 256 filters"));
 }
 
-TEST_CASE("train --init-from a model without a pre-processor adds one as the identity; a model file keeps it",
+TEST_CASE("train --init-from a model without a pre-processor adds one as the identity, and a model file keeps it",
           "[quality][preprocessor]") {
   test::Scratch s("preprocessor_init");
   const auto cam = tiny_camera();
