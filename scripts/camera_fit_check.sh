@@ -48,12 +48,14 @@ fit_of() {  # SET INPUT: Tikhonov through the judging camera; the fit lands in c
   local out=$fits/fit-$1
   [ -f "$out/camera_fit.csv" ] ||
     "$flatnet" recon --method tikhonov --camera "$judge" --input "$2" --out "$out" --force > /dev/null 2>&1 || true
-  awk -F, 'NR > 1 { n++; m += $3; if ($2 == "nan") { s++; next }; j++
-                     if (j == 1 || $2 > max) max = $2; if (j == 1 || $2 < min) min = $2 }
-           END { printf "| %d | %d | %d | %.4f | %.4f |", n, m, s, min, max }' "$out/camera_fit.csv"
+  # camera_fit.csv: name,fit,leak,matches
+  awk -F, 'NR > 1 { n++; m += $4; if ($2 == "nan") { s++; next }; j++
+                     if (j == 1 || $2 > max) max = $2; if (j == 1 || $2 < min) min = $2
+                     if ($3 != "nan") { k++; if (k == 1 || $3 > lmax) lmax = $3; if (k == 1 || $3 < lmin) lmin = $3 } }
+           END { printf "| %d | %d | %d | %.4f - %.4f | %.3f - %.3f |", n, m, s, min, max, lmin, lmax }' "$out/camera_fit.csv"
 }
 {
-  echo "| set | captures | fit the reference camera | saturated (not judged) | lowest fit | highest fit |"
+  echo "| set | captures | fit the reference camera | saturated (not judged) | fit, lowest - highest | leak, lowest - highest |"
   echo "|---|---|---|---|---|---|"
   for set in reference dim lamp learned random; do
     echo "| $set $(fit_of "$set" "$runs/$set/val_meas.txt")"

@@ -108,7 +108,7 @@ TEST_CASE("own camera: calibrate from the dataset, train, infer, and the camera 
   CHECK_THAT(r.output, Contains("for camera 'tiny'"));
   auto rows = read_lines(s.dir / "rec" / "camera_fit.csv");
   REQUIRE(rows.size() == 25);
-  CHECK(rows[0] == "name,fit,matches");
+  CHECK(rows[0] == "name,fit,leak,matches");
   for (size_t i = 1; i < rows.size(); ++i) CHECK(rows[i].substr(rows[i].size() - 2) == ",1");
   CHECK_THAT(r.output, !Contains("do not fit"));
 
@@ -127,7 +127,8 @@ TEST_CASE("own camera: calibrate from the dataset, train, infer, and the camera 
   CHECK_FALSE(std::filesystem::exists(s.dir / "refused"));
 }
 
-TEST_CASE("a camera file's fit_threshold is read, written back and range-checked", "[optics][own-camera]") {
+TEST_CASE("a camera file's fit_threshold and leak_threshold are read, written back and range-checked",
+          "[optics][own-camera]") {
   test::Scratch s("fit_threshold");
   const auto base = read_file_text(test::source_dir() / "configs" / "cameras" / "sim.yaml", 1 << 20);
   const auto write = [&](const std::string& extra) {
@@ -140,4 +141,12 @@ TEST_CASE("a camera file's fit_threshold is read, written back and range-checked
   CHECK_THAT(camera_geometry_yaml(camera), Contains("fit_threshold: 1.5"));
   CHECK_THROWS_WITH(load_camera_config(write("fit_threshold: 0.5\n")), Contains("fit_threshold"));
   CHECK_THROWS_WITH(load_camera_config(write("fit_threshold: .nan\n")), Contains("fit_threshold"));
+
+  CHECK(load_camera_config(write("")).leak_threshold == 0);  // absent: noise alone sets it
+  const auto leaky = load_camera_config(write("leak_threshold: 2.5\n"));
+  CHECK(leaky.leak_threshold == 2.5);
+  CHECK_THAT(camera_geometry_yaml(leaky), Contains("leak_threshold: 2.5"));
+  CHECK_THROWS_WITH(load_camera_config(write("leak_threshold: 0.9\n")), Contains("leak_threshold"));
+  CHECK_THROWS_WITH(load_camera_config(write("leak_threshold: 1e9\n")), Contains("leak_threshold"));
+  CHECK_THROWS_WITH(load_camera_config(write("leak_threshold: abc\n")), Contains("cam.yaml"));
 }

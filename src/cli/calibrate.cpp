@@ -77,6 +77,7 @@ int calibrate_from_dataset(const cxxopts::ParseResult& r) {
   known.rig.clear();
   known.noise_gain = fit.noise_gain, known.noise_floor = fit.noise_floor, known.dark = fit.dark;
   known.fit_threshold = fit.fit_threshold;
+  known.leak_threshold = fit.leak_threshold;
   const auto yaml_path = out.parent_path() / "camera.yaml";
   std::ostringstream fit_text;
   fit_text << "# identified by `flatnet calibrate --dataset` from " << fit.pairs << " display-capture pairs, "
@@ -92,8 +93,9 @@ int calibrate_from_dataset(const cxxopts::ParseResult& r) {
   for (int c = 0; c < 4; ++c) std::cout << " " << kChannelNames[c] << " " << std::setprecision(4) << fit.residual[c];
   std::cout << "\nsensor noise: variance " << fit.noise_gain << " x (level - " << fit.dark << ") + " << fit.noise_floor
             << " (full well about " << (fit.noise_gain > 0 ? 1 / fit.noise_gain : 0) << " electrons)\ncamera fit: its own pairs"
-            << " fit up to the threshold " << fit.fit_threshold << " written to the camera file (this calibration's error"
-            << " is part of what it leaves outside its span)\n";
+            << " fit up to the threshold " << fit.fit_threshold;
+  if (fit.leak_threshold > 0) std::cout << " and leak up to " << fit.leak_threshold;
+  std::cout << ", written to the camera file (this calibration's error is part of what it leaves outside its span)\n";
   if (fit.structure_rejected)
     std::cout << "shift structure rejected: it explains " << std::setprecision(3) << fit.structure_explains
               << " of what free factors explain (a mask that is not one moving shadow?); free factors were fitted, "

@@ -32,10 +32,11 @@ std::string judge_frame(const CameraFit& fit, const torch::Tensor& raw_unit, con
   s.worst_fit = std::max(s.worst_fit, result.fit);
   std::ostringstream line;
   line << std::setprecision(3) << "frame " << s.frames + 1 << " does not fit camera '" << printable(fit.camera_name())
-       << "' (fit " << result.fit << " against <= " << fit.threshold() << "): " << misfit_advice();
+       << "' (" << fit.verdict(result) << "): " << misfit_advice();
   require_option(!opt.require_fit, "live.require_fit", line.str());
   if (s.misfits == 1 && opt.warn) *opt.warn << "warning: live: " << line.str() << std::endl;
-  text << "NOT camera '" << printable(fit.camera_name()) << "' (fit " << result.fit << ")";
+  text << "NOT camera '" << printable(fit.camera_name()) << "' (" << (result.leak_matches ? "fit " : "leak ")
+       << (result.leak_matches ? result.fit : result.leak) << ")";
   return text.str();
 }
 }  // namespace

@@ -49,6 +49,10 @@ struct CameraConfig {
   // varies from scene to scene; `flatnet calibrate --dataset` measures that spread on its own pairs
   // and writes the threshold that covers it.
   double fit_threshold = 0;
+  // The same for the camera fit's near-twin test (optics/camera_fit.hpp, coded_leak): an estimated
+  // calibration's error is itself structured, so its own captures show a leak; calibrate --dataset
+  // writes the threshold its pairs need. 0: noise alone sets it.
+  double leak_threshold = 0;
   bool knows_noise() const { return noise_gain > 0; }
 };
 

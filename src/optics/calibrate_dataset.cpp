@@ -207,9 +207,12 @@ void fit_noise_outside_span(PairStream& pairs, const torch::Tensor& P, const tor
   const int64_t h = U.size(1), w = V.size(1);
   const double per_pixel = outside_share(h, w, U.size(2)) * static_cast<double>(h * w);
   std::vector<double> levels, energies;  // per plane
+  double largest_leak = 0;  // the pairs' own near-twin statistic: this calibration's error is structured too
   for (int64_t i = 0; i < std::min<int64_t>(pairs.size(), kNoisePairs); ++i) {
     const auto pair = pairs.get(i);
     if (!pair.level.defined()) return;
+    const double leak = coded_leak(pair.meas, U, V);
+    if (std::isfinite(leak)) largest_leak = std::max(largest_leak, leak);
     const auto outside = unexplained_energy(pair.meas, U, V) / per_pixel;  // {4}
     for (int c = 0; c < 4; ++c) levels.push_back(pair.level[c].item<double>()), energies.push_back(outside[c].item<double>());
   }
@@ -237,6 +240,7 @@ void fit_noise_outside_span(PairStream& pairs, const torch::Tensor& P, const tor
   const double deviation = std::sqrt(std::max(0.0, square / static_cast<double>(fits.size()) - mean * mean));
   const double largest = *std::max_element(fits.begin(), fits.end());
   out.fit_threshold = std::max({1.0, 1.1 * largest, mean + 5 * deviation});
+  if (largest_leak > 0) out.leak_threshold = std::max(1.0, 1.1 * largest_leak);
 }
 
 }  // namespace

@@ -66,6 +66,7 @@ struct DatasetCalibration {
   // pixel = noise_gain * (level - dark) + noise_floor.
   double noise_gain = 0, noise_floor = 0, dark = 0;
   double fit_threshold = 0;  // the camera fit's threshold that covers the pairs' own spread (CameraConfig)
+  double leak_threshold = 0;  // the same for the near-twin test (coded_leak); 0 where it is not measurable
   int64_t pairs = 0;
   int iterations = 0;
   // The shadow's move per scene pixel, in sensor pixels (signed), when the fit is structured; else 0.

@@ -15,6 +15,17 @@
 // above 1 when the light was coded by another mask, which puts most of its energy outside the span.
 // A plain energy ratio cannot tell: noisy captures of the right camera keep only 0.3-0.5 of their
 // energy in the span, since the noise fills every dimension.
+//
+// A second test catches a near twin: another mask on the same sensor whose shadow moves by the same
+// shift per scene pixel. Its factors span nearly the same space, so the energy it leaves outside is
+// only a few percent above the noise's (fit 1.004-1.06): pooled over 10^5 dimensions, it hides. But
+// that energy is structured: the twin's leak (I - U U^T) P' X Q'^T V is a coded scene, a few strong
+// singular directions, where noise spreads its energy evenly over all of them (Marchenko-Pastur). So:
+// in the two blocks where the leak is first order, B = U^T Y (I - V V^T) {N,w} and
+// C = (I - U U^T) Y V {h,N}, each plane's strongest rank-1 component (the open part's light) set
+// aside, the four planes stacked (the same scene in each), the leak is the largest singular value
+// over the 41st (coded_leak). Noise gives a value its shape alone fixes (1.17-1.20 at 500x620, N 256),
+// whatever the light level and without the noise model; a twin's coded scene gives 1.3-3.
 #include <string>
 
 #include <torch/torch.h>
@@ -29,6 +40,8 @@ struct CameraFitResult {
   bool matches = false;  // fit <= the threshold
   double saturated = 0;  // share of the window's pixels at full scale (their noise is clipped)
   bool judged = true;    // false when over 1 % of the pixels are saturated: matches is then true
+  double leak = 0;       // coded structure outside the calibration's spans (coded_leak; noise alone: ~1.2)
+  bool leak_matches = true;  // leak <= its threshold (part of matches)
 };
 
 // What a user does about captures that do not fit: one sentence, shared by infer, recon and live.
@@ -46,6 +59,13 @@ torch::Tensor unexplained_energy(const torch::Tensor& Y, const torch::Tensor& U,
 // and the share of a pixel's noise variance expected there: dof / (h w), less what the rank-1
 // component takes, (sqrt(h-1) + sqrt(w-1))^2 / (h w), dof = (h-1)(w-1) - N^2.
 double outside_share(int64_t h, int64_t w, int64_t n);
+// The near-twin test (header comment): the larger, over the blocks B and C, of the stacked planes'
+// largest singular value over their 41st. Y {4,h,w} (double-centred here, whatever its centring);
+// U {4,h,N}, V {4,w,N} orthonormal. Needs N > 41 and h, w > N + 41.
+double coded_leak(const torch::Tensor& Y, const torch::Tensor& U, const torch::Tensor& V);
+// What noise alone gives for this geometry: the largest coded_leak of `draws` Gaussian captures
+// (fixed seed; the statistic does not depend on the noise's level).
+double noise_leak(const torch::Tensor& U, const torch::Tensor& V, int draws = 3);
 
 class CameraFit {
  public:
@@ -55,12 +75,18 @@ class CameraFit {
   // raw_unit: the whole raw frame, {H,W}, full scale [0,1] (io/raw.hpp load_raw_unit).
   CameraFitResult measure(const torch::Tensor& raw_unit) const;
   double threshold() const { return threshold_; }
+  double leak_threshold() const { return leak_threshold_; }
+  // How far a capture is from fitting: the larger of fit and leak over their thresholds (> 1: a misfit).
+  double excess(const CameraFitResult& r) const;
+  // Why a capture does not fit, for messages: "fit 4.2 against <= 1.02" or "coded leak 1.8 against <= 1.31 ...".
+  std::string verdict(const CameraFitResult& r) const;
   const std::string& camera_name() const { return camera_.name; }
 
  private:
   torch::Tensor U_, V_;  // {4,h,N}, {4,w,N} orthonormal, float32
   CameraConfig camera_;
   double threshold_ = 0;
+  double leak_threshold_ = 0;  // noise_leak x 1.1, or the camera file's when larger (an estimated calibration)
   double outside_share_ = 0;  // outside_share(h, w, N)
 };
 

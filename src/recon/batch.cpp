@@ -83,19 +83,25 @@ struct FitRow {
   CameraFitResult result;
 };
 
-void note_fit(BatchReport& report, const FitRow& row) {
+void note_fit(BatchReport& report, const FitRow& row, const CameraFit& fit) {
   if (!row.result.judged) ++report.unjudged;
   if (row.result.matches) return;
   ++report.misfits;
-  if (row.result.fit > report.worst_fit || report.worst.empty()) report.worst = row.name, report.worst_fit = row.result.fit;
+  const double excess = fit.excess(row.result);
+  if (excess > report.worst_excess || report.worst.empty()) {
+    report.worst = row.name, report.worst_fit = row.result.fit;
+    report.worst_excess = excess, report.worst_verdict = fit.verdict(row.result);
+  }
 }
 
 void write_fit_csv(const std::filesystem::path& path, const std::vector<FitRow>& rows) {
   std::ostringstream csv;
-  csv << "name,fit,matches\n";
-  for (const auto& r : rows)  // a saturated capture's fit means nothing: written as nan, and not flagged
+  csv << "name,fit,leak,matches\n";
+  // A saturated capture's fit means nothing: written as nan, and not flagged. The leak is nan where it
+  // is not measured (a window too small beside the scene).
+  for (const auto& r : rows)
     csv << csv_field(r.name) << "," << std::setprecision(6) << (r.result.judged ? r.result.fit : std::nan("")) << ","
-        << (r.result.matches ? 1 : 0) << "\n";
+        << (r.result.judged ? r.result.leak : std::nan("")) << "," << (r.result.matches ? 1 : 0) << "\n";
   write_text_atomically(path, csv.str());
 }
 
@@ -108,7 +114,7 @@ std::vector<FitRow> require_all_fit(const CameraFit& fit, const std::vector<std:
   std::vector<FitRow> rows;
   for (const auto& c : captures) {
     rows.push_back({c.filename().string(), fit.measure(load_raw_unit(c, g))});
-    note_fit(probe, rows.back());
+    note_fit(probe, rows.back(), fit);
   }
   if (probe.misfits > 0) throw Error(option_key("recon.require_fit"), camera_fit_warning(probe, fit));
   return rows;
@@ -127,8 +133,7 @@ std::string camera_fit_warning(const BatchReport& report, const CameraFit& fit) 
   std::ostringstream line;
   line << std::setprecision(3) << report.misfits << " of " << report.count
        << " captures do not fit camera '" << printable(fit.camera_name()) << "' (worst: " << printable(report.worst)
-       << ", fit " << report.worst_fit << " against <= " << fit.threshold()
-       << "): " << misfit_advice();
+       << ", " << report.worst_verdict << "): " << misfit_advice();
   return line.str();
 }
 
@@ -155,7 +160,7 @@ BatchReport reconstruct_files(Reconstructor& engine, const CameraConfig& camera,
       planes.push_back(preprocess_raw(raw, camera.raw));
       if (opt.fit) {
         if (!measured) fits.push_back({captures[i].filename().string(), opt.fit->measure(raw)});
-        note_fit(report, fits[i]);
+        note_fit(report, fits[i], *opt.fit);
       }
     }
     const auto t0 = std::chrono::steady_clock::now();
