@@ -12,6 +12,7 @@
 #include "io/yaml_text.hpp"
 #include "optics/calibrate.hpp"
 #include "optics/calibrate_dataset.hpp"
+#include "optics/camera_fit.hpp"
 
 namespace flatnet::cli {
 
@@ -54,10 +55,7 @@ int calibrate_from_dataset(const cxxopts::ParseResult& r) {
     auto gt = read_rgb(p.gt);
     if (gt.size(1) != N || gt.size(2) != N) gt = resize(gt, N, N).clamp(0, 1);
     const auto window = raw_window(load_raw_unit(p.meas, camera.raw), camera.raw);  // {4,rows,cols}
-    // Full scale is the ADC's top code as stored (as optics/camera_fit measures it).
-    const int bits = camera.raw.adc_bits;
-    const double top = static_cast<double>(((1 << bits) - 1) * (1 << (16 - bits))) / 65535.0;
-    const double saturated = (window >= static_cast<float>(top - 0.5 / 65535.0)).to(torch::kFloat32).mean().item<double>();
+    const double saturated = at_full_scale(window, camera.raw.adc_bits).to(torch::kFloat32).mean().item<double>();
     return CapturePair{without_level(double_centre(window, camera.raw.centring), camera.raw.centring),
                        rgb_to_bayer_planes(srgb_to_linear(gt)), window.mean({1, 2}), saturated};
   };

@@ -213,7 +213,7 @@ void fit_noise_outside_span(PairStream& pairs, const torch::Tensor& P, const tor
     if (!pair.level.defined()) return;
     // Clipped pixels are no P X Q^T: a saturated pair's leak is the clipping's (2.5-2.8 measured on
     // the reference camera's), and the camera fit does not judge such captures either.
-    const double leak = pair.saturated <= 0.01 ? coded_leak(pair.meas, U, V) : std::nan("");
+    const double leak = pair.saturated <= kMaxSaturatedShare ? coded_leak(pair.meas, U, V) : std::nan("");
     if (std::isfinite(leak)) largest_leak = std::max(largest_leak, leak);
     const auto outside = unexplained_energy(pair.meas, U, V) / per_pixel;  // {4}
     for (int c = 0; c < 4; ++c) levels.push_back(pair.level[c].item<double>()), energies.push_back(outside[c].item<double>());

@@ -40,7 +40,7 @@ struct CapturePair {
   torch::Tensor meas;   // {4,rows,cols} preprocessed (double-centred) capture planes
   torch::Tensor scene;  // {4,N,N} the scene shown, linear light, per Bayer channel
   torch::Tensor level;  // {4} the window's mean raw value per plane (full scale); optional
-  double saturated = 0;  // share of the window's pixels at full scale (the camera fit leaves over 1 % unjudged)
+  double saturated = 0;  // share of the window's pixels at full scale (optics/camera_fit.hpp at_full_scale)
 };
 
 enum class FactorStructure { Shift, Free };

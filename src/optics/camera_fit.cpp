@@ -125,6 +125,11 @@ double noise_leak(const torch::Tensor& U, const torch::Tensor& V, int draws) {
   return largest;
 }
 
+torch::Tensor at_full_scale(const torch::Tensor& window, int adc_bits) {
+  const double top = static_cast<double>(((1 << adc_bits) - 1) * (1 << (16 - adc_bits))) / 65535.0;
+  return window >= static_cast<float>(top - 0.5 / 65535.0);
+}
+
 torch::Tensor unexplained_energy(const torch::Tensor& Y, const torch::Tensor& U, const torch::Tensor& V) {
   const auto inside = torch::matmul(torch::matmul(U, torch::matmul(torch::matmul(U.transpose(1, 2), Y), V)),
                                     V.transpose(1, 2));  // {4,h,w}: U U^T Y V V^T
@@ -185,10 +190,8 @@ CameraFitResult CameraFit::measure(const torch::Tensor& raw_unit) const {
   const auto Y = without_level(double_centre(window, g.centring), g.centring);  // the separable model's planes
   const auto unexplained = unexplained_energy(Y, U_, V_).sum();
   // The noise model, pixel by pixel: clipped pixels carry no noise.
-  // Full scale is the ADC's top code as stored: (2^bits - 1) * 2^(16 - bits) / 65535 (0.99902 at 10 bits).
   const int bits = g.adc_bits;
-  const double top = static_cast<double>(((1 << bits) - 1) * (1 << (16 - bits))) / 65535.0;
-  const auto saturated = window >= static_cast<float>(top - 0.5 / 65535.0);
+  const auto saturated = at_full_scale(window, bits);
   // The ADC's rounding is noise every pixel has, whatever the fitted floor says: (1 LSB)^2 / 12.
   const double lsb = 1.0 / static_cast<double>((1 << bits) - 1);
   const double floor = std::max(camera_.noise_floor, lsb * lsb / 12);
@@ -201,9 +204,11 @@ CameraFitResult CameraFit::measure(const torch::Tensor& raw_unit) const {
   r.saturated = saturated.to(torch::kFloat32).mean().item<double>();
   // A capture with clipped pixels breaks the noise model (a clipped pixel reads no noise, and the
   // clipping itself is no P X Q^T): beyond 1 % of the window it cannot be judged, and is not flagged.
-  r.judged = r.saturated <= 0.01;
-  r.leak = leak_threshold_ > 0 ? coded_leak(Y, U_, V_) : std::nan("");
-  r.leak_matches = !(leak_threshold_ > 0) || r.leak <= leak_threshold_;
+  r.judged = r.saturated <= kMaxSaturatedShare;
+  // The leak of an unjudged capture would be its clipping's: not measured (nan), not flagged.
+  const bool leak_tested = leak_threshold_ > 0 && r.judged;
+  r.leak = leak_tested ? coded_leak(Y, U_, V_) : std::nan("");
+  r.leak_matches = !leak_tested || r.leak <= leak_threshold_;
   r.matches = !r.judged || (std::isfinite(r.fit) && r.fit <= threshold_ && r.leak_matches);
   return r;
 }

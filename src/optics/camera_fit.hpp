@@ -59,6 +59,12 @@ torch::Tensor unexplained_energy(const torch::Tensor& Y, const torch::Tensor& U,
 // and the share of a pixel's noise variance expected there: dof / (h w), less what the rank-1
 // component takes, (sqrt(h-1) + sqrt(w-1))^2 / (h w), dof = (h-1)(w-1) - N^2.
 double outside_share(int64_t h, int64_t w, int64_t n);
+// A window's pixels at the ADC's top code as stored, (2^bits - 1) * 2^(16 - bits) / 65535 of full
+// scale (0.99902 at 10 bits): {4,h,w} -> bool, same shape. Clipped pixels carry no noise and are no
+// P X Q^T, so over kMaxSaturatedShare of them a capture is not judged, and calibrate --dataset leaves
+// such pairs out of the leak threshold.
+torch::Tensor at_full_scale(const torch::Tensor& window, int adc_bits);
+constexpr double kMaxSaturatedShare = 0.01;
 // The near-twin test (header comment): the larger, over the blocks B and C, of the stacked planes'
 // largest singular value over their 41st. Y {4,h,w} (double-centred here, whatever its centring);
 // U {4,h,N}, V {4,w,N} orthonormal. Needs N > 41 and h, w > N + 41.
