@@ -48,15 +48,15 @@ fit_of() {  # SET INPUT: Tikhonov through the judging camera; the fit lands in c
   local out=$fits/fit-$1
   [ -f "$out/camera_fit.csv" ] ||
     "$flatnet" recon --method tikhonov --camera "$judge" --input "$2" --out "$out" --force > /dev/null 2>&1 || true
-  # camera_fit.csv: name,fit,leak,matches
-  awk -F, 'NR > 1 { n++; m += $4; if ($2 == "nan") { s++; next }; j++
+  # camera_fit.csv: name,fit,leak,alone,matches (alone: the capture's own tests; matches: with its batch's)
+  awk -F, 'NR > 1 { n++; a += $4; m += $5; if ($2 == "nan") { s++; next }; j++
                      if (j == 1 || $2 > max) max = $2; if (j == 1 || $2 < min) min = $2
                      if ($3 != "nan") { k++; if (k == 1 || $3 > lmax) lmax = $3; if (k == 1 || $3 < lmin) lmin = $3 } }
-           END { printf "| %d | %d | %d | %.4f - %.4f | %.3f - %.3f |", n, m, s, min, max, lmin, lmax }' "$out/camera_fit.csv"
+           END { printf "| %d | %d | %d | %d | %.4f - %.4f | %.3f - %.3f |", n, a, m, s, min, max, lmin, lmax }' "$out/camera_fit.csv"
 }
 {
-  echo "| set | captures | fit the reference camera | saturated (not judged) | fit, lowest - highest | leak, lowest - highest |"
-  echo "|---|---|---|---|---|---|"
+  echo "| set | captures | fit alone | fit, judged with their batch | saturated (not judged alone) | fit, lowest - highest | leak, lowest - highest |"
+  echo "|---|---|---|---|---|---|---|"
   for set in reference dim lamp learned random; do
     echo "| $set $(fit_of "$set" "$runs/$set/val_meas.txt")"
   done

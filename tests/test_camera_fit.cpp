@@ -127,6 +127,39 @@ TEST_CASE("the camera fit flags a near twin's capture by its coded leak and says
   CHECK(fit.excess(leaking) == Approx(2.0));
   CHECK_THAT(fit.verdict(leaking), Contains("coded leak") && Contains("another mask"));
   CHECK_THAT(fit.verdict(twin), Contains("fit ") && Contains("against <= "));
+  CameraFitResult both = leaking;  // both tests fail: both named
+  both.fit = 2 * fit.threshold();
+  CHECK_THAT(fit.verdict(both), Contains("fit 2") && Contains(", coded leak"));
+
+  // A batch is one camera's captures: judged as a whole by the lower median of its judged captures'
+  // excess. A result whose excess is e (its fit e times the threshold):
+  const auto with_excess = [&](double e, bool judged = true) {
+    CameraFitResult r;
+    r.fit = e * fit.threshold(), r.leak = 0, r.judged = judged, r.matches = !judged || e <= 1;
+    return r;
+  };
+  const auto own_batch = judge_batch(fit, {own, own, own});
+  CHECK(own_batch.judged == 3);
+  CHECK(own_batch.median_excess < 1.0);
+  CHECK_FALSE(own_batch.foreign);
+  // A twin's batch where two of five pass alone is flagged as a whole (lower median 1.5).
+  const auto twins = judge_batch(fit, {with_excess(0.9), with_excess(1.5), with_excess(1.6), with_excess(0.95),
+                                       with_excess(2.0)});
+  CHECK(twins.median_excess == Approx(1.5));
+  CHECK(twins.foreign);
+  // The camera's own batch with two odd captures in it is not: they stay flagged alone.
+  CHECK_FALSE(judge_batch(fit, {with_excess(0.9), with_excess(0.9), with_excess(0.9), with_excess(3), with_excess(3)}).foreign);
+  // Too few judged captures for a batch verdict; unjudged (saturated) ones do not count.
+  CHECK_FALSE(judge_batch(fit, {with_excess(2), with_excess(2)}).foreign);
+  const auto mostly_saturated = judge_batch(fit, {with_excess(2), with_excess(2), with_excess(5, false),
+                                                  with_excess(5, false)});
+  CHECK(mostly_saturated.judged == 2);
+  CHECK_FALSE(mostly_saturated.foreign);
+  CHECK(judge_batch(fit, {}).judged == 0);
+  // Even counts take the lower median (the lenient one); a fit that is not a number is a misfit.
+  CHECK(judge_batch(fit, {with_excess(0.5), with_excess(0.8), with_excess(1.2), with_excess(1.4)}).median_excess ==
+        Approx(0.8));
+  CHECK(judge_batch(fit, {with_excess(std::nan("")), with_excess(std::nan("")), with_excess(0.5)}).foreign);
 
   // A camera file's leak_threshold (an estimated calibration's own spread) raises the bar.
   camera.leak_threshold = 2 * twin.leak;

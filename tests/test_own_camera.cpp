@@ -108,8 +108,8 @@ TEST_CASE("own camera: calibrate from the dataset, train, infer, and the camera 
   CHECK_THAT(r.output, Contains("for camera 'tiny'"));
   auto rows = read_lines(s.dir / "rec" / "camera_fit.csv");
   REQUIRE(rows.size() == 25);
-  CHECK(rows[0] == "name,fit,leak,matches");
-  for (size_t i = 1; i < rows.size(); ++i) CHECK(rows[i].substr(rows[i].size() - 2) == ",1");
+  CHECK(rows[0] == "name,fit,leak,alone,matches");
+  for (size_t i = 1; i < rows.size(); ++i) CHECK(rows[i].substr(rows[i].size() - 4) == ",1,1");
   CHECK_THAT(r.output, !Contains("do not fit"));
 
   r = test::run_flatnet("infer --model " + q(model) + " --input " + q(s.dir / "other_ds" / "val_meas.txt") +

@@ -1,6 +1,7 @@
 #include "hw/live.hpp"
 
 #include <algorithm>
+#include <deque>
 #include <iomanip>
 #include <ostream>
 #include <sstream>
@@ -18,25 +19,38 @@ double ms_since(Clock::time_point t) { return std::chrono::duration<double, std:
 
 // One frame's camera fit, counted in `s`; the text the overlay shows. The first misfit is said on
 // opt.warn, or ends the view under require_fit.
-std::string judge_frame(const CameraFit& fit, const torch::Tensor& raw_unit, const LiveOptions& opt, LiveStats& s) {
+// `recent`: the last kFitWindow judged frames' results, judged as a batch too (judge_batch).
+std::string judge_frame(const CameraFit& fit, const torch::Tensor& raw_unit, const LiveOptions& opt, LiveStats& s,
+                        std::deque<CameraFitResult>& recent) {
   const auto result = fit.measure(raw_unit);
   ++s.fit_checks;
+  if (result.judged) recent.push_back(result);
+  if (recent.size() > kFitWindow) recent.pop_front();
+  const auto stream = judge_batch(fit, {recent.begin(), recent.end()});
   std::ostringstream text;
   text << std::fixed << std::setprecision(2);
-  if (!result.judged) return "camera fit: not judged (saturated)";
-  if (result.matches) {
+  if (result.matches && !stream.foreign) {
+    if (!result.judged) return "camera fit: not judged (saturated)";
     text << "camera fit " << result.fit;
     return text.str();
   }
   ++s.misfits;
-  s.worst_fit = std::max(s.worst_fit, result.fit);
+  if (result.judged) s.worst_fit = std::max(s.worst_fit, result.fit);
   std::ostringstream line;
   line << std::setprecision(3) << "frame " << s.frames + 1 << " does not fit camera '" << printable(fit.camera_name())
-       << "' (" << fit.verdict(result) << "): " << misfit_advice();
+       << "' (";
+  if (stream.foreign)
+    line << "with the last " << stream.judged << " judged frames: their median is " << stream.median_excess
+         << "x the camera fit's thresholds; this frame: ";
+  line << fit.verdict(result) << "): " << misfit_advice();
   require_option(!opt.require_fit, "live.require_fit", line.str());
   if (s.misfits == 1 && opt.warn) *opt.warn << "warning: live: " << line.str() << std::endl;
-  text << "NOT camera '" << printable(fit.camera_name()) << "' (" << (result.leak_matches ? "fit " : "leak ")
-       << (result.leak_matches ? result.fit : result.leak) << ")";
+  text << "NOT camera '" << printable(fit.camera_name()) << "' (";
+  if (result.matches)
+    text << "frames' median " << stream.median_excess << "x";
+  else
+    text << (result.leak_matches ? "fit " : "leak ") << (result.leak_matches ? result.fit : result.leak);
+  text << ")";
   return text.str();
 }
 }  // namespace
@@ -49,6 +63,7 @@ LiveStats run_live(FrameSource& source, Reconstructor& engine, Display* display,
   auto last_report = start;
   int64_t frames_at_report = 0;
   std::string overlay, fit_text;
+  std::deque<CameraFitResult> recent_fits;  // the stream's last judged frames
   auto last_fit = start;
   const FinishItemOnInterrupt finish_frame;  // Ctrl-C ends this frame, then the loop
   while (!interrupted()) {
@@ -68,7 +83,7 @@ LiveStats run_live(FrameSource& source, Reconstructor& engine, Display* display,
     const auto planes = preprocess_raw(unit, opt.geometry);
     prep += ms_since(t);
     if (opt.fit && (s.frames == 0 || std::chrono::duration<double>(Clock::now() - last_fit).count() >= opt.fit_seconds)) {
-      fit_text = judge_frame(*opt.fit, unit, opt, s);
+      fit_text = judge_frame(*opt.fit, unit, opt, s, recent_fits);
       last_fit = Clock::now();
     }
     t = Clock::now();

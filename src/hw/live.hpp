@@ -18,11 +18,15 @@ struct LiveOptions {
   std::ostream* log = nullptr;  // where to print the rate once a second (e.g. --no-window)
   // Whether the frames fit the camera the engine is for (optics/camera_fit.hpp): measured on the first
   // frame and then every `fit_seconds`; shown on screen, a misfit said once on `warn`. null: not judged.
+  // A stream is one camera's frames: the last kFitWindow judged frames are also judged as a batch
+  // (judge_batch), so a near twin's flat frame is flagged with its stream.
   const CameraFit* fit = nullptr;
   double fit_seconds = 1.0;
   bool require_fit = false;      // a frame that does not fit ends the view with an error instead
   std::ostream* warn = nullptr;  // where the misfit line goes (stderr)
 };
+
+constexpr size_t kFitWindow = 15;
 
 struct LiveStats {
   int64_t frames = 0;

@@ -175,10 +175,10 @@ double CameraFit::excess(const CameraFitResult& r) const {
 std::string CameraFit::verdict(const CameraFitResult& r) const {
   std::ostringstream text;
   text << std::setprecision(3);
-  if (r.leak_matches || r.fit > threshold_)
-    text << "fit " << r.fit << " against <= " << threshold_;
-  else
-    text << "coded leak " << r.leak << " against <= " << leak_threshold_
+  const bool fit_fails = !(r.fit <= threshold_);
+  if (fit_fails || r.leak_matches) text << "fit " << r.fit << " against <= " << threshold_;  // or within both
+  if (!r.leak_matches)
+    text << (fit_fails ? ", " : "") << "coded leak " << r.leak << " against <= " << leak_threshold_
          << ": a coded scene outside the calibration's spans, as from another mask on this sensor";
   return text.str();
 }
@@ -211,6 +211,23 @@ CameraFitResult CameraFit::measure(const torch::Tensor& raw_unit) const {
   r.leak_matches = !leak_tested || r.leak <= leak_threshold_;
   r.matches = !r.judged || (std::isfinite(r.fit) && r.fit <= threshold_ && r.leak_matches);
   return r;
+}
+
+BatchFit judge_batch(const CameraFit& fit, const std::vector<CameraFitResult>& results) {
+  std::vector<double> excess;
+  for (const auto& r : results)
+    if (r.judged) {
+      const double e = fit.excess(r);
+      excess.push_back(std::isnan(e) ? std::numeric_limits<double>::infinity() : e);  // nan: no fit at all
+    }
+  BatchFit b;
+  b.judged = static_cast<int64_t>(excess.size());
+  if (excess.empty()) return b;
+  const auto lower_median = excess.begin() + (excess.size() - 1) / 2;
+  std::nth_element(excess.begin(), lower_median, excess.end());
+  b.median_excess = *lower_median;
+  b.foreign = b.judged >= kMinBatchJudged && b.median_excess > 1;
+  return b;
 }
 
 }  // namespace flatnet

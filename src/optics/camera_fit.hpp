@@ -27,6 +27,7 @@
 // over the 41st (coded_leak). Noise gives a value its shape alone fixes (1.17-1.20 at 500x620, N 256),
 // whatever the light level and without the noise model; a twin's coded scene gives 1.3-3.
 #include <string>
+#include <vector>
 
 #include <torch/torch.h>
 
@@ -84,7 +85,7 @@ class CameraFit {
   double leak_threshold() const { return leak_threshold_; }
   // How far a capture is from fitting: the larger of fit and leak over their thresholds (> 1: a misfit).
   double excess(const CameraFitResult& r) const;
-  // Why a capture does not fit, for messages: "fit 4.2 against <= 1.02" or "coded leak 1.8 against <= 1.31 ...".
+  // Why a capture does not fit, for messages: "fit 4.2 against <= 1.02", "coded leak 1.8 against <= 1.31 ...", or both.
   std::string verdict(const CameraFitResult& r) const;
   const std::string& camera_name() const { return camera_.name; }
 
@@ -95,5 +96,21 @@ class CameraFit {
   double leak_threshold_ = 0;  // noise_leak x 1.1, or the camera file's when larger (an estimated calibration)
   double outside_share_ = 0;  // outside_share(h, w, N)
 };
+
+// Captures of one batch (the files of one `infer`, the frames of one `live` view) come from one
+// camera, and a batch is judged as a whole too. A near twin's captures leak 1.2-3.2 by their scenes,
+// and a few (flat, dim scenes with little coded structure beside the noise) fall inside noise's reach
+// one by one; their batch does not: its median capture leaks 1.86, the camera's own median 1.20
+// (docs/own-camera.md, 150 captures each). So when at least kMinBatchJudged captures are judged and
+// the lower median of their excess (CameraFit::excess) is above 1, every capture of the batch is
+// flagged, judged or not. The median keeps a batch of the camera's own captures with a few odd ones
+// (a covered lens, a flash) from being flagged as a whole: those stay flagged alone.
+constexpr int64_t kMinBatchJudged = 3;
+struct BatchFit {
+  int64_t judged = 0;        // captures the camera fit judged
+  double median_excess = 0;  // the lower median of their excess (0 when none is judged)
+  bool foreign = false;      // judged >= kMinBatchJudged and median_excess > 1
+};
+BatchFit judge_batch(const CameraFit& fit, const std::vector<CameraFitResult>& results);
 
 }  // namespace flatnet

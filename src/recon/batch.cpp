@@ -80,28 +80,44 @@ std::string csv_field(const std::string& text) {
 
 struct FitRow {
   std::string name;
-  CameraFitResult result;
+  CameraFitResult result;  // the capture alone
+  bool matches = true;     // alone, and its batch as a whole (settle_fits)
 };
 
-void note_fit(BatchReport& report, const FitRow& row, const CameraFit& fit) {
-  if (!row.result.judged) ++report.unjudged;
-  if (row.result.matches) return;
-  ++report.misfits;
-  const double excess = fit.excess(row.result);
-  if (excess > report.worst_excess || report.worst.empty()) {
-    report.worst = row.name, report.worst_fit = row.result.fit;
-    report.worst_excess = excess, report.worst_verdict = fit.verdict(row.result);
+// The batch judged as a whole (judge_batch): a foreign batch flags every capture of it.
+BatchFit settle_fits(std::vector<FitRow>& rows, const CameraFit& fit) {
+  std::vector<CameraFitResult> results;
+  for (const auto& r : rows) results.push_back(r.result);
+  const auto batch = judge_batch(fit, results);
+  for (auto& r : rows) r.matches = r.result.matches && !batch.foreign;
+  return batch;
+}
+
+void summarise_fits(BatchReport& report, const std::vector<FitRow>& rows, const BatchFit& batch, const CameraFit& fit) {
+  report.batch = batch;
+  for (const auto& row : rows) {
+    if (!row.result.judged) ++report.unjudged;
+    if (row.matches) continue;
+    ++report.misfits;
+    // A capture flagged only with its batch, too saturated to judge, ranks last: its fit means nothing.
+    const double excess = row.result.judged ? fit.excess(row.result) : 0;
+    if (excess > report.worst_excess || report.worst.empty()) {
+      report.worst = row.name, report.worst_fit = row.result.fit;
+      report.worst_excess = excess, report.worst_verdict = fit.verdict(row.result);
+    }
   }
 }
 
 void write_fit_csv(const std::filesystem::path& path, const std::vector<FitRow>& rows) {
   std::ostringstream csv;
-  csv << "name,fit,leak,matches\n";
-  // A saturated capture's fit means nothing: written as nan, and not flagged. The leak is nan where it
-  // is not measured (a window too small beside the scene).
+  csv << "name,fit,leak,alone,matches\n";
+  // A saturated capture's fit means nothing: written as nan, and not flagged alone. The leak is nan
+  // where it is not measured (a window too small beside the scene). alone: the capture's own tests;
+  // matches: those and its batch's (judge_batch).
   for (const auto& r : rows)
     csv << csv_field(r.name) << "," << std::setprecision(6) << (r.result.judged ? r.result.fit : std::nan("")) << ","
-        << (r.result.judged ? r.result.leak : std::nan("")) << "," << (r.result.matches ? 1 : 0) << "\n";
+        << (r.result.judged ? r.result.leak : std::nan("")) << "," << (r.result.matches ? 1 : 0) << ","
+        << (r.matches ? 1 : 0) << "\n";
   write_text_atomically(path, csv.str());
 }
 
@@ -109,13 +125,11 @@ void write_fit_csv(const std::filesystem::path& path, const std::vector<FitRow>&
 // camera_fit.csv, so the batch loop does not measure them again.
 std::vector<FitRow> require_all_fit(const CameraFit& fit, const std::vector<std::filesystem::path>& captures,
                                     const RawGeometry& g) {
+  std::vector<FitRow> rows;
+  for (const auto& c : captures) rows.push_back({c.filename().string(), fit.measure(load_raw_unit(c, g))});
   BatchReport probe;
   probe.count = static_cast<int64_t>(captures.size());
-  std::vector<FitRow> rows;
-  for (const auto& c : captures) {
-    rows.push_back({c.filename().string(), fit.measure(load_raw_unit(c, g))});
-    note_fit(probe, rows.back(), fit);
-  }
+  summarise_fits(probe, rows, settle_fits(rows, fit), fit);
   if (probe.misfits > 0) throw Error(option_key("recon.require_fit"), camera_fit_warning(probe, fit));
   return rows;
 }
@@ -131,9 +145,12 @@ std::string camera_fit_note(const BatchReport& report) {
 std::string camera_fit_warning(const BatchReport& report, const CameraFit& fit) {
   if (report.misfits == 0) return "";
   std::ostringstream line;
-  line << std::setprecision(3) << report.misfits << " of " << report.count
-       << " captures do not fit camera '" << printable(fit.camera_name()) << "' (worst: " << printable(report.worst)
-       << ", " << report.worst_verdict << "): " << misfit_advice();
+  line << std::setprecision(3) << report.misfits << " of " << report.count << " captures do not fit camera '"
+       << printable(fit.camera_name()) << "' (";
+  if (report.batch.foreign)
+    line << "as a batch of one camera's captures: its median capture is " << report.batch.median_excess
+         << "x the camera fit's thresholds, over " << report.batch.judged << " judged; ";
+  line << "worst: " << printable(report.worst) << ", " << report.worst_verdict << "): " << misfit_advice();
   return line.str();
 }
 
@@ -158,10 +175,7 @@ BatchReport reconstruct_files(Reconstructor& engine, const CameraConfig& camera,
     for (size_t i = first; i < last; ++i) {
       const auto raw = load_raw_unit(captures[i], camera.raw);
       planes.push_back(preprocess_raw(raw, camera.raw));
-      if (opt.fit) {
-        if (!measured) fits.push_back({captures[i].filename().string(), opt.fit->measure(raw)});
-        note_fit(report, fits[i], *opt.fit);
-      }
+      if (opt.fit && !measured) fits.push_back({captures[i].filename().string(), opt.fit->measure(raw)});
     }
     const auto t0 = std::chrono::steady_clock::now();
     const auto images = engine.reconstruct(torch::stack(planes));  // {B,4,rows,cols} -> {B,3,N,N}
@@ -176,7 +190,10 @@ BatchReport reconstruct_files(Reconstructor& engine, const CameraConfig& camera,
     progress.tick(static_cast<int64_t>(last - first));
   }
   progress.finish();
-  if (opt.fit) write_fit_csv(opt.out / "camera_fit.csv", fits);
+  if (opt.fit) {
+    summarise_fits(report, fits, settle_fits(fits, *opt.fit), *opt.fit);
+    write_fit_csv(opt.out / "camera_fit.csv", fits);
+  }
   report.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
   report.first_batch_ms = 1000.0 * first_batch_s / std::max<int64_t>(1, first_batch_count);
   report.steady_state = report.count > first_batch_count;

@@ -36,6 +36,7 @@ struct BatchReport {
   double worst_fit = 0;
   std::string worst_verdict;   // why the worst capture does not fit (CameraFit::verdict)
   double worst_excess = 0;     // how far it is from fitting (CameraFit::excess)
+  BatchFit batch;              // the batch judged as a whole (optics/camera_fit.hpp judge_batch)
   // The engine alone (no file I/O), in steady state: when there is more than one batch the first is
   // left out, since it also sets the engine up (weights reordered, buffers first touched: seconds
   // for a paper-width model). first_batch_ms is that batch's time per capture.
