@@ -19,6 +19,7 @@
 #include "eval/thesis_report.hpp"
 #include "helpers.hpp"
 #include "io/camera_config.hpp"
+#include "io/config.hpp"
 #include "io/torch_file.hpp"
 #include "io/yaml_text.hpp"
 #include "nn/onnx_export.hpp"
@@ -273,4 +274,47 @@ TEST_CASE("SIGTERM outside a training step ends a command at once, and inside on
   const int inside = child(true);
   REQUIRE(WIFEXITED(inside));
   CHECK(WEXITSTATUS(inside) == 42);
+}
+
+TEST_CASE("a switch given a value is read by its value: --force=false never replaces, a bad value is refused",
+          "[safe][hostile][cli]") {
+  test::Scratch s("hostile_switch_value");
+  const auto out = s.dir / "calib.mat";
+  write_file(out, "the user's calibration");
+  for (const std::string off : {"false", "0", "no", "OFF"}) {
+    INFO(off);
+    const auto r = test::run_flatnet("calibrate --rig " + q(test::rig_path()) + " --out " + q(out) + " --force=" + off);
+    CHECK(r.code == 2);
+    CHECK_THAT(r.output, Contains("exists"));
+    CHECK(read_file(out) == "the user's calibration");
+  }
+  const auto bad = test::run_flatnet("calibrate --rig " + q(test::rig_path()) + " --out " + q(out) + " --force=maybe");
+  CHECK(bad.code == 2);
+  CHECK_THAT(bad.output, Contains("--force") && Contains("maybe") && Contains("true or false"));
+  CHECK(read_file(out) == "the user's calibration");
+}
+
+TEST_CASE("a camera's rotation is radians: a value in degrees is refused with its unit named", "[safe][hostile]") {
+  const std::string base = "name: r\nraw_height: 64\nraw_width: 64\nadc_bits: 10\ncrop: [0, 0, 32, 32]\nscene_size: 16\n";
+  CHECK_NOTHROW(camera_from_yaml_text(base + "rotation: 0.00174\n", "cam.yaml"));
+  CHECK_NOTHROW(camera_from_yaml_text(base + "rotation: -0.1\n", "cam.yaml"));
+  for (const std::string bad : {"90", "400", "-3.1416", "1"}) {
+    INFO(bad);
+    CHECK_THROWS_WITH(camera_from_yaml_text(base + "rotation: " + bad + "\n", "cam.yaml"),
+                      Contains("cam.yaml") && Contains("radians"));
+  }
+}
+
+TEST_CASE("a string setting that looks like YAML is written back as the same string, and reads back",
+          "[safe][hostile][config]") {
+  test::Scratch s("hostile_config_string");
+  for (const std::string value : {"[&a0 [x, y], *a0, *a0, *a0]", "[my photos", "[a, [b]]", "plain"}) {
+    INFO(value);
+    const auto c = Config::load({}, {"data.images=" + value});
+    std::string yaml;
+    REQUIRE_NOTHROW(yaml = c.to_yaml());
+    write_file(s.dir / "config.yaml", yaml);
+    const auto back = Config::load(s.dir / "config.yaml");
+    CHECK(back.str("data.images") == value);
+  }
 }

@@ -12,11 +12,103 @@
 #include "io/yaml_text.hpp"
 #include "optics/calibrate.hpp"
 #include "optics/calibrate_dataset.hpp"
+#include "optics/calibrate_references.hpp"
+#include "optics/separable_inverse.hpp"
 #include "optics/camera_fit.hpp"
 
 namespace flatnet::cli {
 
 namespace {
+
+// The references' planes {4,N,N} (b, gb, gr, r) from an 8- or 16-bit RGB reconstruction, in its own
+// units (someone else's reconstruction is not sRGB-encoded light: the gain and offset per pair absorb
+// its scaling). `order` says which file channel holds red.
+torch::Tensor reference_planes(const std::filesystem::path& path, int64_t N, const std::string& order) {
+  auto rgb = read_rgb(path);  // {3,H,W}
+  if (order == "bgr") rgb = rgb.flip(0);
+  if (rgb.size(1) != N || rgb.size(2) != N) rgb = resize(rgb, N, N).clamp(0, 1);
+  return rgb_to_bayer_planes(rgb);
+}
+
+void print_held_out(const std::vector<HeldOutPair>& held) {
+  std::cout << "leave-one-out: each pair reconstructed (Tikhonov) from a calibration of the others, Pearson "
+               "correlation with its reference (pixels clipped at zero left out)\n"
+            << "  pair                  b      gb     gr     r      shifts (rows, cols)\n";
+  for (const auto& h : held) {
+    std::cout << "  " << std::left << std::setw(20) << printable(h.name).substr(0, 20) << std::right << std::fixed
+              << std::setprecision(3);
+    for (const double c : h.correlation) std::cout << " " << std::setw(6) << c;
+    std::cout << "   " << std::setprecision(4) << h.shift_rows << ", " << h.shift_cols << "\n";
+    std::cout.unsetf(std::ios::fixed);
+  }
+}
+
+// `flatnet calibrate --meas-list M --gt-list R --references`: a handful of direct captures and
+// someone else's reconstructions of them (optics/calibrate_references.hpp).
+int calibrate_from_reference_pairs(const cxxopts::ParseResult& r, const CameraConfig& camera,
+                                   const std::vector<Pair>& pairs, const std::filesystem::path& out) {
+  const auto order = r["reference-order"].as<std::string>();
+  require(order == "rgb" || order == "bgr", "--reference-order", "rgb or bgr, not '" + printable(order) + "'");
+  const double lambda = r["reference-lambda"].as<double>();
+  require(std::isfinite(lambda) && lambda > 0 && lambda < 1, "--reference-lambda",
+          "a relative regulariser in (0, 1), such as 3e-4");
+  std::vector<ReferencePair> refs;
+  for (const auto& p : pairs) {
+    const auto window = raw_window(load_raw_unit(p.meas, camera.raw), camera.raw);  // {4,rows,cols}
+    refs.push_back({p.meas.filename().string(), without_level(double_centre(window, camera.raw.centring), camera.raw.centring),
+                    reference_planes(p.gt, camera.scene_size, order)});
+  }
+  ReferenceCalibrationOptions o;
+  o.seed = r["seed"].as<uint64_t>();
+  o.shift.min_shift = r["min-shift"].as<double>();
+  o.shift.max_shift = r["max-shift"].as<double>();
+  require(o.shift.min_shift > 0 && o.shift.max_shift > o.shift.min_shift && o.shift.max_shift <= 16, "--min-shift",
+          "0 < --min-shift < --max-shift <= 16 sensor pixels per scene pixel");
+  std::cerr << "calibrate: " << refs.size() << " captures with reference reconstructions (" << order
+            << "), shifts searched from " << o.shift.min_shift << " to " << o.shift.max_shift << " both ways\n";
+  double held_mean = -1;
+  if (refs.size() >= 3) {
+    const auto held = leave_one_out(refs, lambda, o);
+    print_held_out(held);
+    double sum = 0;
+    for (const auto& h : held) sum += (h.correlation[0] + h.correlation[1] + h.correlation[2] + h.correlation[3]) / 4;
+    held_mean = sum / static_cast<double>(held.size());
+    // The structure is judged on the held-out pairs: a calibration that cannot reconstruct a pair it
+    // did not see has fitted the pairs, not the camera.
+    require(held_mean >= 0.5, "calibrate",
+            "held-out pairs are not reconstructed (mean correlation " + std::to_string(held_mean) +
+                "): the references are not reconstructions of these captures, the colour order is wrong "
+                "(--reference-order), or the shifts lie outside --min-shift..--max-shift");
+  } else {
+    std::cout << "leave-one-out needs 3 pairs or more: the calibration is not checked on held-out pairs\n";
+  }
+  const auto fit = calibrate_from_references(refs, o);
+  if (r.count("compact"))
+    save_shift_calibration(out, fit.profile_rows, fit.profile_cols, fit.shift_rows, fit.shift_cols);
+  else
+    save_calibration(out, fit.calib);
+  const auto inverse = separable_inverse(fit.calib.P, fit.calib.Q, 1.0);
+  const double top = (inverse.sL.select(1, 0) * inverse.sR.select(1, 0)).max().item<double>();
+  auto known = camera;
+  known.rig.clear();
+  known.tikhonov_lambda = lambda * top * top;
+  std::ostringstream head;
+  head << "# identified by `flatnet calibrate --references` from " << refs.size()
+       << " captures and reconstructions of them; the shadow moves " << std::setprecision(6) << fit.shift_rows
+       << " sensor pixels per scene row, " << fit.shift_cols << " per scene column; residual per channel:";
+  for (const double v : fit.residual) head << " " << std::setprecision(4) << v;
+  if (held_mean >= 0) head << "\n# leave-one-out: mean held-out correlation " << std::setprecision(4) << held_mean;
+  head << "\n# tikhonov_lambda is " << lambda << " of the largest squared singular value product\n";
+  const auto yaml_path = out.parent_path() / "camera.yaml";
+  write_text_atomically(yaml_path, head.str() + camera_geometry_yaml(known) + "calibration: " +
+                                       yaml_quoted(out.filename().string()) + "\n");
+  std::cout << "wrote " << out.string() << " and " << yaml_path.string() << "\nshift structure: the shadow moves "
+            << std::setprecision(6) << fit.shift_rows << " sensor pixels per scene row, " << fit.shift_cols
+            << " per scene column\nfit residual ||Y - P (a R + b) Q^T|| / ||Y||:";
+  for (int c = 0; c < 4; ++c) std::cout << " " << kChannelNames[c] << " " << std::setprecision(4) << fit.residual[c];
+  std::cout << "\n";
+  return 0;
+}
 
 // `flatnet calibrate --dataset DIR`: the calibration identified from display-capture pairs
 // (optics/calibrate_dataset.hpp), written with a camera.yaml beside it and the fit per channel.
@@ -24,7 +116,17 @@ int calibrate_from_dataset(const cxxopts::ParseResult& r) {
   const auto camera = camera_from(r);
   const std::filesystem::path out = r["out"].as<std::string>();
   require(out.extension() == ".mat", "--out", "the calibration is a .mat file (FlatNet's layout), got '" + out.string() + "'");
-  require_new_output(out, r.count("force") > 0);
+  // Every file this command reads is an input that no output may land on, even with --force: the
+  // camera file given, the rig and calibration it names, and the lists.
+  std::vector<std::filesystem::path> inputs = {camera.rig, camera.calibration};
+  if (r.count("camera")) inputs.push_back(r["camera"].as<std::string>());
+  for (const auto* flag : {"meas-list", "gt-list"})
+    if (r.count(flag)) inputs.push_back(r[flag].as<std::string>());
+  const bool force = r.count("force") > 0;
+  require_new_output(out, force, inputs);
+  // The camera.yaml written beside it is an output too: an existing one (perhaps hand-tuned) is
+  // replaced only with --force, and never when it is one of the inputs.
+  require_new_output(out.parent_path() / "camera.yaml", force, inputs);
   std::vector<Pair> pairs;
   if (r.count("meas-list") || r.count("gt-list")) {  // FlatNet's own list files
     require(r.count("meas-list") && r.count("gt-list"), "--meas-list", "give both --meas-list and --gt-list");
@@ -49,6 +151,7 @@ int calibrate_from_dataset(const cxxopts::ParseResult& r) {
   const auto limit = r["limit"].as<int64_t>();
   require(limit >= 0, "--limit", "0 (all) or more");
   if (limit > 0 && static_cast<int64_t>(pairs.size()) > limit) pairs.resize(static_cast<size_t>(limit));
+  if (r.count("references")) return calibrate_from_reference_pairs(r, camera, pairs, out);
   const auto N = camera.scene_size;
   auto load = [&](int64_t i) {
     const auto& p = pairs[static_cast<size_t>(i)];
@@ -149,6 +252,16 @@ int calibrate(int argc, char** argv) {
       cxxopts::value<std::string>()->default_value("shift"))(
       "cache-mb", "decoded pairs kept in memory (the rest are re-read each pass)",
       cxxopts::value<double>()->default_value("2048"));
+  o.add_options("from a few captures and reconstructions of them (with --meas-list/--gt-list)")(
+      "references", "the photographs are someone else's reconstructions of the captures (a lost calibration): "
+      "a gain and offset per pair and channel, pixels clipped at zero left out, judged by leave-one-out")(
+      "reference-order", "colour order of the reference files: rgb or bgr", cxxopts::value<std::string>()->default_value("rgb"))(
+      "reference-lambda", "Tikhonov regulariser of the held-out check and the camera file, relative to the largest "
+      "squared singular value product", cxxopts::value<double>()->default_value("3e-4"))(
+      "min-shift", "smallest |shadow shift| searched, sensor pixels per scene pixel", cxxopts::value<double>()->default_value("0.2"))(
+      "max-shift", "largest |shadow shift| searched", cxxopts::value<double>()->default_value("4"))(
+      "compact", "write the calibration as its profiles and shifts (kilobytes; flatnet expands it) instead of "
+      "FlatNet's P1b..Q1r matrices");
   add_common(o);
   cxxopts::ParseResult r;
   if (!parse(o, argc, argv, r)) return 0;
@@ -175,7 +288,14 @@ int calibrate(int argc, char** argv) {
           "expected train or all");
   if (r.count("dataset") || r.count("meas-list")) return calibrate_from_dataset(r);
   const std::filesystem::path out = r["out"].as<std::string>();
-  require_new_output(out, r.count("force") > 0);
+  std::vector<std::filesystem::path> inputs;
+  for (const auto* flag : {"rig", "camera"})
+    if (r.count(flag)) inputs.push_back(r[flag].as<std::string>());
+  if (r.count("rig")) {
+    const auto rig_camera = load_camera_config(r["rig"].as<std::string>());
+    inputs.insert(inputs.end(), {rig_camera.rig, rig_camera.calibration});
+  }
+  require_new_output(out, r.count("force") > 0, inputs);
 
   Calibration est;
   std::optional<Calibration> truth;

@@ -4,6 +4,8 @@
 #include <set>
 #include <cmath>
 #include <iostream>
+#include <string>
+#include <vector>
 
 #include "cli/commands.hpp"
 #include "core/error.hpp"
@@ -66,10 +68,51 @@ void check_numbers(const cxxopts::ParseResult& result) {
 
 }  // namespace
 
+namespace {
+
+// A switch given a value (`--force=false`, as scripts write `--force=$FORCE`) is read by its value:
+// true/1/yes/on keep it, false/0/no/off drop it before cxxopts counts it (every command reads a
+// switch by count), anything else is refused. cxxopts itself counts `--force=false` as given.
+std::vector<std::string> switches_by_value(const cxxopts::Options& options, int argc, char** argv) {
+  std::set<std::string> switches;
+  for (const auto& group : options.groups())
+    for (const auto& option : options.group_help(group).options)
+      if (option.is_boolean)
+        for (const auto& name : option.l) switches.insert(name);
+  std::vector<std::string> args;
+  bool options_ended = false;
+  for (int i = 0; i < argc; ++i) {
+    const std::string arg = argv[i];
+    options_ended = options_ended || arg == "--";
+    const auto eq = arg.find('=');
+    if (i == 0 || options_ended || arg.rfind("--", 0) != 0 || eq == std::string::npos ||
+        !switches.count(arg.substr(2, eq - 2))) {
+      args.push_back(arg);
+      continue;
+    }
+    std::string value = arg.substr(eq + 1);
+    std::transform(value.begin(), value.end(), value.begin(), [](unsigned char c) { return std::tolower(c); });
+    if (value == "true" || value == "1" || value == "yes" || value == "on") {
+      args.push_back(arg.substr(0, eq));
+    } else if (!(value == "false" || value == "0" || value == "no" || value == "off")) {
+      throw Error(arg.substr(0, eq), "'" + printable(arg.substr(eq + 1)) +
+                                         "' is not a switch's value: give true or false (or leave the switch out)");
+    }
+  }
+  return args;
+}
+
+}  // namespace
+
 bool parse(cxxopts::Options& options, int argc, char** argv, cxxopts::ParseResult& result) {
   for (const auto& group : options.groups())
     for (const auto& option : options.group_help(group).options)
       for (const auto& name : option.l) registered_flags().insert(name);
+  const auto args = switches_by_value(options, argc, argv);
+  std::vector<char*> pointers;
+  for (const auto& a : args) pointers.push_back(const_cast<char*>(a.c_str()));
+  argc = static_cast<int>(pointers.size());
+  argv = pointers.data();
   try {
     result = options.parse(argc, argv);
   } catch (const cxxopts::exceptions::incorrect_argument_type& e) {

@@ -38,6 +38,9 @@ std::filesystem::path default_camera_path() { return data_dir() / "configs" / "c
 
 namespace {
 
+constexpr double kMaxRotation = 0.175;  // radians
+
+
 const std::vector<std::string> kKnownKeys = {"name",        "raw_height", "raw_width",       "adc_bits",
                                              "rotation",    "crop",       "centring",        "scene_size",
                                              "calibration", "rig",        "tikhonov_lambda", "tv_lambda",
@@ -55,8 +58,11 @@ void validate(const CameraConfig& c, const std::filesystem::path& path) {
           "crop [top, left, height, width] must lie inside the " + std::to_string(g.plane_height()) + "x" +
               std::to_string(g.plane_width()) + " Bayer plane");
   require(g.raw_height <= 65536 && g.raw_width <= 65536, path, "raw_height and raw_width must be at most 65536");
-  require(std::isfinite(g.rotation) && std::abs(g.rotation) <= 360, path,
-          "rotation must be a finite angle within [-360, 360] degrees");
+  // A mask is glued square to its sensor to within a few milliradians (FlatNet's prototype: 0.00174);
+  // a larger value is a unit mistake (degrees for radians), not a camera.
+  require(std::isfinite(g.rotation) && std::abs(g.rotation) <= kMaxRotation, path,
+          "rotation is in radians, within [-" + std::to_string(kMaxRotation) + ", " + std::to_string(kMaxRotation) +
+              "] (about 10 degrees); got " + std::to_string(g.rotation));
   require(c.scene_size > 0 && c.scene_size <= 4096, path, "scene_size must lie within 1..4096");
   require(std::isfinite(c.noise_gain) && std::isfinite(c.noise_floor) && std::isfinite(c.dark) && c.noise_gain >= 0 &&
               c.noise_gain < 1 && c.noise_floor >= 0 && c.noise_floor < 1 && c.dark >= 0 && c.dark < 1,

@@ -2,6 +2,7 @@
 
 #include <cmath>
 #include <fstream>
+#include <optional>
 #include <regex>
 #include <sstream>
 
@@ -38,6 +39,21 @@ YAML::Node parse_yaml(const std::string& text, const std::filesystem::path& wher
   auto n = parse_yaml_document(text, where);
   require(n.IsMap() || n.IsNull(), where, "expected a mapping of settings");
   return n;
+}
+
+// A stored list setting is its flow text, "[a, b]": a sequence of scalars. Anything else that starts
+// with '[' (a string holding anchors, nested lists, unbalanced brackets) is a string, written as one.
+std::optional<YAML::Node> flat_list(const std::string& value) {
+  if (value.empty() || value.front() != '[') return std::nullopt;
+  try {
+    auto node = parse_yaml_document(value, "config value");
+    if (!node.IsSequence()) return std::nullopt;
+    for (const auto& item : node)
+      if (!item.IsScalar()) return std::nullopt;
+    return node;
+  } catch (const std::exception&) {
+    return std::nullopt;
+  }
 }
 
 std::string read_file(const std::filesystem::path& p) { return read_file_text(p, kMaxYamlBytes); }
@@ -281,6 +297,12 @@ void Config::assign(const std::string& key, const std::string& value, const std:
     for (const auto& kv : values_) known.push_back(kv.first);
     throw Error(where + ": unknown setting '" + printable(key) + "' (" + unknown_key_hint(key, known) + ")");
   }
+  // A list setting given a value that opens a list must be one ("[my photos" is a typo, named here
+  // rather than by the YAML writer later).
+  const auto& current = values_[key];
+  if (!current.empty() && current.front() == '[' && !value.empty() && value.front() == '[' && !flat_list(value))
+    throw Error(where + ": setting '" + printable(key) + "' is a list, but '" + printable(value) +
+                "' is not a YAML list of values such as [a, b]");
   values_[key] = value;
   bases_[key] = base;
 }
@@ -352,10 +374,10 @@ void emit(YAML::Emitter& e, const KeyTree& t) {
     e << YAML::Key << k << YAML::Value;
     if (!child.leaf)
       emit(e, child);
-    else if (!child.value.empty() && child.value.front() == '[')
-      e << YAML::Flow << YAML::Load(child.value);
+    else if (const auto list = flat_list(child.value))
+      e << YAML::Flow << *list;
     else
-      e << child.value;
+      e << child.value;  // a string stays a string, whatever it holds
   }
   e << YAML::EndMap;
 }

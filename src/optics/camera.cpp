@@ -1,5 +1,9 @@
 #include "optics/camera.hpp"
 
+#include <cmath>
+
+#include "optics/shift_structure.hpp"
+
 #include "core/error.hpp"
 #include "core/util.hpp"
 #include "io/image.hpp"
@@ -141,9 +145,37 @@ torch::Tensor capture_planes(const Rig& rig, const torch::Tensor& scene_linear, 
   return double_centre(unit, g.centring);
 }
 
+namespace {
+
+// A compact shift-structured calibration (save_shift_calibration): each factor one profile per
+// channel and its shift, expanded here (optics/shift_structure.hpp eq. 1).
+Calibration load_shift_calibration(const MatReader& mat, const std::filesystem::path& path, int64_t h, int64_t w,
+                                   int64_t n) {
+  const double shift_rows = mat.read_scalar("shift_rows"), shift_cols = mat.read_scalar("shift_cols");
+  require(std::isfinite(shift_rows) && std::isfinite(shift_cols) && std::abs(shift_rows) >= 1e-3 &&
+              std::abs(shift_cols) >= 1e-3 && std::abs(shift_rows) <= 64 && std::abs(shift_cols) <= 64,
+          path, "shift_rows / shift_cols must be finite, 0.001 to 64 sensor pixels per scene pixel");
+  // The profile's length follows from the geometry: checked before anything is expanded.
+  const auto length = [&](int64_t m, double shift) {
+    return m + static_cast<int64_t>(std::floor(std::abs(shift) * static_cast<double>(n - 1) + 1e-9)) + 1;
+  };
+  const auto profile = [&](const char* name, int64_t L) {
+    auto t = mat.read(name);
+    require(t.dim() == 2 && t.size(0) == 4 && std::abs(t.size(1) - L) <= 1, path,
+            std::string(name) + " must be 4 x " + std::to_string(L) + " for this camera's crop, scene and shift");
+    require(torch::isfinite(t).all().item<bool>(), path, std::string(name) + " contains NaN or Inf");
+    return t.to(torch::kFloat64);
+  };
+  const auto fr = profile("profile_rows", length(h, shift_rows)), fc = profile("profile_cols", length(w, shift_cols));
+  return {shift_factor(fr, h, n, shift_rows, 1.0), shift_factor(fc, w, n, shift_cols, 1.0)};
+}
+
+}  // namespace
+
 Calibration load_calibration(const std::filesystem::path& path, const CameraConfig& camera) {
   MatReader mat(path);
   const auto h = camera.raw.crop[2], w = camera.raw.crop[3], n = camera.scene_size;
+  if (mat.has("shift_rows")) return load_shift_calibration(mat, path, h, w, n);
   std::vector<torch::Tensor> P, Q;
   for (const char* c : kChannelNames) {
     const auto pname = std::string("P1") + c, qname = std::string("Q1") + c;
@@ -163,6 +195,14 @@ Calibration load_calibration(const std::filesystem::path& path, const CameraConf
     Q.push_back(q);
   }
   return {torch::stack(P), torch::stack(Q)};
+}
+
+void save_shift_calibration(const std::filesystem::path& path, const torch::Tensor& profile_rows,
+                            const torch::Tensor& profile_cols, double shift_rows, double shift_cols) {
+  write_mat(path, {{"profile_rows", profile_rows.to(torch::kFloat64)},
+                   {"profile_cols", profile_cols.to(torch::kFloat64)},
+                   {"shift_rows", torch::tensor(shift_rows, torch::kFloat64)},
+                   {"shift_cols", torch::tensor(shift_cols, torch::kFloat64)}});
 }
 
 void save_calibration(const std::filesystem::path& path, const Calibration& calib) {

@@ -74,6 +74,10 @@ int channel_index(const std::string& name);
 // Reads P1b..P1r and Q1b..Q1r; checks they match the geometry's crop and scene size.
 Calibration load_calibration(const std::filesystem::path& path, const CameraConfig& camera);
 void save_calibration(const std::filesystem::path& path, const Calibration& calib);
+// A shift-structured calibration as its profiles {4,L} and shifts (kilobytes instead of megabytes);
+// load_calibration expands it. Variables: profile_rows, profile_cols, shift_rows, shift_cols.
+void save_shift_calibration(const std::filesystem::path& path, const torch::Tensor& profile_rows,
+                            const torch::Tensor& profile_cols, double shift_rows, double shift_cols);
 
 // The calibration a perfect procedure would find from this rig: the cropped, double-centred
 // response (P = gain * C PhiL_window, Q = C PhiR_window). Used as ground truth in tests.

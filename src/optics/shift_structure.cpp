@@ -56,7 +56,10 @@ torch::Tensor objective(const torch::Tensor& F, const torch::Tensor& G, const to
 }  // namespace
 
 torch::Tensor shift_factor(const torch::Tensor& profile, int64_t rows, int64_t scene, double shift, double spacing) {
-  return centre_columns(expand(profile, sampling(rows, scene, shift, spacing), rows, scene));
+  const auto s = sampling(rows, scene, shift, spacing);
+  require_option(profile.dim() == 2 && profile.size(1) >= s.length, "calibration",
+                 "a shift profile needs " + std::to_string(s.length) + " samples for this geometry and shift");
+  return centre_columns(expand(profile, s, rows, scene));
 }
 
 ShiftFactor fit_shift_factor(const torch::Tensor& G, const torch::Tensor& H, double shift, const ShiftFitOptions& o,
@@ -94,11 +97,70 @@ ShiftFactor fit_shift_factor(const torch::Tensor& G, const torch::Tensor& H, dou
   return out;
 }
 
+ShiftFactor solve_shift_factor(const torch::Tensor& G, const torch::Tensor& H, double shift) {
+  require_option(std::isfinite(shift) && shift != 0, "calibrate.dataset", "a shift structure needs a non-zero shift");
+  const auto g = G.to(torch::kFloat64), h = H.to(torch::kFloat64);  // {C,N,N}, {C,m,N}
+  const int64_t channels = h.size(0), rows = h.size(1), scene = h.size(2);
+  const auto f64 = torch::TensorOptions().dtype(torch::kFloat64);
+  // Row 0 reads samples d_j and d_j + 1 with weights 1 - w_j and w_j (eq. 1, spacing 1).
+  const double lowest = shift < 0 ? static_cast<double>(scene - 1) * shift : 0.0;
+  const auto pos = torch::arange(scene, f64) * shift - lowest;
+  const auto d = pos.floor().to(torch::kLong);
+  const auto w = pos - pos.floor();
+  const int64_t width = d.max().item<int64_t>() + 2, length = rows + width - 1;
+  const auto j = torch::arange(scene, torch::kLong);
+  auto T0 = torch::zeros({scene, width}, f64);
+  T0.index_put_({j, d}, 1 - w, true);
+  T0.index_put_({j, d + 1}, w, true);
+  const auto M0 = torch::matmul(torch::matmul(T0.t(), g), T0);  // {C,W,W}
+  // Diag[c, delta + W - 1, a] = M0[c, a, a + delta], then windowed sums of m along a.
+  const auto delta = torch::arange(-(width - 1), width, torch::kLong).view({-1, 1});
+  const auto a = torch::arange(width, torch::kLong).view({1, -1}).expand({2 * width - 1, width});
+  const auto b = a + delta;
+  const auto inside = ((b >= 0) & (b < width)).to(torch::kFloat64);
+  const auto diag = M0.index({torch::indexing::Slice(), a, b.clamp(0, width - 1)}) * inside;  // {C,2W-1,W}
+  const auto cumulative = torch::cumsum(torch::constant_pad_nd(diag, {1, length - width}), 2);  // {C,2W-1,L+1}
+  const auto k = torch::arange(length, torch::kLong);
+  const auto windowed = cumulative.index_select(2, (k + 1).clamp_max(length)) -
+                        cumulative.index_select(2, (k + 1 - rows).clamp_min(0));  // {C,2W-1,L}
+  const auto kk = k.view({1, -1}).expand({2 * width - 1, length});
+  const auto ll = kk + delta;
+  const auto valid = (ll >= 0) & (ll < length);
+  auto A = torch::zeros({channels, length, length}, f64);
+  A.index_put_({torch::indexing::Slice(), kk.masked_select(valid), ll.masked_select(valid)},
+               windowed.masked_select(valid.unsqueeze(0)).view({channels, -1}));
+  // The centring: S[j,k] = (1 - w_j) [d_j <= k < d_j + m] + w_j [d_j + 1 <= k < d_j + 1 + m].
+  auto S = torch::zeros({scene, length + 1}, f64);
+  S.index_put_({j, d}, 1 - w, true);
+  S.index_put_({j, d + rows}, -(1 - w), true);
+  S.index_put_({j, d + 1}, w, true);
+  S.index_put_({j, (d + 1 + rows).clamp_max(length)}, -w, true);
+  S = torch::cumsum(S, 1).narrow(1, 0, length);
+  A -= torch::matmul(torch::matmul(S.t(), g), S) / static_cast<double>(rows);
+  // The right-hand side: the adjoint of f -> F applied to the centred H.
+  const auto hc = h - h.mean(1, true);
+  const auto index = (torch::arange(rows, torch::kLong).view({-1, 1}) + d.view({1, -1})).flatten();
+  auto rhs = torch::zeros({channels, length}, f64);
+  rhs.index_add_(1, index, (hc * (1 - w)).flatten(1));
+  rhs.index_add_(1, index + 1, (hc * w).flatten(1));
+  // The profile's constant is invisible in centred captures: a whisper of ridge keeps it at zero.
+  const auto ridge = 1e-8 * static_cast<double>(rows * scene) / static_cast<double>(length) *
+                     g.diagonal(0, 1, 2).mean(1).clamp_min(1e-300).view({channels, 1, 1});
+  const auto f = torch::linalg_solve(A + ridge * torch::eye(length, f64), rhs.unsqueeze(2)).squeeze(2);
+  ShiftFactor out;
+  out.shift = shift;
+  out.profile = f;
+  out.factor = shift_factor(f, rows, scene, shift, 1.0);
+  out.objective = objective(out.factor, g, h);
+  return out;
+}
+
 double search_shift(const torch::Tensor& G, const torch::Tensor& H, const ShiftFitOptions& o, double sigma2) {
   require_option(o.min_shift > 0 && o.max_shift > o.min_shift && o.grid_step > 0 && o.shift_tolerance > 0, "calibrate.dataset",
           "the shift search needs 0 < min_shift < max_shift and positive steps");
+  require_option(!o.exact || o.spacing == 1.0, "calibrate.dataset", "an exact profile solve needs spacing 1");
   const auto cost = [&](double shift, int iterations) {
-    const auto fit = fit_shift_factor(G, H, shift, o, iterations);
+    const auto fit = o.exact ? solve_shift_factor(G, H, shift) : fit_shift_factor(G, H, shift, o, iterations);
     const auto channels = static_cast<double>(fit.profile.size(0)), samples = static_cast<double>(fit.profile.size(1));
     return fit.objective.sum().item<double>() + 2 * sigma2 * samples * channels;
   };

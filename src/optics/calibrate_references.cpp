@@ -1,0 +1,295 @@
+#include "optics/calibrate_references.hpp"
+
+#include <cmath>
+#include <functional>
+#include <limits>
+#include <iomanip>
+#include <sstream>
+
+#include "core/error.hpp"
+#include "core/util.hpp"
+#include "optics/separable_inverse.hpp"
+
+namespace flatnet {
+
+namespace {
+
+using Tensors = std::vector<torch::Tensor>;
+
+void check_pairs(const std::vector<ReferencePair>& pairs) {
+  require_option(!pairs.empty(), "calibrate.references", "no pairs to calibrate from");
+  const auto& first = pairs.front();
+  for (const auto& p : pairs) {
+    const auto where = "calibrate: pair '" + printable(p.name) + "'";
+    require(p.meas.defined() && p.meas.dim() == 3 && p.meas.size(0) == 4 && p.meas.sizes() == first.meas.sizes(), where,
+            "capture planes are not {4,rows,cols} like the first pair's");
+    require(p.reference.defined() && p.reference.dim() == 3 && p.reference.size(0) == 4 &&
+                p.reference.size(1) == p.reference.size(2) && p.reference.sizes() == first.reference.sizes(),
+            where, "reference planes are not {4,N,N} like the first pair's");
+    require(torch::isfinite(p.meas).all().item<bool>() && torch::isfinite(p.reference).all().item<bool>(), where,
+            "holds NaN or infinity");
+    // A capture or reference without contrast pins nothing down (a lens cap, a flat grey screen).
+    const auto spread = [](const torch::Tensor& t) { return t.to(torch::kFloat64).flatten(1).std(1).min().item<double>(); };
+    require(spread(p.meas) > 1e-7, where, "its capture is flat in some channel (no signal: a lens cap, a dark frame?)");
+    require(spread(p.reference) > 1e-7, where, "its reference is flat in some channel (no scene to learn from)");
+  }
+}
+
+// The normal equations of one factor's step, summed over the pairs: Y_i ~ F Z_i,
+// G = sum Z Z^T {4,N,N}, H = sum Y Z^T {4,m,N}.
+std::pair<torch::Tensor, torch::Tensor> normal(const Tensors& Y, const Tensors& Z) {
+  torch::Tensor G, H;
+  for (size_t i = 0; i < Y.size(); ++i) {
+    const auto g = torch::matmul(Z[i], Z[i].transpose(1, 2)), h = torch::matmul(Y[i], Z[i].transpose(1, 2));
+    G = i == 0 ? g : G + g;
+    H = i == 0 ? h : H + h;
+  }
+  return {G, H};
+}
+
+// P-step: Y_i ~ P (X_i Q^T).  Q-step: Y_i^T ~ Q (P X_i)^T.
+std::pair<torch::Tensor, torch::Tensor> p_normal(const Tensors& Y, const Tensors& X, const torch::Tensor& Q) {
+  Tensors Z;
+  for (const auto& x : X) Z.push_back(torch::matmul(x, Q.transpose(1, 2)));
+  return normal(Y, Z);
+}
+std::pair<torch::Tensor, torch::Tensor> q_normal(const Tensors& Y, const Tensors& X, const torch::Tensor& P) {
+  Tensors Yt, Z;
+  for (size_t i = 0; i < Y.size(); ++i) {
+    Yt.push_back(Y[i].transpose(1, 2));
+    Z.push_back(torch::matmul(P, X[i]).transpose(1, 2));
+  }
+  return normal(Yt, Z);
+}
+
+// Each pair's gain and offset per channel, eq. (1), by least squares on the capture; the mean gain is
+// then held at 1 (returned as its factor, for P).
+torch::Tensor fit_gains(const Tensors& Y, const Tensors& R, const torch::Tensor& P, const torch::Tensor& Q,
+                        Tensors& gain, Tensors& offset) {
+  // The response to a uniform unit scene: (P 1)(Q 1)^T, {4,m,n}.
+  const auto uniform = torch::matmul(P.sum(2, true), Q.sum(2, true).transpose(1, 2)).flatten(1);
+  torch::Tensor mean_gain;
+  for (size_t i = 0; i < Y.size(); ++i) {
+    const auto coded = torch::matmul(torch::matmul(P, R[i]), Q.transpose(1, 2)).flatten(1);  // {4,mn}
+    const auto design = torch::stack({coded, uniform}, 2);                                   // {4,mn,2}
+    const auto gram = torch::matmul(design.transpose(1, 2), design);                          // {4,2,2}
+    const auto rhs = torch::matmul(design.transpose(1, 2), Y[i].flatten(1).unsqueeze(2));     // {4,2,1}
+    const auto sol = torch::linalg_solve(gram + 1e-12 * torch::eye(2, gram.options()), rhs).squeeze(2);  // {4,2}
+    gain[i] = sol.select(1, 0).view({4, 1, 1});
+    offset[i] = sol.select(1, 1).view({4, 1, 1});
+    mean_gain = i == 0 ? gain[i].clone() : mean_gain + gain[i];
+  }
+  mean_gain /= static_cast<double>(Y.size());
+  require(mean_gain.abs().min().item<double>() > 1e-12, "calibrate",
+          "the references do not explain the captures at all in some channel (wrong colour order, or unrelated pairs?)");
+  for (size_t i = 0; i < Y.size(); ++i) gain[i] /= mean_gain, offset[i] /= mean_gain;
+  return mean_gain;
+}
+
+std::array<double, 4> relative_residual(const Tensors& Y, const Tensors& X, const torch::Tensor& P,
+                                        const torch::Tensor& Q) {
+  torch::Tensor err, norm;
+  for (size_t i = 0; i < Y.size(); ++i) {
+    const auto e = (Y[i] - torch::matmul(torch::matmul(P, X[i]), Q.transpose(1, 2))).square().sum({1, 2});
+    const auto n = Y[i].square().sum({1, 2});
+    err = i == 0 ? e : err + e;
+    norm = i == 0 ? n : norm + n;
+  }
+  const auto rel = (err / norm.clamp_min(1e-300)).sqrt();
+  std::array<double, 4> out{};
+  for (int c = 0; c < 4; ++c) out[static_cast<size_t>(c)] = rel[c].item<double>();
+  return out;
+}
+
+// A structured factor {C,m,N} with a random profile: the start of an alternation at a trial shift.
+torch::Tensor random_structured(int64_t channels, int64_t m, int64_t N, double shift, uint64_t seed) {
+  auto gen = at::detail::createCPUGenerator(seed);
+  const auto length = m + static_cast<int64_t>(std::floor(std::abs(shift) * static_cast<double>(N - 1))) + 3;
+  return shift_factor(at::randn({channels, length}, gen).to(torch::kFloat64), m, N, shift, 1.0);
+}
+
+// The least objective (1) reaches at a trial pair of shifts: a few alternations from a random
+// structured Q. (Like a power iteration, the rank-1 bilinear fit converges from a random start.)
+double objective_at(const Tensors& Y, const Tensors& X, double shift_rows, double shift_cols, int alternations,
+                    uint64_t seed) {
+  const int64_t n = Y.front().size(2), N = X.front().size(1);
+  auto Q = random_structured(Y.front().size(0), n, N, shift_cols, seed);
+  double J = 0;
+  for (int a = 0; a < alternations; ++a) {
+    const auto pn = p_normal(Y, X, Q);
+    const auto P = solve_shift_factor(pn.first, pn.second, shift_rows).factor;
+    const auto qn = q_normal(Y, X, P);
+    const auto fit = solve_shift_factor(qn.first, qn.second, shift_cols);
+    Q = fit.factor;
+    J = fit.objective.sum().item<double>();
+  }
+  return J;
+}
+
+// Golden-section search for the least f on [lo, hi] (same sign), to a relative bracket `tolerance`.
+double golden(const std::function<double(double)>& f, double lo, double hi, double tolerance) {
+  const double ratio = (std::sqrt(5.0) - 1) / 2;
+  double a = std::min(lo, hi), b = std::max(lo, hi);
+  double c = b - ratio * (b - a), d = a + ratio * (b - a);
+  double fc = f(c), fd = f(d);
+  while (b - a > tolerance * std::max(std::abs(a), std::abs(b))) {
+    if (fc < fd) {
+      b = d, d = c, fd = fc;
+      c = b - ratio * (b - a);
+      fc = f(c);
+    } else {
+      a = c, c = d, fc = fd;
+      d = a + ratio * (b - a);
+      fd = f(d);
+    }
+  }
+  return fc < fd ? c : d;
+}
+
+torch::Tensor bin2(const torch::Tensor& t) { return torch::avg_pool2d(t.unsqueeze(0), 2).squeeze(0); }
+
+// Both shifts, searched on 2x2-binned captures and references (binning the sensor and the scene alike
+// keeps the shift per scene pixel): first a grid of equal magnitudes (steps of 20 %) over the four
+// sign pairs, each point a converged fit of both factors, then each axis's whole grid alone, then
+// golden-section search within one grid step of the best point.
+std::pair<double, double> search_shifts(const Tensors& Y, const Tensors& R, const ReferenceCalibrationOptions& o) {
+  require_option(o.shift.min_shift > 0 && o.shift.max_shift > o.shift.min_shift, "calibrate.references",
+                 "the shift search needs 0 < min_shift < max_shift");
+  Tensors Yb, Xb;
+  for (size_t i = 0; i < Y.size(); ++i) Yb.push_back(bin2(Y[i])), Xb.push_back(bin2(R[i]));
+  constexpr int kAlternations = 3;
+  constexpr double kGridStep = 1.2;
+  double best = std::numeric_limits<double>::infinity(), rows = 0, cols = 0;
+  for (const double sign_rows : {-1.0, 1.0})
+    for (const double sign_cols : {-1.0, 1.0})
+      for (double a = o.shift.min_shift; a <= o.shift.max_shift * (1 + 1e-9); a *= kGridStep) {
+        const double J = objective_at(Yb, Xb, sign_rows * a, sign_cols * a, kAlternations, o.seed);
+        if (J < best) best = J, rows = sign_rows * a, cols = sign_cols * a;
+      }
+  // Each axis alone over its whole range (the two magnitudes need not be equal).
+  const auto scan = [&](const std::function<double(double)>& J, double& at) {
+    for (const double sign : {-1.0, 1.0})
+      for (double a = o.shift.min_shift; a <= o.shift.max_shift * (1 + 1e-9); a *= kGridStep) {
+        const double j = J(sign * a);
+        if (j < best) best = j, at = sign * a;
+      }
+  };
+  scan([&](double s) { return objective_at(Yb, Xb, s, cols, kAlternations, o.seed); }, rows);
+  scan([&](double s) { return objective_at(Yb, Xb, rows, s, kAlternations, o.seed); }, cols);
+  for (int round = 0; round < 2; ++round) {
+    rows = golden([&](double s) { return objective_at(Yb, Xb, s, cols, kAlternations, o.seed); }, rows / kGridStep,
+                  rows * kGridStep, 1e-3);
+    cols = golden([&](double s) { return objective_at(Yb, Xb, rows, s, kAlternations, o.seed); }, cols / kGridStep,
+                  cols * kGridStep, 1e-3);
+  }
+  return {rows, cols};
+}
+
+// One factor's shift refined within 3 % on a step's normal equations (the other factor fixed).
+double refine_shift(const std::pair<torch::Tensor, torch::Tensor>& normal_equations, double shift, double tolerance) {
+  const auto& [G, H] = normal_equations;
+  return golden([&](double s) { return solve_shift_factor(G, H, s).objective.sum().item<double>(); }, shift / 1.03,
+                shift * 1.03, tolerance);
+}
+
+}  // namespace
+
+ReferenceCalibration calibrate_from_references(const std::vector<ReferencePair>& pairs,
+                                               const ReferenceCalibrationOptions& o) {
+  check_pairs(pairs);
+  require_option(o.passes >= 1 && o.search_passes >= 0, "calibrate.references",
+                 "passes at least 1 and search passes at least 0");
+  Tensors Y, R;
+  for (const auto& p : pairs) {
+    // Model (1) is centred: a plane's constant (FlatNet's centring adds the all-plane mean back) is
+    // outside it, and left out of the fit and its residual.
+    const auto y = p.meas.to(torch::kFloat64);
+    Y.push_back(y - y.mean({1, 2}, true));
+    R.push_back(p.reference.to(torch::kFloat64));
+  }
+  const int64_t cols = Y.front().size(2), N = R.front().size(1);
+  const size_t count = pairs.size();
+  Tensors gain(count), offset(count), X = R;  // X_i = a_i R_i + b_i, eq. (1)
+  ReferenceCalibration result;
+  const auto [shift_rows, shift_cols] = search_shifts(Y, R, o);
+  result.shift_rows = shift_rows, result.shift_cols = shift_cols;
+  auto Q = random_structured(4, cols, N, result.shift_cols, o.seed);
+  torch::Tensor P;
+  Progress progress("calibrate", o.passes, o.progress);
+  for (int pass = 0; pass < o.passes; ++pass) {
+    // After the first pass (from a random Q), the next ones refine each shift within a few per cent of
+    // the search's, at full resolution.
+    const bool refine = pass >= 1 && pass <= o.search_passes;
+    const auto pn = p_normal(Y, X, Q);
+    if (refine) result.shift_rows = refine_shift(pn, result.shift_rows, o.shift.shift_tolerance);
+    auto p_fit = solve_shift_factor(pn.first, pn.second, result.shift_rows);
+    P = p_fit.factor;
+    const auto qn = q_normal(Y, X, P);
+    if (refine) result.shift_cols = refine_shift(qn, result.shift_cols, o.shift.shift_tolerance);
+    auto q_fit = solve_shift_factor(qn.first, qn.second, result.shift_cols);
+    Q = q_fit.factor;
+    // The scale split P k, Q / k is invisible; balance it, then hold the mean gain at 1. The profiles
+    // follow their factors (linear in them).
+    const auto balance = (Q.norm(2, {1, 2}, true) / P.norm(2, {1, 2}, true).clamp_min(1e-300)).sqrt();  // {4,1,1}
+    P = P * balance, Q = Q / balance;
+    const auto mean_gain = fit_gains(Y, R, P, Q, gain, offset);
+    P = P * mean_gain;
+    result.profile_rows = p_fit.profile * (balance * mean_gain).view({4, 1});
+    result.profile_cols = q_fit.profile / balance.view({4, 1});
+    for (size_t i = 0; i < count; ++i) X[i] = gain[i] * R[i] + offset[i];
+    result.residual = relative_residual(Y, X, P, Q);
+    std::ostringstream status;
+    status << "shifts " << std::setprecision(4) << result.shift_rows << " " << result.shift_cols << ", residual "
+           << std::setprecision(3) << (result.residual[0] + result.residual[1] + result.residual[2] + result.residual[3]) / 4;
+    progress.set_status(status.str());
+    progress.tick();
+  }
+  progress.finish();
+  result.calib.P = P;
+  result.calib.Q = Q;
+  for (size_t i = 0; i < count; ++i) {
+    std::array<double, 8> g{};
+    for (int c = 0; c < 4; ++c) {
+      g[static_cast<size_t>(c)] = gain[i][c].item<double>();
+      g[static_cast<size_t>(4 + c)] = offset[i][c].item<double>();
+    }
+    result.gain_offset.push_back(g);
+  }
+  return result;
+}
+
+std::array<double, 4> reference_correlation(const torch::Tensor& reconstruction, const torch::Tensor& reference) {
+  std::array<double, 4> out{};
+  for (int c = 0; c < 4; ++c) {
+    const auto ref = reference[c].to(torch::kFloat64), rec = reconstruction[c].to(torch::kFloat64);
+    const auto kept = ref > 0;  // pixels clipped at zero hold no value
+    auto a = rec.masked_select(kept), b = ref.masked_select(kept);
+    if (a.numel() < 2) continue;
+    a = a - a.mean(), b = b - b.mean();
+    out[static_cast<size_t>(c)] = ((a * b).sum() / (a.norm() * b.norm()).clamp_min(1e-300)).item<double>();
+  }
+  return out;
+}
+
+std::vector<HeldOutPair> leave_one_out(const std::vector<ReferencePair>& pairs, double lambda,
+                                       const ReferenceCalibrationOptions& options) {
+  require_option(pairs.size() >= 3, "calibrate.references", "leave-one-out needs at least 3 pairs");
+  std::vector<HeldOutPair> out;
+  for (size_t held = 0; held < pairs.size(); ++held) {
+    std::vector<ReferencePair> others;
+    for (size_t i = 0; i < pairs.size(); ++i)
+      if (i != held) others.push_back(pairs[i]);
+    auto o = options;
+    o.progress = false;
+    const auto fit = calibrate_from_references(others, o);
+    const auto inverse = separable_inverse(fit.calib.P, fit.calib.Q, 1.0);
+    const double top = (inverse.sL.select(1, 0) * inverse.sR.select(1, 0)).max().item<double>();
+    const auto filter = tikhonov_filter(inverse.sL, inverse.sR, lambda * top * top);
+    const auto rec = apply_separable_inverse(inverse.ULt, inverse.UR, inverse.VL, inverse.VRt, filter,
+                                             pairs[held].meas.to(torch::kFloat32).unsqueeze(0))[0];
+    out.push_back({pairs[held].name, reference_correlation(rec, pairs[held].reference), fit.shift_rows, fit.shift_cols});
+  }
+  return out;
+}
+
+}  // namespace flatnet

@@ -1,0 +1,80 @@
+#pragma once
+// A FlatCam's calibration recovered from a handful of direct captures and someone else's
+// reconstructions of them: "you lost the calibration, but you kept a few reconstructions".
+//
+// A reconstruction R_i made with the lost calibration is, up to its maker's scaling, the scene the
+// camera saw. Per Bayer channel, with the captures preprocessed as for inference (rotation, crop,
+// double-centring: the centring C removes each factor's column means),
+//   Y_i = C P (a_i R_i + b_i 1 1^T) Q^T C + E_i,                                              (1)
+// a gain a_i and offset b_i per pair and channel (the maker's normalisation, unknown), P and Q each
+// one profile moved by a fixed shift per scene pixel (optics/shift_structure.hpp eq. 1): about
+// 1,400 unknowns per channel where free factors have 287,000, so three pairs identify it.
+// (1) is fitted by alternation: P's profile for fixed Q (an exact least-squares solve,
+// solve_shift_factor), then Q's, then each pair's (a_i, b_i); the mean gain is held at 1, so P and Q
+// reconstruct in the references' units. The shifts are searched first on 2x2-binned pairs (a grid
+// over both signs of each axis, from 0.2 to 4 sensor pixels per scene pixel by default, each point a
+// converged fit of both structured factors from a random start), then refined at full resolution.
+// (A start from free factors misleads the search with three pairs: their errors choose the shift.)
+//
+// With few pairs the structure cannot be judged against free factors (which fit the pairs they are
+// given almost exactly); it is judged on held-out pairs instead: leave_one_out calibrates from all
+// pairs but one and reconstructs that one (Tikhonov, thesis eq. 2.6), scored by its Pearson
+// correlation with the reference per channel (an affine match: the scale and offset are free),
+// leaving out the reference's pixels clipped at zero (their true value is unknown).
+#include <array>
+#include <string>
+#include <vector>
+
+#include <torch/torch.h>
+
+#include "optics/camera.hpp"
+#include "optics/shift_structure.hpp"
+
+namespace flatnet {
+
+struct ReferencePair {
+  std::string name;        // for messages and the held-out table
+  torch::Tensor meas;      // {4,rows,cols} preprocessed capture planes (b, gb, gr, r)
+  torch::Tensor reference; // {4,N,N} the reference reconstruction per Bayer channel, its own units
+};
+
+struct ReferenceCalibrationOptions {
+  int passes = 6;          // alternating passes (P, Q, gains)
+  int search_passes = 2;   // passes 2 and 3 refine each axis's shift (within 3 %); the others keep it
+  uint64_t seed = 0;       // the random profiles that start each trial fit
+  ShiftFitOptions shift = [] {
+    ShiftFitOptions o;
+    o.min_shift = 0.2, o.max_shift = 4.0, o.exact = true;
+    return o;
+  }();
+  bool progress = true;
+};
+
+struct ReferenceCalibration {
+  Calibration calib;                       // P {4,rows,N}, Q {4,cols,N} (centred), float64
+  double shift_rows = 0, shift_cols = 0;   // sensor pixels per scene row / column, signed
+  torch::Tensor profile_rows, profile_cols;  // {4,L}: P and Q as profiles (save_shift_calibration)
+  std::array<double, 4> residual{};        // ||Y - model (1)|| / ||Y|| per channel over the pairs
+  std::vector<std::array<double, 8>> gain_offset;  // per pair: a_b, a_gb, a_gr, a_r, b_b, ..., b_r
+};
+
+// Fits (1). Errors name the pair when its planes have the wrong size, hold NaN, or carry no signal.
+ReferenceCalibration calibrate_from_references(const std::vector<ReferencePair>& pairs,
+                                               const ReferenceCalibrationOptions& options);
+
+// Pearson correlation per channel of a reconstruction {4,N,N} with a reference {4,N,N}, over the
+// reference's pixels above zero.
+std::array<double, 4> reference_correlation(const torch::Tensor& reconstruction, const torch::Tensor& reference);
+
+struct HeldOutPair {
+  std::string name;
+  std::array<double, 4> correlation{};  // b, gb, gr, r
+  double shift_rows = 0, shift_cols = 0;  // the shifts the other pairs chose
+};
+
+// Each pair reconstructed (Tikhonov with `lambda`, relative as the camera file's tikhonov_lambda)
+// from a calibration of the others. Needs at least 3 pairs.
+std::vector<HeldOutPair> leave_one_out(const std::vector<ReferencePair>& pairs, double lambda,
+                                       const ReferenceCalibrationOptions& options);
+
+}  // namespace flatnet

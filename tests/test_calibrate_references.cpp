@@ -1,0 +1,132 @@
+// A calibration recovered from a few direct captures and someone else's reconstructions of them
+// (optics/calibrate_references): the exact profile solve agrees with conjugate gradients, a small
+// FlatCam-like camera (shift-structured factors, one shift below 0.5 sensor pixels per scene pixel,
+// the other positive) is identified from three pairs whose references carry their own gain and offset,
+// and each held-out pair is reconstructed from the other pairs' calibration. Flat captures are named.
+#include <cmath>
+
+#include "catch_torch.hpp"
+
+#include "core/error.hpp"
+#include "optics/calibrate_references.hpp"
+#include "optics/shift_structure.hpp"
+
+using namespace flatnet;
+using Catch::Matchers::Contains;
+
+namespace {
+
+constexpr int64_t kRows = 120, kCols = 140, kScene = 48;
+constexpr double kShiftRows = -0.43, kShiftCols = 0.9;
+
+// Smooth positive scenes with edges, as photographs are: an 8x8 random field enlarged bilinearly,
+// plus a bright rectangle.
+torch::Tensor scene(uint64_t seed) {
+  auto gen = at::detail::createCPUGenerator(seed);
+  auto X = torch::upsample_bilinear2d(at::rand({1, 4, 8, 8}, gen).to(torch::kFloat64), {kScene, kScene}, false)[0];
+  const auto r = static_cast<int64_t>(seed % 7) * kScene / 10, c = static_cast<int64_t>(seed % 5) * kScene / 8;
+  X.narrow(1, r, kScene / 3).narrow(2, c, kScene / 4) += 0.5;
+  return X;  // {4,N,N}
+}
+
+struct StructuredCamera {
+  torch::Tensor P, Q;  // centred, {4,m,N} and {4,n,N}
+  StructuredCamera() {
+    auto gen = at::detail::createCPUGenerator(3);
+    const auto length = [](int64_t m, double s) {
+      return m + static_cast<int64_t>(std::ceil(std::abs(s) * static_cast<double>(kScene - 1))) + 2;
+    };
+    // A binary-ish code seen through the pixels: the profile's samples in {0.2, 1}.
+    const auto code = [&](int64_t L) { return 0.2 + 0.8 * (at::rand({4, L}, gen) > 0.5).to(torch::kFloat64); };
+    P = shift_factor(code(length(kRows, kShiftRows)), kRows, kScene, kShiftRows, 1.0);
+    Q = shift_factor(code(length(kCols, kShiftCols)), kCols, kScene, kShiftCols, 1.0);
+  }
+  // The capture of scene X, and a "reconstruction" of it made with another normalisation: gain and
+  // offset per channel, clipped at zero as an 8-bit file would be.
+  ReferencePair pair(int i, double noise) const {
+    const auto X = scene(100 + static_cast<uint64_t>(i));
+    auto gen = at::detail::createCPUGenerator(200 + static_cast<uint64_t>(i));
+    auto Y = torch::matmul(torch::matmul(P, X), Q.transpose(1, 2));
+    Y = Y + noise * Y.std() * at::randn(Y.sizes(), gen).to(torch::kFloat64);
+    Y = Y - Y.mean(1, true) - Y.mean(2, true) + Y.mean({1, 2}, true);  // double-centred, as captures are
+    const auto gain = torch::tensor({0.8, 1.1, 1.0, 1.3}, torch::kFloat64).view({4, 1, 1}) * (1 + 0.2 * i);
+    const auto reference = (gain * X - 0.1 * i).clamp_min(0);
+    return {"pair" + std::to_string(i), Y.to(torch::kFloat32), reference.to(torch::kFloat32)};
+  }
+};
+
+ReferenceCalibrationOptions quiet() {
+  ReferenceCalibrationOptions o;
+  o.progress = false;
+  return o;
+}
+
+}  // namespace
+
+TEST_CASE("the exact shift-profile solve reaches the least objective conjugate gradients approach",
+          "[optics][calibrate]") {
+  const StructuredCamera camera;
+  std::vector<torch::Tensor> X;
+  torch::Tensor G, H;
+  for (int i = 0; i < 3; ++i) {
+    const auto p = camera.pair(i, 0.0);
+    const auto Z = torch::matmul(scene(100 + static_cast<uint64_t>(i)), camera.Q.transpose(1, 2));
+    const auto g = torch::matmul(Z, Z.transpose(1, 2)), h = torch::matmul(p.meas.to(torch::kFloat64), Z.transpose(1, 2));
+    G = i == 0 ? g : G + g;
+    H = i == 0 ? h : H + h;
+  }
+  ShiftFitOptions o;
+  o.cg_tolerance = 1e-12;
+  for (const double shift : {kShiftRows, 1.7}) {
+    INFO("shift " << shift);
+    const auto exact = solve_shift_factor(G, H, shift);
+    const auto cg = fit_shift_factor(G, H, shift, o, 3000);
+    CHECK(exact.factor.sizes() == torch::IntArrayRef({4, kRows, kScene}));
+    // Never worse than CG, and equal to it where CG converged.
+    CHECK((exact.objective <= cg.objective + 1e-9 * cg.objective.abs()).all().item<bool>());
+    CHECK(((exact.objective - cg.objective).abs() <= 1e-3 * cg.objective.abs()).all().item<bool>());
+  }
+  // At the true shift the profile reproduces the camera's P (no noise): P X Q^T is matched exactly.
+  const auto exact = solve_shift_factor(G, H, kShiftRows);
+  CHECK(((exact.factor - camera.P).norm() / camera.P.norm()).item<double>() < 2e-3);
+}
+
+TEST_CASE("three captures and reconstructions of them identify a shift-structured camera, shifts included",
+          "[optics][calibrate]") {
+  const StructuredCamera camera;
+  std::vector<ReferencePair> pairs;
+  for (int i = 0; i < 4; ++i) pairs.push_back(camera.pair(i, 0.02));
+  const std::vector<ReferencePair> three(pairs.begin(), pairs.begin() + 3);
+  const auto fit = calibrate_from_references(three, quiet());
+  CHECK(std::abs(fit.shift_rows - kShiftRows) < 0.01);
+  CHECK(std::abs(fit.shift_cols - kShiftCols) < 0.01);
+  for (const double r : fit.residual) CHECK(r < 0.1);
+  // Each pair's gain comes back up to the mean gain's normalisation: reference 2 is 1.4 times as
+  // bright as reference 0 in every channel, so its gain (reference to scene) is 1 / 1.4 of pair 0's.
+  for (int c = 0; c < 4; ++c) CHECK(std::abs(fit.gain_offset[2][c] / fit.gain_offset[0][c] - 1 / 1.4) < 0.05);
+  // Held out, each pair's Tikhonov follows its reference.
+  const auto held = leave_one_out(pairs, 1e-4, quiet());
+  REQUIRE(held.size() == 4);
+  for (const auto& h : held) {
+    INFO(h.name);
+    for (const double c : h.correlation) CHECK(c > 0.95);
+    CHECK(std::abs(h.shift_rows - kShiftRows) < 0.02);
+  }
+}
+
+TEST_CASE("reference calibration names a flat capture, a flat reference and too few pairs for leave-one-out",
+          "[optics][calibrate][errors]") {
+  const StructuredCamera camera;
+  std::vector<ReferencePair> pairs = {camera.pair(0, 0.0), camera.pair(1, 0.0), camera.pair(2, 0.0)};
+  auto dark = pairs;
+  dark[1].meas = torch::zeros_like(dark[1].meas);
+  CHECK_THROWS_WITH(calibrate_from_references(dark, quiet()), Contains("pair1") && Contains("no signal"));
+  auto flat = pairs;
+  flat[2].reference = torch::full_like(flat[2].reference, 0.5);
+  CHECK_THROWS_WITH(calibrate_from_references(flat, quiet()), Contains("pair2") && Contains("flat"));
+  auto nan = pairs;
+  nan[0].meas[0][0][0] = NAN;
+  CHECK_THROWS_WITH(calibrate_from_references(nan, quiet()), Contains("pair0") && Contains("NaN"));
+  const std::vector<ReferencePair> two(pairs.begin(), pairs.begin() + 2);
+  CHECK_THROWS_WITH(leave_one_out(two, 1e-4, quiet()), Contains("at least 3"));
+}
