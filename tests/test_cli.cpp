@@ -310,6 +310,22 @@ TEST_CASE("train, export, import and infer from the command line, and bad input 
   CHECK_THAT(mixed.output, Contains("latest.ckpt") && Contains("belongs to another run") && Contains("--force"));
   CHECK(read_bytes(s.dir / "run" / "config.yaml") == config_before);
   test::write_file(s.dir / "run" / "latest.ckpt", std::string(own_checkpoint.begin(), own_checkpoint.end()));
+  // ... and another run's best.ckpt (resume would take its best PSNR): refused the same way.
+  if (std::filesystem::exists(s.dir / "run" / "best.ckpt") && std::filesystem::exists(s.dir / "dead" / "best.ckpt")) {
+    const auto own_best = read_bytes(s.dir / "run" / "best.ckpt");
+    std::filesystem::copy_file(s.dir / "dead" / "best.ckpt", s.dir / "run" / "best.ckpt",
+                               std::filesystem::copy_options::overwrite_existing);
+    auto mixed_best = test::run_flatnet("train --out " + q(s.dir / "run") + " --resume --set train.iterations=2");
+    CHECK(mixed_best.code == 2);
+    CHECK_THAT(mixed_best.output, Contains("best.ckpt") && Contains("belongs to another run"));
+    test::write_file(s.dir / "run" / "best.ckpt", std::string(own_best.begin(), own_best.end()));
+  } else {
+    FAIL("both runs validate at step 1, so both hold a best.ckpt");
+  }
+  // --force=false is no --force: the run is kept (scripts write --force=$FORCE).
+  auto kept = test::run_flatnet(base + " --set train.iterations=1 --out " + q(s.dir / "run") + " --force=false");
+  CHECK(kept.code == 2);
+  CHECK(read_bytes(s.dir / "run" / "latest.ckpt") == own_checkpoint);
   // A log row cut short (a crash while writing) does not block the resume.
   std::ofstream(s.dir / "run" / "log.csv", std::ios::app) << "2,0.5,0.";
   std::ofstream(s.dir / "run" / "log.csv", std::ios::app) << "\ngarbage\n";

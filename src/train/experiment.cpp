@@ -123,11 +123,17 @@ CodesignOptions codesign_options(const Config& c, const CameraConfig& camera) {
 
 namespace {
 
-void require_no_light_augment_on_disk(const Config& c) {
+// Light augmentation redraws a simulated sample's light; captures on disk carry their own. A recipe
+// made for simulation (the shipped models' configs) keeps its light settings when the user points it
+// at a dataset, so they are turned off here, said in the log and recorded in config.yaml, instead of
+// stopping the documented own-camera command (docs/own-camera.md step 4).
+void light_off_for_captures_on_disk(Config& c, std::ostream& log) {
   const auto light = light_options(c);
-  if (data_options(c).source == "dataset" && (light.exposure_probability > 0 || light.lamp_probability > 0))
-    throw Error(
-        "data.light: light augmentation simulates each sample; it needs data.source: simulate (with data.images)");
+  if (data_options(c).source != "dataset" || (light.exposure_probability <= 0 && light.lamp_probability <= 0)) return;
+  c.set("data.light.exposure_probability=0", "data.source: dataset");
+  c.set("data.light.lamp_probability=0", "data.source: dataset");
+  log << "data.light: off (data.source: dataset: captures on disk carry their own light; light augmentation "
+         "simulates samples from data.images)\n";
 }
 
 CameraConfig camera_of(const Config& c) { return load_camera_config(data_options(c).camera); }
@@ -257,6 +263,10 @@ Config settle_config(const ExperimentOptions& o, bool writer) {
     require(std::filesystem::exists(latest), latest, "nothing to resume (no checkpoint)");
     auto stored = checkpoint_settings(latest);  // one read: the run id and the settings
     if (!o.force) require_checkpoint_of_this_run(out, stored.run_id, latest, option_key("experiment.force"));
+    // best.ckpt too: resume takes its best PSNR, and export may take its weights.
+    const auto best = out / "best.ckpt";
+    if (!o.force && std::filesystem::exists(best))
+      require_checkpoint_of_this_run(out, checkpoint_settings(best).run_id, best, option_key("experiment.force"));
     config = std::move(stored.config);
     for (const auto& s : sets) config.set(s);
     config.check_ranges(option_key("experiment.sets"));
@@ -310,7 +320,7 @@ ExperimentResult run_experiment(const ExperimentOptions& o) {
   const bool resume = o.resume;
   Config config = settle_config(o, writer);
   require_option(!(resume && !o.init_from.empty()), "experiment.init_from", "starts a new run; it cannot be combined with " + option_key("experiment.resume"));
-  require_no_light_augment_on_disk(config);
+  light_off_for_captures_on_disk(config, log);
   // Everything that can fail on bad input is checked before anything is written.
   const auto camera = camera_of(config);
   auto opts = train_options(config, out);
