@@ -181,3 +181,26 @@ TEST_CASE("a factor with the shift structure is recovered exactly, and the shift
   CHECK_THROWS_WITH(fit_shift_factor(G, torch::zeros({1, kShiftRows, kShiftScene}, torch::kFloat64), 0.0, {}, 10),
                     Contains("non-zero shift"));
 }
+
+TEST_CASE("pairs with no signal are named before the solve: flat grey scenes, lens-cap captures", "[optics][calibrate][errors]") {
+  const SmallCamera camera(2);
+  DatasetCalibrationOptions o;
+  o.progress = false;
+  for (const auto structure : {FactorStructure::Shift, FactorStructure::Free}) {
+    o.structure = structure;
+    auto grey = [&](int64_t i) {  // each photograph one grey level: no zero-mean part
+      auto p = camera.capture(i, 0.01);
+      p.scene = torch::full_like(p.scene, 0.1f * static_cast<float>(i % 7 + 1));
+      return p;
+    };
+    CHECK_THROWS_WITH(calibrate_from_pairs(20, grey, kRows, kCols, kScene, o),
+                      Contains("calibrate.dataset") && Contains("no contrast"));
+    auto lens_cap = [&](int64_t i) {  // constant captures: nothing left after centring
+      auto p = camera.capture(i, 0);
+      p.meas = torch::zeros_like(p.meas);
+      return p;
+    };
+    CHECK_THROWS_WITH(calibrate_from_pairs(20, lens_cap, kRows, kCols, kScene, o),
+                      Contains("calibrate.dataset") && Contains("no signal"));
+  }
+}

@@ -245,6 +245,25 @@ void fit_noise_outside_span(PairStream& pairs, const torch::Tensor& P, const tor
   if (largest_leak > 0) out.leak_threshold = std::max(1.0, 1.1 * largest_leak);
 }
 
+// Pairs that cannot identify a calibration are named before the first solve, which would otherwise
+// be singular (flat scenes: no zero-mean part, Z = 0) or fit a calibration of zeros (captures with
+// nothing in them after centring: a lens cap, a dark frame).
+void require_signal(const Sums& first, int64_t count, int64_t pixels, int64_t scene) {
+  const double capture_power = first.norm.sum().item<double>() / static_cast<double>(4 * count * pixels);
+  require_option(capture_power > 1e-14, "calibrate.dataset",
+                 "the captures carry no signal after centring (all " + std::to_string(count) +
+                     " flat: a lens cap, a dark frame, or the display off?)");
+  // sum over the pairs of ||Xz Q^T||^2 (about ||Xz||^2: Q's rows have unit norm on average) against
+  // the scenes' mean light, sum s^2 / N^2 = ||mean||^2: float rounding leaves ~1e-14 of it in a flat
+  // scene's Xz.
+  const auto scene_power = first.A.diagonal(0, 1, 2).sum(1);  // {4}
+  const auto mean_power = first.S2 / static_cast<double>(scene * scene);
+  require_option((scene_power > 1e-9 * mean_power).all().item<bool>() && scene_power.max().item<double>() > 0,
+                 "calibrate.dataset",
+                 "the photographs have no contrast in some colour channel (all " + std::to_string(count) +
+                     " flat: one grey level each), so nothing identifies the camera; show photographs");
+}
+
 }  // namespace
 
 DatasetCalibration calibrate_from_pairs(int64_t count, const std::function<CapturePair(int64_t)>& load, int64_t rows,
@@ -277,6 +296,7 @@ DatasetCalibration calibrate_from_pairs(int64_t count, const std::function<Captu
     const bool structured = o.structure == FactorStructure::Shift && it >= o.free_passes && !result.structure_rejected;
     // The P-step's pass also scores the current (P, Q, M).
     const auto sums = accumulate(pairs, p_design);
+    if (it == 0) require_signal(sums, count, rows * cols, scene);
     if (P.defined()) {
       const auto energy = residual_energy(sums, P.to(torch::kFloat64), M.to(torch::kFloat64));
       noise_var = energy / pixels;
