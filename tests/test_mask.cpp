@@ -434,6 +434,11 @@ TEST_CASE("mask separable takes a config like the other trainers: defaults, shor
   INFO(r.output);
   REQUIRE(r.code == 0);
   CHECK(MatReader(s.dir / "from_file" / "codes.mat").read("code_rows").numel() == 63);
+  // A mistyped --init is named before --out is claimed: no config.yaml, no lock files left behind.
+  r = test::run_flatnet(base + " --init bogus --iterations 1 --out " + q(s.dir / "typo"));
+  CHECK(r.code == 2);
+  CHECK_THAT(r.output, Contains("--init") && Contains("bogus"));
+  CHECK(!std::filesystem::exists(s.dir / "typo"));
 }
 
 TEST_CASE("mask separable resumes from its checkpoint as if never stopped", "[mask][separable][cli][resume]") {

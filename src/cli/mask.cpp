@@ -280,6 +280,9 @@ int mask_separable(int argc, char** argv) {
     opt.init_codes = data_dir() / "models" / "camera" / "codes_mls.mat";
   else if (init != "random")
     opt.init_codes = c.path(codes_init_key());
+  // Named before --out is claimed, so a typo leaves no config.yaml or lock files behind.
+  require_option(opt.init_codes.empty() || std::filesystem::is_regular_file(opt.init_codes), codes_init_key(),
+                 "mls, random, or a codes .mat file; '" + printable(init) + "' is none of these");
   const auto& rows = separable_train_fields();
   require(opt.lr > 0, key_of(rows, &SeparableTrainOptions::lr), "must be positive for the code pair");
   require(opt.val_count >= 1, key_of(rows, &SeparableTrainOptions::val_count),
