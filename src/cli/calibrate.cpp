@@ -20,6 +20,17 @@ namespace flatnet::cli {
 
 namespace {
 
+// The camera.yaml written beside a calibration made from data: the geometry given, with this
+// calibration and no rig (a camera known only from its data), under a comment saying how it was made.
+std::filesystem::path write_camera_beside(const std::filesystem::path& calibration, CameraConfig known,
+                                          const std::string& comment) {
+  known.rig.clear();
+  const auto yaml_path = calibration.parent_path() / "camera.yaml";
+  write_text_atomically(yaml_path, comment + camera_geometry_yaml(known) + "calibration: " +
+                                       yaml_quoted(calibration.filename().string()) + "\n");
+  return yaml_path;
+}
+
 // The references' planes {4,N,N} (b, gb, gr, r) from an 8- or 16-bit RGB reconstruction, in its own
 // units (someone else's reconstruction is not sRGB-encoded light: the gain and offset per pair absorb
 // its scaling). `order` says which file channel holds red.
@@ -54,8 +65,7 @@ int calibrate_from_reference_pairs(const cxxopts::ParseResult& r, const CameraCo
           "a relative regulariser in (0, 1), such as 3e-4");
   std::vector<ReferencePair> refs;
   for (const auto& p : pairs) {
-    const auto window = raw_window(load_raw_unit(p.meas, camera.raw), camera.raw);  // {4,rows,cols}
-    refs.push_back({p.meas.filename().string(), without_level(double_centre(window, camera.raw.centring), camera.raw.centring),
+    refs.push_back({p.meas.filename().string(), load_centred_planes(p.meas, camera.raw),  // {4,rows,cols}
                     reference_planes(p.gt, camera.scene_size, order)});
   }
   ReferenceCalibrationOptions o;
@@ -87,11 +97,8 @@ int calibrate_from_reference_pairs(const cxxopts::ParseResult& r, const CameraCo
     save_shift_calibration(out, fit.profile_rows, fit.profile_cols, fit.shift_rows, fit.shift_cols);
   else
     save_calibration(out, fit.calib);
-  const auto inverse = separable_inverse(fit.calib.P, fit.calib.Q, 1.0);
-  const double top = (inverse.sL.select(1, 0) * inverse.sR.select(1, 0)).max().item<double>();
   auto known = camera;
-  known.rig.clear();
-  known.tikhonov_lambda = lambda * top * top;
+  known.tikhonov_lambda = absolute_tikhonov_lambda(separable_inverse(fit.calib.P, fit.calib.Q, 1.0), lambda);
   std::ostringstream head;
   head << "# identified by `flatnet calibrate --references` from " << refs.size()
        << " captures and reconstructions of them; the shadow moves " << std::setprecision(6) << fit.shift_rows
@@ -99,9 +106,7 @@ int calibrate_from_reference_pairs(const cxxopts::ParseResult& r, const CameraCo
   for (const double v : fit.residual) head << " " << std::setprecision(4) << v;
   if (held_mean >= 0) head << "\n# leave-one-out: mean held-out correlation " << std::setprecision(4) << held_mean;
   head << "\n# tikhonov_lambda is " << lambda << " of the largest squared singular value product\n";
-  const auto yaml_path = out.parent_path() / "camera.yaml";
-  write_text_atomically(yaml_path, head.str() + camera_geometry_yaml(known) + "calibration: " +
-                                       yaml_quoted(out.filename().string()) + "\n");
+  const auto yaml_path = write_camera_beside(out, known, head.str());
   std::cout << "wrote " << out.string() << " and " << yaml_path.string() << "\nshift structure: the shadow moves "
             << std::setprecision(6) << fit.shift_rows << " sensor pixels per scene row, " << fit.shift_cols
             << " per scene column\nfit residual ||Y - P (a R + b) Q^T|| / ||Y||:";
@@ -176,14 +181,10 @@ int calibrate_from_dataset(const cxxopts::ParseResult& r) {
   const auto fit = calibrate_from_pairs(static_cast<int64_t>(pairs.size()), load, camera.raw.crop[2],
                                         camera.raw.crop[3], N, o);
   save_calibration(out, fit.calib);
-  // A camera.yaml beside it: the geometry given, with this calibration (and no rig: a camera known
-  // only from its data).
   auto known = camera;
-  known.rig.clear();
   known.noise_gain = fit.noise_gain, known.noise_floor = fit.noise_floor, known.dark = fit.dark;
   known.fit_threshold = fit.fit_threshold;
   known.leak_threshold = fit.leak_threshold;
-  const auto yaml_path = out.parent_path() / "camera.yaml";
   std::ostringstream fit_text;
   fit_text << "# identified by `flatnet calibrate --dataset` from " << fit.pairs << " display-capture pairs, "
            << fit.iterations << " alternating steps; relative fit residual per channel (b, gb, gr, r):";
@@ -191,8 +192,8 @@ int calibrate_from_dataset(const cxxopts::ParseResult& r) {
   if (o.structure == FactorStructure::Shift && !fit.structure_rejected)
     fit_text << "\n# the shadow moves " << std::setprecision(6) << fit.shift_rows << " sensor pixels per scene row, "
              << fit.shift_cols << " per scene column";
-  write_text_atomically(yaml_path, fit_text.str() + "\n" + camera_geometry_yaml(known) +
-                                       "calibration: " + yaml_quoted(out.filename().string()) + "\n");
+  fit_text << "\n";
+  const auto yaml_path = write_camera_beside(out, known, fit_text.str());
   std::cout << "wrote " << out.string() << " and " << yaml_path.string() << " from " << fit.pairs << " pairs ("
             << fit.iterations << " steps)\nfit residual ||Y - P X Q^T - s a b^T|| / ||Y||:";
   for (int c = 0; c < 4; ++c) std::cout << " " << kChannelNames[c] << " " << std::setprecision(4) << fit.residual[c];
@@ -291,16 +292,17 @@ int calibrate(int argc, char** argv) {
   std::vector<std::filesystem::path> inputs;
   for (const auto* flag : {"rig", "camera"})
     if (r.count(flag)) inputs.push_back(r[flag].as<std::string>());
+  std::optional<CameraConfig> rig_camera;
   if (r.count("rig")) {
-    const auto rig_camera = load_camera_config(r["rig"].as<std::string>());
-    inputs.insert(inputs.end(), {rig_camera.rig, rig_camera.calibration});
+    rig_camera = load_camera_config(r["rig"].as<std::string>());
+    inputs.insert(inputs.end(), {rig_camera->rig, rig_camera->calibration});
   }
   require_new_output(out, r.count("force") > 0, inputs);
 
   Calibration est;
   std::optional<Calibration> truth;
-  if (r.count("rig")) {
-    const auto camera = load_camera_config(r["rig"].as<std::string>());
+  if (rig_camera) {
+    const auto& camera = *rig_camera;
     require(!camera.rig.empty(), r["rig"].as<std::string>(), "names no rig to simulate with");
     const auto rig = load_camera_rig(camera);
     const bool noise = r["noise"].as<std::string>() == "on";

@@ -8,7 +8,6 @@
 
 #include "core/error.hpp"
 #include "core/util.hpp"
-#include "optics/separable_inverse.hpp"
 
 namespace flatnet {
 
@@ -126,26 +125,6 @@ double objective_at(const Tensors& Y, const Tensors& X, double shift_rows, doubl
   return J;
 }
 
-// Golden-section search for the least f on [lo, hi] (same sign), to a relative bracket `tolerance`.
-double golden(const std::function<double(double)>& f, double lo, double hi, double tolerance) {
-  const double ratio = (std::sqrt(5.0) - 1) / 2;
-  double a = std::min(lo, hi), b = std::max(lo, hi);
-  double c = b - ratio * (b - a), d = a + ratio * (b - a);
-  double fc = f(c), fd = f(d);
-  while (b - a > tolerance * std::max(std::abs(a), std::abs(b))) {
-    if (fc < fd) {
-      b = d, d = c, fd = fc;
-      c = b - ratio * (b - a);
-      fc = f(c);
-    } else {
-      a = c, c = d, fc = fd;
-      d = a + ratio * (b - a);
-      fd = f(d);
-    }
-  }
-  return fc < fd ? c : d;
-}
-
 torch::Tensor bin2(const torch::Tensor& t) { return torch::avg_pool2d(t.unsqueeze(0), 2).squeeze(0); }
 
 // Both shifts, searched on 2x2-binned captures and references (binning the sensor and the scene alike
@@ -159,17 +138,19 @@ std::pair<double, double> search_shifts(const Tensors& Y, const Tensors& R, cons
   for (size_t i = 0; i < Y.size(); ++i) Yb.push_back(bin2(Y[i])), Xb.push_back(bin2(R[i]));
   constexpr int kAlternations = 3;
   constexpr double kGridStep = 1.2;
+  std::vector<double> magnitudes;
+  for (double a = o.shift.min_shift; a <= o.shift.max_shift * (1 + 1e-9); a *= kGridStep) magnitudes.push_back(a);
   double best = std::numeric_limits<double>::infinity(), rows = 0, cols = 0;
   for (const double sign_rows : {-1.0, 1.0})
     for (const double sign_cols : {-1.0, 1.0})
-      for (double a = o.shift.min_shift; a <= o.shift.max_shift * (1 + 1e-9); a *= kGridStep) {
+      for (const double a : magnitudes) {
         const double J = objective_at(Yb, Xb, sign_rows * a, sign_cols * a, kAlternations, o.seed);
         if (J < best) best = J, rows = sign_rows * a, cols = sign_cols * a;
       }
   // Each axis alone over its whole range (the two magnitudes need not be equal).
   const auto scan = [&](const std::function<double(double)>& J, double& at) {
     for (const double sign : {-1.0, 1.0})
-      for (double a = o.shift.min_shift; a <= o.shift.max_shift * (1 + 1e-9); a *= kGridStep) {
+      for (const double a : magnitudes) {
         const double j = J(sign * a);
         if (j < best) best = j, at = sign * a;
       }
@@ -177,9 +158,9 @@ std::pair<double, double> search_shifts(const Tensors& Y, const Tensors& R, cons
   scan([&](double s) { return objective_at(Yb, Xb, s, cols, kAlternations, o.seed); }, rows);
   scan([&](double s) { return objective_at(Yb, Xb, rows, s, kAlternations, o.seed); }, cols);
   for (int round = 0; round < 2; ++round) {
-    rows = golden([&](double s) { return objective_at(Yb, Xb, s, cols, kAlternations, o.seed); }, rows / kGridStep,
+    rows = golden_section_minimum([&](double s) { return objective_at(Yb, Xb, s, cols, kAlternations, o.seed); }, rows / kGridStep,
                   rows * kGridStep, 1e-3);
-    cols = golden([&](double s) { return objective_at(Yb, Xb, rows, s, kAlternations, o.seed); }, cols / kGridStep,
+    cols = golden_section_minimum([&](double s) { return objective_at(Yb, Xb, rows, s, kAlternations, o.seed); }, cols / kGridStep,
                   cols * kGridStep, 1e-3);
   }
   return {rows, cols};
@@ -188,7 +169,7 @@ std::pair<double, double> search_shifts(const Tensors& Y, const Tensors& R, cons
 // One factor's shift refined within 3 % on a step's normal equations (the other factor fixed).
 double refine_shift(const std::pair<torch::Tensor, torch::Tensor>& normal_equations, double shift, double tolerance) {
   const auto& [G, H] = normal_equations;
-  return golden([&](double s) { return solve_shift_factor(G, H, s).objective.sum().item<double>(); }, shift / 1.03,
+  return golden_section_minimum([&](double s) { return solve_shift_factor(G, H, s).objective.sum().item<double>(); }, shift / 1.03,
                 shift * 1.03, tolerance);
 }
 
@@ -271,6 +252,11 @@ std::array<double, 4> reference_correlation(const torch::Tensor& reconstruction,
   return out;
 }
 
+double absolute_tikhonov_lambda(const SeparableInverse& inverse, double relative) {
+  const double top = (inverse.sL.select(1, 0) * inverse.sR.select(1, 0)).max().item<double>();
+  return relative * top * top;
+}
+
 std::vector<HeldOutPair> leave_one_out(const std::vector<ReferencePair>& pairs, double lambda,
                                        const ReferenceCalibrationOptions& options) {
   require_option(pairs.size() >= 3, "calibrate.references", "leave-one-out needs at least 3 pairs");
@@ -283,8 +269,7 @@ std::vector<HeldOutPair> leave_one_out(const std::vector<ReferencePair>& pairs, 
     o.progress = false;
     const auto fit = calibrate_from_references(others, o);
     const auto inverse = separable_inverse(fit.calib.P, fit.calib.Q, 1.0);
-    const double top = (inverse.sL.select(1, 0) * inverse.sR.select(1, 0)).max().item<double>();
-    const auto filter = tikhonov_filter(inverse.sL, inverse.sR, lambda * top * top);
+    const auto filter = tikhonov_filter(inverse.sL, inverse.sR, absolute_tikhonov_lambda(inverse, lambda));
     const auto rec = apply_separable_inverse(inverse.ULt, inverse.UR, inverse.VL, inverse.VRt, filter,
                                              pairs[held].meas.to(torch::kFloat32).unsqueeze(0))[0];
     out.push_back({pairs[held].name, reference_correlation(rec, pairs[held].reference), fit.shift_rows, fit.shift_cols});

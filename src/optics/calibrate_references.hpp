@@ -28,6 +28,7 @@
 #include <torch/torch.h>
 
 #include "optics/camera.hpp"
+#include "optics/separable_inverse.hpp"
 #include "optics/shift_structure.hpp"
 
 namespace flatnet {
@@ -42,9 +43,9 @@ struct ReferenceCalibrationOptions {
   int passes = 6;          // alternating passes (P, Q, gains)
   int search_passes = 2;   // passes 2 and 3 refine each axis's shift (within 3 %); the others keep it
   uint64_t seed = 0;       // the random profiles that start each trial fit
-  ShiftFitOptions shift = [] {
+  ShiftFitOptions shift = [] {  // the search's range and final tolerance
     ShiftFitOptions o;
-    o.min_shift = 0.2, o.max_shift = 4.0, o.exact = true;
+    o.min_shift = 0.2, o.max_shift = 4.0;
     return o;
   }();
   bool progress = true;
@@ -65,6 +66,10 @@ ReferenceCalibration calibrate_from_references(const std::vector<ReferencePair>&
 // Pearson correlation per channel of a reconstruction {4,N,N} with a reference {4,N,N}, over the
 // reference's pixels above zero.
 std::array<double, 4> reference_correlation(const torch::Tensor& reconstruction, const torch::Tensor& reference);
+
+// The Tikhonov lambda (eq. 2.6's, absolute) that is `relative` of the largest squared product of the
+// factors' singular values: a calibration in any units regularised alike.
+double absolute_tikhonov_lambda(const SeparableInverse& inverse, double relative);
 
 struct HeldOutPair {
   std::string name;

@@ -1,5 +1,6 @@
 #include "optics/shift_structure.hpp"
 
+#include <algorithm>
 #include <cmath>
 #include <limits>
 #include <vector>
@@ -158,9 +159,8 @@ ShiftFactor solve_shift_factor(const torch::Tensor& G, const torch::Tensor& H, d
 double search_shift(const torch::Tensor& G, const torch::Tensor& H, const ShiftFitOptions& o, double sigma2) {
   require_option(o.min_shift > 0 && o.max_shift > o.min_shift && o.grid_step > 0 && o.shift_tolerance > 0, "calibrate.dataset",
           "the shift search needs 0 < min_shift < max_shift and positive steps");
-  require_option(!o.exact || o.spacing == 1.0, "calibrate.dataset", "an exact profile solve needs spacing 1");
   const auto cost = [&](double shift, int iterations) {
-    const auto fit = o.exact ? solve_shift_factor(G, H, shift) : fit_shift_factor(G, H, shift, o, iterations);
+    const auto fit = fit_shift_factor(G, H, shift, o, iterations);
     const auto channels = static_cast<double>(fit.profile.size(0)), samples = static_cast<double>(fit.profile.size(1));
     return fit.objective.sum().item<double>() + 2 * sigma2 * samples * channels;
   };
@@ -178,21 +178,24 @@ double search_shift(const torch::Tensor& G, const torch::Tensor& H, const ShiftF
       }
     }
   }
-  if (lo > hi) std::swap(lo, hi);
-  // Golden-section search on [lo, hi].
+  return golden_section_minimum([&](double shift) { return cost(shift, o.fit_iterations); }, lo, hi,
+                                o.shift_tolerance);
+}
+
+double golden_section_minimum(const std::function<double(double)>& f, double lo, double hi, double tolerance) {
   const double ratio = (std::sqrt(5.0) - 1) / 2;
-  double a = lo, b = hi;
+  double a = std::min(lo, hi), b = std::max(lo, hi);
   double c = b - ratio * (b - a), d = a + ratio * (b - a);
-  double fc = cost(c, o.fit_iterations), fd = cost(d, o.fit_iterations);
-  while (b - a > o.shift_tolerance * std::max(std::abs(a), std::abs(b))) {
+  double fc = f(c), fd = f(d);
+  while (b - a > tolerance * std::max(std::abs(a), std::abs(b))) {
     if (fc < fd) {
       b = d, d = c, fd = fc;
       c = b - ratio * (b - a);
-      fc = cost(c, o.fit_iterations);
+      fc = f(c);
     } else {
       a = c, c = d, fc = fd;
       d = a + ratio * (b - a);
-      fd = cost(d, o.fit_iterations);
+      fd = f(d);
     }
   }
   return fc < fd ? c : d;

@@ -18,6 +18,8 @@
 // by conjugate gradients on f. The least J over f is a smooth, single-welled function of the shift
 // around the true one, so the shift is found on a coarse geometric grid over both signs, then by
 // golden-section search.
+#include <functional>
+
 #include <torch/torch.h>
 
 namespace flatnet {
@@ -31,7 +33,6 @@ struct ShiftFitOptions {
   int search_iterations = 100;  // conjugate-gradient steps per trial shift on the coarse grid
   int fit_iterations = 400;     // ... in the golden-section search and the final fit
   double cg_tolerance = 1e-7;   // ... or until the residual falls below this, relative
-  bool exact = false;           // solve each profile exactly (solve_shift_factor; spacing 1 only)
 };
 
 struct ShiftFactor {
@@ -57,6 +58,10 @@ ShiftFactor fit_shift_factor(const torch::Tensor& G, const torch::Tensor& H, dou
 // FlatNet prototype's 742 samples, against ~40 s for 400 CG steps): what makes a full shift search
 // over both axes affordable when each evaluation must be converged.
 ShiftFactor solve_shift_factor(const torch::Tensor& G, const torch::Tensor& H, double shift);
+
+// Golden-section search for the least f on [lo, hi] (a single well inside), to a relative bracket
+// `tolerance`; the shift searches' last stage.
+double golden_section_minimum(const std::function<double(double)>& f, double lo, double hi, double tolerance);
 
 // The shift of least J + 2 sigma2 L, summed over the channels of G and H: the coarse grid over both
 // signs, then golden-section search between the best point's neighbours. Larger shifts mean longer profiles (L samples), and each sample fitted to noise alone lowers
