@@ -20,6 +20,7 @@
 #include "helpers.hpp"
 #include "io/camera_config.hpp"
 #include "io/config.hpp"
+#include "io/image.hpp"
 #include "io/torch_file.hpp"
 #include "io/yaml_text.hpp"
 #include "nn/onnx_export.hpp"
@@ -317,4 +318,53 @@ TEST_CASE("a string setting that looks like YAML is written back as the same str
     const auto back = Config::load(s.dir / "config.yaml");
     CHECK(back.str("data.images") == value);
   }
+}
+
+TEST_CASE("--set takes its value whole: a comma is part of the value, not a second setting", "[safe][hostile][cli]") {
+  test::Scratch s("hostile_set_comma");
+  const auto r = test::run_flatnet("train --config " + q(test::source_dir() / "configs" / "sim_transpose.yaml") +
+                                   " --set train.minutes=1,5 --out " + q(s.dir / "run"));
+  CHECK(r.code == 2);
+  // The value reaches the setting as typed (before: split into 'train.minutes=1' and a bare '5').
+  CHECK_THAT(r.output, Contains("train.minutes") && Contains("1,5"));
+  CHECK_THAT(r.output, !Contains("got '5'"));
+}
+
+TEST_CASE("--require-fit refuses a capture it cannot judge; without it the capture is reconstructed, unjudged",
+          "[safe][hostile][cli][camera-fit]") {
+  test::Scratch s("hostile_require_fit_unjudged");
+  const auto camera = test::source_dir() / "configs" / "cameras" / "flatnet_prototype" / "camera.yaml";
+  std::filesystem::create_directories(s.dir / "in");
+  write_gray16(s.dir / "in" / "white.png", torch::full({1024, 1280}, 65535, torch::kInt32));  // every pixel clipped
+  const auto strict = test::run_flatnet("recon --camera " + q(camera) + " --input " + q(s.dir / "in") + " --out " +
+                                        q(s.dir / "strict") + " --require-fit");
+  CHECK(strict.code == 2);
+  CHECK_THAT(strict.output, Contains("white.png") && Contains("cannot be judged") && Contains("full scale"));
+  CHECK_FALSE(std::filesystem::exists(s.dir / "strict" / "white.png"));
+  const auto plain = test::run_flatnet("recon --camera " + q(camera) + " --input " + q(s.dir / "in") + " --out " +
+                                       q(s.dir / "plain"));
+  CHECK(plain.code == 0);
+  CHECK_THAT(plain.output, Contains("not judged"));
+}
+
+TEST_CASE("a camera whose window is no larger than its scene reconstructs without a camera fit, noise keys or not",
+          "[safe][hostile][cli][camera-fit]") {
+  test::Scratch s("hostile_fit_unmeasurable");
+  auto gen = at::detail::createCPUGenerator(5);
+  save_calibration(s.dir / "calib.mat", {at::randn({4, 16, 16}, gen).to(torch::kFloat64),
+                                         at::randn({4, 16, 16}, gen).to(torch::kFloat64)});
+  write_file(s.dir / "camera.yaml",
+             "name: square\nraw_height: 32\nraw_width: 32\nadc_bits: 10\ncrop: [0, 0, 16, 16]\nscene_size: 16\n"
+             "calibration: calib.mat\nnoise_gain: 2.5e-5\nnoise_floor: 9e-8\ndark: 0.02\n");
+  std::filesystem::create_directories(s.dir / "in");
+  write_gray16(s.dir / "in" / "frame.png", (at::rand({32, 32}, gen) * 60000).to(torch::kInt32));
+  const auto r = test::run_flatnet("recon --camera " + q(s.dir / "camera.yaml") + " --input " + q(s.dir / "in") +
+                                   " --out " + q(s.dir / "out"));
+  INFO(r.output);
+  CHECK(r.code == 0);
+  CHECK(std::filesystem::exists(s.dir / "out" / "frame.png"));
+  const auto strict = test::run_flatnet("recon --camera " + q(s.dir / "camera.yaml") + " --input " + q(s.dir / "in") +
+                                        " --out " + q(s.dir / "strict") + " --require-fit");
+  CHECK(strict.code == 2);
+  CHECK_THAT(strict.output, Contains("too small"));
 }

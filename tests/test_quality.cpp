@@ -309,4 +309,9 @@ TEST_CASE("train --init-from a model without a pre-processor adds one as the ide
   m.generator->eval();
   CHECK(torch::allclose(m.generator->forward(Y), trained->forward(Y), 1e-5, 1e-6));
   CHECK_FALSE(torch::allclose(trained->forward(Y), old_model->forward(Y), 1e-3, 1e-3));
+  // The other way, a model with a pre-processor into a config without one: its weights would be
+  // lost, so it is refused, naming the setting.
+  Generator plain(generator_options(without, cam, false));
+  CHECK_THROWS_WITH(init_generator_from(s.dir / "pre.flatnet", plain),
+                    Contains("pre.flatnet") && Contains("preprocessor") && Contains("no place"));
 }

@@ -275,6 +275,15 @@ TEST_CASE("a model file's spec is checked against its weights before the network
   CHECK_THROWS_WITH(load_model_file(s.dir / "bigscene.flatnet"), Contains("bigscene.flatnet") && Contains("1..4096"));
   tamper("hex.flatnet", "model_spec", "width: 2\n", "width: 0x2\n");
   CHECK_THROWS_WITH(load_model_file(s.dir / "hex.flatnet"), Contains("hex.flatnet") && Contains("model.unet.width"));
+  // A weight its spec has no place for (a spec edited to `input: tikhonov` over a trained inversion's
+  // weights, say) is named, not dropped.
+  auto st = read_safetensors(s.dir / "m.flatnet");
+  const auto some = st.tensors.begin()->first;
+  REQUIRE(some.rfind("generator.", 0) == 0);
+  st.tensors.emplace_back("generator.inversion.extra", torch::zeros({3}));
+  write_safetensors(s.dir / "extra.flatnet", st.tensors, st.metadata);
+  CHECK_THROWS_WITH(load_model_file(s.dir / "extra.flatnet"),
+                    Contains("extra.flatnet") && Contains("inversion.extra") && Contains("no place"));
 }
 
 TEST_CASE("hostile pickles: cycles, deep nesting, huge lengths and amplifying views are refused", "[safe][torchfile]") {

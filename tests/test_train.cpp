@@ -11,6 +11,8 @@
 #include "core/error.hpp"
 #include "core/util.hpp"
 #include "helpers.hpp"
+#include "io/safetensors.hpp"
+#include "nn/checkpoint.hpp"
 #include "train/csv_log.hpp"
 #include "train/distributed.hpp"
 #include "train/gan_trainer.hpp"
@@ -645,4 +647,21 @@ TEST_CASE("the moving average's decay is checked once per entry: the config's ra
                                  load_all(MemoryPairs(2), 0, 1), o, model_identity(setup.config, setup.camera)),
                       Contains("train.ema_decay: must lie in [0, 1)"));
   }
+}
+
+TEST_CASE("a checkpoint whose best PSNR is not a number exports no model", "[train][safe][hostile]") {
+  test::Scratch s("ckpt_best_text");
+  Setup setup;
+  const auto dir = s.dir / "run";
+  {
+    auto first = setup.trainer(dir, 2);
+    first.run();
+  }
+  CHECK_NOTHROW(model_from_checkpoint(dir / "best.ckpt"));
+  auto st = read_safetensors(dir / "best.ckpt");
+  REQUIRE(st.metadata.count("best_psnr"));
+  st.metadata["best_psnr"] = "abc";
+  write_safetensors(s.dir / "edited.ckpt", st.tensors, st.metadata);
+  CHECK_THROWS_WITH(model_from_checkpoint(s.dir / "edited.ckpt"),
+                    Contains("edited.ckpt") && Contains("best_psnr") && Contains("not a number"));
 }

@@ -41,6 +41,20 @@ torch::Tensor reference_planes(const std::filesystem::path& path, int64_t N, con
   return rgb_to_bayer_planes(rgb);
 }
 
+// The light every pixel reads whatever the scene (CameraConfig::open_light): each plane's level less
+// the dark level against its scene's mean in the calibration's units (a R + b, eq. 1 of
+// optics/calibrate_references.hpp), one slope through zero by least squares over pairs and planes.
+double open_light_of(const std::vector<NoiseSample>& samples, const ReferenceCalibration& fit, double dark) {
+  double xy = 0, xx = 0;
+  for (size_t i = 0; i < samples.size() && i < fit.scene_means.size(); ++i)
+    for (int c = 0; c < 4; ++c) {
+      const double scene_mean = fit.scene_means[i][c];
+      xy += scene_mean * (samples[i].level[c].item<double>() - dark), xx += scene_mean * scene_mean;
+    }
+  const double k = xx > 0 ? xy / xx : 0.0;
+  return std::isfinite(k) && k > 0 && k <= 1e3 ? k : 0.0;
+}
+
 void print_held_out(const std::vector<HeldOutPair>& held) {
   std::cout << "leave-one-out: each pair reconstructed (Tikhonov) from a calibration of the others, Pearson "
                "correlation with its reference (pixels clipped at zero left out)\n"
@@ -64,9 +78,13 @@ int calibrate_from_reference_pairs(const cxxopts::ParseResult& r, const CameraCo
   require(std::isfinite(lambda) && lambda > 0 && lambda < 1, "--reference-lambda",
           "a relative regulariser in (0, 1), such as 3e-4");
   std::vector<ReferencePair> refs;
+  std::vector<NoiseSample> noise_samples;
   for (const auto& p : pairs) {
-    refs.push_back({p.meas.filename().string(), load_centred_planes(p.meas, camera.raw),  // {4,rows,cols}
-                    reference_planes(p.gt, camera.scene_size, order)});
+    const auto window = raw_window(load_raw_unit(p.meas, camera.raw), camera.raw);  // {4,rows,cols}
+    const auto planes = without_level(double_centre(window, camera.raw.centring), camera.raw.centring);
+    refs.push_back({p.meas.filename().string(), planes, reference_planes(p.gt, camera.scene_size, order)});
+    noise_samples.push_back({planes, window.mean({1, 2}),
+                             at_full_scale(window, camera.raw.adc_bits).to(torch::kFloat32).mean().item<double>()});
   }
   ReferenceCalibrationOptions o;
   o.seed = r["seed"].as<uint64_t>();
@@ -99,6 +117,12 @@ int calibrate_from_reference_pairs(const cxxopts::ParseResult& r, const CameraCo
     save_calibration(out, fit.calib);
   auto known = camera;
   known.tikhonov_lambda = absolute_tikhonov_lambda(separable_inverse(fit.calib.P, fit.calib.Q, 1.0), lambda);
+  const auto noise = fit_noise_model(noise_samples, fit.calib.P, fit.calib.Q);
+  if (noise.found) {
+    known.noise_gain = noise.noise_gain, known.noise_floor = noise.noise_floor, known.dark = noise.dark;
+    known.fit_threshold = noise.fit_threshold, known.leak_threshold = noise.leak_threshold;
+    known.open_light = open_light_of(noise_samples, fit, noise.dark);
+  }
   std::ostringstream head;
   head << "# identified by `flatnet calibrate --references` from " << refs.size()
        << " captures and reconstructions of them; the shadow moves " << std::setprecision(6) << fit.shift_rows
@@ -112,6 +136,18 @@ int calibrate_from_reference_pairs(const cxxopts::ParseResult& r, const CameraCo
             << " per scene column\nfit residual ||Y - P (a R + b) Q^T|| / ||Y||:";
   for (int c = 0; c < 4; ++c) std::cout << " " << kChannelNames[c] << " " << std::setprecision(4) << fit.residual[c];
   std::cout << "\n";
+  if (noise.found) {
+    std::cout << "sensor noise: variance " << noise.noise_gain << " x (level - " << noise.dark << ") + "
+              << noise.noise_floor << "; open light " << known.open_light
+              << " x the scene's mean\ncamera fit: the captures' own fits";
+    for (const double f : noise.fits) std::cout << " " << std::setprecision(3) << f;
+    std::cout << ", threshold " << noise.fit_threshold;
+    if (noise.leak_threshold > 0) std::cout << ", leak up to " << noise.leak_threshold;
+    std::cout << " (written to the camera file)\n";
+  } else {
+    std::cout << "no noise model: it needs 2 captures or more whose noise grows with their light; the camera fit "
+                 "cannot judge this camera's captures until noise_gain, noise_floor and dark are in its file\n";
+  }
   return 0;
 }
 

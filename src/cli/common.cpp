@@ -154,7 +154,12 @@ void require_new_output(const std::filesystem::path& out, bool force,
 }
 
 std::vector<std::string> set_overrides(const cxxopts::ParseResult& r) {
-  return r.count("set") ? r["set"].as<std::vector<std::string>>() : std::vector<std::string>{};
+  // Every --set in order, each one whole: a value may hold commas (a list, a path), which cxxopts's
+  // vector options would split.
+  std::vector<std::string> sets;
+  for (const auto& kv : r.arguments())
+    if (kv.key() == "set") sets.push_back(kv.value());
+  return sets;
 }
 
 void add_lpips(cxxopts::Options& options) {

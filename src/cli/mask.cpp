@@ -62,7 +62,7 @@ Config run_config(const cxxopts::ParseResult& r, const std::filesystem::path& ou
 int mask_train(int argc, char** argv) {
   cxxopts::Options o("flatnet mask train", "Learn a rank-k amplitude mask end to end through Wiener deconvolution.");
   o.add_options()("config", "experiment config (configs/mask_rank1.yaml, ...)", cxxopts::value<std::string>())(
-      "set", "override a setting (repeatable)", cxxopts::value<std::vector<std::string>>())(
+      "set", "override a setting (repeatable)", cxxopts::value<std::string>())(
       "out", "output folder", cxxopts::value<std::string>())(
       "resume", "continue the run in --out from its latest.ckpt, with its own config (--set changes single settings)");
   add_force_folder(o);
@@ -254,7 +254,7 @@ int mask_separable(int argc, char** argv) {
                      "Learn a separable FlatCam's codes end to end: codes -> PhiL/PhiR -> noisy capture -> Tikhonov. "
                      "Settings: configs/separable_defaults.yaml (each shortcut flag sets one of its keys).");
   o.add_options()("config", "experiment config overriding configs/separable_defaults.yaml", cxxopts::value<std::string>())(
-      "set", "override a setting, key=value (repeatable)", cxxopts::value<std::vector<std::string>>())(
+      "set", "override a setting, key=value (repeatable)", cxxopts::value<std::string>())(
       "out", "folder for codes.mat, lambda.txt, log.csv, curve.png, config.yaml", cxxopts::value<std::string>())(
       "init", codes_init_key() + ": mls, random, or a codes .mat", cxxopts::value<std::string>())(
       "resume", "continue the run in --out from its latest.ckpt, with its own config (--set and the shortcut flags "

@@ -32,7 +32,6 @@ int simulate(int argc, char** argv) {
   const auto noise = r["noise"].as<std::string>();
   require(noise == "on" || noise == "off", "--noise", "must be on or off");
   const auto camera = camera_from(r);
-  require(!camera.rig.empty(), camera.name, "this camera has no rig (true response) to simulate with");
   const auto rig = load_camera_rig(camera);
   SimulateOptions opt;
   opt.images = r["images"].as<std::string>();
@@ -47,7 +46,7 @@ int simulate(int argc, char** argv) {
   opt.only = r["only"].as<std::string>();
   opt.lamp = r.count("lamp") > 0;
   opt.lamp_gain = r["lamp-gain"].as<double>();
-  opt.camera = std::filesystem::weakly_canonical(camera.rig).string();
+  opt.camera = std::filesystem::weakly_canonical(simulation_source(camera)).string();
   opt.force = r.count("force") > 0;
   const auto claim = claim_out(r, opt.out, "simulate", "", "simulate.yaml");
   const auto rep = simulate_dataset(rig, opt);

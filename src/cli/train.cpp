@@ -21,7 +21,7 @@ int train(int argc, char** argv) {
   cxxopts::Options o("flatnet train", "Train a FlatNet reconstruction network (GAN, FlatNet-sep).");
   o.add_options()("config", "experiment config (configs/*.yaml); defaults.yaml alone when absent",
                   cxxopts::value<std::string>())("set", "override a setting: --set train.iterations=100 (repeatable)",
-                                                 cxxopts::value<std::vector<std::string>>())(
+                                                  cxxopts::value<std::string>())(
       "out", "run folder (checkpoints, logs, model.flatnet)", cxxopts::value<std::string>())(
       "resume", "continue the run in --out from its latest checkpoint")("force", "start afresh in an --out folder that holds another run (its checkpoints and logs are deleted)")(
       "init-from",
@@ -161,7 +161,7 @@ int import_model(int argc, char** argv) {
   o.add_options()("state-dict", "torch.save'd state dict (or FlatNet checkpoint with gen_state_dict)",
                   cxxopts::value<std::string>())(
       "config", "config describing the architecture (e.g. configs/flatnet_paper.yaml)", cxxopts::value<std::string>())(
-      "set", "override a setting (repeatable)", cxxopts::value<std::vector<std::string>>())(
+      "set", "override a setting (repeatable)", cxxopts::value<std::string>())(
       "camera", "camera the weights were trained for (default: the config's data.camera)",
       cxxopts::value<std::string>())("out", "model file to write", cxxopts::value<std::string>())(
       "verbose", "list the file's tensors that the model does not use")("force", "replace an existing --out file");

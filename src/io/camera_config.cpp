@@ -45,7 +45,7 @@ const std::vector<std::string> kKnownKeys = {"name",        "raw_height", "raw_w
                                              "rotation",    "crop",       "centring",        "scene_size",
                                              "calibration", "rig",        "tikhonov_lambda", "tv_lambda",
                                              "noise_gain",  "noise_floor", "dark",
-                                             "fit_threshold", "leak_threshold"};
+                                             "fit_threshold", "leak_threshold", "open_light"};
 
 void validate(const CameraConfig& c, const std::filesystem::path& path) {
   const auto& g = c.raw;
@@ -71,6 +71,8 @@ void validate(const CameraConfig& c, const std::filesystem::path& path) {
           path, "fit_threshold is 0 (the camera fit's own) or a ratio within [1, 1000]");
   require(std::isfinite(c.leak_threshold) && (c.leak_threshold == 0 || (c.leak_threshold >= 1 && c.leak_threshold <= 1e3)),
           path, "leak_threshold is 0 (the camera fit's own) or a ratio within [1, 1000]");
+  require(std::isfinite(c.open_light) && c.open_light >= 0 && c.open_light <= 1e3, path,
+          "open_light is 0 (unknown) or a plane's level per unit of mean scene light, within (0, 1000]");
   // Above ~1e4 the SVD filter s / (s^2 + lambda) is ~0 for any real camera: black images, not an answer.
   require(std::isfinite(c.tikhonov_lambda) && std::isfinite(c.tv_lambda) && c.tikhonov_lambda > 0 &&
               c.tv_lambda > 0 && c.tikhonov_lambda <= 1e4 && c.tv_lambda <= 1e4,
@@ -118,6 +120,7 @@ std::string camera_geometry_yaml(const CameraConfig& c) {
     os << "noise_gain: " << c.noise_gain << "\nnoise_floor: " << c.noise_floor << "\ndark: " << c.dark << "\n";
   if (c.fit_threshold > 0) os << "fit_threshold: " << c.fit_threshold << "\n";
   if (c.leak_threshold > 0) os << "leak_threshold: " << c.leak_threshold << "\n";
+  if (c.open_light > 0) os << "open_light: " << c.open_light << "\n";
   return os.str();
 }
 
@@ -152,6 +155,7 @@ CameraConfig camera_from_node(const YAML::Node& y, const std::filesystem::path& 
     if (y["dark"]) c.dark = y["dark"].as<double>();
     if (y["fit_threshold"]) c.fit_threshold = y["fit_threshold"].as<double>();
     if (y["leak_threshold"]) c.leak_threshold = y["leak_threshold"].as<double>();
+    if (y["open_light"]) c.open_light = y["open_light"].as<double>();
   } catch (const YAML::Exception& e) {
     throw Error(path, std::string("bad value: ") + e.what());
   }

@@ -53,6 +53,11 @@ struct CameraConfig {
   // calibration's error is itself structured, so its own captures show a leak; calibrate --dataset
   // writes the threshold its pairs need. 0: noise alone sets it.
   double leak_threshold = 0;
+  // The light every pixel reads whatever the scene, through the mask's open part and as stray light:
+  // a plane's mean level per unit of the scene's mean linear light (level = dark + open_light *
+  // mean(X)). 0 = unknown. `flatnet calibrate --references` measures it; with the noise model it lets
+  // a camera known only from its calibration be simulated through it (optics/camera.hpp calibration_rig).
+  double open_light = 0;
   bool knows_noise() const { return noise_gain > 0; }
 };
 

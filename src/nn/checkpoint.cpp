@@ -242,7 +242,11 @@ double checkpoint_best_psnr(const std::filesystem::path& path) {
 }
 
 ModelFile model_from_checkpoint(const std::filesystem::path& path, bool* used_average) {
-  return detail::read_generator(read_stored(path, kCheckpointFormat), path, used_average);
+  const auto s = read_stored(path, kCheckpointFormat);
+  // The numbers a checkpoint records are checked as --resume checks them: a file whose step or best
+  // PSNR is not a number is damaged or edited, and a model exported from it would carry that.
+  for (const char* key : {"step", "best_psnr"}) stored_number(s, key, path);
+  return detail::read_generator(s, path, used_average);
 }
 
 }  // namespace flatnet

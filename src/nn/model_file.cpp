@@ -1,6 +1,7 @@
 #include "nn/model_file.hpp"
 
 #include <cmath>
+#include <set>
 
 #include "core/error.hpp"
 #include "core/util.hpp"
@@ -85,7 +86,9 @@ void init_generator_from(const std::filesystem::path& model, Generator& g, Gener
   if (part == GeneratorPart::enhancer)
     require(m.generator->options().input == g->options().input, model,
             "its first stage (model.input) differs from this config's; " + option_key("experiment.reinit") + " inversion keeps the stage's kind");
+  std::set<std::string> taken;  // the file's tensors this config's model takes
   detail::fill_module(*g, model, "weight", [&](const std::string& name, bool buffer) {
+    taken.insert(name);
     if (part == GeneratorPart::enhancer && first_stage(name)) {
       const auto* own = buffer ? our_buffers.find(name) : ours.find(name);
       return own->detach().clone();  // this camera's, as initialised
@@ -106,6 +109,19 @@ void init_generator_from(const std::filesystem::path& model, Generator& g, Gener
     }
     return t->detach();
   });
+  // Every weight of the file lands somewhere, or the run says which would be lost: a model with a
+  // pre-processor given to a config without one must not lose it silently. (--reinit inversion
+  // replaces the first stage on purpose.)
+  std::vector<std::string> dropped;
+  for (const auto& items : {theirs, their_buffers})
+    for (const auto& kv : items)
+      if (!taken.count(kv.key()) && !(part == GeneratorPart::enhancer && first_stage(kv.key())))
+        dropped.push_back(kv.key());
+  if (!dropped.empty())
+    throw Error(model, "has " + std::to_string(dropped.size()) + " weights this config's model has no place for ('" +
+                           printable(dropped.front()) + "'" + (dropped.size() > 1 ? ", ..." : "") +
+                           "): its architecture differs (model.preprocessor, model.input, model.enhancer); set the "
+                           "same model settings as the file's (flatnet info " + model.string() + ")");
 }
 
 void transfer_inversion(const std::filesystem::path& source, const CalibrationPair& c, double lambda, Generator& g) {

@@ -1,8 +1,10 @@
 #include "nn/stored_file.hpp"
 
 #include <chrono>
+#include <set>
 #include <ctime>
 #include <iomanip>
+#include <set>
 #include <sstream>
 
 #include "core/error.hpp"
@@ -111,12 +113,21 @@ void add_module(std::vector<std::pair<std::string, torch::Tensor>>& out, const s
 void load_module(const Stored& s, const std::string& key, torch::nn::Module& m, const std::filesystem::path& where) {
   const auto tensors = s.under(key);
   if (tensors.empty()) throw Error(where, "no '" + key + "' weights in the file");
+  std::set<std::string> used;
   fill_module(m, where, key + " weight", [&](const std::string& name, bool) {
     const auto it = tensors.find(name);
     if (it == tensors.end())
       throw Error(where, key + " weights lack '" + name + "' (the file's architecture differs from its config)");
+    used.insert(name);
     return it->second;
   });
+  // A weight the model has no place for would be dropped silently (a spec saying `input: tikhonov`
+  // over a trained inversion's weights runs Tikhonov): the file's spec and weights disagree.
+  for (const auto& [name, t] : tensors)
+    if (!used.count(name))
+      throw Error(where, key + " weight '" + printable(name) +
+                             "' has no place in the model its stored spec describes (the spec and the weights disagree: "
+                             "a damaged or edited file?)");
 }
 
 namespace {

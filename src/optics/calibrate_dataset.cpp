@@ -191,58 +191,23 @@ void balance(torch::Tensor& P, torch::Tensor& Q) {
   Q = Q / k;
 }
 
-// The noise model as the camera fit (optics/camera_fit.hpp) will test captures against it: each of
-// the first pairs' energy outside the calibration's span, per pixel and per share of a pixel's noise
-// expected there, against the plane's light level (gain * (mean v - dark) + floor summed over the
-// pixels v is a line in the level); least squares, then dark, floor >= 0. The residual against the
-// shown scene, fitted before, holds the calibration's whole error, which grows with the light and
-// tilted the line (135 of 150 dim captures of the camera itself flagged). Outside the span only part
-// of that error is left, but how much varies from scene to scene (the fit of the camera's own
-// captures spreads over 0.65-1.2 with a 100-pair calibration): the pairs' own fits set the camera
-// fit's threshold, their largest with a margin, or their mean plus five deviations if larger.
+// The noise model and the camera fit's thresholds (optics/camera_fit.hpp fit_noise_model), on the
+// first pairs. The residual against the shown scene, fitted before, holds the calibration's whole
+// error, which grows with the light and tilted the line (135 of 150 dim captures of the camera itself
+// flagged); outside the span only part of that error is left, and the pairs' own fits (0.65-1.2 with
+// a 100-pair calibration) set the threshold.
 void fit_noise_outside_span(PairStream& pairs, const torch::Tensor& P, const torch::Tensor& Q,
                             DatasetCalibration& out) {
-  const auto U = std::get<0>(torch::linalg_qr(P.to(torch::kFloat64))).to(torch::kFloat32);
-  const auto V = std::get<0>(torch::linalg_qr(Q.to(torch::kFloat64))).to(torch::kFloat32);
-  const int64_t h = U.size(1), w = V.size(1);
-  const double per_pixel = outside_share(h, w, U.size(2)) * static_cast<double>(h * w);
-  std::vector<double> levels, energies;  // per plane
-  double largest_leak = 0;  // the pairs' own near-twin statistic: this calibration's error is structured too
+  std::vector<NoiseSample> samples;
   for (int64_t i = 0; i < std::min<int64_t>(pairs.size(), kNoisePairs); ++i) {
     const auto pair = pairs.get(i);
-    if (!pair.level.defined()) return;
-    // Clipped pixels are no P X Q^T: a saturated pair's leak is the clipping's (2.5-2.8 measured on
-    // the reference camera's), and the camera fit does not judge such captures either.
-    const double leak = pair.saturated <= kMaxSaturatedShare ? coded_leak(pair.meas, U, V) : std::nan("");
-    if (std::isfinite(leak)) largest_leak = std::max(largest_leak, leak);
-    const auto outside = unexplained_energy(pair.meas, U, V) / per_pixel;  // {4}
-    for (int c = 0; c < 4; ++c) levels.push_back(pair.level[c].item<double>()), energies.push_back(outside[c].item<double>());
+    samples.push_back({pair.meas, pair.level, pair.saturated});
   }
-  if (energies.size() < 8) return;
-  const auto n = static_cast<int64_t>(energies.size());
-  auto A = torch::ones({n, 2}, torch::kFloat64);
-  A.select(1, 0).copy_(torch::tensor(levels, torch::kFloat64));
-  const auto x = std::get<0>(torch::linalg_lstsq(A, torch::tensor(energies, torch::kFloat64).unsqueeze(1))).flatten();
-  const double gain = x[0].item<double>(), offset = x[1].item<double>();
-  if (!(gain > 0) || !std::isfinite(gain) || !std::isfinite(offset)) return;
-  out.noise_gain = gain;
-  out.noise_floor = std::max(0.0, offset);
-  out.dark = offset < 0 ? -offset / gain : 0.0;
-  // Each pair's fit as the camera fit computes it (four planes pooled, the level per plane).
-  std::vector<double> fits;
-  for (size_t i = 0; i + 4 <= energies.size(); i += 4) {
-    double seen = 0, expected = 0;
-    for (size_t c = i; c < i + 4; ++c)
-      seen += energies[c], expected += std::max(0.0, levels[c] - out.dark) * gain + out.noise_floor;
-    fits.push_back(seen / std::max(expected, 1e-30));
-  }
-  double mean = 0, square = 0;
-  for (double f : fits) mean += f, square += f * f;
-  mean /= static_cast<double>(fits.size());
-  const double deviation = std::sqrt(std::max(0.0, square / static_cast<double>(fits.size()) - mean * mean));
-  const double largest = *std::max_element(fits.begin(), fits.end());
-  out.fit_threshold = std::max({1.0, 1.1 * largest, mean + 5 * deviation});
-  if (largest_leak > 0) out.leak_threshold = std::max(1.0, 1.1 * largest_leak);
+  const auto noise = fit_noise_model(samples, P, Q);
+  if (!noise.found) return;
+  out.noise_gain = noise.noise_gain, out.noise_floor = noise.noise_floor, out.dark = noise.dark;
+  out.fit_threshold = noise.fit_threshold;
+  out.leak_threshold = noise.leak_threshold;
 }
 
 // Pairs that cannot identify a calibration are named before the first solve, which would otherwise

@@ -235,6 +235,9 @@ ReferenceCalibration calibrate_from_references(const std::vector<ReferencePair>&
       g[static_cast<size_t>(4 + c)] = offset[i][c].item<double>();
     }
     result.gain_offset.push_back(g);
+    const auto means = X[i].mean({1, 2});
+    result.scene_means.push_back({means[0].item<double>(), means[1].item<double>(), means[2].item<double>(),
+                                  means[3].item<double>()});
   }
   return result;
 }

@@ -57,6 +57,7 @@ struct ReferenceCalibration {
   torch::Tensor profile_rows, profile_cols;  // {4,L}: P and Q as profiles (save_shift_calibration)
   std::array<double, 4> residual{};        // ||Y - model (1)|| / ||Y|| per channel over the pairs
   std::vector<std::array<double, 8>> gain_offset;  // per pair: a_b, a_gb, a_gr, a_r, b_b, ..., b_r
+  std::vector<std::array<double, 4>> scene_means;  // per pair and channel: the mean of a R + b, P's units
 };
 
 // Fits (1). Errors name the pair when its planes have the wrong size, hold NaN, or carry no signal.

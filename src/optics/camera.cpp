@@ -1,6 +1,7 @@
 #include "optics/camera.hpp"
 
 #include <cmath>
+#include <iostream>
 
 #include "optics/shift_structure.hpp"
 
@@ -56,8 +57,71 @@ Rig load_rig(const std::filesystem::path& path) {
   return rig;
 }
 
+namespace {
+
+// The share of white noise's variance that survives preprocessing's rotation (io/raw.hpp
+// rotate_planes): each output pixel is a bilinear mix of four, whose squared weights sum to
+// ((1-fr)^2 + fr^2)((1-fc)^2 + fc^2), averaged over the window. FlatNet's prototype: 0.00174 rad turns
+// the window's rows by up to a pixel, and keeps 0.46 of the variance. The noise model is measured on
+// rotated captures, so a simulator adds noise before rotation at 1 / this of it.
+double rotation_variance_kept(const RawGeometry& g) {
+  if (g.rotation == 0.0) return 1.0;
+  const auto f64 = torch::TensorOptions().dtype(torch::kFloat64);
+  const auto r = torch::arange(g.crop[0], g.crop[0] + g.crop[2], f64).unsqueeze(1);
+  const auto c = torch::arange(g.crop[1], g.crop[1] + g.crop[3], f64).unsqueeze(0);
+  const auto src_r = std::sin(g.rotation) * c + std::cos(g.rotation) * r;
+  const auto src_c = std::cos(g.rotation) * c - std::sin(g.rotation) * r;
+  const auto fr = src_r - src_r.floor(), fc = src_c - src_c.floor();
+  const auto kept = ((1 - fr).square() + fr.square()) * ((1 - fc).square() + fc.square());
+  return kept.mean().item<double>();
+}
+
+}  // namespace
+
+Rig calibration_rig(const Calibration& calib, const CameraConfig& camera) {
+  const auto& g = camera.raw;
+  const int64_t n = camera.scene_size, h = g.crop[2], w = g.crop[3];
+  require(calib.P.dim() == 3 && calib.P.size(0) == 4 && calib.P.size(1) == h && calib.P.size(2) == n &&
+              calib.Q.dim() == 3 && calib.Q.size(0) == 4 && calib.Q.size(1) == w && calib.Q.size(2) == n,
+          camera.calibration, "does not match camera '" + printable(camera.name) + "' (its crop and scene size)");
+  require(camera.knows_noise() && camera.open_light > 0, camera.name,
+          "a camera simulated through its calibration needs its noise model and open_light (flatnet calibrate)");
+  const double lsb = 1.0 / (std::pow(2.0, g.adc_bits) - 1);
+  Rig rig;
+  rig.phil = torch::zeros({4, g.plane_height(), n});
+  rig.phir = torch::zeros({4, g.plane_width(), n});
+  rig.phil.narrow(1, g.crop[0], h).copy_(calib.P);
+  rig.phir.narrow(1, g.crop[1], w).copy_(calib.Q);
+  rig.gain = torch::ones({4});
+  // expected_signal's open term is vig_rows vig_cols^T sum(X) = open_light * mean(X).
+  const double vig = std::sqrt(camera.open_light) / static_cast<double>(n);
+  rig.vig_rows = torch::full({g.plane_height()}, vig);
+  rig.vig_cols = torch::full({g.plane_width()}, vig);
+  // The noise model is what rotated planes show; before rotation the noise is 1 / kept stronger.
+  const double kept = rotation_variance_kept(g);
+  rig.full_well = kept / camera.noise_gain;
+  rig.read_noise = rig.full_well * std::sqrt(std::max(0.0, camera.noise_floor / kept - lsb * lsb / 12));
+  rig.dark = camera.dark;
+  rig.adc_bits = g.adc_bits;
+  return rig;
+}
+
+bool can_simulate(const CameraConfig& camera) {
+  return !camera.rig.empty() || (camera.open_light > 0 && !camera.calibration.empty());
+}
+
+std::filesystem::path simulation_source(const CameraConfig& camera) {
+  return camera.rig.empty() ? camera.calibration : camera.rig;
+}
+
 Rig load_camera_rig(const CameraConfig& camera) {
-  require(!camera.rig.empty(), camera.name, "this camera names no rig (rig.mat, its true response)");
+  if (camera.rig.empty() && camera.open_light > 0 && !camera.calibration.empty()) {
+    std::cerr << "camera '" << printable(camera.name) << "' has no rig: simulated through its calibration\n";
+    return calibration_rig(load_calibration(camera.calibration, camera), camera);
+  }
+  require(!camera.rig.empty(), camera.name,
+          "this camera names no rig (rig.mat, its true response), and has no open_light to be simulated through "
+          "its calibration");
   auto rig = load_rig(camera.rig);
   require(rig.scene_size() == camera.scene_size, camera.rig,
           "models a " + std::to_string(rig.scene_size()) + "-pixel scene, and camera '" + printable(camera.name) +

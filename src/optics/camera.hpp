@@ -14,6 +14,8 @@ namespace flatnet {
 // True response of a separable FlatCam, per Bayer channel c in (b, gb, gr, r), on the whole plane:
 //   S_c = gain_c * ( PhiL_c X_c PhiR_c^T + vig_rows vig_cols^T * sum(X_c) )      (full-scale units)
 // The second term is the light through the open half of the mask, which carries no code.
+struct Calibration;
+
 struct Rig {
   torch::Tensor phil;        // {4, plane_h, N} float32
   torch::Tensor phir;        // {4, plane_w, N}
@@ -31,7 +33,24 @@ struct Rig {
 Rig load_rig(const std::filesystem::path& path);
 // The camera's rig (camera.rig), checked against the camera that names it: its scene size and its
 // planes' size (the crop) must agree, or the error names both files.
+// A camera with no rig but with its noise model and open_light (a real camera, calibrated) is
+// simulated through its calibration instead (calibration_rig); other cameras with no rig are an error.
 Rig load_camera_rig(const CameraConfig& camera);
+// Whether load_camera_rig has something to simulate with, and the file it reads (the rig, or the
+// calibration a calibration_rig is made from): recorded with simulated data.
+bool can_simulate(const CameraConfig& camera);
+std::filesystem::path simulation_source(const CameraConfig& camera);
+// A rig made from a calibration (P, Q of the camera's window, centred as calibrations are) and the
+// camera file's measurements: the coded light P X Q^T in the crop's rows and columns, the open
+// part's uniform light open_light * mean(X) over the whole plane, and a sensor whose photon and read
+// noise give the camera's noise model (full well = 1 / noise_gain; read noise from noise_floor less
+// the ADC's rounding). Simulated captures are then what the calibration and the noise model
+// predict: what the calibration misses (its error, non-separable light) is not in them. The mask's
+// rotation is not undone: preprocessing rotates the simulated planes by the camera's small angle
+// too (0.5 pixel at the window's edge for FlatNet's prototype); its interpolation averages noise
+// away, which the sensor's noise here makes up for, so that the preprocessed planes carry the
+// noise model's variance.
+Rig calibration_rig(const Calibration& calib, const CameraConfig& camera);
 
 // Noise-free expected signal for linear-light scene planes. {B,4,N,N} -> {B,4,plane_h,plane_w}.
 torch::Tensor expected_signal(const Rig& rig, const torch::Tensor& scene_planes);

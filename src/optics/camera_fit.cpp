@@ -143,6 +143,11 @@ double outside_share(int64_t h, int64_t w, int64_t n) {
   return (dof - std::pow(std::sqrt(hd - 1) + std::sqrt(wd - 1), 2)) / (hd * wd);
 }
 
+bool camera_fit_measurable(int64_t h, int64_t w, int64_t n) {
+  const double dof = static_cast<double>(h - 1) * static_cast<double>(w - 1) - static_cast<double>(n) * static_cast<double>(n);
+  return dof > 1000;
+}
+
 CameraFit::CameraFit(const Calibration& calib, const CameraConfig& camera) : camera_(camera) {
   require(camera.knows_noise(), camera.name,
           "this camera has no noise model (noise_gain, noise_floor, dark); `flatnet calibrate --dataset` measures it");
@@ -155,7 +160,8 @@ CameraFit::CameraFit(const Calibration& calib, const CameraConfig& camera) : cam
   const double h = static_cast<double>(U_.size(1)), w = static_cast<double>(V_.size(1));
   const double n = static_cast<double>(U_.size(2));
   const double dof = (h - 1) * (w - 1) - n * n;
-  require(dof > 1000, camera.name, "the capture window is too small beside the scene to test a capture's fit");
+  require(camera_fit_measurable(U_.size(1), V_.size(1), U_.size(2)), camera.name,
+          "the capture window is too small beside the scene to test a capture's fit");
   // Chance alone: the pooled energy of 4 * dof noise terms has relative deviation sqrt(2 / (4 dof)).
   // Six deviations, and 1 % for calibration error and the noise model's own.
   threshold_ = std::max(1 + 6 * std::sqrt(2 / (4 * dof)) + 0.01, camera.fit_threshold);
@@ -211,6 +217,52 @@ CameraFitResult CameraFit::measure(const torch::Tensor& raw_unit) const {
   r.leak_matches = !leak_tested || r.leak <= leak_threshold_;
   r.matches = !r.judged || (std::isfinite(r.fit) && r.fit <= threshold_ && r.leak_matches);
   return r;
+}
+
+NoiseModelFit fit_noise_model(const std::vector<NoiseSample>& samples, const torch::Tensor& P, const torch::Tensor& Q) {
+  torch::NoGradGuard no_grad;
+  NoiseModelFit out;
+  const auto U = std::get<0>(torch::linalg_qr(P.to(torch::kFloat64))).to(torch::kFloat32);
+  const auto V = std::get<0>(torch::linalg_qr(Q.to(torch::kFloat64))).to(torch::kFloat32);
+  const int64_t h = U.size(1), w = V.size(1);
+  const double per_pixel = outside_share(h, w, U.size(2)) * static_cast<double>(h * w);
+  std::vector<double> levels, energies;  // per plane
+  double largest_leak = 0;  // the captures' own near-twin statistic: an estimated calibration's error is structured too
+  for (const auto& sample : samples) {
+    if (!sample.level.defined()) return out;
+    // Clipped pixels are no P X Q^T: a saturated capture's leak is the clipping's (2.5-2.8 measured on
+    // the reference camera's), and the camera fit does not judge such captures either.
+    if (sample.saturated <= kMaxSaturatedShare) largest_leak = std::max(largest_leak, coded_leak(sample.meas, U, V));
+    const auto outside = unexplained_energy(sample.meas, U, V) / per_pixel;  // {4}
+    const auto level = sample.level.to(torch::kFloat64).flatten();
+    for (int c = 0; c < 4; ++c) levels.push_back(level[c].item<double>()), energies.push_back(outside[c].item<double>());
+  }
+  if (energies.size() < 8) return out;
+  const auto n = static_cast<int64_t>(energies.size());
+  auto A = torch::ones({n, 2}, torch::kFloat64);
+  A.select(1, 0).copy_(torch::tensor(levels, torch::kFloat64));
+  const auto x = std::get<0>(torch::linalg_lstsq(A, torch::tensor(energies, torch::kFloat64).unsqueeze(1))).flatten();
+  const double gain = x[0].item<double>(), offset = x[1].item<double>();
+  if (!(gain > 0) || !std::isfinite(gain) || !std::isfinite(offset)) return out;
+  out.found = true;
+  out.noise_gain = gain;
+  out.noise_floor = std::max(0.0, offset);
+  out.dark = offset < 0 ? -offset / gain : 0.0;
+  // Each capture's fit as the camera fit computes it (four planes pooled, the level per plane).
+  for (size_t i = 0; i + 4 <= energies.size(); i += 4) {
+    double seen = 0, expected = 0;
+    for (size_t c = i; c < i + 4; ++c)
+      seen += energies[c], expected += std::max(0.0, levels[c] - out.dark) * gain + out.noise_floor;
+    out.fits.push_back(seen / std::max(expected, 1e-30));
+  }
+  double mean = 0, square = 0;
+  for (double f : out.fits) mean += f, square += f * f;
+  mean /= static_cast<double>(out.fits.size());
+  const double deviation = std::sqrt(std::max(0.0, square / static_cast<double>(out.fits.size()) - mean * mean));
+  const double largest = *std::max_element(out.fits.begin(), out.fits.end());
+  out.fit_threshold = std::max({1.0, 1.1 * largest, mean + 5 * deviation});
+  if (largest_leak > 0) out.leak_threshold = std::max(1.0, 1.1 * largest_leak);
+  return out;
 }
 
 BatchFit judge_batch(const CameraFit& fit, const std::vector<CameraFitResult>& results) {

@@ -74,6 +74,33 @@ double coded_leak(const torch::Tensor& Y, const torch::Tensor& U, const torch::T
 // (fixed seed; the statistic does not depend on the noise's level).
 double noise_leak(const torch::Tensor& U, const torch::Tensor& V, int draws = 3);
 
+// The camera's noise model as the camera fit will test captures against it, measured on captures of
+// the camera itself: each plane's energy outside the calibration's span (unexplained_energy), per
+// pixel and per share of a pixel's noise expected there, against the plane's light level
+// (gain * (mean v - dark) + floor summed over the pixels v is a line in the level); least squares,
+// then dark, floor >= 0. What an estimated calibration leaves outside its span varies from scene to
+// scene, so the captures' own fits set the camera fit's threshold: their largest with a margin, or
+// their mean plus five deviations if larger; the same for the near-twin statistic (coded_leak).
+struct NoiseSample {
+  torch::Tensor meas;    // {4,h,w} double-centred capture planes, no level (without_level)
+  torch::Tensor level;   // {4} the window's mean raw value per plane, full scale
+  double saturated = 0;  // share of the window's pixels at full scale (at_full_scale)
+};
+struct NoiseModelFit {
+  bool found = false;  // false: fewer than 2 captures, or no line with a positive gain
+  double noise_gain = 0, noise_floor = 0, dark = 0;  // CameraConfig's keys
+  double fit_threshold = 0;   // 0 when not found
+  double leak_threshold = 0;  // 0 when no capture could be tested (all saturated)
+  std::vector<double> fits;   // each capture's fit under the fitted model
+};
+// P {4,h,N}, Q {4,w,N}: the calibration (any column scaling; only the spans matter).
+NoiseModelFit fit_noise_model(const std::vector<NoiseSample>& samples, const torch::Tensor& P, const torch::Tensor& Q);
+
+// Whether the camera fit can test captures of this geometry at all: the window's (h-1)(w-1) degrees
+// of freedom outside an N x N scene's span must be many (over 1000), or the statistic is chance alone.
+// A window no larger than the scene leaves none; such a camera is reconstructed without a fit.
+bool camera_fit_measurable(int64_t h, int64_t w, int64_t n);
+
 class CameraFit {
  public:
   // Errors name the camera when it has no noise model (noise_gain: run `flatnet calibrate --dataset`

@@ -131,6 +131,12 @@ std::vector<FitRow> require_all_fit(const CameraFit& fit, const std::vector<std:
   probe.count = static_cast<int64_t>(captures.size());
   summarise_fits(probe, rows, settle_fits(rows, fit), fit);
   if (probe.misfits > 0) throw Error(option_key("recon.require_fit"), camera_fit_warning(probe, fit));
+  // --require-fit asks for captures shown to fit: one that could not be judged (over 1 % of its pixels
+  // clipped) is not shown to, and is refused by name like a misfit.
+  for (const auto& row : rows)
+    require(row.result.judged, option_key("recon.require_fit"),
+            printable(row.name) + " cannot be judged: " + std::to_string(static_cast<int>(std::lround(100 * row.result.saturated))) +
+                " % of its window is at full scale (over 1 %); shorten the exposure, or leave out --require-fit");
   return rows;
 }
 

@@ -113,6 +113,28 @@ std::unique_ptr<Reconstructor> make_opencv(const std::filesystem::path& onnx_fil
   return r;
 }
 
+namespace {
+
+// The camera fit for a calibration, or why there is none: no noise model, or a window too small
+// beside the scene to measure anything outside the calibration's span (not an error: such a camera
+// reconstructs, unjudged; --require-fit then refuses, naming this).
+std::shared_ptr<const CameraFit> fit_of_calibration(const Calibration& calib, const CameraConfig& camera,
+                                                    std::string& why) {
+  if (!camera.knows_noise()) {
+    why = "camera '" + camera.name + "' has no noise model (noise_gain; flatnet calibrate --dataset measures it)";
+    return nullptr;
+  }
+  if (!camera_fit_measurable(camera.raw.crop[2], camera.raw.crop[3], camera.scene_size)) {
+    why = "camera '" + camera.name + "' has a window (" + std::to_string(camera.raw.crop[2]) + "x" +
+          std::to_string(camera.raw.crop[3]) + ") too small beside its " + std::to_string(camera.scene_size) +
+          "-pixel scene to test a capture's fit";
+    return nullptr;
+  }
+  return std::make_shared<const CameraFit>(calib, camera);
+}
+
+}  // namespace
+
 std::shared_ptr<const CameraFit> camera_fit_of(const CameraConfig& camera, std::string& why) {
   if (camera.calibration.empty() || !std::filesystem::exists(camera.calibration)) {
     why = "camera '" + camera.name + "' names no calibration here";
@@ -122,13 +144,11 @@ std::shared_ptr<const CameraFit> camera_fit_of(const CameraConfig& camera, std::
     why = "camera '" + camera.name + "' has no noise model (noise_gain; flatnet calibrate --dataset measures it)";
     return nullptr;
   }
-  return std::make_shared<const CameraFit>(load_calibration(camera.calibration, camera), camera);
+  return fit_of_calibration(load_calibration(camera.calibration, camera), camera, why);
 }
 
 namespace {
 
-// The camera a model was trained with: its file's camera when that names a calibration, else the
-// camera file its training config names (data.camera), when it is here and has the same geometry.
 // The camera a model was trained with: its file's camera when that names a calibration; else the
 // camera file its training config names (data.camera), or, when that path is not on this machine
 // (a model trained elsewhere), the file of the same name among flatnet's own cameras
@@ -168,10 +188,7 @@ BuiltReconstructor make_reconstructor(const ReconstructorSpec& spec) {
     o.lambda = spec.lambda;
     const auto calib = load_calibration(calib_path, spec.camera);
     BuiltReconstructor built{make_classical(calib, spec.camera, o), spec.camera, nullptr, ""};
-    if (spec.camera.knows_noise())
-      built.fit = std::make_shared<const CameraFit>(calib, spec.camera);
-    else
-      built.no_fit = "camera '" + spec.camera.name + "' has no noise model";
+    built.fit = fit_of_calibration(calib, spec.camera, built.no_fit);
     return built;
   }
   if (spec.method == "flatnet") {

@@ -86,8 +86,9 @@ std::pair<std::shared_ptr<const PairSource>, std::shared_ptr<const PairSource>> 
   }
   if (source == "simulate") {
     const bool codesign = c.flag("codes.learn");  // the trainer captures through the codes it learns: no rig
-    require(codesign || !camera.rig.empty(), data_key(&DataOptions::camera),
-            "names no rig; on-the-fly simulation needs the true response");
+    require(codesign || can_simulate(camera), data_key(&DataOptions::camera),
+            "names no rig, and has no open_light to be simulated through its calibration; on-the-fly simulation "
+            "needs one of them");
     auto rig = codesign ? nullptr : std::make_shared<const Rig>(load_camera_rig(camera));
     auto [train_images, val_images] = split_image_files(d.images, d.val_fraction, d.split_seed);
     const auto seed = static_cast<uint64_t>(c.integer(train_key(&TrainOptions::seed)));
