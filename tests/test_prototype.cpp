@@ -54,7 +54,7 @@ TEST_CASE("FlatNet's prototype: a calibration from three captures and FlatNet's 
   test::Scratch s("prototype_calibration");
   write_file(s.dir / "captures.txt", "fc_6.png\nfc_7.png\nfc_8.png\n");
   write_file(s.dir / "references.txt", "rec_6.png\nrec_7.png\nrec_8.png\n");
-  const auto camera = test::source_dir() / "configs" / "cameras" / "flatnet_prototype.yaml";
+  const auto camera = test::source_dir() / "configs" / "cameras" / "flatnet_prototype_level.yaml";
   auto r = test::run_flatnet("calibrate --references --meas-list " + q(s.dir / "captures.txt") + " --gt-list " +
                              q(s.dir / "references.txt") + " --root " + q(data) + " --camera " + q(camera) +
                              " --out " + q(s.dir / "cal" / "calib.mat") +
@@ -65,11 +65,20 @@ TEST_CASE("FlatNet's prototype: a calibration from three captures and FlatNet's 
   // The shadow's move, as the study found it: about -0.47 sensor pixels per scene pixel on both axes.
   const auto yaml = test::read_file(s.dir / "cal" / "camera.yaml");
   CHECK_THAT(yaml, Contains("-0.47"));
+  // The sensor's noise model, the camera fit's thresholds and the open light, from the captures.
+  CHECK_THAT(yaml, Contains("noise_gain:") && Contains("fit_threshold:") && Contains("open_light:"));
+  const auto written = load_camera_config(s.dir / "cal" / "camera.yaml");
+  CHECK(written.noise_gain > 1e-5);
+  CHECK(written.noise_gain < 1e-4);
+  CHECK(written.open_light > 2);
+  CHECK(written.open_light < 6);
   CHECK(std::filesystem::file_size(s.dir / "cal" / "calib.mat") < 100000);  // profiles, not matrices
   std::filesystem::create_directories(s.dir / "in");
   std::filesystem::copy_file(data / "fc_9.png", s.dir / "in" / "fc_9.png");
+  // The held-out capture fits the camera the other three identified (--require-fit).
   r = test::run_flatnet("recon --method tikhonov --camera " + q(s.dir / "cal" / "camera.yaml") + " --input " +
-                        q(s.dir / "in") + " --out " + q(s.dir / "rec"));
+                        q(s.dir / "in") + " --out " + q(s.dir / "rec") + " --require-fit");
+  INFO(r.output);
   REQUIRE(r.code == 0);
   // recon writes sRGB; FlatNet's reconstruction is linear: compare in linear light, per Bayer channel,
   // leaving out FlatNet's pixels clipped at zero.

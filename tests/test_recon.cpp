@@ -336,3 +336,19 @@ TEST_CASE("the differentiable oneDNN product has torch::matmul's value and gradi
     CHECK(torch::allclose(b1.grad(), b2.grad(), 1e-4, 1e-5));
   }
 }
+
+TEST_CASE("a model trained elsewhere finds its camera among flatnet's own, in a camera's folder too",
+          "[recon][camera-fit]") {
+  // The training machine's path is gone here; the camera lies under configs/cameras/ in a folder of
+  // its own (the prototype's calibration beside its camera.yaml), and is found there by that place.
+  test::Scratch s("camera_elsewhere");
+  const auto camera = load_camera_config(test::source_dir() / "configs" / "cameras" / "flatnet_prototype" / "camera.yaml");
+  auto config = Config::load({}, {"model.unet.width=2", "model.inversion.init=random", "model.level_input=true",
+                                  "data.camera=/nowhere/configs/cameras/flatnet_prototype/camera.yaml"});
+  Generator g(generator_options(config, camera, false));
+  save_model_file(s.dir / "m.flatnet", g, config, camera);
+  std::string why;
+  const auto fit = model_camera_fit(load_model_file(s.dir / "m.flatnet"), why);
+  INFO(why);
+  CHECK(fit != nullptr);
+}

@@ -1,5 +1,7 @@
 #include "optics/calibrate_references.hpp"
 
+#include "optics/camera_fit.hpp"
+
 #include <cmath>
 #include <functional>
 #include <limits>
@@ -275,7 +277,14 @@ std::vector<HeldOutPair> leave_one_out(const std::vector<ReferencePair>& pairs, 
     const auto filter = tikhonov_filter(inverse.sL, inverse.sR, absolute_tikhonov_lambda(inverse, lambda));
     const auto rec = apply_separable_inverse(inverse.ULt, inverse.UR, inverse.VL, inverse.VRt, filter,
                                              pairs[held].meas.to(torch::kFloat32).unsqueeze(0))[0];
-    out.push_back({pairs[held].name, reference_correlation(rec, pairs[held].reference), fit.shift_rows, fit.shift_cols});
+    HeldOutPair h{pairs[held].name, reference_correlation(rec, pairs[held].reference), fit.shift_rows, fit.shift_cols};
+    // The camera fit's near-twin statistic of a capture this calibration did not see: what a new
+    // capture of the camera shows (optics/camera_fit.hpp), where the pairs' own understate it.
+    const auto U = std::get<0>(torch::linalg_qr(fit.calib.P)).to(torch::kFloat32);
+    const auto V = std::get<0>(torch::linalg_qr(fit.calib.Q)).to(torch::kFloat32);
+    const double leak = coded_leak(pairs[held].meas.to(torch::kFloat32), U, V);  // nan where not measurable
+    if (std::isfinite(leak)) h.leak = leak;
+    out.push_back(h);
   }
   return out;
 }

@@ -76,6 +76,7 @@ struct HeldOutPair {
   std::string name;
   std::array<double, 4> correlation{};  // b, gb, gr, r
   double shift_rows = 0, shift_cols = 0;  // the shifts the other pairs chose
+  double leak = 0;  // its coded leak against their calibration (optics/camera_fit.hpp); 0: not measurable
 };
 
 // Each pair reconstructed (Tikhonov with `lambda`, relative as the camera file's tikhonov_lambda)

@@ -159,7 +159,13 @@ CameraConfig training_camera(const ModelFile& m) {
   if (recorded.empty()) return m.camera;
   std::vector<std::filesystem::path> candidates{recorded};
   try {
-    candidates.push_back(data_dir() / "configs" / "cameras" / recorded.filename());
+    // Where it lies under a `cameras` folder (configs/cameras/flatnet_prototype/camera.yaml), the same
+    // place among flatnet's own cameras; then the file name alone.
+    const auto own = data_dir() / "configs" / "cameras";
+    std::filesystem::path below;
+    for (const auto& part : recorded) below = part == "cameras" ? std::filesystem::path() : below / part;
+    if (!below.empty() && below != recorded) candidates.push_back(own / below);
+    candidates.push_back(own / recorded.filename());
   } catch (const Error&) {  // an installation without its data folder: the recorded path alone
   }
   for (const auto& path : candidates) {
