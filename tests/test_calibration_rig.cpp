@@ -72,7 +72,7 @@ TEST_CASE("a calibration rig's captures hold the calibration's coded light and t
   CHECK(coded.abs().max().item<double>() > 8.0 / 1023);  // a test of the coded light, not of zeros
 }
 
-TEST_CASE("a calibration rig's noise is the camera file's noise model after preprocessing, rotation included",
+TEST_CASE("a calibration rig's noise is the camera file's noise model after preprocessing with its rotation",
           "[optics][calibration-rig]") {
   // FlatNet's prototype's angle: its bilinear rotation keeps about half of white noise's variance,
   // which the rig makes up for, so the camera fit measures the file's model on its captures.
@@ -103,7 +103,7 @@ TEST_CASE("a calibration rig's noise is the camera file's noise model after prep
   CHECK(noise.fits.size() == 4);
 }
 
-TEST_CASE("a camera with no rig and no open light cannot be simulated, and says what it lacks",
+TEST_CASE("a camera with no rig and no open light cannot be simulated and says what it lacks",
           "[optics][calibration-rig]") {
   auto camera = calibrated_camera(0.0);
   camera.open_light = 0;

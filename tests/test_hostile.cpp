@@ -320,7 +320,7 @@ TEST_CASE("a string setting that looks like YAML is written back as the same str
   }
 }
 
-TEST_CASE("--set takes its value whole: a comma is part of the value, not a second setting", "[safe][hostile][cli]") {
+TEST_CASE("a --set value is taken whole: a comma is part of the value and not a second setting", "[safe][hostile][cli]") {
   test::Scratch s("hostile_set_comma");
   const auto r = test::run_flatnet("train --config " + q(test::source_dir() / "configs" / "sim_transpose.yaml") +
                                    " --set train.minutes=1,5 --out " + q(s.dir / "run"));
@@ -330,7 +330,7 @@ TEST_CASE("--set takes its value whole: a comma is part of the value, not a seco
   CHECK_THAT(r.output, !Contains("got '5'"));
 }
 
-TEST_CASE("--require-fit refuses a capture it cannot judge; without it the capture is reconstructed, unjudged",
+TEST_CASE("the camera fit refuses with --require-fit a capture it cannot judge: without it the capture is reconstructed unjudged",
           "[safe][hostile][cli][camera-fit]") {
   test::Scratch s("hostile_require_fit_unjudged");
   const auto camera = test::source_dir() / "configs" / "cameras" / "flatnet_prototype" / "camera.yaml";
@@ -347,7 +347,7 @@ TEST_CASE("--require-fit refuses a capture it cannot judge; without it the captu
   CHECK_THAT(plain.output, Contains("not judged"));
 }
 
-TEST_CASE("a camera whose window is no larger than its scene reconstructs without a camera fit, noise keys or not",
+TEST_CASE("a camera whose window is no larger than its scene reconstructs without a camera fit with noise keys or not",
           "[safe][hostile][cli][camera-fit]") {
   test::Scratch s("hostile_fit_unmeasurable");
   auto gen = at::detail::createCPUGenerator(5);

@@ -337,7 +337,7 @@ TEST_CASE("the differentiable oneDNN product has torch::matmul's value and gradi
   }
 }
 
-TEST_CASE("a model trained elsewhere finds its camera among flatnet's own, in a camera's folder too",
+TEST_CASE("a model trained elsewhere finds its camera among flatnet's own in a camera's folder too",
           "[recon][camera-fit]") {
   // The training machine's path is gone here; the camera lies under configs/cameras/ in a folder of
   // its own (the prototype's calibration beside its camera.yaml), and is found there by that place.
