@@ -10,6 +10,7 @@
 #include "io/raw.hpp"
 #include "optics/camera.hpp"
 #include "optics/camera_fit.hpp"
+#include "shadow_factor.hpp"
 
 #include "catch_torch.hpp"
 
@@ -20,15 +21,10 @@ namespace {
 
 constexpr int64_t kScene = 256;
 
-// One moving shadow per factor, each column less its mean (as calibrations hold them), {4,rows,N}.
+// The shadow factor in all four channels, at 0.015 per unit of code: a scene of mean 0.3 gives a
+// coded light of a few percent of full scale. {4,rows,N}
 torch::Tensor shadow_factor(int64_t rows, uint64_t seed) {
-  auto gen = at::detail::createCPUGenerator(seed);
-  const int64_t length = rows - kScene + 1;
-  const auto code = (at::rand({length}, gen) > 0.5).to(torch::kFloat32) * 2 - 1;
-  auto P = torch::zeros({rows, kScene});
-  for (int64_t j = 0; j < kScene; ++j) P.narrow(0, j, length).select(1, j).copy_(code);
-  // 0.015 per unit of code: a scene of mean 0.3 gives a coded light of a few percent of full scale.
-  return (0.015 * (P - P.mean(0, true))).unsqueeze(0).expand({4, rows, kScene}).contiguous();
+  return (0.015 * test::shadow_factor(rows, kScene, seed)).unsqueeze(0).expand({4, rows, kScene}).contiguous();
 }
 
 CameraConfig calibrated_camera(double rotation) {

@@ -9,6 +9,7 @@
 
 #include "io/raw.hpp"
 #include "optics/camera_fit.hpp"
+#include "shadow_factor.hpp"
 
 using namespace flatnet;
 using Catch::Matchers::Contains;
@@ -17,17 +18,7 @@ namespace {
 
 constexpr int64_t kRows = 500, kCols = 620, kScene = 256;
 
-// One moving shadow: column j is the +-1 code shifted by j sensor pixels (the FlatCam's Toeplitz
-// factor), each column less its mean: the factor of the double-centred planes (eq. 1 of
-// optics/calibrate_dataset.hpp), as a calibration holds it, {rows, N}.
-torch::Tensor shadow_factor(int64_t rows, uint64_t seed) {
-  auto gen = at::detail::createCPUGenerator(seed);
-  const int64_t length = rows - kScene + 1;
-  const auto code = (at::rand({length}, gen) > 0.5).to(torch::kFloat32) * 2 - 1;
-  auto P = torch::zeros({rows, kScene});
-  for (int64_t j = 0; j < kScene; ++j) P.narrow(0, j, length).select(1, j).copy_(code);
-  return P - P.mean(0, true);
-}
+torch::Tensor shadow_factor(int64_t rows, uint64_t seed) { return test::shadow_factor(rows, kScene, seed); }
 
 // A smooth scene with edges: a few rectangles on a gradient, {N,N}.
 torch::Tensor test_scene() {

@@ -41,20 +41,6 @@ torch::Tensor reference_planes(const std::filesystem::path& path, int64_t N, con
   return rgb_to_bayer_planes(rgb);
 }
 
-// The light every pixel reads whatever the scene (CameraConfig::open_light): each plane's level less
-// the dark level against its scene's mean in the calibration's units (a R + b, eq. 1 of
-// optics/calibrate_references.hpp), one slope through zero by least squares over pairs and planes.
-double open_light_of(const std::vector<NoiseSample>& samples, const ReferenceCalibration& fit, double dark) {
-  double xy = 0, xx = 0;
-  for (size_t i = 0; i < samples.size() && i < fit.scene_means.size(); ++i)
-    for (int c = 0; c < 4; ++c) {
-      const double scene_mean = fit.scene_means[i][c];
-      xy += scene_mean * (samples[i].level[c].item<double>() - dark), xx += scene_mean * scene_mean;
-    }
-  const double k = xx > 0 ? xy / xx : 0.0;
-  return std::isfinite(k) && k > 0 && k <= 1e3 ? k : 0.0;
-}
-
 void print_held_out(const std::vector<HeldOutPair>& held) {
   std::cout << "leave-one-out: each pair reconstructed (Tikhonov) from a calibration of the others, Pearson "
                "correlation with its reference (pixels clipped at zero left out)\n"
@@ -126,7 +112,9 @@ int calibrate_from_reference_pairs(const cxxopts::ParseResult& r, const CameraCo
     // than the captures it was fitted to: the held-out captures' leaks set the threshold too.
     if (held_leak > 0 && noise.leak_threshold > 0)
       known.leak_threshold = std::max(noise.leak_threshold, std::min(1e3, 1.1 * held_leak));
-    known.open_light = open_light_of(noise_samples, fit, noise.dark);
+    std::vector<torch::Tensor> levels;
+    for (const auto& sample : noise_samples) levels.push_back(sample.level);
+    known.open_light = open_light_of(levels, fit, noise.dark);
   }
   std::ostringstream head;
   head << "# identified by `flatnet calibrate --references` from " << refs.size()

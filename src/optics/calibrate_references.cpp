@@ -257,6 +257,19 @@ std::array<double, 4> reference_correlation(const torch::Tensor& reconstruction,
   return out;
 }
 
+double open_light_of(const std::vector<torch::Tensor>& levels, const ReferenceCalibration& fit, double dark) {
+  double xy = 0, xx = 0;
+  for (size_t i = 0; i < levels.size() && i < fit.scene_means.size(); ++i) {
+    const auto level = levels[i].to(torch::kFloat64).flatten();
+    for (int c = 0; c < 4; ++c) {
+      const double scene_mean = fit.scene_means[i][static_cast<size_t>(c)];
+      xy += scene_mean * (level[c].item<double>() - dark), xx += scene_mean * scene_mean;
+    }
+  }
+  const double k = xx > 0 ? xy / xx : 0.0;
+  return std::isfinite(k) && k > 0 && k <= 1e3 ? k : 0.0;
+}
+
 double absolute_tikhonov_lambda(const SeparableInverse& inverse, double relative) {
   const double top = (inverse.sL.select(1, 0) * inverse.sR.select(1, 0)).max().item<double>();
   return relative * top * top;

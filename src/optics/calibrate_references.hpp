@@ -64,6 +64,11 @@ struct ReferenceCalibration {
 ReferenceCalibration calibrate_from_references(const std::vector<ReferencePair>& pairs,
                                                const ReferenceCalibrationOptions& options);
 
+// The light every pixel reads whatever the scene (CameraConfig::open_light): each plane's level less
+// the dark level against its scene's mean in the calibration's units (fit.scene_means, a R + b of
+// eq. 1), one slope through zero by least squares over pairs and planes. levels: {4} per pair, the
+// window's mean raw value. 0 when no positive, finite slope is found.
+double open_light_of(const std::vector<torch::Tensor>& levels, const ReferenceCalibration& fit, double dark);
 // Pearson correlation per channel of a reconstruction {4,N,N} with a reference {4,N,N}, over the
 // reference's pixels above zero.
 std::array<double, 4> reference_correlation(const torch::Tensor& reconstruction, const torch::Tensor& reference);

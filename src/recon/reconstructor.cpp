@@ -115,22 +115,25 @@ std::unique_ptr<Reconstructor> make_opencv(const std::filesystem::path& onnx_fil
 
 namespace {
 
-// The camera fit for a calibration, or why there is none: no noise model, or a window too small
-// beside the scene to measure anything outside the calibration's span (not an error: such a camera
-// reconstructs, unjudged; --require-fit then refuses, naming this).
+// Why this camera's captures cannot be judged, or "" when they can: no noise model, or a window too
+// small beside the scene to measure anything outside the calibration's span (not an error: such a
+// camera reconstructs, unjudged; --require-fit then refuses, naming this). Checked before any
+// calibration is read.
+std::string no_fit_reason(const CameraConfig& camera) {
+  if (!camera.knows_noise())
+    return "camera '" + camera.name + "' has no noise model (noise_gain; flatnet calibrate --dataset measures it)";
+  if (!camera_fit_measurable(camera.raw.crop[2], camera.raw.crop[3], camera.scene_size))
+    return "camera '" + camera.name + "' has a window (" + std::to_string(camera.raw.crop[2]) + "x" +
+           std::to_string(camera.raw.crop[3]) + ") too small beside its " + std::to_string(camera.scene_size) +
+           "-pixel scene to test a capture's fit";
+  return "";
+}
+
+// The camera fit for a calibration, or nullptr with `why` set.
 std::shared_ptr<const CameraFit> fit_of_calibration(const Calibration& calib, const CameraConfig& camera,
                                                     std::string& why) {
-  if (!camera.knows_noise()) {
-    why = "camera '" + camera.name + "' has no noise model (noise_gain; flatnet calibrate --dataset measures it)";
-    return nullptr;
-  }
-  if (!camera_fit_measurable(camera.raw.crop[2], camera.raw.crop[3], camera.scene_size)) {
-    why = "camera '" + camera.name + "' has a window (" + std::to_string(camera.raw.crop[2]) + "x" +
-          std::to_string(camera.raw.crop[3]) + ") too small beside its " + std::to_string(camera.scene_size) +
-          "-pixel scene to test a capture's fit";
-    return nullptr;
-  }
-  return std::make_shared<const CameraFit>(calib, camera);
+  why = no_fit_reason(camera);
+  return why.empty() ? std::make_shared<const CameraFit>(calib, camera) : nullptr;
 }
 
 }  // namespace
@@ -140,11 +143,9 @@ std::shared_ptr<const CameraFit> camera_fit_of(const CameraConfig& camera, std::
     why = "camera '" + camera.name + "' names no calibration here";
     return nullptr;
   }
-  if (!camera.knows_noise()) {
-    why = "camera '" + camera.name + "' has no noise model (noise_gain; flatnet calibrate --dataset measures it)";
-    return nullptr;
-  }
-  return fit_of_calibration(load_calibration(camera.calibration, camera), camera, why);
+  why = no_fit_reason(camera);
+  if (!why.empty()) return nullptr;
+  return std::make_shared<const CameraFit>(load_calibration(camera.calibration, camera), camera);
 }
 
 namespace {
