@@ -226,6 +226,13 @@ TEST_CASE("bad input: one clear line, exit code 2", "[cli][errors]") {
   r = test::run_flatnet(train + " --set train.batch=4096 --set data.images=" + q(make_photos(s.dir / "photos")));
   CHECK(r.code == 2);
   CHECK_THAT(r.output, Contains("train.batch") && Contains("GB available"));
+  // The pre-processor runs on the whole 500x620 window: at width 256 and depth 64 (both inside their
+  // ranges) one sample needs over 100 GB. Refused up front, naming it, with no run folder left.
+  r = test::run_flatnet(train + " --set train.batch=1 --set model.preprocessor.width=256 --set model.preprocessor.depth=64"
+                        " --set data.images=" + q(s.dir / "photos"));
+  CHECK(r.code == 2);
+  CHECK_THAT(r.output, Contains("GB available") && Contains("model.preprocessor.width"));
+  CHECK_FALSE(std::filesystem::exists(s.dir / "run"));
   r = test::run_flatnet(train + " --set train.batch=0x10");
   CHECK(r.code == 2);
   CHECK_THAT(r.output, Contains("train.batch = 0x10 is not a finite decimal number"));

@@ -368,3 +368,30 @@ TEST_CASE("a camera whose window is no larger than its scene reconstructs withou
   CHECK(strict.code == 2);
   CHECK_THAT(strict.output, Contains("too small"));
 }
+
+TEST_CASE("an absurd but in-range camera geometry is refused by the captures' size before anything is built",
+          "[safe][hostile][cli]") {
+  test::Scratch s("hostile_absurd_geometry");
+  // A 65536x65536 raw frame and a 4096-pixel scene: inside every range, and the reference camera's
+  // calibration named. The calibration's SVDs and the camera fit would take gigabytes; the captures'
+  // headers say first that they come from another sensor.
+  write_file(s.dir / "camera.yaml", "name: absurd\nraw_height: 65536\nraw_width: 65536\nadc_bits: 10\n"
+                                    "crop: [0, 0, 32000, 32000]\nscene_size: 4096\ncalibration: " +
+                                        test::calib_path().string() + "\n");
+  std::filesystem::create_directories(s.dir / "in");
+  auto gen = at::detail::createCPUGenerator(3);
+  write_gray16(s.dir / "in" / "frame.png", (at::rand({1024, 1280}, gen) * 60000).to(torch::kInt32));
+  for (const std::string command : {"recon --method tikhonov", "recon --method tv"}) {
+    INFO(command);
+    const auto r = test::run_flatnet(command + " --camera " + q(s.dir / "camera.yaml") + " --input " +
+                                     q(s.dir / "in") + " --out " + q(s.dir / "out"));
+    CHECK(r.code == 2);
+    CHECK_THAT(r.output, Contains("frame.png") && Contains("raw capture is 1280x1024 (WxH), this camera gives 65536x65536"));
+    CHECK_FALSE(std::filesystem::exists(s.dir / "out"));
+  }
+  // A capture of the wrong depth is named the same way, from its header.
+  write_rgb8(s.dir / "in" / "frame.png", at::rand({3, 16, 16}, gen));
+  const auto r = test::run_flatnet("recon --input " + q(s.dir / "in") + " --out " + q(s.dir / "out"));
+  CHECK(r.code == 2);
+  CHECK_THAT(r.output, Contains("frame.png") && Contains("single-channel"));
+}

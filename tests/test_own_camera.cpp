@@ -150,3 +150,93 @@ TEST_CASE("a camera file's fit_threshold and leak_threshold are read, written ba
   CHECK_THROWS_WITH(load_camera_config(write("leak_threshold: 1e9\n")), Contains("leak_threshold"));
   CHECK_THROWS_WITH(load_camera_config(write("leak_threshold: abc\n")), Contains("cam.yaml"));
 }
+
+namespace {
+
+// The shell commands of docs/own-camera.md's walkthrough, as the page writes them: every ```sh block's
+// lines, continuations joined, comments dropped, those that name the walkthrough's folders (my_...).
+std::vector<std::string> walkthrough_commands() {
+  const auto lines = read_lines(test::source_dir() / "docs" / "own-camera.md");
+  std::vector<std::string> commands;
+  bool in_sh = false;
+  std::string pending;
+  for (const auto& line : lines) {
+    if (line.rfind("```", 0) == 0) {
+      in_sh = !in_sh && line == "```sh";
+      continue;
+    }
+    if (!in_sh) continue;
+    std::string text = line.substr(0, line.find("  #"));
+    while (!text.empty() && text.back() == ' ') text.pop_back();
+    if (!text.empty() && text.back() == '\\') {
+      pending += text.substr(0, text.size() - 1);
+      continue;
+    }
+    text = pending + text;
+    pending.clear();
+    if (text.rfind("flatnet ", 0) == 0 && text.find("my_") != std::string::npos) commands.push_back(text);
+  }
+  return commands;
+}
+
+}  // namespace
+
+TEST_CASE("docs/own-camera.md: the walkthrough's commands run as the page writes them", "[cli][own-camera][docs]") {
+  const auto commands = walkthrough_commands();
+  // Steps 2 (the bench), 3 (calibrate), 4 (adapt) and 5 (infer, eval, report).
+  REQUIRE(commands.size() == 6);
+  CHECK(commands[0].rfind("flatnet capture-dataset ", 0) == 0);
+
+  // The user's side, at a tiny scale: the geometry (centring level, as the page asks, for the shipped
+  // model), and the dataset step 2 would capture, here simulated through a tiny camera's rig.
+  test::Scratch s("own_camera_page");
+  std::filesystem::create_directories(s.dir / "truth");
+  std::filesystem::create_directories(s.dir / "my_cam");
+  write_tiny_rig(s.dir / "truth" / "rig.mat", 1);
+  write_camera(s.dir / "truth" / "camera.yaml", "rig: rig.mat\n");
+  {
+    std::ifstream in(test::data_dir() / "cameras" / "tiny.yaml");
+    std::string text((std::istreambuf_iterator<char>(in)), {});
+    text.replace(text.find("centring: plane"), 15, "centring: level");
+    std::ofstream(s.dir / "my_cam" / "geometry.yaml") << text;
+    std::ofstream(s.dir / "truth" / "camera.yaml", std::ios::app) << "centring: level\n";
+  }
+  const auto photos = s.dir / "photos";
+  std::filesystem::create_directories(photos);
+  auto gen = at::detail::createCPUGenerator(9);
+  for (int i = 0; i < 48; ++i) write_rgb8(photos / ("p" + std::to_string(100 + i) + ".png"), at::rand({3, 32, 32}, gen));
+  auto r = test::run_flatnet("simulate --images " + q(photos) + " --camera " + q(s.dir / "truth" / "camera.yaml") +
+                             " --size 32 --val-fraction 0.25 --seed 3 --out " + q(s.dir / "my_ds"));
+  INFO(r.output);
+  REQUIRE(r.code == 0);
+  std::filesystem::create_directories(s.dir / "captures");
+  for (const char* name : {"p100.png", "p101.png", "p102.png"})
+    std::filesystem::copy_file(s.dir / "my_ds" / "meas" / name, s.dir / "captures" / name);
+  // The page's paths into the source tree (configs/, models/) resolve from the user's folder.
+  for (const char* dir : {"configs", "models"}) std::filesystem::create_directory_symlink(test::source_dir() / dir, s.dir / dir);
+
+  // The one change to the page's commands: the adaptation's 20 minutes become 5 seconds.
+  const std::string budget = "--set train.minutes=20";
+  for (size_t i = 1; i < commands.size(); ++i) {
+    std::string command = commands[i].substr(std::string("flatnet ").size());
+    const auto at = command.find(budget);
+    if (command.rfind("train ", 0) == 0) {
+      REQUIRE(at != std::string::npos);
+      command.replace(at, budget.size(), "--set train.minutes=0.08");
+    }
+    INFO(commands[i]);
+    r = test::run_shell("cd " + q(s.dir) + " && " + FLATNET_BINARY + " " + command);
+    INFO(r.output);
+    REQUIRE(r.code == 0);
+    if (command.rfind("train ", 0) == 0) {
+      // The budget alone ends the run, long before the recipe's step count.
+      CHECK_THAT(r.output, Contains("data.light: off") && Contains("(train.minutes)"));
+      CHECK_THAT(r.output, Contains("stopped at the time budget"));
+    }
+  }
+  CHECK(std::filesystem::exists(s.dir / "my_cam" / "camera.yaml"));
+  CHECK(std::filesystem::exists(s.dir / "my_run" / "model.flatnet"));
+  CHECK(std::filesystem::exists(s.dir / "my_rec" / "p100.png"));
+  CHECK(std::filesystem::exists(s.dir / "my_rec" / "camera_fit.csv"));
+  CHECK(std::filesystem::exists(s.dir / "my_report"));
+}

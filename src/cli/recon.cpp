@@ -40,6 +40,7 @@ int recon(int argc, char** argv) {
   opt.label = spec.method;
   const auto captures = collect_captures(r["input"].as<std::string>());
   check_output_names(captures, opt.out);  // before the calibration's SVDs
+  spec.captures = captures;
   auto built = make_reconstructor(spec);
   opt.fit = built.fit.get();
   opt.require_fit = r.count("require-fit") > 0;

@@ -1,5 +1,6 @@
 #include "core/util.hpp"
 
+#include <algorithm>
 #include <openssl/evp.h>
 
 #include <malloc.h>
@@ -254,19 +255,24 @@ void Progress::draw(bool final_line) {
   if (!enabled_) return;
   const double r = rate();
   const int width = 24;
-  const int filled = total_ > 0 ? static_cast<int>(width * std::min<int64_t>(done_, total_) / total_) : 0;
+  const bool has_deadline = deadline_ != std::chrono::steady_clock::time_point{};
+  const double budget_left =
+      has_deadline ? std::max(0.0, std::chrono::duration<double>(deadline_ - std::chrono::steady_clock::now()).count()) : 0;
+  // No count to reach (total 0) but a deadline: the bar fills with the time spent.
+  double share = total_ > 0 ? static_cast<double>(std::min<int64_t>(done_, total_)) / total_ : 0;
+  if (total_ <= 0 && has_deadline) share = final_line ? 1 : elapsed_s() / std::max(1e-9, elapsed_s() + budget_left);
+  const int filled = static_cast<int>(width * std::clamp(share, 0.0, 1.0));
   std::ostringstream os;
-  os << label_ << " " << done_ << "/" << total_ << " [" << std::string(filled, '#') << std::string(width - filled, ' ')
-     << "] " << std::fixed << std::setprecision(1) << r << " it/s";
+  os << label_ << " " << done_;
+  if (total_ > 0) os << "/" << total_;
+  os << " [" << std::string(filled, '#') << std::string(width - filled, ' ') << "] " << std::fixed
+     << std::setprecision(1) << r << " it/s";
   if (final_line)
     os << " in " << format_duration(elapsed_s());
   else
   {
-    double eta = r > 0 ? (total_ - done_) / r : -1;
-    if (deadline_ != std::chrono::steady_clock::time_point{}) {
-      const double budget = std::max(0.0, std::chrono::duration<double>(deadline_ - std::chrono::steady_clock::now()).count());
-      eta = eta < 0 ? budget : std::min(eta, budget);
-    }
+    double eta = r > 0 && total_ > 0 ? (total_ - done_) / r : -1;
+    if (has_deadline) eta = eta < 0 ? budget_left : std::min(eta, budget_left);
     os << " ETA " << format_duration(eta);
   }
   if (!status_.empty()) os << "  " << status_;

@@ -124,7 +124,8 @@ class Progress {
   double elapsed_s() const;
   void set_status(std::string status);  // extra text after the bar (e.g. current losses)
   // A time budget that ends the job before `total` (training's train.minutes): the ETA shown is
-  // the sooner of the two. Seconds from now.
+  // the sooner of the two; with `total` 0 the budget alone, and the bar fills with the time spent.
+  // Seconds from now.
   void set_time_left(double seconds);
 
  private:

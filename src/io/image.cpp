@@ -109,6 +109,14 @@ torch::Tensor read_rgb(const std::filesystem::path& path) {
   return chw.contiguous().clamp(0.0, 1.0);
 }
 
+ImageHeader read_image_header(const std::filesystem::path& path) {
+  auto in = open_input(path);
+  const auto& spec = in->spec();
+  ImageHeader h{spec.width, spec.height, spec.nchannels, static_cast<int>(8 * spec.format.size())};
+  in->close();
+  return h;
+}
+
 torch::Tensor read_gray16(const std::filesystem::path& path) {
   auto in = open_input(path);
   const auto& spec = in->spec();

@@ -14,6 +14,15 @@ torch::Tensor read_rgb(const std::filesystem::path& path);
 // Errors name the file and the problem (channels, bit depth).
 torch::Tensor read_gray16(const std::filesystem::path& path);
 
+// An image's size and sample format from its header, nothing decoded: what a reader checks before
+// it allocates for the image (the size a file claims is data, not a promise).
+struct ImageHeader {
+  int64_t width = 0, height = 0;
+  int channels = 0;
+  int bits = 0;  // per sample (8, 16, 32)
+};
+ImageHeader read_image_header(const std::filesystem::path& path);
+
 // Writes {3,H,W} values in [0,1] (clamped) as an 8-bit RGB image, atomically.
 void write_rgb8(const std::filesystem::path& path, const torch::Tensor& rgb);
 // Writes {H,W} codes 0..65535 as a 16-bit single-channel image, atomically.

@@ -76,11 +76,27 @@ torch::Tensor preprocess_raw(const torch::Tensor& raw_unit, const RawGeometry& g
   return double_centre(raw_window(raw_unit, g), g.centring).contiguous();  // {4,500,620}
 }
 
+namespace {
+
+void require_raw_size(const std::filesystem::path& path, int64_t height, int64_t width, const RawGeometry& g) {
+  require(height == g.raw_height && width == g.raw_width, path,
+          "raw capture is " + std::to_string(width) + "x" + std::to_string(height) + " (WxH), this camera gives " +
+              std::to_string(g.raw_width) + "x" + std::to_string(g.raw_height));
+}
+
+}  // namespace
+
+void check_raw_header(const std::filesystem::path& path, const RawGeometry& g) {
+  const auto h = read_image_header(path);
+  require(h.channels == 1, path,
+          "raw capture must be single-channel (Bayer mosaic), found " + std::to_string(h.channels) + " channels");
+  require(h.bits == 16, path, "raw capture must be 16-bit, found " + std::to_string(h.bits) + "-bit samples");
+  require_raw_size(path, h.height, h.width, g);
+}
+
 torch::Tensor load_raw_unit(const std::filesystem::path& path, const RawGeometry& g) {
   auto codes = read_gray16(path);
-  require(codes.size(0) == g.raw_height && codes.size(1) == g.raw_width, path,
-          "raw capture is " + std::to_string(codes.size(1)) + "x" + std::to_string(codes.size(0)) +
-              " (WxH), this camera gives " + std::to_string(g.raw_width) + "x" + std::to_string(g.raw_height));
+  require_raw_size(path, codes.size(0), codes.size(1), g);
   return codes.to(torch::kFloat32) / 65535.0f;
 }
 

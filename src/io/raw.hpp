@@ -40,6 +40,10 @@ torch::Tensor raw_window(const torch::Tensor& raw_unit, const RawGeometry& g);
 // Full-scale raw frame ({H,W}, values in [0,1]) -> measurement planes {4, crop_h, crop_w}.
 torch::Tensor preprocess_raw(const torch::Tensor& raw_unit, const RawGeometry& g);
 
+// A raw capture's header against the geometry (one channel, 16 bits, the raw frame's size), nothing
+// decoded: commands check every capture so before they build anything the camera's size sets.
+void check_raw_header(const std::filesystem::path& path, const RawGeometry& g);
+
 // Reads a raw PNG, checks size and bit depth against the geometry, and preprocesses it.
 Capture load_capture(const std::filesystem::path& path, const RawGeometry& g);
 // load_capture's planes without the light level's DC: what Tikhonov, TV and calibration read.

@@ -194,6 +194,7 @@ CheckpointSettings checkpoint_settings(const std::filesystem::path& path) {
   const auto s = read_stored(path, kCheckpointFormat);
   CheckpointSettings out;
   std::tie(out.config, out.camera) = training_settings(s, path);
+  out.best_psnr = stored_number(s, "best_psnr", path);
   if (const auto it = s.meta.find("run_id"); it != s.meta.end()) {
     require(it->second.size() == 16 && it->second.find_first_not_of("0123456789abcdef") == std::string::npos, path,
             "run_id is not 16 hex digits");

@@ -37,6 +37,7 @@ struct CheckpointSettings {
   Config config;
   CameraConfig camera;
   std::string run_id;  // 16 hex digits; "" for files written before run ids
+  double best_psnr;    // the best validation PSNR it records (checked to be a number)
 };
 CheckpointSettings checkpoint_settings(const std::filesystem::path& path);
 // `ema` is filled from the checkpoint's average when it has one, else from its generator.

@@ -186,8 +186,17 @@ std::shared_ptr<const CameraFit> model_camera_fit(const ModelFile& model, std::s
   return camera_fit_of(training_camera(model), why);
 }
 
+namespace {
+
+void check_capture_headers(const ReconstructorSpec& spec, const CameraConfig& camera) {
+  for (const auto& capture : spec.captures) check_raw_header(capture, camera.raw);
+}
+
+}  // namespace
+
 BuiltReconstructor make_reconstructor(const ReconstructorSpec& spec) {
   if (spec.method == "tikhonov" || spec.method == "tv") {
+    check_capture_headers(spec, spec.camera);
     const auto calib_path = spec.calibration.empty() ? spec.camera.calibration : spec.calibration;
     require_option(!calib_path.empty(), "recon.calib", "no calibration: pass one, or use a camera file that names one");
     ClassicalOptions o;
@@ -201,6 +210,7 @@ BuiltReconstructor make_reconstructor(const ReconstructorSpec& spec) {
   if (spec.method == "flatnet") {
     auto m = load_model_file(spec.model);
     const auto camera = spec.use_camera ? spec.camera : m.camera;
+    check_capture_headers(spec, camera);
     BuiltReconstructor built{make_flatnet(m.generator, camera, spec.levers, "FlatNet " + spec.model.filename().string()),
                              camera, nullptr, ""};
     built.fit = model_camera_fit(m, built.no_fit);
@@ -215,6 +225,7 @@ BuiltReconstructor make_reconstructor(const ReconstructorSpec& spec) {
     auto r = std::make_unique<OpenCvReconstructor>(spec.model);
     const auto camera = spec.use_camera ? spec.camera : r->engine().camera();
     r->engine().check_camera(camera);
+    check_capture_headers(spec, camera);
     BuiltReconstructor built{std::move(r), camera, nullptr, "an ONNX file carries no calibration to judge by"};
     built.fit = camera_fit_of(camera, built.no_fit);  // the camera given, or the ONNX file's own
     return built;

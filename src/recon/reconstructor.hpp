@@ -7,6 +7,7 @@
 #include <filesystem>
 #include <memory>
 #include <string>
+#include <vector>
 
 #include <torch/torch.h>
 
@@ -59,6 +60,9 @@ struct ReconstructorSpec {
   double lambda = 0;                  // tikhonov, tv (<= 0: the camera's)
   std::filesystem::path model;        // flatnet (.flatnet), opencv (.onnx)
   InferenceLevers levers;             // flatnet
+  // The captures it will read: their headers are checked against the camera (size, depth) before
+  // anything the camera's size sets is built (a calibration's SVDs, the camera fit's reference).
+  std::vector<std::filesystem::path> captures;
 };
 
 struct BuiltReconstructor {

@@ -5,6 +5,7 @@
 #include <iostream>
 #include <fstream>
 #include <iomanip>
+#include <optional>
 #include <random>
 #include <sstream>
 
@@ -233,6 +234,9 @@ double training_bytes_per_sample(const ModelSpec& m, int64_t crop, const CameraC
   // The first stage: the measurement, W1^T Y and the scene, per Bayer plane, with gradients.
   const double rows = camera.raw.crop[2], cols = camera.raw.crop[3], n = camera.scene_size;
   floats += 3.0 * 4 * (rows * cols + n * cols + n * n);
+  // The measurement pre-processor runs on the whole window, whatever the crop: each of its depth - 1
+  // hidden layers keeps a convolution's and a leaky ReLU's output and their gradients.
+  if (m.preprocessor_width > 0) floats += 4.0 * m.preprocessor_width * (m.preprocessor_depth - 1) * rows * cols;
   return 4.0 * floats;
 }
 
@@ -248,6 +252,9 @@ double training_fixed_bytes(const ModelSpec& m, const CameraConfig& camera) {
   else params = 31e6 * square(m.unet_width / 64.0);
   // The first stage: W1 {rows,N} and W2 {cols,N} per Bayer plane.
   params += 4.0 * (camera.raw.crop[2] + camera.raw.crop[3]) * camera.scene_size;
+  // The pre-processor's 3x3 convolutions: 4 -> width, (depth - 2) x width -> width, width -> 4.
+  const double w = static_cast<double>(m.preprocessor_width);
+  if (w > 0) params += 9.0 * (8 * w + static_cast<double>(m.preprocessor_depth - 2) * w * w);
   return 5 * 4.0 * params;
 }
 
@@ -255,7 +262,7 @@ namespace {
 
 // The run's config: a resumed run's own (its checkpoint's, with experiment.sets on top; another
 // experiment.config is refused), or a new run's (after checking that experiment.out holds no other run).
-Config settle_config(const ExperimentOptions& o, bool writer) {
+Config settle_config(const ExperimentOptions& o, bool writer, std::optional<double>& best_psnr) {
   const auto& out = o.out;
   const auto& sets = o.sets;
   const auto latest = out / "latest.ckpt";
@@ -264,10 +271,13 @@ Config settle_config(const ExperimentOptions& o, bool writer) {
     require(std::filesystem::exists(latest), latest, "nothing to resume (no checkpoint)");
     auto stored = checkpoint_settings(latest);  // one read: the run id and the settings
     if (!o.force) require_checkpoint_of_this_run(out, stored.run_id, latest, option_key("experiment.force"));
-    // best.ckpt too: resume takes its best PSNR, and export may take its weights.
+    // best.ckpt too: resume takes its best PSNR (read here, once), and export may take its weights.
     const auto best = out / "best.ckpt";
-    if (!o.force && std::filesystem::exists(best))
-      require_checkpoint_of_this_run(out, checkpoint_settings(best).run_id, best, option_key("experiment.force"));
+    if (std::filesystem::exists(best)) {
+      const auto best_settings = checkpoint_settings(best);
+      if (!o.force) require_checkpoint_of_this_run(out, best_settings.run_id, best, option_key("experiment.force"));
+      best_psnr = best_settings.best_psnr;
+    }
     config = std::move(stored.config);
     for (const auto& s : sets) config.set(s);
     config.check_ranges(option_key("experiment.sets"));
@@ -304,7 +314,9 @@ void require_memory_for(const ModelSpec& spec, const CameraConfig& camera, const
   require(need < 0.9 * available, train_key(&TrainOptions::batch),
           std::to_string(opts.batch) + " samples need about " + gb(need) + " GB for training (" + gb(fixed) +
               " of them for the model and its optimiser), and this machine has " + gb(available) +
-              " GB available; lower train.batch (or train.crop)");
+              " GB available; lower train.batch (or train.crop" +
+              (spec.preprocessor_width > 0 ? std::string(", or model.preprocessor.width and depth, which run on the whole window")
+                                           : std::string()) + ")");
 }
 
 }  // namespace
@@ -319,7 +331,8 @@ ExperimentResult run_experiment(const ExperimentOptions& o) {
   const auto& out = o.out;
   const auto latest = out / "latest.ckpt";
   const bool resume = o.resume;
-  Config config = settle_config(o, writer);
+  std::optional<double> best_psnr;  // best.ckpt's, read once on resume
+  Config config = settle_config(o, writer, best_psnr);
   require_option(!(resume && !o.init_from.empty()), "experiment.init_from", "starts a new run; it cannot be combined with " + option_key("experiment.resume"));
   light_off_for_captures_on_disk(config, log);
   // Everything that can fail on bad input is checked before anything is written.
@@ -372,7 +385,7 @@ ExperimentResult run_experiment(const ExperimentOptions& o) {
         << " % of the run; their camera in " << (out / "camera").string() << "\n";
     trainer.set_learned_camera(learned, camera);
   }
-  if (resume) log << trainer.resume(latest) << "\n";  // every rank reads rank 0's checkpoint (a shared folder)
+  if (resume) log << trainer.resume(latest, best_psnr) << "\n";  // every rank reads rank 0's checkpoint (a shared folder)
   if (trainer.run_id().empty()) trainer.set_run_id(new_run_id());  // a new run, or one from before run ids
   if (writer) {  // after a resume succeeded: a refused one changes nothing
     std::filesystem::create_directories(out);
@@ -380,7 +393,9 @@ ExperimentResult run_experiment(const ExperimentOptions& o) {
     record_run_id(out, trainer.run_id());
   }
   trainer.set_distributed(group.get());
-  log << "training on " << train_src->size() << " pairs, " << opts.iterations << " steps of batch " << opts.batch
+  log << "training on " << train_src->size() << " pairs, "
+      << (opts.minutes > 0 ? format_duration(60.0 * opts.minutes) + " (train.minutes)" : std::to_string(opts.iterations) + " steps")
+      << " of batch " << opts.batch
       << (dist.world_size > 1 ? " per rank x " + std::to_string(dist.world_size) + " ranks" : "") << " ("
       << spec.input << " + " << enhancer_text(spec) << ")\n";
   ExperimentResult result;

@@ -55,8 +55,9 @@ LrSchedule parse_lr_schedule(const std::string& s) {
 
 double lr_factor(const TrainOptions& opt, int64_t step, double seconds) {
   if (opt.schedule == LrSchedule::cosine) {
-    double t = std::min(1.0, static_cast<double>(step) / std::max<int64_t>(1, opt.iterations));
-    if (opt.minutes > 0) t = std::max(t, std::min(1.0, seconds / (60.0 * opt.minutes)));
+    // The share of the run done: of the time budget when there is one (it alone ends the run), else of the steps.
+    const double t = opt.minutes > 0 ? std::min(1.0, seconds / (60.0 * opt.minutes))
+                                     : std::min(1.0, static_cast<double>(step) / std::max<int64_t>(1, opt.iterations));
     return 0.5 * (1.0 + std::cos(M_PI * t));
   }
   return std::pow(0.5, static_cast<double>(step / std::max<int64_t>(1, opt.lr_halve_every)));
@@ -237,13 +238,13 @@ GanTrainer::GanTrainer(Generator generator, Discriminator discriminator, Vgg16Fe
 
 Generator& GanTrainer::exported() { return ema_ ? ema_->average() : g_; }
 
-std::string GanTrainer::resume(const std::filesystem::path& checkpoint) {
+std::string GanTrainer::resume(const std::filesystem::path& checkpoint, std::optional<double> best_psnr) {
   state_ = load_checkpoint(checkpoint, g_, d_, *opt_g_, *opt_d_, ema_ ? &ema_->average() : nullptr,
                            checkpoint_camera());
   // The best PSNR is the one best.ckpt holds: a kill between writing best.ckpt and latest.ckpt
   // leaves latest's record behind or ahead of the file, and no file would hold that score.
   const auto best = opt_.out / "best.ckpt";
-  state_.best_psnr = std::filesystem::exists(best) ? checkpoint_best_psnr(best) : -1e9;
+  state_.best_psnr = !std::filesystem::exists(best) ? -1e9 : best_psnr ? *best_psnr : checkpoint_best_psnr(best);
   auto gen = at::detail::getDefaultCPUGenerator();
   gen.set_state(state_.rng_state);
   // A kill after latest.ckpt and before model.flatnet leaves the model a step behind: rewrite it.
@@ -280,9 +281,9 @@ CheckpointCamera GanTrainer::checkpoint_camera() {
 }
 
 bool GanTrainer::codes_frozen(int64_t step) const {
-  // The share of the run done: steps, or the time budget's elapsed share (as the cosine schedule).
-  double t = static_cast<double>(step) / std::max<int64_t>(1, opt_.iterations);
-  if (opt_.minutes > 0) t = std::max(t, trained_seconds() / (60.0 * opt_.minutes));
+  // The share of the run done, as the cosine schedule counts it: the time budget's, else the steps'.
+  const double t = opt_.minutes > 0 ? trained_seconds() / (60.0 * opt_.minutes)
+                                    : static_cast<double>(step) / std::max<int64_t>(1, opt_.iterations);
   return t >= camera_->options().freeze_at;
 }
 

@@ -145,9 +145,10 @@ class GanTrainer {
   // by rank; only rank 0 validates and writes files. Call before resume() and run().
   void set_distributed(GradientAverager* collectives);
   // Continues from a checkpoint written by an earlier run with the same config; the best PSNR is
-  // best.ckpt's (next to it), and model.flatnet is rewritten from the restored weights. Returns
-  // one line saying what was restored.
-  std::string resume(const std::filesystem::path& checkpoint);
+  // best.ckpt's (next to it; `best_psnr` when the caller has read that file already, so it is read
+  // once), and model.flatnet is rewritten from the restored weights. Returns one line saying what
+  // was restored.
+  std::string resume(const std::filesystem::path& checkpoint, std::optional<double> best_psnr = std::nullopt);
   // The id of a new run, recorded in every checkpoint it writes (a resume keeps the checkpoint's).
   void set_run_id(std::string id) { state_.run_id = std::move(id); }
   const std::string& run_id() const { return state_.run_id; }

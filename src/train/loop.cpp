@@ -37,7 +37,8 @@ LoopResult TrainingLoop::run() {
   start_seconds_ = now_seconds();
   LoopResult r;
   r.first_step = r.last_step = opt_.first_step;
-  Progress progress(opt_.label, opt_.iterations - opt_.first_step, opt_.progress);
+  const bool by_steps = opt_.minutes <= 0;  // else the budget alone ends the run
+  Progress progress(opt_.label, by_steps ? opt_.iterations - opt_.first_step : 0, opt_.progress);
   if (opt_.minutes > 0) progress.set_time_left(60.0 * opt_.minutes - trained_seconds());
   NonFiniteGuard nonfinite(opt_.last_good, opt_.remedy);
   const auto budget_status = [&] {
@@ -47,7 +48,7 @@ LoopResult TrainingLoop::run() {
   int64_t checkpointed = -1;
   bool stopping = false;
   int64_t step = opt_.first_step;
-  while (step < opt_.iterations && !(stopping = should_stop())) {
+  while ((!by_steps || step < opt_.iterations) && !(stopping = should_stop())) {
     try {
       hooks_.step(step);
       nonfinite.good();
@@ -58,7 +59,7 @@ LoopResult TrainingLoop::run() {
     const int64_t done = ++step;
     if (hooks_.advanced) hooks_.advanced(done);
     progress.tick();
-    const bool last = done == opt_.iterations;
+    const bool last = by_steps && done == opt_.iterations;
     if (opt_.writer && hooks_.checkpoint && (done % opt_.val_every == 0 || last)) {
       hooks_.checkpoint(done);
       checkpointed = done;

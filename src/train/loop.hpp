@@ -16,8 +16,10 @@ namespace flatnet {
 struct LoopOptions {
   std::string label = "train";  // the progress bar's
   int64_t first_step = 0;       // steps done before this run (a resumed run's)
-  int64_t iterations = 1;       // the step the run ends at
-  double minutes = 0;           // wall-clock budget of the whole run, resumed parts included (0: none)
+  int64_t iterations = 1;       // the step the run ends at, when it has no time budget
+  // Wall-clock budget of the whole run, resumed parts included (0: none). A budget is the run's
+  // length: the run ends when it is spent, whatever `iterations` says (train.minutes alone bounds it).
+  double minutes = 0;
   double seconds_before = 0;    // seconds the run trained before (resume)
   int64_t log_every = 50, val_every = 500;
   bool progress = true;

@@ -15,9 +15,9 @@ constexpr double kBig = 1e9;
 const std::vector<OptionField<TrainOptions>>& train_fields() {
   using O = TrainOptions;
   static const std::vector<OptionField<O>> fields = {
-      {"train.iterations", &O::iterations, STEPS("1 to 1e9 steps"), "optimiser steps", "iterations"},
-      {"train.minutes", &O::minutes, 0, 1e6, "0 (no budget) or minutes of wall-clock training",
-       "wall-clock budget, resumes included", "minutes"},
+      {"train.iterations", &O::iterations, STEPS("1 to 1e9 steps"), "optimiser steps (when train.minutes is 0)", "iterations"},
+      {"train.minutes", &O::minutes, 0, 1e6, "0 (steps end the run) or minutes of wall-clock training (the run's length)",
+       "wall-clock budget, resumes included; when > 0 it alone ends the run", "minutes"},
       {"train.batch", &O::batch, 1, 4096, "1 to 4096 samples", "scenes per step", "batch"},
       {"train.lr", &O::lr, 0, 10, "0 (frozen) to 10", "Adam, generator", "lr"},
       {"train.precision", &O::precision, 0, 0, "", "auto (bf16 where the CPU has AMX or AVX512-BF16) | fp32 | bf16",
@@ -88,7 +88,7 @@ const std::vector<OptionField<MaskTrainOptions>>& mask_train_fields() {
   using O = MaskTrainOptions;
   static const std::vector<OptionField<O>> fields = {
       {"train.iterations", &O::iterations, STEPS("1 to 1e9 steps")},
-      {"train.minutes", &O::minutes, 0, 1e6, "0 (no budget) or minutes of wall-clock training"},
+      {"train.minutes", &O::minutes, 0, 1e6, "0 (steps end the run) or minutes of wall-clock training (the run's length)"},
       {"train.batch", &O::batch, 1, 4096, "1 to 4096 samples"},
       {"train.optimizer", &O::optimizer, 0, 0, "", "sgd | adam"},
       {"train.lr", &O::lr, 0, 10, "0 (frozen) to 10"},
@@ -124,8 +124,8 @@ const std::vector<OptionField<SeparableTrainOptions>>& separable_train_fields() 
       {"codes.binary", &O::binary, 0, 0, "", "sign(u), sign(v) forward, straight-through gradients (a fabricable mask)", "binary"},
       {"codes.target_throughput", &O::target_throughput, 1e-3, 1, "a share of light, above 0 and at most 1"},
       {"codes.throughput_tolerance", &O::throughput_tolerance, SHARE},
-      {"train.iterations", &O::iterations, STEPS("1 to 1e9 steps"), "optimiser steps", "iterations"},
-      {"train.minutes", &O::minutes, 0, 1e6, "0 (no budget) or minutes of wall-clock training"},
+      {"train.iterations", &O::iterations, STEPS("1 to 1e9 steps"), "optimiser steps (when train.minutes is 0)", "iterations"},
+      {"train.minutes", &O::minutes, 0, 1e6, "0 (steps end the run) or minutes of wall-clock training (the run's length)"},
       {"train.batch", &O::batch, 1, 4096, "1 to 4096 samples", "photographs per step", "batch"},
       {"train.lr", &O::lr, 0, 10, "0 (frozen) to 10", "Adam, on the codes' pre-activations", "lr"},
       {"train.lambda_init", &O::lambda_init, 1e-12, 1e6, "a positive regulariser", "Tikhonov regulariser's start (learned)", "lambda"},
