@@ -105,7 +105,8 @@ TEST_CASE("a pair of the wrong size or with NaN is named", "[optics][calibrate]"
     if (i == 3) p.meas = p.meas.narrow(1, 0, kRows - 1);
     return p;
   };
-  CHECK_THROWS_WITH(calibrate_from_pairs(5, wrong, kRows, kCols, kScene, o), Contains("pair 3") && Contains("{4,20,24}"));
+  CHECK_THROWS_WITH(calibrate_from_pairs(5, wrong, kRows, kCols, kScene, o),
+                    Contains("pair 3") && Contains("{4,20,24}"));
   auto nan = [&](int64_t i) {
     auto p = camera.capture(i, 0);
     if (i == 2) p.scene[0][0][0].fill_(NAN);
@@ -133,8 +134,8 @@ CapturePair coded_capture(const torch::Tensor& P, const torch::Tensor& Q, int64_
   auto gen = at::detail::createCPUGenerator(5000 + static_cast<uint64_t>(i));
   const int64_t n = kShiftScene;
   auto X = at::rand({4, n + 1, n + 1}, gen).to(torch::kFloat64);
-  X = 0.25 * (X.narrow(1, 0, n).narrow(2, 0, n) + X.narrow(1, 1, n).narrow(2, 0, n) + X.narrow(1, 0, n).narrow(2, 1, n) +
-              X.narrow(1, 1, n).narrow(2, 1, n));
+  X = 0.25 * (X.narrow(1, 0, n).narrow(2, 0, n) + X.narrow(1, 1, n).narrow(2, 0, n) +
+              X.narrow(1, 0, n).narrow(2, 1, n) + X.narrow(1, 1, n).narrow(2, 1, n));
   auto Y = torch::matmul(torch::matmul(P, X), Q.transpose(1, 2));
   Y = Y + noise * Y.std().item<double>() * at::randn(Y.sizes(), gen).to(torch::kFloat64);
   return {Y.to(torch::kFloat32), X.to(torch::kFloat32), {}};
@@ -142,7 +143,8 @@ CapturePair coded_capture(const torch::Tensor& P, const torch::Tensor& Q, int64_
 
 }  // namespace
 
-TEST_CASE("a FlatCam's factors and shifts are identified from pairs too noisy for free factors", "[optics][calibrate]") {
+TEST_CASE("a FlatCam's factors and shifts are identified from pairs too noisy for free factors",
+          "[optics][calibrate]") {
   const auto P = coded_factor(kShiftRows, kShiftP, 11), Q = coded_factor(kShiftCols, kShiftQ, 12);
   const double noise = 1.0;  // the noise as strong as the signal (docs/own-camera.md's random-code camera: 7 to 1)
   const auto load = [&](int64_t i) { return coded_capture(P, Q, i, noise); };
@@ -168,7 +170,7 @@ TEST_CASE("a factor with the shift structure is recovered exactly, and the shift
           "[optics][calibrate]") {
   for (const double shift : {-2.3, 1.3}) {
     INFO("shift " << shift);
-    const auto P = coded_factor(kShiftRows, shift, 3);               // {4,m,N}
+    const auto P = coded_factor(kShiftRows, shift, 3);  // {4,m,N}
     const auto G = torch::eye(kShiftScene, torch::kFloat64).expand({4, kShiftScene, kShiftScene});
     ShiftFitOptions o;
     // With G = I and H = P, J = ||F - P||^2 - ||P||^2: the fit is P's projection on the structure.
@@ -182,7 +184,8 @@ TEST_CASE("a factor with the shift structure is recovered exactly, and the shift
                     Contains("non-zero shift"));
 }
 
-TEST_CASE("pairs with no signal are named before the solve: flat grey scenes, lens-cap captures", "[optics][calibrate][errors]") {
+TEST_CASE("pairs with no signal are named before the solve: flat grey scenes, lens-cap captures",
+          "[optics][calibrate][errors]") {
   const SmallCamera camera(2);
   DatasetCalibrationOptions o;
   o.progress = false;

@@ -71,7 +71,8 @@ TEST_CASE("the exact shift-profile solve reaches the least objective conjugate g
   for (int i = 0; i < 3; ++i) {
     const auto p = camera.pair(i, 0.0);
     const auto Z = torch::matmul(scene(100 + static_cast<uint64_t>(i)), camera.Q.transpose(1, 2));
-    const auto g = torch::matmul(Z, Z.transpose(1, 2)), h = torch::matmul(p.meas.to(torch::kFloat64), Z.transpose(1, 2));
+    const auto g = torch::matmul(Z, Z.transpose(1, 2)),
+               h = torch::matmul(p.meas.to(torch::kFloat64), Z.transpose(1, 2));
     G = i == 0 ? g : G + g;
     H = i == 0 ? h : H + h;
   }

@@ -37,7 +37,11 @@ torch::Tensor capture(const torch::Tensor& P, const torch::Tensor& Q, double noi
 }
 
 torch::Tensor span_basis(const torch::Tensor& F) {  // {rows,N} -> {4,rows,N} orthonormal
-  return std::get<0>(torch::linalg_qr(F.to(torch::kFloat64))).to(torch::kFloat32).unsqueeze(0).expand({4, -1, -1}).contiguous();
+  return std::get<0>(torch::linalg_qr(F.to(torch::kFloat64)))
+      .to(torch::kFloat32)
+      .unsqueeze(0)
+      .expand({4, -1, -1})
+      .contiguous();
 }
 
 }  // namespace
@@ -64,7 +68,8 @@ TEST_CASE("the camera fit's coded leak: noise and this camera stay near noise's 
   CHECK(twin_leak > 1.5 * threshold);
   // Scale-free (a brighter exposure is the same capture) and blind to row, column and level offsets.
   CHECK(coded_leak(7.0 * twin, U, V) == Approx(twin_leak).epsilon(1e-3));
-  const auto offsets = torch::linspace(0, 1, kRows).view({1, kRows, 1}) + torch::linspace(0, 2, kCols).view({1, 1, kCols});
+  const auto offsets =
+      torch::linspace(0, 1, kRows).view({1, kRows, 1}) + torch::linspace(0, 2, kCols).view({1, 1, kCols});
   CHECK(coded_leak(twin + offsets, U, V) == Approx(twin_leak).epsilon(1e-3));
   // The open part's light (rank 1 per plane) is set aside however bright it is.
   const auto open_light = 50.0 * torch::outer(torch::rand({kRows}) + 1, torch::rand({kCols}) + 1).unsqueeze(0);
@@ -134,16 +139,17 @@ TEST_CASE("the camera fit flags a near twin's capture by its coded leak and says
   CHECK(own_batch.median_excess < 1.0);
   CHECK_FALSE(own_batch.foreign);
   // A twin's batch where two of five pass alone is flagged as a whole (lower median 1.5).
-  const auto twins = judge_batch(fit, {with_excess(0.9), with_excess(1.5), with_excess(1.6), with_excess(0.95),
-                                       with_excess(2.0)});
+  const auto twins =
+      judge_batch(fit, {with_excess(0.9), with_excess(1.5), with_excess(1.6), with_excess(0.95), with_excess(2.0)});
   CHECK(twins.median_excess == Approx(1.5));
   CHECK(twins.foreign);
   // The camera's own batch with two odd captures in it is not: they stay flagged alone.
-  CHECK_FALSE(judge_batch(fit, {with_excess(0.9), with_excess(0.9), with_excess(0.9), with_excess(3), with_excess(3)}).foreign);
+  CHECK_FALSE(
+      judge_batch(fit, {with_excess(0.9), with_excess(0.9), with_excess(0.9), with_excess(3), with_excess(3)}).foreign);
   // Too few judged captures for a batch verdict; unjudged (saturated) ones do not count.
   CHECK_FALSE(judge_batch(fit, {with_excess(2), with_excess(2)}).foreign);
-  const auto mostly_saturated = judge_batch(fit, {with_excess(2), with_excess(2), with_excess(5, false),
-                                                  with_excess(5, false)});
+  const auto mostly_saturated =
+      judge_batch(fit, {with_excess(2), with_excess(2), with_excess(5, false), with_excess(5, false)});
   CHECK(mostly_saturated.judged == 2);
   CHECK_FALSE(mostly_saturated.foreign);
   CHECK(judge_batch(fit, {}).judged == 0);

@@ -33,7 +33,8 @@ TEST_CASE("errors mark the options they name: what() shows the key, a front end 
         "<simulate.lamp_gain>: must lie in (0, 10000]; see <train.batch>");
   // A key spelled in plain text is text: nothing guesses names (a file called simulate.out stays so).
   CHECK(Error("simulate.out: exists").render([](const std::string&) { return "--out"; }) == "simulate.out: exists");
-  CHECK(render_option_keys(std::string("a ") + kOptionMark + "b") == std::string("a ") + kOptionMark + "b");  // unpaired
+  CHECK(render_option_keys(std::string("a ") + kOptionMark + "b") ==
+        std::string("a ") + kOptionMark + "b");  // unpaired
   CHECK_THROWS_WITH(require_option(false, "recon.batch", "must be at least 1"), "recon.batch: must be at least 1");
   // A user's file name or value is data: marks in it show as an escape and are never rendered.
   const auto hostile = std::string("x") + kOptionMark + "experiment.out" + kOptionMark + "y";
@@ -41,12 +42,14 @@ TEST_CASE("errors mark the options they name: what() shows the key, a front end 
   CHECK(std::string(from_path.what()) == "x\\x1eexperiment.out\\x1ey: no such file");
   CHECK(from_path.render([](const std::string&) { return "--out"; }) == from_path.what());
   // A label the code wrote is text, and its marks are kept: Error(option_key(k), reason) names k.
-  CHECK(Error(option_key("recon.require_fit"), "6 of 6 captures do not fit")
-            .render([](const std::string&) { return "--require-fit"; }) == "--require-fit: 6 of 6 captures do not fit");
+  CHECK(Error(option_key("recon.require_fit"), "6 of 6 captures do not fit").render([](const std::string&) {
+    return "--require-fit";
+  }) == "--require-fit: 6 of 6 captures do not fit");
   CHECK_THROWS_WITH(require(false, option_key("recon.out"), "is the input"), "recon.out: is the input");
   CHECK_THROWS_WITH(require(false, std::filesystem::path(hostile), "is the input"),
                     "x\\x1eexperiment.out\\x1ey: is the input");
-  CHECK_THROWS_WITH(Config::load({}, {"train.lr=" + hostile}), Contains("train.lr = x\\x1eexperiment.out\\x1ey is not"));
+  CHECK_THROWS_WITH(Config::load({}, {"train.lr=" + hostile}),
+                    Contains("train.lr = x\\x1eexperiment.out\\x1ey is not"));
   CHECK_THROWS_WITH(Config::load({}, {hostile + "=1"}), Contains("unknown setting 'x\\x1eexperiment.out\\x1ey'"));
 }
 
@@ -228,8 +231,10 @@ TEST_CASE("bad input: one clear line, exit code 2", "[cli][errors]") {
   CHECK_THAT(r.output, Contains("train.batch") && Contains("GB available"));
   // The pre-processor runs on the whole 500x620 window: at width 256 and depth 64 (both inside their
   // ranges) one sample needs over 100 GB. Refused up front, naming it, with no run folder left.
-  r = test::run_flatnet(train + " --set train.batch=1 --set model.preprocessor.width=256 --set model.preprocessor.depth=64"
-                        " --set data.images=" + q(s.dir / "photos"));
+  r = test::run_flatnet(train +
+                        " --set train.batch=1 --set model.preprocessor.width=256 --set model.preprocessor.depth=64"
+                        " --set data.images=" +
+                        q(s.dir / "photos"));
   CHECK(r.code == 2);
   CHECK_THAT(r.output, Contains("GB available") && Contains("model.preprocessor.width"));
   CHECK_FALSE(std::filesystem::exists(s.dir / "run"));
@@ -290,9 +295,9 @@ TEST_CASE("train, export, import and infer from the command line, and bad input 
   auto other_config = test::run_flatnet("train --out " + q(s.dir / "run") + " --resume --config " +
                                         q(test::source_dir() / "configs" / "sim_calibfree.yaml"));
   CHECK(other_config.code == 2);
-  CHECK_THAT(other_config.output,
-             Contains("--resume continues with the run's own config") && Contains("model.inversion.init") &&
-                 Contains("--config: ") && Contains("with --set key=value") && !Contains("experiment."));
+  CHECK_THAT(other_config.output, Contains("--resume continues with the run's own config") &&
+                                      Contains("model.inversion.init") && Contains("--config: ") &&
+                                      Contains("with --set key=value") && !Contains("experiment."));
   CHECK(read_bytes(s.dir / "run" / "config.yaml") == config_before);
   auto wider = test::run_flatnet("train --out " + q(s.dir / "run") + " --resume --set model.unet.width=4");
   CHECK(wider.code == 2);
@@ -300,12 +305,15 @@ TEST_CASE("train, export, import and infer from the command line, and bad input 
   // A fresh run into a folder left by a run killed before its first checkpoint: refused, or
   // started afresh with --force.
   std::filesystem::create_directories(s.dir / "dead");
-  REQUIRE(test::run_flatnet(base + " --set train.iterations=1 --set train.val_every=1 --out " + q(s.dir / "dead")).code == 0);
+  REQUIRE(
+      test::run_flatnet(base + " --set train.iterations=1 --set train.val_every=1 --out " + q(s.dir / "dead")).code ==
+      0);
   std::filesystem::remove(s.dir / "dead" / "latest.ckpt");
   auto fresh = test::run_flatnet(base + " --set train.iterations=1 --out " + q(s.dir / "dead"));
   CHECK(fresh.code == 2);
   CHECK_THAT(fresh.output, Contains("never reached its first checkpoint") && Contains("--force"));
-  fresh = test::run_flatnet(base + " --set train.iterations=1 --set train.val_every=1 --out " + q(s.dir / "dead") + " --force");
+  fresh = test::run_flatnet(base + " --set train.iterations=1 --set train.val_every=1 --out " + q(s.dir / "dead") +
+                            " --force");
   CHECK(fresh.code == 0);
   CHECK(read_lines(s.dir / "dead" / "val.csv").size() == 2);  // header and this run's one row
   // Another run's checkpoint copied in: refused, naming both runs and --force; the folder unchanged.
@@ -711,7 +719,8 @@ TEST_CASE("flatnet bench: rows, JSON, and --profile lists the operators of one m
   CHECK_THAT(unknown.output, Contains("warp_drive") && Contains("tikhonov"));
 }
 
-TEST_CASE("FLOP counting: convolutions, transposed convolutions and GEMMs exactly, 2 per multiply-add", "[bench][flops]") {
+TEST_CASE("FLOP counting: convolutions, transposed convolutions and GEMMs exactly, 2 per multiply-add",
+          "[bench][flops]") {
   c10::InferenceMode guard;
   const auto x = torch::randn({2, 3, 10, 12}), w = torch::randn({5, 3, 3, 3});
   // As nn::Conv2d calls it (every size given per axis: LibTorch's counter needs that).
@@ -720,9 +729,11 @@ TEST_CASE("FLOP counting: convolutions, transposed convolutions and GEMMs exactl
   CHECK(count_gflop([&] { torch::conv2d(x, w, torch::Tensor(), one, one, one); }) * 1e9 ==
         Approx(2.0 * 2 * 5 * 10 * 12 * 3 * 9));
   // stride 2, no padding: outputs 4x5.
-  CHECK(count_gflop([&] { const std::vector<int64_t> stride{2, 2}, pad{0, 0};
-    torch::conv2d(x, w, torch::Tensor(), stride, pad, one);
-  }) * 1e9 == Approx(2.0 * 2 * 5 * 4 * 5 * 3 * 9));
+  CHECK(count_gflop([&] {
+          const std::vector<int64_t> stride{2, 2}, pad{0, 0};
+          torch::conv2d(x, w, torch::Tensor(), stride, pad, one);
+        }) * 1e9 ==
+        Approx(2.0 * 2 * 5 * 4 * 5 * 3 * 9));
   // 2x2 stride-2 transposed: every input pixel scatters to 2x2 outputs of 7 channels.
   const auto wt = torch::randn({3, 7, 2, 2});
   CHECK(count_gflop([&] { torch::conv_transpose2d(x, wt, {}, 2); }) * 1e9 == Approx(2.0 * 2 * 3 * 10 * 12 * 7 * 4));
@@ -735,7 +746,8 @@ TEST_CASE("FLOP counting of a training step: the backward's two gradients, each 
   const auto w = torch::randn({5, 3, 3, 3}, torch::requires_grad());
   const std::vector<int64_t> one{1, 1};
   const double forward = 2.0 * 2 * 5 * 10 * 12 * 3 * 9;
-  const double counted = count_gflop([&] { torch::conv2d(x, w, torch::Tensor(), one, one, one).sum().backward(); }) * 1e9;
+  const double counted =
+      count_gflop([&] { torch::conv2d(x, w, torch::Tensor(), one, one, one).sum().backward(); }) * 1e9;
   // forward + 2 x forward, and the sum's and its backward's few elementwise operations
   CHECK(counted >= 3 * forward);
   CHECK(counted < 3 * forward + 4 * 2 * 5 * 10 * 12);
@@ -746,8 +758,8 @@ TEST_CASE("flatnet bench --rows peak: the practical peak first, then each row's 
   test::Scratch s("bench_peak");
   const auto json_path = s.dir / "bench.json";
   // Asked after the row it calibrates, the peak still runs first.
-  const auto r = test::run_flatnet("bench --rows tikhonov,peak --precision fp32 --repeats 1 --warmup 0 --json " +
-                                   q(json_path));
+  const auto r =
+      test::run_flatnet("bench --rows tikhonov,peak --precision fp32 --repeats 1 --warmup 0 --json " + q(json_path));
   INFO(r.output);
   REQUIRE(r.code == 0);
   CHECK_THAT(r.output, Contains("GFLOP/s") && Contains("peak %") && Contains("peak_gemm_fp32"));
@@ -805,12 +817,12 @@ TEST_CASE("flatnet options: every setting with its default, range and documentat
   CHECK_THAT(r.output, Contains("train, mask or separable"));
 }
 
-TEST_CASE("model cards: flatnet info tells what a model file holds, export records held-out scores",
-          "[cli][info]") {
+TEST_CASE("model cards: flatnet info tells what a model file holds, export records held-out scores", "[cli][info]") {
   test::Scratch s("info");
   auto photos = make_photos(s.dir / "photos");
-  REQUIRE(test::run_flatnet("simulate --images " + q(photos) + " --out " + q(s.dir / "ds") + " --val-fraction 0.5")
-              .code == 0);
+  REQUIRE(
+      test::run_flatnet("simulate --images " + q(photos) + " --out " + q(s.dir / "ds") + " --val-fraction 0.5").code ==
+      0);
   auto r = test::run_flatnet("train --config " + q(test::source_dir() / "configs" / "sim_transpose.yaml") +
                              " --set data.dataset=" + q(s.dir / "ds") + " --set model.unet.width=2" + kOnDisk +
                              " --set train.iterations=3 --set train.val_every=1 --out " + q(s.dir / "run"));
@@ -845,8 +857,8 @@ TEST_CASE("model cards: flatnet info tells what a model file holds, export recor
   REQUIRE(r.code == 0);
   REQUIRE(std::filesystem::exists(s.dir / "eval" / "scores.json"));
   const auto scored = s.dir / "scored.flatnet";
-  r = test::run_flatnet("export --model " + q(model) + " --out " + q(scored) + " --scores heldout=" +
-                        q(s.dir / "eval"));
+  r = test::run_flatnet("export --model " + q(model) + " --out " + q(scored) +
+                        " --scores heldout=" + q(s.dir / "eval"));
   INFO(r.output);
   REQUIRE(r.code == 0);
   r = test::run_flatnet("info --json " + q(scored));
@@ -871,12 +883,12 @@ TEST_CASE("model cards: flatnet info tells what a model file holds, export recor
 
   // Bad input: a scores file that is not one, a method that is not there, a file that is not a model.
   std::ofstream(s.dir / "junk.json") << "{not json";
-  r = test::run_flatnet("export --model " + q(model) + " --out " + q(s.dir / "x.flatnet") + " --scores a=" +
-                        q(s.dir / "junk.json"));
+  r = test::run_flatnet("export --model " + q(model) + " --out " + q(s.dir / "x.flatnet") +
+                        " --scores a=" + q(s.dir / "junk.json"));
   CHECK(r.code == 2);
   CHECK_THAT(r.output, Contains("junk.json") && Contains("scores.json"));
-  r = test::run_flatnet("export --model " + q(model) + " --out " + q(s.dir / "x.flatnet") + " --method other --scores a=" +
-                        q(s.dir / "eval"));
+  r = test::run_flatnet("export --model " + q(model) + " --out " + q(s.dir / "x.flatnet") +
+                        " --method other --scores a=" + q(s.dir / "eval"));
   CHECK(r.code == 2);
   CHECK_THAT(r.output, Contains("no method 'other'") && Contains("tiny"));
   CHECK_FALSE(std::filesystem::exists(s.dir / "x.flatnet"));

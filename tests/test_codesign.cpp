@@ -66,11 +66,11 @@ TEST_CASE("the capture's noise has the sensor's variance: shot plus read noise, 
   const auto scene = torch::full({1, 3, 256, 256}, 0.1f);  // far from saturation
   auto gen = at::detail::createCPUGenerator(1);
   const auto clean = capture_planes(rig, scene, g, false, gen), noisy = capture_planes(rig, scene, g, true, gen);
-  const double step = 64.0 / 65535.0;  // one 10-bit code in stored units
+  const double step = 64.0 / 65535.0;                    // one 10-bit code in stored units
   const auto signal = clean / step / 1023.0 - rig.dark;  // full-scale units, quantised
-  const auto expected_var = (signal.clamp_min(0) / rig.full_well + std::pow(rig.read_noise / rig.full_well, 2)) *
-                                std::pow(1023.0, 2) +
-                            1.0 / 12;  // plus the rounding's
+  const auto expected_var =
+      (signal.clamp_min(0) / rig.full_well + std::pow(rig.read_noise / rig.full_well, 2)) * std::pow(1023.0, 2) +
+      1.0 / 12;  // plus the rounding's
   INFO("signal " << signal.min().item<double>() << " .. " << signal.max().item<double>());
   REQUIRE(signal.max().item<double>() < 0.9);
   const double measured = ((noisy - clean) / step).pow(2).mean().item<double>();
@@ -85,8 +85,10 @@ TEST_CASE("the learned code pair: gradients reach both codes, binary codes are +
     CodePairCamera camera(o);
     const auto [u, v] = camera->codes();
     REQUIRE(u.numel() == 511);
-    if (binary) CHECK(u.abs().eq(1).all().item<bool>());
-    else CHECK(u.abs().max().item<double>() <= 0.95 + 1e-6);
+    if (binary)
+      CHECK(u.abs().eq(1).all().item<bool>());
+    else
+      CHECK(u.abs().max().item<double>() <= 0.95 + 1e-6);
     auto gen = at::detail::createCPUGenerator(0);
     const auto planes = camera->capture(random_scenes(1, 4), gen);
     (planes * torch::randn_like(planes)).sum().backward();
@@ -138,7 +140,8 @@ TEST_CASE("a learned camera's files are the camera its codes make, readable by e
   CHECK(error == Approx(0.03).epsilon(0.2));
 }
 
-TEST_CASE("checkpoints carry the learned camera and its optimiser, and a mismatched resume is refused", "[codesign][train]") {
+TEST_CASE("checkpoints carry the learned camera and its optimiser, and a mismatched resume is refused",
+          "[codesign][train]") {
   test::Scratch s("codesign_ckpt");
   const auto camera_config = test::tiny_camera();
   const auto config = Config::load({}, {"model.unet.width=2"});
@@ -183,7 +186,8 @@ TEST_CASE("flatnet train with codes.learn: the codes move, the camera is written
   INFO(r.output);
   REQUIRE(r.code == 0);
   CHECK_THAT(r.output, Contains("co-design: codes from mls"));
-  for (const char* f : {"codes.mat", "rig.mat", "calib.mat", "camera.yaml"}) CHECK(std::filesystem::exists(s.dir / "run" / "camera" / f));
+  for (const char* f : {"codes.mat", "rig.mat", "calib.mat", "camera.yaml"})
+    CHECK(std::filesystem::exists(s.dir / "run" / "camera" / f));
   const auto start = load_code_pair(mls_codes()), learned = load_code_pair(s.dir / "run" / "camera" / "codes.mat");
   CHECK_FALSE(torch::allclose(start.rows.clamp(-0.95, 0.95), learned.rows, 0, 1e-4));  // the codes learned
   // Resumed: the codes come back from the checkpoint and, past codes.freeze_at, stay as they are.

@@ -147,13 +147,15 @@ TEST_CASE("README.md is the front door: short, with the two set-up commands and 
   for (const auto& l : readme) text += l + "\n";
   CHECK(text.find("scripts/run.sh") != std::string::npos);
   CHECK(text.find("scripts/test.sh") != std::string::npos);
-  for (const char* page : {"usage", "training", "evaluation", "deployment", "capture", "masks", "performance", "design"}) {
+  for (const char* page :
+       {"usage", "training", "evaluation", "deployment", "capture", "masks", "performance", "design"}) {
     INFO(page);
     CHECK(text.find(std::string("docs/") + page + ".md") != std::string::npos);
   }
 }
 
-TEST_CASE("every shipped model has a card that matches its file: hash, held-out scores, the sections", "[docs][cards]") {
+TEST_CASE("every shipped model has a card that matches its file: hash, held-out scores, the sections",
+          "[docs][cards]") {
   int cards = 0;
   for (const auto& e : std::filesystem::directory_iterator(test::source_dir() / "models")) {
     if (e.path().extension() != ".flatnet") continue;
@@ -165,8 +167,8 @@ TEST_CASE("every shipped model has a card that matches its file: hash, held-out 
     // The Hugging Face layout: YAML front matter naming the model, then the card's sections.
     CHECK(text.rfind("---\n", 0) == 0);
     CHECK(text.find("- name: " + e.path().stem().string() + "\n") != std::string::npos);
-    for (const char* section : {"## Intended use", "## Camera", "## Training data", "## Training\n", "## Evaluation",
-                                "## Limitations"})
+    for (const char* section :
+         {"## Intended use", "## Camera", "## Training data", "## Training\n", "## Evaluation", "## Limitations"})
       CHECK(text.find(section) != std::string::npos);
     // The card describes this file, not an earlier one: its hash and the scores the file records.
     CHECK(text.find("sha256 " + flatnet::sha256_hex(e.path())) != std::string::npos);

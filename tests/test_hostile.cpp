@@ -30,12 +30,13 @@
 
 using namespace flatnet;
 using Catch::Matchers::Contains;
-using test::read_file;
 using test::q;
+using test::read_file;
 using test::write_file;
 
 TEST_CASE("a name from a flag or a file becomes one path component or is refused", "[safe][hostile]") {
-  for (const std::string good : {"tikhonov", "flatnet-transpose", "lab v2", "dim_room.2"}) CHECK_NOTHROW(require_plain_name(good, "report.sets"));
+  for (const std::string good : {"tikhonov", "flatnet-transpose", "lab v2", "dim_room.2"})
+    CHECK_NOTHROW(require_plain_name(good, "report.sets"));
   for (const std::string& bad : std::vector<std::string>{"", "..", ".", "../x", "/tmp/x", "a/b", "a\\b", ".hidden",
                                                          "a\x1b[2Jb", std::string(200, 'a')})
     CHECK_THROWS_WITH(require_plain_name(bad, "report.methods"), Contains("report.methods"));
@@ -296,7 +297,8 @@ TEST_CASE("a switch given a value is read by its value: --force=false never repl
 }
 
 TEST_CASE("a camera's rotation is radians: a value in degrees is refused with its unit named", "[safe][hostile]") {
-  const std::string base = "name: r\nraw_height: 64\nraw_width: 64\nadc_bits: 10\ncrop: [0, 0, 32, 32]\nscene_size: 16\n";
+  const std::string base =
+      "name: r\nraw_height: 64\nraw_width: 64\nadc_bits: 10\ncrop: [0, 0, 32, 32]\nscene_size: 16\n";
   CHECK_NOTHROW(camera_from_yaml_text(base + "rotation: 0.00174\n", "cam.yaml"));
   CHECK_NOTHROW(camera_from_yaml_text(base + "rotation: -0.1\n", "cam.yaml"));
   for (const std::string bad : {"90", "400", "-3.1416", "1"}) {
@@ -320,7 +322,8 @@ TEST_CASE("a string setting that looks like YAML is written back as the same str
   }
 }
 
-TEST_CASE("a --set value is taken whole: a comma is part of the value and not a second setting", "[safe][hostile][cli]") {
+TEST_CASE("a --set value is taken whole: a comma is part of the value and not a second setting",
+          "[safe][hostile][cli]") {
   test::Scratch s("hostile_set_comma");
   const auto r = test::run_flatnet("train --config " + q(test::source_dir() / "configs" / "sim_transpose.yaml") +
                                    " --set train.minutes=1,5 --out " + q(s.dir / "run"));
@@ -330,8 +333,10 @@ TEST_CASE("a --set value is taken whole: a comma is part of the value and not a 
   CHECK_THAT(r.output, !Contains("got '5'"));
 }
 
-TEST_CASE("the camera fit refuses with --require-fit a capture it cannot judge: without it the capture is reconstructed unjudged",
-          "[safe][hostile][cli][camera-fit]") {
+TEST_CASE(
+    "the camera fit refuses with --require-fit a capture it cannot judge: without it the capture is reconstructed "
+    "unjudged",
+    "[safe][hostile][cli][camera-fit]") {
   test::Scratch s("hostile_require_fit_unjudged");
   const auto camera = test::source_dir() / "configs" / "cameras" / "flatnet_prototype" / "camera.yaml";
   std::filesystem::create_directories(s.dir / "in");
@@ -341,8 +346,8 @@ TEST_CASE("the camera fit refuses with --require-fit a capture it cannot judge: 
   CHECK(strict.code == 2);
   CHECK_THAT(strict.output, Contains("white.png") && Contains("cannot be judged") && Contains("full scale"));
   CHECK_FALSE(std::filesystem::exists(s.dir / "strict" / "white.png"));
-  const auto plain = test::run_flatnet("recon --camera " + q(camera) + " --input " + q(s.dir / "in") + " --out " +
-                                       q(s.dir / "plain"));
+  const auto plain =
+      test::run_flatnet("recon --camera " + q(camera) + " --input " + q(s.dir / "in") + " --out " + q(s.dir / "plain"));
   CHECK(plain.code == 0);
   CHECK_THAT(plain.output, Contains("not judged"));
 }
@@ -351,8 +356,8 @@ TEST_CASE("a camera whose window is no larger than its scene reconstructs withou
           "[safe][hostile][cli][camera-fit]") {
   test::Scratch s("hostile_fit_unmeasurable");
   auto gen = at::detail::createCPUGenerator(5);
-  save_calibration(s.dir / "calib.mat", {at::randn({4, 16, 16}, gen).to(torch::kFloat64),
-                                         at::randn({4, 16, 16}, gen).to(torch::kFloat64)});
+  save_calibration(s.dir / "calib.mat",
+                   {at::randn({4, 16, 16}, gen).to(torch::kFloat64), at::randn({4, 16, 16}, gen).to(torch::kFloat64)});
   write_file(s.dir / "camera.yaml",
              "name: square\nraw_height: 32\nraw_width: 32\nadc_bits: 10\ncrop: [0, 0, 16, 16]\nscene_size: 16\n"
              "calibration: calib.mat\nnoise_gain: 2.5e-5\nnoise_floor: 9e-8\ndark: 0.02\n");
@@ -375,18 +380,20 @@ TEST_CASE("an absurd but in-range camera geometry is refused by the captures' si
   // A 65536x65536 raw frame and a 4096-pixel scene: inside every range, and the reference camera's
   // calibration named. The calibration's SVDs and the camera fit would take gigabytes; the captures'
   // headers say first that they come from another sensor.
-  write_file(s.dir / "camera.yaml", "name: absurd\nraw_height: 65536\nraw_width: 65536\nadc_bits: 10\n"
-                                    "crop: [0, 0, 32000, 32000]\nscene_size: 4096\ncalibration: " +
-                                        test::calib_path().string() + "\n");
+  write_file(s.dir / "camera.yaml",
+             "name: absurd\nraw_height: 65536\nraw_width: 65536\nadc_bits: 10\n"
+             "crop: [0, 0, 32000, 32000]\nscene_size: 4096\ncalibration: " +
+                 test::calib_path().string() + "\n");
   std::filesystem::create_directories(s.dir / "in");
   auto gen = at::detail::createCPUGenerator(3);
   write_gray16(s.dir / "in" / "frame.png", (at::rand({1024, 1280}, gen) * 60000).to(torch::kInt32));
   for (const std::string command : {"recon --method tikhonov", "recon --method tv"}) {
     INFO(command);
-    const auto r = test::run_flatnet(command + " --camera " + q(s.dir / "camera.yaml") + " --input " +
-                                     q(s.dir / "in") + " --out " + q(s.dir / "out"));
+    const auto r = test::run_flatnet(command + " --camera " + q(s.dir / "camera.yaml") + " --input " + q(s.dir / "in") +
+                                     " --out " + q(s.dir / "out"));
     CHECK(r.code == 2);
-    CHECK_THAT(r.output, Contains("frame.png") && Contains("raw capture is 1280x1024 (WxH), this camera gives 65536x65536"));
+    CHECK_THAT(r.output,
+               Contains("frame.png") && Contains("raw capture is 1280x1024 (WxH), this camera gives 65536x65536"));
     CHECK_FALSE(std::filesystem::exists(s.dir / "out"));
   }
   // A capture of the wrong depth is named the same way, from its header.

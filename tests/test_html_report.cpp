@@ -83,8 +83,10 @@ TEST_CASE("report.html in headless Chromium: its script runs and the page render
   test::Scratch s("html_chromium");
   write_text_atomically(s.dir / "report.html", html_report("Report", "test", {make_set(s.dir, 3)}));
   // --no-sandbox: the tests may run as root; no network is needed (the page asks for none).
-  const std::string base = q(chromium) + " --headless --no-sandbox --disable-gpu --no-first-run --disable-extensions "
-                                         "--user-data-dir=" + q(s.dir / "profile") + " ";
+  const std::string base = q(chromium) +
+                           " --headless --no-sandbox --disable-gpu --no-first-run --disable-extensions "
+                           "--user-data-dir=" +
+                           q(s.dir / "profile") + " ";
   const auto url = "file://" + (s.dir / "report.html").string();
   auto r = test::run_shell(base + "--virtual-time-budget=5000 --dump-dom " + q(url));
   INFO(r.output.substr(0, 2000));

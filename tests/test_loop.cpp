@@ -148,8 +148,7 @@ TEST_CASE("training loop: all ranks stop together when one asks", "[train][loop]
   CHECK(rec.events == std::vector<std::string>{"s0", "s1", "s2", "c3"});
 }
 
-TEST_CASE("a resumed run's CSV log keeps its rows up to the checkpoint, under the current header",
-          "[train][logs]") {
+TEST_CASE("a resumed run's CSV log keeps its rows up to the checkpoint, under the current header", "[train][logs]") {
   test::Scratch s("csv_resume");
   const auto path = s.dir / "log.csv";
   std::ofstream(path) << "step,loss\n1,0.5\n2,0.4\n2x,cut\n3,0.3\ngarbage\n4,0.2\n";

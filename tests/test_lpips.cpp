@@ -143,8 +143,8 @@ TEST_CASE("flatnet eval --lpips: a column with the files, one line and the other
   }
   Lpips model(LpipsBackbone::alex);
   write_random_lpips(model, s.dir / "w", "alexnet-owt-7be5be79.pth", "alex.pth");
-  auto r = test::run_flatnet("eval --niqe none --gt " + q(gt) + " --out " + q(s.dir / "rec") + " --lpips alex --lpips-dir " +
-                             q(s.dir / "w"));
+  auto r = test::run_flatnet("eval --niqe none --gt " + q(gt) + " --out " + q(s.dir / "rec") +
+                             " --lpips alex --lpips-dir " + q(s.dir / "w"));
   INFO(r.output);
   REQUIRE(r.code == 0);
   CHECK_THAT(r.output, Contains("LPIPS alex"));
@@ -157,7 +157,8 @@ TEST_CASE("flatnet eval --lpips: a column with the files, one line and the other
   CHECK_THAT(scores, Contains("\"lpips_net\": \"alex\""));
 
   // Without the files: one line naming them, exit 0, the other columns.
-  r = test::run_shell("TORCH_HOME=" + q(s.dir / "no_hub") + " " + std::string(FLATNET_BINARY) + " eval --niqe none --gt " + q(gt) + " --out " + q(s.dir / "rec") + " --lpips vgg --lpips-dir " +
+  r = test::run_shell("TORCH_HOME=" + q(s.dir / "no_hub") + " " + std::string(FLATNET_BINARY) +
+                      " eval --niqe none --gt " + q(gt) + " --out " + q(s.dir / "rec") + " --lpips vgg --lpips-dir " +
                       q(s.dir / "w"));
   CHECK(r.code == 0);
   CHECK_THAT(r.output, Contains("no LPIPS column") && Contains("vgg16-397923af.pth") && Contains("vgg.pth"));

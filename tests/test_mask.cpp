@@ -149,8 +149,10 @@ TEST_CASE("mask training resumes from its checkpoint as if never stopped, and re
     CHECK(torch::equal(straight->U, second->U));
     CHECK(torch::equal(straight->V, second->V));
     CHECK(resumed.gamma == full.gamma);
-    CHECK(read_file_text(t.out / "val.csv") == read_file_text(s.dir / (std::string("straight_") + optimizer) / "val.csv"));
-    CHECK(read_file_text(t.out / "log.csv") == read_file_text(s.dir / (std::string("straight_") + optimizer) / "log.csv"));
+    CHECK(read_file_text(t.out / "val.csv") ==
+          read_file_text(s.dir / (std::string("straight_") + optimizer) / "val.csv"));
+    CHECK(read_file_text(t.out / "log.csv") ==
+          read_file_text(s.dir / (std::string("straight_") + optimizer) / "log.csv"));
   }
   const auto run = s.dir / "split_sgd";
   MaskTrainOptions t;
@@ -430,7 +432,8 @@ TEST_CASE("mask separable takes a config like the other trainers: defaults, shor
   REQUIRE(r.code == 0);
   CHECK(MatReader(s.dir / "short" / "codes.mat").read("code_rows").numel() == 63);
   // A codes file to start from (a path, resolved as every path setting).
-  r = test::run_flatnet(base + " --init " + q(s.dir / "short" / "codes.mat") + " --iterations 1 --out " + q(s.dir / "from_file"));
+  r = test::run_flatnet(base + " --init " + q(s.dir / "short" / "codes.mat") + " --iterations 1 --out " +
+                        q(s.dir / "from_file"));
   INFO(r.output);
   REQUIRE(r.code == 0);
   CHECK(MatReader(s.dir / "from_file" / "codes.mat").read("code_rows").numel() == 63);
@@ -479,13 +482,13 @@ TEST_CASE("the mask and code-pair trainers' options start where their defaults f
   const auto configs = test::source_dir() / "configs";
   const auto mask = Config::load({}, {}, configs / "mask_defaults.yaml");
   const auto separable = Config::load({}, {}, configs / "separable_defaults.yaml");
-  for (const auto& differing : {defaults_differing(mask, mask_train_fields()),
-                                 defaults_differing(separable, separable_train_fields())}) {
+  for (const auto& differing :
+       {defaults_differing(mask, mask_train_fields()), defaults_differing(separable, separable_train_fields())}) {
     INFO((differing.empty() ? std::string() : differing.front()));
     CHECK(differing.empty());
   }
-  const auto changed = defaults_differing(Config::load({}, {"train.lr=0.5"}, configs / "mask_defaults.yaml"),
-                                         mask_train_fields());
+  const auto changed =
+      defaults_differing(Config::load({}, {"train.lr=0.5"}, configs / "mask_defaults.yaml"), mask_train_fields());
   REQUIRE(changed.size() == 1);
   CHECK_THAT(changed.front(), Contains("train.lr"));
   // A value is read through the table into its member, and a key the file lacks names itself.
@@ -495,20 +498,21 @@ TEST_CASE("the mask and code-pair trainers' options start where their defaults f
   CHECK(o.minutes == 2.5);
   CHECK(o.optimizer == "adam");
   SeparableTrainOptions separable_options;
-  CHECK_THROWS_WITH(read_options(mask, separable_train_fields(), separable_options),
-                    Contains("codes.length"));
+  CHECK_THROWS_WITH(read_options(mask, separable_train_fields(), separable_options), Contains("codes.length"));
 }
 
-TEST_CASE("the model's, data's, light's, co-design's, mask's and Wiener camera's options start where the defaults files do",
-          "[mask][config]") {
+TEST_CASE(
+    "the model's, data's, light's, co-design's, mask's and Wiener camera's options start where the defaults files do",
+    "[mask][config]") {
   const auto configs = test::source_dir() / "configs";
   const auto train = Config::load({}, {}, configs / "defaults.yaml");
   const auto mask = Config::load({}, {}, configs / "mask_defaults.yaml");
   for (const auto& differing :
        {defaults_differing(train, model_spec_fields(), "model."),
-        defaults_differing(train, light_fields(), "data.light."), defaults_differing(train, codesign_fields(), "codes."),
-        defaults_differing(mask, mask_fields(), "mask."), defaults_differing(mask, wiener_camera_fields(), "camera."),
-        defaults_differing(train, data_fields(), "data."), defaults_differing(train, perceptual_fields(), "loss."),
+        defaults_differing(train, light_fields(), "data.light."),
+        defaults_differing(train, codesign_fields(), "codes."), defaults_differing(mask, mask_fields(), "mask."),
+        defaults_differing(mask, wiener_camera_fields(), "camera."), defaults_differing(train, data_fields(), "data."),
+        defaults_differing(train, perceptual_fields(), "loss."),
         defaults_differing(train, discriminator_fields(), "discriminator."),
         defaults_differing(mask, photo_split_fields())}) {
     INFO((differing.empty() ? std::string() : differing.front()));
@@ -543,7 +547,7 @@ TEST_CASE("every setting of the defaults files is bound by an option table's row
   add(separable_train_fields(), "");
   add(mask_fields(), "mask.");
   add(wiener_camera_fields(), "camera.");
-  const std::set<std::string> parsed_by_name = {"train.schedule", "train.precision", "codes.learn", "codes.init",
+  const std::set<std::string> parsed_by_name = {"train.schedule",  "train.precision", "codes.learn", "codes.init",
                                                 "mask.projection", "mask.throughput", "mask.init"};
   for (const char* file : {"defaults.yaml", "mask_defaults.yaml", "separable_defaults.yaml"}) {
     const auto config = Config::load({}, {}, configs / file);

@@ -12,10 +12,10 @@ using namespace flatnet;
 using Catch::Matchers::Contains;
 
 TEST_CASE("a model spec reads back from its YAML as it was written", "[model][config]") {
-  const auto config = Config::load({}, {"model.enhancer=nafnet", "model.nafnet.width=8", "model.nafnet.dec_blocks=2",
-                                        "model.inversion.init=calibfree", "model.inversion.slope=1.887",
-                                        "model.bn_momentum=0.1", "model.level_input=true",
-                                        "model.inversion.shared=false", "model.inversion.seed=7"});
+  const auto config =
+      Config::load({}, {"model.enhancer=nafnet", "model.nafnet.width=8", "model.nafnet.dec_blocks=2",
+                        "model.inversion.init=calibfree", "model.inversion.slope=1.887", "model.bn_momentum=0.1",
+                        "model.level_input=true", "model.inversion.shared=false", "model.inversion.seed=7"});
   const auto spec = model_spec(config);
   CHECK(spec.enhancer == "nafnet");
   CHECK(spec.nafnet_width == 8);
@@ -52,13 +52,14 @@ TEST_CASE("a stored spec is checked row by row, naming the file and the key", "[
 TEST_CASE("an older file's training config converts to a spec: its other sections are a record", "[model][config]") {
   // A config from before model.level_input and model.nafnet existed, with training keys beside it
   // (one of them renamed since: a model file must not care).
-  const std::string old = "model:\n  input: inversion\n  enhancer: unet\n  unet:\n    width: 32\n"
-                          "  inversion:\n    init: transpose\n    shared: true\n    channel: gb\n"
-                          "train:\n  batch: 8\n  renamed_key: 3\nloss:\n  mse: 1.0\n";
+  const std::string old =
+      "model:\n  input: inversion\n  enhancer: unet\n  unet:\n    width: 32\n"
+      "  inversion:\n    init: transpose\n    shared: true\n    channel: gb\n"
+      "train:\n  batch: 8\n  renamed_key: 3\nloss:\n  mse: 1.0\n";
   const auto spec = parse_model_spec(old, "old.flatnet", /*strict=*/false);
   CHECK(spec.unet_width == 32);
   CHECK(spec.inversion_init == "transpose");
-  CHECK_FALSE(spec.level_input);         // the default of a key the file predates
+  CHECK_FALSE(spec.level_input);  // the default of a key the file predates
   CHECK(spec.nafnet_width == 16);
   CHECK(spec.bn_momentum == 0.99);
 }
@@ -72,7 +73,8 @@ TEST_CASE("every model setting of the defaults file has one row, and a config ou
     if (key.rfind("model.", 0) == 0) CHECK(rows.count(key) == 1);
   CHECK(rows.size() == model_spec_fields().size());
   for (const auto& f : model_spec_fields()) CHECK(std::string(f.doc).size() > 0);
-  CHECK_THROWS_WITH(Config::load({}, {"model.rcan.reduction=0"}), Contains("model.rcan.reduction") && Contains("1 to 4096"));
+  CHECK_THROWS_WITH(Config::load({}, {"model.rcan.reduction=0"}),
+                    Contains("model.rcan.reduction") && Contains("1 to 4096"));
 }
 
 TEST_CASE("the shipped models read without training defaults, and rewritten give the same pictures",

@@ -83,8 +83,8 @@ TEST_CASE("gradients reach every parameter of every generator variant and the di
       // NAFNet's blocks start as the identity (beta = gamma = 0), which gives their inner layers no
       // gradient at step 0; any other value does.
       for (auto& p : g->named_parameters())
-        if (p.key().size() > 5 && (p.key().substr(p.key().size() - 5) == ".beta" ||
-                                   p.key().substr(p.key().size() - 6) == ".gamma")) {
+        if (p.key().size() > 5 &&
+            (p.key().substr(p.key().size() - 5) == ".beta" || p.key().substr(p.key().size() - 6) == ".gamma")) {
           torch::NoGradGuard no_grad;
           p.value().fill_(0.1);
         }
@@ -116,8 +116,8 @@ TEST_CASE("NAFNet: the authors' parameter names and shapes, blocks that start as
     CHECK(params.find(name) != nullptr);
   }
   CHECK(params["encoders.0.0.conv2.weight"].sizes() == torch::IntArrayRef({8, 1, 3, 3}));  // depthwise over 2c
-  CHECK(params["downs.0.weight"].sizes() == torch::IntArrayRef({8, 4, 2, 2}));           // 2x2 stride 2 to 2c
-  CHECK(params["ups.0.0.weight"].sizes() == torch::IntArrayRef({128, 64, 1, 1}));        // 1x1 to 2c, then shuffle
+  CHECK(params["downs.0.weight"].sizes() == torch::IntArrayRef({8, 4, 2, 2}));             // 2x2 stride 2 to 2c
+  CHECK(params["ups.0.0.weight"].sizes() == torch::IntArrayRef({128, 64, 1, 1}));          // 1x1 to 2c, then shuffle
   CHECK(params.find("ups.0.0.bias") == nullptr);
   CHECK(params["encoders.3.0.conv1.weight"].sizes() == torch::IntArrayRef({64, 32, 1, 1}));
   const auto out = net->forward(torch::randn({2, 8, 32, 48}));
@@ -183,7 +183,8 @@ TEST_CASE("config: defaults, base files, --set, unknown keys with a suggestion, 
   CHECK_THROWS_WITH(Config::load(s.dir / "exp.yaml", {"train.optimiser_kind=adam"}),
                     Contains("unknown setting 'train.optimiser_kind'") && !Contains("did you mean") &&
                         Contains("train settings: ") && Contains("iterations") && !Contains("unet"));
-  CHECK_THROWS_WITH(Config::load(s.dir / "exp.yaml", {"colour.saturation=2"}), Contains("`flatnet options` lists them"));
+  CHECK_THROWS_WITH(Config::load(s.dir / "exp.yaml", {"colour.saturation=2"}),
+                    Contains("`flatnet options` lists them"));
   CHECK(nearest_key("lr", {"train.lr", "data.images"}) == "train.lr");
   CHECK(nearest_key("train.optimizer", {"train.lr", "data.images"}).empty());
   std::ofstream(s.dir / "bad.yaml") << "model:\n  unet:\n    widht: 3\n";
@@ -439,7 +440,7 @@ TEST_CASE("SSIM loss is 1 - the reported SSIM, differentiable, and 0 on identica
 
 TEST_CASE("CIELAB conversion matches skimage.color.rgb2lab (D65)", "[nn][loss]") {
   const auto rgb = torch::tensor({1.0f, 0.0f, 0.2f, 0.01f, 0.0f, 1.0f, 0.5f, 0.01f, 0.0f, 0.0f, 0.7f, 0.01f})
-                       .view({1, 3, 1, 4});  // red, green, a blue-grey, near black
+                       .view({1, 3, 1, 4});                 // red, green, a blue-grey, near black
   const auto lab = srgb_to_lab(rgb).squeeze(0).squeeze(1);  // {3,4}
   const std::vector<std::array<double, 3>> expected = {{53.2405879, 80.0923082, 67.2027510},
                                                        {87.7350995, -86.1830297, 83.1797032},
@@ -475,9 +476,10 @@ TEST_CASE("the weight-free perceptual terms: 0 on the truth, positive otherwise,
   for (const auto& p : d->parameters()) CHECK_FALSE(p.grad().defined());
 }
 
-TEST_CASE("the terms see what they are for: chroma ignores a luma change, gradient a constant offset, frequency "
-          "a blur",
-          "[nn][loss]") {
+TEST_CASE(
+    "the terms see what they are for: chroma ignores a luma change, gradient a constant offset, frequency "
+    "a blur",
+    "[nn][loss]") {
   torch::manual_seed(10);
   // A photograph (a blur of white noise would remove almost all of its edges at any size).
   const auto y = read_rgb(test::data_dir() / "golden" / "inet_n02980441_castle_scene.png").unsqueeze(0);

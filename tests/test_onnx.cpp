@@ -50,7 +50,8 @@ std::vector<ExportCase> export_cases() {
       {"measurement pre-processor, inversion, light level, U-Net",
        {"model.unet.width=4", "model.preprocessor.width=3", "model.preprocessor.depth=3", "model.level_input=true"},
        level},
-      {"inversion, light level, NAFNet", {"model.enhancer=nafnet", "model.nafnet.width=4", "model.level_input=true"},
+      {"inversion, light level, NAFNet",
+       {"model.enhancer=nafnet", "model.nafnet.width=4", "model.level_input=true"},
        level},
   };
 }
@@ -202,8 +203,9 @@ TEST_CASE("the shipped models' ONNX graphs equal LibTorch on real and saturated 
   const auto file = s.dir / "model.onnx";
   export_onnx(file, m.generator, m.camera);
   OpenCvEngine engine(file);
-  const bool have_ort = test::run_shell("command -v node").code == 0 &&
-                        std::filesystem::exists(onnxruntime_dir() / "node_modules" / "onnxruntime-node" / "package.json");
+  const bool have_ort =
+      test::run_shell("command -v node").code == 0 &&
+      std::filesystem::exists(onnxruntime_dir() / "node_modules" / "onnxruntime-node" / "package.json");
   // A real capture, and a capture saturated everywhere (16 of the 250 held-out display captures are):
   // after the camera's centring its planes are constant, each at its light level.
   const auto real = load_capture(capture, m.camera.raw).planes.unsqueeze(0);  // {1,4,500,620}

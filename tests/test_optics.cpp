@@ -212,5 +212,6 @@ TEST_CASE("the simulator's errors name its options by key, never by a CLI flag",
   CHECK_THROWS_WITH(simulate_dataset(rig, o), Contains("simulate.exposure") && !Contains("--"));
   o.exposure = 1;
   o.val_fraction = 2;
-  CHECK_THROWS_WITH(simulate_dataset(rig, o), Contains("simulate.val_fraction: must be within [0, 1]") && !Contains("--"));
+  CHECK_THROWS_WITH(simulate_dataset(rig, o),
+                    Contains("simulate.val_fraction: must be within [0, 1]") && !Contains("--"));
 }

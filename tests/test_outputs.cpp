@@ -26,7 +26,6 @@ OutputRole role(const std::string& command, const std::string& settings = "", bo
 
 void touch(const std::filesystem::path& p, const std::string& text = "x") { std::ofstream(p) << text; }
 
-
 }  // namespace
 
 TEST_CASE("output folders: one role each, never a folder of foreign files, --force to override", "[outputs]") {
@@ -72,9 +71,9 @@ TEST_CASE("output folders: a second command is refused while one writes, --force
   CHECK_THROWS_WITH(claim_output_folder(dir, role("recon", "", true)),
                     Contains(dir.string()) && Contains("another flatnet command is writing") && Contains("pid"));
   // Another process: the same refusal, exit 2, nothing written.
-  const auto r = test::run_flatnet("recon --method tikhonov --input " +
-                                   q(test::data_dir() / "golden" / "bsds_16052_raw.png") + " --out " + q(dir) +
-                                   " --force");
+  const auto r =
+      test::run_flatnet("recon --method tikhonov --input " + q(test::data_dir() / "golden" / "bsds_16052_raw.png") +
+                        " --out " + q(dir) + " --force");
   CHECK(r.code == 2);
   CHECK_THAT(r.output, Contains("another flatnet command is writing"));
   CHECK_FALSE(std::filesystem::exists(dir / "bsds_16052_raw.png"));
@@ -121,7 +120,8 @@ TEST_CASE("outputs never replace inputs: infer into a dataset's gt, patterns int
   CHECK(read_gray16(meas / "bsds_16052.png").size(0) == 1024);  // still the 16-bit capture
   // Two models into one folder: the second is refused, not mixed in; --force replaces.
   const auto out = s.dir / "rec";
-  REQUIRE(test::run_flatnet("infer --precision fp32 --model " + q(model) + " --input " + q(meas) + " --out " + q(out)).code == 0);
+  REQUIRE(test::run_flatnet("infer --precision fp32 --model " + q(model) + " --input " + q(meas) + " --out " + q(out))
+              .code == 0);
   const auto calibfree = test::source_dir() / "models" / "flatnet-sim-calibfree.flatnet";
   r = test::run_flatnet("infer --precision fp32 --model " + q(calibfree) + " --input " + q(meas) + " --out " + q(out));
   CHECK(r.code == 2);

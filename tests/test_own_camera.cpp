@@ -93,9 +93,11 @@ TEST_CASE("own camera: calibrate from the dataset, train, infer, and the camera 
 
   // 2. A model for it, trained on its pairs alone (a few steps).
   r = test::run_flatnet("train --config " + q(test::source_dir() / "configs" / "sim_transpose.yaml") + test::kOnDisk +
-                        " --set data.dataset=" + q(s.dir / "ds") + " --set data.camera=" + q(s.dir / "cal" / "camera.yaml") +
+                        " --set data.dataset=" + q(s.dir / "ds") +
+                        " --set data.camera=" + q(s.dir / "cal" / "camera.yaml") +
                         " --set model.unet.width=2 --set model.level_input=false --set train.crop=0"
-                        " --set train.iterations=2 --set train.val_every=2 --out " + q(s.dir / "run"));
+                        " --set train.iterations=2 --set train.val_every=2 --out " +
+                        q(s.dir / "run"));
   INFO(r.output);
   REQUIRE(r.code == 0);
   const auto model = s.dir / "run" / "model.flatnet";
@@ -112,16 +114,16 @@ TEST_CASE("own camera: calibrate from the dataset, train, infer, and the camera 
   for (size_t i = 1; i < rows.size(); ++i) CHECK(rows[i].substr(rows[i].size() - 4) == ",1,1");
   CHECK_THAT(r.output, !Contains("do not fit"));
 
-  r = test::run_flatnet("infer --model " + q(model) + " --input " + q(s.dir / "other_ds" / "val_meas.txt") +
-                        " --out " + q(s.dir / "rec_other"));
+  r = test::run_flatnet("infer --model " + q(model) + " --input " + q(s.dir / "other_ds" / "val_meas.txt") + " --out " +
+                        q(s.dir / "rec_other"));
   REQUIRE(r.code == 0);
   CHECK_THAT(r.output, Contains("6 of 6 captures do not fit camera 'tiny'") && Contains("calibrate --dataset"));
   rows = read_lines(s.dir / "rec_other" / "camera_fit.csv");
   REQUIRE(rows.size() == 7);
   for (size_t i = 1; i < rows.size(); ++i) CHECK(rows[i].substr(rows[i].size() - 2) == ",0");
 
-  r = test::run_flatnet("infer --require-fit --model " + q(model) + " --input " + q(s.dir / "other_ds" / "val_meas.txt") +
-                        " --out " + q(s.dir / "refused"));
+  r = test::run_flatnet("infer --require-fit --model " + q(model) + " --input " +
+                        q(s.dir / "other_ds" / "val_meas.txt") + " --out " + q(s.dir / "refused"));
   CHECK(r.code == 2);
   CHECK_THAT(r.output, Contains("--require-fit: ") && Contains("do not fit"));
   CHECK_FALSE(std::filesystem::exists(s.dir / "refused"));
@@ -204,7 +206,8 @@ TEST_CASE("docs/own-camera.md: the walkthrough's commands run as the page writes
   const auto photos = s.dir / "photos";
   std::filesystem::create_directories(photos);
   auto gen = at::detail::createCPUGenerator(9);
-  for (int i = 0; i < 48; ++i) write_rgb8(photos / ("p" + std::to_string(100 + i) + ".png"), at::rand({3, 32, 32}, gen));
+  for (int i = 0; i < 48; ++i)
+    write_rgb8(photos / ("p" + std::to_string(100 + i) + ".png"), at::rand({3, 32, 32}, gen));
   auto r = test::run_flatnet("simulate --images " + q(photos) + " --camera " + q(s.dir / "truth" / "camera.yaml") +
                              " --size 32 --val-fraction 0.25 --seed 3 --out " + q(s.dir / "my_ds"));
   INFO(r.output);
@@ -213,7 +216,8 @@ TEST_CASE("docs/own-camera.md: the walkthrough's commands run as the page writes
   for (const char* name : {"p100.png", "p101.png", "p102.png"})
     std::filesystem::copy_file(s.dir / "my_ds" / "meas" / name, s.dir / "captures" / name);
   // The page's paths into the source tree (configs/, models/) resolve from the user's folder.
-  for (const char* dir : {"configs", "models"}) std::filesystem::create_directory_symlink(test::source_dir() / dir, s.dir / dir);
+  for (const char* dir : {"configs", "models"})
+    std::filesystem::create_directory_symlink(test::source_dir() / dir, s.dir / dir);
 
   // The one change to the page's commands: the adaptation's 20 minutes become 5 seconds.
   const std::string budget = "--set train.minutes=20";

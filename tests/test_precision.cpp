@@ -38,7 +38,8 @@ TEST_CASE("cpuinfo flags decide whether bf16 is native", "[precision]") {
 TEST_CASE("oneDNN's effective ISA decides what the CPU can do, so a cap and a missing kernel are alike",
           "[precision]") {
   // dnnl_cpu_isa_t values (oneDNN 2.6): avx2 0x7, avx512_core 0x27, avx512_core_bf16 0xe7, amx 0x3e7.
-  const auto zen4 = parse_cpuinfo("model name : AMD EPYC\nflags : avx2 avx512f avx512cd avx512bw avx512dq avx512vl avx512_bf16\n");
+  const auto zen4 =
+      parse_cpuinfo("model name : AMD EPYC\nflags : avx2 avx512f avx512cd avx512bw avx512dq avx512vl avx512_bf16\n");
   const auto native = with_onednn_isa(zen4, 0xe7);
   CHECK(native.native_bf16());
   CHECK(native.onednn_bf16);
@@ -58,7 +59,8 @@ TEST_CASE("oneDNN's effective ISA decides what the CPU can do, so a cap and a mi
   CHECK_FALSE(zen3.onednn_capped);
   CHECK_FALSE(zen3.onednn_bf16);
   // AVX-512 without bf16 (Skylake): oneDNN emulates bf16.
-  const auto skx = with_onednn_isa(parse_cpuinfo("model name : X\nflags : avx512f avx512cd avx512bw avx512dq avx512vl\n"), 0x67);
+  const auto skx =
+      with_onednn_isa(parse_cpuinfo("model name : X\nflags : avx512f avx512cd avx512bw avx512dq avx512vl\n"), 0x67);
   CHECK(skx.onednn_bf16);
   CHECK_THAT(describe_precision(Precision::bf16, skx), Contains("emulated by oneDNN"));
   // OpenBLAS follows the cap: its AVX-512 kernels give way to Haswell's.
@@ -69,7 +71,8 @@ TEST_CASE("oneDNN's effective ISA decides what the CPU can do, so a cap and a mi
   CHECK(better_openblas_core("Zen", zen3, nullptr).empty());
 }
 
-TEST_CASE("bf16 convolutions run on every CPU kind: LibTorch's own kernels where oneDNN has none", "[precision][bf16]") {
+TEST_CASE("bf16 convolutions run on every CPU kind: LibTorch's own kernels where oneDNN has none",
+          "[precision][bf16]") {
   // Under ONEDNN_MAX_CPU_ISA=AVX2 (or below AVX-512) LibTorch would hand bf16 convolutions to
   // oneDNN and fail; inside a Bf16KernelScope they run on LibTorch's kernels.
   torch::manual_seed(4);
@@ -91,7 +94,8 @@ TEST_CASE("bf16 convolutions run on every CPU kind: LibTorch's own kernels where
   CHECK((bf16.to(torch::kFloat32) - fp32).abs().max().item<double>() <= 0.02 * fp32.abs().max().item<double>());
 }
 
-TEST_CASE("OpenBLAS gets its SkylakeX kernels on AVX-512 CPUs it predates, unless the user chose", "[precision][blas]") {
+TEST_CASE("OpenBLAS gets its SkylakeX kernels on AVX-512 CPUs it predates, unless the user chose",
+          "[precision][blas]") {
   const auto avx512 = parse_cpuinfo("model name : X\nflags : fpu avx2 avx512f avx512cd avx512bw avx512dq avx512vl\n");
   const auto avx2 = parse_cpuinfo("model name : X\nflags : fpu avx2 fma\n");
   const auto partial = parse_cpuinfo("model name : X\nflags : avx512f avx512cd\n");  // Knights Landing-like

@@ -17,8 +17,9 @@ using Catch::Matchers::Contains;
 using test::q;
 using test::write_file;
 
-TEST_CASE("a compact calibration (profiles and shifts) expands to the factors it was made from, and a lying one is named",
-          "[optics][calibrate][safe]") {
+TEST_CASE(
+    "a compact calibration (profiles and shifts) expands to the factors it was made from, and a lying one is named",
+    "[optics][calibrate][safe]") {
   test::Scratch s("compact_calibration");
   CameraConfig camera;
   camera.raw.crop = {0, 0, 40, 50};
@@ -46,8 +47,9 @@ TEST_CASE("a compact calibration (profiles and shifts) expands to the factors it
   CHECK_THROWS_WITH(load_calibration(s.dir / "inf.mat", camera), Contains("inf.mat") && Contains("NaN or Inf"));
 }
 
-TEST_CASE("FlatNet's prototype: a calibration from three captures and FlatNet's reconstructions reconstructs the fourth",
-          "[cli][calibrate][flatnet-data][slow]") {
+TEST_CASE(
+    "FlatNet's prototype: a calibration from three captures and FlatNet's reconstructions reconstructs the fourth",
+    "[cli][calibrate][flatnet-data][slow]") {
   const auto data = test::shared_dir() / "data" / "flatnet";
   if (!std::filesystem::exists(data / "fc_9.png") || !std::filesystem::exists(data / "rec_9.png"))
     SKIP_TEST("no ../shared/data/flatnet captures and reconstructions");
@@ -55,10 +57,10 @@ TEST_CASE("FlatNet's prototype: a calibration from three captures and FlatNet's 
   write_file(s.dir / "captures.txt", "fc_6.png\nfc_7.png\nfc_8.png\n");
   write_file(s.dir / "references.txt", "rec_6.png\nrec_7.png\nrec_8.png\n");
   const auto camera = test::source_dir() / "configs" / "cameras" / "flatnet_prototype_level.yaml";
-  auto r = test::run_flatnet("calibrate --references --meas-list " + q(s.dir / "captures.txt") + " --gt-list " +
-                             q(s.dir / "references.txt") + " --root " + q(data) + " --camera " + q(camera) +
-                             " --out " + q(s.dir / "cal" / "calib.mat") +
-                             " --compact --min-shift 0.3 --max-shift 1");  // a narrower search than the default, for time
+  auto r = test::run_flatnet(
+      "calibrate --references --meas-list " + q(s.dir / "captures.txt") + " --gt-list " + q(s.dir / "references.txt") +
+      " --root " + q(data) + " --camera " + q(camera) + " --out " + q(s.dir / "cal" / "calib.mat") +
+      " --compact --min-shift 0.3 --max-shift 1");  // a narrower search than the default, for time
   INFO(r.output);
   REQUIRE(r.code == 0);
   CHECK_THAT(r.output, Contains("leave-one-out") && Contains("fc_7.png") && Contains("shift structure"));

@@ -135,7 +135,8 @@ TEST_CASE("colourfulness and detail match their definitions (Hasler-Suesstrunk 2
 }
 
 TEST_CASE("stripe energy: rows and columns that stand out from their trend, in 8-bit codes", "[eval]") {
-  const auto truth = read_rgb(test::data_dir() / "golden" / "inet_n02980441_castle_scene.png").slice(1, 0, 64).slice(2, 0, 64);
+  const auto truth =
+      read_rgb(test::data_dir() / "golden" / "inet_n02980441_castle_scene.png").slice(1, 0, 64).slice(2, 0, 64);
   CHECK(stripe_energy(truth, truth) == Approx(0.0).margin(1e-12));
   // Rows alternating 0, +4, 0, -4 codes: 2.1221 (a Python loop over the same definition).
   const auto rows = torch::tensor({0.0, 1.0, 0.0, -1.0}, torch::kFloat64).repeat(16).view({1, 64, 1});
@@ -342,7 +343,8 @@ TEST_CASE("a model trained elsewhere finds its camera among flatnet's own in a c
   // The training machine's path is gone here; the camera lies under configs/cameras/ in a folder of
   // its own (the prototype's calibration beside its camera.yaml), and is found there by that place.
   test::Scratch s("camera_elsewhere");
-  const auto camera = load_camera_config(test::source_dir() / "configs" / "cameras" / "flatnet_prototype" / "camera.yaml");
+  const auto camera =
+      load_camera_config(test::source_dir() / "configs" / "cameras" / "flatnet_prototype" / "camera.yaml");
   auto config = Config::load({}, {"model.unet.width=2", "model.inversion.init=random", "model.level_input=true",
                                   "data.camera=/nowhere/configs/cameras/flatnet_prototype/camera.yaml"});
   Generator g(generator_options(config, camera, false));

@@ -141,33 +141,36 @@ TEST_CASE("hostile safetensors files: one clear error naming the file, nothing l
   refused("long_header.st", handmade(ok, four).substr(0, 20), "truncated");
   refused("not_json.st", handmade("{\"a\": nope}", ""), "not valid JSON");
   refused("not_object.st", handmade("[1, 2]", ""), "not a safetensors file");
-  refused("duplicate.st",
-          handmade(R"({"a":{"dtype":"F32","shape":[1],"data_offsets":[0,4]},"a":{"dtype":"F32","shape":[1],"data_offsets":[0,4]}})",
-                   four),
-          "twice");
+  refused(
+      "duplicate.st",
+      handmade(
+          R"({"a":{"dtype":"F32","shape":[1],"data_offsets":[0,4]},"a":{"dtype":"F32","shape":[1],"data_offsets":[0,4]}})",
+          four),
+      "twice");
   refused("deep.st", handmade(R"({"a":{"dtype":"F32","shape":[[[[1]]]],"data_offsets":[0,4]}})", four), "nests");
   refused("dtype.st", handmade(R"({"a":{"dtype":"F8_E4M3","shape":[1],"data_offsets":[0,1]}})", "x"),
           "dtype 'F8_E4M3'");
   refused("overflow.st",
-          handmade(R"({"a":{"dtype":"F32","shape":[4294967296,4294967296],"data_offsets":[0,4]}})", four),
-          "overflows");
+          handmade(R"({"a":{"dtype":"F32","shape":[4294967296,4294967296],"data_offsets":[0,4]}})", four), "overflows");
   refused("mismatch.st", handmade(R"({"a":{"dtype":"F32","shape":[1000000000],"data_offsets":[0,4]}})", four),
           "need 4000000000");
   refused("past_end.st", handmade(R"({"a":{"dtype":"F32","shape":[2],"data_offsets":[0,8]}})", four), "truncated");
   refused("hole.st", handmade(R"({"a":{"dtype":"F32","shape":[1],"data_offsets":[4,8]}})", std::string(8, '\0')),
           "holes");
-  refused("overlap.st",
-          handmade(R"({"a":{"dtype":"F32","shape":[1],"data_offsets":[0,4]},"b":{"dtype":"F32","shape":[1],"data_offsets":[0,4]}})",
-                   four),
-          "holes or overlapping");
+  refused(
+      "overlap.st",
+      handmade(
+          R"({"a":{"dtype":"F32","shape":[1],"data_offsets":[0,4]},"b":{"dtype":"F32","shape":[1],"data_offsets":[0,4]}})",
+          four),
+      "holes or overlapping");
   refused("trailing.st", handmade(ok, four + "junk"), "belong to none");
   refused("bool.st", handmade(R"({"a":{"dtype":"BOOL","shape":[1],"data_offsets":[0,1]}})", "\x07"), "0 and 1");
   refused("meta.st", handmade(R"({"__metadata__":{"k":1}})", ""), "not a string");
-  refused("negative.st", handmade(R"({"a":{"dtype":"F32","shape":[-1],"data_offsets":[0,4]}})", four),
-          "non-negative");
+  refused("negative.st", handmade(R"({"a":{"dtype":"F32","shape":[-1],"data_offsets":[0,4]}})", four), "non-negative");
   // A model file whose tensors are fine but whose CRC-32 does not match.
-  refused("crc.st", handmade(R"({"__metadata__":{"data_crc32":"00000000"},"a":{"dtype":"F32","shape":[1],"data_offsets":[0,4]}})",
-                             std::string("\1\2\3\4", 4)),
+  refused("crc.st",
+          handmade(R"({"__metadata__":{"data_crc32":"00000000"},"a":{"dtype":"F32","shape":[1],"data_offsets":[0,4]}})",
+                   std::string("\1\2\3\4", 4)),
           "CRC-32");
 }
 
@@ -217,10 +220,12 @@ class Evil(torch.nn.Module):
         return x
 torch.jit.save(torch.jit.script(Evil()), sys.argv[1])
 )");
-  const auto made = test::run_shell("/usr/bin/python3 " + test::q(s.dir / "make.py") + " " + test::q(s.dir / "evil.flatnet"));
+  const auto made =
+      test::run_shell("/usr/bin/python3 " + test::q(s.dir / "make.py") + " " + test::q(s.dir / "evil.flatnet"));
   if (made.code != 0) SKIP_TEST("this torch cannot script the probe: " + made.output.substr(0, 200));
   // The probe is real: Python's own loader runs it.
-  const auto python = test::run_shell("/usr/bin/python3 -c \"import torch; torch.jit.load('" + (s.dir / "evil.flatnet").string() + "')\"");
+  const auto python = test::run_shell("/usr/bin/python3 -c \"import torch; torch.jit.load('" +
+                                      (s.dir / "evil.flatnet").string() + "')\"");
   CHECK_THAT(python.output, Contains("PWNED-SETSTATE"));
   std::filesystem::create_directories(s.dir / "in");
   std::filesystem::copy_file(test::data_dir() / "golden" / "bsds_16052_raw.png", s.dir / "in" / "a.png");
@@ -294,9 +299,14 @@ TEST_CASE("hostile pickles: cycles, deep nesting, huge lengths and amplifying vi
     CHECK_THROWS_WITH(read_torch_file(s.dir / name), Contains(name) && Contains(why));
   };
   // [l] with l.append(l): EMPTY_LIST, BINPUT 0, BINGET 0, APPEND, STOP.
-  refused("self.pt", std::string("\x80\x02]q\x00h\x00" "a.", 9), "contains itself");
+  refused("self.pt",
+          std::string("\x80\x02]q\x00h\x00"
+                      "a.",
+                      9),
+          "contains itself");
   // a = []; b = [a]; a.append(b): a changes after it was placed in b.
-  refused("cycle.pt", std::string{'\x80', '\x02', ']', 'q', '\0', ']', 'q', '\1', 'h', '\0', 'a', '0', 'h', '\1', 'a', '.'},
+  refused("cycle.pt",
+          std::string{'\x80', '\x02', ']', 'q', '\0', ']', 'q', '\1', 'h', '\0', 'a', '0', 'h', '\1', 'a', '.'},
           "after placing it");
   // 200000 nested lists.
   refused("deep.pt", std::string("\x80\x02", 2) + std::string(200000, ']') + std::string(199999, 'a') + ".",
@@ -314,8 +324,10 @@ TEST_CASE("a view that claims more elements than its storage holds is refused be
           "[safe][torchfile][python]") {
   if (!test::python_has_torch()) SKIP_TEST("/usr/bin/python3 has no torch");
   test::Scratch s("amplify");
-  const auto r = test::run_shell("/usr/bin/python3 -c \"import torch; torch.save({'w': torch.zeros(1).expand(32768, "
-                                 "16384)}, '" + (s.dir / "amp.pt").string() + "')\"");
+  const auto r = test::run_shell(
+      "/usr/bin/python3 -c \"import torch; torch.save({'w': torch.zeros(1).expand(32768, "
+      "16384)}, '" +
+      (s.dir / "amp.pt").string() + "')\"");
   REQUIRE(r.code == 0);
   CHECK(std::filesystem::file_size(s.dir / "amp.pt") < 4096);
   CHECK_THROWS_WITH(read_torch_file(s.dir / "amp.pt"), Contains("amp.pt") && Contains("overlapping strides"));
@@ -342,10 +354,10 @@ TEST_CASE("configs mean what they say: no stray paths, no hex, no duplicate keys
   CHECK_THROWS_WITH(Config::load(s.dir / "big.yaml"), Contains("big.yaml") && Contains("over the limit"));
   // Cameras: NaN rotation, infinite or absurd regularisation, absurd scene sizes.
   const std::string camera = "raw_height: 40\nraw_width: 48\ncrop: [0, 0, 20, 24]\nscene_size: 16\n";
-  for (const auto& [extra, why] : std::vector<std::pair<std::string, std::string>>{
-           {"rotation: .nan\n", "rotation"},
-           {"tikhonov_lambda: .inf\n", "regularisation"},
-           {"tikhonov_lambda: 1e300\n", "regularisation"}}) {
+  for (const auto& [extra, why] :
+       std::vector<std::pair<std::string, std::string>>{{"rotation: .nan\n", "rotation"},
+                                                        {"tikhonov_lambda: .inf\n", "regularisation"},
+                                                        {"tikhonov_lambda: 1e300\n", "regularisation"}}) {
     INFO(extra);
     write_file(s.dir / "cam.yaml", camera + extra);
     CHECK_THROWS_WITH(load_camera_config(s.dir / "cam.yaml"), Contains("cam.yaml") && Contains(why));

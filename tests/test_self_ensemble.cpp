@@ -17,8 +17,7 @@ TEST_CASE("flip_ensemble undoes each flip and averages the four views", "[nn][en
     CHECK(batch.size(0) == 8);  // the four views in one batch
     return batch * gain;
   };
-  const auto expected =
-      x * (gain + torch::flip(gain, {3}) + torch::flip(gain, {2}) + torch::flip(gain, {2, 3})) / 4.0;
+  const auto expected = x * (gain + torch::flip(gain, {3}) + torch::flip(gain, {2}) + torch::flip(gain, {2, 3})) / 4.0;
   CHECK(torch::allclose(flip_ensemble(f, x), expected, 1e-6, 1e-6));
   CHECK(calls == 1);
   // A flip-equivariant function (elementwise) comes out as itself.

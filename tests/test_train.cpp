@@ -164,8 +164,8 @@ TEST_CASE("checkpoints as a set: a kill between best.ckpt and latest.ckpt loses 
   const auto said = third.resume(dir / "latest.ckpt");
   std::ostringstream best;
   best << std::fixed << std::setprecision(2) << best_on_disk;
-  CHECK_THAT(said, Contains("resumed at step 2") && Contains("both optimisers") &&
-                       Contains(best.str() + " dB (best.ckpt)"));
+  CHECK_THAT(said,
+             Contains("resumed at step 2") && Contains("both optimisers") && Contains(best.str() + " dB (best.ckpt)"));
   // model.flatnet follows the checkpoint resumed from, not the lost steps.
   const auto model = weights(dir / "latest.ckpt");
   auto exported = load_model_file(dir / "model.flatnet");
@@ -218,9 +218,10 @@ TEST_CASE("the non-finite guard runs before any optimiser step, discriminator wa
   }
 }
 
-TEST_CASE("each weight-free perceptual term alone trains the whole generator, feature matching trains the "
-          "discriminator too",
-          "[train][loss]") {
+TEST_CASE(
+    "each weight-free perceptual term alone trains the whole generator, feature matching trains the "
+    "discriminator too",
+    "[train][loss]") {
   Setup setup;
   MemoryPairs pairs(2);
   Batch b{torch::stack({pairs.load(0, 0).meas, pairs.load(1, 0).meas}),
@@ -431,8 +432,7 @@ TEST_CASE("NaN losses in a row stop training with a clear message and keep the l
   }
 }
 
-TEST_CASE("one non-finite step is skipped: no weight or batch-norm statistic takes it, training goes on",
-          "[train]") {
+TEST_CASE("one non-finite step is skipped: no weight or batch-norm statistic takes it, training goes on", "[train]") {
   test::Scratch s("nan_once");
   Setup setup;
   // Six items, batch 2: one step in three holds the poisoned item, never two in a row.

@@ -124,10 +124,11 @@ BenchRow peak_row(const std::string& name, const BenchOptions& o) {
   } else {
     const auto x = torch::randn({4, 128, 128, 128}).to(dtype).contiguous(at::MemoryFormat::ChannelsLast);
     const auto w = (torch::randn({128, 128, 3, 3}) * 0.03).to(dtype).contiguous(at::MemoryFormat::ChannelsLast);
-    row = time_row(name,
-                   std::string("practical peak: 3x3 convolution, batch 4, 128->128 channels, 128x128, channels-last, ") +
-                       (bf16 ? "bf16" : "fp32"),
-                   o, [&] { torch::conv2d(x, w, {}, 1, 1); });
+    row =
+        time_row(name,
+                 std::string("practical peak: 3x3 convolution, batch 4, 128->128 channels, 128x128, channels-last, ") +
+                     (bf16 ? "bf16" : "fp32"),
+                 o, [&] { torch::conv2d(x, w, {}, 1, 1); });
     row.gflop = 2.0 * 4 * 128 * 128 * 128 * 128 * 9 / 1e9;
     row.peak_kind = bf16 ? "bf16" : "fp32";
   }
@@ -280,8 +281,8 @@ BenchRow mask_row(const BenchOptions& o) {
 }  // namespace
 
 const std::vector<std::string>& bench_row_names() {
-  static const std::vector<std::string> names = {"tikhonov",  "live_frame",   "simulator", "infer_paper",
-                                                 "infer_cpu", "train_paper",  "train_cpu", "train_recipe",
+  static const std::vector<std::string> names = {"tikhonov",  "live_frame",  "simulator", "infer_paper",
+                                                 "infer_cpu", "train_paper", "train_cpu", "train_recipe",
                                                  "mask_step", "loader"};
   return names;
 }
@@ -318,8 +319,9 @@ double count_gflop(const std::function<void()>& fn) {
       // transposed convolution's output is larger than its input (FlatNet's 2x2 stride-2 ups).
       const auto &grad_out = shapes[0], &in = shapes[1], &w = shapes[2];
       const bool transposed = grad_out[2] > in[2];
-      const double forward = transposed ? 2.0 * in[0] * in[1] * in[2] * in[3] * w[1] * w[2] * w[3]
-                                        : 2.0 * grad_out[0] * grad_out[1] * grad_out[2] * grad_out[3] * w[1] * w[2] * w[3];
+      const double forward = transposed
+                                 ? 2.0 * in[0] * in[1] * in[2] * in[3] * w[1] * w[2] * w[3]
+                                 : 2.0 * grad_out[0] * grad_out[1] * grad_out[2] * grad_out[3] * w[1] * w[2] * w[3];
       flops += 2 * forward;
     }
   }
@@ -355,7 +357,8 @@ BenchRow run_bench_row(const std::string& name, const BenchOptions& o) {
     row.per_second = 1000.0 / row.median_ms;
     // oneDNN's GEMMs are invisible to the profiler: counted from the shapes, per plane
     // Y U_R (2 h w N), U_L^T (.) (2 N h N), V_L (.) and (.) V_R^T (2 N^3 each).
-    row.gflop = 4.0 * (2.0 * kRows * kCols * kScene + 2.0 * kScene * kRows * kScene + 4.0 * kScene * kScene * kScene) / 1e9;
+    row.gflop =
+        4.0 * (2.0 * kRows * kCols * kScene + 2.0 * kScene * kRows * kScene + 4.0 * kScene * kScene * kScene) / 1e9;
     row.peak_kind = "fp32";
   } else if (name == "live_frame") {
     const auto camera = load_camera_config(default_camera_path());

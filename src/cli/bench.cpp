@@ -62,11 +62,16 @@ void print_row(const BenchRow& row, double gflops, double share) {
 
 nlohmann::json row_json(const BenchRow& row, double gflops, double share) {
   auto number = [](double v) { return std::isfinite(v) ? nlohmann::json(v) : nlohmann::json(nullptr); };
-  return {{"name", row.name},           {"what", row.what},
-          {"median_ms", row.median_ms}, {"min_ms", row.min_ms},
-          {"runs_ms", row.ms},          {"peak_rss_mb", row.peak_rss_mb},
-          {"per_second", row.per_second}, {"gflop", number(row.gflop)},
-          {"gflops", number(gflops)},   {"peak_kind", row.peak_kind},
+  return {{"name", row.name},
+          {"what", row.what},
+          {"median_ms", row.median_ms},
+          {"min_ms", row.min_ms},
+          {"runs_ms", row.ms},
+          {"peak_rss_mb", row.peak_rss_mb},
+          {"per_second", row.per_second},
+          {"gflop", number(row.gflop)},
+          {"gflops", number(gflops)},
+          {"peak_kind", row.peak_kind},
           {"peak_share", number(share)}};
 }
 
@@ -76,10 +81,11 @@ int bench(int argc, char** argv) {
   cxxopts::Options o("flatnet bench",
                      "Time the hot paths (median and min of N runs after warm-up, peak memory per row).\n"
                      "scripts/bench_compare.sh runs these rows beside their Python PyTorch twins.");
-  o.add_options()("rows", "comma list of rows (default: all; peak: the machine's practical peak rows, which then give "
-                          "every row its share of the peak)",
-                  cxxopts::value<std::string>())(
-      "repeats", "timed runs per row", cxxopts::value<int>()->default_value("5"))(
+  o.add_options()("rows",
+                  "comma list of rows (default: all; peak: the machine's practical peak rows, which then give "
+                  "every row its share of the peak)",
+                  cxxopts::value<std::string>())("repeats", "timed runs per row",
+                                                 cxxopts::value<int>()->default_value("5"))(
       "warmup", "untimed runs before them", cxxopts::value<int>()->default_value("1"))(
       "levers",
       "inference levers for infer_*: none, or a list of fold, channels-last, gemm-up, bf16, onednn (onednn: with bf16)",
@@ -126,12 +132,8 @@ int bench(int argc, char** argv) {
             << std::setw(8) << "peak %"
             << "  what\n";
   std::map<std::string, double> peak_gflops;  // by precision: the fastest of this run's peak rows
-  nlohmann::json out = {{"tool", "flatnet"},
-                        {"threads", threads},
-                        {"repeats", opt.repeats},
-                        {"cpu", cpu.summary()},
-                        {"blas", describe_blas()},
-                        {"rows", nlohmann::json::array()}};
+  nlohmann::json out = {{"tool", "flatnet"},    {"threads", threads},      {"repeats", opt.repeats},
+                        {"cpu", cpu.summary()}, {"blas", describe_blas()}, {"rows", nlohmann::json::array()}};
   std::vector<std::pair<std::string, bool>> plan;
   for (const auto& name : rows) {
     if (!bench_row_has_precision(name))

@@ -26,8 +26,8 @@ std::filesystem::path write_camera_beside(const std::filesystem::path& calibrati
                                           const std::string& comment) {
   known.rig.clear();
   const auto yaml_path = calibration.parent_path() / "camera.yaml";
-  write_text_atomically(yaml_path, comment + camera_geometry_yaml(known) + "calibration: " +
-                                       yaml_quoted(calibration.filename().string()) + "\n");
+  write_text_atomically(yaml_path, comment + camera_geometry_yaml(known) +
+                                       "calibration: " + yaml_quoted(calibration.filename().string()) + "\n");
   return yaml_path;
 }
 
@@ -150,7 +150,8 @@ int calibrate_from_reference_pairs(const cxxopts::ParseResult& r, const CameraCo
 int calibrate_from_dataset(const cxxopts::ParseResult& r) {
   const auto camera = camera_from(r);
   const std::filesystem::path out = r["out"].as<std::string>();
-  require(out.extension() == ".mat", "--out", "the calibration is a .mat file (FlatNet's layout), got '" + out.string() + "'");
+  require(out.extension() == ".mat", "--out",
+          "the calibration is a .mat file (FlatNet's layout), got '" + out.string() + "'");
   // Every file this command reads is an input that no output may land on, even with --force: the
   // camera file given, the rig and calibration it names, and the lists.
   std::vector<std::filesystem::path> inputs = {camera.rig, camera.calibration};
@@ -177,7 +178,8 @@ int calibrate_from_dataset(const cxxopts::ParseResult& r) {
       pairs.insert(pairs.end(), part.begin(), part.end());
       if (r["split"].as<std::string>() == split) break;
     }
-    require(!pairs.empty(), dir, "holds no train_meas.txt / val_meas.txt lists (FlatNet's layout); or give --meas-list and --gt-list");
+    require(!pairs.empty(), dir,
+            "holds no train_meas.txt / val_meas.txt lists (FlatNet's layout); or give --meas-list and --gt-list");
   }
   // A simulated camera's truth, for the error printed at the end: read now, so that a missing rig
   // is named before the fit runs.
@@ -208,8 +210,8 @@ int calibrate_from_dataset(const cxxopts::ParseResult& r) {
   o.structure = structure == "shift" ? FactorStructure::Shift : FactorStructure::Free;
   std::cerr << "calibrate: " << pairs.size() << " display-capture pairs, " << camera.raw.crop[2] << "x"
             << camera.raw.crop[3] << " planes, " << N << "x" << N << " scenes\n";
-  const auto fit = calibrate_from_pairs(static_cast<int64_t>(pairs.size()), load, camera.raw.crop[2],
-                                        camera.raw.crop[3], N, o);
+  const auto fit =
+      calibrate_from_pairs(static_cast<int64_t>(pairs.size()), load, camera.raw.crop[2], camera.raw.crop[3], N, o);
   save_calibration(out, fit.calib);
   auto known = camera;
   known.noise_gain = fit.noise_gain, known.noise_floor = fit.noise_floor, known.dark = fit.dark;
@@ -228,7 +230,8 @@ int calibrate_from_dataset(const cxxopts::ParseResult& r) {
             << fit.iterations << " steps)\nfit residual ||Y - P X Q^T - s a b^T|| / ||Y||:";
   for (int c = 0; c < 4; ++c) std::cout << " " << kChannelNames[c] << " " << std::setprecision(4) << fit.residual[c];
   std::cout << "\nsensor noise: variance " << fit.noise_gain << " x (level - " << fit.dark << ") + " << fit.noise_floor
-            << " (full well about " << (fit.noise_gain > 0 ? 1 / fit.noise_gain : 0) << " electrons)\ncamera fit: its own pairs"
+            << " (full well about " << (fit.noise_gain > 0 ? 1 / fit.noise_gain : 0)
+            << " electrons)\ncamera fit: its own pairs"
             << " fit up to the threshold " << fit.fit_threshold;
   if (fit.leak_threshold > 0) std::cout << " and leak up to " << fit.leak_threshold;
   std::cout << ", written to the camera file (this calibration's error is part of what it leaves outside its span)\n";
@@ -270,28 +273,37 @@ int calibrate(int argc, char** argv) {
       "seed", "noise seed (simulated)", cxxopts::value<uint64_t>()->default_value("0"))(
       "level", "display code (sRGB, 1..255) of the patterns' bright parts",
       cxxopts::value<int>()->default_value(std::to_string(kDefaultPatternLevel)));
-  o.add_options("from display-capture pairs")(
-      "dataset", "dataset folder in FlatNet's layout (train_meas.txt, train_gt.txt, ...)", cxxopts::value<std::string>())(
+  o.add_options("from display-capture pairs")("dataset",
+                                              "dataset folder in FlatNet's layout (train_meas.txt, train_gt.txt, ...)",
+                                              cxxopts::value<std::string>())(
       "meas-list", "FlatNet's own capture list (with --gt-list)", cxxopts::value<std::string>())(
       "gt-list", "FlatNet's own photograph list", cxxopts::value<std::string>())(
       "root", "folder the lists' lines are relative to (default: the lists' folder)", cxxopts::value<std::string>())(
-      "split", "train (the train list only) or all (train and val)", cxxopts::value<std::string>()->default_value("train"))(
-      "limit", "use the first N pairs (0: all)", cxxopts::value<int64_t>()->default_value("0"))(
+      "split", "train (the train list only) or all (train and val)",
+      cxxopts::value<std::string>()->default_value("train"))("limit", "use the first N pairs (0: all)",
+                                                             cxxopts::value<int64_t>()->default_value("0"))(
       "iterations", "alternating least-squares steps at most", cxxopts::value<int>()->default_value("40"))(
-      "structure", "shift: each factor's columns are one profile moved by a shift found from the data (a FlatCam's "
+      "structure",
+      "shift: each factor's columns are one profile moved by a shift found from the data (a FlatCam's "
       "shadow; few pairs suffice); free: every entry free (any separable camera; needs many pairs)",
       cxxopts::value<std::string>()->default_value("shift"))(
       "cache-mb", "decoded pairs kept in memory (the rest are re-read each pass)",
       cxxopts::value<double>()->default_value("2048"));
   o.add_options("from a few captures and reconstructions of them (with --meas-list/--gt-list)")(
-      "references", "the photographs are someone else's reconstructions of the captures (a lost calibration): "
+      "references",
+      "the photographs are someone else's reconstructions of the captures (a lost calibration): "
       "a gain and offset per pair and channel, pixels clipped at zero left out, judged by leave-one-out")(
-      "reference-order", "colour order of the reference files: rgb or bgr", cxxopts::value<std::string>()->default_value("rgb"))(
-      "reference-lambda", "Tikhonov regulariser of the held-out check and the camera file, relative to the largest "
-      "squared singular value product", cxxopts::value<double>()->default_value("3e-4"))(
-      "min-shift", "smallest |shadow shift| searched, sensor pixels per scene pixel", cxxopts::value<double>()->default_value("0.2"))(
-      "max-shift", "largest |shadow shift| searched", cxxopts::value<double>()->default_value("4"))(
-      "compact", "write the calibration as its profiles and shifts (kilobytes; flatnet expands it) instead of "
+      "reference-order", "colour order of the reference files: rgb or bgr",
+      cxxopts::value<std::string>()->default_value("rgb"))(
+      "reference-lambda",
+      "Tikhonov regulariser of the held-out check and the camera file, relative to the largest "
+      "squared singular value product",
+      cxxopts::value<double>()->default_value("3e-4"))(
+      "min-shift", "smallest |shadow shift| searched, sensor pixels per scene pixel",
+      cxxopts::value<double>()->default_value("0.2"))("max-shift", "largest |shadow shift| searched",
+                                                      cxxopts::value<double>()->default_value("4"))(
+      "compact",
+      "write the calibration as its profiles and shifts (kilobytes; flatnet expands it) instead of "
       "FlatNet's P1b..Q1r matrices");
   add_common(o);
   cxxopts::ParseResult r;

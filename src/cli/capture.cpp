@@ -305,8 +305,9 @@ int live(int argc, char** argv) {
             << " ms, preprocess " << s.preprocess_ms << " ms, reconstruct " << s.reconstruct_ms << " ms, show "
             << s.show_ms << " ms)\n";
   if (s.fit_checks > 0) {
-    std::cout << "live: camera fit measured on " << s.fit_checks << " of " << s.frames << " frames (one a second): "
-              << s.misfits << " did not fit camera '" << printable(built.fit->camera_name()) << "'";
+    std::cout << "live: camera fit measured on " << s.fit_checks << " of " << s.frames
+              << " frames (one a second): " << s.misfits << " did not fit camera '"
+              << printable(built.fit->camera_name()) << "'";
     if (s.misfits > 0) std::cout << " (worst fit " << std::setprecision(3) << s.worst_fit << ")";
     std::cout << "\n";
   }

@@ -46,12 +46,15 @@ std::string flag_or_key(const std::string& key);
 // Flags from an option table: each row with a flag becomes --flag (a switch for a true/false
 // setting, else a value), its help the row's key and doc, so flag and key never drift apart.
 template <class S>
-void add_row_flags(cxxopts::Options& options, const std::vector<OptionField<S>>& fields, const std::string& prefix = "") {
+void add_row_flags(cxxopts::Options& options, const std::vector<OptionField<S>>& fields,
+                   const std::string& prefix = "") {
   for (const auto& f : fields) {
     if (!*f.flag) continue;
     const auto help = prefix + f.key + (*f.doc ? std::string(": ") + f.doc : std::string());
-    if (std::holds_alternative<bool S::*>(f.member)) options.add_options()(f.flag, help + " (sets it true)");
-    else options.add_options()(f.flag, help, cxxopts::value<std::string>());
+    if (std::holds_alternative<bool S::*>(f.member))
+      options.add_options()(f.flag, help + " (sets it true)");
+    else
+      options.add_options()(f.flag, help, cxxopts::value<std::string>());
   }
 }
 // The given row flags as `key=value` settings, in the table's order.

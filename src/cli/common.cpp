@@ -61,7 +61,8 @@ void check_numbers(const cxxopts::ParseResult& result) {
     for (const auto& rule : number_rules()) {
       if (kv.key() != rule.name) continue;
       const auto problem = number_problem(kv.value(), rule);
-      if (!problem.empty()) throw Error("--" + kv.key(), "'" + printable(kv.value()) + "' " + problem + ": " + rule.meaning);
+      if (!problem.empty())
+        throw Error("--" + kv.key(), "'" + printable(kv.value()) + "' " + problem + ": " + rule.meaning);
     }
   }
 }
@@ -163,8 +164,9 @@ std::vector<std::string> set_overrides(const cxxopts::ParseResult& r) {
 }
 
 void add_lpips(cxxopts::Options& options) {
-  options.add_options()("lpips", "add LPIPS v0.1 with this backbone: alex|vgg (needs torchvision's backbone file and "
-                                 "the lpips package's linear layers; docs/evaluation.md)",
+  options.add_options()("lpips",
+                        "add LPIPS v0.1 with this backbone: alex|vgg (needs torchvision's backbone file and "
+                        "the lpips package's linear layers; docs/evaluation.md)",
                         cxxopts::value<std::string>())(
       "lpips-dir", "folder with the LPIPS files (also searched: models/lpips, ~/.cache/torch/hub/checkpoints)",
       cxxopts::value<std::string>());

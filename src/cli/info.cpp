@@ -28,8 +28,8 @@ std::string join(const std::vector<std::string>& items, const std::string& separ
 // "1 mse + 0.2 ssim" from the recorded training config ("not recorded" without one).
 std::string join_nonzero_losses(const ModelFile& m) {
   std::string out;
-  for (const char* term : {"mse", "ssim", "perceptual", "adversarial", "feature_matching", "frequency", "chroma",
-                           "gradient"}) {
+  for (const char* term :
+       {"mse", "ssim", "perceptual", "adversarial", "feature_matching", "frequency", "chroma", "gradient"}) {
     const auto text = m.recorded(std::string("loss.") + term);
     if (text.empty() || !is_decimal_number(text) || std::strtod(text.c_str(), nullptr) == 0) continue;
     std::ostringstream os;
@@ -95,8 +95,9 @@ std::string recorded_scores(const std::vector<std::string>& items, const std::st
       if (name != "ground truth") methods.push_back(name);
     std::string chosen = method;
     if (chosen.empty()) {
-      require(methods.size() == 1, file,
-              "holds " + std::to_string(methods.size()) + " methods; name one with --method (" + join(methods, ", ") + ")");
+      require(
+          methods.size() == 1, file,
+          "holds " + std::to_string(methods.size()) + " methods; name one with --method (" + join(methods, ", ") + ")");
       chosen = methods[0];
     }
     require(all.contains(chosen) && all[chosen].is_object(), file,
@@ -109,8 +110,9 @@ std::string recorded_scores(const std::vector<std::string>& items, const std::st
 }
 
 int info(int argc, char** argv) {
-  cxxopts::Options o("flatnet info", "What a model file or checkpoint holds: architecture, camera, recipe, "
-                                     "training, recorded scores and its SHA-256.");
+  cxxopts::Options o("flatnet info",
+                     "What a model file or checkpoint holds: architecture, camera, recipe, "
+                     "training, recorded scores and its SHA-256.");
   o.add_options()("file", "model file (.flatnet) or training checkpoint (.ckpt)", cxxopts::value<std::string>())(
       "json", "print one JSON object instead of text");
   o.parse_positional({"file"});
@@ -166,13 +168,15 @@ int info(int argc, char** argv) {
   line("kind", std::string(checkpoint ? "training checkpoint" : "model file") + ", format " +
                    std::to_string(m.format_version) + (checkpoint && average ? " (its moving average shown)" : ""));
   line("model", first_stage_text(spec) + " -> " + enhancer_text(spec) +
-                    (spec.level_input ? ", light level as input" : "") + "; " +
-                    std::to_string(parameters) + " parameters");
+                    (spec.level_input ? ", light level as input" : "") + "; " + std::to_string(parameters) +
+                    " parameters");
   line("camera", cam.name + ": " + std::to_string(cam.raw.crop[2]) + "x" + std::to_string(cam.raw.crop[3]) +
                      " measurement -> " + std::to_string(cam.scene_size) + "x" + std::to_string(cam.scene_size) +
-                     " scene (" + data_key(&DataOptions::camera) + " " + recorded_or_unknown(m, data_key(&DataOptions::camera)) + ")");
+                     " scene (" + data_key(&DataOptions::camera) + " " +
+                     recorded_or_unknown(m, data_key(&DataOptions::camera)) + ")");
   const auto source = m.recorded("data.source");
-  line("data", source == "simulate" ? "simulated display captures of " + recorded_or_unknown(m, data_key(&DataOptions::images))
+  line("data", source == "simulate"
+                   ? "simulated display captures of " + recorded_or_unknown(m, data_key(&DataOptions::images))
                : source == "dataset" ? "captures in " + recorded_or_unknown(m, data_key(&DataOptions::dataset))
                                      : "not recorded");
   std::ostringstream recipe;

@@ -66,7 +66,8 @@ int main(int argc, char** argv) {
   try {
     return it->second.first(argc - 1, argv + 1);
   } catch (const flatnet::Error& e) {
-    std::cerr << "flatnet " << command << ": error: " << flatnet::printable(e.render(flatnet::cli::flag_or_key)) << "\n";
+    std::cerr << "flatnet " << command << ": error: " << flatnet::printable(e.render(flatnet::cli::flag_or_key))
+              << "\n";
   } catch (const cxxopts::exceptions::exception& e) {
     std::cerr << "flatnet " << command << ": error: " << flatnet::printable(e.what()) << "\n";
   } catch (const std::filesystem::filesystem_error& e) {  // "PATH: reason", as flatnet's own errors
@@ -74,7 +75,8 @@ int main(int argc, char** argv) {
               << flatnet::printable(e.path1().string() + (e.path2().empty() ? "" : " -> " + e.path2().string())) << ": "
               << e.code().message() << "\n";
   } catch (const c10::Error& e) {
-    std::cerr << "flatnet " << command << ": internal error: " << flatnet::printable(e.what_without_backtrace()) << "\n";
+    std::cerr << "flatnet " << command << ": internal error: " << flatnet::printable(e.what_without_backtrace())
+              << "\n";
     return 1;
   } catch (const std::exception& e) {
     std::cerr << "flatnet " << command << ": error: " << flatnet::printable(e.what()) << "\n";

@@ -51,7 +51,8 @@ Config run_config(const cxxopts::ParseResult& r, const std::filesystem::path& ou
                   const std::filesystem::path& defaults, const std::string& run) {
   const bool resume = r.count("resume") > 0;
   require(!resume || !r.count("config"), "--resume",
-          "continues with the run's own config (" + (out / "config.yaml").string() + "); change single settings with --set");
+          "continues with the run's own config (" + (out / "config.yaml").string() +
+              "); change single settings with --set");
   require(!resume || has_trainer_checkpoint(out), out / "latest.ckpt", "nothing to resume (no checkpoint)");
   require(resume || r.count("force") || !has_trainer_checkpoint(out), out,
           "already holds a " + run + "; continue it with --resume, or start afresh with --force");
@@ -62,8 +63,8 @@ Config run_config(const cxxopts::ParseResult& r, const std::filesystem::path& ou
 int mask_train(int argc, char** argv) {
   cxxopts::Options o("flatnet mask train", "Learn a rank-k amplitude mask end to end through Wiener deconvolution.");
   o.add_options()("config", "experiment config (configs/mask_rank1.yaml, ...)", cxxopts::value<std::string>())(
-      "set", "override a setting (repeatable)", cxxopts::value<std::string>())(
-      "out", "output folder", cxxopts::value<std::string>())(
+      "set", "override a setting (repeatable)", cxxopts::value<std::string>())("out", "output folder",
+                                                                               cxxopts::value<std::string>())(
       "resume", "continue the run in --out from its latest.ckpt, with its own config (--set changes single settings)");
   add_force_folder(o);
   add_common(o);
@@ -104,7 +105,8 @@ int mask_train(int argc, char** argv) {
             << std::setprecision(3) << s.gamma << std::defaultfloat << " after " << s.steps << " steps in "
             << format_duration(s.seconds) << "\nwrote " << (to.out / "mask.png").string()
             << ", vectors.mat, gamma.txt, log.csv, curve.png, latest.ckpt\n";
-  if (interrupted()) std::cerr << "interrupted: continue with `flatnet mask train --out " << to.out.string() << " --resume`\n";
+  if (interrupted())
+    std::cerr << "interrupted: continue with `flatnet mask train --out " << to.out.string() << " --resume`\n";
   return interrupted() ? 130 : 0;
 }
 
@@ -233,9 +235,8 @@ int mask_report(int argc, char** argv) {
       const auto steps = model.provenance.trained_steps.empty()
                              ? model.recorded(train_key(&TrainOptions::iterations)) + " steps configured"
                              : model.provenance.trained_steps + " steps";
-      it->flatnet =
-          CameraModel{[generator](const torch::Tensor& planes) mutable { return generator->forward(planes); },
-                      model.camera.raw, shown(path) + " (" + steps + ")"};
+      it->flatnet = CameraModel{[generator](const torch::Tensor& planes) mutable { return generator->forward(planes); },
+                                model.camera.raw, shown(path) + " (" + steps + ")"};
     }
   }
   opt.separable_options.geometry = load_camera_config(default_camera_path()).raw;
@@ -253,12 +254,14 @@ int mask_separable(int argc, char** argv) {
   cxxopts::Options o("flatnet mask separable",
                      "Learn a separable FlatCam's codes end to end: codes -> PhiL/PhiR -> noisy capture -> Tikhonov. "
                      "Settings: configs/separable_defaults.yaml (each shortcut flag sets one of its keys).");
-  o.add_options()("config", "experiment config overriding configs/separable_defaults.yaml", cxxopts::value<std::string>())(
-      "set", "override a setting, key=value (repeatable)", cxxopts::value<std::string>())(
+  o.add_options()("config", "experiment config overriding configs/separable_defaults.yaml",
+                  cxxopts::value<std::string>())("set", "override a setting, key=value (repeatable)",
+                                                 cxxopts::value<std::string>())(
       "out", "folder for codes.mat, lambda.txt, log.csv, curve.png, config.yaml", cxxopts::value<std::string>())(
       "init", codes_init_key() + ": mls, random, or a codes .mat", cxxopts::value<std::string>())(
-      "resume", "continue the run in --out from its latest.ckpt, with its own config (--set and the shortcut flags "
-                "change single settings)");
+      "resume",
+      "continue the run in --out from its latest.ckpt, with its own config (--set and the shortcut flags "
+      "change single settings)");
   add_row_flags(o, separable_train_fields());
   add_force_folder(o);
   add_common(o);

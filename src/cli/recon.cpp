@@ -97,9 +97,9 @@ int fit_niqe_command(int argc, char** argv) {
 
 int eval(int argc, char** argv) {
   if (argc > 1 && std::string(argv[1]) == "fit-niqe") return fit_niqe_command(argc - 1, argv + 1);
-  cxxopts::Options o(
-      "flatnet eval",
-      "PSNR, SSIM, NIQE, colour and detail kept (and LPIPS with --lpips) of reconstructions against ground truth ('flatnet eval fit-niqe' fits NIQE's model).");
+  cxxopts::Options o("flatnet eval",
+                     "PSNR, SSIM, NIQE, colour and detail kept (and LPIPS with --lpips) of reconstructions against "
+                     "ground truth ('flatnet eval fit-niqe' fits NIQE's model).");
   o.add_options()("gt", "ground-truth folder", cxxopts::value<std::string>())(
       "out", "reconstructions: a folder of PNGs, or of one subfolder per method; reports are written here",
       cxxopts::value<std::string>())("sheet-rows", "images in the contact sheet",
@@ -136,15 +136,18 @@ int inversion_report_command(int argc, char** argv) {
                      "What a model's inversion learned (the thesis's Figure 3.3): W1^T PhiL and W2^T PhiR before and "
                      "after training, as images and diagonal energy shares.");
   o.add_options()("models", "NAME=MODEL.flatnet or MODEL.flatnet, comma-separated",
-                  cxxopts::value<std::vector<std::string>>())(
-      "out", "folder for inversion.md and inversion.png", cxxopts::value<std::string>())(
-      "camera", "the camera the models were trained for, whose calibration gives PhiL and PhiR (default: the "
-      "reference camera)", cxxopts::value<std::string>());
+                  cxxopts::value<std::vector<std::string>>())("out", "folder for inversion.md and inversion.png",
+                                                              cxxopts::value<std::string>())(
+      "camera",
+      "the camera the models were trained for, whose calibration gives PhiL and PhiR (default: the "
+      "reference camera)",
+      cxxopts::value<std::string>());
   add_force_folder(o);
   add_common(o);
   cxxopts::ParseResult r;
   if (!parse(o, argc, argv, r)) return 0;
-  require(r.count("models") && r.count("out"), "report inversion", "--models NAME=M.flatnet,... and --out DIR are required");
+  require(r.count("models") && r.count("out"), "report inversion",
+          "--models NAME=M.flatnet,... and --out DIR are required");
   InversionReportOptions opt;
   opt.out = r["out"].as<std::string>();
   const auto camera = camera_from(r);

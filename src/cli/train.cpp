@@ -21,9 +21,10 @@ int train(int argc, char** argv) {
   cxxopts::Options o("flatnet train", "Train a FlatNet reconstruction network (GAN, FlatNet-sep).");
   o.add_options()("config", "experiment config (configs/*.yaml); defaults.yaml alone when absent",
                   cxxopts::value<std::string>())("set", "override a setting: --set train.iterations=100 (repeatable)",
-                                                  cxxopts::value<std::string>())(
+                                                 cxxopts::value<std::string>())(
       "out", "run folder (checkpoints, logs, model.flatnet)", cxxopts::value<std::string>())(
-      "resume", "continue the run in --out from its latest checkpoint")("force", "start afresh in an --out folder that holds another run (its checkpoints and logs are deleted)")(
+      "resume", "continue the run in --out from its latest checkpoint")(
+      "force", "start afresh in an --out folder that holds another run (its checkpoints and logs are deleted)")(
       "init-from",
       "start from a model file's generator weights (a shipped model, or one from another camera's run) "
       "with fresh optimisers; the config must describe the same architecture",
@@ -59,7 +60,8 @@ int train(int argc, char** argv) {
   if (r.count("init-from")) e.init_from = r["init-from"].as<std::string>();
   if (r.count("reinit")) {
     require(r["reinit"].as<std::string>() == "inversion", "--reinit",
-            "'" + r["reinit"].as<std::string>() + "': only 'inversion' (the camera-specific first stage) can be re-initialised");
+            "'" + r["reinit"].as<std::string>() +
+                "': only 'inversion' (the camera-specific first stage) can be re-initialised");
     require(r.count("init-from") > 0, "--reinit", "needs --init-from MODEL");
     e.reinit_inversion = true;
   }
@@ -75,7 +77,9 @@ int train(int argc, char** argv) {
   // A --resume with nothing to resume is refused before the folder is touched.
   OutputClaim claim;
   if (dist.rank == 0) {
-    if (e.resume) require(std::filesystem::exists(e.out / "latest.ckpt"), e.out / "latest.ckpt", "nothing to resume (no checkpoint)");
+    if (e.resume)
+      require(std::filesystem::exists(e.out / "latest.ckpt"), e.out / "latest.ckpt",
+              "nothing to resume (no checkpoint)");
     claim = claim_out(r, e.out, "train", "", "latest.ckpt");
   }
   watch_interrupts();
@@ -131,15 +135,15 @@ int export_model(int argc, char** argv) {
   bool average = false;
   auto m = r.count("checkpoint") ? model_from_checkpoint(input, &average) : load_model_file(input);
   if (r.count("scores"))
-    m.provenance.scores =
-        recorded_scores(r["scores"].as<std::vector<std::string>>(), r.count("method") ? r["method"].as<std::string>() : "");
+    m.provenance.scores = recorded_scores(r["scores"].as<std::vector<std::string>>(),
+                                          r.count("method") ? r["method"].as<std::string>() : "");
   if (average) std::cerr << "exporting the moving average of the weights (train.ema_decay)\n";
   if (r.count("onnx")) {
     const auto rep = export_onnx(out, m.generator, m.camera);
     std::cout << "wrote ONNX " << out.string() << " (" << rep.nodes << " nodes, " << rep.initializers
               << " weight tensors, " << rep.bytes / 1e6 << " MB; input meas {batch,4," << m.camera.raw.crop[2] << ","
-              << m.camera.raw.crop[3] << "}, output image {batch,3," << m.camera.scene_size << "," << m.camera.scene_size
-              << "}; checked by ONNX's checker)\n";
+              << m.camera.raw.crop[3] << "}, output image {batch,3," << m.camera.scene_size << ","
+              << m.camera.scene_size << "}; checked by ONNX's checker)\n";
   } else if (r.count("state-dict") || r.count("flatnet-checkpoint")) {
     const bool flatnet_layout = r.count("flatnet-checkpoint") > 0;
     export_state_dict(out, m.generator,

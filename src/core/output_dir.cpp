@@ -146,12 +146,14 @@ OutputClaim claim_output_folder(const fs::path& dir, const OutputRole& role) {
     m.settings = role.settings;
   }
   const auto [foreign, example] = foreign_entries(dir);
-  const auto hint = role.force ? std::string() : std::string("; choose another folder, or add " + option_key("output_role.force") + " to write into it anyway");
+  const auto hint = role.force ? std::string()
+                               : std::string("; choose another folder, or add " + option_key("output_role.force") +
+                                             " to write into it anyway");
   if (marked && m.command != role.command && !role.force)
     throw Error(dir, "holds the output of `flatnet " + m.command + "`, not of `flatnet " + role.command + "`" + hint);
   if (marked && m.command == role.command && !role.settings.empty() && m.settings != role.settings && !role.force)
-    throw Error(dir, "holds `flatnet " + m.command + "` output made with other settings (" + m.settings +
-                         "; now " + role.settings + ")" + hint);
+    throw Error(dir, "holds `flatnet " + m.command + "` output made with other settings (" + m.settings + "; now " +
+                         role.settings + ")" + hint);
   if (!marked && foreign > 0 && !role.force)
     throw Error(dir, "holds " + std::to_string(foreign) + " entries flatnet did not write (such as '" + example +
                          "'); flatnet writes only into new or empty folders and its own" + hint);

@@ -50,11 +50,14 @@ namespace {
 bool isa_has(unsigned isa, unsigned level) { return (isa & level) == level; }
 
 std::string isa_name(unsigned isa) {
-  const std::pair<unsigned, const char*> names[] = {
-      {dnnl_cpu_isa_avx512_core_amx, "avx512_core_amx"}, {dnnl_cpu_isa_avx512_core_bf16, "avx512_core_bf16"},
-      {dnnl_cpu_isa_avx512_core_vnni, "avx512_core_vnni"}, {dnnl_cpu_isa_avx512_core, "avx512_core"},
-      {dnnl_cpu_isa_avx2_vnni, "avx2_vnni"}, {dnnl_cpu_isa_avx2, "avx2"}, {dnnl_cpu_isa_avx, "avx"},
-      {dnnl_cpu_isa_sse41, "sse41"}};
+  const std::pair<unsigned, const char*> names[] = {{dnnl_cpu_isa_avx512_core_amx, "avx512_core_amx"},
+                                                    {dnnl_cpu_isa_avx512_core_bf16, "avx512_core_bf16"},
+                                                    {dnnl_cpu_isa_avx512_core_vnni, "avx512_core_vnni"},
+                                                    {dnnl_cpu_isa_avx512_core, "avx512_core"},
+                                                    {dnnl_cpu_isa_avx2_vnni, "avx2_vnni"},
+                                                    {dnnl_cpu_isa_avx2, "avx2"},
+                                                    {dnnl_cpu_isa_avx, "avx"},
+                                                    {dnnl_cpu_isa_sse41, "sse41"}};
   for (const auto& [level, name] : names)
     if (isa_has(isa, level)) return name;
   return "";

@@ -15,10 +15,10 @@ enum class Precision { fp32, bf16 };
 struct CpuFeatures {
   std::string model;  // "Intel(R) Xeon(R) Processor"
   bool avx512f = false;
-  bool avx512_core = false;  // F, CD, BW, DQ and VL: what OpenBLAS's SkylakeX kernels need
-  bool avx512_bf16 = false;  // AVX512-BF16: vdpbf16ps
-  bool amx_bf16 = false;     // AMX tiles with bf16
-  std::string onednn_isa;    // oneDNN's effective ISA ("avx2", "avx512_core_bf16", ...); "" unknown
+  bool avx512_core = false;    // F, CD, BW, DQ and VL: what OpenBLAS's SkylakeX kernels need
+  bool avx512_bf16 = false;    // AVX512-BF16: vdpbf16ps
+  bool amx_bf16 = false;       // AMX tiles with bf16
+  std::string onednn_isa;      // oneDNN's effective ISA ("avx2", "avx512_core_bf16", ...); "" unknown
   bool onednn_capped = false;  // that ISA is below what the CPU's flags offer (ONEDNN_MAX_CPU_ISA)
   bool onednn_bf16 = true;     // oneDNN runs bf16 convolutions here (its ISA is AVX-512 or above)
   bool native_bf16() const { return avx512_bf16 || amx_bf16; }
@@ -64,8 +64,9 @@ bool request_amx_permission();
 // bf16 autocast on the CPU for the current thread while alive (torch.autocast('cpu',
 // torch.bfloat16) in C++): convolutions and matmuls run in bf16, parameters stay fp32 and get
 // fp32 gradients. Where oneDNN has no bf16 kernels, the first enabled guard switches LibTorch's
-// oneDNN path off for the process (use_bf16_kernels_for_process): the backward pass comes later. Leaving the outermost guard clears the cast cache (stale casts of updated
-// weights would otherwise be reused). Enabled = false makes it a no-op.
+// oneDNN path off for the process (use_bf16_kernels_for_process): the backward pass comes later. Leaving the outermost
+// guard clears the cast cache (stale casts of updated weights would otherwise be reused). Enabled = false makes it a
+// no-op.
 class AutocastGuard {
  public:
   explicit AutocastGuard(bool enabled);

@@ -257,7 +257,8 @@ void Progress::draw(bool final_line) {
   const int width = 24;
   const bool has_deadline = deadline_ != std::chrono::steady_clock::time_point{};
   const double budget_left =
-      has_deadline ? std::max(0.0, std::chrono::duration<double>(deadline_ - std::chrono::steady_clock::now()).count()) : 0;
+      has_deadline ? std::max(0.0, std::chrono::duration<double>(deadline_ - std::chrono::steady_clock::now()).count())
+                   : 0;
   // No count to reach (total 0) but a deadline: the bar fills with the time spent.
   double share = total_ > 0 ? static_cast<double>(std::min<int64_t>(done_, total_)) / total_ : 0;
   if (total_ <= 0 && has_deadline) share = final_line ? 1 : elapsed_s() / std::max(1e-9, elapsed_s() + budget_left);
@@ -269,8 +270,7 @@ void Progress::draw(bool final_line) {
      << std::setprecision(1) << r << " it/s";
   if (final_line)
     os << " in " << format_duration(elapsed_s());
-  else
-  {
+  else {
     double eta = r > 0 && total_ > 0 ? (total_ - done_) / r : -1;
     if (has_deadline) eta = eta < 0 ? budget_left : std::min(eta, budget_left);
     os << " ETA " << format_duration(eta);
@@ -334,7 +334,8 @@ std::string read_file_text(const fs::path& path, uint64_t max_bytes) {
   require(S_ISREG(st.st_mode), path, "is not a regular file (a fifo, socket or device); flatnet reads only files");
   const auto size = static_cast<uint64_t>(st.st_size);
   require(size <= max_bytes, path,
-          "is " + std::to_string(size) + " bytes, over the limit of " + std::to_string(max_bytes) + " for this kind of file");
+          "is " + std::to_string(size) + " bytes, over the limit of " + std::to_string(max_bytes) +
+              " for this kind of file");
   // A sparse file (holes that read as zeros) claims a size its disk blocks do not hold: 5 GiB of
   // nothing would be allocated and read. Real files fill their blocks (compression aside: 1/8).
   const auto on_disk = static_cast<uint64_t>(st.st_blocks) * 512;
@@ -435,7 +436,8 @@ std::string printable(const std::string& text) {
 
 void require_plain_name(const std::string& name, const std::string& what) {
   auto refuse = [&](const std::string& why) {
-    throw Error(what, "'" + printable(name) + "' " + why + "; a name becomes one file or folder name inside the output folder");
+    throw Error(
+        what, "'" + printable(name) + "' " + why + "; a name becomes one file or folder name inside the output folder");
   };
   if (name.empty()) refuse("is empty");
   if (name.size() > 128) refuse("is longer than 128 bytes");

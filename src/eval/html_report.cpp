@@ -34,7 +34,8 @@ std::string base64(const std::vector<unsigned char>& bytes) {
 std::string jpeg_data_uri(const std::filesystem::path& file, int64_t size) {
   auto rgb = read_rgb(file);  // {3,H,W} in [0,1]
   const int64_t h = rgb.size(1), w = rgb.size(2), longer = std::max(h, w);
-  if (longer > size) rgb = resize(rgb, std::max<int64_t>(1, h * size / longer), std::max<int64_t>(1, w * size / longer));
+  if (longer > size)
+    rgb = resize(rgb, std::max<int64_t>(1, h * size / longer), std::max<int64_t>(1, w * size / longer));
   const auto bgr = (rgb.flip(0).permute({1, 2, 0}).clamp(0, 1) * 255).round().to(torch::kUInt8).contiguous();
   const cv::Mat mat(int(bgr.size(0)), int(bgr.size(1)), CV_8UC3, bgr.data_ptr<uint8_t>());
   std::vector<unsigned char> jpeg;
@@ -162,8 +163,8 @@ void gallery(std::ostringstream& h, const HtmlSet& set,
     for (const auto& m : set.methods) {
       const auto* s = score.at({image, m});
       h << "<td><img alt=\"" << html_escape(m) << "\" data-set=\"" << sid << "\" data-image=\"" << name
-        << "\" data-method=\"" << html_escape(m) << "\" src=\"" << jpeg_data_uri(set.rec_dir / m / image, 256)
-        << "\">" << fixed(s->psnr, 2) << " dB, " << fixed(s->ssim, 3) << "</td>";
+        << "\" data-method=\"" << html_escape(m) << "\" src=\"" << jpeg_data_uri(set.rec_dir / m / image, 256) << "\">"
+        << fixed(s->psnr, 2) << " dB, " << fixed(s->ssim, 3) << "</td>";
     }
     h << "</tr>\n";
   }
@@ -225,12 +226,23 @@ std::string html_escape(const std::string& text) {
   std::string out;
   for (const char c : text) {
     switch (c) {
-      case '&': out += "&amp;"; break;
-      case '<': out += "&lt;"; break;
-      case '>': out += "&gt;"; break;
-      case '"': out += "&quot;"; break;
-      case '\'': out += "&#39;"; break;
-      default: out += c;
+      case '&':
+        out += "&amp;";
+        break;
+      case '<':
+        out += "&lt;";
+        break;
+      case '>':
+        out += "&gt;";
+        break;
+      case '"':
+        out += "&quot;";
+        break;
+      case '\'':
+        out += "&#39;";
+        break;
+      default:
+        out += c;
     }
   }
   return out;

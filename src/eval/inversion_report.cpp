@@ -92,11 +92,13 @@ std::string write_inversion_report(const InversionReportOptions& opt) {
      << "Products of the first stage's W1, W2 with the camera's calibration, `W1^T PhiL` and `W2^T PhiR` "
         "({N,N}): an identity would invert the camera exactly. Energy share: squared entries on the diagonal "
         "over all squared entries; band: within 2 of the diagonal i - j = offset, at the offset where it is largest "
-        "(a shifted diagonal reproduces the scene shifted, still an inverse). Stray rows: output rows whose band holds under "
+        "(a shifted diagonal reproduces the scene shifted, still an inverse). Stray rows: output rows whose band holds "
+        "under "
         "a quarter of their energy after training; they mix far-away scene rows, and the enhancer draws a stripe "
         "there. `inversion.png`: one row per model, |product| scaled "
         "to its largest entry, before training (the initialisation the model's config describes) and after.\n\n"
-     << "| model | init | product | diagonal before | diagonal after | band before | band after (offset) | stray rows |\n"
+     << "| model | init | product | diagonal before | diagonal after | band before | band after (offset) | stray rows "
+        "|\n"
      << "|---|---|---|---|---|---|---|---|\n";
   std::vector<std::vector<torch::Tensor>> rows;
   std::vector<std::string> names;
@@ -127,8 +129,8 @@ std::string write_inversion_report(const InversionReportOptions& opt) {
   md << "\n![products](inversion.png)\n";
   std::filesystem::create_directories(opt.out);
   // The contact sheet's first column is labelled as the others; it holds the first product.
-  write_contact_sheet(opt.out / "inversion.png", {"W1^T PhiL before", "W1^T PhiL after", "W2^T PhiR before", "W2^T PhiR after"},
-                      names, rows);
+  write_contact_sheet(opt.out / "inversion.png",
+                      {"W1^T PhiL before", "W1^T PhiL after", "W2^T PhiR before", "W2^T PhiR after"}, names, rows);
   write_text_atomically(opt.out / "inversion.md", md.str());
   return md.str();
 }

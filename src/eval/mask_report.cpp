@@ -372,8 +372,9 @@ std::string write_mask_report(const MaskReportOptions& opt) {
           "has nothing to report (no Wiener sections, no code pairs)");
   {  // its figures are PNGs: written among the photographs, they would become photographs next time
     std::error_code a, b;
-    require_option(std::filesystem::weakly_canonical(opt.out, a) != std::filesystem::weakly_canonical(opt.images, b), "mask_report.out",
-            "is the photographs folder; the report's PNGs would join the photographs (choose another folder)");
+    require_option(std::filesystem::weakly_canonical(opt.out, a) != std::filesystem::weakly_canonical(opt.images, b),
+                   "mask_report.out",
+                   "is the photographs folder; the report's PNGs would join the photographs (choose another folder)");
   }
   require_option(std::isfinite(opt.noise) && opt.noise > 0, "mask_report.noise", "must be positive");
   const auto held_out = split_image_files(opt.images, 0.1, 1).second;

@@ -47,7 +47,8 @@ double luma_detail(const torch::Tensor& rgb) {
               "detail: expects {3,H,W} of at least 3x3, got ", rgb.sizes());
   const auto x = rgb.to(torch::kFloat64);
   const auto luma = (0.299 * x[0] + 0.587 * x[1] + 0.114 * x[2]).view({1, 1, x.size(1), x.size(2)});
-  const auto sobel_x = torch::tensor({-1.0, 0.0, 1.0, -2.0, 0.0, 2.0, -1.0, 0.0, 1.0}, torch::kFloat64).view({1, 1, 3, 3});
+  const auto sobel_x =
+      torch::tensor({-1.0, 0.0, 1.0, -2.0, 0.0, 2.0, -1.0, 0.0, 1.0}, torch::kFloat64).view({1, 1, 3, 3});
   const auto gx = torch::conv2d(luma, sobel_x), gy = torch::conv2d(luma, sobel_x.transpose(2, 3));
   return (gx * gx + gy * gy).sqrt().mean().item<double>();
 }

@@ -245,7 +245,8 @@ std::vector<MethodScore> evaluate(const EvalOptions& opt, std::vector<ImageScore
   }
   std::vector<MethodScore> scores;
   for (size_t k = 0; k < methods.size(); ++k) {
-    require(totals[k].count > 0, opt.out / methods[k].name, "no file matches a ground-truth name in " + opt.gt.string());
+    require(totals[k].count > 0, opt.out / methods[k].name,
+            "no file matches a ground-truth name in " + opt.gt.string());
     scores.push_back(totals[k].finish(methods[k].name, scorers));
     totals[k].write_mean_row(csv, scores.back(), scorers);
   }
@@ -270,11 +271,16 @@ std::string scores_json(const std::vector<MethodScore>& scores) {
   auto number = [](double v) { return std::isfinite(v) ? nlohmann::json(v) : nlohmann::json(nullptr); };
   nlohmann::json all = nlohmann::json::object();
   for (const auto& s : scores) {
-    all[s.method] = {{"images", s.count},           {"psnr", number(s.psnr)},
-                     {"psnr_sd", number(s.psnr_sd)}, {"ssim", number(s.ssim)},
-                     {"ssim_sd", number(s.ssim_sd)}, {"brightness", number(s.brightness)},
-                     {"niqe", number(s.niqe)},       {"colour_kept", number(s.colour_kept)},
-                     {"detail_kept", number(s.detail_kept)}, {"stripes", number(s.stripes)}};
+    all[s.method] = {{"images", s.count},
+                     {"psnr", number(s.psnr)},
+                     {"psnr_sd", number(s.psnr_sd)},
+                     {"ssim", number(s.ssim)},
+                     {"ssim_sd", number(s.ssim_sd)},
+                     {"brightness", number(s.brightness)},
+                     {"niqe", number(s.niqe)},
+                     {"colour_kept", number(s.colour_kept)},
+                     {"detail_kept", number(s.detail_kept)},
+                     {"stripes", number(s.stripes)}};
     if (!s.lpips_net.empty()) all[s.method]["lpips"] = number(s.lpips), all[s.method]["lpips_net"] = s.lpips_net;
   }
   return all.dump(2) + "\n";
@@ -295,10 +301,11 @@ std::string format_table(const std::vector<MethodScore>& scores) {
   };
   std::ostringstream os;
   os << std::left << std::setw(24) << "method" << std::right << std::setw(7) << "images" << std::setw(16) << "PSNR dB"
-     << std::setw(16) << "SSIM" << std::setw(12) << "brightness" << std::setw(9) << "colour" << std::setw(9)
-     << "detail" << (any_niqe ? "            NIQE" : "");
+     << std::setw(16) << "SSIM" << std::setw(12) << "brightness" << std::setw(9) << "colour" << std::setw(9) << "detail"
+     << (any_niqe ? "            NIQE" : "");
   if (!lpips_net.empty()) os << std::setw(17) << "LPIPS " + lpips_net;
-  os << std::setw(9) << "stripes" << "\n";
+  os << std::setw(9) << "stripes"
+     << "\n";
   auto ratio = [](double v) {
     std::ostringstream o;
     if (std::isfinite(v))

@@ -54,8 +54,8 @@ struct EvalOptions {
 std::vector<MethodScore> evaluate(const EvalOptions& options, std::vector<ImageScore>* per_image = nullptr);
 std::string format_table(const std::vector<MethodScore>& scores);
 // {"METHOD": {"images": N, "psnr": ..., "psnr_sd", "ssim", "ssim_sd", "brightness", "niqe",
-// "colour_kept", "detail_kept", "stripes", "lpips" (+ "lpips_net")}, ...}; a metric that is not defined is null. What a model file's
-// recorded scores hold (`flatnet export --scores`).
+// "colour_kept", "detail_kept", "stripes", "lpips" (+ "lpips_net")}, ...}; a metric that is not defined is null. What a
+// model file's recorded scores hold (`flatnet export --scores`).
 std::string scores_json(const std::vector<MethodScore>& scores);
 
 }  // namespace flatnet

@@ -56,8 +56,8 @@ std::string method_key(const ReportOptions& o, const ReportMethod& m, const Repo
   if (m.kind == "model")
     key << "model " << file_fingerprint(m.model);
   else
-    key << m.kind << " calibration " << file_fingerprint(o.camera.calibration) << " lambda "
-        << o.camera.tikhonov_lambda << " tv " << o.camera.tv_lambda;
+    key << m.kind << " calibration " << file_fingerprint(o.camera.calibration) << " lambda " << o.camera.tikhonov_lambda
+        << " tv " << o.camera.tv_lambda;
   key << "\nset " << fs::weakly_canonical(set.dir).string() << "\n";
   return key.str();
 }
@@ -72,8 +72,10 @@ void reuse_only_same_method(const fs::path& dir, const std::string& key, const s
   const bool ours = fs::is_regular_file(fs::symlink_status(record));
   const bool same = ours && read_file_text(record, 1 << 16) == key;
   if (!same && fs::exists(dir) && !fs::is_empty(dir)) {
-    require(ours, dir, "holds files that flatnet report did not write (no method.txt); move them or choose another --out");
-    std::cerr << "  " << printable(name) << ": the reconstructions on disk were made by another model or settings; remade\n";
+    require(ours, dir,
+            "holds files that flatnet report did not write (no method.txt); move them or choose another --out");
+    std::cerr << "  " << printable(name)
+              << ": the reconstructions on disk were made by another model or settings; remade\n";
     fs::remove_all(dir);
   }
   fs::create_directories(dir);
@@ -100,7 +102,8 @@ void reconstruct_missing(const ReportOptions& o, const ReportMethod& m, const st
     auto engine = make_flatnet(model.generator, model.camera, o.levers, m.name);
     const auto rep = reconstruct_files(*engine, model.camera, missing, bo);
     record_timing(dir, rep.ms_per_capture, rep.count);
-    if (fit && rep.misfits > 0) std::cerr << "  " << printable(m.name) << ": warning: " << camera_fit_warning(rep, *fit) << "\n";
+    if (fit && rep.misfits > 0)
+      std::cerr << "  " << printable(m.name) << ": warning: " << camera_fit_warning(rep, *fit) << "\n";
   } else {
     bo.batch = 8;
     auto engine = make_classical(*calib, o.camera, {parse_classical_method(m.kind), 0.0});
@@ -139,7 +142,7 @@ ReportMethod parse_report_method(const std::string& spec) {
   if (spec == "tikhonov" || spec == "tv") return {spec, spec, {}};
   const auto eq = spec.find('=');
   require_option(eq != std::string::npos && eq > 0 && eq + 1 < spec.size(), "report.methods",
-          "'" + spec + "': expected tikhonov, tv or NAME=MODEL.flatnet");
+                 "'" + spec + "': expected tikhonov, tv or NAME=MODEL.flatnet");
   ReportMethod m{spec.substr(0, eq), "model", spec.substr(eq + 1)};
   require_plain_name(m.name, option_key("report.methods"));
   require(fs::exists(m.model), m.model, "no such model file");
@@ -160,14 +163,17 @@ ReportSet parse_report_set(const std::string& spec) {
 
 std::string make_report(const ReportOptions& o) {
   require(!o.methods.empty() && !o.sets.empty(), "report", "at least one method and one set are needed");
-  for (const auto& m : o.methods) require_plain_name(m.name, option_key("report.methods"));  // each names a folder in --out
+  for (const auto& m : o.methods)
+    require_plain_name(m.name, option_key("report.methods"));  // each names a folder in --out
   for (const auto& set : o.sets) require_plain_name(set.name, option_key("report.sets"));
   for (size_t i = 0; i < o.methods.size(); ++i)
     for (size_t j = 0; j < i; ++j)
-      require_option(o.methods[i].name != o.methods[j].name, "report.methods", "two methods are named '" + o.methods[i].name + "'");
+      require_option(o.methods[i].name != o.methods[j].name, "report.methods",
+                     "two methods are named '" + o.methods[i].name + "'");
   for (size_t i = 0; i < o.sets.size(); ++i)
     for (size_t j = 0; j < i; ++j)
-      require_option(o.sets[i].name != o.sets[j].name, "report.sets", "two sets are named '" + printable(o.sets[i].name) + "'");
+      require_option(o.sets[i].name != o.sets[j].name, "report.sets",
+                     "two sets are named '" + printable(o.sets[i].name) + "'");
   fs::create_directories(o.out);
   std::unique_ptr<Calibration> calib;
   for (const auto& m : o.methods)
@@ -240,11 +246,11 @@ std::string make_report(const ReportOptions& o) {
     md << "![" << set.name << "](" << figure << ")\n\n";
   }
   write_text_atomically(o.out / "report.md", md.str());
-  write_text_atomically(o.out / "report.html",
-                        html_report("Reconstruction report", "Made by " + o.command + " on " + o.machine +
-                                                                 ". PSNR in dB and SSIM on the 256x256 sRGB images; "
-                                                                 "NIQE lower is more natural; LPIPS lower is closer.",
-                                    pages));
+  write_text_atomically(o.out / "report.html", html_report("Reconstruction report",
+                                                           "Made by " + o.command + " on " + o.machine +
+                                                               ". PSNR in dB and SSIM on the 256x256 sRGB images; "
+                                                               "NIQE lower is more natural; LPIPS lower is closer.",
+                                                           pages));
   return md.str();
 }
 

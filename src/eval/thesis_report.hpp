@@ -32,11 +32,11 @@ struct ReportOptions {
   std::filesystem::path niqe_model;  // empty: no NIQE column
   std::string lpips;                 // "alex" | "vgg": an LPIPS column (EvalOptions::lpips); empty: none
   LpipsFiles lpips_files;
-  int64_t tv_count = 30;             // TV (FISTA, seconds per capture) on the first N captures of a set (0: all)
-  int figure_rows = 4;               // scenes in each set's figure
-  InferenceLevers levers;            // for the model methods (bf16 where chosen)
-  std::string machine;               // printed beside the timings (CPU model, flags, threads, precision)
-  std::string command;               // the command line, printed in the report
+  int64_t tv_count = 30;   // TV (FISTA, seconds per capture) on the first N captures of a set (0: all)
+  int figure_rows = 4;     // scenes in each set's figure
+  InferenceLevers levers;  // for the model methods (bf16 where chosen)
+  std::string machine;     // printed beside the timings (CPU model, flags, threads, precision)
+  std::string command;     // the command line, printed in the report
   bool progress = true;
 };
 

@@ -91,8 +91,9 @@ class AravisCamera final : public FrameSource {
       }
     }
     throw Error("camera " + id_ + ": no complete frame after " + std::to_string(settings_.retries + 1) +
-                " attempts (last: " + last_failure +
-                "); check the connection, that " + option_key("capture.timeout_ms") + " exceeds the exposure, "
+                " attempts (last: " + last_failure + "); check the connection, that " +
+                option_key("capture.timeout_ms") +
+                " exceeds the exposure, "
                 "and for GigE Vision the packet size");
   }
 

@@ -76,13 +76,15 @@ LiveStats run_live(FrameSource& source, Reconstructor& engine, Display* display,
       require(frame.codes.size(0) == opt.geometry.raw_height && frame.codes.size(1) == opt.geometry.raw_width, "camera",
               "frames are " + std::to_string(frame.codes.size(1)) + "x" + std::to_string(frame.codes.size(0)) +
                   " but the camera file expects " + std::to_string(opt.geometry.raw_width) + "x" +
-                  std::to_string(opt.geometry.raw_height) + " (set " + option_key("live.region") + " or use the matching camera .yaml)");
+                  std::to_string(opt.geometry.raw_height) + " (set " + option_key("live.region") +
+                  " or use the matching camera .yaml)");
     }
     t = Clock::now();
     const auto unit = codes_to_unit(frame.codes, source.format().bits);
     const auto planes = preprocess_raw(unit, opt.geometry);
     prep += ms_since(t);
-    if (opt.fit && (s.frames == 0 || std::chrono::duration<double>(Clock::now() - last_fit).count() >= opt.fit_seconds)) {
+    if (opt.fit &&
+        (s.frames == 0 || std::chrono::duration<double>(Clock::now() - last_fit).count() >= opt.fit_seconds)) {
       fit_text = judge_frame(*opt.fit, unit, opt, s, recent_fits);
       last_fit = Clock::now();
     }

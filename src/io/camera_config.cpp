@@ -40,12 +40,10 @@ namespace {
 
 constexpr double kMaxRotation = 0.175;  // radians
 
-
-const std::vector<std::string> kKnownKeys = {"name",        "raw_height", "raw_width",       "adc_bits",
-                                             "rotation",    "crop",       "centring",        "scene_size",
-                                             "calibration", "rig",        "tikhonov_lambda", "tv_lambda",
-                                             "noise_gain",  "noise_floor", "dark",
-                                             "fit_threshold", "leak_threshold", "open_light"};
+const std::vector<std::string> kKnownKeys = {
+    "name",       "raw_height",  "raw_width",   "adc_bits",      "rotation",        "crop",
+    "centring",   "scene_size",  "calibration", "rig",           "tikhonov_lambda", "tv_lambda",
+    "noise_gain", "noise_floor", "dark",        "fit_threshold", "leak_threshold",  "open_light"};
 
 void validate(const CameraConfig& c, const std::filesystem::path& path) {
   const auto& g = c.raw;
@@ -69,13 +67,14 @@ void validate(const CameraConfig& c, const std::filesystem::path& path) {
           path, "noise_gain, noise_floor and dark are full-scale quantities within [0, 1)");
   require(std::isfinite(c.fit_threshold) && (c.fit_threshold == 0 || (c.fit_threshold >= 1 && c.fit_threshold <= 1e3)),
           path, "fit_threshold is 0 (the camera fit's own) or a ratio within [1, 1000]");
-  require(std::isfinite(c.leak_threshold) && (c.leak_threshold == 0 || (c.leak_threshold >= 1 && c.leak_threshold <= 1e3)),
-          path, "leak_threshold is 0 (the camera fit's own) or a ratio within [1, 1000]");
+  require(
+      std::isfinite(c.leak_threshold) && (c.leak_threshold == 0 || (c.leak_threshold >= 1 && c.leak_threshold <= 1e3)),
+      path, "leak_threshold is 0 (the camera fit's own) or a ratio within [1, 1000]");
   require(std::isfinite(c.open_light) && c.open_light >= 0 && c.open_light <= 1e3, path,
           "open_light is 0 (unknown) or a plane's level per unit of mean scene light, within (0, 1000]");
   // Above ~1e4 the SVD filter s / (s^2 + lambda) is ~0 for any real camera: black images, not an answer.
-  require(std::isfinite(c.tikhonov_lambda) && std::isfinite(c.tv_lambda) && c.tikhonov_lambda > 0 &&
-              c.tv_lambda > 0 && c.tikhonov_lambda <= 1e4 && c.tv_lambda <= 1e4,
+  require(std::isfinite(c.tikhonov_lambda) && std::isfinite(c.tv_lambda) && c.tikhonov_lambda > 0 && c.tv_lambda > 0 &&
+              c.tikhonov_lambda <= 1e4 && c.tv_lambda <= 1e4,
           path, "regularisation weights (tikhonov_lambda, tv_lambda) must lie in (0, 1e4]");
 }
 

@@ -291,8 +291,9 @@ void Config::merge_node_text(const std::string& yaml, const std::filesystem::pat
 void Config::assign(const std::string& key, const std::string& value, const std::string& where,
                     const std::filesystem::path& base) {
   if (!values_.count(key)) {
-    if (key.size() > 200) throw Error(where + ": unknown setting '" + printable(key.substr(0, 60)) + "...' (" +
-                                      std::to_string(key.size()) + " characters)");
+    if (key.size() > 200)
+      throw Error(where + ": unknown setting '" + printable(key.substr(0, 60)) + "...' (" + std::to_string(key.size()) +
+                  " characters)");
     std::vector<std::string> known;
     for (const auto& kv : values_) known.push_back(kv.first);
     throw Error(where + ": unknown setting '" + printable(key) + "' (" + unknown_key_hint(key, known) + ")");
@@ -309,7 +310,8 @@ void Config::assign(const std::string& key, const std::string& value, const std:
 
 void Config::set(const std::string& assignment, const std::string& where) {
   const auto eq = assignment.find('=');
-  if (eq == std::string::npos || eq == 0) throw Error(where + ": expected key=value, got '" + printable(assignment) + "'");
+  if (eq == std::string::npos || eq == 0)
+    throw Error(where + ": expected key=value, got '" + printable(assignment) + "'");
   assign(assignment.substr(0, eq), assignment.substr(eq + 1), where, std::filesystem::current_path());
 }
 
@@ -351,7 +353,8 @@ bool Config::is_path_key(const std::string& key) {
 }
 
 std::filesystem::path Config::path(const std::string& key) const {
-  if (!is_path_key(key)) throw Error("config: setting '" + key + "' is not a path (no option table binds it to a path)");
+  if (!is_path_key(key))
+    throw Error("config: setting '" + key + "' is not a path (no option table binds it to a path)");
   const auto& v = lookup(key);
   if (v.empty()) return {};
   std::filesystem::path p(v);

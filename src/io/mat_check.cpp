@@ -19,11 +19,22 @@ uint32_t u32(const unsigned char* p) { return p[0] | p[1] << 8 | p[2] << 16 | st
 // Bytes per element of a v5 data type (0: not a numeric type).
 uint64_t type_size(uint32_t type) {
   switch (type) {
-    case 1: case 2: return 1;            // miINT8, miUINT8
-    case 3: case 4: return 2;            // miINT16, miUINT16
-    case 5: case 6: case 7: return 4;    // miINT32, miUINT32, miSINGLE
-    case 9: case 12: case 13: return 8;  // miDOUBLE, miINT64, miUINT64
-    default: return 0;
+    case 1:
+    case 2:
+      return 1;  // miINT8, miUINT8
+    case 3:
+    case 4:
+      return 2;  // miINT16, miUINT16
+    case 5:
+    case 6:
+    case 7:
+      return 4;  // miINT32, miUINT32, miSINGLE
+    case 9:
+    case 12:
+    case 13:
+      return 8;  // miDOUBLE, miINT64, miUINT64
+    default:
+      return 0;
   }
 }
 
@@ -105,7 +116,8 @@ std::string inflate_element(const unsigned char* p, uint64_t n, uint64_t limit, 
     rc = inflate(&z, Z_NO_FLUSH);
     if (rc != Z_OK && rc != Z_STREAM_END) {
       inflateEnd(&z);
-      throw Error(path, "damaged .mat file: a compressed variable does not inflate (zlib error " + std::to_string(rc) + ")");
+      throw Error(path,
+                  "damaged .mat file: a compressed variable does not inflate (zlib error " + std::to_string(rc) + ")");
     }
     out.append(reinterpret_cast<char*>(chunk.data()), chunk.size() - z.avail_out);
     if (out.size() > limit) {
@@ -148,8 +160,9 @@ void check_mat5_sizes(const std::string& bytes, const std::filesystem::path& pat
   const auto* p = reinterpret_cast<const unsigned char*>(bytes.data());
   const uint16_t version = p[124] | p[125] << 8;
   if (version == 0x0200) return;  // v7.3: an HDF5 file (its own checks)
-  require(p[126] == 'I' && p[127] == 'M', path,
-          "not a little-endian MATLAB v5 .mat file (flatnet reads v5 and v7.3 files written on little-endian machines)");
+  require(
+      p[126] == 'I' && p[127] == 'M', path,
+      "not a little-endian MATLAB v5 .mat file (flatnet reads v5 and v7.3 files written on little-endian machines)");
   for (uint64_t at = 128; at < bytes.size();) {
     uint64_t used = 0;
     check_element(p + at, bytes.size() - at, path, false, used);

@@ -67,13 +67,20 @@ void read_options(const Config& c, const std::vector<OptionField<S>>& fields, S&
         [&](auto member) {
           using T = std::decay_t<decltype(s.*member)>;
           const auto key = prefix + f.key;
-          if constexpr (std::is_same_v<T, double>) s.*member = c.num(key);
-          else if constexpr (std::is_same_v<T, int64_t>) s.*member = c.integer(key);
-          else if constexpr (std::is_same_v<T, int>) s.*member = static_cast<int>(c.integer(key));
-          else if constexpr (std::is_same_v<T, uint64_t>) s.*member = static_cast<uint64_t>(c.integer(key));
-          else if constexpr (std::is_same_v<T, bool>) s.*member = c.flag(key);
-          else if constexpr (std::is_same_v<T, std::string>) s.*member = c.str(key);
-          else s.*member = c.path(key);
+          if constexpr (std::is_same_v<T, double>)
+            s.*member = c.num(key);
+          else if constexpr (std::is_same_v<T, int64_t>)
+            s.*member = c.integer(key);
+          else if constexpr (std::is_same_v<T, int>)
+            s.*member = static_cast<int>(c.integer(key));
+          else if constexpr (std::is_same_v<T, uint64_t>)
+            s.*member = static_cast<uint64_t>(c.integer(key));
+          else if constexpr (std::is_same_v<T, bool>)
+            s.*member = c.flag(key);
+          else if constexpr (std::is_same_v<T, std::string>)
+            s.*member = c.str(key);
+          else
+            s.*member = c.path(key);
         },
         f.member);
 }

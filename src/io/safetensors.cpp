@@ -21,10 +21,10 @@ struct DtypeName {
   const char* name;
   c10::ScalarType type;
 };
-constexpr DtypeName kDtypes[] = {
-    {"F64", torch::kFloat64}, {"F32", torch::kFloat32}, {"BF16", torch::kBFloat16}, {"F16", torch::kFloat16},
-    {"I64", torch::kInt64},   {"I32", torch::kInt32},   {"I16", torch::kInt16},     {"I8", torch::kInt8},
-    {"U8", torch::kUInt8},    {"BOOL", torch::kBool}};
+constexpr DtypeName kDtypes[] = {{"F64", torch::kFloat64}, {"F32", torch::kFloat32}, {"BF16", torch::kBFloat16},
+                                 {"F16", torch::kFloat16}, {"I64", torch::kInt64},   {"I32", torch::kInt32},
+                                 {"I16", torch::kInt16},   {"I8", torch::kInt8},     {"U8", torch::kUInt8},
+                                 {"BOOL", torch::kBool}};
 
 const char* dtype_name(c10::ScalarType t) {
   for (const auto& d : kDtypes)
@@ -170,7 +170,8 @@ std::string safetensors_bytes(const std::vector<std::pair<std::string, torch::Te
       throw Error("safetensors writer: tensor name '" + name + "' is empty, reserved or given twice");
     auto c = t.detach().to(torch::kCPU).contiguous();
     const uint64_t n = c.nbytes();
-    header[name] = {{"dtype", dtype_name(c.scalar_type())}, {"shape", c.sizes().vec()}, {"data_offsets", {offset, offset + n}}};
+    header[name] = {
+        {"dtype", dtype_name(c.scalar_type())}, {"shape", c.sizes().vec()}, {"data_offsets", {offset, offset + n}}};
     offset += n;
     data.push_back(c);
   }
@@ -229,18 +230,17 @@ SafeTensors parse_safetensors(const std::string& bytes, const std::filesystem::p
     entries.push_back(parse_entry(name, v, path));
   }
   // The entries must tile the buffer exactly: no holes, no overlaps, nothing past the end.
-  std::sort(entries.begin(), entries.end(), [](const Entry& a, const Entry& b) {
-    return a.begin != b.begin ? a.begin < b.begin : a.end < b.end;
-  });
+  std::sort(entries.begin(), entries.end(),
+            [](const Entry& a, const Entry& b) { return a.begin != b.begin ? a.begin < b.begin : a.end < b.end; });
   const uint64_t buffer = bytes.size() - 8 - n;
   uint64_t at = 0;
   for (const auto& e : entries) {
     if (e.begin != at)
-      throw Error(path, "tensor '" + e.name + "' starts at byte " + std::to_string(e.begin) + " of the buffer, expected " +
-                            std::to_string(at) + " (holes or overlapping tensors)");
+      throw Error(path, "tensor '" + e.name + "' starts at byte " + std::to_string(e.begin) +
+                            " of the buffer, expected " + std::to_string(at) + " (holes or overlapping tensors)");
     if (e.end > buffer)
-      throw Error(path, "truncated: tensor '" + e.name + "' ends at byte " + std::to_string(e.end) +
-                            " of a " + std::to_string(buffer) + "-byte buffer");
+      throw Error(path, "truncated: tensor '" + e.name + "' ends at byte " + std::to_string(e.end) + " of a " +
+                            std::to_string(buffer) + "-byte buffer");
     at = e.end;
   }
   if (at != buffer)
@@ -248,7 +248,8 @@ SafeTensors parse_safetensors(const std::string& bytes, const std::filesystem::p
   const char* data = bytes.data() + 8 + n;
   if (const auto crc = out.metadata.find(kCrcKey); crc != out.metadata.end()) {
     if (crc->second != buffer_crc32(data, buffer))
-      throw Error(path, "damaged file: its tensors fail the CRC-32 the file records (the bytes changed after it was written)");
+      throw Error(
+          path, "damaged file: its tensors fail the CRC-32 the file records (the bytes changed after it was written)");
     out.metadata.erase(crc);
   }
   for (const auto& e : entries) out.tensors.emplace_back(e.name, tensor_from(e, data, path));

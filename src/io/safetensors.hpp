@@ -24,7 +24,7 @@
 namespace flatnet {
 
 struct SafeTensors {
-  std::map<std::string, std::string> metadata;                // "__metadata__"
+  std::map<std::string, std::string> metadata;                 // "__metadata__"
   std::vector<std::pair<std::string, torch::Tensor>> tensors;  // in the buffer's order
 
   // The tensor of that name, or null.

@@ -280,22 +280,66 @@ void Unpickler::build(const PyRef& state) {
 
 // Pickle opcodes (Python's Lib/pickletools.py names them; protocols 0-5, those torch.save writes).
 enum PickleOp : unsigned char {
-  kProto = 0x80, kFrame = 0x95, kStop = '.', kMark = '(', kPop = '0', kPopMark = '1', kDup = '2',
-  kEmptyDict = '}', kEmptyList = ']', kEmptyTuple = ')', kEmptySet = 0x8f, kTuple = 't', kTuple1 = 0x85,
-  kTuple2 = 0x86, kTuple3 = 0x87, kList = 'l', kDict = 'd', kFrozenset = 0x91,
-  kBinput = 'q', kLongBinput = 'r', kMemoize = 0x94, kBinget = 'h', kLongBinget = 'j',
-  kBinint = 'J', kBinint1 = 'K', kBinint2 = 'M', kLong1 = 0x8a, kLong4 = 0x8b, kBinfloat = 'G', kNone = 'N',
-  kNewTrue = 0x88, kNewFalse = 0x89, kBinunicode = 'X', kShortBinunicode = 0x8c, kBinunicode8 = 0x8d,
-  kShortBinstring = 'U', kBinstring = 'T', kShortBinbytes = 'C', kBinbytes = 'B', kBinbytes8 = 0x8e,
-  kGlobal = 'c', kStackGlobal = 0x93, kReduce = 'R', kNewobj = 0x81, kNewobjEx = 0x92, kBuild = 'b',
-  kSetitem = 's', kSetitems = 'u', kAppend = 'a', kAppends = 'e', kAdditems = 0x90, kBinpersid = 'Q',
+  kProto = 0x80,
+  kFrame = 0x95,
+  kStop = '.',
+  kMark = '(',
+  kPop = '0',
+  kPopMark = '1',
+  kDup = '2',
+  kEmptyDict = '}',
+  kEmptyList = ']',
+  kEmptyTuple = ')',
+  kEmptySet = 0x8f,
+  kTuple = 't',
+  kTuple1 = 0x85,
+  kTuple2 = 0x86,
+  kTuple3 = 0x87,
+  kList = 'l',
+  kDict = 'd',
+  kFrozenset = 0x91,
+  kBinput = 'q',
+  kLongBinput = 'r',
+  kMemoize = 0x94,
+  kBinget = 'h',
+  kLongBinget = 'j',
+  kBinint = 'J',
+  kBinint1 = 'K',
+  kBinint2 = 'M',
+  kLong1 = 0x8a,
+  kLong4 = 0x8b,
+  kBinfloat = 'G',
+  kNone = 'N',
+  kNewTrue = 0x88,
+  kNewFalse = 0x89,
+  kBinunicode = 'X',
+  kShortBinunicode = 0x8c,
+  kBinunicode8 = 0x8d,
+  kShortBinstring = 'U',
+  kBinstring = 'T',
+  kShortBinbytes = 'C',
+  kBinbytes = 'B',
+  kBinbytes8 = 0x8e,
+  kGlobal = 'c',
+  kStackGlobal = 0x93,
+  kReduce = 'R',
+  kNewobj = 0x81,
+  kNewobjEx = 0x92,
+  kBuild = 'b',
+  kSetitem = 's',
+  kSetitems = 'u',
+  kAppend = 'a',
+  kAppends = 'e',
+  kAdditems = 0x90,
+  kBinpersid = 'Q',
 };
 
 PyRef Unpickler::run() {
   while (true) {
     const auto op = static_cast<unsigned char>(*take(1));
     if (op == kStop) {
-      if (stack_.size() != 1 || !marks_.empty()) fail("malformed: STOP with " + std::to_string(stack_.size()) + " values");
+      if (stack_.size() != 1 || !marks_.empty())
+        fail("malformed: STOP with " + std::to_string(stack_.size()) + " values");
       return stack_.back();
     }
     if (stack_and_memo_op(op) || value_op(op) || object_op(op)) continue;
@@ -309,17 +353,39 @@ PyRef Unpickler::run() {
 // Framing, marks, containers built from the stack, the memo, POP and DUP.
 bool Unpickler::stack_and_memo_op(unsigned char op) {
   switch (op) {
-    case kProto: take(1); return true;
-    case kFrame: take(8); return true;  // the frame's bytes follow inline
-    case kMark: marks_.push_back(stack_.size()); return true;
-    case kPop: pop(); return true;
-    case kPopMark: pop_to_mark(); return true;
-    case kDup: stack_.push_back(top()); return true;
-    case kEmptyDict: stack_.push_back(make(Kind::dict)); return true;
-    case kEmptyList: stack_.push_back(make(Kind::list)); return true;
-    case kEmptyTuple: stack_.push_back(tuple({})); return true;
-    case kEmptySet: stack_.push_back(make(Kind::list)); return true;  // a set is kept as a list
-    case kTuple: stack_.push_back(tuple(pop_to_mark())); return true;
+    case kProto:
+      take(1);
+      return true;
+    case kFrame:
+      take(8);
+      return true;  // the frame's bytes follow inline
+    case kMark:
+      marks_.push_back(stack_.size());
+      return true;
+    case kPop:
+      pop();
+      return true;
+    case kPopMark:
+      pop_to_mark();
+      return true;
+    case kDup:
+      stack_.push_back(top());
+      return true;
+    case kEmptyDict:
+      stack_.push_back(make(Kind::dict));
+      return true;
+    case kEmptyList:
+      stack_.push_back(make(Kind::list));
+      return true;
+    case kEmptyTuple:
+      stack_.push_back(tuple({}));
+      return true;
+    case kEmptySet:
+      stack_.push_back(make(Kind::list));
+      return true;  // a set is kept as a list
+    case kTuple:
+      stack_.push_back(tuple(pop_to_mark()));
+      return true;
     case kTuple1: {
       auto a = pop();
       stack_.push_back(tuple({a}));
@@ -335,17 +401,27 @@ bool Unpickler::stack_and_memo_op(unsigned char op) {
       stack_.push_back(tuple({a, b, c}));
       return true;
     }
-    case kList: stack_.push_back(list(pop_to_mark())); return true;
-    case kFrozenset: stack_.push_back(list(pop_to_mark())); return true;
+    case kList:
+      stack_.push_back(list(pop_to_mark()));
+      return true;
+    case kFrozenset:
+      stack_.push_back(list(pop_to_mark()));
+      return true;
     case kDict: {
       auto d = make(Kind::dict);
       set_items(d, pop_to_mark());
       stack_.push_back(d);
       return true;
     }
-    case kBinput: memo_[uint_le(1)] = top(); return true;
-    case kLongBinput: memo_[uint_le(4)] = top(); return true;
-    case kMemoize: memo_[memo_.size()] = top(); return true;
+    case kBinput:
+      memo_[uint_le(1)] = top();
+      return true;
+    case kLongBinput:
+      memo_[uint_le(4)] = top();
+      return true;
+    case kMemoize:
+      memo_[memo_.size()] = top();
+      return true;
     case kBinget:
     case kLongBinget: {
       const auto k = uint_le(op == kBinget ? 1 : 4);
@@ -354,7 +430,8 @@ bool Unpickler::stack_and_memo_op(unsigned char op) {
       stack_.push_back(it->second);
       return true;
     }
-    default: return false;
+    default:
+      return false;
   }
 }
 
@@ -386,11 +463,19 @@ bool Unpickler::value_op(unsigned char op) {
     return true;
   };
   switch (op) {
-    case kBinint: stack_.push_back(make_int(static_cast<int32_t>(uint_le(4)))); return true;
-    case kBinint1: stack_.push_back(make_int(static_cast<int64_t>(uint_le(1)))); return true;
-    case kBinint2: stack_.push_back(make_int(static_cast<int64_t>(uint_le(2)))); return true;
+    case kBinint:
+      stack_.push_back(make_int(static_cast<int32_t>(uint_le(4))));
+      return true;
+    case kBinint1:
+      stack_.push_back(make_int(static_cast<int64_t>(uint_le(1))));
+      return true;
+    case kBinint2:
+      stack_.push_back(make_int(static_cast<int64_t>(uint_le(2))));
+      return true;
     case kLong1:
-    case kLong4: stack_.push_back(long_integer(uint_le(op == kLong1 ? 1 : 4))); return true;
+    case kLong4:
+      stack_.push_back(long_integer(uint_le(op == kLong1 ? 1 : 4)));
+      return true;
     case kBinfloat: {  // big-endian IEEE double
       const auto* p = reinterpret_cast<const unsigned char*>(take(8));
       uint64_t bits = 0;
@@ -400,7 +485,9 @@ bool Unpickler::value_op(unsigned char op) {
       stack_.push_back(v);
       return true;
     }
-    case kNone: stack_.push_back(make(Kind::none)); return true;
+    case kNone:
+      stack_.push_back(make(Kind::none));
+      return true;
     case kNewTrue:
     case kNewFalse: {
       auto v = make(Kind::boolean);
@@ -408,15 +495,24 @@ bool Unpickler::value_op(unsigned char op) {
       stack_.push_back(v);
       return true;
     }
-    case kShortBinunicode: return text(Kind::string, 1);
-    case kBinunicode: return text(Kind::string, 4);
-    case kBinunicode8: return text(Kind::string, 8);
-    case kShortBinstring: return text(Kind::string, 1);
-    case kBinstring: return text(Kind::string, 4);
-    case kShortBinbytes: return text(Kind::bytes, 1);
-    case kBinbytes: return text(Kind::bytes, 4);
-    case kBinbytes8: return text(Kind::bytes, 8);
-    default: return false;
+    case kShortBinunicode:
+      return text(Kind::string, 1);
+    case kBinunicode:
+      return text(Kind::string, 4);
+    case kBinunicode8:
+      return text(Kind::string, 8);
+    case kShortBinstring:
+      return text(Kind::string, 1);
+    case kBinstring:
+      return text(Kind::string, 4);
+    case kShortBinbytes:
+      return text(Kind::bytes, 1);
+    case kBinbytes:
+      return text(Kind::bytes, 4);
+    case kBinbytes8:
+      return text(Kind::bytes, 8);
+    default:
+      return false;
   }
 }
 
@@ -448,14 +544,19 @@ bool Unpickler::object_op(unsigned char op) {
       stack_.push_back(obj);
       return true;
     }
-    case kNewobjEx: fail("refuses NEWOBJ_EX: the file constructs a class instance");
-    case kBuild: build(pop()); return true;
+    case kNewobjEx:
+      fail("refuses NEWOBJ_EX: the file constructs a class instance");
+    case kBuild:
+      build(pop());
+      return true;
     case kSetitem: {
       auto v = pop(), k = pop();
       set_items(top(), {k, v});
       return true;
     }
-    case kSetitems: set_items(top(), pop_to_mark()); return true;
+    case kSetitems:
+      set_items(top(), pop_to_mark());
+      return true;
     case kAppend: {
       auto v = pop();
       if (top()->kind != Kind::list) fail("malformed: APPEND to a " + top()->describe());
@@ -478,7 +579,8 @@ bool Unpickler::object_op(unsigned char op) {
       stack_.push_back(persistent_(pid));
       return true;
     }
-    default: return false;
+    default:
+      return false;
   }
 }
 
@@ -891,7 +993,8 @@ bool verify_zip_crcs(const std::filesystem::path& path) {
                                                  name.find("/data/") != std::string::npos);
     // LibTorch's reader inflates the archive's version record itself when it opens the file, into a
     // buffer of the size the entry declares (a bomb declares 1 GiB); a version is a few digits.
-    const bool version_record = name == "version" || (name.size() > 8 && name.compare(name.size() - 8, 8, "/version") == 0);
+    const bool version_record =
+        name == "version" || (name.size() > 8 && name.compare(name.size() - 8, 8, "/version") == 0);
     const uint64_t declared = uncompressed32 == 0xFFFFFFFF ? ~uint64_t{0} : uncompressed32;
     if (version_record && (declared > 64 || compressed > 4096))
       throw Error(path, "zip entry '" + name + "' claims " + std::to_string(declared) +

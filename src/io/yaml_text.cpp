@@ -34,9 +34,9 @@ void check_keys(const YAML::Node& node, const std::filesystem::path& where, int 
 }  // namespace
 
 YAML::Node parse_yaml_document(const std::string& text, const std::filesystem::path& where) {
-  require(text.size() <= kMaxYamlBytes, where,
-          "YAML text of " + std::to_string(text.size()) + " bytes is over the limit of " +
-              std::to_string(kMaxYamlBytes));
+  require(
+      text.size() <= kMaxYamlBytes, where,
+      "YAML text of " + std::to_string(text.size()) + " bytes is over the limit of " + std::to_string(kMaxYamlBytes));
   std::vector<YAML::Node> documents;
   try {
     documents = YAML::LoadAll(text);

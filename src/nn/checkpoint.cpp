@@ -43,12 +43,9 @@ std::string save_optimizer(std::vector<std::pair<std::string, torch::Tensor>>& o
   nlohmann::json groups = nlohmann::json::array();
   for (auto& group : opt.param_groups()) {
     const auto& o = static_cast<const torch::optim::AdamOptions&>(group.options());
-    nlohmann::json g = {{"lr", o.lr()},
-                        {"betas", {std::get<0>(o.betas()), std::get<1>(o.betas())}},
-                        {"eps", o.eps()},
-                        {"weight_decay", o.weight_decay()},
-                        {"amsgrad", o.amsgrad()},
-                        {"params", nlohmann::json::array()}};
+    nlohmann::json g = {{"lr", o.lr()},           {"betas", {std::get<0>(o.betas()), std::get<1>(o.betas())}},
+                        {"eps", o.eps()},         {"weight_decay", o.weight_decay()},
+                        {"amsgrad", o.amsgrad()}, {"params", nlohmann::json::array()}};
     for (const auto& p : group.params()) {
       const auto name = names.at(p.unsafeGetTensorImpl());
       g["params"].push_back(name);
@@ -160,8 +157,8 @@ std::pair<Config, CameraConfig> training_settings(const Stored& s, const std::fi
   auto camera = detail::stored_model(s, path).second;
   if (const auto d = s.under("discriminator"); !d.empty()) {
     const auto it = d.find("convs.0.weight");
-    require(it != d.end() && it->second.dim() == 4 && it->second.size(0) == discriminator_options(config).width,
-            path, discriminator_key(&DiscriminatorOptions::width) + " disagrees with the discriminator's weights");
+    require(it != d.end() && it->second.dim() == 4 && it->second.size(0) == discriminator_options(config).width, path,
+            discriminator_key(&DiscriminatorOptions::width) + " disagrees with the discriminator's weights");
   }
   return {config, camera};
 }
@@ -169,8 +166,8 @@ std::pair<Config, CameraConfig> training_settings(const Stored& s, const std::fi
 }  // namespace
 
 void save_checkpoint(const std::filesystem::path& path, Generator& g, Discriminator& d, torch::optim::Adam& opt_g,
-                     torch::optim::Adam& opt_d, const TrainState& state, const ModelIdentity& identity,
-                     Generator* ema, const CheckpointCamera& camera) {
+                     torch::optim::Adam& opt_d, const TrainState& state, const ModelIdentity& identity, Generator* ema,
+                     const CheckpointCamera& camera) {
   std::vector<std::pair<std::string, torch::Tensor>> tensors;
   add_module(tensors, "generator", *g);
   if (ema) add_module(tensors, "generator_ema", **ema);

@@ -11,9 +11,9 @@
 namespace flatnet {
 
 struct TrainState {
-  int64_t step = 0;         // optimiser steps done
-  double best_psnr = -1e9;  // best validation PSNR so far
-  torch::Tensor rng_state;  // the default CPU generator's state
+  int64_t step = 0;                 // optimiser steps done
+  double best_psnr = -1e9;          // best validation PSNR so far
+  torch::Tensor rng_state;          // the default CPU generator's state
   bool optimizers_restored = true;  // false after loading a format-1 checkpoint (moments start afresh)
   double train_seconds = 0;         // wall-clock training time so far (train.minutes counts it)
   std::string run_id;               // the run that wrote it (16 hex digits; "" in older files)

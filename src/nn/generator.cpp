@@ -38,8 +38,8 @@ torch::Tensor first_stage_product(const torch::Tensor& L, const torch::Tensor& Y
   const bool onednn = Y.is_cpu() && Y.scalar_type() == torch::kFloat32 && L.scalar_type() == torch::kFloat32 &&
                       R.scalar_type() == torch::kFloat32 && Y.dim() == 3;
   if (!onednn) return torch::matmul(L.transpose(1, 2), torch::matmul(Y, R));
-  const auto YR = onednn_matmul_autograd(Y.contiguous(), R.contiguous());          // {4,rows,m}
-  return onednn_matmul_autograd(L.transpose(1, 2).contiguous(), YR);               // {4,n,m}
+  const auto YR = onednn_matmul_autograd(Y.contiguous(), R.contiguous());  // {4,rows,m}
+  return onednn_matmul_autograd(L.transpose(1, 2).contiguous(), YR);       // {4,n,m}
 }
 
 }  // namespace
@@ -53,7 +53,7 @@ torch::Tensor FlatInversionImpl::forward_crops(const torch::Tensor& Y,
     const auto [r0, c0] = corners[b];
     // Rows r0..r0+size of X = L^T Y R need only those columns of L (and likewise for R).
     const auto Lb = L.slice(2, r0, r0 + size), Rb = R.slice(2, c0, c0 + size);  // {k,rows,s}, {k,cols,s}
-    out.push_back(first_stage_product(Lb, Y[b], Rb));  // {4,s,s}
+    out.push_back(first_stage_product(Lb, Y[b], Rb));                           // {4,s,s}
   }
   return torch::leaky_relu(torch::stack(out), negative_slope_).flip({1});
 }
@@ -438,7 +438,7 @@ struct NAFBlockImpl : nn::Module {
     beta = register_parameter("beta", torch::zeros({1, c, 1, 1}));
     gamma = register_parameter("gamma", torch::zeros({1, c, 1, 1}));
   }
-  torch::Tensor forward(const torch::Tensor& in) {  // {B,c,H,W}
+  torch::Tensor forward(const torch::Tensor& in) {                             // {B,c,H,W}
     auto x = simple_gate(conv2->forward(conv1->forward(norm1->forward(in))));  // {B,c,H,W}
     x = conv3->forward(x * sca->forward(x));
     const auto y = in + x * beta;
@@ -629,8 +629,8 @@ torch::Tensor GeneratorImpl::enhance(const torch::Tensor& first, const torch::Te
     // bf16 autocast covers BN and the enhancer only; the first stage ran in fp32 before it.
     AutocastGuard autocast(autocast_bf16_ && !levers_.bf16);
     const Bf16KernelScope bf16_kernels(levers_.bf16);  // bf16 weights: kernels that run them here
-    auto x = bn_->forward(first);  // {B,4,H,W}
-    if (level.defined())           // {B,8,H,W}: the level as four constant channels
+    auto x = bn_->forward(first);                      // {B,4,H,W}
+    if (level.defined())                               // {B,8,H,W}: the level as four constant channels
       x = torch::cat({x, level.to(x.scalar_type()).expand({-1, -1, x.size(2), x.size(3)})}, 1);
     if (levers_.self_ensemble && !is_training()) return self_ensemble(x);
     if (levers_.channels_last) x = x.contiguous(at::MemoryFormat::ChannelsLast);
@@ -654,12 +654,13 @@ torch::Tensor flip_ensemble(const std::function<torch::Tensor(const torch::Tenso
 torch::Tensor GeneratorImpl::self_ensemble(const torch::Tensor& x) {  // {B,C,H,W} -> {B,3,H,W} in [0,1]
   // The level channels are constant over the image, so the flips leave them as they are.
   return flip_ensemble(
-      [this](const torch::Tensor& batch) {  // {4B,C,H,W}
-        auto in = levers_.channels_last ? batch.contiguous(at::MemoryFormat::ChannelsLast) : batch;
-        if (levers_.bf16) in = in.to(torch::kBFloat16);
-        return torch::sigmoid(enhancer_.forward<torch::Tensor>(in).to(torch::kFloat32));  // images, then averaged
-      },
-      x)
+             [this](const torch::Tensor& batch) {  // {4B,C,H,W}
+               auto in = levers_.channels_last ? batch.contiguous(at::MemoryFormat::ChannelsLast) : batch;
+               if (levers_.bf16) in = in.to(torch::kBFloat16);
+               return torch::sigmoid(
+                   enhancer_.forward<torch::Tensor>(in).to(torch::kFloat32));  // images, then averaged
+             },
+             x)
       .contiguous();
 }
 
@@ -733,8 +734,8 @@ InferenceLevers parse_inference_levers(const std::string& s) {
     else if (item == "onednn")
       l.onednn = true;
     else
-      throw Error(option_key("infer.levers") + ": expected none or a list of fold, channels-last, gemm-up, bf16, onednn; got '" + item +
-                  "'");
+      throw Error(option_key("infer.levers") +
+                  ": expected none or a list of fold, channels-last, gemm-up, bf16, onednn; got '" + item + "'");
   }
   return l;
 }

@@ -142,10 +142,10 @@ TORCH_MODULE(RCAN);
 // decoders, ending), without its input residual (the output has other channels than the input).
 struct NAFNetOptions {
   int64_t in_channels = 4, out_channels = 3;
-  int64_t width = 16;                 // first level's channels; 2x per level down
-  int64_t enc_blocks = 1;             // NAFBlocks per encoder level (the paper: 1, 1, 1, 28 at width 32)
-  int64_t middle_blocks = 1;          // at the lowest resolution
-  int64_t dec_blocks = 1;             // per decoder level
+  int64_t width = 16;         // first level's channels; 2x per level down
+  int64_t enc_blocks = 1;     // NAFBlocks per encoder level (the paper: 1, 1, 1, 28 at width 32)
+  int64_t middle_blocks = 1;  // at the lowest resolution
+  int64_t dec_blocks = 1;     // per decoder level
 };
 class NAFNetImpl : public torch::nn::Module {
  public:
@@ -175,8 +175,8 @@ enum class Enhancer { unet, dncnn, rcan, nafnet };
 struct GeneratorOptions {
   InputStage input = InputStage::inversion;
   PreprocessorOptions preprocessor;  // on the planes, before the first stage (width 0: none)
-  InversionOptions inversion;  // input == inversion
-  torch::Tensor tik_P, tik_Q;  // input == tikhonov: calibration {4,rows,N},{4,cols,N}
+  InversionOptions inversion;        // input == inversion
+  torch::Tensor tik_P, tik_Q;        // input == tikhonov: calibration {4,rows,N},{4,cols,N}
   double tik_lambda = 1e-4;
   int64_t rows = 500, cols = 620, scene = 256;  // measurement and scene sizes (for shape checks)
   Enhancer enhancer = Enhancer::unet;

@@ -162,7 +162,7 @@ torch::Tensor srgb_to_lab(const torch::Tensor& rgb_in) {
   const auto linear = torch::where(rgb <= 0.04045, rgb / 12.92, ((rgb + 0.055) / 1.055).pow(2.4));
   // (the matrix of skimage.color and of sRGB's original specification)
   const auto m = torch::tensor({0.412453f / 0.95047f, 0.357580f / 0.95047f, 0.180423f / 0.95047f,  //
-                                0.212671f, 0.715160f, 0.072169f,                                //
+                                0.212671f, 0.715160f, 0.072169f,                                   //
                                 0.019334f / 1.08883f, 0.119193f / 1.08883f, 0.950227f / 1.08883f})
                      .view({3, 3});
   const auto xyz = torch::einsum("ij,bjhw->bihw", {m, linear});
@@ -192,8 +192,8 @@ torch::Tensor stripe_loss(const torch::Tensor& x_in, const torch::Tensor& y_in) 
   AutocastOffGuard fp32;
   // fp32 at least (float64 stays: eval's stripe_energy scores through this).
   const auto type = x_in.scalar_type() == torch::kFloat64 ? torch::kFloat64 : torch::kFloat32;
-  const auto error = x_in.to(type) - y_in.to(type);  // {B,C,H,W}
-  auto less_trend = [](const torch::Tensor& profile) {                       // {B,C,L}
+  const auto error = x_in.to(type) - y_in.to(type);     // {B,C,H,W}
+  auto less_trend = [](const torch::Tensor& profile) {  // {B,C,L}
     // Padding not counted: the window shrinks at the ends.
     return profile - torch::avg_pool1d(profile, {15}, {1}, {7}, /*ceil_mode=*/false, /*count_include_pad=*/false);
   };

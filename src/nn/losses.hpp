@@ -66,7 +66,8 @@ torch::Tensor perceptual_loss(Vgg16Features& vgg, const torch::Tensor& x, const 
 // Feature matching (pix2pixHD, Wang et al. 2018, eq. 4): the mean over the discriminator's layers of
 // the L1 distance between the features of x and of y. The discriminator's weights get no gradient
 // from it (the caller freezes them); x does. With `bf16`, the discriminator runs under autocast.
-torch::Tensor feature_matching_loss(Discriminator& d, const torch::Tensor& x, const torch::Tensor& y, bool bf16 = false);
+torch::Tensor feature_matching_loss(Discriminator& d, const torch::Tensor& x, const torch::Tensor& y,
+                                    bool bf16 = false);
 
 // Focal frequency loss (Jiang et al., ICCV 2021, eq. 2-4, alpha = 1): the squared distance of the
 // orthonormal 2-D spectra, each frequency weighted by its own distance (square root, normalised to

@@ -20,8 +20,8 @@ struct ConvSpec {
 const ConvSpec kPool{0, 0, 0, 0};
 
 // torchvision.models.alexnet().features[0:12] (the last max pool is not used by LPIPS).
-const std::vector<ConvSpec> kAlexNet = {{64, 11, 4, 2}, kPool, {192, 5, 1, 2}, kPool, {384, 3, 1, 1}, {256, 3, 1, 1},
-                                        {256, 3, 1, 1}};
+const std::vector<ConvSpec> kAlexNet = {{64, 11, 4, 2}, kPool,          {192, 5, 1, 2}, kPool,
+                                        {384, 3, 1, 1}, {256, 3, 1, 1}, {256, 3, 1, 1}};
 // torchvision.models.vgg16().features[0:30] (cfg "D" without its last pool).
 const std::vector<ConvSpec> kVgg16 = {{64, 3, 1, 1},  {64, 3, 1, 1},  kPool,          {128, 3, 1, 1}, {128, 3, 1, 1},
                                       kPool,          {256, 3, 1, 1}, {256, 3, 1, 1}, {256, 3, 1, 1}, kPool,
@@ -34,7 +34,8 @@ const std::vector<size_t> kAlexTaps = {1, 4, 7, 9, 11};
 const std::vector<size_t> kVggTaps = {3, 8, 15, 22, 29};
 
 std::filesystem::path torch_hub_checkpoints() {
-  if (const char* home = std::getenv("TORCH_HOME"); home && *home) return std::filesystem::path(home) / "hub" / "checkpoints";
+  if (const char* home = std::getenv("TORCH_HOME"); home && *home)
+    return std::filesystem::path(home) / "hub" / "checkpoints";
   if (const char* xdg = std::getenv("XDG_CACHE_HOME"); xdg && *xdg)
     return std::filesystem::path(xdg) / "torch" / "hub" / "checkpoints";
   if (const char* home = std::getenv("HOME"); home && *home)
@@ -49,7 +50,8 @@ std::filesystem::path first_match(const std::filesystem::path& dir, const std::s
   std::vector<std::filesystem::path> found;
   for (const auto& e : std::filesystem::directory_iterator(dir, ec)) {
     const auto name = e.path().filename().string();
-    if (e.is_regular_file(ec) && name.rfind(prefix, 0) == 0 && e.path().extension() == ".pth") found.push_back(e.path());
+    if (e.is_regular_file(ec) && name.rfind(prefix, 0) == 0 && e.path().extension() == ".pth")
+      found.push_back(e.path());
   }
   std::sort(found.begin(), found.end());
   return found.empty() ? std::filesystem::path() : found.front();
@@ -102,8 +104,8 @@ LpipsFiles find_lpips_files(LpipsBackbone backbone, const std::filesystem::path&
   throw Error(dirs.front(), "LPIPS (" + lpips_backbone_name(backbone) + ") needs two files, " +
                                 (files.backbone.empty() ? "missing " : "found ") + "torchvision's " + prefix +
                                 "*.pth (" + (alex ? "alexnet-owt-7be5be79.pth" : "vgg16-397923af.pth") +
-                                ", from download.pytorch.org/models/) and " + (files.linear.empty() ? "missing " : "found ") +
-                                "the lpips package's " + linear_name +
+                                ", from download.pytorch.org/models/) and " +
+                                (files.linear.empty() ? "missing " : "found ") + "the lpips package's " + linear_name +
                                 " (lpips/weights/v0.1/ in pip's lpips or github.com/richzhang/PerceptualSimilarity); "
                                 "put them in one of: " +
                                 where);
@@ -155,8 +157,8 @@ torch::Tensor LpipsImpl::forward(const torch::Tensor& x, const torch::Tensor& y)
   auto unit = [](const torch::Tensor& f) { return f / (f.pow(2).sum(1, true).sqrt() + 1e-10); };
   torch::Tensor d = torch::zeros({x.size(0)});
   for (size_t l = 0; l < fx.size(); ++l) {
-    const auto diff = (unit(fx[l]) - unit(fy[l])).pow(2);                   // {B,C,h,w}
-    d = d + torch::conv2d(diff, linear_[l]).mean({1, 2, 3});                // 1x1 conv, spatial mean
+    const auto diff = (unit(fx[l]) - unit(fy[l])).pow(2);     // {B,C,h,w}
+    d = d + torch::conv2d(diff, linear_[l]).mean({1, 2, 3});  // 1x1 conv, spatial mean
   }
   return d;
 }

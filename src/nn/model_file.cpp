@@ -31,9 +31,12 @@ std::string ModelFile::recorded(const std::string& key) const {
 std::filesystem::path ModelFile::recorded_camera() const { return recorded("data.camera"); }
 
 std::vector<std::pair<std::string, std::string Provenance::*>> provenance_fields() {
-  return {{"trained_steps", &Provenance::trained_steps}, {"train_seconds", &Provenance::train_seconds},
-          {"best_val_psnr", &Provenance::best_val_psnr}, {"written_at", &Provenance::written_at},
-          {"written_on", &Provenance::written_on},       {"source", &Provenance::source},
+  return {{"trained_steps", &Provenance::trained_steps},
+          {"train_seconds", &Provenance::train_seconds},
+          {"best_val_psnr", &Provenance::best_val_psnr},
+          {"written_at", &Provenance::written_at},
+          {"written_on", &Provenance::written_on},
+          {"source", &Provenance::source},
           {"scores", &Provenance::scores}};
 }
 
@@ -85,7 +88,8 @@ void init_generator_from(const std::filesystem::path& model, Generator& g, Gener
   };
   if (part == GeneratorPart::enhancer)
     require(m.generator->options().input == g->options().input, model,
-            "its first stage (model.input) differs from this config's; " + option_key("experiment.reinit") + " inversion keeps the stage's kind");
+            "its first stage (model.input) differs from this config's; " + option_key("experiment.reinit") +
+                " inversion keeps the stage's kind");
   std::set<std::string> taken;  // the file's tensors this config's model takes
   detail::fill_module(*g, model, "weight", [&](const std::string& name, bool buffer) {
     taken.insert(name);
@@ -121,7 +125,8 @@ void init_generator_from(const std::filesystem::path& model, Generator& g, Gener
     throw Error(model, "has " + std::to_string(dropped.size()) + " weights this config's model has no place for ('" +
                            printable(dropped.front()) + "'" + (dropped.size() > 1 ? ", ..." : "") +
                            "): its architecture differs (model.preprocessor, model.input, model.enhancer); set the "
-                           "same model settings as the file's (flatnet info " + model.string() + ")");
+                           "same model settings as the file's (flatnet info " +
+                           model.string() + ")");
 }
 
 void transfer_inversion(const std::filesystem::path& source, const CalibrationPair& c, double lambda, Generator& g) {
@@ -151,8 +156,9 @@ void transfer_inversion(const std::filesystem::path& source, const CalibrationPa
     return torch::stack(out, 2).to(torch::kFloat32);
   };
   const int64_t k = new_l->size(2);
-  require(old_l->size(2) == k, source, "its inversion is " + std::string(k == 1 ? "per channel" : "shared") +
-                                           ", this config's is not (model.inversion.shared)");
+  require(old_l->size(2) == k, source,
+          "its inversion is " + std::string(k == 1 ? "per channel" : "shared") +
+              ", this config's is not (model.inversion.shared)");
   shared_channel = channel_index(m.spec.inversion_channel);
   torch::NoGradGuard no_grad;
   new_l->copy_(side(*old_l, c.P_old, c.P_new, k));

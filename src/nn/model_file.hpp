@@ -24,24 +24,24 @@ namespace flatnet {
 // Where a model file came from, beside its weights (metadata strings; empty when not known, as in
 // files from before 2026-11-24 or imported state dicts). `flatnet info` prints them.
 struct Provenance {
-  std::string trained_steps;   // optimiser steps, "12000"
-  std::string train_seconds;   // wall-clock training time, "14400.5"
-  std::string best_val_psnr;   // the run's best validation PSNR (dB; validation split, not held-out)
-  std::string written_at;      // UTC, ISO 8601: "2026-11-24T05:52:00Z"
-  std::string written_on;      // the CPU that wrote it ("AMD EPYC ...; avx512f avx512_bf16")
-  std::string source;          // what it was made from: "checkpoint latest.ckpt (moving average)"
-  std::string scores;          // held-out scores, JSON {"SET": {"images": N, "psnr": ..., ...}}
+  std::string trained_steps;  // optimiser steps, "12000"
+  std::string train_seconds;  // wall-clock training time, "14400.5"
+  std::string best_val_psnr;  // the run's best validation PSNR (dB; validation split, not held-out)
+  std::string written_at;     // UTC, ISO 8601: "2026-11-24T05:52:00Z"
+  std::string written_on;     // the CPU that wrote it ("AMD EPYC ...; avx512f avx512_bf16")
+  std::string source;         // what it was made from: "checkpoint latest.ckpt (moving average)"
+  std::string scores;         // held-out scores, JSON {"SET": {"images": N, "psnr": ..., ...}}
 };
 // Provenance's fields with their metadata keys, in the order `flatnet info` prints them.
 std::vector<std::pair<std::string, std::string Provenance::*>> provenance_fields();
 
 struct ModelFile {
   Generator generator{nullptr};
-  ModelSpec spec;      // what the weights are
+  ModelSpec spec;       // what the weights are
   CameraConfig camera;  // the preprocessing it was trained for
-  std::string recipe;  // the training config as recorded (YAML; a record, never read over defaults)
+  std::string recipe;   // the training config as recorded (YAML; a record, never read over defaults)
   std::map<std::string, std::string> recipe_values;  // the recipe by dotted key, parsed once when read
-  int format_version = 2;  // 1: a TorchScript archive from before 2026-11 (read as data)
+  int format_version = 2;                            // 1: a TorchScript archive from before 2026-11 (read as data)
   Provenance provenance;
 
   // A setting of the recorded training config as text (its data.camera -> the camera file's

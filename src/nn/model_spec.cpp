@@ -31,7 +31,8 @@ const std::vector<OptionField<ModelSpec>>& model_spec_fields() {
       // At full measurement size (500x620) each filter is a 1.2 MB plane per capture: 256 is 0.3 GB.
       {"preprocessor.width", &S::preprocessor_width, 0, 256, "0 (none) to 256 filters",
        "measurement-domain residual CNN before the first stage; 0: none"},
-      {"preprocessor.depth", &S::preprocessor_depth, 2, 64, "2 to 64 convolutions", "the pre-processor's 3x3 convolutions"},
+      {"preprocessor.depth", &S::preprocessor_depth, 2, 64, "2 to 64 convolutions",
+       "the pre-processor's 3x3 convolutions"},
       {"enhancer", &S::enhancer, 0, 0, "", "unet | dncnn | rcan | nafnet"},
       {"level_input", &S::level_input, 0, 0, "", "the enhancer also reads each plane's light level"},
       {"bn_momentum", &S::bn_momentum, 0, 1, "0 to 1", "BatchNorm momentum, PyTorch's convention"},
@@ -73,11 +74,16 @@ std::map<std::string, std::string> spec_values(const ModelSpec& spec) {
         [&](auto member) {
           using T = std::decay_t<decltype(spec.*member)>;
           auto& text = out[std::string("model.") + f.key];
-          if constexpr (std::is_same_v<T, double>) text = exact_text(spec.*member);
-          else if constexpr (std::is_same_v<T, bool>) text = spec.*member ? "true" : "false";
-          else if constexpr (std::is_same_v<T, std::string>) text = spec.*member;
-          else if constexpr (std::is_same_v<T, std::filesystem::path>) text = (spec.*member).string();
-          else text = std::to_string(spec.*member);
+          if constexpr (std::is_same_v<T, double>)
+            text = exact_text(spec.*member);
+          else if constexpr (std::is_same_v<T, bool>)
+            text = spec.*member ? "true" : "false";
+          else if constexpr (std::is_same_v<T, std::string>)
+            text = spec.*member;
+          else if constexpr (std::is_same_v<T, std::filesystem::path>)
+            text = (spec.*member).string();
+          else
+            text = std::to_string(spec.*member);
         },
         f.member);
   return out;
@@ -146,8 +152,9 @@ std::pair<torch::Tensor, torch::Tensor> initial_inversion(const ModelSpec& s, co
     const double scale = 1.0 / std::sqrt(static_cast<double>(rows));
     return {at::randn({rows, n, k}, gen) * scale, at::randn({cols, n, k}, gen) * scale};
   }
-  throw Error("config: model.inversion.init must be transpose, pinv, calibfree, flatnet-toeplitz, random or transfer, got '" +
-              init + "'");
+  throw Error(
+      "config: model.inversion.init must be transpose, pinv, calibfree, flatnet-toeplitz, random or transfer, got '" +
+      init + "'");
 }
 
 }  // namespace

@@ -18,19 +18,19 @@
 namespace flatnet {
 
 struct ModelSpec {
-  std::string input = "inversion";         // inversion (FlatNet) | tikhonov (the naive model)
-  std::string inversion_init = "transpose";  // transpose | pinv | calibfree | flatnet-toeplitz | random | transfer
-  bool inversion_shared = true;            // one W1/W2 pair for the four channels
-  std::string inversion_channel = "gb";    // calibration channel for a shared transpose or pinv start
-  double inversion_slope = 2.2;            // calibfree: shadow shift, sensor pixels per scene pixel
-  int64_t inversion_seed = 0;              // calibfree / random: seed of the pseudo-random matrices
-  double inversion_lambda = 1.0e-2;        // pinv, transfer: regulariser relative to s_max^2
+  std::string input = "inversion";                // inversion (FlatNet) | tikhonov (the naive model)
+  std::string inversion_init = "transpose";       // transpose | pinv | calibfree | flatnet-toeplitz | random | transfer
+  bool inversion_shared = true;                   // one W1/W2 pair for the four channels
+  std::string inversion_channel = "gb";           // calibration channel for a shared transpose or pinv start
+  double inversion_slope = 2.2;                   // calibfree: shadow shift, sensor pixels per scene pixel
+  int64_t inversion_seed = 0;                     // calibfree / random: seed of the pseudo-random matrices
+  double inversion_lambda = 1.0e-2;               // pinv, transfer: regulariser relative to s_max^2
   std::filesystem::path inversion_toeplitz_file;  // flatnet-toeplitz: phil_toep_slope22.mat
-  int64_t preprocessor_width = 0;          // measurement-domain pre-processor's filters (0: none)
-  int64_t preprocessor_depth = 2;          // its convolutions
-  std::string enhancer = "unet";           // unet | dncnn | rcan | nafnet
-  bool level_input = false;                // the enhancer also reads each plane's light level
-  double bn_momentum = 0.99;               // PyTorch convention (FlatNet: 0.99)
+  int64_t preprocessor_width = 0;                 // measurement-domain pre-processor's filters (0: none)
+  int64_t preprocessor_depth = 2;                 // its convolutions
+  std::string enhancer = "unet";                  // unet | dncnn | rcan | nafnet
+  bool level_input = false;                       // the enhancer also reads each plane's light level
+  double bn_momentum = 0.99;                      // PyTorch convention (FlatNet: 0.99)
   int64_t unet_width = 128;
   int64_t dncnn_layers = 19, dncnn_width = 64;
   int64_t nafnet_width = 16, nafnet_enc_blocks = 1, nafnet_middle_blocks = 1, nafnet_dec_blocks = 1;
@@ -42,7 +42,9 @@ const std::vector<OptionField<ModelSpec>>& model_spec_fields();
 
 // A model row's config key: model_key(&ModelSpec::unet_width) is "model.unet.width".
 template <class T>
-std::string model_key(T ModelSpec::*member) { return key_of(model_spec_fields(), member, "model."); }
+std::string model_key(T ModelSpec::*member) {
+  return key_of(model_spec_fields(), member, "model.");
+}
 
 // The spec a config's `model:` section describes (a value out of range or of the wrong kind: an
 // error naming the key).

@@ -327,7 +327,8 @@ class GeneratorGraph {
     };
     const auto centred = b_.op("Sub", {x, per_channel(reduce(x, "ln_mean"))}, "ln_centred");
     const auto var = reduce(b_.op("Mul", {centred, centred}, "ln_sq"), "ln_var");
-    const auto std = b_.op("Sqrt", {b_.op("Add", {var, b_.constant("ln_eps", torch::full({1}, 1e-6))}, "ln_v")}, "ln_std");
+    const auto std =
+        b_.op("Sqrt", {b_.op("Add", {var, b_.constant("ln_eps", torch::full({1}, 1e-6))}, "ln_v")}, "ln_std");
     const auto normed = b_.op("Div", {centred, per_channel(std)}, "ln_normed");
     const auto scaled = b_.op("Mul", {normed, b_.constant(name + "_w", ln->weight.view({1, -1, 1, 1}))}, "ln_scaled");
     return b_.op("Add", {scaled, b_.constant(name + "_b", ln->bias.view({1, -1, 1, 1}))}, "ln");
@@ -458,11 +459,25 @@ namespace {
 int64_t onnx_element_bytes(int type) {
   using T = onnx::TensorProto;
   switch (type) {
-    case T::FLOAT: case T::INT32: case T::UINT32: return 4;
-    case T::DOUBLE: case T::INT64: case T::UINT64: return 8;
-    case T::FLOAT16: case T::BFLOAT16: case T::INT16: case T::UINT16: return 2;
-    case T::INT8: case T::UINT8: case T::BOOL: return 1;
-    default: return 0;
+    case T::FLOAT:
+    case T::INT32:
+    case T::UINT32:
+      return 4;
+    case T::DOUBLE:
+    case T::INT64:
+    case T::UINT64:
+      return 8;
+    case T::FLOAT16:
+    case T::BFLOAT16:
+    case T::INT16:
+    case T::UINT16:
+      return 2;
+    case T::INT8:
+    case T::UINT8:
+    case T::BOOL:
+      return 1;
+    default:
+      return 0;
   }
 }
 
@@ -470,11 +485,17 @@ int64_t onnx_element_bytes(int type) {
 int64_t onnx_typed_count(const onnx::TensorProto& t) {
   using T = onnx::TensorProto;
   switch (t.data_type()) {
-    case T::FLOAT: return t.float_data_size();
-    case T::DOUBLE: return t.double_data_size();
-    case T::INT64: return t.int64_data_size();
-    case T::UINT32: case T::UINT64: return t.uint64_data_size();
-    default: return t.int32_data_size();  // INT32, INT16, INT8, UINT16, UINT8, BOOL, FLOAT16, BFLOAT16
+    case T::FLOAT:
+      return t.float_data_size();
+    case T::DOUBLE:
+      return t.double_data_size();
+    case T::INT64:
+      return t.int64_data_size();
+    case T::UINT32:
+    case T::UINT64:
+      return t.uint64_data_size();
+    default:
+      return t.int32_data_size();  // INT32, INT16, INT8, UINT16, UINT8, BOOL, FLOAT16, BFLOAT16
   }
 }
 
@@ -485,7 +506,8 @@ void check_onnx_tensor(const onnx::TensorProto& t, const std::filesystem::path& 
   require(t.data_location() != onnx::TensorProto::EXTERNAL && t.external_data_size() == 0, path,
           name + " keeps its data in another file; flatnet reads self-contained ONNX files only");
   const int64_t bytes_per = onnx_element_bytes(t.data_type());
-  require(bytes_per > 0, path, name + " has data type " + std::to_string(t.data_type()) + ", which flatnet's graphs never hold");
+  require(bytes_per > 0, path,
+          name + " has data type " + std::to_string(t.data_type()) + ", which flatnet's graphs never hold");
   int64_t numel = 1;
   for (const auto d : t.dims()) {
     require(d >= 0 && d <= (int64_t{1} << 31) && numel <= (int64_t{1} << 34) / std::max<int64_t>(d, 1), path,
@@ -503,8 +525,9 @@ void check_onnx_tensors(const onnx::GraphProto& g, const std::filesystem::path& 
   require(g.sparse_initializer_size() == 0, path, "holds sparse initializers, which flatnet's graphs never hold");
   for (const auto& node : g.node())
     for (const auto& a : node.attribute()) {
-      require(a.type() != onnx::AttributeProto::GRAPH && a.type() != onnx::AttributeProto::GRAPHS, path,
-              "node '" + printable(node.name().substr(0, 80)) + "' holds a subgraph, which flatnet's graphs never hold");
+      require(
+          a.type() != onnx::AttributeProto::GRAPH && a.type() != onnx::AttributeProto::GRAPHS, path,
+          "node '" + printable(node.name().substr(0, 80)) + "' holds a subgraph, which flatnet's graphs never hold");
       if (a.has_t()) check_onnx_tensor(a.t(), path);
       for (const auto& t : a.tensors()) check_onnx_tensor(t, path);
     }

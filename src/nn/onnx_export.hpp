@@ -4,7 +4,8 @@
 // The graph is written node by node with Debian's libonnx protobuf classes (not traced), in a form
 // OpenCV 4.6's importer reads: no Identity nodes, constants on the right of MatMul, eval-mode batch
 // norm folded into the convolutions before it, opset 13.
-//   input  `meas`  float32 {batch,4,rows,cols} (the batch axis is symbolic): the planes (b, gb, gr, r) exactly as the model's camera
+//   input  `meas`  float32 {batch,4,rows,cols} (the batch axis is symbolic): the planes (b, gb, gr, r) exactly as the
+//   model's camera
 //                  preprocessing makes them (load_capture; with centring "level" the plane means
 //                  are part of the input and the graph splits them off as the generator does);
 //   output `image` float32 {batch,3,N,N} in [0,1] (sRGB, as `flatnet infer` writes it).

@@ -28,10 +28,9 @@ std::map<std::string, torch::Tensor> Stored::under(const std::string& prefix) co
   return out;
 }
 
-void fill_module(
-    torch::nn::Module& m, const std::filesystem::path& where, const std::string& label,
-    const std::function<torch::Tensor(const std::string&, bool)>& fetch,
-    const std::function<std::string(const std::string&)>& name_in_file) {
+void fill_module(torch::nn::Module& m, const std::filesystem::path& where, const std::string& label,
+                 const std::function<torch::Tensor(const std::string&, bool)>& fetch,
+                 const std::function<std::string(const std::string&)>& name_in_file) {
   torch::NoGradGuard no_grad;
   auto copy_in = [&](const std::string& name, torch::Tensor target, bool buffer) {
     const auto t = fetch(name, buffer);
@@ -125,9 +124,10 @@ void load_module(const Stored& s, const std::string& key, torch::nn::Module& m, 
   // over a trained inversion's weights runs Tikhonov): the file's spec and weights disagree.
   for (const auto& [name, t] : tensors)
     if (!used.count(name))
-      throw Error(where, key + " weight '" + printable(name) +
-                             "' has no place in the model its stored spec describes (the spec and the weights disagree: "
-                             "a damaged or edited file?)");
+      throw Error(where,
+                  key + " weight '" + printable(name) +
+                      "' has no place in the model its stored spec describes (the spec and the weights disagree: "
+                      "a damaged or edited file?)");
 }
 
 namespace {
@@ -192,7 +192,8 @@ void check_sizes_against_weights(const ModelSpec& spec, const CameraConfig& came
     expect("tikhonov.UR", 1, cols, "camera crop width");
   }
   const auto count = static_cast<int64_t>(g.size());
-  if (spec.enhancer == "unet") expect("enhancer.outc.conv.weight", 1, spec.unet_width, model_key(&ModelSpec::unet_width));
+  if (spec.enhancer == "unet")
+    expect("enhancer.outc.conv.weight", 1, spec.unet_width, model_key(&ModelSpec::unet_width));
   if (spec.enhancer == "dncnn") {
     expect("enhancer.body.0.weight", 0, spec.dncnn_width, "model.dncnn.width");
     require(spec.dncnn_layers <= count, path, "model.dncnn.layers exceeds the weights the file holds");

@@ -61,8 +61,8 @@ constexpr double kStructureExplainsAtLeast = 0.3;  // of the coded energy the fr
 // The normal equations of one step of (2), Y_i ~ F Z_i + s_i M (F {4,m,N}, Z_i {4,N,k}, M {4,m,k}),
 // accumulated over the pairs.
 struct Sums {
-  torch::Tensor A, B, Sz;        // sum Z Z^T {4,N,N}, sum Y Z^T {4,m,N}, sum s Z {4,N,k}; float64
-  torch::Tensor Sy, S2, norm;    // sum s Y {4,m,k}, sum s^2 {4}, sum ||Y||^2 {4}
+  torch::Tensor A, B, Sz;      // sum Z Z^T {4,N,N}, sum Y Z^T {4,m,N}, sum s Z {4,N,k}; float64
+  torch::Tensor Sy, S2, norm;  // sum s Y {4,m,k}, sum s^2 {4}, sum ||Y||^2 {4}
 };
 
 // Each pair's scene split into its sum s {4} and its zero-mean rest Xz {4,N,N}, eq. (2).
@@ -235,11 +235,11 @@ DatasetCalibration calibrate_from_pairs(int64_t count, const std::function<Captu
                                         int64_t cols, int64_t scene, const DatasetCalibrationOptions& o) {
   require_option(count >= 1, "calibrate.dataset", "no pairs to calibrate from");
   require_option(o.iterations >= 1 && o.ridge >= 0 && o.tolerance >= 0, "calibrate.dataset",
-          "iterations >= 1, ridge >= 0 and tolerance >= 0 are needed");
+                 "iterations >= 1, ridge >= 0 and tolerance >= 0 are needed");
   PairStream pairs(count, load, rows, cols, scene, o.cache_bytes);
   auto gen = at::detail::createCPUGenerator(o.seed);
   auto Q = at::randn({4, cols, scene}, gen) / std::sqrt(static_cast<double>(cols));  // a random start
-  torch::Tensor P, M;  // float32 for the passes
+  torch::Tensor P, M;                                                                // float32 for the passes
   DatasetCalibration result;
   result.pairs = count;
   Progress progress("calibrate", o.iterations, o.progress);
@@ -254,7 +254,8 @@ DatasetCalibration calibrate_from_pairs(int64_t count, const std::function<Captu
   torch::Tensor noise_var;  // {4} the residual per pixel: the noise, once a model exists
   const double pixels = static_cast<double>(count * rows * cols);
   const auto prior_for = [&](const torch::Tensor& F) {
-    return noise_var.defined() ? noise_var / F.to(torch::kFloat64).square().mean({1, 2}).clamp_min(1e-30) : torch::Tensor();
+    return noise_var.defined() ? noise_var / F.to(torch::kFloat64).square().mean({1, 2}).clamp_min(1e-30)
+                               : torch::Tensor();
   };
   StructuredFactor p_shape, q_shape;
   for (int it = 0; it <= o.iterations; ++it) {
@@ -284,9 +285,8 @@ DatasetCalibration calibrate_from_pairs(int64_t count, const std::function<Captu
     P = F.to(torch::kFloat32);
     M = Mp.to(torch::kFloat32);
     const auto qsums = accumulate(pairs, q_design);
-    auto [G, Mq] = structured && !result.structure_rejected
-                       ? solve_structured_step(qsums, o.shift, noise_var, q_shape)
-                       : solve_step(qsums, o.ridge, prior_for(Q));
+    auto [G, Mq] = structured && !result.structure_rejected ? solve_structured_step(qsums, o.shift, noise_var, q_shape)
+                                                            : solve_step(qsums, o.ridge, prior_for(Q));
     Q = G.to(torch::kFloat32);
     M = Mq.transpose(1, 2).to(torch::kFloat32);
     balance(P, Q);

@@ -37,36 +37,36 @@
 namespace flatnet {
 
 struct CapturePair {
-  torch::Tensor meas;   // {4,rows,cols} preprocessed (double-centred) capture planes
-  torch::Tensor scene;  // {4,N,N} the scene shown, linear light, per Bayer channel
-  torch::Tensor level;  // {4} the window's mean raw value per plane (full scale); optional
+  torch::Tensor meas;    // {4,rows,cols} preprocessed (double-centred) capture planes
+  torch::Tensor scene;   // {4,N,N} the scene shown, linear light, per Bayer channel
+  torch::Tensor level;   // {4} the window's mean raw value per plane (full scale); optional
   double saturated = 0;  // share of the window's pixels at full scale (optics/camera_fit.hpp at_full_scale)
 };
 
 enum class FactorStructure { Shift, Free };
 
 struct DatasetCalibrationOptions {
-  int iterations = 30;         // alternating passes at most (each reads the pairs twice)
-  double tolerance = 1e-4;     // stop when the relative residual improves by less than this
-  double ridge = 1e-6;         // r above for the first step, relative to the Gram matrix's mean diagonal;
-                               // then r = noise variance / mean square of the factor (a Gaussian prior)
-  uint64_t seed = 0;           // the random start of Q
+  int iterations = 30;              // alternating passes at most (each reads the pairs twice)
+  double tolerance = 1e-4;          // stop when the relative residual improves by less than this
+  double ridge = 1e-6;              // r above for the first step, relative to the Gram matrix's mean diagonal;
+                                    // then r = noise variance / mean square of the factor (a Gaussian prior)
+  uint64_t seed = 0;                // the random start of Q
   int64_t cache_bytes = 2ll << 30;  // decoded pairs kept in memory; the rest are re-read
   bool progress = true;
   FactorStructure structure = FactorStructure::Shift;
-  int free_passes = 2;         // free steps before the structured ones (they give the shift search its start)
+  int free_passes = 2;  // free steps before the structured ones (they give the shift search its start)
   ShiftFitOptions shift;
 };
 
 struct DatasetCalibration {
-  Calibration calib;                // P {4,rows,N}, Q {4,cols,N}, float64
-  torch::Tensor uniform_response;      // M {4,rows,cols}: the planes a uniform unit scene gives, per unit of s
-  std::array<double, 4> residual{};    // ||Y - model (2)|| / ||Y|| per channel over all pairs (b, gb, gr, r)
+  Calibration calib;                 // P {4,rows,N}, Q {4,cols,N}, float64
+  torch::Tensor uniform_response;    // M {4,rows,cols}: the planes a uniform unit scene gives, per unit of s
+  std::array<double, 4> residual{};  // ||Y - model (2)|| / ||Y|| per channel over all pairs (b, gb, gr, r)
   // The sensor's noise (when the pairs carry levels), from the first pairs' energy outside the
   // calibration's span against their light level, as the camera fit measures it: variance per
   // pixel = noise_gain * (level - dark) + noise_floor.
   double noise_gain = 0, noise_floor = 0, dark = 0;
-  double fit_threshold = 0;  // the camera fit's threshold that covers the pairs' own spread (CameraConfig)
+  double fit_threshold = 0;   // the camera fit's threshold that covers the pairs' own spread (CameraConfig)
   double leak_threshold = 0;  // the same for the near-twin test (coded_leak); 0 where it is not measurable
   int64_t pairs = 0;
   int iterations = 0;

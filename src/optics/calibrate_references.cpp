@@ -30,7 +30,9 @@ void check_pairs(const std::vector<ReferencePair>& pairs) {
     require(torch::isfinite(p.meas).all().item<bool>() && torch::isfinite(p.reference).all().item<bool>(), where,
             "holds NaN or infinity");
     // A capture or reference without contrast pins nothing down (a lens cap, a flat grey screen).
-    const auto spread = [](const torch::Tensor& t) { return t.to(torch::kFloat64).flatten(1).std(1).min().item<double>(); };
+    const auto spread = [](const torch::Tensor& t) {
+      return t.to(torch::kFloat64).flatten(1).std(1).min().item<double>();
+    };
     require(spread(p.meas) > 1e-7, where, "its capture is flat in some channel (no signal: a lens cap, a dark frame?)");
     require(spread(p.reference) > 1e-7, where, "its reference is flat in some channel (no scene to learn from)");
   }
@@ -71,18 +73,19 @@ torch::Tensor fit_gains(const Tensors& Y, const Tensors& R, const torch::Tensor&
   const auto uniform = torch::matmul(P.sum(2, true), Q.sum(2, true).transpose(1, 2)).flatten(1);
   torch::Tensor mean_gain;
   for (size_t i = 0; i < Y.size(); ++i) {
-    const auto coded = torch::matmul(torch::matmul(P, R[i]), Q.transpose(1, 2)).flatten(1);  // {4,mn}
-    const auto design = torch::stack({coded, uniform}, 2);                                   // {4,mn,2}
-    const auto gram = torch::matmul(design.transpose(1, 2), design);                          // {4,2,2}
-    const auto rhs = torch::matmul(design.transpose(1, 2), Y[i].flatten(1).unsqueeze(2));     // {4,2,1}
+    const auto coded = torch::matmul(torch::matmul(P, R[i]), Q.transpose(1, 2)).flatten(1);              // {4,mn}
+    const auto design = torch::stack({coded, uniform}, 2);                                               // {4,mn,2}
+    const auto gram = torch::matmul(design.transpose(1, 2), design);                                     // {4,2,2}
+    const auto rhs = torch::matmul(design.transpose(1, 2), Y[i].flatten(1).unsqueeze(2));                // {4,2,1}
     const auto sol = torch::linalg_solve(gram + 1e-12 * torch::eye(2, gram.options()), rhs).squeeze(2);  // {4,2}
     gain[i] = sol.select(1, 0).view({4, 1, 1});
     offset[i] = sol.select(1, 1).view({4, 1, 1});
     mean_gain = i == 0 ? gain[i].clone() : mean_gain + gain[i];
   }
   mean_gain /= static_cast<double>(Y.size());
-  require(mean_gain.abs().min().item<double>() > 1e-12, "calibrate",
-          "the references do not explain the captures at all in some channel (wrong colour order, or unrelated pairs?)");
+  require(
+      mean_gain.abs().min().item<double>() > 1e-12, "calibrate",
+      "the references do not explain the captures at all in some channel (wrong colour order, or unrelated pairs?)");
   for (size_t i = 0; i < Y.size(); ++i) gain[i] /= mean_gain, offset[i] /= mean_gain;
   return mean_gain;
 }
@@ -160,10 +163,10 @@ std::pair<double, double> search_shifts(const Tensors& Y, const Tensors& R, cons
   scan([&](double s) { return objective_at(Yb, Xb, s, cols, kAlternations, o.seed); }, rows);
   scan([&](double s) { return objective_at(Yb, Xb, rows, s, kAlternations, o.seed); }, cols);
   for (int round = 0; round < 2; ++round) {
-    rows = golden_section_minimum([&](double s) { return objective_at(Yb, Xb, s, cols, kAlternations, o.seed); }, rows / kGridStep,
-                  rows * kGridStep, 1e-3);
-    cols = golden_section_minimum([&](double s) { return objective_at(Yb, Xb, rows, s, kAlternations, o.seed); }, cols / kGridStep,
-                  cols * kGridStep, 1e-3);
+    rows = golden_section_minimum([&](double s) { return objective_at(Yb, Xb, s, cols, kAlternations, o.seed); },
+                                  rows / kGridStep, rows * kGridStep, 1e-3);
+    cols = golden_section_minimum([&](double s) { return objective_at(Yb, Xb, rows, s, kAlternations, o.seed); },
+                                  cols / kGridStep, cols * kGridStep, 1e-3);
   }
   return {rows, cols};
 }
@@ -171,8 +174,8 @@ std::pair<double, double> search_shifts(const Tensors& Y, const Tensors& R, cons
 // One factor's shift refined within 3 % on a step's normal equations (the other factor fixed).
 double refine_shift(const std::pair<torch::Tensor, torch::Tensor>& normal_equations, double shift, double tolerance) {
   const auto& [G, H] = normal_equations;
-  return golden_section_minimum([&](double s) { return solve_shift_factor(G, H, s).objective.sum().item<double>(); }, shift / 1.03,
-                shift * 1.03, tolerance);
+  return golden_section_minimum([&](double s) { return solve_shift_factor(G, H, s).objective.sum().item<double>(); },
+                                shift / 1.03, shift * 1.03, tolerance);
 }
 
 }  // namespace
@@ -223,7 +226,8 @@ ReferenceCalibration calibrate_from_references(const std::vector<ReferencePair>&
     result.residual = relative_residual(Y, X, P, Q);
     std::ostringstream status;
     status << "shifts " << std::setprecision(4) << result.shift_rows << " " << result.shift_cols << ", residual "
-           << std::setprecision(3) << (result.residual[0] + result.residual[1] + result.residual[2] + result.residual[3]) / 4;
+           << std::setprecision(3)
+           << (result.residual[0] + result.residual[1] + result.residual[2] + result.residual[3]) / 4;
     progress.set_status(status.str());
     progress.tick();
   }
@@ -238,8 +242,8 @@ ReferenceCalibration calibrate_from_references(const std::vector<ReferencePair>&
     }
     result.gain_offset.push_back(g);
     const auto means = X[i].mean({1, 2});
-    result.scene_means.push_back({means[0].item<double>(), means[1].item<double>(), means[2].item<double>(),
-                                  means[3].item<double>()});
+    result.scene_means.push_back(
+        {means[0].item<double>(), means[1].item<double>(), means[2].item<double>(), means[3].item<double>()});
   }
   return result;
 }

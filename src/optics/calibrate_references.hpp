@@ -34,15 +34,15 @@
 namespace flatnet {
 
 struct ReferencePair {
-  std::string name;        // for messages and the held-out table
-  torch::Tensor meas;      // {4,rows,cols} preprocessed capture planes (b, gb, gr, r)
-  torch::Tensor reference; // {4,N,N} the reference reconstruction per Bayer channel, its own units
+  std::string name;         // for messages and the held-out table
+  torch::Tensor meas;       // {4,rows,cols} preprocessed capture planes (b, gb, gr, r)
+  torch::Tensor reference;  // {4,N,N} the reference reconstruction per Bayer channel, its own units
 };
 
 struct ReferenceCalibrationOptions {
-  int passes = 6;          // alternating passes (P, Q, gains)
-  int search_passes = 2;   // passes 2 and 3 refine each axis's shift (within 3 %); the others keep it
-  uint64_t seed = 0;       // the random profiles that start each trial fit
+  int passes = 6;               // alternating passes (P, Q, gains)
+  int search_passes = 2;        // passes 2 and 3 refine each axis's shift (within 3 %); the others keep it
+  uint64_t seed = 0;            // the random profiles that start each trial fit
   ShiftFitOptions shift = [] {  // the search's range and final tolerance
     ShiftFitOptions o;
     o.min_shift = 0.2, o.max_shift = 4.0;
@@ -52,10 +52,10 @@ struct ReferenceCalibrationOptions {
 };
 
 struct ReferenceCalibration {
-  Calibration calib;                       // P {4,rows,N}, Q {4,cols,N} (centred), float64
-  double shift_rows = 0, shift_cols = 0;   // sensor pixels per scene row / column, signed
-  torch::Tensor profile_rows, profile_cols;  // {4,L}: P and Q as profiles (save_shift_calibration)
-  std::array<double, 4> residual{};        // ||Y - model (1)|| / ||Y|| per channel over the pairs
+  Calibration calib;                               // P {4,rows,N}, Q {4,cols,N} (centred), float64
+  double shift_rows = 0, shift_cols = 0;           // sensor pixels per scene row / column, signed
+  torch::Tensor profile_rows, profile_cols;        // {4,L}: P and Q as profiles (save_shift_calibration)
+  std::array<double, 4> residual{};                // ||Y - model (1)|| / ||Y|| per channel over the pairs
   std::vector<std::array<double, 8>> gain_offset;  // per pair: a_b, a_gb, a_gr, a_r, b_b, ..., b_r
   std::vector<std::array<double, 4>> scene_means;  // per pair and channel: the mean of a R + b, P's units
 };
@@ -79,7 +79,7 @@ double absolute_tikhonov_lambda(const SeparableInverse& inverse, double relative
 
 struct HeldOutPair {
   std::string name;
-  std::array<double, 4> correlation{};  // b, gb, gr, r
+  std::array<double, 4> correlation{};    // b, gb, gr, r
   double shift_rows = 0, shift_cols = 0;  // the shifts the other pairs chose
   double leak = 0;  // its coded leak against their calibration (optics/camera_fit.hpp); 0: not measurable
 };

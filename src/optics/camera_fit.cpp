@@ -38,7 +38,9 @@ torch::Tensor top_singular_squared(const torch::Tensor& R) {
       for (int64_t i = 0; i < h; ++i)
         for (int64_t j = 0; j < w; ++j) next[static_cast<size_t>(j)] += m[i * w + j] * u[static_cast<size_t>(i)];
       double vw = 0, nn = 0;
-      for (int64_t j = 0; j < w; ++j) vw += v[static_cast<size_t>(j)] * next[static_cast<size_t>(j)], nn += next[static_cast<size_t>(j)] * next[static_cast<size_t>(j)];
+      for (int64_t j = 0; j < w; ++j)
+        vw += v[static_cast<size_t>(j)] * next[static_cast<size_t>(j)],
+            nn += next[static_cast<size_t>(j)] * next[static_cast<size_t>(j)];
       norm2 = vw;  // v^T R^T R v, v of unit length
       if (nn <= 0) break;
       const double inv = 1 / std::sqrt(nn);
@@ -105,12 +107,12 @@ double coded_leak(const torch::Tensor& planes, const torch::Tensor& U, const tor
   if (!leak_measurable(U.size(1), V.size(1), U.size(2))) return std::nan("");
   // Double-centred whatever the camera's centring: rows, columns and the level are no coded scene.
   const auto Y = (planes - planes.mean(-1, true) - planes.mean(-2, true) + planes.mean({-2, -1}, true))
-                     .to(torch::kFloat32);                                   // {4,h,w}
+                     .to(torch::kFloat32);  // {4,h,w}
   const auto Ut = U.transpose(1, 2), Vt = V.transpose(1, 2);
-  const auto YV = torch::matmul(Y, V);                                       // {4,h,N}
-  const auto C = YV - torch::matmul(U, torch::matmul(Ut, YV));               // {4,h,N}: (I - U U^T) Y V
-  const auto UY = torch::matmul(Ut, Y);                                      // {4,N,w}
-  const auto B = UY - torch::matmul(torch::matmul(UY, V), Vt);               // {4,N,w}: U^T Y (I - V V^T)
+  const auto YV = torch::matmul(Y, V);                          // {4,h,N}
+  const auto C = YV - torch::matmul(U, torch::matmul(Ut, YV));  // {4,h,N}: (I - U U^T) Y V
+  const auto UY = torch::matmul(Ut, Y);                         // {4,N,w}
+  const auto B = UY - torch::matmul(torch::matmul(UY, V), Vt);  // {4,N,w}: U^T Y (I - V V^T)
   // The planes' C side by side {h,4N} has the Gram sum_c C_c C_c^T; their B stacked {4N,w}, sum_c B_c^T B_c.
   const auto gram_C = torch::matmul(C, C.transpose(1, 2)).to(torch::kFloat64);  // {4,h,h}
   const auto gram_B = torch::matmul(B.transpose(1, 2), B).to(torch::kFloat64);  // {4,w,w}
@@ -144,15 +146,16 @@ double outside_share(int64_t h, int64_t w, int64_t n) {
 }
 
 bool camera_fit_measurable(int64_t h, int64_t w, int64_t n) {
-  const double dof = static_cast<double>(h - 1) * static_cast<double>(w - 1) - static_cast<double>(n) * static_cast<double>(n);
+  const double dof =
+      static_cast<double>(h - 1) * static_cast<double>(w - 1) - static_cast<double>(n) * static_cast<double>(n);
   return dof > 1000;
 }
 
 CameraFit::CameraFit(const Calibration& calib, const CameraConfig& camera) : camera_(camera) {
   require(camera.knows_noise(), camera.name,
           "this camera has no noise model (noise_gain, noise_floor, dark); `flatnet calibrate --dataset` measures it");
-  require(calib.P.dim() == 3 && calib.P.size(0) == 4 && calib.P.size(1) == camera.raw.crop[2] &&
-              calib.Q.dim() == 3 && calib.Q.size(1) == camera.raw.crop[3] && calib.P.size(2) == calib.Q.size(2),
+  require(calib.P.dim() == 3 && calib.P.size(0) == 4 && calib.P.size(1) == camera.raw.crop[2] && calib.Q.dim() == 3 &&
+              calib.Q.size(1) == camera.raw.crop[3] && calib.P.size(2) == calib.Q.size(2),
           camera.name, "the calibration does not match the camera's crop");
   // Orthonormal bases of P's and Q's column spaces (reduced QR, in float64 for the small columns).
   U_ = std::get<0>(torch::linalg_qr(calib.P.to(torch::kFloat64))).to(torch::kFloat32).contiguous();
@@ -192,7 +195,7 @@ std::string CameraFit::verdict(const CameraFitResult& r) const {
 CameraFitResult CameraFit::measure(const torch::Tensor& raw_unit) const {
   torch::NoGradGuard no_grad;
   const auto& g = camera_.raw;
-  const auto window = raw_window(raw_unit, g);                       // {4,h,w}: the light each pixel read
+  const auto window = raw_window(raw_unit, g);                                  // {4,h,w}: the light each pixel read
   const auto Y = without_level(double_centre(window, g.centring), g.centring);  // the separable model's planes
   const auto unexplained = unexplained_energy(Y, U_, V_).sum();
   // The noise model, pixel by pixel: clipped pixels carry no noise.
@@ -235,7 +238,8 @@ NoiseModelFit fit_noise_model(const std::vector<NoiseSample>& samples, const tor
     if (sample.saturated <= kMaxSaturatedShare) largest_leak = std::max(largest_leak, coded_leak(sample.meas, U, V));
     const auto outside = unexplained_energy(sample.meas, U, V) / per_pixel;  // {4}
     const auto level = sample.level.to(torch::kFloat64).flatten();
-    for (int c = 0; c < 4; ++c) levels.push_back(level[c].item<double>()), energies.push_back(outside[c].item<double>());
+    for (int c = 0; c < 4; ++c)
+      levels.push_back(level[c].item<double>()), energies.push_back(outside[c].item<double>());
   }
   if (energies.size() < 8) return out;
   const auto n = static_cast<int64_t>(energies.size());

@@ -37,11 +37,11 @@
 namespace flatnet {
 
 struct CameraFitResult {
-  double fit = 0;        // unexplained energy over what the noise model predicts (1: a perfect fit)
-  bool matches = false;  // fit <= the threshold
-  double saturated = 0;  // share of the window's pixels at full scale (their noise is clipped)
-  bool judged = true;    // false when over 1 % of the pixels are saturated: matches is then true
-  double leak = 0;       // coded structure outside the calibration's spans (coded_leak; noise alone: ~1.2)
+  double fit = 0;            // unexplained energy over what the noise model predicts (1: a perfect fit)
+  bool matches = false;      // fit <= the threshold
+  double saturated = 0;      // share of the window's pixels at full scale (their noise is clipped)
+  bool judged = true;        // false when over 1 % of the pixels are saturated: matches is then true
+  double leak = 0;           // coded structure outside the calibration's spans (coded_leak; noise alone: ~1.2)
   bool leak_matches = true;  // leak <= its threshold (part of matches)
 };
 
@@ -87,11 +87,11 @@ struct NoiseSample {
   double saturated = 0;  // share of the window's pixels at full scale (at_full_scale)
 };
 struct NoiseModelFit {
-  bool found = false;  // false: fewer than 2 captures, or no line with a positive gain
+  bool found = false;                                // false: fewer than 2 captures, or no line with a positive gain
   double noise_gain = 0, noise_floor = 0, dark = 0;  // CameraConfig's keys
-  double fit_threshold = 0;   // 0 when not found
-  double leak_threshold = 0;  // 0 when no capture could be tested (all saturated)
-  std::vector<double> fits;   // each capture's fit under the fitted model
+  double fit_threshold = 0;                          // 0 when not found
+  double leak_threshold = 0;                         // 0 when no capture could be tested (all saturated)
+  std::vector<double> fits;                          // each capture's fit under the fitted model
 };
 // P {4,h,N}, Q {4,w,N}: the calibration (any column scaling; only the spans matter).
 NoiseModelFit fit_noise_model(const std::vector<NoiseSample>& samples, const torch::Tensor& P, const torch::Tensor& Q);
@@ -121,7 +121,7 @@ class CameraFit {
   CameraConfig camera_;
   double threshold_ = 0;
   double leak_threshold_ = 0;  // noise_leak x 1.1, or the camera file's when larger (an estimated calibration)
-  double outside_share_ = 0;  // outside_share(h, w, N)
+  double outside_share_ = 0;   // outside_share(h, w, N)
 };
 
 // Captures of one batch (the files of one `infer`, the frames of one `live` view) come from one

@@ -113,8 +113,8 @@ void write_code_pair_camera(const std::filesystem::path& folder, const CodePair&
   camera.name = folder.filename().string();
   save_rig(folder / "rig.mat", rig);
   save_calibration(folder / "calib.mat", calibration_of(rig, camera.raw.crop, calib_error, seed));
-  write_text_atomically(folder / "camera.yaml",
-                        "# " + comment + "\n" + camera_geometry_yaml(camera) + "calibration: calib.mat\nrig: rig.mat\n");
+  write_text_atomically(folder / "camera.yaml", "# " + comment + "\n" + camera_geometry_yaml(camera) +
+                                                    "calibration: calib.mat\nrig: rig.mat\n");
 }
 
 double CodePair::throughput() const { return (1 + rows.mean().item<double>() * cols.mean().item<double>()) / 2; }

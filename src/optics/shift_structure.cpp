@@ -20,7 +20,7 @@ struct Sampling {
 
 Sampling sampling(int64_t rows, int64_t scene, double shift, double spacing) {
   require_option(std::isfinite(shift) && shift != 0 && spacing > 0, "calibrate.dataset",
-          "a shift structure needs a non-zero shift and a positive spacing");
+                 "a shift structure needs a non-zero shift and a positive spacing");
   const auto f64 = torch::TensorOptions().dtype(torch::kFloat64);
   const auto pos = torch::arange(rows, f64).view({rows, 1}) + torch::arange(scene, f64).view({1, scene}) * shift;
   const double lowest = shift < 0 ? static_cast<double>(scene - 1) * shift : 0.0;
@@ -72,7 +72,7 @@ ShiftFactor fit_shift_factor(const torch::Tensor& G, const torch::Tensor& H, dou
   // keeps it at zero.
   const auto ridge = (1e-10 * static_cast<double>(rows * scene) / static_cast<double>(s.length)) *
                      g.diagonal(0, 1, 2).mean(1, true).clamp_min(1e-300);  // {C,1}
-  const auto normal = [&](const torch::Tensor& f) {  // the normal equations' operator on f
+  const auto normal = [&](const torch::Tensor& f) {                        // the normal equations' operator on f
     return gather_back(torch::matmul(centre_columns(expand(f, s, rows, scene)), g), s) + ridge * f;
   };
   const auto b = gather_back(h, s);
@@ -119,7 +119,7 @@ ShiftFactor solve_shift_factor(const torch::Tensor& G, const torch::Tensor& H, d
   const auto a = torch::arange(width, torch::kLong).view({1, -1}).expand({2 * width - 1, width});
   const auto b = a + delta;
   const auto inside = ((b >= 0) & (b < width)).to(torch::kFloat64);
-  const auto diag = M0.index({torch::indexing::Slice(), a, b.clamp(0, width - 1)}) * inside;  // {C,2W-1,W}
+  const auto diag = M0.index({torch::indexing::Slice(), a, b.clamp(0, width - 1)}) * inside;    // {C,2W-1,W}
   const auto cumulative = torch::cumsum(torch::constant_pad_nd(diag, {1, length - width}), 2);  // {C,2W-1,L+1}
   const auto k = torch::arange(length, torch::kLong);
   const auto windowed = cumulative.index_select(2, (k + 1).clamp_max(length)) -
@@ -157,8 +157,8 @@ ShiftFactor solve_shift_factor(const torch::Tensor& G, const torch::Tensor& H, d
 }
 
 double search_shift(const torch::Tensor& G, const torch::Tensor& H, const ShiftFitOptions& o, double sigma2) {
-  require_option(o.min_shift > 0 && o.max_shift > o.min_shift && o.grid_step > 0 && o.shift_tolerance > 0, "calibrate.dataset",
-          "the shift search needs 0 < min_shift < max_shift and positive steps");
+  require_option(o.min_shift > 0 && o.max_shift > o.min_shift && o.grid_step > 0 && o.shift_tolerance > 0,
+                 "calibrate.dataset", "the shift search needs 0 < min_shift < max_shift and positive steps");
   const auto cost = [&](double shift, int iterations) {
     const auto fit = fit_shift_factor(G, H, shift, o, iterations);
     const auto channels = static_cast<double>(fit.profile.size(0)), samples = static_cast<double>(fit.profile.size(1));
@@ -178,8 +178,7 @@ double search_shift(const torch::Tensor& G, const torch::Tensor& H, const ShiftF
       }
     }
   }
-  return golden_section_minimum([&](double shift) { return cost(shift, o.fit_iterations); }, lo, hi,
-                                o.shift_tolerance);
+  return golden_section_minimum([&](double shift) { return cost(shift, o.fit_iterations); }, lo, hi, o.shift_tolerance);
 }
 
 double golden_section_minimum(const std::function<double(double)>& f, double lo, double hi, double tolerance) {

@@ -25,21 +25,21 @@
 namespace flatnet {
 
 struct ShiftFitOptions {
-  double spacing = 1.0;         // sensor pixels between the profile's samples
-  double min_shift = 0.5;       // |shift| searched, sensor pixels per scene pixel
+  double spacing = 1.0;    // sensor pixels between the profile's samples
+  double min_shift = 0.5;  // |shift| searched, sensor pixels per scene pixel
   double max_shift = 8.0;
-  double grid_step = 0.1;       // the coarse grid's relative step
+  double grid_step = 0.1;         // the coarse grid's relative step
   double shift_tolerance = 2e-4;  // golden-section search ends at this relative bracket
-  int search_iterations = 100;  // conjugate-gradient steps per trial shift on the coarse grid
-  int fit_iterations = 400;     // ... in the golden-section search and the final fit
-  double cg_tolerance = 1e-7;   // ... or until the residual falls below this, relative
+  int search_iterations = 100;    // conjugate-gradient steps per trial shift on the coarse grid
+  int fit_iterations = 400;       // ... in the golden-section search and the final fit
+  double cg_tolerance = 1e-7;     // ... or until the residual falls below this, relative
 };
 
 struct ShiftFactor {
-  double shift = 0;          // sensor pixels per scene pixel, signed
-  torch::Tensor profile;     // {C,L} f per channel, float64
-  torch::Tensor factor;      // {C,m,N} the centred factor C F(f), float64
-  torch::Tensor objective;   // {C} J at the fit, float64
+  double shift = 0;         // sensor pixels per scene pixel, signed
+  torch::Tensor profile;    // {C,L} f per channel, float64
+  torch::Tensor factor;     // {C,m,N} the centred factor C F(f), float64
+  torch::Tensor objective;  // {C} J at the fit, float64
 };
 
 // The centred factor C F(f) of (1) for a profile {C,L}.
@@ -64,9 +64,9 @@ ShiftFactor solve_shift_factor(const torch::Tensor& G, const torch::Tensor& H, d
 double golden_section_minimum(const std::function<double(double)>& f, double lo, double hi, double tolerance);
 
 // The shift of least J + 2 sigma2 L, summed over the channels of G and H: the coarse grid over both
-// signs, then golden-section search between the best point's neighbours. Larger shifts mean longer profiles (L samples), and each sample fitted to noise alone lowers
-// J by sigma2, the noise's variance per capture value: Akaike's penalty 2 sigma2 L keeps noisy pairs
-// from choosing the most flexible structure. sigma2 = 0 compares J alone.
+// signs, then golden-section search between the best point's neighbours. Larger shifts mean longer profiles (L
+// samples), and each sample fitted to noise alone lowers J by sigma2, the noise's variance per capture value: Akaike's
+// penalty 2 sigma2 L keeps noisy pairs from choosing the most flexible structure. sigma2 = 0 compares J alone.
 double search_shift(const torch::Tensor& G, const torch::Tensor& H, const ShiftFitOptions& o, double sigma2 = 0);
 
 }  // namespace flatnet

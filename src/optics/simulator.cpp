@@ -186,7 +186,9 @@ void check_and_record_settings(const SimulateOptions& opt) {
     }
     if (!differences.empty() && !opt.force)
       throw Error(opt.out, "holds captures simulated with other settings (" + differences +
-                               "); rerun with the recorded settings to resume, choose another " + option_key("simulate.out") + ", or set " + option_key("simulate.force") + " "
+                               "); rerun with the recorded settings to resume, choose another " +
+                               option_key("simulate.out") + ", or set " + option_key("simulate.force") +
+                               " "
                                "to delete its captures and rebuild");
     if (!differences.empty()) {
       std::cerr << "simulate: --force: deleting " << opt.out.string() << "'s captures and lists (" << differences
@@ -234,12 +236,12 @@ bool reusable_pair(const Rig& rig, const std::filesystem::path& meas, const std:
 SimulateReport simulate_dataset(const Rig& rig, const SimulateOptions& opt) {
   require_option(opt.val_fraction >= 0 && opt.val_fraction <= 1, "simulate.val_fraction", "must be within [0, 1]");
   require_option(std::isfinite(opt.exposure) && opt.exposure > 0 && opt.exposure <= 100, "simulate.exposure",
-          "must lie in (0, 100] (scene light relative to the display's)");
+                 "must lie in (0, 100] (scene light relative to the display's)");
   require_option(std::isfinite(opt.lamp_gain) && opt.lamp_gain > 0 && opt.lamp_gain <= 1e4, "simulate.lamp_gain",
-          "must lie in (0, 10000]");
+                 "must lie in (0, 10000]");
   require_option(opt.size == rig.scene_size(), "simulate.size",
-          "the rig's matrices take " + std::to_string(rig.scene_size()) + "x" + std::to_string(rig.scene_size()) +
-              " scenes, got " + std::to_string(opt.size));
+                 "the rig's matrices take " + std::to_string(rig.scene_size()) + "x" +
+                     std::to_string(rig.scene_size()) + " scenes, got " + std::to_string(opt.size));
   auto images = list_images(opt.images, kImageExtensions);
   if (opt.limit > 0 && static_cast<int64_t>(images.size()) > opt.limit) images.resize(opt.limit);
   require(!images.empty(), opt.images, "no images (.png .jpg .jpeg .tif .bmp) in this folder");
@@ -248,7 +250,8 @@ SimulateReport simulate_dataset(const Rig& rig, const SimulateOptions& opt) {
   for (size_t i = 1; i < names.size(); ++i)
     require(names[i] != names[i - 1], images[i], "two images share the name " + names[i]);
   const auto all_names = names;
-  require_option(opt.only == "all" || opt.only == "train" || opt.only == "val", "simulate.only", "must be all, train or val");
+  require_option(opt.only == "all" || opt.only == "train" || opt.only == "val", "simulate.only",
+                 "must be all, train or val");
   if (opt.only != "all") {  // keep one side of the split; the lists below still use the split of all names
     const auto [train, val] = split_train_val(names, opt.val_fraction, opt.seed);
     const auto& keep = opt.only == "val" ? val : train;
@@ -260,8 +263,8 @@ SimulateReport simulate_dataset(const Rig& rig, const SimulateOptions& opt) {
     images = kept_images;
     names = kept_names;
     require(!images.empty(), option_key("simulate.only") + " " + opt.only,
-            "selects no images (" + option_key("simulate.val_fraction") + " " + std::to_string(opt.val_fraction) + " of " +
-                std::to_string(all_names.size()) + ")");
+            "selects no images (" + option_key("simulate.val_fraction") + " " + std::to_string(opt.val_fraction) +
+                " of " + std::to_string(all_names.size()) + ")");
   }
 
   check_and_record_settings(opt);

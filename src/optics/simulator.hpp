@@ -23,10 +23,10 @@ torch::Tensor visible_scene(const torch::Tensor& linear);
 
 // Random scene light for training (data.light.* in the config).
 struct LightAugment {
-  double exposure_probability = 0;            // share of samples whose light is redrawn
+  double exposure_probability = 0;                // share of samples whose light is redrawn
   double exposure_min = 0.2, exposure_max = 1.5;  // drawn log-uniformly
-  double lamp_probability = 0;                // share of samples with a lamp
-  double lamp_min = 5, lamp_max = 50;         // lamp gain, log-uniform
+  double lamp_probability = 0;                    // share of samples with a lamp
+  double lamp_min = 5, lamp_max = 50;             // lamp gain, log-uniform
   bool active() const { return exposure_probability > 0 || lamp_probability > 0; }
 };
 SceneLight draw_scene_light(const LightAugment& augment, int64_t scene_size, at::Generator& gen);

@@ -64,7 +64,8 @@ void check_output_names(const std::vector<std::filesystem::path>& captures, cons
                          " (reconstruct them into separate " + option_key("recon.out") + " folders)");
     if (inputs.count(target))
       throw Error(option_key("recon.out"), "writing " + target.string() +
-                                 " would overwrite a capture being read; choose another " + option_key("recon.out") + " folder");
+                                               " would overwrite a capture being read; choose another " +
+                                               option_key("recon.out") + " folder");
   }
 }
 
@@ -135,7 +136,8 @@ std::vector<FitRow> require_all_fit(const CameraFit& fit, const std::vector<std:
   // clipped) is not shown to, and is refused by name like a misfit.
   for (const auto& row : rows)
     require(row.result.judged, option_key("recon.require_fit"),
-            printable(row.name) + " cannot be judged: " + std::to_string(static_cast<int>(std::lround(100 * row.result.saturated))) +
+            printable(row.name) +
+                " cannot be judged: " + std::to_string(static_cast<int>(std::lround(100 * row.result.saturated))) +
                 " % of its window is at full scale (over 1 %); shorten the exposure, or leave out --require-fit");
   return rows;
 }
@@ -145,7 +147,8 @@ std::vector<FitRow> require_all_fit(const CameraFit& fit, const std::vector<std:
 std::string camera_fit_note(const BatchReport& report) {
   if (report.unjudged == 0) return "";
   return std::to_string(report.unjudged) + " of " + std::to_string(report.count) +
-         " captures have over 1 % of their pixels at full scale: their camera fit is not judged (nan in camera_fit.csv)";
+         " captures have over 1 % of their pixels at full scale: their camera fit is not judged (nan in "
+         "camera_fit.csv)";
 }
 
 std::string camera_fit_warning(const BatchReport& report, const CameraFit& fit) {
@@ -203,9 +206,9 @@ BatchReport reconstruct_files(Reconstructor& engine, const CameraConfig& camera,
   report.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
   report.first_batch_ms = 1000.0 * first_batch_s / std::max<int64_t>(1, first_batch_count);
   report.steady_state = report.count > first_batch_count;
-  report.ms_per_capture = report.steady_state
-                              ? 1000.0 * (engine_s - first_batch_s) / static_cast<double>(report.count - first_batch_count)
-                              : report.first_batch_ms;
+  report.ms_per_capture =
+      report.steady_state ? 1000.0 * (engine_s - first_batch_s) / static_cast<double>(report.count - first_batch_count)
+                          : report.first_batch_ms;
   report.captures_per_s = report.count / std::max(1e-9, report.seconds);
   return report;
 }

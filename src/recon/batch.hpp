@@ -30,13 +30,13 @@ struct BatchOptions {
 
 struct BatchReport {
   int64_t count = 0;
-  int64_t misfits = 0;         // captures whose camera fit failed
-  int64_t unjudged = 0;        // captures too saturated for the camera fit to judge
-  std::string worst;           // the worst-fitting capture's name, and its fit
+  int64_t misfits = 0;   // captures whose camera fit failed
+  int64_t unjudged = 0;  // captures too saturated for the camera fit to judge
+  std::string worst;     // the worst-fitting capture's name, and its fit
   double worst_fit = 0;
-  std::string worst_verdict;   // why the worst capture does not fit (CameraFit::verdict)
-  double worst_excess = 0;     // how far it is from fitting (CameraFit::excess)
-  BatchFit batch;              // the batch judged as a whole (optics/camera_fit.hpp judge_batch)
+  std::string worst_verdict;  // why the worst capture does not fit (CameraFit::verdict)
+  double worst_excess = 0;    // how far it is from fitting (CameraFit::excess)
+  BatchFit batch;             // the batch judged as a whole (optics/camera_fit.hpp judge_batch)
   // The engine alone (no file I/O), in steady state: when there is more than one batch the first is
   // left out, since it also sets the engine up (weights reordered, buffers first touched: seconds
   // for a paper-width model). first_batch_ms is that batch's time per capture.

@@ -44,7 +44,8 @@ CameraConfig OpenCvEngine::camera() const {
   if (info_.camera_yaml.empty())
     throw Error(path_,
                 "the ONNX file carries no camera preprocessing (metadata flatnet.camera; not written by "
-                "`flatnet export --onnx`?): give " + option_key("recon.camera"));
+                "`flatnet export --onnx`?): give " +
+                    option_key("recon.camera"));
   return camera_from_yaml_text(info_.camera_yaml, path_);
 }
 

@@ -211,8 +211,9 @@ BuiltReconstructor make_reconstructor(const ReconstructorSpec& spec) {
     auto m = load_model_file(spec.model);
     const auto camera = spec.use_camera ? spec.camera : m.camera;
     check_capture_headers(spec, camera);
-    BuiltReconstructor built{make_flatnet(m.generator, camera, spec.levers, "FlatNet " + spec.model.filename().string()),
-                             camera, nullptr, ""};
+    BuiltReconstructor built{
+        make_flatnet(m.generator, camera, spec.levers, "FlatNet " + spec.model.filename().string()), camera, nullptr,
+        ""};
     built.fit = model_camera_fit(m, built.no_fit);
     if (spec.levers.self_ensemble && m.spec.inversion_init == "calibfree")
       built.warning =

@@ -9,7 +9,8 @@ namespace flatnet {
 
 CodePairCameraImpl::CodePairCameraImpl(const CodesignOptions& options) : options_(options) {
   require(options_.lr > 0, "codes.lr", "must be positive");
-  require(options_.freeze_at >= 0 && options_.freeze_at <= 1, codes_key(&CodesignOptions::freeze_at), "must lie in [0, 1]");
+  require(options_.freeze_at >= 0 && options_.freeze_at <= 1, codes_key(&CodesignOptions::freeze_at),
+          "must lie in [0, 1]");
   require(options_.target_throughput > 0 && options_.target_throughput < 1 && options_.throughput_tolerance >= 0,
           codes_key(&CodesignOptions::target_throughput), "needs 0 < target < 1 and a tolerance >= 0");
   const auto start = load_code_pair(options_.init_codes);
@@ -44,7 +45,8 @@ torch::Tensor CodePairCameraImpl::capture(const torch::Tensor& scene_linear, at:
   return capture_planes(fixed ? *fixed : rig(), scene_linear, options_.geometry, noise, gen);
 }
 
-void write_code_camera(const std::filesystem::path& folder, const CodePairCamera& camera, const CameraConfig& geometry) {
+void write_code_camera(const std::filesystem::path& folder, const CodePairCamera& camera,
+                       const CameraConfig& geometry) {
   torch::NoGradGuard no_grad;
   const auto [u, v] = camera->codes();
   std::filesystem::create_directories(folder);

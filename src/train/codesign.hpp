@@ -23,8 +23,8 @@ struct CodesignOptions {
   double lr = 0.005;                 // Adam on the codes' pre-activations
   bool binary = false;               // sign(u), sign(v) forward (for fabrication)
   double target_throughput = 0.5, throughput_tolerance = 0.05;
-  double freeze_at = 0.75;  // share of the run (steps, or the time budget) after which the codes stay fixed
-  double calib_error = 0.03;  // the written camera's calibration error (relative, as `flatnet mask camera`)
+  double freeze_at = 0.75;        // share of the run (steps, or the time budget) after which the codes stay fixed
+  double calib_error = 0.03;      // the written camera's calibration error (relative, as `flatnet mask camera`)
   SeparableCameraOptions camera;  // the sensor and optics the codes sit in (the reference camera's)
   RawGeometry geometry;           // how captures are preprocessed (the run's camera)
 };

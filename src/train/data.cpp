@@ -81,7 +81,8 @@ std::vector<int64_t> epoch_permutation(int64_t n, uint64_t seed, int64_t epoch) 
 BatchLoader::BatchLoader(std::shared_ptr<const PairSource> source, LoaderOptions options)
     : source_(std::move(source)), opt_(options), next_to_build_(options.first_step), next_to_take_(options.first_step) {
   require(source_->size() > 0, "dataset", "empty");
-  for (int t = 0; t < std::max(1, opt_.workers); ++t) threads_.emplace_back([this] {
+  for (int t = 0; t < std::max(1, opt_.workers); ++t)
+    threads_.emplace_back([this] {
       single_threaded_worker();
       work();
     });

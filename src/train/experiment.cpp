@@ -77,8 +77,9 @@ std::pair<std::shared_ptr<const PairSource>, std::shared_ptr<const PairSource>> 
       train = split_lists(d.dataset, "train");
       val = split_lists(d.dataset, "val");
     } else {
-      require(!d.train_meas.empty(), "data", "set " + data_key(&DataOptions::dataset) + ", or the four list files (" +
-                                                  data_key(&DataOptions::train_meas) + " ...)");
+      require(!d.train_meas.empty(), "data",
+              "set " + data_key(&DataOptions::dataset) + ", or the four list files (" +
+                  data_key(&DataOptions::train_meas) + " ...)");
       train = {d.train_meas, d.train_gt, d.root};
       val = {d.val_meas, d.val_gt, d.root};
     }
@@ -117,7 +118,8 @@ CodesignOptions codesign_options(const Config& c, const CameraConfig& camera) {
   require(camera.scene_size == o.camera.scene, camera_key,
           "co-design builds the reference camera's sensor and optics, whose scene is " +
               std::to_string(o.camera.scene) + " pixels; this camera's is " + std::to_string(camera.scene_size));
-  require(data_options(c).source == "simulate", "codes.learn", "needs data.source: simulate (photographs in data.images)");
+  require(data_options(c).source == "simulate", "codes.learn",
+          "needs data.source: simulate (photographs in data.images)");
   require(camera.raw.rotation == 0, camera_key,
           "co-design simulates unrotated captures; this camera's rotation is " + std::to_string(camera.raw.rotation));
   return o;
@@ -158,7 +160,8 @@ std::string differing_settings(const Config& run, const Config& given) {
   for (const auto& [key, value] : a) {
     const auto it = b.find(key);
     if (it != b.end() && it->second != value)
-      out += (out.empty() ? "" : ", ") + key + " (run: " + value + ", " + option_key("experiment.config") + ": " + it->second + ")";
+      out += (out.empty() ? "" : ", ") + key + " (run: " + value + ", " + option_key("experiment.config") + ": " +
+             it->second + ")";
   }
   return out;
 }
@@ -202,15 +205,14 @@ void initialise_from_model(const ExperimentOptions& o, const Config& config, con
     auto source_camera = o.source_camera;
     if (source_camera.empty()) source_camera = load_model_file(o.init_from).recorded_camera();
     require_option(std::filesystem::exists(source_camera), "experiment.source_camera",
-            "the camera " + o.init_from.string() + " was trained for (" + source_camera.string() +
-                ") is not here; name its camera .yaml with " + option_key("experiment.source_camera"));
+                   "the camera " + o.init_from.string() + " was trained for (" + source_camera.string() +
+                       ") is not here; name its camera .yaml with " + option_key("experiment.source_camera"));
     const auto source = load_camera_config(source_camera);
     require(!source.calibration.empty() && !camera.calibration.empty(), "model.inversion.init",
             "transfer needs both cameras' calibrations");
     const auto old_calib = load_calibration(source.calibration, source);
     const auto new_calib = load_calibration(camera.calibration, camera);
-    transfer_inversion(o.init_from, {old_calib.P, old_calib.Q, new_calib.P, new_calib.Q},
-                       spec.inversion_lambda, g);
+    transfer_inversion(o.init_from, {old_calib.P, old_calib.Q, new_calib.P, new_calib.Q}, spec.inversion_lambda, g);
     log << "first stage transferred from " << o.init_from.string() << " (camera " << source_camera.string()
         << ") to this camera: W^T P_new ~ W_old^T P_old\n";
   }
@@ -226,11 +228,14 @@ double training_bytes_per_sample(const ModelSpec& m, int64_t crop, const CameraC
   // is 71 MB, i.e. ~34 floats per first-level channel and pixel. DnCNN and RCAN keep about 8
   // floats per layer, channel and pixel (conv, batch norm, ReLU and their gradients).
   double floats = 0;
-  if (m.enhancer == "dncnn") floats = 8.0 * m.dncnn_layers * m.dncnn_width * pixels;
-  else if (m.enhancer == "rcan") floats = 8.0 * 3 * m.rcan_groups * m.rcan_blocks * m.rcan_width * pixels;
+  if (m.enhancer == "dncnn")
+    floats = 8.0 * m.dncnn_layers * m.dncnn_width * pixels;
+  else if (m.enhancer == "rcan")
+    floats = 8.0 * 3 * m.rcan_groups * m.rcan_blocks * m.rcan_width * pixels;
   else if (m.enhancer == "nafnet")  // ~40 floats per channel and pixel per block; each level has half the U-Net's
     floats = 40.0 * m.nafnet_width * pixels * 2 * (m.nafnet_enc_blocks + m.nafnet_dec_blocks + 1);
-  else floats = 34.0 * m.unet_width * pixels;
+  else
+    floats = 34.0 * m.unet_width * pixels;
   // The first stage: the measurement, W1^T Y and the scene, per Bayer plane, with gradients.
   const double rows = camera.raw.crop[2], cols = camera.raw.crop[3], n = camera.scene_size;
   floats += 3.0 * 4 * (rows * cols + n * cols + n * n);
@@ -246,10 +251,14 @@ double training_bytes_per_sample(const ModelSpec& m, int64_t crop, const CameraC
 double training_fixed_bytes(const ModelSpec& m, const CameraConfig& camera) {
   const auto square = [](double x) { return x * x; };
   double params = 0;
-  if (m.enhancer == "dncnn") params = 9.0 * m.dncnn_layers * square(m.dncnn_width);
-  else if (m.enhancer == "rcan") params = 2 * 9.0 * m.rcan_groups * m.rcan_blocks * square(m.rcan_width);
-  else if (m.enhancer == "nafnet") params = 31e6 * square(m.nafnet_width / 64.0);
-  else params = 31e6 * square(m.unet_width / 64.0);
+  if (m.enhancer == "dncnn")
+    params = 9.0 * m.dncnn_layers * square(m.dncnn_width);
+  else if (m.enhancer == "rcan")
+    params = 2 * 9.0 * m.rcan_groups * m.rcan_blocks * square(m.rcan_width);
+  else if (m.enhancer == "nafnet")
+    params = 31e6 * square(m.nafnet_width / 64.0);
+  else
+    params = 31e6 * square(m.unet_width / 64.0);
   // The first stage: W1 {rows,N} and W2 {cols,N} per Bayer plane.
   params += 4.0 * (camera.raw.crop[2] + camera.raw.crop[3]) * camera.scene_size;
   // The pre-processor's 3x3 convolutions: 4 -> width, (depth - 2) x width -> width, width -> 4.
@@ -284,19 +293,22 @@ Config settle_config(const ExperimentOptions& o, bool writer, std::optional<doub
     if (!o.config.empty()) {  // the same command line again is fine; another config is not silently ignored
       const auto differences = differing_settings(config, Config::load(o.config, sets));
       require_option(differences.empty(), "experiment.config",
-              option_key("experiment.resume") + " continues with the run's own config (" + (out / "config.yaml").string() +
-                  "), which differs in " + differences + "; change single settings with " + option_key("experiment.sets") + " key=value");
+                     option_key("experiment.resume") + " continues with the run's own config (" +
+                         (out / "config.yaml").string() + "), which differs in " + differences +
+                         "; change single settings with " + option_key("experiment.sets") + " key=value");
     }
     return config;
   }
   require(!writer || o.force || !std::filesystem::exists(latest), out,
-          "already holds a training run; continue it with " + option_key("experiment.resume") + ", choose another " + option_key("experiment.out") + ", or set " + option_key("experiment.force") + " to "
-          "start afresh (deleting it)");
+          "already holds a training run; continue it with " + option_key("experiment.resume") + ", choose another " +
+              option_key("experiment.out") + ", or set " + option_key("experiment.force") +
+              " to "
+              "start afresh (deleting it)");
   const auto old = run_files(out);
   if (writer && !o.force && !old.empty())
     throw Error(out, "holds the files of another run that never reached its first checkpoint (" +
-                         old.front().filename().string() +
-                         " ...); set " + option_key("experiment.force") + " to start afresh (deleting them) or choose another " + option_key("experiment.out"));
+                         old.front().filename().string() + " ...); set " + option_key("experiment.force") +
+                         " to start afresh (deleting them) or choose another " + option_key("experiment.out"));
   return Config::load(o.config, sets);
 }
 
@@ -308,15 +320,17 @@ void require_memory_for(const ModelSpec& spec, const CameraConfig& camera, const
   const double fixed = training_fixed_bytes(spec, camera);
   const auto gb = [](double bytes) { return std::to_string(static_cast<int64_t>(std::ceil(bytes / 1e9))); };
   require(fixed < 0.9 * available, enhancer_width_key(spec),
-          "this model's weights, gradients and optimiser state need about " + gb(fixed) +
-              " GB, and this machine has " + gb(available) + " GB available; choose a smaller width");
+          "this model's weights, gradients and optimiser state need about " + gb(fixed) + " GB, and this machine has " +
+              gb(available) + " GB available; choose a smaller width");
   const double need = fixed + training_bytes_per_sample(spec, opts.crop, camera) * static_cast<double>(opts.batch);
   require(need < 0.9 * available, train_key(&TrainOptions::batch),
           std::to_string(opts.batch) + " samples need about " + gb(need) + " GB for training (" + gb(fixed) +
               " of them for the model and its optimiser), and this machine has " + gb(available) +
               " GB available; lower train.batch (or train.crop" +
-              (spec.preprocessor_width > 0 ? std::string(", or model.preprocessor.width and depth, which run on the whole window")
-                                           : std::string()) + ")");
+              (spec.preprocessor_width > 0
+                   ? std::string(", or model.preprocessor.width and depth, which run on the whole window")
+                   : std::string()) +
+              ")");
 }
 
 }  // namespace
@@ -326,14 +340,15 @@ ExperimentResult run_experiment(const ExperimentOptions& o) {
   const auto& dist = o.distributed;
   require_option(!o.out.empty(), "experiment.out", "an output folder is required");
   require_option(dist.world_size >= 1 && dist.rank >= 0 && dist.rank < dist.world_size, "experiment.rank",
-          "must lie in [0, world size " + std::to_string(dist.world_size) + ")");
+                 "must lie in [0, world size " + std::to_string(dist.world_size) + ")");
   const bool writer = dist.rank == 0;
   const auto& out = o.out;
   const auto latest = out / "latest.ckpt";
   const bool resume = o.resume;
   std::optional<double> best_psnr;  // best.ckpt's, read once on resume
   Config config = settle_config(o, writer, best_psnr);
-  require_option(!(resume && !o.init_from.empty()), "experiment.init_from", "starts a new run; it cannot be combined with " + option_key("experiment.resume"));
+  require_option(!(resume && !o.init_from.empty()), "experiment.init_from",
+                 "starts a new run; it cannot be combined with " + option_key("experiment.resume"));
   light_off_for_captures_on_disk(config, log);
   // Everything that can fail on bad input is checked before anything is written.
   const auto camera = camera_of(config);
@@ -353,10 +368,12 @@ ExperimentResult run_experiment(const ExperimentOptions& o) {
   }
   auto [train_src, val_src] = data_sources(config, camera);
   torch::manual_seed(opts.seed);
-  require_option(!o.reinit_inversion || !o.init_from.empty(), "experiment.reinit", "re-initialises part of a " + option_key("experiment.init_from") + " model");
+  require_option(!o.reinit_inversion || !o.init_from.empty(), "experiment.reinit",
+                 "re-initialises part of a " + option_key("experiment.init_from") + " model");
   const bool transfer = spec.inversion_init == "transfer";
   require(!transfer || resume || o.reinit_inversion, "model.inversion.init",
-          "transfer makes the first stage from a trained model's: use it with " + option_key("experiment.init_from") + " MODEL " + option_key("experiment.reinit") + " inversion");
+          "transfer makes the first stage from a trained model's: use it with " + option_key("experiment.init_from") +
+              " MODEL " + option_key("experiment.reinit") + " inversion");
   Generator g(generator_options(config, camera, !resume && (o.init_from.empty() || o.reinit_inversion)));
   if (!o.init_from.empty()) initialise_from_model(o, config, camera, g, log);
 
@@ -366,8 +383,7 @@ ExperimentResult run_experiment(const ExperimentOptions& o) {
     log << "precision: " << describe_precision(p) << "\n";
   }
   Discriminator d(discriminator_options(config));
-  log << "loading "
-      << (opts.val_count > 0 ? std::min(opts.val_count, val_src->size()) : val_src->size())
+  log << "loading " << (opts.val_count > 0 ? std::min(opts.val_count, val_src->size()) : val_src->size())
       << " validation samples...\n";
   auto val = load_all(*val_src, opts.val_count, std::max(1, opts.workers));
   if (writer && !resume)
@@ -385,7 +401,8 @@ ExperimentResult run_experiment(const ExperimentOptions& o) {
         << " % of the run; their camera in " << (out / "camera").string() << "\n";
     trainer.set_learned_camera(learned, camera);
   }
-  if (resume) log << trainer.resume(latest, best_psnr) << "\n";  // every rank reads rank 0's checkpoint (a shared folder)
+  if (resume)
+    log << trainer.resume(latest, best_psnr) << "\n";  // every rank reads rank 0's checkpoint (a shared folder)
   if (trainer.run_id().empty()) trainer.set_run_id(new_run_id());  // a new run, or one from before run ids
   if (writer) {  // after a resume succeeded: a refused one changes nothing
     std::filesystem::create_directories(out);
@@ -394,10 +411,11 @@ ExperimentResult run_experiment(const ExperimentOptions& o) {
   }
   trainer.set_distributed(group.get());
   log << "training on " << train_src->size() << " pairs, "
-      << (opts.minutes > 0 ? format_duration(60.0 * opts.minutes) + " (train.minutes)" : std::to_string(opts.iterations) + " steps")
+      << (opts.minutes > 0 ? format_duration(60.0 * opts.minutes) + " (train.minutes)"
+                           : std::to_string(opts.iterations) + " steps")
       << " of batch " << opts.batch
-      << (dist.world_size > 1 ? " per rank x " + std::to_string(dist.world_size) + " ranks" : "") << " ("
-      << spec.input << " + " << enhancer_text(spec) << ")\n";
+      << (dist.world_size > 1 ? " per rank x " + std::to_string(dist.world_size) + " ranks" : "") << " (" << spec.input
+      << " + " << enhancer_text(spec) << ")\n";
   ExperimentResult result;
   result.writer = writer;
   result.summary = trainer.run();

@@ -29,8 +29,8 @@ struct ExperimentOptions {
   // model.inversion.init transfer: the camera the init_from model was trained for (its calibration);
   // empty: the model's own data.camera.
   std::filesystem::path source_camera;
-  DistributedOptions distributed;   // world size 1: a single process
-  std::ostream* log = nullptr;      // progress lines (default: std::cerr)
+  DistributedOptions distributed;  // world size 1: a single process
+  std::ostream* log = nullptr;     // progress lines (default: std::cerr)
 };
 
 struct ExperimentResult {

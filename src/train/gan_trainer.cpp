@@ -144,7 +144,8 @@ StepLosses gan_step(Generator& g, Discriminator& d, Vgg16Features& vgg, torch::o
     torch::Tensor perc, adv, structural;
     if (opt.w_ssim > 0) loss = loss + opt.w_ssim * (structural = ssim_loss(fake, gt));
     if (perceptual) loss = loss + opt.w_perceptual * (perc = perceptual_loss(vgg, fake, gt, opt.bf16));
-    if (adversarial) for (auto& p : d->parameters()) p.set_requires_grad(false);
+    if (adversarial)
+      for (auto& p : d->parameters()) p.set_requires_grad(false);
     if (opt.w_adversarial > 0) {
       adv = torch::binary_cross_entropy_with_logits(logits_fp32(d, fake, opt.bf16), torch::ones({fake.size(0), 1}));
       loss = loss + opt.w_adversarial * adv;
@@ -156,7 +157,8 @@ StepLosses gan_step(Generator& g, Discriminator& d, Vgg16Features& vgg, torch::o
       logged = t.item<double>();
       loss = loss + weight * t;
     };
-    add_term(opt.w_feature_matching, out.feature_matching, [&] { return feature_matching_loss(d, fake, gt, opt.bf16); });
+    add_term(opt.w_feature_matching, out.feature_matching,
+             [&] { return feature_matching_loss(d, fake, gt, opt.bf16); });
     add_term(opt.w_frequency, out.frequency, [&] { return focal_frequency_loss(fake, gt); });
     add_term(opt.w_chroma, out.chroma, [&] { return chroma_loss(fake, gt); });
     add_term(opt.w_gradient, out.gradient, [&] { return gradient_loss(fake, gt); });
@@ -213,7 +215,8 @@ GanTrainer::GanTrainer(Generator generator, Discriminator discriminator, Vgg16Fe
       opt_(std::move(options)),
       identity_(std::move(identity)) {
   require(opt_.iterations > 0 && opt_.batch > 0, "train", "iterations and batch must be positive");
-  require(opt_.w_perceptual <= 0 || !vgg_.is_empty(), train_key(&TrainOptions::w_perceptual), "a perceptual weight needs VGG-16 weights");
+  require(opt_.w_perceptual <= 0 || !vgg_.is_empty(), train_key(&TrainOptions::w_perceptual),
+          "a perceptual weight needs VGG-16 weights");
   g_->prepare_training({false, opt_.channels_last, false, opt_.gemm_upsample});
   if (opt_.channels_last && !vgg_.is_empty()) weights_to_channels_last(*vgg_);
   // Two parameter groups: the inversion may learn at its own rate.
@@ -239,8 +242,8 @@ GanTrainer::GanTrainer(Generator generator, Discriminator discriminator, Vgg16Fe
 Generator& GanTrainer::exported() { return ema_ ? ema_->average() : g_; }
 
 std::string GanTrainer::resume(const std::filesystem::path& checkpoint, std::optional<double> best_psnr) {
-  state_ = load_checkpoint(checkpoint, g_, d_, *opt_g_, *opt_d_, ema_ ? &ema_->average() : nullptr,
-                           checkpoint_camera());
+  state_ =
+      load_checkpoint(checkpoint, g_, d_, *opt_g_, *opt_d_, ema_ ? &ema_->average() : nullptr, checkpoint_camera());
   // The best PSNR is the one best.ckpt holds: a kill between writing best.ckpt and latest.ckpt
   // leaves latest's record behind or ahead of the file, and no file would hold that score.
   const auto best = opt_.out / "best.ckpt";
@@ -251,7 +254,8 @@ std::string GanTrainer::resume(const std::filesystem::path& checkpoint, std::opt
   if (!sync_ || sync_->rank() == 0) save_model_file(opt_.out / "model.flatnet", exported(), exported_identity());
   std::ostringstream os;
   os << "resumed at step " << state_.step << ": generator" << (ema_ ? ", its moving average" : "")
-     << ", discriminator, " << (state_.optimizers_restored ? "both optimisers" : "fresh optimisers (format-1 checkpoint)")
+     << ", discriminator, "
+     << (state_.optimizers_restored ? "both optimisers" : "fresh optimisers (format-1 checkpoint)")
      << " and the random state restored; best validation PSNR ";
   if (std::filesystem::exists(best))
     os << std::fixed << std::setprecision(2) << state_.best_psnr << " dB (best.ckpt)";
@@ -273,7 +277,8 @@ void GanTrainer::set_distributed(GradientAverager* collectives) {
 void GanTrainer::set_learned_camera(CodePairCamera camera, CameraConfig geometry) {
   camera_ = std::move(camera);
   camera_geometry_ = std::move(geometry);
-  opt_camera_ = std::make_unique<torch::optim::Adam>(camera_->parameters(), torch::optim::AdamOptions(camera_->options().lr));
+  opt_camera_ =
+      std::make_unique<torch::optim::Adam>(camera_->parameters(), torch::optim::AdamOptions(camera_->options().lr));
 }
 
 CheckpointCamera GanTrainer::checkpoint_camera() {
@@ -361,7 +366,8 @@ ModelIdentity GanTrainer::exported_identity() const {
   identity.provenance.trained_steps = std::to_string(state_.step);
   identity.provenance.train_seconds = std::to_string(std::lround(trained_seconds()));
   if (state_.best_psnr > -1e8) identity.provenance.best_val_psnr = std::to_string(state_.best_psnr);
-  identity.provenance.source = std::string("flatnet train (") + (ema_ ? "moving average of the weights" : "last weights") + ")";
+  identity.provenance.source =
+      std::string("flatnet train (") + (ema_ ? "moving average of the weights" : "last weights") + ")";
   return identity;
 }
 
@@ -441,8 +447,8 @@ TrainSummary GanTrainer::run() {
   tally.statistics = g_->buffers();
   for (const auto& b : d_->buffers()) tally.statistics.push_back(b);
 
-  auto options = loop_schedule(opt_, "train",
-                               (opt_.out / "latest.ckpt").string() + " (the last validation's, if the run reached one)");
+  auto options = loop_schedule(
+      opt_, "train", (opt_.out / "latest.ckpt").string() + " (the last validation's, if the run reached one)");
   options.first_step = state_.step;
   options.seconds_before = state_.train_seconds;
   options.writer = writer;

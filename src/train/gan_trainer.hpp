@@ -35,7 +35,7 @@ struct TrainOptions {
   int64_t batch = 4;
   double lr = 1e-4, lr_discriminator = 1e-4, lr_inversion_scale = 1.0;
   // halving: lr * 0.5^floor(step / lr_halve_every) (the thesis); cosine: lr * (1 + cos(pi t)) / 2 with
-// t = step / iterations, or with a time budget the larger of that and the budget's elapsed fraction.
+  // t = step / iterations, or with a time budget the larger of that and the budget's elapsed fraction.
   LrSchedule schedule = LrSchedule::halving;
   int64_t lr_halve_every = 5000;
   int64_t discriminator_warmup = 0;
@@ -53,8 +53,8 @@ struct TrainOptions {
   // The discriminator is trained (one step per generator step) when a term needs it.
   bool trains_discriminator() const { return w_adversarial > 0 || w_feature_matching > 0; }
   double ema_decay =
-      0.0;            // exponential moving average of the generator's weights (0: off); used to validate and export
-  int64_t crop = 0;   // the enhancer trains on random crop x crop windows of the first stage (0: whole scenes)
+      0.0;           // exponential moving average of the generator's weights (0: off); used to validate and export
+  int64_t crop = 0;  // the enhancer trains on random crop x crop windows of the first stage (0: whole scenes)
   std::string precision = "auto";  // auto | fp32 | bf16, as configured; resolved into bf16 for this CPU
   bool bf16 = false;  // bf16 autocast for the enhancer and discriminator (fp32 master weights and Adam state)
   double real_label_min = 0.7, fake_label_max = 0.3;
@@ -184,7 +184,7 @@ class GanTrainer {
   ModelIdentity exported_identity() const;
   // Training time in all: the checkpoint's record plus this run's time so far.
   double trained_seconds() const { return loop_ ? loop_->trained_seconds() : state_.train_seconds; }
-  const TrainingLoop* loop_ = nullptr;  // while run() runs: its clock
+  const TrainingLoop* loop_ = nullptr;   // while run() runs: its clock
   std::optional<CsvLog> log_, val_log_;  // log.csv, val.csv (the writer's)
 
   Generator g_;

@@ -42,8 +42,9 @@ LoopResult TrainingLoop::run() {
   if (opt_.minutes > 0) progress.set_time_left(60.0 * opt_.minutes - trained_seconds());
   NonFiniteGuard nonfinite(opt_.last_good, opt_.remedy);
   const auto budget_status = [&] {
-    return opt_.minutes > 0 ? " | budget left " + format_duration(std::max(0.0, 60.0 * opt_.minutes - trained_seconds()))
-                            : std::string();
+    return opt_.minutes > 0
+               ? " | budget left " + format_duration(std::max(0.0, 60.0 * opt_.minutes - trained_seconds()))
+               : std::string();
   };
   int64_t checkpointed = -1;
   bool stopping = false;

@@ -20,7 +20,7 @@ struct LoopOptions {
   // Wall-clock budget of the whole run, resumed parts included (0: none). A budget is the run's
   // length: the run ends when it is spent, whatever `iterations` says (train.minutes alone bounds it).
   double minutes = 0;
-  double seconds_before = 0;    // seconds the run trained before (resume)
+  double seconds_before = 0;  // seconds the run trained before (resume)
   int64_t log_every = 50, val_every = 500;
   bool progress = true;
   bool writer = true;  // logs and checkpoints (rank 0 of a data-parallel run; the others only step)

@@ -54,8 +54,14 @@ class MaskTrainer {
  public:
   MaskTrainer(MaskModel& model, const torch::Tensor& train_scenes, const torch::Tensor& val_scenes,
               const WienerCamera& cam, const MaskTrainOptions& o)
-      : model_(model), train_(train_scenes), val_(val_scenes), cam_(cam), o_(o),
-        checkpoint_path_(trainer_checkpoint_path(o.out)), rng_(o.seed), pick_(0, train_scenes.size(0) - 1) {
+      : model_(model),
+        train_(train_scenes),
+        val_(val_scenes),
+        cam_(cam),
+        o_(o),
+        checkpoint_path_(trainer_checkpoint_path(o.out)),
+        rng_(o.seed),
+        pick_(0, train_scenes.size(0) - 1) {
     // gamma > 0 by construction: it is learned as its logarithm.
     log_gamma_ = torch::tensor(std::log(o.gamma_init)).set_requires_grad(true);
     params_ = model_->parameters();
@@ -206,7 +212,8 @@ MaskTrainSummary train_mask(MaskModel& model, const torch::Tensor& train_scenes,
                             const WienerCamera& cam, const MaskTrainOptions& o) {
   require(cam.noise_sigma > 0 || cam.photons > 0, "camera.noise_sigma",
           "must be positive (a noise-free design is degenerate)");
-  require(train_scenes.size(0) > 0 && val_scenes.size(0) > 0, key_of(photo_split_fields(), &PhotoSplit::images), "no training or validation images");
+  require(train_scenes.size(0) > 0 && val_scenes.size(0) > 0, key_of(photo_split_fields(), &PhotoSplit::images),
+          "no training or validation images");
   std::filesystem::create_directories(o.out);
   return MaskTrainer(model, train_scenes, val_scenes, cam, o).run();
 }

@@ -16,7 +16,7 @@ struct MaskTrainOptions {
   std::string optimizer = "sgd";  // sgd (thesis: momentum 0.5, lr 1e-4) | adam
   double lr = 1e-4, momentum = 0.5;
   double gamma_init = 1e-6;  // Wiener regulariser to start from (MLS tunes to ~1e-6)
-  double minutes = 0;  // wall-clock budget (0: none); the run stops early, writing its mask
+  double minutes = 0;        // wall-clock budget (0: none); the run stops early, writing its mask
   int64_t val_every = 500, log_every = 50;
   uint64_t seed = 0;
   std::filesystem::path out;  // mask.png, vectors.mat, gamma.txt, log.csv, val.csv, curve.png, latest.ckpt

@@ -38,8 +38,8 @@ void NonFiniteGuard::stop(const NonFiniteStep& bad) {
 void NonFiniteGuard::skip(const NonFiniteStep& bad) {
   ++skipped_;
   if (++in_a_row_ >= kNonFiniteLimit) stop(bad);
-  std::cerr << "\nskipped step " << bad.step << ": " << bad.what() << " (" << in_a_row_ << " of "
-            << kNonFiniteLimit << " in a row stop training)\n";
+  std::cerr << "\nskipped step " << bad.step << ": " << bad.what() << " (" << in_a_row_ << " of " << kNonFiniteLimit
+            << " in a row stop training)\n";
 }
 
 }  // namespace flatnet

@@ -65,10 +65,16 @@ std::string codes_init_key();
 // The key of the row binding a member, as errors name it: train_key(&TrainOptions::crop) is
 // "train.crop".
 template <class T>
-std::string train_key(T TrainOptions::*member) { return key_of(train_fields(), member); }
+std::string train_key(T TrainOptions::*member) {
+  return key_of(train_fields(), member);
+}
 template <class T>
-std::string data_key(T DataOptions::*member) { return key_of(data_fields(), member, "data."); }
+std::string data_key(T DataOptions::*member) {
+  return key_of(data_fields(), member, "data.");
+}
 template <class T>
-std::string codes_key(T CodesignOptions::*member) { return key_of(codesign_fields(), member, "codes."); }
+std::string codes_key(T CodesignOptions::*member) {
+  return key_of(codesign_fields(), member, "codes.");
+}
 
 }  // namespace flatnet

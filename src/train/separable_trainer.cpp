@@ -121,8 +121,7 @@ std::pair<torch::Tensor, torch::Tensor> initial_preactivations(const SeparableTr
 // the one training loop (train/loop.hpp), set-up (a fresh or resumed run) and the outputs at the end.
 class SeparableTrainer {
  public:
-  explicit SeparableTrainer(const SeparableTrainOptions& o)
-      : o_(o), checkpoint_path_(trainer_checkpoint_path(o.out)) {
+  explicit SeparableTrainer(const SeparableTrainOptions& o) : o_(o), checkpoint_path_(trainer_checkpoint_path(o.out)) {
     std::tie(train_, val_) = load_scenes(o);
     train_linear_ = srgb_to_linear(train_);
     std::tie(a_, b_) = initial_preactivations(o);

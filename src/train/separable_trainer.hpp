@@ -17,15 +17,15 @@
 namespace flatnet {
 
 struct SeparableTrainOptions {
-  std::filesystem::path images;      // photographs; the training side of simulate's split
-  double val_fraction = 0.1;         // that split (flatnet simulate's defaults: the same photographs held out)
+  std::filesystem::path images;  // photographs; the training side of simulate's split
+  double val_fraction = 0.1;     // that split (flatnet simulate's defaults: the same photographs held out)
   uint64_t split_seed = 1;
   std::filesystem::path init_codes;  // .mat with code_rows, code_cols to start from (MLS); empty: random
   int64_t code_length = 511;         // elements per code when init_codes is empty
   int64_t train_limit = 400;         // photographs loaded for training (0: all)
   int64_t val_count = 32;            // held-out-split photographs for validation
   int64_t iterations = 1000, batch = 8;
-  double minutes = 0;  // wall-clock budget (0: none); the run stops early, writing its codes
+  double minutes = 0;         // wall-clock budget (0: none); the run stops early, writing its codes
   double lr = 0.02;           // Adam, on the codes' pre-activations
   double lambda_init = 1e-4;  // Tikhonov regulariser (absolute, as recon's), learned as its log
   double target_throughput = 0.5, throughput_tolerance = 0.05;

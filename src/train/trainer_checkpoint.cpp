@@ -98,9 +98,9 @@ RestoredTraining read_trainer_checkpoint(const std::filesystem::path& path, cons
               state.optimizer_kind + " on resume");
   const auto& step_text = st.meta("step", path);
   const auto& seconds_text = st.meta("train_seconds", path);
-  require(is_decimal_number(step_text) && step_text.find_first_of(".eE-+") == std::string::npos &&
-              step_text.size() <= 12,
-          path, "step '" + step_text.substr(0, 40) + "' is not a step count");
+  require(
+      is_decimal_number(step_text) && step_text.find_first_of(".eE-+") == std::string::npos && step_text.size() <= 12,
+      path, "step '" + step_text.substr(0, 40) + "' is not a step count");
   require(is_decimal_number(seconds_text) && std::strtod(seconds_text.c_str(), nullptr) >= 0, path,
           "train_seconds '" + seconds_text.substr(0, 40) + "' is not a duration");
   r.step = std::stoll(step_text);

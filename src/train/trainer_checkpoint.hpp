@@ -43,7 +43,7 @@ struct RestoredTraining {
   int64_t step = 0;
   double seconds = 0;
   std::string run_id;  // the run that wrote it; "" in files from before run ids
-  SafeTensors file;  // for the trainer's own extras
+  SafeTensors file;    // for the trainer's own extras
 };
 
 // Restores the parameters and the optimiser's state of `state` from `path` (a missing file: "nothing
