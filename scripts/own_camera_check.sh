@@ -69,8 +69,7 @@ if [ "$minutes" != 0 ]; then
     else
       "$flatnet" train --config configs/sim_transpose.yaml --init-from models/flatnet-sim-transpose.flatnet \
         --reinit inversion --set data.source=dataset --set "data.dataset=$runs/ds" \
-        --set "data.camera=$runs/cal-$train/camera.yaml" --set data.light.exposure_probability=0 \
-        --set data.light.lamp_probability=0 --set train.iterations=1000000 --set "train.minutes=$minutes" \
+        --set "data.camera=$runs/cal-$train/camera.yaml" --set "train.minutes=$minutes" \
         --out "$run" > "$run.log" 2>&1
     fi
   fi

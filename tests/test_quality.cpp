@@ -260,6 +260,9 @@ TEST_CASE("train --init-from a model without the level adds it with zero weights
 
 TEST_CASE("a measurement pre-processor: identity when new, positively homogeneous, gradients reach it",
           "[quality][preprocessor]") {
+  // Seeded: a width-2 U-Net drawn at random can start with every ReLU of a level dead, and then no
+  // gradient reaches anything before it (about one draw in fifteen).
+  torch::manual_seed(11);
   PreprocessorOptions o;
   o.width = 3;
   o.depth = 3;

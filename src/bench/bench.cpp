@@ -232,8 +232,12 @@ BenchRow train_recipe_row(const std::string& name, const BenchOptions& o) {
   TrainOptions t;
   t.batch = 8;
   t.crop = 128;
-  t.w_mse = 1.0, t.w_ssim = 0.2, t.w_perceptual = 0.0, t.w_adversarial = 0.01;
-  t.w_feature_matching = 0.05, t.w_chroma = 0.5;
+  t.w_mse = 1.0;
+  t.w_ssim = 0.2;
+  t.w_perceptual = 0.0;
+  t.w_adversarial = 0.01;
+  t.w_feature_matching = 0.05;
+  t.w_chroma = 0.5;
   t.bf16 = o.bf16;
   torch::optim::Adam opt_g(g->parameters(), torch::optim::AdamOptions(1e-4));
   torch::optim::Adam opt_d(d->parameters(), torch::optim::AdamOptions(1e-4));

@@ -106,8 +106,11 @@ int calibrate_from_reference_pairs(const cxxopts::ParseResult& r, const CameraCo
   known.tikhonov_lambda = absolute_tikhonov_lambda(separable_inverse(fit.calib.P, fit.calib.Q, 1.0), lambda);
   const auto noise = fit_noise_model(noise_samples, fit.calib.P, fit.calib.Q);
   if (noise.found) {
-    known.noise_gain = noise.noise_gain, known.noise_floor = noise.noise_floor, known.dark = noise.dark;
-    known.fit_threshold = noise.fit_threshold, known.leak_threshold = noise.leak_threshold;
+    known.noise_gain = noise.noise_gain;
+    known.noise_floor = noise.noise_floor;
+    known.dark = noise.dark;
+    known.fit_threshold = noise.fit_threshold;
+    known.leak_threshold = noise.leak_threshold;
     // A few captures' calibration misses structured light, and a capture it did not see leaks more
     // than the captures it was fitted to: the held-out captures' leaks set the threshold too.
     if (held_leak > 0 && noise.leak_threshold > 0)
@@ -214,7 +217,9 @@ int calibrate_from_dataset(const cxxopts::ParseResult& r) {
       calibrate_from_pairs(static_cast<int64_t>(pairs.size()), load, camera.raw.crop[2], camera.raw.crop[3], N, o);
   save_calibration(out, fit.calib);
   auto known = camera;
-  known.noise_gain = fit.noise_gain, known.noise_floor = fit.noise_floor, known.dark = fit.dark;
+  known.noise_gain = fit.noise_gain;
+  known.noise_floor = fit.noise_floor;
+  known.dark = fit.dark;
   known.fit_threshold = fit.fit_threshold;
   known.leak_threshold = fit.leak_threshold;
   std::ostringstream fit_text;

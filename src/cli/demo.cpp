@@ -99,7 +99,9 @@ int demo(int argc, char** argv) {
 
   std::cout << "[3/3] evaluating\n";
   EvalOptions eval_options;
-  eval_options.gt = sim.out / "gt", eval_options.out = out / "recon", eval_options.sheet_rows = 6;
+  eval_options.gt = sim.out / "gt";
+  eval_options.out = out / "recon";
+  eval_options.sheet_rows = 6;
   const auto scores = evaluate(eval_options);
   std::cout << format_table(scores) << "\n"
             << "captures:         " << (sim.out / "meas").string() << " (" << srep.total << ")\n"

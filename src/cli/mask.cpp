@@ -83,7 +83,8 @@ int mask_train(int argc, char** argv) {
   read_options(c, mask_train_fields(), to);
   mo.seed = to.seed;
   const auto cam = wiener_camera(c);
-  mo.rows = cam.rows, mo.cols = cam.cols;
+  mo.rows = cam.rows;
+  mo.cols = cam.cols;
   to.out = out;
   to.resume = resume;
   to.force = r.count("force") > 0;

@@ -112,7 +112,9 @@ int eval(int argc, char** argv) {
   if (!parse(o, argc, argv, r)) return 0;
   require(r.count("gt") && r.count("out"), "eval", "--gt DIR and --out DIR are required");
   EvalOptions opt;
-  opt.gt = r["gt"].as<std::string>(), opt.out = r["out"].as<std::string>(), opt.sheet_rows = r["sheet-rows"].as<int>();
+  opt.gt = r["gt"].as<std::string>();
+  opt.out = r["out"].as<std::string>();
+  opt.sheet_rows = r["sheet-rows"].as<int>();
   if (r.count("niqe")) {
     if (r["niqe"].as<std::string>() != "none") opt.niqe_model = r["niqe"].as<std::string>();
   } else if (std::filesystem::exists(shipped_niqe())) {

@@ -124,11 +124,16 @@ std::vector<SeparableScore> score_separable_cameras(const std::vector<SeparableC
   std::vector<SeparableScore> scores;
   for (const auto& c : candidates) {
     SeparableScore s;
-    s.name = c.name, s.origin = c.origin, s.throughput = c.codes.throughput(), s.scored = n - tune;
+    s.name = c.name;
+    s.origin = c.origin;
+    s.throughput = c.codes.throughput();
+    s.scored = n - tune;
     const Rig rig = camera_rig(c.codes, opt.camera);
     const auto calib = calibration_of(rig, opt.geometry.crop, opt.calib_error, opt.calib_seed);
-    s.cond_p = condition_number(calib.P[1]), s.cond_q = condition_number(calib.Q[1]);
-    s.low_share_rows = low_frequency_share(c.codes.rows), s.low_share_cols = low_frequency_share(c.codes.cols);
+    s.cond_p = condition_number(calib.P[1]);
+    s.cond_q = condition_number(calib.Q[1]);
+    s.low_share_rows = low_frequency_share(c.codes.rows);
+    s.low_share_cols = low_frequency_share(c.codes.cols);
     Tikhonov tik(calib, opt.lambdas.front());
     for (size_t level = 0; level < opt.light.size(); ++level) {
       Rig lit = rig;
@@ -174,7 +179,8 @@ std::vector<SeparableScore> score_separable_cameras(const std::vector<SeparableC
       }
       progress.finish();
       s.flatnet_label = model.label;
-      s.flatnet_psnr = mean_of(fs.psnr), s.flatnet_ssim = mean_of(fs.ssim);
+      s.flatnet_psnr = mean_of(fs.psnr);
+      s.flatnet_ssim = mean_of(fs.ssim);
     }
     if (opt.progress)
       std::cerr << c.name << ": Tikhonov " << fixed(s.psnr[0], 2) << " dB / " << fixed(s.ssim[0], 3) << " (lambda "
@@ -271,7 +277,10 @@ namespace {
 // PSNR against a logarithmic x axis (both sweeps).
 PlotOptions psnr_plot(const std::string& title, const std::string& xlabel) {
   PlotOptions p;
-  p.title = title, p.xlabel = xlabel, p.ylabel = "PSNR dB", p.log_x = true;
+  p.title = title;
+  p.xlabel = xlabel;
+  p.ylabel = "PSNR dB";
+  p.log_x = true;
   return p;
 }
 

@@ -217,11 +217,13 @@ std::vector<MethodScore> evaluate(const EvalOptions& opt, std::vector<ImageScore
       const auto rec = read_rgb(rec_path);
       if (!truth.image.defined()) {
         truth.image = truth_for(gt_path, rec_path, rec);
-        truth.colour = colourfulness(truth.image), truth.detail = luma_detail(truth.image);
+        truth.colour = colourfulness(truth.image);
+        truth.detail = luma_detail(truth.image);
       }
       require(rec.sizes() == truth.image.sizes(), rec_path, "size differs from the other reconstructions");
       auto scored = score_image(rec, truth, scorers);
-      scored.image.image = name, scored.image.method = methods[k].name;
+      scored.image.image = name;
+      scored.image.method = methods[k].name;
       write_csv_row(csv, scored, scorers);
       if (per_image) per_image->push_back(scored.image);
       totals[k].add(scored);
@@ -255,7 +257,8 @@ std::vector<MethodScore> evaluate(const EvalOptions& opt, std::vector<ImageScore
     truth.method = "ground truth";
     truth.count = truth_niqe.n;
     truth.psnr = truth.ssim = truth.psnr_sd = truth.ssim_sd = truth.brightness = std::nan("");
-    truth.niqe = truth_niqe.mean(), truth.niqe_sd = truth_niqe.sd();
+    truth.niqe = truth_niqe.mean();
+    truth.niqe_sd = truth_niqe.sd();
     csv << "mean,ground truth,,,,," << truth.niqe << ",," << (scorers.with_lpips ? "," : "") << ",\n";
     scores.push_back(truth);
   }

@@ -214,7 +214,8 @@ std::string make_report(const ReportOptions& o) {
     eo.out = set_out;
     eo.niqe_model = o.niqe_model;
     eo.methods = names;
-    eo.lpips = o.lpips, eo.lpips_files = o.lpips_files;
+    eo.lpips = o.lpips;
+    eo.lpips_files = o.lpips_files;
     HtmlSet page{set.name, std::to_string(captures.size()) + " captures from " + set.dir.string() + "."};
     const auto scores = evaluate(eo, &page.images);
     const bool with_lpips = !o.lpips.empty();
@@ -231,7 +232,10 @@ std::string make_report(const ReportOptions& o) {
       table.add(row);
       page.ms_per_image.push_back(ms);
     }
-    page.methods = names, page.scores = scores, page.gt_dir = eo.gt, page.rec_dir = set_out;
+    page.methods = names;
+    page.scores = scores;
+    page.gt_dir = eo.gt;
+    page.rec_dir = set_out;
     page.gallery = std::max(8, o.figure_rows);
     pages.push_back(std::move(page));
     const bool lamp = set.name.find("lamp") != std::string::npos;

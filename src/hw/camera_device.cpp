@@ -231,7 +231,8 @@ class AravisCamera final : public FrameSource {
     gint x = 0, y = 0, w = 0, h = 0;
     arv_camera_get_region(camera_, &x, &y, &w, &h, &err);
     check(err, id_, "reading the region");
-    width_ = w, height_ = h;
+    width_ = w;
+    height_ = h;
     nlohmann::json d;
     d["device"] = id_;
     d["vendor"] = str(arv_camera_get_vendor_name(camera_, nullptr));

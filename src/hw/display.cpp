@@ -59,7 +59,8 @@ class WindowDisplay final : public Display {
     int64_t h = 0, w = 0;
     if (opt_.fullscreen) {
       const auto rect = cv::getWindowImageRect(opt_.title);
-      h = std::max(rect.height, 1), w = std::max(rect.width, 1);
+      h = std::max(rect.height, 1);
+      w = std::max(rect.width, 1);
     }
     auto canvas = compose_canvas(image, h, w, opt_.fullscreen ? opt_.scale : std::max(1, opt_.scale)).contiguous();
     cv::Mat mat(static_cast<int>(canvas.size(0)), static_cast<int>(canvas.size(1)), CV_8UC3,

@@ -40,7 +40,8 @@ OneDnnConv::OneDnnConv(const torch::Tensor& weight, const torch::Tensor& bias, c
           weight.detach().to(torch::kBFloat16).contiguous(at::MemoryFormat::ChannelsLast)),  // no copy after the levers
       opt_(options) {
   TORCH_CHECK(weight_.dim() == 4, "OneDnnConv: a 4-D weight expected");
-  in_channels_ = weight_.size(1), out_channels_ = weight_.size(0);
+  in_channels_ = weight_.size(1);
+  out_channels_ = weight_.size(0);
   bias_ = bias.defined() ? bias.detach().to(torch::kFloat32).contiguous() : torch::zeros({out_channels_});
   TORCH_CHECK(bias_.numel() == out_channels_, "OneDnnConv: one bias per output channel expected");
   ++built_count;

@@ -83,7 +83,12 @@ Sums accumulate(PairStream& pairs,
     const auto A = f64(torch::matmul(Z, Z.transpose(1, 2))), B = f64(torch::matmul(Y, Z.transpose(1, 2)));
     const auto Sz = f64(s * Z), Sy = f64(s * Y), S2 = f64(s.square().flatten()), norm = f64(Y.square().sum({1, 2}));
     if (i == 0) {
-      sums.A = A, sums.B = B, sums.Sz = Sz, sums.Sy = Sy, sums.S2 = S2, sums.norm = norm;
+      sums.A = A;
+      sums.B = B;
+      sums.Sz = Sz;
+      sums.Sy = Sy;
+      sums.S2 = S2;
+      sums.norm = norm;
     } else {
       sums.A += A, sums.B += B, sums.Sz += Sz, sums.Sy += Sy, sums.S2 += S2, sums.norm += norm;
     }
@@ -205,7 +210,9 @@ void fit_noise_outside_span(PairStream& pairs, const torch::Tensor& P, const tor
   }
   const auto noise = fit_noise_model(samples, P, Q);
   if (!noise.found) return;
-  out.noise_gain = noise.noise_gain, out.noise_floor = noise.noise_floor, out.dark = noise.dark;
+  out.noise_gain = noise.noise_gain;
+  out.noise_floor = noise.noise_floor;
+  out.dark = noise.dark;
   out.fit_threshold = noise.fit_threshold;
   out.leak_threshold = noise.leak_threshold;
 }

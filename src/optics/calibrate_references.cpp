@@ -198,7 +198,8 @@ ReferenceCalibration calibrate_from_references(const std::vector<ReferencePair>&
   Tensors gain(count), offset(count), X = R;  // X_i = a_i R_i + b_i, eq. (1)
   ReferenceCalibration result;
   const auto [shift_rows, shift_cols] = search_shifts(Y, R, o);
-  result.shift_rows = shift_rows, result.shift_cols = shift_cols;
+  result.shift_rows = shift_rows;
+  result.shift_cols = shift_cols;
   auto Q = random_structured(4, cols, N, result.shift_cols, o.seed);
   torch::Tensor P;
   Progress progress("calibrate", o.passes, o.progress);
@@ -217,7 +218,8 @@ ReferenceCalibration calibrate_from_references(const std::vector<ReferencePair>&
     // The scale split P k, Q / k is invisible; balance it, then hold the mean gain at 1. The profiles
     // follow their factors (linear in them).
     const auto balance = (Q.norm(2, {1, 2}, true) / P.norm(2, {1, 2}, true).clamp_min(1e-300)).sqrt();  // {4,1,1}
-    P = P * balance, Q = Q / balance;
+    P = P * balance;
+    Q = Q / balance;
     const auto mean_gain = fit_gains(Y, R, P, Q, gain, offset);
     P = P * mean_gain;
     result.profile_rows = p_fit.profile * (balance * mean_gain).view({4, 1});
@@ -255,7 +257,8 @@ std::array<double, 4> reference_correlation(const torch::Tensor& reconstruction,
     const auto kept = ref > 0;  // pixels clipped at zero hold no value
     auto a = rec.masked_select(kept), b = ref.masked_select(kept);
     if (a.numel() < 2) continue;
-    a = a - a.mean(), b = b - b.mean();
+    a = a - a.mean();
+    b = b - b.mean();
     out[static_cast<size_t>(c)] = ((a * b).sum() / (a.norm() * b.norm()).clamp_min(1e-300)).item<double>();
   }
   return out;

@@ -45,7 +45,8 @@ struct ReferenceCalibrationOptions {
   uint64_t seed = 0;            // the random profiles that start each trial fit
   ShiftFitOptions shift = [] {  // the search's range and final tolerance
     ShiftFitOptions o;
-    o.min_shift = 0.2, o.max_shift = 4.0;
+    o.min_shift = 0.2;
+    o.max_shift = 4.0;
     return o;
   }();
   bool progress = true;

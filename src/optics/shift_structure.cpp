@@ -188,11 +188,15 @@ double golden_section_minimum(const std::function<double(double)>& f, double lo,
   double fc = f(c), fd = f(d);
   while (b - a > tolerance * std::max(std::abs(a), std::abs(b))) {
     if (fc < fd) {
-      b = d, d = c, fd = fc;
+      b = d;
+      d = c;
+      fd = fc;
       c = b - ratio * (b - a);
       fc = f(c);
     } else {
-      a = c, c = d, fc = fd;
+      a = c;
+      c = d;
+      fc = fd;
       d = a + ratio * (b - a);
       fd = f(d);
     }

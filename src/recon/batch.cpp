@@ -103,8 +103,10 @@ void summarise_fits(BatchReport& report, const std::vector<FitRow>& rows, const 
     // A capture flagged only with its batch, too saturated to judge, ranks last: its fit means nothing.
     const double excess = row.result.judged ? fit.excess(row.result) : 0;
     if (excess > report.worst_excess || report.worst.empty()) {
-      report.worst = row.name, report.worst_fit = row.result.fit;
-      report.worst_excess = excess, report.worst_verdict = fit.verdict(row.result);
+      report.worst = row.name;
+      report.worst_fit = row.result.fit;
+      report.worst_excess = excess;
+      report.worst_verdict = fit.verdict(row.result);
     }
   }
 }

@@ -142,6 +142,18 @@ void light_off_for_captures_on_disk(Config& c, std::ostream& log) {
 
 CameraConfig camera_of(const Config& c) { return load_camera_config(data_options(c).camera); }
 
+// train.crop is a speed lever for large scenes: a recipe's crop (the shipped models' 128) on a camera
+// whose scene is no larger trains on whole scenes, said in the log and recorded in config.yaml,
+// instead of stopping a recipe the user only pointed at a smaller camera.
+void whole_scenes_for_small_cameras(Config& c, const CameraConfig& camera, std::ostream& log) {
+  const auto key = train_key(&TrainOptions::crop);
+  const auto crop = c.integer(key);
+  if (crop <= 0 || crop < camera.scene_size) return;
+  c.set(key + "=0", "the camera's scene");
+  log << key << ": 0 (whole scenes: " << crop << " is not below the camera's " << camera.scene_size
+      << "-pixel scene)\n";
+}
+
 Vgg16Features vgg_if_needed(const Config& c, const TrainOptions& t) {
   if (t.w_perceptual <= 0) return Vgg16Features(nullptr);
   PerceptualOptions p;
@@ -352,13 +364,11 @@ ExperimentResult run_experiment(const ExperimentOptions& o) {
   light_off_for_captures_on_disk(config, log);
   // Everything that can fail on bad input is checked before anything is written.
   const auto camera = camera_of(config);
+  whole_scenes_for_small_cameras(config, camera, log);
   auto opts = train_options(config, out);
   auto vgg = vgg_if_needed(config, opts);
   const auto spec = model_spec(config);
   require_memory_for(spec, camera, opts);
-  require(opts.crop <= camera.scene_size, train_key(&TrainOptions::crop),
-          std::to_string(opts.crop) + " exceeds the camera's " + std::to_string(camera.scene_size) +
-              "-pixel scene (0: whole scenes)");
   CodePairCamera learned{nullptr};  // co-design: the camera whose codes learn with the network
   CodesignOptions codesign;
   if (config.flag("codes.learn")) {

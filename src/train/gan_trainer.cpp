@@ -169,7 +169,8 @@ StepLosses gan_step(Generator& g, Discriminator& d, Vgg16Features& vgg, torch::o
     loss.backward();
     if (sync) sync->average(g->parameters());
     opt_g.step();
-    out.loss = value, out.mse = mse.item<double>();
+    out.loss = value;
+    out.mse = mse.item<double>();
     if (structural.defined()) out.ssim = structural.item<double>();
     if (perc.defined()) out.perceptual = perc.item<double>();
     if (adv.defined()) out.adversarial = adv.item<double>();
@@ -339,7 +340,8 @@ void GanTrainer::checkpoint_and_validate(TrainSummary& summary) {
   }
   const auto v = validate(exported(), val_, opt_.batch, opt_.out / "samples.png");
   const double secs = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
-  summary.last_psnr = v.psnr, summary.last_ssim = v.ssim;
+  summary.last_psnr = v.psnr;
+  summary.last_ssim = v.ssim;
   val_log_->add(state_.step, v.psnr, v.ssim, secs);  // 6 significant digits
   val_log_->flush();
   const bool best = v.psnr > state_.best_psnr;
@@ -354,7 +356,8 @@ void GanTrainer::checkpoint_and_validate(TrainSummary& summary) {
   // A co-design run's camera first: the model and checkpoints written next belong to these codes.
   if (camera_) write_code_camera(opt_.out / "camera", camera_, camera_geometry_);
   if (best) {
-    summary.best_psnr = v.psnr, summary.best_ssim = v.ssim;
+    summary.best_psnr = v.psnr;
+    summary.best_ssim = v.ssim;
     save_checkpoint(opt_.out / "best.ckpt", g_, d_, *opt_g_, *opt_d_, state_, identity_, ema, checkpoint_camera());
   }
   save_checkpoint(opt_.out / "latest.ckpt", g_, d_, *opt_g_, *opt_d_, state_, identity_, ema, checkpoint_camera());

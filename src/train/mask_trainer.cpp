@@ -69,8 +69,10 @@ class MaskTrainer {
     opt_ = make_optimizer(params_, o);
     for (const auto& p : model_->named_parameters()) state_.params.emplace_back(p.key(), p.value());
     state_.params.emplace_back("log_gamma", log_gamma_);
-    state_.optimizer = opt_.get(), state_.optimizer_kind = o.optimizer;
-    state_.format = "flatnet-mask-checkpoint", state_.size_hint = "another mask.rank or mask.elements?";
+    state_.optimizer = opt_.get();
+    state_.optimizer_kind = o.optimizer;
+    state_.format = "flatnet-mask-checkpoint";
+    state_.size_hint = "another mask.rank or mask.elements?";
   }
 
   MaskTrainSummary run() {
@@ -96,7 +98,8 @@ class MaskTrainer {
   void restore_or_start() {
     if (o_.resume) {
       const auto restored = read_trainer_checkpoint(checkpoint_path_, state_);
-      first_step_ = restored.step, seconds_before_ = restored.seconds;
+      first_step_ = restored.step;
+      seconds_before_ = restored.seconds;
       std::istringstream rng_state(restored.file.meta("rng", checkpoint_path_));
       rng_state >> rng_;  // the data order
       require(!rng_state.fail(), checkpoint_path_, "rng is not the state of the data order's generator");
@@ -152,7 +155,9 @@ class MaskTrainer {
     torch::NoGradGuard ng;
     const auto w = model_->window();
     const double g = std::exp(log_gamma_.item<double>());
-    summary_.val_psnr = mask_psnr(w, g, val_, cam_, 12345), summary_.gamma = g, summary_.throughput = throughput(w);
+    summary_.val_psnr = mask_psnr(w, g, val_, cam_, 12345);
+    summary_.gamma = g;
+    summary_.throughput = throughput(w);
   }
 
   void validate(int64_t step) {

@@ -133,8 +133,10 @@ class SeparableTrainer {
     std::filesystem::create_directories(o.out);
     gen_ = at::detail::createCPUGenerator(o.seed + 1);
     state_.params = {{"a", a_}, {"b", b_}, {"log_lambda", log_lambda_}};
-    state_.optimizer = opt_.get(), state_.optimizer_kind = "adam";
-    state_.format = "flatnet-codes-checkpoint", state_.size_hint = "another codes.length or codes.init?";
+    state_.optimizer = opt_.get();
+    state_.optimizer_kind = "adam";
+    state_.format = "flatnet-codes-checkpoint";
+    state_.size_hint = "another codes.length or codes.init?";
   }
 
   SeparableTrainSummary run() {
@@ -170,7 +172,8 @@ class SeparableTrainer {
   void restore_or_start() {
     if (o_.resume) {
       const auto restored = read_trainer_checkpoint(checkpoint_path_, state_);
-      first_step_ = restored.step, seconds_before_ = restored.seconds;
+      first_step_ = restored.step;
+      seconds_before_ = restored.seconds;
       // The data order's and the noise's generator, checked before LibTorch reads it.
       const auto* rng = restored.file.find("rng");
       require(rng != nullptr, checkpoint_path_, "lacks 'rng', the state of the data and noise generator");
@@ -200,7 +203,8 @@ class SeparableTrainer {
     const auto rec = capture_and_reconstruct(u, v, torch::exp(log_lambda_), X, gen_);
     const auto t = code_throughput(u, v);
     const auto loss = (rec - X).pow(2).mean() + throughput_penalty(t, o_.target_throughput, o_.throughput_tolerance);
-    last_loss_ = loss.item<double>(), last_throughput_ = t.item<double>();
+    last_loss_ = loss.item<double>();
+    last_throughput_ = t.item<double>();
     opt_->zero_grad();
     loss.backward();
     // An SVD with nearly equal singular values can give a non-finite gradient: that step is
