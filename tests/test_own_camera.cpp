@@ -164,7 +164,8 @@ std::vector<std::string> walkthrough_commands() {
   bool in_sh = false, in_step = false;
   std::string pending;
   for (const auto& line : lines) {
-    if (!in_sh && line.rfind("## ", 0) == 0) in_step = line.size() > 3 && std::isdigit(static_cast<unsigned char>(line[3]));
+    if (!in_sh && line.rfind("## ", 0) == 0)
+      in_step = line.size() > 3 && std::isdigit(static_cast<unsigned char>(line[3]));
     if (!in_sh && line.rfind("### ", 0) == 0) in_step = false;
     if (line.rfind("```", 0) == 0) {
       in_sh = !in_sh && line == "```sh";
