@@ -23,6 +23,7 @@ std::string one_line(std::string text) {
 // Far above any capture or photograph, far below what would exhaust memory: a "decompression bomb"
 // (a tiny file that declares a gigapixel image) is refused before anything is allocated.
 constexpr int64_t kMaxImageValues = int64_t{1} << 28;  // width x height x channels
+constexpr double kMaxExpansion = 4096;                 // decoded samples' bytes per byte of file, at most
 
 uint32_t big_endian32(const unsigned char* p) { return (uint32_t{p[0]} << 24) | (p[1] << 16) | (p[2] << 8) | p[3]; }
 
@@ -83,9 +84,19 @@ OpenedImage open_input(const std::filesystem::path& path) {
   auto& in = image.in;
   require(in != nullptr, path, "unreadable image (" + one_line(OIIO::geterror()) + ")");
   const auto& spec = in->spec();
-  require(int64_t{spec.width} * spec.height * spec.nchannels <= kMaxImageValues, path,
+  const int64_t values = int64_t{spec.width} * spec.height * spec.nchannels;
+  require(values <= kMaxImageValues, path,
           "a " + std::to_string(spec.width) + "x" + std::to_string(spec.height) + "x" + std::to_string(spec.nchannels) +
               " image is beyond flatnet's limit (a damaged file or a decompression bomb)");
+  // Compression has a ceiling: deflate (PNG, TIFF) decodes to at most ~1032x its stream and TIFF's
+  // LZW to ~2700x, so a file whose header claims more than 4096x its own size of samples cannot hold
+  // that image. Refused before a buffer of the claimed size is made (found by scripts/fuzz.sh: a
+  // 600-byte TIFF claiming 1.1 GB of samples).
+  const double claimed_bytes = static_cast<double>(values) * static_cast<double>(spec.format.size());
+  require(claimed_bytes <= kMaxExpansion * static_cast<double>(image.bytes.size()) + (1 << 20), path,
+          "claims a " + std::to_string(spec.width) + "x" + std::to_string(spec.height) + "x" +
+              std::to_string(spec.nchannels) + " image in " + std::to_string(image.bytes.size()) +
+              " bytes, more than any compression holds (a damaged file or a decompression bomb)");
   return image;
 }
 

@@ -89,12 +89,20 @@ bool MatReader::has(const std::string& name) const {
 }
 
 torch::Tensor MatReader::read(const std::string& name) const {
-  matvar_t* v = Mat_VarRead(static_cast<mat_t*>(mat_), name.c_str());
-  if (!v) {
+  // The variable's header first: only a real numeric array is read. A struct, cell or sparse array
+  // is refused before matio reads its contents, which check_mat5_sizes does not vouch for (found by
+  // scripts/fuzz.sh: a struct whose field claims 520 M doubles made matio allocate 4 GB).
+  matvar_t* info = Mat_VarReadInfo(static_cast<mat_t*>(mat_), name.c_str());
+  if (!info) {
     std::string present;
     for (const auto& n : names()) present += (present.empty() ? "" : " ") + n;
     throw Error(path_, "missing variable '" + name + "' (file has: " + present + ")");
   }
+  const bool numeric = info->isComplex == 0 && is_supported_numeric(info->class_type);
+  Mat_VarFree(info);
+  require(numeric, path_, "variable '" + name + "' is not a real numeric array");
+  matvar_t* v = Mat_VarRead(static_cast<mat_t*>(mat_), name.c_str());
+  require(v != nullptr, path_, "variable '" + name + "' cannot be read (a damaged file?)");
   std::unique_ptr<matvar_t, void (*)(matvar_t*)> guard(v, Mat_VarFree);
   require(v->isComplex == 0 && is_supported_numeric(v->class_type) && v->data != nullptr, path_,
           "variable '" + name + "' is not a real numeric array");

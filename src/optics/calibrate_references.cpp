@@ -173,7 +173,9 @@ std::pair<double, double> search_shifts(const Tensors& Y, const Tensors& R, cons
 
 // One factor's shift refined within 3 % on a step's normal equations (the other factor fixed).
 double refine_shift(const std::pair<torch::Tensor, torch::Tensor>& normal_equations, double shift, double tolerance) {
-  const auto& [G, H] = normal_equations;
+  // Named, not a structured binding: a C++17 lambda may not capture one (clang refuses it).
+  const auto& G = normal_equations.first;
+  const auto& H = normal_equations.second;
   return golden_section_minimum([&](double s) { return solve_shift_factor(G, H, s).objective.sum().item<double>(); },
                                 shift / 1.03, shift * 1.03, tolerance);
 }

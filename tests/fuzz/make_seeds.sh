@@ -59,8 +59,8 @@ echo "rig: rig.mat" >> "$tmp/camera.yaml"
   --out "$tmp/ds" > /dev/null
 "$flatnet" train --config configs/sim_transpose.yaml --set data.source=dataset \
   --set data.light.exposure_probability=0 --set data.light.lamp_probability=0 --set "data.dataset=$tmp/ds" \
-  --set "data.camera=$tmp/camera.yaml" --set model.unet.width=2 --set model.level_input=false --set train.crop=0 \
-  --set discriminator.width=2 --set train.iterations=2 --set train.val_every=2 --out "$tmp/run" > /dev/null 2>&1
+  --set "data.camera=$tmp/camera.yaml" --set model.unet.width=2 --set model.level_input=false --set model.inversion.init=random --set train.crop=0 \
+  --set discriminator.width=2 --set train.iterations=2 --set train.val_every=2 --out "$tmp/run" > "$tmp/train.log" 2>&1 || { cat "$tmp/train.log"; exit 1; }
 "$flatnet" export --model "$tmp/run/model.flatnet" --onnx "$corpus/fuzz_onnx/tiny.onnx" > /dev/null
 "$flatnet" export --model "$tmp/run/model.flatnet" --state-dict --out "$corpus/fuzz_torch_file/flatnet_state_dict.pt" > /dev/null
 

@@ -1,0 +1,51 @@
+// What scripts/fuzz.sh found, kept: each input a harness (tests/fuzz/fuzz_*.cpp) once broke a reader
+// with is read again the way that harness reads it, and must be refused with a flatnet::Error that
+// names the file, before anything of the size it claims is allocated.
+#include <algorithm>
+#include <fstream>
+#include <functional>
+
+#include "core/error.hpp"
+#include "helpers.hpp"
+#include "io/image.hpp"
+#include "io/mat.hpp"
+#include "catch_torch.hpp"
+
+using namespace flatnet;
+using Catch::Matchers::Contains;
+
+namespace {
+
+std::filesystem::path finding(const std::string& name) { return test::data_dir() / "fuzz_findings" / name; }
+
+// The harness's file: fuzz_image drops the first byte, which chose the extension (odd: .tif).
+std::filesystem::path as_image(const test::Scratch& s, const std::string& name) {
+  std::ifstream in(finding(name), std::ios::binary);
+  std::string bytes((std::istreambuf_iterator<char>(in)), {});
+  REQUIRE(bytes.size() > 1);
+  const auto path = s.dir / (bytes[0] % 2 ? "capture.tif" : "capture.png");
+  std::ofstream(path, std::ios::binary) << bytes.substr(1);
+  return path;
+}
+
+}  // namespace
+
+TEST_CASE("fuzz finding: a 364-byte TIFF claiming 1.1 GB of samples is refused from its header", "[safe][fuzz]") {
+  test::Scratch s("fuzz_image_finding");
+  const auto path = as_image(s, "fuzz_image-tiff-claims-1gb.bin");
+  for (const auto& read : std::vector<std::function<void()>>{[&] { read_rgb(path); }, [&] { read_gray16(path); },
+                                                              [&] { read_image_header(path); }})
+    CHECK_THROWS_WITH(read(), Contains("capture.tif") && Contains("more than any compression holds"));
+  // A real image of the same kind is still read: a flat 16-bit TIFF compresses well within the bound.
+  write_gray16(s.dir / "flat.tif", torch::full({64, 80}, 1000, torch::kInt32));
+  CHECK(read_gray16(s.dir / "flat.tif").size(1) == 80);
+}
+
+TEST_CASE("fuzz finding: a .mat struct whose field claims 520 M doubles is refused before matio reads it",
+          "[safe][fuzz]") {
+  MatReader mat(finding("fuzz_mat-struct-field-claims-4gb.bin"));
+  const auto names = mat.names();
+  REQUIRE(std::find(names.begin(), names.end(), "s") != names.end());
+  CHECK_THROWS_WITH(mat.read("s"), Contains("fuzz_mat-struct-field-claims-4gb.bin") &&
+                                       Contains("variable 's' is not a real numeric array"));
+}
