@@ -29,7 +29,10 @@ fi
 echo "fuzz: building ${harnesses[*]} in $dir (log: $dir.log)"
 ninja -C "$dir" "${harnesses[@]}" >> "$dir.log" 2>&1 || { tail -n 40 "$dir.log"; exit 1; }
 
-export ASAN_OPTIONS="detect_leaks=0:abort_on_error=1:detect_odr_violation=0:allocator_may_return_null=1"
+# symbolize=0: a stack dump at an out-of-memory stop runs before libFuzzer writes the input, and
+# symbolizing inside a 2 GB process took minutes (the input was lost). Reproduce a finding
+# symbolized with: build-fuzz/HARNESS INPUT.
+export ASAN_OPTIONS="detect_leaks=0:abort_on_error=1:detect_odr_violation=0:allocator_may_return_null=1:symbolize=0"
 export UBSAN_OPTIONS="halt_on_error=1:print_stacktrace=1:suppressions=$PWD/tests/sanitizers/ubsan.supp"
 export FLATNET_THREADS=1 OMP_NUM_THREADS=1
 mkdir -p "$dir/findings" "$dir/logs"
@@ -39,7 +42,8 @@ run_one() {  # HARNESS
   [ -d "tests/fuzz/corpus/$h" ] && cp -n tests/fuzz/corpus/"$h"/* "$corpus"/ 2>/dev/null || true
   # 2 GB of memory, 1 GB in one allocation, 30 s per input: a reader that trusts a size it read
   # crosses one of them, and libFuzzer reports it as a finding.
-  (cd "$dir" && ./"$h" -max_total_time="$seconds" -rss_limit_mb=2048 -malloc_limit_mb=1024 -timeout=30 \
+  # The outer timeout: a harness that hangs in its own crash handling cannot hold the summary back.
+  (cd "$dir" && timeout -s KILL $((seconds + 300)) ./"$h" -max_total_time="$seconds" -rss_limit_mb=2048 -malloc_limit_mb=1024 -timeout=30 \
     -print_final_stats=1 -artifact_prefix="findings/$h-" "corpus/$h") > "$dir/logs/$h.log" 2>&1 || true
 }
 jobs=${FUZZ_JOBS:-$(nproc)}
