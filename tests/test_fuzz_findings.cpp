@@ -34,7 +34,7 @@ TEST_CASE("fuzz finding: a 364-byte TIFF claiming 1.1 GB of samples is refused f
   test::Scratch s("fuzz_image_finding");
   const auto path = as_image(s, "fuzz_image-tiff-claims-1gb.bin");
   for (const auto& read : std::vector<std::function<void()>>{[&] { read_rgb(path); }, [&] { read_gray16(path); },
-                                                              [&] { read_image_header(path); }})
+                                                             [&] { read_image_header(path); }})
     CHECK_THROWS_WITH(read(), Contains("capture.tif") && Contains("more than any compression holds"));
   // A real image of the same kind is still read: a flat 16-bit TIFF compresses well within the bound.
   write_gray16(s.dir / "flat.tif", torch::full({64, 80}, 1000, torch::kInt32));
