@@ -39,8 +39,8 @@ int recon(int argc, char** argv) {
   opt.batch = std::max(1, r["batch"].as<int>());
   opt.label = spec.method;
   const auto captures = collect_captures(r["input"].as<std::string>());
-  check_output_names(captures, opt.out);  // before the calibration's SVDs
-  spec.captures = captures;
+  check_output_names(captures, opt.out);                         // before the calibration's SVDs
+  if (!captures.empty()) spec.first_capture = captures.front();  // read once more, before the build
   auto built = make_reconstructor(spec);
   opt.fit = built.fit.get();
   opt.require_fit = r.count("require-fit") > 0;

@@ -233,8 +233,8 @@ int infer(int argc, char** argv) {
   opt.batch = std::max(1, r["batch"].as<int>());
   opt.label = "infer";
   const auto captures = collect_captures(r["input"].as<std::string>());
-  check_output_names(captures, opt.out);  // never over a capture, even with --force
-  spec.captures = captures;
+  check_output_names(captures, opt.out);                         // never over a capture, even with --force
+  if (!captures.empty()) spec.first_capture = captures.front();  // read once more, before the build
   auto built = make_reconstructor(spec);
   if (!built.warning.empty()) std::cerr << "warning: " << built.warning << "\n";
   // One folder holds one model's reconstructions: a rerun with another model is refused, not mixed.

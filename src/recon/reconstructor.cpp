@@ -189,7 +189,7 @@ std::shared_ptr<const CameraFit> model_camera_fit(const ModelFile& model, std::s
 namespace {
 
 void check_capture_headers(const ReconstructorSpec& spec, const CameraConfig& camera) {
-  for (const auto& capture : spec.captures) check_raw_header(capture, camera.raw);
+  if (!spec.first_capture.empty()) check_raw_header(spec.first_capture, camera.raw);
 }
 
 }  // namespace

@@ -7,7 +7,6 @@
 #include <filesystem>
 #include <memory>
 #include <string>
-#include <vector>
 
 #include <torch/torch.h>
 
@@ -60,9 +59,10 @@ struct ReconstructorSpec {
   double lambda = 0;                  // tikhonov, tv (<= 0: the camera's)
   std::filesystem::path model;        // flatnet (.flatnet), opencv (.onnx)
   InferenceLevers levers;             // flatnet
-  // The captures it will read: their headers are checked against the camera (size, depth) before
-  // anything the camera's size sets is built (a calibration's SVDs, the camera fit's reference).
-  std::vector<std::filesystem::path> captures;
+  // The first capture it will read (optional): its header is checked against the camera (size,
+  // depth) before anything the camera's size sets is built (a calibration's SVDs, the camera fit's
+  // reference). The rest are checked as each is read.
+  std::filesystem::path first_capture;
 };
 
 struct BuiltReconstructor {

@@ -53,13 +53,20 @@ LrSchedule parse_lr_schedule(const std::string& s) {
   throw Error("config: train.schedule must be halving or cosine, got '" + s + "'");
 }
 
+namespace {
+
+// The share of the run done, in [0, 1]: of the time budget when there is one (it alone ends the
+// run), else of the steps. The cosine schedule and co-design's freeze point both count it.
+double run_share(const TrainOptions& opt, int64_t step, double seconds) {
+  const double t = opt.minutes > 0 ? seconds / (60.0 * opt.minutes)
+                                   : static_cast<double>(step) / std::max<int64_t>(1, opt.iterations);
+  return std::min(1.0, t);
+}
+
+}  // namespace
+
 double lr_factor(const TrainOptions& opt, int64_t step, double seconds) {
-  if (opt.schedule == LrSchedule::cosine) {
-    // The share of the run done: of the time budget when there is one (it alone ends the run), else of the steps.
-    const double t = opt.minutes > 0 ? std::min(1.0, seconds / (60.0 * opt.minutes))
-                                     : std::min(1.0, static_cast<double>(step) / std::max<int64_t>(1, opt.iterations));
-    return 0.5 * (1.0 + std::cos(M_PI * t));
-  }
+  if (opt.schedule == LrSchedule::cosine) return 0.5 * (1.0 + std::cos(M_PI * run_share(opt, step, seconds)));
   return std::pow(0.5, static_cast<double>(step / std::max<int64_t>(1, opt.lr_halve_every)));
 }
 
@@ -287,10 +294,7 @@ CheckpointCamera GanTrainer::checkpoint_camera() {
 }
 
 bool GanTrainer::codes_frozen(int64_t step) const {
-  // The share of the run done, as the cosine schedule counts it: the time budget's, else the steps'.
-  const double t = opt_.minutes > 0 ? trained_seconds() / (60.0 * opt_.minutes)
-                                    : static_cast<double>(step) / std::max<int64_t>(1, opt_.iterations);
-  return t >= camera_->options().freeze_at;
+  return run_share(opt_, step, trained_seconds()) >= camera_->options().freeze_at;
 }
 
 torch::Tensor GanTrainer::capture_batch(const Batch& batch, int64_t step) {
