@@ -2,6 +2,9 @@
 // and the mask commands' errors.
 #include "catch_torch.hpp"
 #include <fstream>
+#include <map>
+#include <regex>
+#include <sstream>
 #include <set>
 #include <stdexcept>
 
@@ -498,7 +501,29 @@ TEST_CASE("the mask and code-pair trainers' options start where their defaults f
   CHECK(o.minutes == 2.5);
   CHECK(o.optimizer == "adam");
   SeparableTrainOptions separable_options;
-  CHECK_THROWS_WITH(read_options(mask, separable_train_fields(), separable_options), Contains("codes.length"));
+  CHECK_THROWS_WITH(read_options(mask, separable_train_fields(), separable_options), Contains("codes.init"));
+  // A choice is a row too: read by its parser, compared with the struct's default, its error naming the key.
+  MaskOptions m;
+  const auto clamp = Config::load({}, {"mask.projection=clamp"}, configs / "mask_defaults.yaml");
+  read_options(clamp, mask_fields(), m, "mask.");
+  CHECK(m.projection == MaskProjection::clamp);
+  const auto projection_changed = defaults_differing(clamp, mask_fields(), "mask.");
+  REQUIRE(projection_changed.size() == 1);
+  CHECK_THAT(projection_changed.front(), Contains("mask.projection"));
+  CHECK_THROWS_WITH(
+      read_options(Config::load({}, {"mask.init=bogus"}, configs / "mask_defaults.yaml"), mask_fields(), m, "mask."),
+      Contains("mask.init") && Contains("bogus"));
+  TrainOptions t;
+  CHECK_THROWS_WITH(read_options(Config::load({}, {"train.schedule=linear"}), train_fields(), t),
+                    Contains("train.schedule") && Contains("linear"));
+  read_options(Config::load({}, {"train.schedule=cosine"}), train_fields(), t);
+  CHECK(t.schedule == LrSchedule::cosine);
+  // codes.init: mls is the shipped codes, random none, anything else a file next to the config that names it.
+  read_options(separable, separable_train_fields(), separable_options);
+  CHECK(separable_options.init_codes.filename() == "codes_mls.mat");
+  read_options(Config::load({}, {"codes.init=random"}, configs / "separable_defaults.yaml"), separable_train_fields(),
+               separable_options);
+  CHECK(separable_options.init_codes.empty());
 }
 
 TEST_CASE(
@@ -527,35 +552,120 @@ TEST_CASE(
   CHECK_THROWS_WITH(read_options(train, wiener_camera_fields(), cam, "camera."), Contains("camera.rows"));
 }
 
-// The schema is whole: every setting of the three defaults files is a row of some option table, except the
-// few that one reader parses by name (a choice turned into an enum, or a value that is a name or a path).
-TEST_CASE("every setting of the defaults files is bound by an option table's row", "[mask][config]") {
+namespace {
+
+// One command's schema: its defaults file and every row it reads, each key prefixed as the config spells it.
+struct CommandSchema {
+  const char* command;  // --for of `flatnet options`
+  const char* file;
+  std::vector<std::pair<std::string, std::string>> rows;  // key, range meaning ("" for none)
+};
+
+template <class S>
+void add_rows(CommandSchema& schema, const std::vector<OptionField<S>>& fields, const std::string& prefix = "") {
+  for (const auto& f : fields) schema.rows.emplace_back(prefix + f.key, f.range);
+}
+
+std::vector<CommandSchema> command_schemas() {
+  CommandSchema train{"train", "defaults.yaml", {}}, mask{"mask", "mask_defaults.yaml", {}},
+      separable{"separable", "separable_defaults.yaml", {}};
+  add_rows(train, train_fields());
+  add_rows(train, data_fields(), "data.");
+  add_rows(train, perceptual_fields(), "loss.");
+  add_rows(train, light_fields(), "data.light.");
+  add_rows(train, codesign_fields(), "codes.");
+  add_rows(train, model_spec_fields(), "model.");
+  add_rows(train, discriminator_fields(), "discriminator.");
+  add_rows(mask, mask_train_fields());
+  add_rows(mask, photo_split_fields());
+  add_rows(mask, mask_fields(), "mask.");
+  add_rows(mask, wiener_camera_fields(), "camera.");
+  add_rows(separable, separable_train_fields());
+  return {train, mask, separable};
+}
+
+}  // namespace
+
+// One home per setting: each key of a command's defaults file is exactly one row of the tables that
+// command reads, no row is missing from the file, and the file's comment is the setting's one doc text.
+TEST_CASE("each defaults file's keys are exactly its command's rows, one row per key, each documented",
+          "[mask][config]") {
   const auto configs = test::source_dir() / "configs";
-  std::set<std::string> bound;
-  auto add = [&](const auto& fields, const std::string& prefix) {
-    for (const auto& f : fields) bound.insert(prefix + f.key);
-  };
-  add(train_fields(), "");
-  add(data_fields(), "data.");
-  add(perceptual_fields(), "loss.");
-  add(light_fields(), "data.light.");
-  add(codesign_fields(), "codes.");
-  add(model_spec_fields(), "model.");
-  add(discriminator_fields(), "discriminator.");
-  add(mask_train_fields(), "");
-  add(photo_split_fields(), "");
-  add(separable_train_fields(), "");
-  add(mask_fields(), "mask.");
-  add(wiener_camera_fields(), "camera.");
-  const std::set<std::string> parsed_by_name = {"train.schedule",  "train.precision", "codes.learn", "codes.init",
-                                                "mask.projection", "mask.throughput", "mask.init"};
-  for (const char* file : {"defaults.yaml", "mask_defaults.yaml", "separable_defaults.yaml"}) {
-    const auto config = Config::load({}, {}, configs / file);
+  for (const auto& schema : command_schemas()) {
+    const auto path = configs / schema.file;
+    const auto config = Config::load({}, {}, path);
+    const auto docs = setting_docs(path);
+    std::map<std::string, int> rows_per_key;
+    for (const auto& [key, range] : schema.rows) ++rows_per_key[key];
     for (const auto& [key, value] : config.values()) {
-      INFO(file << ": " << key << " has no row");
-      CHECK((bound.count(key) == 1 || parsed_by_name.count(key) == 1));
+      INFO(schema.file << ": " << key);
+      CHECK(rows_per_key[key] == 1);
+      CHECK(docs.count(key) == 1);
+      CHECK_FALSE((docs.count(key) && docs.at(key).empty()));
+    }
+    for (const auto& [key, count] : rows_per_key) {
+      INFO(schema.file << ": row " << key << " is not a setting of the file");
+      CHECK(config.values().count(key) == 1);
     }
   }
+}
+
+// `flatnet options` prints, for every key, the defaults file's value and comment and the row's range;
+// a row whose range another table declares differently would print the wrong one.
+TEST_CASE("flatnet options prints each setting's default, range and doc as its row and defaults file declare them",
+          "[mask][config][cli]") {
+  const auto configs = test::source_dir() / "configs";
+  std::map<std::string, std::set<std::string>> ranges_of;  // every table's range meanings per key
+  for (const auto& schema : command_schemas())
+    for (const auto& [key, range] : schema.rows) ranges_of[key].insert(range);
+  for (const auto& [key, ranges] : ranges_of) {
+    INFO(key << " has " << ranges.size() << " different ranges in the tables");
+    CHECK(ranges.size() == 1);
+  }
+  for (const auto& schema : command_schemas()) {
+    const auto path = configs / schema.file;
+    const auto config = Config::load({}, {}, path);
+    const auto docs = setting_docs(path);
+    const auto r = test::run_flatnet(std::string("options --for ") + schema.command + " --markdown");
+    REQUIRE(r.code == 0);
+    std::map<std::string, std::vector<std::string>> printed;  // key -> cells
+    std::istringstream lines(r.output);
+    for (std::string line; std::getline(lines, line);) {
+      if (line.rfind("| `", 0) != 0) continue;
+      std::vector<std::string> cells;
+      std::string cell;
+      for (size_t i = 1; i < line.size(); ++i) {
+        if (line[i] == '|' && line[i - 1] != '\\') {
+          cells.push_back(std::regex_replace(cell, std::regex("^ +| +$"), ""));
+          cell.clear();
+        } else {
+          cell += line[i];
+        }
+      }
+      REQUIRE(cells.size() == 4);
+      printed[cells[0].substr(1, cells[0].size() - 2)] = cells;
+    }
+    for (const auto& [key, range] : schema.rows) {
+      INFO(schema.command << ": " << key);
+      REQUIRE(printed.count(key) == 1);
+      const auto& cells = printed.at(key);
+      const auto value = config.str(key).empty() ? std::string("\"\"") : config.str(key);
+      CHECK(cells[1] == "`" + value + "`");
+      CHECK(cells[2] == range);
+      CHECK(std::regex_replace(cells[3], std::regex("\\\\\\|"), "|") == docs.at(key));
+    }
+    CHECK(printed.size() == config.values().size());
+  }
+  // A flag's --help is the same text: the key and its comment in the command's defaults file.
+  const auto docs = setting_docs(configs / "separable_defaults.yaml");
+  const auto help = test::run_flatnet("mask separable --help");
+  CHECK_THAT(help.output, Contains("codes.init: " + docs.at("codes.init").substr(0, 30)));
+  CHECK_THAT(help.output, Contains("--minutes"));
+}
+
+// The struct defaults, the rows and the file agree, and a range declared by a row is checked at load.
+TEST_CASE("every setting of the defaults files is bound by an option table's row", "[mask][config]") {
+  const auto configs = test::source_dir() / "configs";
   // Rows name their keys for errors and make path keys; a member no row binds is a programming error.
   CHECK(train_key(&TrainOptions::crop) == "train.crop");
   CHECK(model_key(&ModelSpec::unet_width) == "model.unet.width");

@@ -1,6 +1,7 @@
 #pragma once
 // flatnet subcommands. Each parses its flags, builds library objects, calls the library, reports.
 #include <cxxopts.hpp>
+#include <map>
 #include <string>
 #include <vector>
 
@@ -44,13 +45,16 @@ int bench(int argc, char** argv);
 std::string flag_or_key(const std::string& key);
 
 // Flags from an option table: each row with a flag becomes --flag (a switch for a true/false
-// setting, else a value), its help the row's key and doc, so flag and key never drift apart.
+// setting, else a value), its help the row's key and the setting's one doc text, its comment in the
+// command's defaults file (`docs`: setting_docs), so flag, key and `flatnet options` never drift apart.
 template <class S>
 void add_row_flags(cxxopts::Options& options, const std::vector<OptionField<S>>& fields,
-                   const std::string& prefix = "") {
+                   const std::map<std::string, std::string>& docs, const std::string& prefix = "") {
   for (const auto& f : fields) {
     if (!*f.flag) continue;
-    const auto help = prefix + f.key + (*f.doc ? std::string(": ") + f.doc : std::string());
+    const auto key = prefix + f.key;
+    const auto doc = docs.find(key);
+    const auto help = key + (doc != docs.end() && !doc->second.empty() ? ": " + doc->second : std::string());
     if (std::holds_alternative<bool S::*>(f.member))
       options.add_options()(f.flag, help + " (sets it true)");
     else

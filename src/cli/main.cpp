@@ -10,6 +10,7 @@
 #include "core/blas.hpp"
 #include "core/error.hpp"
 #include "core/util.hpp"
+#include "train/options.hpp"
 
 namespace {
 
@@ -61,6 +62,7 @@ int main(int argc, char** argv) {
     std::cerr << "flatnet: unknown command '" << command << "' (run 'flatnet --help')\n";
     return 2;
   }
+  flatnet::register_option_tables();       // every setting's range, before any config is read
   flatnet::select_openblas_kernels(argv);  // may re-execute this program once (core/blas.hpp)
   flatnet::keep_freed_memory();
   try {

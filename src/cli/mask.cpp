@@ -34,7 +34,6 @@ std::filesystem::path separable_defaults() { return data_dir() / "configs" / "se
 WienerCamera wiener_camera(const Config& c) {
   WienerCamera cam;
   read_options(c, wiener_camera_fields(), cam, "camera.");
-  require(cam.noise_sigma > 0, "camera.noise_sigma", "must be positive, got " + c.str("camera.noise_sigma"));
   require(cam.scene <= cam.rows && cam.scene <= cam.cols, "camera.scene", "must fit in the sensor");
   return cam;
 }
@@ -76,9 +75,6 @@ int mask_train(int argc, char** argv) {
   const auto c = run_config(r, out, set_overrides(r), mask_defaults(), "mask training run");
   MaskOptions mo;
   read_options(c, mask_fields(), mo, "mask.");
-  mo.projection = parse_mask_projection(c.str("mask.projection"));
-  mo.throughput = parse_throughput_rule(c.str("mask.throughput"));
-  mo.init = parse_mask_init(c.str("mask.init"));
   MaskTrainOptions to;
   read_options(c, mask_train_fields(), to);
   mo.seed = to.seed;
@@ -259,18 +255,16 @@ int mask_separable(int argc, char** argv) {
                   cxxopts::value<std::string>())("set", "override a setting, key=value (repeatable)",
                                                  cxxopts::value<std::string>())(
       "out", "folder for codes.mat, lambda.txt, log.csv, curve.png, config.yaml", cxxopts::value<std::string>())(
-      "init", codes_init_key() + ": mls, random, or a codes .mat", cxxopts::value<std::string>())(
       "resume",
       "continue the run in --out from its latest.ckpt, with its own config (--set and the shortcut flags "
       "change single settings)");
-  add_row_flags(o, separable_train_fields());
+  add_row_flags(o, separable_train_fields(), setting_docs(separable_defaults()));
   add_force_folder(o);
   add_common(o);
   cxxopts::ParseResult r;
   if (!parse(o, argc, argv, r)) return 0;
   require(r.count("out"), "mask separable", "--out DIR is required");
   auto sets = row_flag_settings(r, separable_train_fields());
-  if (r.count("init")) sets.push_back(codes_init_key() + "=" + r["init"].as<std::string>());
   for (const auto& s : set_overrides(r)) sets.push_back(s);
   const std::filesystem::path out = r["out"].as<std::string>();
   const bool resume = r.count("resume") > 0;
@@ -280,10 +274,6 @@ int mask_separable(int argc, char** argv) {
   SeparableTrainOptions opt;
   read_options(c, separable_train_fields(), opt);
   const auto init = c.str(codes_init_key());
-  if (init == "mls")
-    opt.init_codes = data_dir() / "models" / "camera" / "codes_mls.mat";
-  else if (init != "random")
-    opt.init_codes = c.path(codes_init_key());
   // Named before --out is claimed, so a typo leaves no config.yaml or lock files behind.
   require_option(opt.init_codes.empty() || std::filesystem::is_regular_file(opt.init_codes), codes_init_key(),
                  "mls, random, or a codes .mat file; '" + printable(init) + "' is none of these");

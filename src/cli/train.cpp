@@ -38,7 +38,7 @@ int train(int argc, char** argv) {
       "afresh for this run's camera, from its calibration or geometry (model.inversion.init): adapting a model to "
       "another camera",
       cxxopts::value<std::string>());
-  add_row_flags(o, train_fields());  // --iterations, --minutes, --batch, --lr, --precision
+  add_row_flags(o, train_fields(), setting_docs(Config::default_path()));  // --iterations, --lr, --seed ...
   o.add_options("distributed (defaults: torchrun's WORLD_SIZE, RANK, MASTER_ADDR, MASTER_PORT)")(
       "world-size", "processes in the job", cxxopts::value<int>())(
       "rank", "this process, 0..world-size-1", cxxopts::value<int>())("master-addr", "host of rank 0 (rendezvous)",

@@ -116,6 +116,10 @@ std::vector<std::string> Config::ranged_keys() {
 }
 
 void Config::check_ranges(const std::string& where) const {
+  // A program that reads configs registers the option tables first (train/options.hpp
+  // register_option_tables): without them no number would be checked.
+  if (registered_ranges().empty())
+    throw std::logic_error("config: no option ranges registered (call register_option_tables() at start-up)");
   for (const auto& row : all_ranges()) {
     const auto it = values_.find(row.key);
     if (it == values_.end()) continue;
@@ -204,6 +208,10 @@ std::vector<SettingDoc> describe_settings(const std::filesystem::path& defaults)
     out.push_back(d);
   }
   return out;
+}
+
+std::map<std::string, std::string> setting_docs(const std::filesystem::path& defaults) {
+  return key_comments(read_file(defaults));
 }
 
 std::string nearest_key(const std::string& key, const std::vector<std::string>& known) {

@@ -87,6 +87,9 @@ struct SettingDoc {
   std::string key, default_value, range, doc;
 };
 std::vector<SettingDoc> describe_settings(const std::filesystem::path& defaults);
+// Each setting's one doc text by dotted key: its comment in a defaults file (what describe_settings
+// prints, and a flag's --help).
+std::map<std::string, std::string> setting_docs(const std::filesystem::path& defaults);
 
 // The known key nearest to `key` by edit distance, or "" when none is a typo's distance away.
 std::string nearest_key(const std::string& key, const std::vector<std::string>& known);

@@ -1,11 +1,13 @@
 #pragma once
 // The option schema: an options struct bound to its config keys in one table. Each row names the
-// YAML key (relative to a prefix: "unet.width" under "model."), the member it fills, a number's
-// range with what it means, a one-line doc and, optionally, the command-line flag that sets it; the
-// default is the struct's own (S{}). read_options fills a struct through its table (no hand-written
-// line per key), range_rows registers the ranges with the config (io/config.hpp register_ranges,
-// the only range table), and defaults_differing lets a test hold the struct's defaults to its
-// defaults file.
+// YAML key (relative to a prefix: "unet.width" under "model."), the member it fills (or, for a
+// choice, how its text is read), a number's range with what it means and, optionally, the
+// command-line flag that sets it; the default is the struct's own (S{}). A setting's one doc text
+// is its comment in the command's defaults file (configs/defaults.yaml ...), which `flatnet options`
+// and a flag's --help both print; a test holds each file's keys, values and comments to the rows.
+// read_options fills a struct through its table (no hand-written line per key), range_rows gives the
+// ranges to register with the config (io/config.hpp register_ranges, the only range table), and
+// defaults_differing lets a test hold the struct's defaults to its defaults file.
 // The tables live beside the structs' readers: nn/model_spec (the model's), train/options (the
 // trainers', the light augmentation's, co-design's, the mask's and its camera's).
 #include <cstdint>
@@ -21,20 +23,34 @@
 
 namespace flatnet {
 
+// A setting whose text its reader turns into the member (an enum's name, "mls | random | a file").
+template <class S>
+struct Choice {
+  void (*read)(const Config& c, const std::string& key, S& s);  // fills the member; errors name `key`
+  std::string (*text)(const S& s) = nullptr;  // the member as comparable text (none: not compared, as paths)
+  bool path = false;                          // the value may name a file (resolved against the file that set it)
+};
+
 template <class S>
 struct OptionField {
   const char* key;
   std::variant<double S::*, int64_t S::*, int S::*, uint64_t S::*, bool S::*, std::string S::*,
-               std::filesystem::path S::*>
+               std::filesystem::path S::*, Choice<S>>
       member;
   // Numbers only: the allowed range and what it means ("1 to 4096 filters"); no range when
   // `range` is empty. Text values are checked by their readers (an enhancer's name, a channel).
   double lo = -std::numeric_limits<double>::infinity();
   double hi = std::numeric_limits<double>::infinity();
   const char* range = "";
-  const char* doc = "";   // one line: what the setting does
   const char* flag = "";  // the command-line flag that sets it ("lr" for --lr), where a command has one
 };
+
+// Several tables as one: a trainer's own rows after the rows it shares (the schedule).
+template <class S>
+std::vector<OptionField<S>> joined(std::vector<OptionField<S>> first, const std::vector<OptionField<S>>& second) {
+  first.insert(first.end(), second.begin(), second.end());
+  return first;
+}
 
 // The rows a table registers with the config (io/config.hpp), keys prefixed: each number's range,
 // and each path-typed member as a path key (its value resolved against the file that set it).
@@ -43,7 +59,8 @@ std::vector<RangeRow> range_rows(const std::vector<OptionField<S>>& fields, cons
   std::vector<RangeRow> out;
   for (const auto& f : fields) {
     if (*f.range) out.push_back({prefix + f.key, f.lo, f.hi, f.range});
-    if (std::holds_alternative<std::filesystem::path S::*>(f.member))
+    const auto* choice = std::get_if<Choice<S>>(&f.member);
+    if (std::holds_alternative<std::filesystem::path S::*>(f.member) || (choice && choice->path))
       out.push_back({prefix + f.key, 0, 0, "", /*path=*/true});
   }
   return out;
@@ -58,6 +75,33 @@ std::string key_of(const std::vector<OptionField<S>>& fields, T S::*member, cons
   throw std::logic_error("option table: no row binds this member");
 }
 
+// The table's keys, prefixed, in its order.
+template <class S>
+std::vector<std::string> table_keys(const std::vector<OptionField<S>>& fields, const std::string& prefix = "") {
+  std::vector<std::string> keys;
+  for (const auto& f : fields) keys.push_back(prefix + f.key);
+  return keys;
+}
+
+// One member from its key (a missing key or a value of the wrong kind is an error naming the key).
+template <class T>
+void read_member(const Config& c, const std::string& key, T& member) {
+  if constexpr (std::is_same_v<T, double>)
+    member = c.num(key);
+  else if constexpr (std::is_same_v<T, int64_t>)
+    member = c.integer(key);
+  else if constexpr (std::is_same_v<T, int>)
+    member = static_cast<int>(c.integer(key));
+  else if constexpr (std::is_same_v<T, uint64_t>)
+    member = static_cast<uint64_t>(c.integer(key));
+  else if constexpr (std::is_same_v<T, bool>)
+    member = c.flag(key);
+  else if constexpr (std::is_same_v<T, std::string>)
+    member = c.str(key);
+  else
+    member = c.path(key);
+}
+
 // Fills every field of `s` from `c`, each key read as `prefix` + its row's key (a missing key or a
 // value of the wrong kind is an error naming the key).
 template <class S>
@@ -65,22 +109,12 @@ void read_options(const Config& c, const std::vector<OptionField<S>>& fields, S&
   for (const auto& f : fields)
     std::visit(
         [&](auto member) {
-          using T = std::decay_t<decltype(s.*member)>;
           const auto key = prefix + f.key;
-          if constexpr (std::is_same_v<T, double>)
-            s.*member = c.num(key);
-          else if constexpr (std::is_same_v<T, int64_t>)
-            s.*member = c.integer(key);
-          else if constexpr (std::is_same_v<T, int>)
-            s.*member = static_cast<int>(c.integer(key));
-          else if constexpr (std::is_same_v<T, uint64_t>)
-            s.*member = static_cast<uint64_t>(c.integer(key));
-          else if constexpr (std::is_same_v<T, bool>)
-            s.*member = c.flag(key);
-          else if constexpr (std::is_same_v<T, std::string>)
-            s.*member = c.str(key);
-          else
-            s.*member = c.path(key);
+          if constexpr (std::is_same_v<decltype(member), Choice<S>>) {
+            member.read(c, key, s);
+          } else {
+            read_member(c, key, s.*member);
+          }
         },
         f.member);
 }
@@ -97,10 +131,16 @@ std::vector<std::string> defaults_differing(const Config& c, const std::vector<O
   for (const auto& f : fields)
     std::visit(
         [&](auto member) {
-          using T = std::decay_t<decltype(defaults.*member)>;
-          if constexpr (!std::is_same_v<T, std::filesystem::path>)
-            if (!(defaults.*member == from_config.*member))
-              out.push_back(prefix + f.key + ": the struct's default differs from " + c.str(prefix + f.key));
+          const auto differs = [&](bool differ) {
+            if (differ) out.push_back(prefix + f.key + ": the struct's default differs from " + c.str(prefix + f.key));
+          };
+          if constexpr (std::is_same_v<decltype(member), Choice<S>>) {
+            if (member.text) differs(member.text(defaults) != member.text(from_config));
+          } else {
+            using T = std::decay_t<decltype(defaults.*member)>;
+            if constexpr (!std::is_same_v<T, std::filesystem::path>)
+              differs(!(defaults.*member == from_config.*member));
+          }
         },
         f.member);
   return out;

@@ -18,43 +18,36 @@ const std::vector<OptionField<ModelSpec>>& model_spec_fields() {
   using S = ModelSpec;
   constexpr double kWidths = 4096, kCounts = 1000;
   static const std::vector<OptionField<S>> fields = {
-      {"input", &S::input, 0, 0, "", "inversion (FlatNet) | tikhonov (Tikhonov + enhancer, the naive model)"},
-      {"inversion.init", &S::inversion_init, 0, 0, "", "first stage's start: transpose | pinv | calibfree | ..."},
-      {"inversion.shared", &S::inversion_shared, 0, 0, "", "one W1/W2 pair for the four channels, or one each"},
-      {"inversion.channel", &S::inversion_channel, 0, 0, "", "calibration channel of a shared transpose/pinv start"},
-      {"inversion.slope", &S::inversion_slope, 1e-3, 1e3, "a positive slope (sensor pixels per scene pixel)",
-       "calibfree: shadow shift per scene pixel"},
-      {"inversion.seed", &S::inversion_seed, 0, 0, "", "calibfree / random: the matrices' seed"},
-      {"inversion.lambda", &S::inversion_lambda, 1e-12, 1e6, "a positive regulariser",
-       "pinv, transfer: regulariser relative to s_max^2"},
-      {"inversion.toeplitz_file", &S::inversion_toeplitz_file, 0, 0, "", "flatnet-toeplitz: phil_toep_slope22.mat"},
+      {"input", &S::input},
+      {"inversion.init", &S::inversion_init},
+      {"inversion.shared", &S::inversion_shared},
+      {"inversion.channel", &S::inversion_channel},
+      {"inversion.slope", &S::inversion_slope, 1e-3, 1e3, "a positive slope (sensor pixels per scene pixel)"},
+      {"inversion.seed", &S::inversion_seed},
+      {"inversion.lambda", &S::inversion_lambda, 1e-12, 1e6, "a positive regulariser"},
+      {"inversion.toeplitz_file", &S::inversion_toeplitz_file},
       // At full measurement size (500x620) each filter is a 1.2 MB plane per capture: 256 is 0.3 GB.
-      {"preprocessor.width", &S::preprocessor_width, 0, 256, "0 (none) to 256 filters",
-       "measurement-domain residual CNN before the first stage; 0: none"},
-      {"preprocessor.depth", &S::preprocessor_depth, 2, 64, "2 to 64 convolutions",
-       "the pre-processor's 3x3 convolutions"},
-      {"enhancer", &S::enhancer, 0, 0, "", "unet | dncnn | rcan | nafnet"},
-      {"level_input", &S::level_input, 0, 0, "", "the enhancer also reads each plane's light level"},
-      {"bn_momentum", &S::bn_momentum, 0, 1, "0 to 1", "BatchNorm momentum, PyTorch's convention"},
-      {"unet.width", &S::unet_width, 1, kWidths, "1 to 4096 filters", "U-Net filters at full resolution"},
-      {"dncnn.layers", &S::dncnn_layers, 3, kCounts, "3 to 1000 layers", "DnCNN convolutions"},
-      {"dncnn.width", &S::dncnn_width, 1, kWidths, "1 to 4096 filters", "DnCNN filters per layer"},
-      {"nafnet.width", &S::nafnet_width, 1, kWidths, "1 to 4096 channels", "NAFNet first level's channels"},
-      {"nafnet.enc_blocks", &S::nafnet_enc_blocks, 0, kCounts, "0 to 1000 blocks", "NAFBlocks per encoder level"},
-      {"nafnet.middle_blocks", &S::nafnet_middle_blocks, 0, kCounts, "0 to 1000 blocks", "NAFBlocks at 1/16"},
-      {"nafnet.dec_blocks", &S::nafnet_dec_blocks, 0, kCounts, "0 to 1000 blocks", "NAFBlocks per decoder level"},
-      {"rcan.groups", &S::rcan_groups, 1, kCounts, "1 to 1000", "RCAN residual groups"},
-      {"rcan.blocks", &S::rcan_blocks, 1, kCounts, "1 to 1000", "RCAN blocks per group"},
-      {"rcan.width", &S::rcan_width, 1, kWidths, "1 to 4096 filters", "RCAN filters per layer"},
-      {"rcan.reduction", &S::rcan_reduction, 1, kWidths, "1 to 4096", "RCAN channel attention's squeeze"},
+      {"preprocessor.width", &S::preprocessor_width, 0, 256, "0 (none) to 256 filters"},
+      {"preprocessor.depth", &S::preprocessor_depth, 2, 64, "2 to 64 convolutions"},
+      {"enhancer", &S::enhancer},
+      {"level_input", &S::level_input},
+      {"bn_momentum", &S::bn_momentum, 0, 1, "0 to 1"},
+      {"unet.width", &S::unet_width, 1, kWidths, "1 to 4096 filters"},
+      {"dncnn.layers", &S::dncnn_layers, 3, kCounts, "3 to 1000 layers"},
+      {"dncnn.width", &S::dncnn_width, 1, kWidths, "1 to 4096 filters"},
+      {"nafnet.width", &S::nafnet_width, 1, kWidths, "1 to 4096 channels"},
+      {"nafnet.enc_blocks", &S::nafnet_enc_blocks, 0, kCounts, "0 to 1000 blocks"},
+      {"nafnet.middle_blocks", &S::nafnet_middle_blocks, 0, kCounts, "0 to 1000 blocks"},
+      {"nafnet.dec_blocks", &S::nafnet_dec_blocks, 0, kCounts, "0 to 1000 blocks"},
+      {"rcan.groups", &S::rcan_groups, 1, kCounts, "1 to 1000"},
+      {"rcan.blocks", &S::rcan_blocks, 1, kCounts, "1 to 1000"},
+      {"rcan.width", &S::rcan_width, 1, kWidths, "1 to 4096 filters"},
+      {"rcan.reduction", &S::rcan_reduction, 1, kWidths, "1 to 4096"},
   };
   return fields;
 }
 
 namespace {
-
-// Every config is checked against the model rows' ranges when it is loaded (io/config.hpp).
-const bool kRangesRegistered = register_ranges(range_rows(model_spec_fields(), "model."));
 
 // The shortest decimal text that reads back as the same double.
 std::string exact_text(double v) {
@@ -66,24 +59,33 @@ std::string exact_text(double v) {
   return std::to_string(v);
 }
 
+// One setting's value as the text a config holds.
+template <class T>
+void write_text(std::string& text, const T& value) {
+  if constexpr (std::is_same_v<T, double>)
+    text = exact_text(value);
+  else if constexpr (std::is_same_v<T, bool>)
+    text = value ? "true" : "false";
+  else if constexpr (std::is_same_v<T, std::string>)
+    text = value;
+  else if constexpr (std::is_same_v<T, std::filesystem::path>)
+    text = value.string();
+  else
+    text = std::to_string(value);
+}
+
 // The spec's settings as dotted keys with their text ("model.unet.width" -> "32").
 std::map<std::string, std::string> spec_values(const ModelSpec& spec) {
   std::map<std::string, std::string> out;
   for (const auto& f : model_spec_fields())
     std::visit(
         [&](auto member) {
-          using T = std::decay_t<decltype(spec.*member)>;
           auto& text = out[std::string("model.") + f.key];
-          if constexpr (std::is_same_v<T, double>)
-            text = exact_text(spec.*member);
-          else if constexpr (std::is_same_v<T, bool>)
-            text = spec.*member ? "true" : "false";
-          else if constexpr (std::is_same_v<T, std::string>)
-            text = spec.*member;
-          else if constexpr (std::is_same_v<T, std::filesystem::path>)
-            text = (spec.*member).string();
-          else
-            text = std::to_string(spec.*member);
+          if constexpr (std::is_same_v<decltype(member), Choice<ModelSpec>>) {
+            throw std::logic_error("model spec: a choice row cannot be written back as text");  // none today
+          } else {
+            write_text(text, spec.*member);
+          }
         },
         f.member);
   return out;
@@ -160,7 +162,6 @@ std::pair<torch::Tensor, torch::Tensor> initial_inversion(const ModelSpec& s, co
 }  // namespace
 
 ModelSpec model_spec(const Config& config) {
-  (void)kRangesRegistered;
   ModelSpec spec;
   read_options(config, model_spec_fields(), spec, "model.");
   return spec;
@@ -241,18 +242,22 @@ GeneratorOptions generator_options(const Config& config, const CameraConfig& cam
 const std::vector<OptionField<DiscriminatorOptions>>& discriminator_fields() {
   using O = DiscriminatorOptions;
   static const std::vector<OptionField<O>> fields = {
-      {"kind", &O::kind, 0, 0, "", "thesis (4 stride-2 layers) | flatnet (models.py's 3 layers)"},
-      {"width", &O::width, 1, 4096, "1 to 4096 filters", "filters of its first layer"},
+      {"kind", &O::kind},
+      {"width", &O::width, 1, 4096, "1 to 4096 filters"},
   };
   return fields;
 }
 
-namespace {
-const bool kDiscriminatorRangesRegistered = register_ranges(range_rows(discriminator_fields(), "discriminator."));
-}  // namespace
+void register_model_option_tables() {
+  static const bool registered = [] {
+    register_ranges(range_rows(model_spec_fields(), "model."));
+    register_ranges(range_rows(discriminator_fields(), "discriminator."));
+    return true;
+  }();
+  (void)registered;
+}
 
 DiscriminatorOptions discriminator_options(const Config& c) {
-  (void)kDiscriminatorRangesRegistered;
   DiscriminatorOptions o;
   read_options(c, discriminator_fields(), o, "discriminator.");
   return o;

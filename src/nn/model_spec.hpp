@@ -64,6 +64,11 @@ ModelSpec parse_model_spec(const std::string& yaml, const std::filesystem::path&
 GeneratorOptions generator_options(const ModelSpec& spec, const CameraConfig& camera, bool initialise);
 GeneratorOptions generator_options(const Config& config, const CameraConfig& camera, bool initialise);
 DiscriminatorOptions discriminator_options(const Config& config);
+
+// Registers model.* and discriminator.* ranges with the config (io/config.hpp), once. Programs call
+// train/options.hpp register_option_tables (which calls this); a program without the trainers (the
+// fuzz harnesses) calls this.
+void register_model_option_tables();
 // The discriminator section's rows (keys relative to "discriminator."), and a row's key.
 const std::vector<OptionField<DiscriminatorOptions>>& discriminator_fields();
 template <class T>

@@ -19,6 +19,7 @@
 namespace flatnet {
 
 struct CodesignOptions {
+  bool learn = false;                // codes.learn: train the codes with the model (else a fixed camera)
   std::filesystem::path init_codes;  // .mat with code_rows, code_cols (the starting camera's, e.g. MLS)
   double lr = 0.005;                 // Adam on the codes' pre-activations
   bool binary = false;               // sign(u), sign(v) forward (for fabrication)

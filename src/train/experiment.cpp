@@ -48,16 +48,10 @@ std::string enhancer_width_key(const ModelSpec& spec) {
 
 TrainOptions train_options(const Config& c, const std::filesystem::path& out) {
   TrainOptions t;
-  read_options(c, train_fields(), t);
-  t.schedule = parse_lr_schedule(c.str("train.schedule"));
+  read_options(c, train_fields(), t);  // each number already within its row's range (Config::load)
   require(t.crop == 0 || (t.crop >= 16 && t.crop % 16 == 0), train_key(&TrainOptions::crop),
           "must be 0 or a multiple of 16 (the U-Net halves it 4 times)");
   t.bf16 = resolve_precision(t.precision, option_key(train_key(&TrainOptions::precision))) == Precision::bf16;
-  require(t.real_label_min >= 0 && t.real_label_min <= 1 && t.fake_label_max >= 0 && t.fake_label_max <= 1,
-          "discriminator", "label smoothing bounds must lie within [0, 1] (BCE needs targets in [0, 1])");
-  require(t.batch >= 1 && t.iterations >= 1, "train", "batch and iterations must be positive");
-  require(t.w_mse >= 0 && t.w_perceptual >= 0 && t.w_adversarial >= 0 && t.w_ssim >= 0, "loss",
-          "weights must be non-negative");
   require(t.w_mse + t.w_perceptual + t.w_adversarial + t.w_ssim + t.w_feature_matching + t.w_frequency + t.w_chroma +
                   t.w_gradient + t.w_stripe >
               0,
@@ -87,7 +81,8 @@ std::pair<std::shared_ptr<const PairSource>, std::shared_ptr<const PairSource>> 
             std::make_shared<DiskPairs>(read_pairs(val), camera)};
   }
   if (source == "simulate") {
-    const bool codesign = c.flag("codes.learn");  // the trainer captures through the codes it learns: no rig
+    // Co-design captures through the codes it learns: no rig.
+    const bool codesign = c.flag(codes_key(&CodesignOptions::learn));
     require(codesign || can_simulate(camera), data_key(&DataOptions::camera),
             "names no rig, and has no open_light to be simulated through its calibration; on-the-fly simulation "
             "needs one of them");
@@ -95,12 +90,8 @@ std::pair<std::shared_ptr<const PairSource>, std::shared_ptr<const PairSource>> 
     auto [train_images, val_images] = split_image_files(d.images, d.val_fraction, d.split_seed);
     const auto seed = static_cast<uint64_t>(c.integer(train_key(&TrainOptions::seed)));
     const auto light = light_options(c);
-    require(light.exposure_min > 0 && light.exposure_min <= light.exposure_max && light.lamp_min > 0 &&
-                light.lamp_min <= light.lamp_max,
-            "data.light", "needs 0 < exposure_min <= exposure_max and 0 < lamp_min <= lamp_max");
-    require(light.exposure_probability >= 0 && light.exposure_probability <= 1 && light.lamp_probability >= 0 &&
-                light.lamp_probability <= 1,
-            "data.light", "probabilities must lie in [0, 1]");
+    require(light.exposure_min <= light.exposure_max && light.lamp_min <= light.lamp_max, "data.light",
+            "needs exposure_min <= exposure_max and lamp_min <= lamp_max");
     // Validation stays on display captures (the held-out set's conditions).
     return {std::make_shared<SimulatedPairs>(train_images, rig, camera, seed, light),
             std::make_shared<SimulatedPairs>(val_images, rig, camera, seed + 1)};
@@ -110,15 +101,14 @@ std::pair<std::shared_ptr<const PairSource>, std::shared_ptr<const PairSource>> 
 
 CodesignOptions codesign_options(const Config& c, const CameraConfig& camera) {
   CodesignOptions o;
-  const auto init = c.str(codes_init_key());
-  o.init_codes = init == "mls" ? data_dir() / "models" / "camera" / "codes_mls.mat" : c.path(codes_init_key());
   read_options(c, codesign_fields(), o, "codes.");
+  require(!o.init_codes.empty(), codes_init_key(), "co-design starts from codes: mls or a codes .mat, not random");
   o.geometry = camera.raw;
   const auto camera_key = data_key(&DataOptions::camera);
   require(camera.scene_size == o.camera.scene, camera_key,
           "co-design builds the reference camera's sensor and optics, whose scene is " +
               std::to_string(o.camera.scene) + " pixels; this camera's is " + std::to_string(camera.scene_size));
-  require(data_options(c).source == "simulate", "codes.learn",
+  require(data_options(c).source == "simulate", codes_key(&CodesignOptions::learn),
           "needs data.source: simulate (photographs in data.images)");
   require(camera.raw.rotation == 0, camera_key,
           "co-design simulates unrotated captures; this camera's rotation is " + std::to_string(camera.raw.rotation));
@@ -371,8 +361,8 @@ ExperimentResult run_experiment(const ExperimentOptions& o) {
   require_memory_for(spec, camera, opts);
   CodePairCamera learned{nullptr};  // co-design: the camera whose codes learn with the network
   CodesignOptions codesign;
-  if (config.flag("codes.learn")) {
-    require(dist.world_size == 1, "codes.learn", "co-design runs in one process");
+  if (config.flag(codes_key(&CodesignOptions::learn))) {
+    require(dist.world_size == 1, codes_key(&CodesignOptions::learn), "co-design runs in one process");
     codesign = codesign_options(config, camera);
     learned = CodePairCamera(codesign);
   }

@@ -38,9 +38,10 @@ struct PhotoSplit {
   int64_t train_limit = 0, val_count = 32;
 };
 
-// flatnet train: configs/defaults.yaml's train.*, loss.* and discriminator.* keys that map one to
-// one onto TrainOptions (train.schedule and train.precision are parsed by train_options). Its
-// C++ defaults are the library's (the thesis's recipe), not defaults.yaml's.
+// flatnet train: configs/defaults.yaml's train.*, loss.* and discriminator.* keys of TrainOptions
+// (train.precision is resolved by train_options). Its C++ defaults are the library's (the thesis's
+// recipe), not defaults.yaml's. The schedule rows (train.iterations, .minutes, .batch, .lr, .seed,
+// .val_every, .log_every) are one table all three trainers share.
 const std::vector<OptionField<TrainOptions>>& train_fields();
 // data.* (prefix "data.") and loss.vgg_* (prefix "loss.") of flatnet train.
 const std::vector<OptionField<DataOptions>>& data_fields();
@@ -48,19 +49,23 @@ const std::vector<OptionField<PerceptualOptions>>& perceptual_fields();
 // mask train: configs/mask_defaults.yaml's train.* keys, and its photographs.
 const std::vector<OptionField<PhotoSplit>>& photo_split_fields();
 const std::vector<OptionField<MaskTrainOptions>>& mask_train_fields();
-// mask separable: configs/separable_defaults.yaml (codes.init is resolved by the caller: mls, random or a file).
+// mask separable: configs/separable_defaults.yaml (codes.init: mls, random or a codes .mat).
 const std::vector<OptionField<SeparableTrainOptions>>& separable_train_fields();
 
 // data.light.* (flatnet train): the random scene light.
 const std::vector<OptionField<LightAugment>>& light_fields();
-// codes.* (flatnet train with codes.learn): co-design's numbers (codes.init is resolved by the caller).
+// codes.* (flatnet train; co-design with codes.learn).
 const std::vector<OptionField<CodesignOptions>>& codesign_fields();
-// mask.* and camera.* (mask train; mask.projection, .throughput and .init are parsed by the caller).
+// mask.* and camera.* (mask train).
 const std::vector<OptionField<MaskOptions>>& mask_fields();
 const std::vector<OptionField<WienerCamera>>& wiener_camera_fields();
 
-// codes.init: mls, random or a codes .mat (no struct member holds it as written).
+// codes.init: mls, random or a codes .mat.
 std::string codes_init_key();
+
+// Registers every table's ranges and path keys with the config (io/config.hpp), once: each program
+// calls it at start-up (cli/main, the tests' main, the fuzz harnesses), before any config is read.
+void register_option_tables();
 
 // The key of the row binding a member, as errors name it: train_key(&TrainOptions::crop) is
 // "train.crop".

@@ -15,6 +15,7 @@
 #include <string>
 
 #include "core/error.hpp"
+#include "nn/model_spec.hpp"
 
 namespace flatnet::fuzz {
 
@@ -32,8 +33,10 @@ inline std::filesystem::path as_file(const uint8_t* data, size_t size, const std
   return path;
 }
 
-// Runs one read; a flatnet::Error is the reader's correct refusal.
+// Runs one read; a flatnet::Error is the reader's correct refusal. The model's option ranges are
+// registered first, as the CLI's main does (a config's numbers are checked against them).
 inline void expect_clean(const std::function<void()>& read) {
+  register_model_option_tables();
   try {
     read();
   } catch (const flatnet::Error&) {
