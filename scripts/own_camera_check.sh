@@ -9,6 +9,9 @@
 #              and the simulated Hadamard procedure itself (`calibrate --rig`: 4 x 256 noisy captures)
 #   adapt      the shipped transpose model adapted for MINUTES on the TRAIN pairs alone, with the
 #              dataset's calibration (skipped when MINUTES=0)
+#   bench      BENCH="crosstalk: 0.2, mask_rotation: 0.004, ..." gives the camera a real bench's errors
+#              (the camera file's bench: section, docs/camera-file.md); the user's geometry file does not
+#              state them. Without BENCH: the ideal bench, with the same codes.
 # Usage: scripts/own_camera_check.sh [RUNS_DIR] [PHOTOS_DIR]   (TRAIN=500 HELDOUT=100 MINUTES=20)
 # Resumable: what exists is reused. Writes RUNS_DIR/own_camera.md.
 set -euo pipefail
@@ -22,10 +25,11 @@ flatnet=${FLATNET:-$PWD/build/flatnet}
 mkdir -p "$runs"
 cam=$runs/cam
 [ -f "$cam/camera.yaml" ] || "$flatnet" mask camera --random-codes 7 --centring level --out "$cam" > /dev/null
+if [ -n "${BENCH:-}" ] && ! grep -q '^bench:' "$cam/camera.yaml"; then echo "bench: {$BENCH}" >> "$cam/camera.yaml"; fi
 [ -f "$runs/cam-exact/camera.yaml" ] ||
   "$flatnet" mask camera --codes "$cam/codes.mat" --calib-error 0 --centring level --out "$runs/cam-exact" > /dev/null
 # What the user knows: the geometry (the rig line stays only so that calibrate can print its error).
-grep -v -E '^(calibration|noise_gain|noise_floor|dark):' "$cam/camera.yaml" | sed "s|^rig: .*|rig: $cam/rig.mat|" > "$runs/geometry.yaml"
+grep -v -E '^(calibration|noise_gain|noise_floor|dark|bench):' "$cam/camera.yaml" | sed "s|^rig: .*|rig: $cam/rig.mat|" > "$runs/geometry.yaml"
 
 photo_folder() {  # NAME FIRST COUNT: symlinks to a slice of the sorted photographs
   local dir=$runs/photos-$1

@@ -7,6 +7,7 @@
 
 #include "core/error.hpp"
 #include "helpers.hpp"
+#include "io/dataset.hpp"
 #include "io/image.hpp"
 #include "io/mat.hpp"
 #include "catch_torch.hpp"
@@ -48,4 +49,47 @@ TEST_CASE("fuzz finding: a .mat struct whose field claims 520 M doubles is refus
   REQUIRE(std::find(names.begin(), names.end(), "s") != names.end());
   CHECK_THROWS_WITH(mat.read("s"), Contains("fuzz_mat-struct-field-claims-4gb.bin") &&
                                        Contains("variable 's' is not a real numeric array"));
+}
+
+TEST_CASE("fuzz finding: a list line naming a file the file system refuses is the list's error, with its line",
+          "[safe][fuzz]") {
+  test::Scratch s("fuzz_lists_finding");
+  // As fuzz_dataset_lists splits its input: the measurement list, a NUL, the scene list.
+  std::ifstream in(finding("fuzz_dataset_lists-name-too-long.bin"), std::ios::binary);
+  const std::string bytes((std::istreambuf_iterator<char>(in)), {});
+  const auto cut = std::min(bytes.find('\0'), bytes.size());
+  std::ofstream(s.dir / "train_meas.txt", std::ios::binary) << bytes.substr(0, cut);
+  std::ofstream(s.dir / "train_gt.txt", std::ios::binary) << (cut < bytes.size() ? bytes.substr(cut + 1) : "");
+  const DatasetLists lists{s.dir / "train_meas.txt", s.dir / "train_gt.txt", s.dir};
+  CHECK_THROWS_AS(read_pairs(lists), Error);
+  // The same with a plain name over the file system's 255-byte limit: the list and line are named.
+  std::ofstream(s.dir / "train_meas.txt") << std::string(300, 'a') << ".png\n";
+  std::ofstream(s.dir / "train_gt.txt") << "scene.png\n";
+  CHECK_THROWS_WITH(read_pairs(lists),
+                    Contains("train_meas.txt") && Contains("line 1") && Contains("File name too long"));
+}
+
+TEST_CASE("fuzz finding: a TIFF whose width reads back negative is refused from its header", "[safe][fuzz]") {
+  test::Scratch s("fuzz_image_negative");
+  const auto path = as_image(s, "fuzz_image-tiff-negative-width.bin");
+  for (const auto& read : std::vector<std::function<void()>>{[&] { read_rgb(path); }, [&] { read_gray16(path); },
+                                                             [&] { read_image_header(path); }})
+    CHECK_THROWS_WITH(read(), Contains("capture.tif") && Contains("an empty or impossible size"));
+}
+
+TEST_CASE("fuzz finding: a 384-byte .mat struct claiming 2^28 elements is refused before matio lists it",
+          "[safe][fuzz]") {
+  // matio makes a pointer per struct element when it lists the variables: 2 GB here. The file's
+  // sizes are checked first: each element needs at least its tag in the file.
+  CHECK_THROWS_WITH(
+      MatReader(finding("fuzz_mat-struct-claims-2e28-elements.bin")),
+      Contains("fuzz_mat-struct-claims-2e28-elements.bin") && Contains("declares") && Contains("elements in"));
+  // A struct SciPy wrote (a field per element, as MATLAB does) is still listed and its numbers read.
+  const auto scipy_struct = test::source_dir() / "tests" / "fuzz" / "corpus" / "fuzz_mat";
+  int read = 0;
+  for (const auto& entry : std::filesystem::directory_iterator(scipy_struct)) {
+    MatReader mat(entry.path());
+    read += static_cast<int>(mat.names().size());
+  }
+  CHECK(read > 0);
 }

@@ -1,5 +1,6 @@
 #include "io/camera_config.hpp"
 
+#include <algorithm>
 #include <cmath>
 
 #include "io/yaml_text.hpp"
@@ -43,7 +44,8 @@ constexpr double kMaxRotation = 0.175;  // radians
 const std::vector<std::string> kKnownKeys = {
     "name",       "raw_height",  "raw_width",   "adc_bits",      "rotation",        "crop",
     "centring",   "scene_size",  "calibration", "rig",           "tikhonov_lambda", "tv_lambda",
-    "noise_gain", "noise_floor", "dark",        "fit_threshold", "leak_threshold",  "open_light"};
+    "noise_gain", "noise_floor", "dark",        "fit_threshold", "leak_threshold",  "open_light",
+    "bench"};
 
 void validate(const CameraConfig& c, const std::filesystem::path& path) {
   const auto& g = c.raw;
@@ -123,6 +125,32 @@ std::string camera_geometry_yaml(const CameraConfig& c) {
   return os.str();
 }
 
+// The bench: section: each key a number within its range (a simulated bench's plausible errors).
+static BenchErrors bench_from_node(const YAML::Node& y, const std::filesystem::path& path) {
+  require(y.IsMap(), path, "bench: expected a mapping of bench errors");
+  BenchErrors b;
+  struct Row {
+    const char* key;
+    double* value;
+    double lo, hi;
+  };
+  double hot = 0;
+  const Row rows[] = {{"crosstalk", &b.crosstalk, 0, 0.5},          {"mask_rotation", &b.mask_rotation, -0.1, 0.1},
+                      {"second_term", &b.second_term, 0, 0.5},      {"flicker", &b.flicker, 0, 0.5},
+                      {"stray_light", &b.stray_light, 0, 0.5},      {"hot_pixels", &hot, 0, 1e5},
+                      {"display_shift", &b.display_shift, -16, 16}, {"display_scale", &b.display_scale, 0.8, 1.25}};
+  for (const auto& kv : y) {
+    const auto key = kv.first.as<std::string>();
+    const auto row = std::find_if(std::begin(rows), std::end(rows), [&](const Row& r) { return key == r.key; });
+    require(row != std::end(rows), path, "unknown bench error 'bench." + printable(key) + "'");
+    *row->value = kv.second.as<double>();
+    require(std::isfinite(*row->value) && *row->value >= row->lo && *row->value <= row->hi, path,
+            "bench." + key + " must lie within [" + std::to_string(row->lo) + ", " + std::to_string(row->hi) + "]");
+  }
+  b.hot_pixels = static_cast<int64_t>(hot);
+  return b;
+}
+
 CameraConfig camera_from_node(const YAML::Node& y, const std::filesystem::path& path,
                               const std::filesystem::path& base) {
   CameraConfig c;
@@ -155,6 +183,7 @@ CameraConfig camera_from_node(const YAML::Node& y, const std::filesystem::path& 
     if (y["fit_threshold"]) c.fit_threshold = y["fit_threshold"].as<double>();
     if (y["leak_threshold"]) c.leak_threshold = y["leak_threshold"].as<double>();
     if (y["open_light"]) c.open_light = y["open_light"].as<double>();
+    if (y["bench"]) c.bench = bench_from_node(y["bench"], path);
   } catch (const YAML::Exception& e) {
     throw Error(path, std::string("bad value: ") + e.what());
   }

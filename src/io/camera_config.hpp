@@ -30,6 +30,24 @@ struct RawGeometry {
   int64_t plane_width() const { return raw_width / 2; }
 };
 
+// A real display-capture bench's errors that the reference simulator leaves out (the `bench:` section
+// of a simulated camera's file; all 0: none). They are the simulated camera's truth: only simulation
+// reads them (optics/bench.hpp), and calibration has to find what they do from the captures.
+struct BenchErrors {
+  double crosstalk = 0;      // each Bayer plane sees this share of the display's other two primaries
+  double mask_rotation = 0;  // radians: the mask's rotation on the sensor, which the geometry does not state
+  double second_term = 0;    // a second separable term of the response, relative to the first
+  double flicker = 0;        // relative standard deviation of each capture's exposure
+  double stray_light = 0;    // a smooth stray-light ramp over the sensor, full-scale units at its brightest
+  int64_t hot_pixels = 0;    // raw pixels stuck bright, at fixed places
+  double display_shift = 0;  // the photograph shown this many scene pixels off-centre (down and right)
+  double display_scale = 1;  // and scaled by this about its centre
+  bool any() const {
+    return crosstalk != 0 || mask_rotation != 0 || second_term != 0 || flicker != 0 || stray_light != 0 ||
+           hot_pixels != 0 || display_shift != 0 || display_scale != 1;
+  }
+};
+
 struct CameraConfig {
   std::string name = "sim";
   RawGeometry raw;
@@ -58,6 +76,7 @@ struct CameraConfig {
   // mean(X)). 0 = unknown. `flatnet calibrate --references` measures it; with the noise model it lets
   // a camera known only from its calibration be simulated through it (optics/camera.hpp calibration_rig).
   double open_light = 0;
+  BenchErrors bench;  // a simulated bench camera's errors (simulation only; not in model files)
   bool knows_noise() const { return noise_gain > 0; }
 };
 

@@ -20,8 +20,8 @@ struct RangeRow {
   std::string meaning;  // "1 to 4096 filters"; empty for a path row
   bool path = false;    // the value is a file or folder (Config::path), not a number
 };
-// Adds rows to the checks Config::check_ranges makes. Returns true, for a registration at namespace
-// scope in the owning layer (`const bool registered = register_ranges(...)`).
+// Adds rows to the checks Config::check_ranges makes (train/options.hpp register_option_tables
+// registers every table's, once, at a program's start).
 bool register_ranges(const std::vector<RangeRow>& rows);
 // "" when `text` is a finite decimal number within the row's range, else what is wrong.
 std::string range_problem(const std::string& text, const RangeRow& row);

@@ -84,6 +84,11 @@ OpenedImage open_input(const std::filesystem::path& path) {
   auto& in = image.in;
   require(in != nullptr, path, "unreadable image (" + one_line(OIIO::geterror()) + ")");
   const auto& spec = in->spec();
+  // Sizes come from the file: a width past 2^31 reads back negative (found by scripts/fuzz.sh: a TIFF
+  // of width 0x80000040), so each is checked positive before any product of them.
+  require(spec.width > 0 && spec.height > 0 && spec.nchannels >= 1, path,
+          "a " + std::to_string(spec.width) + "x" + std::to_string(spec.height) + "x" + std::to_string(spec.nchannels) +
+              " image: an empty or impossible size (a damaged file)");
   const int64_t values = int64_t{spec.width} * spec.height * spec.nchannels;
   require(values <= kMaxImageValues, path,
           "a " + std::to_string(spec.width) + "x" + std::to_string(spec.height) + "x" + std::to_string(spec.nchannels) +

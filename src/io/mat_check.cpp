@@ -52,9 +52,32 @@ Tag read_tag(const unsigned char* p) {
 }
 uint64_t padded(uint64_t n) { return (n + 7) / 8 * 8; }
 
+void check_matrix(const unsigned char* m, uint64_t size, const std::filesystem::path& path, int depth = 0);
+
+// The children of a cell or struct (`elements` miMATRIX elements from m[at]): matio makes one pointer
+// per child when it lists the variable, before reading any of them, so a child needs its 8-byte tag
+// in the file (found by scripts/fuzz.sh: a 384-byte struct claiming 2^28 elements made matio
+// allocate 2 GB), and each child is checked as a variable is.
+void check_children(const unsigned char* m, uint64_t size, uint64_t at, uint64_t elements, const std::string& where,
+                    const std::filesystem::path& path, int depth) {
+  if (elements > (size - std::min(at, size)) / 8)
+    throw Error(path, where + " declares " + std::to_string(elements) + " elements in " + std::to_string(size) +
+                          " bytes (hostile or damaged file?)");
+  for (uint64_t i = 0; i < elements; ++i) {
+    require(at + 8 <= size, path, "damaged .mat file: " + where + "'s elements run past its end");
+    const auto child = read_tag(m + at);
+    require(child.header == 8 && child.type == kMiMatrix && child.bytes <= size - at - 8, path,
+            "damaged .mat file: " + where + " holds an element that is not an array");
+    if (child.bytes > 0) check_matrix(m + at + 8, child.bytes, path, depth + 1);
+    at += 8 + padded(child.bytes);
+  }
+}
+
 // Checks one miMATRIX element's contents `m` (size `size`, the bytes after its tag): flags,
-// dimensions, name, then for numeric classes the real (and imaginary) data's byte counts.
-void check_matrix(const unsigned char* m, uint64_t size, const std::filesystem::path& path) {
+// dimensions, name, then for numeric classes the real (and imaginary) data's byte counts, and for
+// cells and structs their elements (nested at most 16 deep).
+void check_matrix(const unsigned char* m, uint64_t size, const std::filesystem::path& path, int depth) {
+  require(depth <= 16, path, "damaged .mat file: cells or structs nested more than 16 deep");
   auto need = [&](uint64_t at, uint64_t n, const char* what) {
     if (at + n > size) throw Error(path, std::string("damaged .mat file: a variable's ") + what + " runs past its end");
   };
@@ -82,8 +105,34 @@ void check_matrix(const unsigned char* m, uint64_t size, const std::filesystem::
   need(at + name_tag.header, name_tag.bytes, "name");
   const std::string name(reinterpret_cast<const char*>(m + at + name_tag.header), name_tag.bytes);
   at += name_tag.header == 4 ? 8 : 8 + padded(name_tag.bytes);
-  if (cls < 6 || cls > 15) return;  // cells, structs, chars, sparse: not read by flatnet
   const auto where = "variable '" + name + "'";
+  if (overflow && cls <= 4) throw Error(path, where + " declares more than 2^64 elements (hostile or damaged file?)");
+  if (cls == 1) return check_children(m, size, at, count, where, path, depth);  // cell
+  if (cls == 2 || cls == 3) {  // struct, object: (an object's class name), field name length, names
+    if (cls == 3) {
+      need(at, 8, "class name");
+      const auto class_name = read_tag(m + at);
+      at += class_name.header == 4 ? 8 : 8 + padded(class_name.bytes);
+    }
+    need(at, 8, "field name length");
+    const auto length_tag = read_tag(m + at);
+    need(at + length_tag.header, 4, "field name length");
+    const uint64_t length = u32(m + at + length_tag.header);
+    at += length_tag.header == 4 ? 8 : 8 + padded(length_tag.bytes);
+    need(at, 8, "field names");
+    const auto names = read_tag(m + at);
+    need(at + names.header, names.bytes, "field names");
+    const uint64_t fields = length == 0 ? 0 : names.bytes / length;
+    at += names.header == 4 ? 8 : 8 + padded(names.bytes);
+    uint64_t elements = 0;
+    if (__builtin_mul_overflow(count, fields, &elements))
+      throw Error(path, where + " declares more than 2^64 fields (hostile or damaged file?)");
+    return check_children(m, size, at, elements, where, path, depth);
+  }
+  if (cls == 4 && count > size)
+    throw Error(path, where + " declares " + std::to_string(count) + " characters in " + std::to_string(size) +
+                          " bytes (hostile or damaged file?)");
+  if (cls < 6 || cls > 15) return;  // chars, sparse: not read by flatnet
   if (overflow || count > kMaxVariableBytes)
     throw Error(path, where + " declares " + (overflow ? std::string("more than 2^64") : std::to_string(count)) +
                           " values (hostile or damaged file?)");

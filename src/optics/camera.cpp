@@ -3,6 +3,7 @@
 #include <cmath>
 #include <iostream>
 
+#include "optics/bench.hpp"
 #include "optics/shift_structure.hpp"
 
 #include "core/error.hpp"
@@ -117,12 +118,15 @@ std::filesystem::path simulation_source(const CameraConfig& camera) {
 Rig load_camera_rig(const CameraConfig& camera) {
   if (camera.rig.empty() && camera.open_light > 0 && !camera.calibration.empty()) {
     std::cerr << "camera '" << printable(camera.name) << "' has no rig: simulated through its calibration\n";
-    return calibration_rig(load_calibration(camera.calibration, camera), camera);
+    auto rig = calibration_rig(load_calibration(camera.calibration, camera), camera);
+    rig.bench = camera.bench;
+    return rig;
   }
   require(!camera.rig.empty(), camera.name,
           "this camera names no rig (rig.mat, its true response), and has no open_light to be simulated through "
           "its calibration");
   auto rig = load_rig(camera.rig);
+  rig.bench = camera.bench;
   require(rig.scene_size() == camera.scene_size, camera.rig,
           "models a " + std::to_string(rig.scene_size()) + "-pixel scene, and camera '" + printable(camera.name) +
               "' says scene_size " + std::to_string(camera.scene_size));
@@ -180,15 +184,19 @@ torch::Tensor simulate_raw(const Rig& rig, const torch::Tensor& scene_srgb, bool
 torch::Tensor simulate_raw_linear(const Rig& rig, const torch::Tensor& scene_linear, bool noise,
                                   c10::optional<at::Generator> gen) {
   TORCH_CHECK(scene_linear.dim() == 3 && scene_linear.size(0) == 3, "scene must be {3,N,N}");
-  auto planes = rgb_to_bayer_planes(scene_linear.to(torch::kFloat32)).unsqueeze(0);
-  auto codes = sensor_readout(rig, expected_signal(rig, planes), noise, gen)[0];  // {4,h,w}
-  return adc_to_stored(bayer_merge(codes), rig.adc_bits);
+  // A bench's errors (none for a plain rig) where they arise: display, colour, optics, sensor.
+  const auto shown = bench_display(rig.bench, scene_linear.to(torch::kFloat32), gen);
+  auto planes = rgb_to_bayer_planes(bench_crosstalk(rig.bench, shown)).unsqueeze(0);
+  const auto signal = bench_signal(rig.bench, rig, planes, expected_signal(rig, planes));
+  auto codes = sensor_readout(rig, signal, noise, gen)[0];  // {4,h,w}
+  return bench_hot_pixels(rig.bench, adc_to_stored(bayer_merge(codes), rig.adc_bits), rig.adc_bits);
 }
 
 torch::Tensor capture_planes(const Rig& rig, const torch::Tensor& scene_linear, const RawGeometry& g, bool noise,
                              at::Generator& gen) {
   TORCH_CHECK(scene_linear.dim() == 4 && scene_linear.size(1) == 3, "scenes must be {B,3,N,N}");
   require(g.rotation == 0.0, "camera.rotation", "a learned camera's captures are simulated unrotated; it must be 0");
+  require(!rig.bench.any(), "camera.bench", "a learned camera's captures are simulated without a bench's errors");
   // Only the window's rows of PhiL and columns of PhiR: the same numbers as the whole plane cropped.
   Rig window_rig = rig;
   window_rig.phil = rig.phil.slice(1, g.crop[0], g.crop[0] + g.crop[2]);

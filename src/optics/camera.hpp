@@ -26,6 +26,7 @@ struct Rig {
   double read_noise = 4;     // electrons, standard deviation
   double dark = 0.02;        // full-scale units
   int adc_bits = 10;
+  BenchErrors bench;  // a simulated bench's errors (optics/bench.hpp; none by default)
   int64_t scene_size() const { return phil.size(2); }
 };
 

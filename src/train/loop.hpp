@@ -7,7 +7,9 @@
 // a bad step is skipped, kNonFiniteLimit in a row stop). A trainer says what a step, a log row and
 // a checkpoint are (LoopHooks); the loop says when.
 #include <cstdint>
+#include <filesystem>
 #include <functional>
+#include <memory>
 #include <string>
 #include <utility>
 
@@ -89,5 +91,22 @@ class TrainingLoop {
   double start_seconds_ = 0;  // steady clock at run()
   bool over_budget_ = false;
 };
+
+// The loop of a one-process trainer whose state is one checkpoint file (the mask and code-pair
+// trainers): its options' schedule, resumed at `first_step` after `seconds_before` of training, with
+// its step, log and checkpoint hooks.
+template <class TrainerOptions, class Step, class Log, class Checkpoint>
+std::unique_ptr<TrainingLoop> checkpointed_loop(const TrainerOptions& o, std::string label,
+                                                const std::filesystem::path& checkpoint_file, int64_t first_step,
+                                                double seconds_before, Step step, Log log, Checkpoint checkpoint) {
+  auto lo = loop_schedule(o, std::move(label), "the last checkpoint (" + checkpoint_file.string() + ")");
+  lo.first_step = first_step;
+  lo.seconds_before = seconds_before;
+  LoopHooks hooks;
+  hooks.step = std::move(step);
+  hooks.log = std::move(log);
+  hooks.checkpoint = std::move(checkpoint);  // before the same step's log row, and at the end
+  return std::make_unique<TrainingLoop>(lo, hooks);
+}
 
 }  // namespace flatnet

@@ -77,14 +77,9 @@ class MaskTrainer {
 
   MaskTrainSummary run() {
     restore_or_start();
-    auto lo = loop_schedule(o_, "mask", "the last checkpoint (" + checkpoint_path_.string() + ")");
-    lo.first_step = first_step_;
-    lo.seconds_before = seconds_before_;
-    LoopHooks hooks;
-    hooks.step = [this](int64_t step) { step_once(step); };
-    hooks.log = [this](int64_t done) { return log_row(done); };
-    hooks.checkpoint = [this](int64_t done) { checkpoint(done); };
-    loop_ = std::make_unique<TrainingLoop>(lo, hooks);
+    loop_ = checkpointed_loop(
+        o_, "mask", checkpoint_path_, first_step_, seconds_before_, [this](int64_t step) { step_once(step); },
+        [this](int64_t done) { return log_row(done); }, [this](int64_t done) { checkpoint(done); });
     const auto r = loop_->run();
     if (r.last_step == first_step_ && o_.resume) score();  // a resumed run with no step left: its state's scores
     summary_.steps = r.last_step;

@@ -141,14 +141,9 @@ class SeparableTrainer {
 
   SeparableTrainSummary run() {
     restore_or_start();
-    auto lo = loop_schedule(o_, "codes", "the last checkpoint (" + checkpoint_path_.string() + ")");
-    lo.first_step = first_step_;
-    lo.seconds_before = seconds_before_;
-    LoopHooks hooks;
-    hooks.step = [this](int64_t step) { step_once(step); };
-    hooks.checkpoint = [this](int64_t done) { checkpoint(done); };  // before the same step's log row, and at the end
-    hooks.log = [this](int64_t done) { return log_row(done); };
-    loop_ = std::make_unique<TrainingLoop>(lo, hooks);
+    loop_ = checkpointed_loop(
+        o_, "codes", checkpoint_path_, first_step_, seconds_before_, [this](int64_t step) { step_once(step); },
+        [this](int64_t done) { return log_row(done); }, [this](int64_t done) { checkpoint(done); });
     const auto r = loop_->run();
     finish(r);
     return summary_;
