@@ -44,11 +44,10 @@ TEST_CASE("fuzz finding: a 364-byte TIFF claiming 1.1 GB of samples is refused f
 
 TEST_CASE("fuzz finding: a .mat struct whose field claims 520 M doubles is refused before matio reads it",
           "[safe][fuzz]") {
-  MatReader mat(finding("fuzz_mat-struct-field-claims-4gb.bin"));
-  const auto names = mat.names();
-  REQUIRE(std::find(names.begin(), names.end(), "s") != names.end());
-  CHECK_THROWS_WITH(mat.read("s"), Contains("fuzz_mat-struct-field-claims-4gb.bin") &&
-                                       Contains("variable 's' is not a real numeric array"));
+  // The struct's fields are checked as top-level variables are, when the file is opened.
+  CHECK_THROWS_WITH(
+      MatReader(finding("fuzz_mat-struct-field-claims-4gb.bin")),
+      Contains("fuzz_mat-struct-field-claims-4gb.bin") && Contains("520093699 values") && Contains("its data holds 3"));
 }
 
 TEST_CASE("fuzz finding: a list line naming a file the file system refuses is the list's error, with its line",
