@@ -7,6 +7,8 @@
 
 #include "core/error.hpp"
 #include "helpers.hpp"
+#include "io/camera_config.hpp"
+#include "io/config.hpp"
 #include "io/dataset.hpp"
 #include "io/image.hpp"
 #include "io/mat.hpp"
@@ -91,4 +93,18 @@ TEST_CASE("fuzz finding: a 384-byte .mat struct claiming 2^28 elements is refuse
     read += static_cast<int>(mat.names().size());
   }
   CHECK(read > 0);
+}
+
+TEST_CASE("fuzz finding: YAML whose first token is a comma ends at once, not in an endless run of documents",
+          "[safe][fuzz]") {
+  // yaml-cpp 0.7's LoadAll loops for ever on it, its memory growing (the harness's timeout and an
+  // earlier 2 GB stop): the text's documents are counted from parse events, stopping at 2.
+  std::ifstream in(finding("fuzz_yaml-leading-comma-endless-documents.bin"), std::ios::binary);
+  const std::string text((std::istreambuf_iterator<char>(in)), {});
+  CHECK_THROWS_WITH(Config::from_text(text, "fuzz.yaml"), Contains("fuzz.yaml") && Contains("stray ','"));
+  CHECK_THROWS_WITH(camera_from_yaml_text(text, "camera.yaml"), Contains("camera.yaml"));
+  CHECK_THROWS_WITH(Config::from_text(", 2\n", "short.yaml"), Contains("short.yaml"));
+  // One document, or none, still reads.
+  CHECK(Config::from_text("train:\n  lr: 0.001\n", "one.yaml").num("train.lr") == 0.001);
+  CHECK_NOTHROW(Config::from_text("# only a comment\n", "empty.yaml"));
 }
