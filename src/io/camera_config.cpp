@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <sstream>
 
 #include "io/yaml_text.hpp"
 
@@ -126,6 +127,13 @@ std::string camera_geometry_yaml(const CameraConfig& c) {
 }
 
 // The bench: section: each key a number within its range (a simulated bench's plausible errors).
+// A range's bound as written (0.5, 100000), not std::to_string's six decimals.
+static std::string compact(double v) {
+  std::ostringstream os;
+  os << v;
+  return os.str();
+}
+
 static BenchErrors bench_from_node(const YAML::Node& y, const std::filesystem::path& path) {
   require(y.IsMap(), path, "bench: expected a mapping of bench errors");
   BenchErrors b;
@@ -145,7 +153,7 @@ static BenchErrors bench_from_node(const YAML::Node& y, const std::filesystem::p
     require(row != std::end(rows), path, "unknown bench error 'bench." + printable(key) + "'");
     *row->value = kv.second.as<double>();
     require(std::isfinite(*row->value) && *row->value >= row->lo && *row->value <= row->hi, path,
-            "bench." + key + " must lie within [" + std::to_string(row->lo) + ", " + std::to_string(row->hi) + "]");
+            "bench." + key + " must lie within [" + compact(row->lo) + ", " + compact(row->hi) + "]");
   }
   b.hot_pixels = static_cast<int64_t>(hot);
   return b;
