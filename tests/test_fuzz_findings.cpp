@@ -108,3 +108,14 @@ TEST_CASE("fuzz finding: YAML whose first token is a comma ends at once, not in 
   CHECK(Config::from_text("train:\n  lr: 0.001\n", "one.yaml").num("train.lr") == 0.001);
   CHECK_NOTHROW(Config::from_text("# only a comment\n", "empty.yaml"));
 }
+
+TEST_CASE("fuzz finding: a TIFF claiming 18.6 M rows per strip is refused before its strip buffer is made",
+          "[safe][fuzz]") {
+  test::Scratch s("fuzz_image_strip");
+  const auto path = as_image(s, "fuzz_image-tiff-rows-per-strip-2gb.bin");
+  for (const auto& read : std::vector<std::function<void()>>{[&] { read_rgb(path); }, [&] { read_gray16(path); }})
+    CHECK_THROWS_WITH(read(), Contains("capture.tif") && Contains("rows per strip"));
+  // A TIFF as libtiff writes it (strips of a few rows) still reads.
+  write_gray16(s.dir / "strips.tif", torch::full({300, 200}, 500, torch::kInt32));
+  CHECK(read_gray16(s.dir / "strips.tif").size(0) == 300);
+}

@@ -102,6 +102,18 @@ OpenedImage open_input(const std::filesystem::path& path) {
           "claims a " + std::to_string(spec.width) + "x" + std::to_string(spec.height) + "x" +
               std::to_string(spec.nchannels) + " image in " + std::to_string(image.bytes.size()) +
               " bytes, more than any compression holds (a damaged file or a decompression bomb)");
+  // OIIO reads a TIFF a strip at a time into a buffer of RowsPerStrip scanlines, taking the tag as
+  // written even when it exceeds the image's height (found by scripts/fuzz.sh: a 181-byte TIFF of 64
+  // columns claiming 18.6 M rows per strip made a 2.4 GB buffer). The strip's bytes are held to the
+  // same bound as the image's.
+  const int64_t rows_per_strip = spec.get_int_attribute("tiff:RowsPerStrip", 0);
+  const double strip_bytes =
+      static_cast<double>(rows_per_strip) * spec.width * spec.nchannels * static_cast<double>(spec.format.size());
+  require(rows_per_strip <= spec.height ||
+              strip_bytes <= kMaxExpansion * static_cast<double>(image.bytes.size()) + (1 << 20),
+          path,
+          "claims " + std::to_string(rows_per_strip) + " rows per strip in a " + std::to_string(spec.height) +
+              "-row image of " + std::to_string(image.bytes.size()) + " bytes (a damaged file)");
   return image;
 }
 
