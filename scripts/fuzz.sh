@@ -58,11 +58,12 @@ status=0
 printf '%-22s %10s %12s %10s %s\n' harness execs/s executions coverage finding
 for h in "${harnesses[@]}"; do
   log=$dir/logs/$h.log
-  execs=$(grep -o 'stat::number_of_executed_units: [0-9]*' "$log" | awk '{print $2}' | tail -1)
-  rate=$(grep -o 'exec/s: [0-9]*' "$log" | tail -1 | awk '{print $2}')
-  cov=$(grep -o 'cov: [0-9]* ft: [0-9]*' "$log" | tail -1 | awk '{print $2 "/" $4}')
-  finding=$(grep -o "Test unit written to [^ ]*" "$log" | tail -1 | sed 's/Test unit written to //')
-  what=$(grep -m1 -E "ERROR: (AddressSanitizer|libFuzzer)|runtime error:|fuzz finding:" "$log" | cut -c1-160 || true)
+  # -a: a log holds the inputs' bytes; || true: a harness with no such line shows '?', not the end of the summary.
+  execs=$(grep -ao 'stat::number_of_executed_units: [0-9]*' "$log" | awk '{print $2}' | tail -1 || true)
+  rate=$(grep -ao 'stat::average_exec_per_sec: *[0-9]*' "$log" | awk '{print $2}' | tail -1 || true)
+  cov=$(grep -ao 'cov: [0-9]* ft: [0-9]*' "$log" | tail -1 | awk '{print $2 "/" $4}' || true)
+  finding=$(grep -ao "Test unit written to [^ ]*" "$log" | tail -1 | sed 's/Test unit written to //' || true)
+  what=$(grep -a -m1 -E "ERROR: (AddressSanitizer|libFuzzer)|runtime error:|fuzz finding:" "$log" | cut -c1-160 || true)
   if [ -n "$finding" ]; then status=1; fi
   printf '%-22s %10s %12s %10s %s\n' "$h" "${rate:-?}" "${execs:-?}" "${cov:-?}" \
     "${finding:+$what (input: $dir/$finding; log: $log)}"
