@@ -31,13 +31,17 @@ std::filesystem::path as_image(const test::Scratch& s, const std::string& name) 
   return path;
 }
 
+// Every reader of an image file, as fuzz_image calls them: each must refuse a bad header alike.
+std::vector<std::function<void()>> image_readers(const std::filesystem::path& path) {
+  return {[=] { read_rgb(path); }, [=] { read_gray16(path); }, [=] { read_image_header(path); }};
+}
+
 }  // namespace
 
 TEST_CASE("fuzz finding: a 364-byte TIFF claiming 1.1 GB of samples is refused from its header", "[safe][fuzz]") {
   test::Scratch s("fuzz_image_finding");
   const auto path = as_image(s, "fuzz_image-tiff-claims-1gb.bin");
-  for (const auto& read : std::vector<std::function<void()>>{[&] { read_rgb(path); }, [&] { read_gray16(path); },
-                                                             [&] { read_image_header(path); }})
+  for (const auto& read : image_readers(path))
     CHECK_THROWS_WITH(read(), Contains("capture.tif") && Contains("more than any compression holds"));
   // A real image of the same kind is still read: a flat 16-bit TIFF compresses well within the bound.
   write_gray16(s.dir / "flat.tif", torch::full({64, 80}, 1000, torch::kInt32));
@@ -73,8 +77,7 @@ TEST_CASE("fuzz finding: a list line naming a file the file system refuses is th
 TEST_CASE("fuzz finding: a TIFF whose width reads back negative is refused from its header", "[safe][fuzz]") {
   test::Scratch s("fuzz_image_negative");
   const auto path = as_image(s, "fuzz_image-tiff-negative-width.bin");
-  for (const auto& read : std::vector<std::function<void()>>{[&] { read_rgb(path); }, [&] { read_gray16(path); },
-                                                             [&] { read_image_header(path); }})
+  for (const auto& read : image_readers(path))
     CHECK_THROWS_WITH(read(), Contains("capture.tif") && Contains("an empty or impossible size"));
 }
 

@@ -2,7 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
-#include <sstream>
+#include <cstdlib>
 
 #include "io/yaml_text.hpp"
 
@@ -126,34 +126,29 @@ std::string camera_geometry_yaml(const CameraConfig& c) {
   return os.str();
 }
 
-// The bench: section: each key a number within its range (a simulated bench's plausible errors).
-// A range's bound as written (0.5, 100000), not std::to_string's six decimals.
-static std::string compact(double v) {
-  std::ostringstream os;
-  os << v;
-  return os.str();
-}
-
+// The bench: section: each key a number within its range (a simulated bench's plausible errors),
+// checked by the rule every config number is (core/util.hpp number_problem).
 static BenchErrors bench_from_node(const YAML::Node& y, const std::filesystem::path& path) {
   require(y.IsMap(), path, "bench: expected a mapping of bench errors");
   BenchErrors b;
-  struct Row {
-    const char* key;
-    double* value;
-    double lo, hi;
-  };
   double hot = 0;
-  const Row rows[] = {{"crosstalk", &b.crosstalk, 0, 0.5},          {"mask_rotation", &b.mask_rotation, -0.1, 0.1},
-                      {"second_term", &b.second_term, 0, 0.5},      {"flicker", &b.flicker, 0, 0.5},
-                      {"stray_light", &b.stray_light, 0, 0.5},      {"hot_pixels", &hot, 0, 1e5},
-                      {"display_shift", &b.display_shift, -16, 16}, {"display_scale", &b.display_scale, 0.8, 1.25}};
+  const std::pair<NumberRule, double*> rows[] = {
+      {{"crosstalk", 0, 0.5, "a share, 0 to 0.5"}, &b.crosstalk},
+      {{"mask_rotation", -0.1, 0.1, "radians, -0.1 to 0.1"}, &b.mask_rotation},
+      {{"second_term", 0, 0.5, "a share, 0 to 0.5"}, &b.second_term},
+      {{"flicker", 0, 0.5, "0 to 0.5"}, &b.flicker},
+      {{"stray_light", 0, 0.5, "full scale, 0 to 0.5"}, &b.stray_light},
+      {{"hot_pixels", 0, 1e5, "0 to 100000 pixels"}, &hot},
+      {{"display_shift", -16, 16, "scene pixels, -16 to 16"}, &b.display_shift},
+      {{"display_scale", 0.8, 1.25, "0.8 to 1.25"}, &b.display_scale}};
   for (const auto& kv : y) {
-    const auto key = kv.first.as<std::string>();
-    const auto row = std::find_if(std::begin(rows), std::end(rows), [&](const Row& r) { return key == r.key; });
+    const auto key = kv.first.as<std::string>(), text = kv.second.as<std::string>();
+    const auto row = std::find_if(std::begin(rows), std::end(rows), [&](const auto& r) { return key == r.first.name; });
     require(row != std::end(rows), path, "unknown bench error 'bench." + printable(key) + "'");
-    *row->value = kv.second.as<double>();
-    require(std::isfinite(*row->value) && *row->value >= row->lo && *row->value <= row->hi, path,
-            "bench." + key + " must lie within [" + compact(row->lo) + ", " + compact(row->hi) + "]");
+    const auto problem = number_problem(text, row->first);
+    require(problem.empty(), path,
+            "bench." + key + " = " + printable(text) + " " + problem + ": " + row->first.meaning);
+    *row->second = std::strtod(text.c_str(), nullptr);
   }
   b.hot_pixels = static_cast<int64_t>(hot);
   return b;

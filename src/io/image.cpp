@@ -84,34 +84,31 @@ OpenedImage open_input(const std::filesystem::path& path) {
   auto& in = image.in;
   require(in != nullptr, path, "unreadable image (" + one_line(OIIO::geterror()) + ")");
   const auto& spec = in->spec();
+  const auto size =
+      std::to_string(spec.width) + "x" + std::to_string(spec.height) + "x" + std::to_string(spec.nchannels);
   // Sizes come from the file: a width past 2^31 reads back negative (found by scripts/fuzz.sh: a TIFF
   // of width 0x80000040), so each is checked positive before any product of them.
   require(spec.width > 0 && spec.height > 0 && spec.nchannels >= 1, path,
-          "a " + std::to_string(spec.width) + "x" + std::to_string(spec.height) + "x" + std::to_string(spec.nchannels) +
-              " image: an empty or impossible size (a damaged file)");
+          "a " + size + " image: an empty or impossible size (a damaged file)");
   const int64_t values = int64_t{spec.width} * spec.height * spec.nchannels;
   require(values <= kMaxImageValues, path,
-          "a " + std::to_string(spec.width) + "x" + std::to_string(spec.height) + "x" + std::to_string(spec.nchannels) +
-              " image is beyond flatnet's limit (a damaged file or a decompression bomb)");
+          "a " + size + " image is beyond flatnet's limit (a damaged file or a decompression bomb)");
   // Compression has a ceiling: deflate (PNG, TIFF) decodes to at most ~1032x its stream and TIFF's
   // LZW to ~2700x, so a file whose header claims more than 4096x its own size of samples cannot hold
   // that image. Refused before a buffer of the claimed size is made (found by scripts/fuzz.sh: a
   // 600-byte TIFF claiming 1.1 GB of samples).
-  const double claimed_bytes = static_cast<double>(values) * static_cast<double>(spec.format.size());
-  require(claimed_bytes <= kMaxExpansion * static_cast<double>(image.bytes.size()) + (1 << 20), path,
-          "claims a " + std::to_string(spec.width) + "x" + std::to_string(spec.height) + "x" +
-              std::to_string(spec.nchannels) + " image in " + std::to_string(image.bytes.size()) +
+  const double holdable_bytes = kMaxExpansion * static_cast<double>(image.bytes.size()) + (1 << 20);
+  const double sample_bytes = static_cast<double>(spec.format.size());
+  require(static_cast<double>(values) * sample_bytes <= holdable_bytes, path,
+          "claims a " + size + " image in " + std::to_string(image.bytes.size()) +
               " bytes, more than any compression holds (a damaged file or a decompression bomb)");
   // OIIO reads a TIFF a strip at a time into a buffer of RowsPerStrip scanlines, taking the tag as
   // written even when it exceeds the image's height (found by scripts/fuzz.sh: a 181-byte TIFF of 64
   // columns claiming 18.6 M rows per strip made a 2.4 GB buffer). The strip's bytes are held to the
   // same bound as the image's.
   const int64_t rows_per_strip = spec.get_int_attribute("tiff:RowsPerStrip", 0);
-  const double strip_bytes =
-      static_cast<double>(rows_per_strip) * spec.width * spec.nchannels * static_cast<double>(spec.format.size());
-  require(rows_per_strip <= spec.height ||
-              strip_bytes <= kMaxExpansion * static_cast<double>(image.bytes.size()) + (1 << 20),
-          path,
+  const double strip_bytes = static_cast<double>(rows_per_strip) * spec.width * spec.nchannels * sample_bytes;
+  require(rows_per_strip <= spec.height || strip_bytes <= holdable_bytes, path,
           "claims " + std::to_string(rows_per_strip) + " rows per strip in a " + std::to_string(spec.height) +
               "-row image of " + std::to_string(image.bytes.size()) + " bytes (a damaged file)");
   return image;

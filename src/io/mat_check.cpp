@@ -51,6 +51,8 @@ Tag read_tag(const unsigned char* p) {
   return {first, u32(p + 4), 8};
 }
 uint64_t padded(uint64_t n) { return (n + 7) / 8 * 8; }
+// The bytes a data element takes in the file, its tag included (a small element: its 8-byte tag).
+uint64_t stored_size(const Tag& tag) { return tag.header == 4 ? 8 : 8 + padded(tag.bytes); }
 
 void check_matrix(const unsigned char* m, uint64_t size, const std::filesystem::path& path, int depth = 0);
 
@@ -69,7 +71,7 @@ void check_children(const unsigned char* m, uint64_t size, uint64_t at, uint64_t
     require(child.header == 8 && child.type == kMiMatrix && child.bytes <= size - at - 8, path,
             "damaged .mat file: " + where + " holds an element that is not an array");
     if (child.bytes > 0) check_matrix(m + at + 8, child.bytes, path, depth + 1);
-    at += 8 + padded(child.bytes);
+    at += stored_size(child);
   }
 }
 
@@ -99,12 +101,12 @@ void check_matrix(const unsigned char* m, uint64_t size, const std::filesystem::
     if (d < 0) throw Error(path, "damaged .mat file: a negative dimension");
     overflow |= __builtin_mul_overflow(count, static_cast<uint64_t>(d), &count);
   }
-  at += dims.header == 4 ? 8 : 8 + padded(dims.bytes);
+  at += stored_size(dims);
   need(at, 8, "name");
   const auto name_tag = read_tag(m + at);
   need(at + name_tag.header, name_tag.bytes, "name");
   const std::string name(reinterpret_cast<const char*>(m + at + name_tag.header), name_tag.bytes);
-  at += name_tag.header == 4 ? 8 : 8 + padded(name_tag.bytes);
+  at += stored_size(name_tag);
   const auto where = "variable '" + name + "'";
   if (overflow && cls <= 4) throw Error(path, where + " declares more than 2^64 elements (hostile or damaged file?)");
   if (cls == 1) return check_children(m, size, at, count, where, path, depth);  // cell
@@ -112,18 +114,18 @@ void check_matrix(const unsigned char* m, uint64_t size, const std::filesystem::
     if (cls == 3) {
       need(at, 8, "class name");
       const auto class_name = read_tag(m + at);
-      at += class_name.header == 4 ? 8 : 8 + padded(class_name.bytes);
+      at += stored_size(class_name);
     }
     need(at, 8, "field name length");
     const auto length_tag = read_tag(m + at);
     need(at + length_tag.header, 4, "field name length");
     const uint64_t length = u32(m + at + length_tag.header);
-    at += length_tag.header == 4 ? 8 : 8 + padded(length_tag.bytes);
+    at += stored_size(length_tag);
     need(at, 8, "field names");
     const auto names = read_tag(m + at);
     need(at + names.header, names.bytes, "field names");
     const uint64_t fields = length == 0 ? 0 : names.bytes / length;
-    at += names.header == 4 ? 8 : 8 + padded(names.bytes);
+    at += stored_size(names);
     uint64_t elements = 0;
     if (__builtin_mul_overflow(count, fields, &elements))
       throw Error(path, where + " declares more than 2^64 fields (hostile or damaged file?)");
@@ -146,7 +148,7 @@ void check_matrix(const unsigned char* m, uint64_t size, const std::filesystem::
                             std::to_string(data.bytes / per) + " (damaged or hostile file)");
     if (data.header + data.bytes > size - at)
       throw Error(path, "truncated: " + where + "'s data runs past the end of its element");
-    at += data.header == 4 ? 8 : 8 + padded(data.bytes);
+    at += stored_size(data);
   }
 }
 

@@ -75,14 +75,6 @@ std::string key_of(const std::vector<OptionField<S>>& fields, T S::*member, cons
   throw std::logic_error("option table: no row binds this member");
 }
 
-// The table's keys, prefixed, in its order.
-template <class S>
-std::vector<std::string> table_keys(const std::vector<OptionField<S>>& fields, const std::string& prefix = "") {
-  std::vector<std::string> keys;
-  for (const auto& f : fields) keys.push_back(prefix + f.key);
-  return keys;
-}
-
 // One member from its key (a missing key or a value of the wrong kind is an error naming the key).
 template <class T>
 void read_member(const Config& c, const std::string& key, T& member) {

@@ -47,10 +47,10 @@ StepLosses StepLosses::operator/(double n) const {
   return m;
 }
 
-LrSchedule parse_lr_schedule(const std::string& s) {
+LrSchedule parse_lr_schedule(const std::string& s, const std::string& key) {
   if (s == "halving") return LrSchedule::halving;
   if (s == "cosine") return LrSchedule::cosine;
-  throw Error("config: train.schedule must be halving or cosine, got '" + s + "'");
+  throw Error("config: " + key + " must be halving or cosine, got '" + s + "'");
 }
 
 namespace {

@@ -25,7 +25,7 @@
 namespace flatnet {
 
 enum class LrSchedule { halving, cosine };
-LrSchedule parse_lr_schedule(const std::string& s);
+LrSchedule parse_lr_schedule(const std::string& s, const std::string& key = "train.schedule");
 
 struct TrainOptions {
   int64_t iterations = 20000;

@@ -65,8 +65,6 @@ Choice<O> codes_init_choice() {
 }
 constexpr const char* kCodesInit = "init";
 
-LrSchedule lr_schedule_named(const std::string& text, const std::string&) { return parse_lr_schedule(text); }
-
 }  // namespace
 
 const std::vector<OptionField<TrainOptions>>& train_fields() {
@@ -74,7 +72,7 @@ const std::vector<OptionField<TrainOptions>>& train_fields() {
   static const std::vector<OptionField<O>> fields = joined(
       schedule_fields<O>(),
       {
-          {"train.schedule", choice<O, LrSchedule, &O::schedule, lr_schedule_named>()},
+          {"train.schedule", choice<O, LrSchedule, &O::schedule, parse_lr_schedule>()},
           {"train.precision", &O::precision, 0, 0, "", "precision"},
           {"train.lr_discriminator", &O::lr_discriminator, 0, 10, "0 (frozen) to 10"},
           {"train.lr_inversion_scale", &O::lr_inversion_scale, 0, 1e6, "0 (frozen inversion) or a positive factor"},
