@@ -207,3 +207,38 @@ TEST_CASE("pairs with no signal are named before the solve: flat grey scenes, le
                       Contains("calibrate.dataset") && Contains("no signal"));
   }
 }
+
+TEST_CASE("each plane's shares of the display's primaries are identified with the factors (cross-talk)",
+          "[optics][calibrate][colour-mix]") {
+  const SmallCamera camera(5);
+  // Each plane sees 80 % of its own primary and 10 % of each other's; rows b, gb, gr, r; columns R, G, B.
+  const auto mix =
+      torch::tensor({0.1, 0.1, 0.8, 0.1, 0.8, 0.1, 0.1, 0.8, 0.1, 0.8, 0.1, 0.1}, torch::kFloat64).view({4, 3});
+  const auto load = [&](int64_t i) {
+    auto pair = camera.capture(i, 0.0);  // its planes stand for R, G, B, and gb = gr
+    const auto rgb = torch::stack({pair.scene[0], pair.scene[1], pair.scene[2]}).to(torch::kFloat64);
+    const auto planes = torch::stack({rgb[2], rgb[1], rgb[1], rgb[0]});  // as photographs give them
+    const auto seen = torch::einsum("ck,khw->chw", {mix, rgb});
+    const auto s = seen.sum({1, 2}).view({4, 1, 1});
+    auto gen = at::detail::createCPUGenerator(500 + static_cast<uint64_t>(i));
+    auto Y = torch::matmul(torch::matmul(camera.P, seen), camera.Q.transpose(1, 2)) +
+             s * torch::einsum("cr,cw->crw", {camera.a, camera.b});
+    Y = Y + 0.01 * at::randn(Y.sizes(), gen).to(torch::kFloat64);
+    return CapturePair{Y.to(torch::kFloat32), planes.to(torch::kFloat32), {}};
+  };
+  DatasetCalibrationOptions o;
+  o.progress = false;
+  o.structure = FactorStructure::Free;
+  o.iterations = 40;
+  o.tolerance = 1e-9;
+  const auto fit = calibrate_from_pairs(300, load, kRows, kCols, kScene, o);
+  REQUIRE(fit.colour_mix.defined());
+  INFO(fit.colour_mix);
+  CHECK((fit.colour_mix - mix).abs().max().item<double>() < 0.02);
+  CHECK(calibration_error(fit.calib, {camera.P, camera.Q}).p < 0.03);
+  // Without the mix the factors cannot explain what the other primaries add.
+  o.identify_mix = false;
+  const auto unmixed = calibrate_from_pairs(300, load, kRows, kCols, kScene, o);
+  CHECK_FALSE(unmixed.colour_mix.defined());
+  CHECK(unmixed.residual[0] > 3 * fit.residual[0]);
+}

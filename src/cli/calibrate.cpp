@@ -1,3 +1,4 @@
+#include <algorithm>
 #include <iomanip>
 #include <iostream>
 #include <optional>
@@ -15,6 +16,7 @@
 #include "optics/calibrate_references.hpp"
 #include "optics/separable_inverse.hpp"
 #include "optics/camera_fit.hpp"
+#include "optics/hot_pixels.hpp"
 
 namespace flatnet::cli {
 
@@ -148,10 +150,39 @@ int calibrate_from_reference_pairs(const cxxopts::ParseResult& r, const CameraCo
   return 0;
 }
 
+// The camera's hot pixels found from the first pairs' raw frames (optics/hot_pixels.hpp), with those
+// its file lists already; printed. A share of the frame too large to be stuck pixels is reported and
+// not listed.
+constexpr size_t kHotPixelFrames = 64, kHotPixelFramesAtLeast = 16;
+std::vector<std::array<int64_t, 2>> hot_pixels_of(const std::vector<Pair>& pairs, const CameraConfig& camera) {
+  auto listed = camera.raw.hot_pixels;
+  if (pairs.size() < kHotPixelFramesAtLeast) {
+    std::cout << "hot pixels: not looked for (it needs " << kHotPixelFramesAtLeast << " pairs or more)\n";
+    return listed;
+  }
+  HotPixelFinder finder({12, camera.raw.adc_bits});
+  for (size_t i = 0; i < std::min(pairs.size(), kHotPixelFrames); ++i)
+    finder.add(load_raw_unit(pairs[i].meas, camera.raw));
+  const auto found = finder.find();
+  const auto frame = static_cast<size_t>(camera.raw.raw_height * camera.raw.raw_width);
+  if (found.size() > frame / 100) {
+    std::cout << "hot pixels: " << found.size() << " pixels differ from their neighbours in all " << finder.frames()
+              << " captures, more than 1 % of the frame: a fixed pattern (a dirty sensor, a screen in the light "
+                 "path?), not stuck pixels; none listed\n";
+    return listed;
+  }
+  listed.insert(listed.end(), found.begin(), found.end());
+  std::sort(listed.begin(), listed.end());
+  listed.erase(std::unique(listed.begin(), listed.end()), listed.end());
+  std::cout << "hot pixels: " << found.size() << " found in " << finder.frames() << " captures (" << listed.size()
+            << " listed in the camera file; each is replaced by its neighbours' mean)\n";
+  return listed;
+}
+
 // `flatnet calibrate --dataset DIR`: the calibration identified from display-capture pairs
 // (optics/calibrate_dataset.hpp), written with a camera.yaml beside it and the fit per channel.
 int calibrate_from_dataset(const cxxopts::ParseResult& r) {
-  const auto camera = camera_from(r);
+  auto camera = camera_from(r);
   const std::filesystem::path out = r["out"].as<std::string>();
   require(out.extension() == ".mat", "--out",
           "the calibration is a .mat file (FlatNet's layout), got '" + out.string() + "'");
@@ -192,6 +223,7 @@ int calibrate_from_dataset(const cxxopts::ParseResult& r) {
   require(limit >= 0, "--limit", "0 (all) or more");
   if (limit > 0 && static_cast<int64_t>(pairs.size()) > limit) pairs.resize(static_cast<size_t>(limit));
   if (r.count("references")) return calibrate_from_reference_pairs(r, camera, pairs, out);
+  camera.raw.hot_pixels = hot_pixels_of(pairs, camera);
   const auto N = camera.scene_size;
   auto load = [&](int64_t i) {
     const auto& p = pairs[static_cast<size_t>(i)];
@@ -211,6 +243,10 @@ int calibrate_from_dataset(const cxxopts::ParseResult& r) {
   require(structure == "shift" || structure == "free", "calibrate",
           "--structure is shift (a FlatCam's shadow moves with the scene) or free, not '" + structure + "'");
   o.structure = structure == "shift" ? FactorStructure::Shift : FactorStructure::Free;
+  const auto colour_mix = r["colour-mix"].as<std::string>();
+  require(colour_mix == "identify" || colour_mix == "none", "--colour-mix",
+          "identify (fit each plane's shares of the primaries) or none, not '" + colour_mix + "'");
+  o.identify_mix = colour_mix == "identify";
   std::cerr << "calibrate: " << pairs.size() << " display-capture pairs, " << camera.raw.crop[2] << "x"
             << camera.raw.crop[3] << " planes, " << N << "x" << N << " scenes\n";
   const auto fit =
@@ -222,6 +258,11 @@ int calibrate_from_dataset(const cxxopts::ParseResult& r) {
   known.dark = fit.dark;
   known.fit_threshold = fit.fit_threshold;
   known.leak_threshold = fit.leak_threshold;
+  known.colour_mix.clear();
+  if (fit.colour_mix.defined() && o.identify_mix)
+    for (int64_t p = 0; p < 4; ++p)
+      known.colour_mix.push_back({fit.colour_mix[p][0].item<double>(), fit.colour_mix[p][1].item<double>(),
+                                  fit.colour_mix[p][2].item<double>()});
   std::ostringstream fit_text;
   fit_text << "# identified by `flatnet calibrate --dataset` from " << fit.pairs << " display-capture pairs, "
            << fit.iterations << " alternating steps; relative fit residual per channel (b, gb, gr, r):";
@@ -240,6 +281,14 @@ int calibrate_from_dataset(const cxxopts::ParseResult& r) {
             << " fit up to the threshold " << fit.fit_threshold;
   if (fit.leak_threshold > 0) std::cout << " and leak up to " << fit.leak_threshold;
   std::cout << ", written to the camera file (this calibration's error is part of what it leaves outside its span)\n";
+  if (!known.colour_mix.empty()) {
+    std::cout << "colour mix (each plane's shares of the display's R, G, B; written to the camera file, undone by "
+                 "Tikhonov and TV):";
+    for (int p = 0; p < 4; ++p)
+      std::cout << " " << kChannelNames[p] << " " << std::setprecision(3) << known.colour_mix[p][0] << "/"
+                << known.colour_mix[p][1] << "/" << known.colour_mix[p][2];
+    std::cout << "\n";
+  }
   if (fit.structure_rejected)
     std::cout << "shift structure rejected: it explains " << std::setprecision(3) << fit.structure_explains
               << " of what free factors explain (a mask that is not one moving shadow?); free factors were fitted, "
@@ -292,6 +341,10 @@ int calibrate(int argc, char** argv) {
       "shift: each factor's columns are one profile moved by a shift found from the data (a FlatCam's "
       "shadow; few pairs suffice); free: every entry free (any separable camera; needs many pairs)",
       cxxopts::value<std::string>()->default_value("shift"))(
+      "colour-mix",
+      "identify: each Bayer plane's shares of the display's three primaries are fitted with the factors and "
+      "written to the camera file (cross-talk); none: b sees blue alone, gb and gr green, r red",
+      cxxopts::value<std::string>()->default_value("identify"))(
       "cache-mb", "decoded pairs kept in memory (the rest are re-read each pass)",
       cxxopts::value<double>()->default_value("2048"));
   o.add_options("from a few captures and reconstructions of them (with --meas-list/--gt-list)")(

@@ -41,12 +41,13 @@ std::filesystem::path default_camera_path() { return data_dir() / "configs" / "c
 namespace {
 
 constexpr double kMaxRotation = 0.175;  // radians
+constexpr int64_t kMaxHotPixels = 100000;
 
 const std::vector<std::string> kKnownKeys = {
     "name",       "raw_height",  "raw_width",   "adc_bits",      "rotation",        "crop",
     "centring",   "scene_size",  "calibration", "rig",           "tikhonov_lambda", "tv_lambda",
     "noise_gain", "noise_floor", "dark",        "fit_threshold", "leak_threshold",  "open_light",
-    "bench"};
+    "bench",      "hot_pixels",  "colour_mix"};
 
 void validate(const CameraConfig& c, const std::filesystem::path& path) {
   const auto& g = c.raw;
@@ -64,6 +65,29 @@ void validate(const CameraConfig& c, const std::filesystem::path& path) {
   require(std::isfinite(g.rotation) && std::abs(g.rotation) <= kMaxRotation, path,
           "rotation is in radians, within [-" + std::to_string(kMaxRotation) + ", " + std::to_string(kMaxRotation) +
               "] (about 10 degrees); got " + std::to_string(g.rotation));
+  require(static_cast<int64_t>(g.hot_pixels.size()) <= kMaxHotPixels, path,
+          "hot_pixels lists " + std::to_string(g.hot_pixels.size()) + " pixels; at most " +
+              std::to_string(kMaxHotPixels) + " (a sensor with more is broken, not calibrated)");
+  for (const auto& [row, col] : g.hot_pixels)
+    require(row >= 0 && row < g.raw_height && col >= 0 && col < g.raw_width, path,
+            "hot_pixels: [" + std::to_string(row) + ", " + std::to_string(col) + "] lies outside the " +
+                std::to_string(g.raw_height) + "x" + std::to_string(g.raw_width) + " raw frame (rows x columns)");
+  if (!c.colour_mix.empty()) {
+    require(c.colour_mix.size() == 4, path, "colour_mix: 4 rows (b, gb, gr, r) of 3 shares (R, G, B)");
+    auto mix = torch::empty({4, 3}, torch::kFloat64);
+    for (int p = 0; p < 4; ++p)
+      for (int k = 0; k < 3; ++k) {
+        const double v = c.colour_mix[static_cast<size_t>(p)][static_cast<size_t>(k)];
+        require(std::isfinite(v) && std::abs(v) <= 10, path,
+                "colour_mix: each share is a finite number within [-10, 10]");
+        mix[p][k] = v;
+      }
+    // The primaries must be recoverable from the planes: the mix has rank 3, not barely.
+    const auto smallest = torch::linalg_svdvals(mix).min().item<double>();
+    require(smallest > 1e-3, path,
+            "colour_mix cannot be undone (its smallest singular value is " + std::to_string(smallest) +
+                "): two primaries look alike to every plane");
+  }
   require(c.scene_size > 0 && c.scene_size <= 4096, path, "scene_size must lie within 1..4096");
   require(std::isfinite(c.noise_gain) && std::isfinite(c.noise_floor) && std::isfinite(c.dark) && c.noise_gain >= 0 &&
               c.noise_gain < 1 && c.noise_floor >= 0 && c.noise_floor < 1 && c.dark >= 0 && c.dark < 1,
@@ -115,14 +139,27 @@ std::string camera_geometry_yaml(const CameraConfig& c) {
   os.precision(17);
   os << "rotation: " << g.rotation << "\n"
      << "crop: [" << g.crop[0] << ", " << g.crop[1] << ", " << g.crop[2] << ", " << g.crop[3] << "]\n"
-     << "centring: " << centring_name(g.centring) << "\n"
-     << "scene_size: " << c.scene_size << "\n"
+     << "centring: " << centring_name(g.centring) << "\n";
+  if (!g.hot_pixels.empty()) {
+    os << "hot_pixels: [";
+    for (size_t i = 0; i < g.hot_pixels.size(); ++i)
+      os << (i ? ", " : "") << "[" << g.hot_pixels[i][0] << ", " << g.hot_pixels[i][1] << "]";
+    os << "]\n";
+  }
+  os << "scene_size: " << c.scene_size << "\n"
      << "tikhonov_lambda: " << c.tikhonov_lambda << "\ntv_lambda: " << c.tv_lambda << "\n";
   if (c.knows_noise())
     os << "noise_gain: " << c.noise_gain << "\nnoise_floor: " << c.noise_floor << "\ndark: " << c.dark << "\n";
   if (c.fit_threshold > 0) os << "fit_threshold: " << c.fit_threshold << "\n";
   if (c.leak_threshold > 0) os << "leak_threshold: " << c.leak_threshold << "\n";
   if (c.open_light > 0) os << "open_light: " << c.open_light << "\n";
+  if (!c.colour_mix.empty()) {
+    os << "colour_mix: [";
+    for (size_t p = 0; p < c.colour_mix.size(); ++p)
+      os << (p ? ", " : "") << "[" << c.colour_mix[p][0] << ", " << c.colour_mix[p][1] << ", " << c.colour_mix[p][2]
+         << "]";
+    os << "]\n";
+  }
   return os.str();
 }
 
@@ -174,6 +211,15 @@ CameraConfig camera_from_node(const YAML::Node& y, const std::filesystem::path& 
       require(v.size() == 4, path, "crop must be [top, left, height, width]");
       std::copy(v.begin(), v.end(), c.raw.crop.begin());
     }
+    if (y["hot_pixels"]) {
+      const auto list = y["hot_pixels"];
+      require(list.IsSequence() && static_cast<int64_t>(list.size()) <= kMaxHotPixels, path,
+              "hot_pixels: expected a list of at most " + std::to_string(kMaxHotPixels) + " [row, col] pairs");
+      for (const auto& item : list) {
+        require(item.IsSequence() && item.size() == 2, path, "hot_pixels: each entry is [row, col] of the raw frame");
+        c.raw.hot_pixels.push_back({item[0].as<int64_t>(), item[1].as<int64_t>()});
+      }
+    }
     if (y["centring"]) c.raw.centring = parse_centring(y["centring"].as<std::string>(), path);
     if (y["scene_size"]) c.scene_size = y["scene_size"].as<int64_t>();
     if (y["calibration"]) c.calibration = base / y["calibration"].as<std::string>();
@@ -187,6 +233,14 @@ CameraConfig camera_from_node(const YAML::Node& y, const std::filesystem::path& 
     if (y["leak_threshold"]) c.leak_threshold = y["leak_threshold"].as<double>();
     if (y["open_light"]) c.open_light = y["open_light"].as<double>();
     if (y["bench"]) c.bench = bench_from_node(y["bench"], path);
+    if (y["colour_mix"]) {
+      const auto rows = y["colour_mix"];
+      require(rows.IsSequence() && rows.size() == 4, path, "colour_mix: 4 rows (b, gb, gr, r) of 3 shares (R, G, B)");
+      for (const auto& row : rows) {
+        require(row.IsSequence() && row.size() == 3, path, "colour_mix: each row is 3 shares (R, G, B)");
+        c.colour_mix.push_back({row[0].as<double>(), row[1].as<double>(), row[2].as<double>()});
+      }
+    }
   } catch (const YAML::Exception& e) {
     throw Error(path, std::string("bad value: ") + e.what());
   }

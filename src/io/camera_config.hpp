@@ -5,6 +5,7 @@
 #include <array>
 #include <filesystem>
 #include <string>
+#include <vector>
 
 namespace flatnet {
 
@@ -26,6 +27,10 @@ struct RawGeometry {
   double rotation = 0.0;                            // radians, applied to each Bayer plane about its top-left corner
   std::array<int64_t, 4> crop = {6, 10, 500, 620};  // top, left, height, width within a plane
   Centring centring = Centring::plane;
+  // Pixels of the raw frame, (row, col), stuck bright (hot) or dark whatever the light: before
+  // anything else each is replaced by the mean of its same-colour neighbours (io/raw.hpp
+  // repair_hot_pixels). `flatnet calibrate --dataset` finds and lists them (optics/hot_pixels.hpp).
+  std::vector<std::array<int64_t, 2>> hot_pixels;
   int64_t plane_height() const { return raw_height / 2; }
   int64_t plane_width() const { return raw_width / 2; }
 };
@@ -76,6 +81,11 @@ struct CameraConfig {
   // mean(X)). 0 = unknown. `flatnet calibrate --references` measures it; with the noise model it lets
   // a camera known only from its calibration be simulated through it (optics/camera.hpp calibration_rig).
   double open_light = 0;
+  // The share of each display primary (R, G, B) that each Bayer plane (b, gb, gr, r) sees: colour
+  // filters and a display's spectra overlap. Each row sums to 1 (a grey scene gives every plane its
+  // level). Empty: none (b sees B alone, gb and gr G, r R). `flatnet calibrate --dataset` identifies
+  // it with the factors; Tikhonov and TV undo it (io/image.hpp unmix_primaries).
+  std::vector<std::array<double, 3>> colour_mix;
   BenchErrors bench;  // a simulated bench camera's errors (simulation only; not in model files)
   bool knows_noise() const { return noise_gain > 0; }
 };

@@ -226,6 +226,11 @@ torch::Tensor bayer_planes_to_rgb(const torch::Tensor& planes) {
   return torch::stack({r, 0.5 * (gb + gr), b}, -3);
 }
 
+torch::Tensor unmix_primaries(const torch::Tensor& planes, const torch::Tensor& mix) {
+  const auto unmix = torch::linalg_pinv(mix.to(torch::kFloat64)).to(planes.scalar_type());  // {3,4}
+  return torch::einsum("kc,...chw->...khw", {unmix, planes});
+}
+
 torch::Tensor planes_to_srgb(const torch::Tensor& planes) {
   return linear_to_srgb(bayer_planes_to_rgb(planes).clamp(0, 1));
 }

@@ -39,6 +39,10 @@ torch::Tensor linear_to_srgb(const torch::Tensor& x);
 // Per-channel reconstruction planes {.., 4, H, W} in FlatNet's order (b, gb, gr, r), linear light
 // -> RGB {.., 3, H, W}: R from r, G the mean of gb and gr, B from b.
 torch::Tensor bayer_planes_to_rgb(const torch::Tensor& planes);
+// Planes {..,4,H,W} (b, gb, gr, r) each of which sees a mix of the display's primaries, mix {4,3}
+// (rows b, gb, gr, r; columns R, G, B; CameraConfig::colour_mix) -> RGB {..,3,H,W}: the primaries
+// that explain the four planes best (least squares, the mix's pseudo-inverse).
+torch::Tensor unmix_primaries(const torch::Tensor& planes, const torch::Tensor& mix);
 // Linear-light planes {..,4,N,N} (b, gb, gr, r) -> sRGB image {..,3,N,N} in [0,1].
 torch::Tensor planes_to_srgb(const torch::Tensor& planes);
 // RGB {.., 3, H, W} -> planes {.., 4, H, W}: b = B, gb = gr = G, r = R.

@@ -1,5 +1,7 @@
 #include "io/raw.hpp"
 
+#include <unordered_set>
+
 #include "core/error.hpp"
 #include "io/image.hpp"
 
@@ -51,6 +53,40 @@ torch::Tensor rotate_planes(const torch::Tensor& planes, double angle) {
   return out;
 }
 
+torch::Tensor repair_hot_pixels(const torch::Tensor& planes, const std::vector<std::array<int64_t, 2>>& hot_pixels) {
+  if (hot_pixels.empty()) return planes;
+  TORCH_CHECK(planes.dim() == 3 && planes.size(0) == 4, "repair_hot_pixels expects planes {4,h,w}");
+  const int64_t H = planes.size(1), W = planes.size(2);
+  // Raw (row, col) -> plane (row % 2) * 2 + col % 2 at (row / 2, col / 2), as bayer_split.
+  std::unordered_set<int64_t> listed;
+  for (const auto& [row, col] : hot_pixels)
+    if (row >= 0 && col >= 0 && row / 2 < H && col / 2 < W)
+      listed.insert(((row % 2) * 2 + col % 2) * H * W + (row / 2) * W + col / 2);
+  auto out = planes.contiguous().clone();
+  // Only the listed pixels are visited (a few hundred), each from the unrepaired neighbours.
+  AT_DISPATCH_FLOATING_TYPES(out.scalar_type(), "repair_hot_pixels", [&] {
+    auto* v = out.data_ptr<scalar_t>();
+    std::vector<std::pair<int64_t, scalar_t>> repaired;
+    for (const int64_t i : listed) {
+      const int64_t plane = i / (H * W), r = i / W % H, c = i % W;
+      double sum = 0;
+      int count = 0;
+      for (int64_t dr = -1; dr <= 1; ++dr)
+        for (int64_t dc = -1; dc <= 1; ++dc) {
+          const int64_t rr = r + dr, cc = c + dc;
+          if ((dr == 0 && dc == 0) || rr < 0 || rr >= H || cc < 0 || cc >= W) continue;
+          const int64_t j = plane * H * W + rr * W + cc;
+          if (listed.count(j)) continue;
+          sum += static_cast<double>(v[j]);
+          ++count;
+        }
+      if (count > 0) repaired.emplace_back(i, static_cast<scalar_t>(sum / count));
+    }
+    for (const auto& [i, value] : repaired) v[i] = value;
+  });
+  return out;
+}
+
 torch::Tensor double_centre(const torch::Tensor& planes, Centring mode) {
   if (mode == Centring::none) return planes;
   auto row_means = planes.mean(-1, true);                                            // {..,C,H,1}
@@ -67,7 +103,7 @@ torch::Tensor without_level(const torch::Tensor& planes, Centring mode) {
 }
 
 torch::Tensor raw_window(const torch::Tensor& raw_unit, const RawGeometry& g) {
-  auto planes = bayer_split(raw_unit.to(torch::kFloat32));  // {4,512,640}
+  auto planes = repair_hot_pixels(bayer_split(raw_unit.to(torch::kFloat32)), g.hot_pixels);  // {4,512,640}
   planes = rotate_planes(planes, g.rotation);
   return planes.index({Slice(), Slice(g.crop[0], g.crop[0] + g.crop[2]), Slice(g.crop[1], g.crop[1] + g.crop[3])});
 }

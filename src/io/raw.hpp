@@ -1,7 +1,7 @@
 #pragma once
 // Raw FlatCam frames <-> measurement planes, as FlatNet's loader (demosaic_raw) does it:
 // 16-bit PNG / 65535 -> Bayer planes b=[0::2,0::2] gb=[0::2,1::2] gr=[1::2,0::2] r=[1::2,1::2]
-// -> optional small rotation -> crop -> double centring.
+// -> hot pixels repaired -> optional small rotation -> crop -> double centring.
 #include <filesystem>
 #include <string>
 
@@ -27,6 +27,10 @@ torch::Tensor bayer_merge(const torch::Tensor& planes);
 // output pixel (r, c) samples input (sin*c + cos*r, cos*c - sin*r).
 torch::Tensor rotate_planes(const torch::Tensor& planes, double angle);
 
+// Each listed raw pixel ({row, col} of the frame) in planes {4, H/2, W/2} replaced by the mean of
+// its 8 same-colour neighbours that are not listed themselves (left as it is when all 8 are).
+torch::Tensor repair_hot_pixels(const torch::Tensor& planes, const std::vector<std::array<int64_t, 2>>& hot_pixels);
+
 // Y - rowmean - colmean + mean, per plane (Centring::plane) or with FlatNet's all-plane mean;
 // Centring::level adds each plane's mean once more, so the planes carry their light level as DC.
 torch::Tensor double_centre(const torch::Tensor& planes, Centring mode);
@@ -35,7 +39,8 @@ torch::Tensor double_centre(const torch::Tensor& planes, Centring mode);
 torch::Tensor without_level(const torch::Tensor& planes, Centring mode);
 
 // Full-scale raw frame ({H,W}, values in [0,1]) -> the window's planes {4, crop_h, crop_w} before
-// centring: the light each pixel read (the camera fit's noise model needs it).
+// centring (hot pixels repaired, then rotated and cropped): the light each pixel read (the camera fit's noise model
+// needs it).
 torch::Tensor raw_window(const torch::Tensor& raw_unit, const RawGeometry& g);
 // Full-scale raw frame ({H,W}, values in [0,1]) -> measurement planes {4, crop_h, crop_w}.
 torch::Tensor preprocess_raw(const torch::Tensor& raw_unit, const RawGeometry& g);

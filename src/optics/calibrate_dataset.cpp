@@ -14,6 +14,19 @@ namespace flatnet {
 
 namespace {
 
+// The display's primaries {3,N,N} (R, G, B) of a pair's scene planes {4,N,N} (b, g, g, r).
+torch::Tensor primaries(const torch::Tensor& scene) { return torch::stack({scene[3], scene[1], scene[0]}); }
+
+// Scene planes {4,N,N} as each Bayer plane sees them through the mix {4,3}.
+torch::Tensor mixed(const torch::Tensor& scene, const torch::Tensor& mix) {
+  return torch::einsum("ck,khw->chw", {mix, primaries(scene)});
+}
+
+// The mix that means none: b sees B, gb and gr G, r R.
+torch::Tensor unmixed() {
+  return torch::tensor({0.0, 0.0, 1.0, 0.0, 1.0, 0.0, 0.0, 1.0, 0.0, 1.0, 0.0, 0.0}, torch::kFloat64).view({4, 3});
+}
+
 // The pairs, decoded once where the memory budget allows and read again in every pass otherwise.
 class PairStream {
  public:
@@ -24,12 +37,19 @@ class PairStream {
     cached_ = std::min<int64_t>(count, std::max<int64_t>(0, cache_bytes) / pair_bytes);
   }
   int64_t size() const { return count_; }
+  // Pair i with its scene as the planes see it through the colour mix (set_mix; none at first).
   CapturePair get(int64_t i) {
+    auto p = get_unmixed(i);
+    if (mix_.defined()) p.scene = mixed(p.scene, mix_);
+    return p;
+  }
+  CapturePair get_unmixed(int64_t i) {
     if (i < static_cast<int64_t>(cache_.size())) return cache_[static_cast<size_t>(i)];
     auto p = checked(i);
     if (i < cached_ && i == static_cast<int64_t>(cache_.size())) cache_.push_back(p);
     return p;
   }
+  void set_mix(const torch::Tensor& mix) { mix_ = mix.to(torch::kFloat32); }
 
  private:
   CapturePair checked(int64_t i) {
@@ -53,6 +73,7 @@ class PairStream {
   std::function<CapturePair(int64_t)> load_;
   int64_t rows_, cols_, scene_, cached_ = 0;
   std::vector<CapturePair> cache_;
+  torch::Tensor mix_;  // {4,3} float32, or undefined: none
 };
 
 constexpr int64_t kNoisePairs = 64;
@@ -189,6 +210,37 @@ std::pair<torch::Tensor, torch::Tensor> structured_or_free_step(const Sums& t, c
   return free;
 }
 
+// The mix step (the header's): each plane's shares of the primaries for fixed P {4,m,N}, Q {4,k,N},
+// M {4,m,k}, by least squares over the first `count` pairs. Each row is scaled to sum 1 and P and M
+// by the row's sum, so that the model is the least-squares one. A plane whose system is singular or
+// whose shares do not sum to a positive number keeps its previous row.
+torch::Tensor solve_mix(PairStream& pairs, int64_t count, torch::Tensor& P, const torch::Tensor& Q, torch::Tensor& M,
+                        const torch::Tensor& previous) {
+  auto gram = torch::zeros({4, 3, 3}, torch::kFloat64), rhs = torch::zeros({4, 3}, torch::kFloat64);
+  for (int64_t i = 0; i < std::min(count, pairs.size()); ++i) {
+    const auto pair = pairs.get_unmixed(i);
+    const auto X = primaries(pair.scene);  // {3,N,N}
+    const auto s = X.sum({1, 2});          // {3}
+    const auto Xz = X - (s / static_cast<double>(X.size(1) * X.size(2))).view({3, 1, 1});
+    // D[c][k] = P_c Xz_k Q_c^T + s_k M_c  {4,3,m,k}
+    const auto coded = torch::matmul(torch::matmul(P.unsqueeze(1), Xz.unsqueeze(0)), Q.transpose(1, 2).unsqueeze(1));
+    const auto D = (coded + s.view({1, 3, 1, 1}) * M.unsqueeze(1)).flatten(2).to(torch::kFloat64);  // {4,3,mk}
+    gram += torch::matmul(D, D.transpose(1, 2));
+    rhs += torch::matmul(D, pair.meas.flatten(1).to(torch::kFloat64).unsqueeze(2)).squeeze(2);
+  }
+  auto mix = previous.clone();
+  for (int64_t c = 0; c < 4; ++c) {
+    if (torch::linalg_matrix_rank(gram[c]).item<int64_t>() < 3) continue;
+    const auto row = torch::linalg_solve(gram[c], rhs[c]);
+    const double sum = row.sum().item<double>();
+    if (!std::isfinite(sum) || sum <= 0) continue;
+    mix[c] = row / sum;
+    P[c] *= sum;
+    M[c] *= sum;
+  }
+  return mix;
+}
+
 // P X Q^T is unchanged by P*k, Q/k: each channel's factors are given equal norms.
 void balance(torch::Tensor& P, torch::Tensor& Q) {
   const auto k = (Q.flatten(1).norm(2, 1) / P.flatten(1).norm(2, 1).clamp_min(1e-30)).sqrt().view({4, 1, 1});
@@ -252,6 +304,7 @@ DatasetCalibration calibrate_from_pairs(int64_t count, const std::function<Captu
   Progress progress("calibrate", o.iterations, o.progress);
   double last = std::numeric_limits<double>::infinity();
   // P-step: Y ~ P (Xz Q^T) + s M.   Q-step: Y^T ~ Q (P Xz)^T + s M^T.
+  auto mix = unmixed();  // {4,3}
   const auto p_design = [&](const CapturePair& p) {
     return std::make_pair(p.meas, torch::matmul(split_scene(p.scene).second, Q.transpose(1, 2)));
   };
@@ -265,6 +318,10 @@ DatasetCalibration calibrate_from_pairs(int64_t count, const std::function<Captu
                                : torch::Tensor();
   };
   StructuredFactor p_shape, q_shape;
+  // Scenes made from RGB photographs show gb and gr the same green; four unrelated planes (a
+  // synthetic camera) have no primaries to mix.
+  const auto first = pairs.get_unmixed(0).scene;
+  const bool identify_mix = o.identify_mix && torch::equal(first[1], first[2]);
   for (int it = 0; it <= o.iterations; ++it) {
     const bool structured = o.structure == FactorStructure::Shift && it >= o.free_passes && !result.structure_rejected;
     // The P-step's pass also scores the current (P, Q, M).
@@ -297,6 +354,10 @@ DatasetCalibration calibrate_from_pairs(int64_t count, const std::function<Captu
     Q = G.to(torch::kFloat32);
     M = Mq.transpose(1, 2).to(torch::kFloat32);
     balance(P, Q);
+    if (identify_mix && it + 1 >= o.free_passes) {
+      mix = solve_mix(pairs, o.mix_pairs, P, Q, M, mix);
+      pairs.set_mix(mix);
+    }
   }
   result.shift_rows = result.structure_rejected ? 0 : p_shape.shift;
   result.shift_cols = result.structure_rejected ? 0 : q_shape.shift;
@@ -305,6 +366,7 @@ DatasetCalibration calibrate_from_pairs(int64_t count, const std::function<Captu
   result.calib.P = P.to(torch::kFloat64);
   result.calib.Q = Q.to(torch::kFloat64);
   result.uniform_response = M;
+  if (identify_mix) result.colour_mix = mix;
   return result;
 }
 

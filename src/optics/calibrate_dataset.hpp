@@ -23,6 +23,13 @@
 // column j is column 0's shadow moved by j * shift pixels), about 1,000 unknowns, the shift found from
 // the data; `FactorStructure::Free` keeps the free fit for a camera without that structure, and a
 // structured model that explains less than 0.3 of what the free one explains is rejected for it.
+// Colour cross-talk: a Bayer plane sees a mix of the display's primaries, X_c = sum_k m_ck X_k
+// (k in R, G, B; a filter passes some of its neighbours' light, a display's primaries overlap). For
+// fixed P, Q and M, (2) is linear in plane c's three shares: Y_c ~ sum_k m_ck (P_c Xz_k Q_c^T + s_k M_c),
+// a 3x3 least-squares problem per plane over the pairs; each row is then scaled to sum 1 (the scale
+// is P's). `identify_mix` fits it after every pass from the first `mix_pairs` pairs, and the next pass
+// fits P and Q to the mixed scenes. Scenes whose gb and gr planes differ (not made from RGB) are
+// left unmixed.
 // The pairs are streamed: those that fit the memory budget stay decoded, the rest are read again in
 // every pass, so thousands of pairs run in bounded memory.
 #include <array>
@@ -54,13 +61,17 @@ struct DatasetCalibrationOptions {
   int64_t cache_bytes = 2ll << 30;  // decoded pairs kept in memory; the rest are re-read
   bool progress = true;
   FactorStructure structure = FactorStructure::Shift;
-  int free_passes = 2;  // free steps before the structured ones (they give the shift search its start)
+  int free_passes = 2;       // free steps before the structured ones (they give the shift search its start)
+  bool identify_mix = true;  // fit each plane's shares of the primaries (else b sees B alone, ...)
+  int64_t mix_pairs = 128;   // the pairs the mix is fitted to
   ShiftFitOptions shift;
 };
 
 struct DatasetCalibration {
   Calibration calib;                 // P {4,rows,N}, Q {4,cols,N}, float64
   torch::Tensor uniform_response;    // M {4,rows,cols}: the planes a uniform unit scene gives, per unit of s
+  torch::Tensor colour_mix;          // {4,3} float64: plane (b, gb, gr, r) by primary (R, G, B), rows summing to 1;
+                                     // undefined when not identified
   std::array<double, 4> residual{};  // ||Y - model (2)|| / ||Y|| per channel over all pairs (b, gb, gr, r)
   // The sensor's noise (when the pairs carry levels), from the first pairs' energy outside the
   // calibration's span against their light level, as the camera fit measures it: variance per

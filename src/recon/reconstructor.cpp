@@ -24,21 +24,37 @@ std::string short_number(double x) {
   return s.str();
 }
 
-// Tikhonov or TV: the camera's light level removed (its centring), a linear solve, then sRGB.
+// The camera's colour mix {4,3} (undefined when it has none).
+torch::Tensor colour_mix_of(const CameraConfig& camera) {
+  if (camera.colour_mix.empty()) return {};
+  auto mix = torch::empty({4, 3}, torch::kFloat64);
+  for (int64_t p = 0; p < 4; ++p)
+    for (int64_t k = 0; k < 3; ++k) mix[p][k] = camera.colour_mix[static_cast<size_t>(p)][static_cast<size_t>(k)];
+  return mix;
+}
+
+// Tikhonov or TV: the camera's light level removed (its centring), a linear solve per plane, the
+// primaries unmixed where the camera's planes see a mix of them, then sRGB.
 class ClassicalReconstructor final : public Reconstructor {
  public:
   using Solve = std::function<torch::Tensor(const torch::Tensor&)>;  // {B,4,h,w} -> {B,4,N,N}
-  ClassicalReconstructor(Solve solve, std::string description, Centring centring)
-      : solve_(std::move(solve)), description_(std::move(description)), centring_(centring) {}
+  ClassicalReconstructor(Solve solve, std::string description, const CameraConfig& camera)
+      : solve_(std::move(solve)),
+        description_(std::move(description)),
+        centring_(camera.raw.centring),
+        mix_(colour_mix_of(camera)) {}
   std::string describe() const override { return description_; }
   torch::Tensor reconstruct(const torch::Tensor& planes) override {
-    return planes_to_srgb(solve_(without_level(planes, centring_)));  // {B,4,N,N} -> {B,3,N,N}
+    const auto X = solve_(without_level(planes, centring_));  // {B,4,N,N}
+    const auto rgb = mix_.defined() ? unmix_primaries(X, mix_) : bayer_planes_to_rgb(X);
+    return linear_to_srgb(rgb.clamp(0, 1));  // {B,3,N,N}
   }
 
  private:
   Solve solve_;
   std::string description_;
   Centring centring_;
+  torch::Tensor mix_;  // {4,3} or undefined
 };
 
 class FlatNetReconstructor final : public Reconstructor {
@@ -87,18 +103,17 @@ std::string classical_method_name(ClassicalMethod method) {
 
 std::unique_ptr<Reconstructor> make_classical(const Calibration& calib, const CameraConfig& camera,
                                               const ClassicalOptions& o) {
-  const auto centring = camera.raw.centring;
   if (o.method == ClassicalMethod::tikhonov) {
     auto tik = std::make_shared<const Tikhonov>(calib, o.lambda > 0 ? o.lambda : camera.tikhonov_lambda);
     return std::make_unique<ClassicalReconstructor>([tik](const torch::Tensor& y) { return (*tik)(y); },
-                                                    "Tikhonov (lambda " + short_number(tik->lambda()) + ")", centring);
+                                                    "Tikhonov (lambda " + short_number(tik->lambda()) + ")", camera);
   }
   TVOptions tv;
   tv.lambda = o.lambda > 0 ? o.lambda : camera.tv_lambda;
   tv.tikhonov_lambda = camera.tikhonov_lambda;
   auto solver = std::make_shared<const TVSolver>(calib, tv);
   return std::make_unique<ClassicalReconstructor>([solver](const torch::Tensor& y) { return (*solver)(y); },
-                                                  "TV (lambda " + short_number(tv.lambda) + ")", centring);
+                                                  "TV (lambda " + short_number(tv.lambda) + ")", camera);
 }
 
 std::unique_ptr<Reconstructor> make_flatnet(Generator generator, const CameraConfig& camera,
