@@ -115,9 +115,7 @@ TEST_CASE("a camera file's colour_mix is read, written back and checked, and unm
   // Planes that see the mix give the primaries back.
   torch::manual_seed(2);
   const auto rgb = torch::rand({2, 3, 5, 5});
-  auto mix = torch::empty({4, 3});
-  for (int p = 0; p < 4; ++p)
-    for (int k = 0; k < 3; ++k) mix[p][k] = camera.colour_mix[static_cast<size_t>(p)][static_cast<size_t>(k)];
+  const auto mix = colour_mix_matrix(camera.colour_mix).to(torch::kFloat32);
   const auto planes = torch::einsum("ck,bkhw->bchw", {mix, rgb});
   CHECK(torch::allclose(unmix_primaries(planes, mix), rgb, 1e-4, 1e-5));
   CHECK(torch::allclose(bayer_planes_to_rgb(rgb_to_bayer_planes(rgb)), rgb));

@@ -258,11 +258,7 @@ int calibrate_from_dataset(const cxxopts::ParseResult& r) {
   known.dark = fit.dark;
   known.fit_threshold = fit.fit_threshold;
   known.leak_threshold = fit.leak_threshold;
-  known.colour_mix.clear();
-  if (fit.colour_mix.defined() && o.identify_mix)
-    for (int64_t p = 0; p < 4; ++p)
-      known.colour_mix.push_back({fit.colour_mix[p][0].item<double>(), fit.colour_mix[p][1].item<double>(),
-                                  fit.colour_mix[p][2].item<double>()});
+  known.colour_mix = fit.colour_mix.defined() ? colour_mix_rows(fit.colour_mix) : decltype(known.colour_mix){};
   std::ostringstream fit_text;
   fit_text << "# identified by `flatnet calibrate --dataset` from " << fit.pairs << " display-capture pairs, "
            << fit.iterations << " alternating steps; relative fit residual per channel (b, gb, gr, r):";

@@ -4,6 +4,7 @@
 #include <cmath>
 #include <cstdlib>
 
+#include "io/image.hpp"
 #include "io/yaml_text.hpp"
 
 #include <yaml-cpp/yaml.h>
@@ -74,16 +75,12 @@ void validate(const CameraConfig& c, const std::filesystem::path& path) {
                 std::to_string(g.raw_height) + "x" + std::to_string(g.raw_width) + " raw frame (rows x columns)");
   if (!c.colour_mix.empty()) {
     require(c.colour_mix.size() == 4, path, "colour_mix: 4 rows (b, gb, gr, r) of 3 shares (R, G, B)");
-    auto mix = torch::empty({4, 3}, torch::kFloat64);
-    for (int p = 0; p < 4; ++p)
-      for (int k = 0; k < 3; ++k) {
-        const double v = c.colour_mix[static_cast<size_t>(p)][static_cast<size_t>(k)];
+    for (const auto& row : c.colour_mix)
+      for (const double v : row)
         require(std::isfinite(v) && std::abs(v) <= 10, path,
                 "colour_mix: each share is a finite number within [-10, 10]");
-        mix[p][k] = v;
-      }
     // The primaries must be recoverable from the planes: the mix has rank 3, not barely.
-    const auto smallest = torch::linalg_svdvals(mix).min().item<double>();
+    const auto smallest = torch::linalg_svdvals(colour_mix_matrix(c.colour_mix)).min().item<double>();
     require(smallest > 1e-3, path,
             "colour_mix cannot be undone (its smallest singular value is " + std::to_string(smallest) +
                 "): two primaries look alike to every plane");
@@ -213,8 +210,7 @@ CameraConfig camera_from_node(const YAML::Node& y, const std::filesystem::path& 
     }
     if (y["hot_pixels"]) {
       const auto list = y["hot_pixels"];
-      require(list.IsSequence() && static_cast<int64_t>(list.size()) <= kMaxHotPixels, path,
-              "hot_pixels: expected a list of at most " + std::to_string(kMaxHotPixels) + " [row, col] pairs");
+      require(list.IsSequence(), path, "hot_pixels: expected a list of [row, col] pairs");
       for (const auto& item : list) {
         require(item.IsSequence() && item.size() == 2, path, "hot_pixels: each entry is [row, col] of the raw frame");
         c.raw.hot_pixels.push_back({item[0].as<int64_t>(), item[1].as<int64_t>()});

@@ -231,6 +231,22 @@ torch::Tensor unmix_primaries(const torch::Tensor& planes, const torch::Tensor& 
   return torch::einsum("kc,...chw->...khw", {unmix, planes});
 }
 
+torch::Tensor colour_mix_matrix(const std::vector<std::array<double, 3>>& rows) {
+  auto mix = torch::empty({static_cast<int64_t>(rows.size()), 3}, torch::kFloat64);
+  auto m = mix.accessor<double, 2>();
+  for (size_t p = 0; p < rows.size(); ++p)
+    for (size_t k = 0; k < 3; ++k) m[static_cast<int64_t>(p)][static_cast<int64_t>(k)] = rows[p][k];
+  return mix;
+}
+
+std::vector<std::array<double, 3>> colour_mix_rows(const torch::Tensor& mix) {
+  const auto m = mix.to(torch::kFloat64).contiguous();
+  const auto a = m.accessor<double, 2>();
+  std::vector<std::array<double, 3>> rows;
+  for (int64_t p = 0; p < m.size(0); ++p) rows.push_back({a[p][0], a[p][1], a[p][2]});
+  return rows;
+}
+
 torch::Tensor planes_to_srgb(const torch::Tensor& planes) {
   return linear_to_srgb(bayer_planes_to_rgb(planes).clamp(0, 1));
 }

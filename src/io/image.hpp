@@ -1,6 +1,8 @@
 #pragma once
 // Image files through OpenImageIO, and the colour conversions the camera model needs.
+#include <array>
 #include <filesystem>
+#include <vector>
 
 #include <torch/torch.h>
 
@@ -43,6 +45,9 @@ torch::Tensor bayer_planes_to_rgb(const torch::Tensor& planes);
 // (rows b, gb, gr, r; columns R, G, B; CameraConfig::colour_mix) -> RGB {..,3,H,W}: the primaries
 // that explain the four planes best (least squares, the mix's pseudo-inverse).
 torch::Tensor unmix_primaries(const torch::Tensor& planes, const torch::Tensor& mix);
+// A camera file's colour_mix rows <-> the mix {4,3} float64.
+torch::Tensor colour_mix_matrix(const std::vector<std::array<double, 3>>& rows);
+std::vector<std::array<double, 3>> colour_mix_rows(const torch::Tensor& mix);
 // Linear-light planes {..,4,N,N} (b, gb, gr, r) -> sRGB image {..,3,N,N} in [0,1].
 torch::Tensor planes_to_srgb(const torch::Tensor& planes);
 // RGB {.., 3, H, W} -> planes {.., 4, H, W}: b = B, gb = gr = G, r = R.

@@ -57,11 +57,11 @@ torch::Tensor repair_hot_pixels(const torch::Tensor& planes, const std::vector<s
   if (hot_pixels.empty()) return planes;
   TORCH_CHECK(planes.dim() == 3 && planes.size(0) == 4, "repair_hot_pixels expects planes {4,h,w}");
   const int64_t H = planes.size(1), W = planes.size(2);
-  // Raw (row, col) -> plane (row % 2) * 2 + col % 2 at (row / 2, col / 2), as bayer_split.
-  std::unordered_set<int64_t> listed;
-  for (const auto& [row, col] : hot_pixels)
-    if (row >= 0 && col >= 0 && row / 2 < H && col / 2 < W)
-      listed.insert(((row % 2) * 2 + col % 2) * H * W + (row / 2) * W + col / 2);
+  std::unordered_set<int64_t> listed;  // flat indices into the planes
+  for (const auto& [raw_row, raw_col] : hot_pixels) {
+    const auto [plane, row, col] = plane_pixel(raw_row, raw_col);
+    if (raw_row >= 0 && raw_col >= 0 && row < H && col < W) listed.insert((plane * H + row) * W + col);
+  }
   auto out = planes.contiguous().clone();
   // Only the listed pixels are visited (a few hundred), each from the unrepaired neighbours.
   AT_DISPATCH_FLOATING_TYPES(out.scalar_type(), "repair_hot_pixels", [&] {

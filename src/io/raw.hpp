@@ -2,6 +2,7 @@
 // Raw FlatCam frames <-> measurement planes, as FlatNet's loader (demosaic_raw) does it:
 // 16-bit PNG / 65535 -> Bayer planes b=[0::2,0::2] gb=[0::2,1::2] gr=[1::2,0::2] r=[1::2,1::2]
 // -> hot pixels repaired -> optional small rotation -> crop -> double centring.
+#include <array>
 #include <filesystem>
 #include <string>
 
@@ -19,6 +20,13 @@ struct Capture {
 
 // {H,W} raw frame (any numeric type) -> {4, H/2, W/2} planes in b, gb, gr, r order.
 torch::Tensor bayer_split(const torch::Tensor& raw);
+// A raw frame's pixel (row, col) as {plane, row, col} of bayer_split's planes, and back.
+inline std::array<int64_t, 3> plane_pixel(int64_t raw_row, int64_t raw_col) {
+  return {(raw_row % 2) * 2 + raw_col % 2, raw_row / 2, raw_col / 2};
+}
+inline std::array<int64_t, 2> raw_pixel(int64_t plane, int64_t row, int64_t col) {
+  return {2 * row + plane / 2, 2 * col + plane % 2};
+}
 // {4, H/2, W/2} -> {H,W}: the inverse of bayer_split.
 torch::Tensor bayer_merge(const torch::Tensor& planes);
 

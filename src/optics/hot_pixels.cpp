@@ -50,10 +50,7 @@ std::vector<std::array<int64_t, 2>> HotPixelFinder::find() const {
   const double mad = std::max(lsb / 4, 1.4826 * (mean - centre).abs().masked_select(enough).median().item<double>());
   const auto stuck = (enough & ((mean - centre).abs() > options_.threshold * mad)).nonzero();  // {n,3}: plane, row, col
   const auto acc = stuck.accessor<int64_t, 2>();
-  for (int64_t i = 0; i < stuck.size(0); ++i) {
-    const int64_t plane = acc[i][0];
-    found.push_back({2 * acc[i][1] + plane / 2, 2 * acc[i][2] + plane % 2});
-  }
+  for (int64_t i = 0; i < stuck.size(0); ++i) found.push_back(raw_pixel(acc[i][0], acc[i][1], acc[i][2]));
   std::sort(found.begin(), found.end());
   return found;
 }

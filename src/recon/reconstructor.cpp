@@ -24,15 +24,6 @@ std::string short_number(double x) {
   return s.str();
 }
 
-// The camera's colour mix {4,3} (undefined when it has none).
-torch::Tensor colour_mix_of(const CameraConfig& camera) {
-  if (camera.colour_mix.empty()) return {};
-  auto mix = torch::empty({4, 3}, torch::kFloat64);
-  for (int64_t p = 0; p < 4; ++p)
-    for (int64_t k = 0; k < 3; ++k) mix[p][k] = camera.colour_mix[static_cast<size_t>(p)][static_cast<size_t>(k)];
-  return mix;
-}
-
 // Tikhonov or TV: the camera's light level removed (its centring), a linear solve per plane, the
 // primaries unmixed where the camera's planes see a mix of them, then sRGB.
 class ClassicalReconstructor final : public Reconstructor {
@@ -42,7 +33,7 @@ class ClassicalReconstructor final : public Reconstructor {
       : solve_(std::move(solve)),
         description_(std::move(description)),
         centring_(camera.raw.centring),
-        mix_(colour_mix_of(camera)) {}
+        mix_(camera.colour_mix.empty() ? torch::Tensor() : colour_mix_matrix(camera.colour_mix)) {}
   std::string describe() const override { return description_; }
   torch::Tensor reconstruct(const torch::Tensor& planes) override {
     const auto X = solve_(without_level(planes, centring_));  // {B,4,N,N}
