@@ -1,6 +1,7 @@
 // Your own FlatCam (docs/own-camera.md), at a tiny scale: a camera known only from its display-capture
 // pairs is calibrated from them (`calibrate --dataset`), a model trains on them, and `infer` says each
 // capture fits that camera; captures of another camera are flagged, and --require-fit refuses them.
+#include <cmath>
 #include "catch_torch.hpp"
 
 #include <cctype>
@@ -87,6 +88,9 @@ TEST_CASE("own camera: calibrate from the dataset, train, infer, and the camera 
   CHECK(camera.fit_threshold >= 1.0);
   CHECK(camera.fit_threshold < 3.0);
   CHECK_THAT(r.output, Contains("camera fit: its own pairs fit up to the threshold"));
+  // Its mask sits square on the sensor: the rotation is searched, and none is written.
+  CHECK_THAT(r.output, Contains("rotation: at 0 rad the residual holds"));
+  CHECK(std::abs(camera.raw.rotation) < 1e-3);
   const auto estimate = load_calibration(camera.calibration, camera);
   const auto truth_camera = load_camera_config(s.dir / "truth" / "camera.yaml");
   const auto err = calibration_error(estimate, ideal_calibration(load_camera_rig(truth_camera), truth_camera.raw));

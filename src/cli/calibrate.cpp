@@ -17,6 +17,7 @@
 #include "optics/separable_inverse.hpp"
 #include "optics/camera_fit.hpp"
 #include "optics/hot_pixels.hpp"
+#include "optics/rotation_estimate.hpp"
 
 namespace flatnet::cli {
 
@@ -179,6 +180,72 @@ std::vector<std::array<int64_t, 2>> hot_pixels_of(const std::vector<Pair>& pairs
   return listed;
 }
 
+// A pair's scene planes {4,N,N} (b, gb, gr, r), linear light, from its photograph.
+torch::Tensor scene_planes_of(const std::filesystem::path& gt, int64_t N) {
+  auto rgb = read_rgb(gt);
+  if (rgb.size(1) != N || rgb.size(2) != N) rgb = resize(rgb, N, N).clamp(0, 1);
+  return rgb_to_bayer_planes(srgb_to_linear(rgb));
+}
+
+// The pair the calibration reads (optics/calibrate_dataset.hpp) from a raw window before centring.
+CapturePair capture_pair_of(const torch::Tensor& window, const torch::Tensor& scene, const RawGeometry& g) {
+  const double saturated = at_full_scale(window, g.adc_bits).to(torch::kFloat32).mean().item<double>();
+  return CapturePair{without_level(double_centre(window, g.centring), g.centring), scene, window.mean({1, 2}),
+                     saturated};
+}
+
+// The mask's rotation on the sensor (optics/rotation_estimate.hpp): the first pairs are decoded once
+// and calibrated again at each angle the search tries; printed, angle by angle.
+constexpr int64_t kRotationPairs = 64, kRotationPairsAtLeast = 8;
+double rotation_of(const std::vector<Pair>& pairs, const CameraConfig& camera, DatasetCalibrationOptions o) {
+  const auto count = std::min<int64_t>(static_cast<int64_t>(pairs.size()), kRotationPairs);
+  if (count < kRotationPairsAtLeast) {
+    std::cout << "rotation: not estimated (it needs " << kRotationPairsAtLeast << " pairs or more); "
+              << camera.raw.rotation << " rad from the camera file\n";
+    return camera.raw.rotation;
+  }
+  std::vector<torch::Tensor> planes, scenes;  // decoded once: {4,H/2,W/2} repaired, {4,N,N}
+  for (int64_t i = 0; i < count; ++i) {
+    const auto& p = pairs[static_cast<size_t>(i)];
+    planes.push_back(repaired_planes(load_raw_unit(p.meas, camera.raw), camera.raw));
+    scenes.push_back(scene_planes_of(p.gt, camera.scene_size));
+  }
+  o.progress = false;
+  o.iterations = std::min(o.iterations, 4);
+  auto geometry = camera.raw;
+  torch::Tensor valid;  // the window's pixels read from inside the planes at the angle tried
+  const auto window_pair = [&](int64_t i) {
+    return WindowPair{rotated_window(planes[static_cast<size_t>(i)], geometry), scenes[static_cast<size_t>(i)], valid};
+  };
+  const auto project = [&](double angle) {
+    geometry.rotation = angle;
+    valid = window_inside_plane(planes[0].size(1), planes[0].size(2), geometry);
+    const auto fit = calibrate_from_pairs(
+        count,
+        [&](int64_t i) {
+          const auto w = window_pair(i);
+          return capture_pair_of(w.window, w.scene, geometry);
+        },
+        geometry.crop[2], geometry.crop[3], camera.scene_size, o);
+    const double d = rotation_residual_projection(count, window_pair, fit, {geometry.crop[0], geometry.crop[1]});
+    std::cout << "rotation: at " << std::setprecision(5) << angle << " rad the residual holds " << std::setprecision(3)
+              << d << " rad of rotation\n"
+              << std::flush;
+    return d;
+  };
+  RotationSearchOptions so;
+  so.start = camera.raw.rotation;
+  const auto search = search_rotation(project, so);
+  std::cout << "rotation: " << std::setprecision(5) << search.angle << " rad (the mask's rotation on the sensor, from "
+            << count << " pairs; written to the camera file"
+            << (!search.slope_found
+                    ? "; the residual showed no slope to follow: the angle tried whose residual holds the least"
+                : search.converged ? ""
+                                   : "; not settled within the fits allowed")
+            << ")\n";
+  return search.angle;
+}
+
 // `flatnet calibrate --dataset DIR`: the calibration identified from display-capture pairs
 // (optics/calibrate_dataset.hpp), written with a camera.yaml beside it and the fit per channel.
 int calibrate_from_dataset(const cxxopts::ParseResult& r) {
@@ -227,12 +294,8 @@ int calibrate_from_dataset(const cxxopts::ParseResult& r) {
   const auto N = camera.scene_size;
   auto load = [&](int64_t i) {
     const auto& p = pairs[static_cast<size_t>(i)];
-    auto gt = read_rgb(p.gt);
-    if (gt.size(1) != N || gt.size(2) != N) gt = resize(gt, N, N).clamp(0, 1);
     const auto window = raw_window(load_raw_unit(p.meas, camera.raw), camera.raw);  // {4,rows,cols}
-    const double saturated = at_full_scale(window, camera.raw.adc_bits).to(torch::kFloat32).mean().item<double>();
-    return CapturePair{without_level(double_centre(window, camera.raw.centring), camera.raw.centring),
-                       rgb_to_bayer_planes(srgb_to_linear(gt)), window.mean({1, 2}), saturated};
+    return capture_pair_of(window, scene_planes_of(p.gt, N), camera.raw);
   };
   DatasetCalibrationOptions o;
   o.iterations = r["iterations"].as<int>();
@@ -247,6 +310,11 @@ int calibrate_from_dataset(const cxxopts::ParseResult& r) {
   require(colour_mix == "identify" || colour_mix == "none", "--colour-mix",
           "identify (fit each plane's shares of the primaries) or none, not '" + colour_mix + "'");
   o.identify_mix = colour_mix == "identify";
+  const auto rotation = r["rotation"].as<std::string>();
+  require(rotation == "estimate" || rotation == "keep", "--rotation",
+          "estimate (search the mask's rotation on the sensor) or keep (the camera file's), not '" + rotation + "'");
+  if (rotation == "estimate" && o.structure == FactorStructure::Shift)
+    camera.raw.rotation = rotation_of(pairs, camera, o);
   std::cerr << "calibrate: " << pairs.size() << " display-capture pairs, " << camera.raw.crop[2] << "x"
             << camera.raw.crop[3] << " planes, " << N << "x" << N << " scenes\n";
   const auto fit =
@@ -341,6 +409,10 @@ int calibrate(int argc, char** argv) {
       "identify: each Bayer plane's shares of the display's three primaries are fitted with the factors and "
       "written to the camera file (cross-talk); none: b sees blue alone, gb and gr green, r red",
       cxxopts::value<std::string>()->default_value("identify"))(
+      "rotation",
+      "estimate: the mask's rotation on the sensor is searched (a calibration of the first 64 pairs per angle "
+      "tried) and written to the camera file; keep: the camera file's rotation",
+      cxxopts::value<std::string>()->default_value("estimate"))(
       "cache-mb", "decoded pairs kept in memory (the rest are re-read each pass)",
       cxxopts::value<double>()->default_value("2048"));
   o.add_options("from a few captures and reconstructions of them (with --meas-list/--gt-list)")(

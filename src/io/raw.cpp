@@ -102,10 +102,17 @@ torch::Tensor without_level(const torch::Tensor& planes, Centring mode) {
   return mode == Centring::level ? planes - planes.mean({-2, -1}, true) : planes;
 }
 
+torch::Tensor repaired_planes(const torch::Tensor& raw_unit, const RawGeometry& g) {
+  return repair_hot_pixels(bayer_split(raw_unit.to(torch::kFloat32)), g.hot_pixels);  // {4,512,640}
+}
+
+torch::Tensor rotated_window(const torch::Tensor& planes, const RawGeometry& g) {
+  return rotate_planes(planes, g.rotation)
+      .index({Slice(), Slice(g.crop[0], g.crop[0] + g.crop[2]), Slice(g.crop[1], g.crop[1] + g.crop[3])});
+}
+
 torch::Tensor raw_window(const torch::Tensor& raw_unit, const RawGeometry& g) {
-  auto planes = repair_hot_pixels(bayer_split(raw_unit.to(torch::kFloat32)), g.hot_pixels);  // {4,512,640}
-  planes = rotate_planes(planes, g.rotation);
-  return planes.index({Slice(), Slice(g.crop[0], g.crop[0] + g.crop[2]), Slice(g.crop[1], g.crop[1] + g.crop[3])});
+  return rotated_window(repaired_planes(raw_unit, g), g);
 }
 
 torch::Tensor preprocess_raw(const torch::Tensor& raw_unit, const RawGeometry& g) {

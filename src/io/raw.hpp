@@ -50,6 +50,10 @@ torch::Tensor without_level(const torch::Tensor& planes, Centring mode);
 // centring (hot pixels repaired, then rotated and cropped): the light each pixel read (the camera fit's noise model
 // needs it).
 torch::Tensor raw_window(const torch::Tensor& raw_unit, const RawGeometry& g);
+// raw_window's two halves: the Bayer planes {4,H/2,W/2} with the listed hot pixels repaired, and
+// those planes rotated by the geometry's angle and cropped (a rotation search decodes once).
+torch::Tensor repaired_planes(const torch::Tensor& raw_unit, const RawGeometry& g);
+torch::Tensor rotated_window(const torch::Tensor& planes, const RawGeometry& g);
 // Full-scale raw frame ({H,W}, values in [0,1]) -> measurement planes {4, crop_h, crop_w}.
 torch::Tensor preprocess_raw(const torch::Tensor& raw_unit, const RawGeometry& g);
 

@@ -17,11 +17,6 @@ namespace {
 // The display's primaries {3,N,N} (R, G, B) of a pair's scene planes {4,N,N} (b, g, g, r).
 torch::Tensor primaries(const torch::Tensor& scene) { return torch::stack({scene[3], scene[1], scene[0]}); }
 
-// Scene planes {4,N,N} as each Bayer plane sees them through the mix {4,3}.
-torch::Tensor mixed(const torch::Tensor& scene, const torch::Tensor& mix) {
-  return torch::einsum("ck,khw->chw", {mix, primaries(scene)});
-}
-
 // The mix that means none: b sees B, gb and gr G, r R.
 torch::Tensor unmixed() {
   return torch::tensor({0.0, 0.0, 1.0, 0.0, 1.0, 0.0, 0.0, 1.0, 0.0, 1.0, 0.0, 0.0}, torch::kFloat64).view({4, 3});
@@ -40,7 +35,7 @@ class PairStream {
   // Pair i with its scene as the planes see it through the colour mix (set_mix; none at first).
   CapturePair get(int64_t i) {
     auto p = get_unmixed(i);
-    if (mix_.defined()) p.scene = mixed(p.scene, mix_);
+    if (mix_.defined()) p.scene = scene_through_mix(p.scene, mix_);
     return p;
   }
   CapturePair get_unmixed(int64_t i) {
@@ -289,6 +284,10 @@ void require_signal(const Sums& first, int64_t count, int64_t pixels, int64_t sc
 }
 
 }  // namespace
+
+torch::Tensor scene_through_mix(const torch::Tensor& scene, const torch::Tensor& mix) {
+  return torch::einsum("ck,khw->chw", {mix.to(scene.dtype()), primaries(scene)});
+}
 
 DatasetCalibration calibrate_from_pairs(int64_t count, const std::function<CapturePair(int64_t)>& load, int64_t rows,
                                         int64_t cols, int64_t scene, const DatasetCalibrationOptions& o) {

@@ -89,6 +89,9 @@ struct DatasetCalibration {
   bool structure_rejected = false;
 };
 
+// Scene planes {4,N,N} (b, gb, gr, r) as each Bayer plane sees them through a colour mix {4,3}.
+torch::Tensor scene_through_mix(const torch::Tensor& scene, const torch::Tensor& mix);
+
 // Fits (2) to `count` pairs read by `load(i)`. Errors name the pair's index when its planes are not
 // {4,rows,cols} and {4,N,N}, or hold NaN.
 DatasetCalibration calibrate_from_pairs(int64_t count, const std::function<CapturePair(int64_t)>& load, int64_t rows,
