@@ -56,7 +56,7 @@ struct Probe {
     g.rotation = t;
     g.crop = {kOrigin[0], kOrigin[1], kRows, kCols};
     const auto window_pair = [&](int64_t i) {
-      return WindowPair{rotated_window(camera.sensor(i), g), camera.scene(i)};
+      return WindowPair{rotated_window(camera.sensor(i), g), camera.scene(i), torch::Tensor()};  // no mask: every pixel
     };
     DatasetCalibrationOptions o;
     o.progress = false;

@@ -41,7 +41,6 @@ std::filesystem::path default_camera_path() { return data_dir() / "configs" / "c
 
 namespace {
 
-constexpr double kMaxRotation = 0.175;  // radians
 constexpr int64_t kMaxHotPixels = 100000;
 
 const std::vector<std::string> kKnownKeys = {
@@ -61,11 +60,9 @@ void validate(const CameraConfig& c, const std::filesystem::path& path) {
           "crop [top, left, height, width] must lie inside the " + std::to_string(g.plane_height()) + "x" +
               std::to_string(g.plane_width()) + " Bayer plane");
   require(g.raw_height <= 65536 && g.raw_width <= 65536, path, "raw_height and raw_width must be at most 65536");
-  // A mask is glued square to its sensor to within a few milliradians (FlatNet's prototype: 0.00174);
-  // a larger value is a unit mistake (degrees for radians), not a camera.
-  require(std::isfinite(g.rotation) && std::abs(g.rotation) <= kMaxRotation, path,
-          "rotation is in radians, within [-" + std::to_string(kMaxRotation) + ", " + std::to_string(kMaxRotation) +
-              "] (about 10 degrees); got " + std::to_string(g.rotation));
+  require(std::isfinite(g.rotation) && std::abs(g.rotation) <= kMaxCameraRotation, path,
+          "rotation is in radians, within [-" + std::to_string(kMaxCameraRotation) + ", " +
+              std::to_string(kMaxCameraRotation) + "] (about 10 degrees); got " + std::to_string(g.rotation));
   require(static_cast<int64_t>(g.hot_pixels.size()) <= kMaxHotPixels, path,
           "hot_pixels lists " + std::to_string(g.hot_pixels.size()) + " pixels; at most " +
               std::to_string(kMaxHotPixels) + " (a sensor with more is broken, not calibrated)");

@@ -19,6 +19,11 @@ enum class Centring {
   level
 };
 
+// The largest |rotation| a camera file may state (radians, about 10 degrees). A mask is glued square
+// to its sensor to within a few milliradians (FlatNet's prototype: 0.00174); more is a unit mistake
+// (degrees for radians), not a camera.
+inline constexpr double kMaxCameraRotation = 0.175;
+
 // How a raw frame becomes measurement planes (FlatNet's demosaic_raw, made explicit).
 struct RawGeometry {
   int64_t raw_height = 1024;                        // raw frame, rows

@@ -46,12 +46,12 @@ double rotation_residual_projection(int64_t count, const std::function<WindowPai
                                     const DatasetCalibration& fit, const std::array<int64_t, 2>& origin);
 
 struct RotationSearchOptions {
-  double start = 0;          // the angle the camera file states (radians)
-  double limit = 0.02;       // how far from the start the angle is searched (radians)
-  double bound = 0.175;      // and never beyond +-bound (the largest `rotation` a camera file may state)
-  double first_step = 2e-3;  // the first step, towards the root (radians)
-  double tolerance = 5e-5;   // stop when a step is below this (radians)
-  int fits = 5;              // calibrations fitted at most (each one angle)
+  double start = 0;                   // the angle the camera file states (radians)
+  double limit = 0.02;                // how far from the start the angle is searched (radians)
+  double bound = kMaxCameraRotation;  // and never beyond +-bound (the largest a camera file may state)
+  double first_step = 2e-3;           // the first step, towards the root (radians)
+  double tolerance = 5e-5;            // stop when a step is below this (radians)
+  int fits = 5;                       // calibrations fitted at most (each one angle)
 };
 
 struct RotationSearch {
