@@ -410,8 +410,9 @@ int calibrate(int argc, char** argv) {
       "written to the camera file (cross-talk); none: b sees blue alone, gb and gr green, r red",
       cxxopts::value<std::string>()->default_value("identify"))(
       "rotation",
-      "estimate: the mask's rotation on the sensor is searched (a calibration of the first 64 pairs per angle "
-      "tried) and written to the camera file; keep: the camera file's rotation",
+      "estimate: the mask's rotation on the sensor is searched (a calibration of the first " +
+          std::to_string(kRotationPairs) +
+          " pairs per angle tried) and written to the camera file; keep: the camera file's rotation",
       cxxopts::value<std::string>()->default_value("estimate"))(
       "cache-mb", "decoded pairs kept in memory (the rest are re-read each pass)",
       cxxopts::value<double>()->default_value("2048"));
