@@ -302,6 +302,21 @@ TEST_CASE("train, export, import and infer from the command line, and bad input 
   auto wider = test::run_flatnet("train --out " + q(s.dir / "run") + " --resume --set model.unet.width=4");
   CHECK(wider.code == 2);
   CHECK(read_bytes(s.dir / "run" / "config.yaml") == config_before);
+  // best.ckpt was picked on display validation: resuming under another validation is refused (its
+  // next validation would overwrite that model), with the fork's recipe.
+  auto judged = test::run_flatnet("train --out " + q(s.dir / "run") + " --resume --set data.val_light=judged");
+  CHECK(judged.code == 2);
+  CHECK_THAT(judged.output, Contains("data.val_light") && Contains("best.ckpt") && Contains("fork the run"));
+  CHECK(read_bytes(s.dir / "run" / "config.yaml") == config_before);
+  // Judged validation lights photographs through a rig: a dataset's pairs cannot be relit.
+  auto judged_dataset = test::run_flatnet(base + " --set data.val_light=judged --set train.iterations=1 --out " +
+                                          q(s.dir / "judged_dataset"));
+  CHECK(judged_dataset.code == 2);
+  CHECK_THAT(judged_dataset.output, Contains("data.val_light") && Contains("data.source: simulate"));
+  auto unknown_light = test::run_flatnet(base + " --set data.val_light=bright --set train.iterations=1 --out " +
+                                         q(s.dir / "judged_dataset"));
+  CHECK(unknown_light.code == 2);
+  CHECK_THAT(unknown_light.output, Contains("data.val_light") && Contains("must be display or judged, got 'bright'"));
   // A fresh run into a folder left by a run killed before its first checkpoint: refused, or
   // started afresh with --force.
   std::filesystem::create_directories(s.dir / "dead");

@@ -80,6 +80,39 @@ TEST_CASE("on-the-fly simulation with light augmentation: truth follows the draw
   CHECK_FALSE(torch::equal(dim.load(0, 1).meas, a.meas));  // another epoch, another draw of the noise
 }
 
+TEST_CASE("judged validation lights item i as display, dim or lamp in turn, the same at every load",
+          "[quality][light]") {
+  const auto camera = load_camera_config(default_camera_path());
+  auto rig = std::make_shared<const Rig>(load_rig(camera.rig));
+  const auto image = test::data_dir() / "golden" / "bsds_16052_scene.png";
+  const std::vector<std::filesystem::path> images(4, image);
+  SimulatedPairs judged(images, rig, camera, 0, LightAugment{}, true), plain(images, rig, camera, 0);
+  const auto display = plain.load(0, 0);
+  std::vector<Sample> s;
+  for (int64_t i = 0; i < 4; ++i) s.push_back(judged.load(i, 0));
+  CHECK(s[0].condition == 0);
+  CHECK(s[1].condition == 1);
+  CHECK(s[2].condition == 2);
+  CHECK(s[3].condition == 0);
+  CHECK(std::string(kJudgedConditions[s[1].condition]) == "dim");
+  // display: the display image is the truth, as in the held-out set.
+  CHECK(torch::equal(s[0].gt, display.gt));
+  CHECK(torch::equal(s[0].meas, display.meas));
+  // dim: a third of the display's light (make_eval_sets.sh's --exposure 0.33).
+  CHECK(torch::allclose(s[1].gt, visible_scene(kJudgedDimExposure * srgb_to_linear(display.gt)), 0, 1e-6));
+  CHECK(s[1].meas.abs().sum().item<double>() < display.meas.abs().sum().item<double>());
+  // lamp: a small disk at white in the truth, the rest of the scene as displayed.
+  const auto changed = (s[2].gt - display.gt).abs().amax(0) > 1e-6;  // {N,N}
+  const auto lamp_pixels = changed.sum().item<int64_t>();
+  CHECK(lamp_pixels > 0);
+  CHECK(lamp_pixels < 100);
+  CHECK(s[2].gt.masked_select(changed.unsqueeze(0).expand_as(s[2].gt)).max().item<double>() == Approx(1.0));
+  // Deterministic: a validation set is the same at every validation.
+  const auto again = judged.load(2, 0);
+  CHECK(torch::equal(again.gt, s[2].gt));
+  CHECK(torch::equal(again.meas, s[2].meas));
+}
+
 TEST_CASE("pinv initialisation: each side's regularised pseudo-inverse of the calibration", "[quality][init]") {
   const auto camera = load_camera_config(default_camera_path());
   auto config = Config::load({}, {"model.inversion.init=pinv", "model.inversion.lambda=1e-8"});

@@ -3,6 +3,7 @@
 #include "catch_torch.hpp"
 
 #include <arpa/inet.h>
+#include <cmath>
 #include <fstream>
 #include <netinet/in.h>
 #include <sys/socket.h>
@@ -189,6 +190,25 @@ TEST_CASE("validation scores the current weights, never a cached copy", "[train]
   }
   const auto after = validate(g, val, 2);
   CHECK(before.psnr != after.psnr);
+}
+
+TEST_CASE("validation under several lights weighs each condition alike and reports each one's PSNR", "[train]") {
+  Setup setup;
+  torch::manual_seed(0);
+  Generator g(generator_options(setup.config, setup.camera, true));
+  auto val = load_all(MemoryPairs(3), 0, 1);
+  val[2].condition = 1;  // two display samples, one dim
+  std::vector<double> alone;
+  for (const auto& sample : val) alone.push_back(validate(g, {sample}, 1).psnr);
+  const auto r = validate(g, val, 2);
+  REQUIRE(r.condition_psnr.size() == 3);
+  CHECK(r.condition_psnr[0] == Approx((alone[0] + alone[1]) / 2).epsilon(1e-5));
+  CHECK(r.condition_psnr[1] == Approx(alone[2]).epsilon(1e-5));
+  CHECK(std::isnan(r.condition_psnr[2]));
+  CHECK(r.psnr == Approx(((alone[0] + alone[1]) / 2 + alone[2]) / 2).epsilon(1e-5));
+  // One condition only: the plain mean, as before.
+  val[2].condition = 0;
+  CHECK(validate(g, val, 2).psnr == Approx((alone[0] + alone[1] + alone[2]) / 3).epsilon(1e-5));
 }
 
 TEST_CASE("the non-finite guard runs before any optimiser step, discriminator warm-up included", "[train]") {

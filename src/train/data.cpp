@@ -28,12 +28,13 @@ Sample DiskPairs::load(int64_t i, int64_t) const {
 }
 
 SimulatedPairs::SimulatedPairs(std::vector<std::filesystem::path> images, std::shared_ptr<const Rig> rig,
-                               CameraConfig camera, uint64_t seed, LightAugment light)
+                               CameraConfig camera, uint64_t seed, LightAugment light, bool judged)
     : images_(std::move(images)),
       rig_(std::move(rig)),
       camera_(std::move(camera)),
       seed_(seed),
       light_(light),
+      judged_(judged),
       cache_(images_.size()) {
   if (images_.empty()) throw Error("data.images: no images to simulate from");
 }
@@ -57,7 +58,13 @@ Sample SimulatedPairs::load(int64_t i, int64_t epoch) const {
       at::detail::createCPUGenerator(stable_hash(image.filename().string() + "#" + std::to_string(epoch), seed_));
   s.name = image.filename().string();
   torch::Tensor linear = srgb_to_linear(s.gt);
-  if (light_.active()) {
+  if (judged_) {
+    s.condition = static_cast<int>(i % kJudgedConditionCount);
+    if (s.condition != 0) {  // display captures keep the display image as truth, as the held-out set does
+      linear = lit_scene(s.gt, judged_light(i, camera_.scene_size, gen));
+      s.gt = visible_scene(linear);
+    }
+  } else if (light_.active()) {
     linear = lit_scene(s.gt, draw_scene_light(light_, camera_.scene_size, gen));
     s.gt = visible_scene(linear);
   }
@@ -68,6 +75,22 @@ Sample SimulatedPairs::load(int64_t i, int64_t epoch) const {
   const auto raw = simulate_raw_linear(*rig_, linear, true, gen);  // stored 16-bit codes
   s.meas = preprocess_raw(raw.to(torch::kFloat32) / 65535.0f, camera_.raw);
   return s;
+}
+
+SceneLight judged_light(int64_t i, int64_t scene_size, at::Generator& gen) {
+  SceneLight light;
+  switch (i % kJudgedConditionCount) {
+    case 1:
+      light.exposure = kJudgedDimExposure;
+      break;
+    case 2:
+      place_lamp(light, scene_size, gen);
+      light.lamp_gain = kJudgedLampGain;
+      break;
+    default:
+      break;
+  }
+  return light;
 }
 
 std::vector<int64_t> epoch_permutation(int64_t n, uint64_t seed, int64_t epoch) {

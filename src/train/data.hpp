@@ -25,7 +25,17 @@ struct Sample {
   torch::Tensor gt;    // {3,N,N} sRGB in [0,1]
   std::string name;
   torch::Tensor scene{};  // {3,N,N} linear light, only from sources that leave the capture to the trainer (co-design)
+  int condition = 0;      // the light it was validated under: an index into kJudgedConditions (0: display)
 };
+
+// The three conditions the evaluation sets judge a model under (scripts/make_eval_sets.sh):
+// display captures, dim scenes at a third of the display's light, and scenes with one small lamp
+// 20x display white. data.val_light "judged" validates under all three in turn.
+inline constexpr const char* kJudgedConditions[] = {"display", "dim", "lamp"};
+inline constexpr int64_t kJudgedConditionCount = 3;
+inline constexpr double kJudgedDimExposure = 0.33, kJudgedLampGain = 20;
+// The light of item i of a judged validation set: condition i mod 3 (the lamp placed by `gen`).
+SceneLight judged_light(int64_t i, int64_t scene_size, at::Generator& gen);
 
 class PairSource {
  public:
@@ -50,13 +60,14 @@ class DiskPairs : public PairSource {
 // Photographs shown on a (simulated) display and captured through the rig, noise drawn from a
 // generator seeded by (seed, image, epoch). With a LightAugment, each sample's scene light is
 // redrawn from the same generator (dim scenes, lamps; see optics/simulator.hpp) and the ground
-// truth is what that scene shows. Display scenes are decoded once and kept (8-bit, 192 KiB each).
+// truth is what that scene shows. With `judged`, item i is lit as judged_light(i) instead (the
+// validation set of data.val_light "judged"). Display scenes are decoded once and kept (8-bit, 192 KiB each).
 // Without a rig, samples carry the linear scene instead of a capture (the co-design trainer
 // captures it through the camera it is learning).
 class SimulatedPairs : public PairSource {
  public:
   SimulatedPairs(std::vector<std::filesystem::path> images, std::shared_ptr<const Rig> rig, CameraConfig camera,
-                 uint64_t seed, LightAugment light = {});
+                 uint64_t seed, LightAugment light = {}, bool judged = false);
   int64_t size() const override { return static_cast<int64_t>(images_.size()); }
   Sample load(int64_t i, int64_t epoch) const override;
 
@@ -67,6 +78,7 @@ class SimulatedPairs : public PairSource {
   CameraConfig camera_;
   uint64_t seed_;
   LightAugment light_;
+  bool judged_ = false;
   mutable std::mutex cache_mutex_;
   mutable std::vector<torch::Tensor> cache_;  // uint8 {3,N,N}
 };

@@ -65,7 +65,12 @@ std::pair<std::shared_ptr<const PairSource>, std::shared_ptr<const PairSource>> 
     const Config& c, const CameraConfig& camera) {
   const auto d = data_options(c);
   const auto& source = d.source;
+  require(d.val_light == "display" || d.val_light == "judged", data_key(&DataOptions::val_light),
+          "must be display or judged, got '" + d.val_light + "'");
   if (source == "dataset") {
+    require(d.val_light == "display", data_key(&DataOptions::val_light),
+            "judged validation lights photographs through the rig (data.source: simulate); a dataset's "
+            "validation pairs are judged as they were captured");
     DatasetLists train, val;
     if (!d.dataset.empty()) {
       train = split_lists(d.dataset, "train");
@@ -92,9 +97,11 @@ std::pair<std::shared_ptr<const PairSource>, std::shared_ptr<const PairSource>> 
     const auto light = light_options(c);
     require(light.exposure_min <= light.exposure_max && light.lamp_min <= light.lamp_max, "data.light",
             "needs exposure_min <= exposure_max and lamp_min <= lamp_max");
-    // Validation stays on display captures (the held-out set's conditions).
-    return {std::make_shared<SimulatedPairs>(train_images, rig, camera, seed, light),
-            std::make_shared<SimulatedPairs>(val_images, rig, camera, seed + 1)};
+    // Validation on display captures (the held-out set's conditions), or on the three conditions the
+    // evaluation sets judge (display, dim, lamp) in turn.
+    return {
+        std::make_shared<SimulatedPairs>(train_images, rig, camera, seed, light),
+        std::make_shared<SimulatedPairs>(val_images, rig, camera, seed + 1, LightAugment{}, d.val_light == "judged")};
   }
   throw Error("config: data.source must be dataset or simulate, got '" + source + "'");
 }
@@ -290,8 +297,16 @@ Config settle_config(const ExperimentOptions& o, bool writer, std::optional<doub
       best_psnr = best_settings.best_psnr;
     }
     config = std::move(stored.config);
+    const auto val_light_key = data_key(&DataOptions::val_light);
+    const auto stored_val_light = config.str(val_light_key);
     for (const auto& s : sets) config.set(s);
     config.check_ranges(option_key("experiment.sets"));
+    // best.ckpt was picked on the run's validation: another validation's PSNR would not compare with
+    // it, and the next validation would overwrite the run's best model.
+    require_option(config.str(val_light_key) == stored_val_light || !std::filesystem::exists(best), "experiment.sets",
+                   "changes " + val_light_key + " (run: " + stored_val_light + ") of a run whose " + best.string() +
+                       " was picked on that validation; fork the run instead: copy its folder, delete the copy's "
+                       "best.ckpt and resume the copy with the new setting");
     if (!o.config.empty()) {  // the same command line again is fine; another config is not silently ignored
       const auto differences = differing_settings(config, Config::load(o.config, sets));
       require_option(differences.empty(), "experiment.config",

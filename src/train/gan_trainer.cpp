@@ -1,5 +1,6 @@
 #include "train/gan_trainer.hpp"
 
+#include <cmath>
 #include <iomanip>
 
 #include "core/error.hpp"
@@ -18,7 +19,9 @@ namespace {
 const char* const kLogHeader =
     "step,loss,mse,ssim_loss,perceptual,adversarial,discriminator,lr,steps_per_s,feature_matching,frequency,chroma,"
     "gradient,stripe";
-const char* const kValHeader = "step,psnr,ssim,seconds";
+// psnr and ssim: the mean over the conditions validated (data.val_light); the last three columns,
+// each condition's own PSNR, only with judged validation.
+const char* const kValHeader = "step,psnr,ssim,seconds,psnr_display,psnr_dim,psnr_lamp";
 
 std::vector<torch::Tensor> clone_all(const std::vector<torch::Tensor>& tensors) {
   std::vector<torch::Tensor> out;
@@ -189,6 +192,8 @@ ValidationResult validate(Generator& generator, const std::vector<Sample>& sampl
                           const std::filesystem::path& sheet, int sheet_rows) {
   ValidationResult r;
   if (samples.empty()) return r;
+  std::vector<double> psnr_sum(kJudgedConditionCount, 0), ssim_sum(kJudgedConditionCount, 0);
+  std::vector<int64_t> count(kJudgedConditionCount, 0);
   const bool was_training = generator->is_training();
   generator->eval();
   torch::NoGradGuard no_grad;
@@ -200,13 +205,23 @@ ValidationResult validate(Generator& generator, const std::vector<Sample>& sampl
     const auto out = generator->forward(torch::stack(meas));
     for (int64_t j = 0; j < out.size(0); ++j) {
       const auto& s = samples[i + j];
-      r.psnr += psnr(out[j], s.gt);
-      r.ssim += ssim(out[j], s.gt);
+      const auto c = static_cast<size_t>(s.condition);
+      psnr_sum.at(c) += psnr(out[j], s.gt);
+      ssim_sum.at(c) += ssim(out[j], s.gt);
+      ++count[c];
       if (static_cast<int>(rows.size()) < sheet_rows) rows.push_back({s.gt, out[j]}), names.push_back(s.name);
     }
   }
-  r.psnr /= samples.size();
-  r.ssim /= samples.size();
+  int64_t conditions = 0;
+  for (size_t c = 0; c < count.size(); ++c) {
+    r.condition_psnr.push_back(count[c] > 0 ? psnr_sum[c] / count[c] : std::nan(""));
+    if (count[c] == 0) continue;
+    r.psnr += psnr_sum[c] / count[c];
+    r.ssim += ssim_sum[c] / count[c];
+    ++conditions;
+  }
+  r.psnr /= conditions;
+  r.ssim /= conditions;
   if (!sheet.empty()) write_contact_sheet(sheet, {"truth", "flatnet"}, names, rows);
   if (was_training) generator->train();
   return r;
@@ -346,7 +361,10 @@ void GanTrainer::checkpoint_and_validate(TrainSummary& summary) {
   const double secs = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
   summary.last_psnr = v.psnr;
   summary.last_ssim = v.ssim;
-  val_log_->add(state_.step, v.psnr, v.ssim, secs);  // 6 significant digits
+  if (v.condition_psnr.size() > 1 && !std::isnan(v.condition_psnr[1]))  // judged validation
+    val_log_->add(state_.step, v.psnr, v.ssim, secs, v.condition_psnr[0], v.condition_psnr[1], v.condition_psnr[2]);
+  else
+    val_log_->add(state_.step, v.psnr, v.ssim, secs);  // 6 significant digits
   val_log_->flush();
   const bool best = v.psnr > state_.best_psnr;
   if (best) state_.best_psnr = v.psnr;

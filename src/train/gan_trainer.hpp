@@ -73,11 +73,14 @@ struct TrainSummary {
 };
 
 struct ValidationResult {
-  double psnr = 0, ssim = 0;
+  double psnr = 0, ssim = 0;  // the mean over the conditions present of each one's mean
+  // Per Sample::condition (kJudgedConditions): its mean PSNR, NaN where no sample had it.
+  std::vector<double> condition_psnr;
 };
 
 // Runs the generator over samples (eval mode, batches of `batch`); returns means and, when
-// `sheet` is set, writes a contact sheet of the first `sheet_rows` (truth | output).
+// `sheet` is set, writes a contact sheet of the first `sheet_rows` (truth | output). Samples
+// under several lights (judged validation) weigh each condition alike, whatever its count.
 ValidationResult validate(Generator& generator, const std::vector<Sample>& samples, int64_t batch,
                           const std::filesystem::path& sheet = {}, int sheet_rows = 4);
 

@@ -115,6 +115,7 @@ const std::vector<OptionField<DataOptions>>& data_fields() {
       {"val_gt", &O::val_gt},
       {"val_fraction", &O::val_fraction, SHARE},
       {"split_seed", &O::split_seed},
+      {"val_light", &O::val_light},
   };
   return fields;
 }

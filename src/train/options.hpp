@@ -22,6 +22,7 @@ struct DataOptions {
   std::filesystem::path camera, dataset, images, root, train_meas, train_gt, val_meas, val_gt;
   double val_fraction = 0.1;
   int64_t split_seed = 1;
+  std::string val_light = "display";  // simulate: display | judged (data.hpp's kJudgedConditions in turn)
 };
 
 // loss.vgg_file and loss.vgg_normalize: the perceptual loss's network.
