@@ -2,6 +2,8 @@
 // Tikhonov-regularised pseudo-inverse initialisation, and starting training from a model file.
 #include "catch_torch.hpp"
 
+#include <sstream>
+
 #include "core/error.hpp"
 #include "core/util.hpp"
 #include "helpers.hpp"
@@ -12,6 +14,7 @@
 #include "io/config.hpp"
 #include "train/data.hpp"
 #include "nn/model_file.hpp"
+#include "nn/checkpoint.hpp"
 
 using namespace flatnet;
 using Catch::Matchers::Contains;
@@ -111,6 +114,40 @@ TEST_CASE("judged validation lights item i as display, dim or lamp in turn, the 
   const auto again = judged.load(2, 0);
   CHECK(torch::equal(again.gt, s[2].gt));
   CHECK(torch::equal(again.meas, s[2].meas));
+}
+
+TEST_CASE("train with judged validation: val.csv holds each light's PSNR and picks best.ckpt on their mean",
+          "[quality][light][cli][train]") {
+  test::Scratch s("judged_validation");
+  const auto photos = s.dir / "photos";
+  std::filesystem::create_directories(photos);
+  for (int copy = 0; copy < 3; ++copy)  // six photographs: three held out, one per light
+    for (const char* n : {"bsds_16052_scene.png", "inet_n02980441_castle_scene.png"})
+      std::filesystem::copy_file(test::data_dir() / "golden" / n, photos / (std::to_string(copy) + "_" + n));
+  const std::string base = "train --config " + q(test::source_dir() / "configs" / "sim_transpose.yaml") +
+                           " --set data.camera=" + q(test::source_dir() / "configs" / "cameras" / "sim_level.yaml") +
+                           " --set data.images=" + q(photos) +
+                           " --set data.val_fraction=0.5 --set model.unet.width=2 --set train.batch=1"
+                           " --set train.crop=64 --set train.val_every=2 --set data.val_light=judged";
+  auto r = test::run_flatnet(base + " --set train.iterations=2 --out " + q(s.dir / "run"));
+  INFO(r.output);
+  REQUIRE(r.code == 0);
+  const auto lines = read_lines(s.dir / "run" / "val.csv");
+  REQUIRE(lines.size() == 2);
+  CHECK(lines[0] == "step,psnr,ssim,seconds,psnr_display,psnr_dim,psnr_lamp");
+  std::vector<double> fields;
+  std::stringstream row(lines[1]);
+  for (std::string f; std::getline(row, f, ',');) fields.push_back(std::stod(f));
+  REQUIRE(fields.size() == 7);
+  CHECK(fields[0] == 2);
+  // One held-out photograph per light; the PSNR that picks best.ckpt is their mean.
+  CHECK(fields[1] == Approx((fields[4] + fields[5] + fields[6]) / 3).epsilon(1e-4));
+  CHECK(checkpoint_best_psnr(s.dir / "run" / "best.ckpt") == Approx(fields[1]).epsilon(1e-4));
+  // The same run resumes under the same validation.
+  r = test::run_flatnet("train --out " + q(s.dir / "run") + " --resume --set train.iterations=4");
+  INFO(r.output);
+  CHECK(r.code == 0);
+  CHECK(read_lines(s.dir / "run" / "val.csv").size() == 3);
 }
 
 TEST_CASE("pinv initialisation: each side's regularised pseudo-inverse of the calibration", "[quality][init]") {

@@ -20,7 +20,7 @@ const char* const kLogHeader =
     "step,loss,mse,ssim_loss,perceptual,adversarial,discriminator,lr,steps_per_s,feature_matching,frequency,chroma,"
     "gradient,stripe";
 // psnr and ssim: the mean over the conditions validated (data.val_light); the last three columns,
-// each condition's own PSNR, only with judged validation.
+// each condition's own PSNR (dim and lamp empty unless the validation is judged).
 const char* const kValHeader = "step,psnr,ssim,seconds,psnr_display,psnr_dim,psnr_lamp";
 
 std::vector<torch::Tensor> clone_all(const std::vector<torch::Tensor>& tensors) {
@@ -361,10 +361,12 @@ void GanTrainer::checkpoint_and_validate(TrainSummary& summary) {
   const double secs = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
   summary.last_psnr = v.psnr;
   summary.last_ssim = v.ssim;
-  if (v.condition_psnr.size() > 1 && !std::isnan(v.condition_psnr[1]))  // judged validation
-    val_log_->add(state_.step, v.psnr, v.ssim, secs, v.condition_psnr[0], v.condition_psnr[1], v.condition_psnr[2]);
-  else
-    val_log_->add(state_.step, v.psnr, v.ssim, secs);  // 6 significant digits
+  auto condition = [&](size_t c) {  // empty where no sample was validated under that light
+    std::ostringstream os;
+    if (c < v.condition_psnr.size() && !std::isnan(v.condition_psnr[c])) os << v.condition_psnr[c];
+    return os.str();
+  };
+  val_log_->add(state_.step, v.psnr, v.ssim, secs, condition(0), condition(1), condition(2));  // 6 significant digits
   val_log_->flush();
   const bool best = v.psnr > state_.best_psnr;
   if (best) state_.best_psnr = v.psnr;
