@@ -61,7 +61,7 @@ Sample SimulatedPairs::load(int64_t i, int64_t epoch) const {
   if (judged_) {
     s.condition = static_cast<int>(i % kJudgedConditionCount);
     if (s.condition != 0) {  // display captures keep the display image as truth, as the held-out set does
-      linear = lit_scene(s.gt, judged_light(i, camera_.scene_size, gen));
+      linear = lit_scene(s.gt, judged_light(s.condition, camera_.scene_size, gen));
       s.gt = visible_scene(linear);
     }
   } else if (light_.active()) {
@@ -77,9 +77,9 @@ Sample SimulatedPairs::load(int64_t i, int64_t epoch) const {
   return s;
 }
 
-SceneLight judged_light(int64_t i, int64_t scene_size, at::Generator& gen) {
+SceneLight judged_light(int condition, int64_t scene_size, at::Generator& gen) {
   SceneLight light;
-  switch (i % kJudgedConditionCount) {
+  switch (condition) {
     case 1:
       light.exposure = kJudgedDimExposure;
       break;
@@ -91,6 +91,12 @@ SceneLight judged_light(int64_t i, int64_t scene_size, at::Generator& gen) {
       break;
   }
   return light;
+}
+
+ValidationLight parse_validation_light(const std::string& s, const std::string& key) {
+  if (s == "display") return ValidationLight::display;
+  if (s == "judged") return ValidationLight::judged;
+  throw Error("config: " + key + " must be display or judged, got '" + s + "'");
 }
 
 std::vector<int64_t> epoch_permutation(int64_t n, uint64_t seed, int64_t epoch) {

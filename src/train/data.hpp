@@ -5,6 +5,7 @@
 // step depends only on (seed, step): runs resumed from a checkpoint see the same data.
 #include <condition_variable>
 #include <filesystem>
+#include <iterator>
 #include <map>
 #include <memory>
 #include <mutex>
@@ -32,10 +33,14 @@ struct Sample {
 // display captures, dim scenes at a third of the display's light, and scenes with one small lamp
 // 20x display white. data.val_light "judged" validates under all three in turn.
 inline constexpr const char* kJudgedConditions[] = {"display", "dim", "lamp"};
-inline constexpr int64_t kJudgedConditionCount = 3;
+inline constexpr int64_t kJudgedConditionCount = std::size(kJudgedConditions);
 inline constexpr double kJudgedDimExposure = 0.33, kJudgedLampGain = 20;
-// The light of item i of a judged validation set: condition i mod 3 (the lamp placed by `gen`).
-SceneLight judged_light(int64_t i, int64_t scene_size, at::Generator& gen);
+// The light of a judged condition (an index into kJudgedConditions; the lamp placed by `gen`).
+SceneLight judged_light(int condition, int64_t scene_size, at::Generator& gen);
+
+// data.val_light: the validation's light.
+enum class ValidationLight { display, judged };
+ValidationLight parse_validation_light(const std::string& s, const std::string& key);
 
 class PairSource {
  public:

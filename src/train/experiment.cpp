@@ -65,10 +65,8 @@ std::pair<std::shared_ptr<const PairSource>, std::shared_ptr<const PairSource>> 
     const Config& c, const CameraConfig& camera) {
   const auto d = data_options(c);
   const auto& source = d.source;
-  require(d.val_light == "display" || d.val_light == "judged", data_key(&DataOptions::val_light),
-          "must be display or judged, got '" + d.val_light + "'");
   if (source == "dataset") {
-    require(d.val_light == "display", data_key(&DataOptions::val_light),
+    require(d.val_light == ValidationLight::display, std::string(kValidationLightKey),
             "judged validation lights photographs through the rig (data.source: simulate); a dataset's "
             "validation pairs are judged as they were captured");
     DatasetLists train, val;
@@ -99,9 +97,9 @@ std::pair<std::shared_ptr<const PairSource>, std::shared_ptr<const PairSource>> 
             "needs exposure_min <= exposure_max and lamp_min <= lamp_max");
     // Validation on display captures (the held-out set's conditions), or on the three conditions the
     // evaluation sets judge (display, dim, lamp) in turn.
-    return {
-        std::make_shared<SimulatedPairs>(train_images, rig, camera, seed, light),
-        std::make_shared<SimulatedPairs>(val_images, rig, camera, seed + 1, LightAugment{}, d.val_light == "judged")};
+    return {std::make_shared<SimulatedPairs>(train_images, rig, camera, seed, light),
+            std::make_shared<SimulatedPairs>(val_images, rig, camera, seed + 1, LightAugment{},
+                                             d.val_light == ValidationLight::judged)};
   }
   throw Error("config: data.source must be dataset or simulate, got '" + source + "'");
 }
@@ -297,7 +295,7 @@ Config settle_config(const ExperimentOptions& o, bool writer, std::optional<doub
       best_psnr = best_settings.best_psnr;
     }
     config = std::move(stored.config);
-    const auto val_light_key = data_key(&DataOptions::val_light);
+    const std::string val_light_key = kValidationLightKey;
     const auto stored_val_light = config.str(val_light_key);
     for (const auto& s : sets) config.set(s);
     config.check_ranges(option_key("experiment.sets"));

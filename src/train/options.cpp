@@ -115,7 +115,7 @@ const std::vector<OptionField<DataOptions>>& data_fields() {
       {"val_gt", &O::val_gt},
       {"val_fraction", &O::val_fraction, SHARE},
       {"split_seed", &O::split_seed},
-      {"val_light", &O::val_light},
+      {"val_light", choice<O, ValidationLight, &O::val_light, parse_validation_light>()},
   };
   return fields;
 }

@@ -22,8 +22,9 @@ struct DataOptions {
   std::filesystem::path camera, dataset, images, root, train_meas, train_gt, val_meas, val_gt;
   double val_fraction = 0.1;
   int64_t split_seed = 1;
-  std::string val_light = "display";  // simulate: display | judged (data.hpp's kJudgedConditions in turn)
+  ValidationLight val_light = ValidationLight::display;  // simulate: display | judged (kJudgedConditions in turn)
 };
+inline constexpr const char* kValidationLightKey = "data.val_light";  // a choice row: data_key cannot name it
 
 // loss.vgg_file and loss.vgg_normalize: the perceptual loss's network.
 struct PerceptualOptions {
