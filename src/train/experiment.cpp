@@ -66,7 +66,7 @@ std::pair<std::shared_ptr<const PairSource>, std::shared_ptr<const PairSource>> 
   const auto d = data_options(c);
   const auto& source = d.source;
   if (source == "dataset") {
-    require(d.val_light == ValidationLight::display, std::string(kValidationLightKey),
+    require(d.val_light == ValidationLight::display, validation_light_key(),
             "judged validation lights photographs through the rig (data.source: simulate); a dataset's "
             "validation pairs are judged as they were captured");
     DatasetLists train, val;
@@ -295,7 +295,7 @@ Config settle_config(const ExperimentOptions& o, bool writer, std::optional<doub
       best_psnr = best_settings.best_psnr;
     }
     config = std::move(stored.config);
-    const std::string val_light_key = kValidationLightKey;
+    const auto val_light_key = validation_light_key();
     const auto stored_val_light = config.str(val_light_key);
     for (const auto& s : sets) config.set(s);
     config.check_ranges(option_key("experiment.sets"));

@@ -64,6 +64,7 @@ Choice<O> codes_init_choice() {
           nullptr, /*path=*/true};
 }
 constexpr const char* kCodesInit = "init";
+constexpr const char* kValidationLight = "val_light";
 
 }  // namespace
 
@@ -115,7 +116,7 @@ const std::vector<OptionField<DataOptions>>& data_fields() {
       {"val_gt", &O::val_gt},
       {"val_fraction", &O::val_fraction, SHARE},
       {"split_seed", &O::split_seed},
-      {"val_light", choice<O, ValidationLight, &O::val_light, parse_validation_light>()},
+      {kValidationLight, choice<O, ValidationLight, &O::val_light, parse_validation_light>()},
   };
   return fields;
 }
@@ -238,5 +239,6 @@ void register_option_tables() {
 }
 
 std::string codes_init_key() { return std::string("codes.") + kCodesInit; }
+std::string validation_light_key() { return std::string("data.") + kValidationLight; }
 
 }  // namespace flatnet

@@ -24,7 +24,6 @@ struct DataOptions {
   int64_t split_seed = 1;
   ValidationLight val_light = ValidationLight::display;  // simulate: display | judged (kJudgedConditions in turn)
 };
-inline constexpr const char* kValidationLightKey = "data.val_light";  // a choice row: data_key cannot name it
 
 // loss.vgg_file and loss.vgg_normalize: the perceptual loss's network.
 struct PerceptualOptions {
@@ -64,6 +63,8 @@ const std::vector<OptionField<WienerCamera>>& wiener_camera_fields();
 
 // codes.init: mls, random or a codes .mat.
 std::string codes_init_key();
+// data.val_light: display or judged (a choice row, which data_key cannot name).
+std::string validation_light_key();
 
 // Registers every table's ranges and path keys with the config (io/config.hpp), once: each program
 // calls it at start-up (cli/main, the tests' main, the fuzz harnesses), before any config is read.
