@@ -518,6 +518,34 @@ TEST_CASE("the stripe term is eval's stripe energy (squared, over 255^2), ignore
   CHECK(stripe_loss(striped - 1e4 * x.grad(), y).item<double>() < stripe_loss(striped, y).item<double>());
 }
 
+TEST_CASE("the PSNR term is minus eval's mean PSNR, counts every image in decibels, and has a gradient", "[nn][loss]") {
+  const auto y = read_rgb(test::data_dir() / "golden" / "inet_n02980441_castle_scene.png").unsqueeze(0);  // {1,3,H,W}
+  const auto dim = 0.2 * y;                                                                               // a dim scene
+  torch::manual_seed(3);
+  const auto error = 0.02 * torch::randn_like(y);
+  const auto x = torch::cat({(y + error).clamp(0, 1), (dim + 0.2 * error).clamp(0, 1)});  // {2,3,H,W}
+  const auto truth = torch::cat({y, dim});
+  const double expected = -(psnr(x[0], truth[0]) + psnr(x[1], truth[1])) / 2;
+  CHECK(psnr_loss(x, truth).item<double>() == Approx(expected).epsilon(1e-4));
+  // Halving either image's error gains the same 3.01 dB / 2, bright or dim: the pooled MSE would
+  // gain 25 times less from the dim one.
+  const auto halve = [&](int64_t i) {
+    auto h = x.clone();
+    h[i] = truth[i] + 0.5 * (x[i] - truth[i]);
+    return psnr_loss(x, truth).item<double>() - psnr_loss(h, truth).item<double>();
+  };
+  CHECK(halve(0) == Approx(10 * std::log10(4.0) / 2).epsilon(1e-4));
+  CHECK(halve(1) == Approx(10 * std::log10(4.0) / 2).epsilon(1e-4));
+  CHECK(std::isfinite(psnr_loss(truth, truth).item<double>()));  // an exact reconstruction: -100 dB, not -inf
+  const auto leaf = x.clone().requires_grad_(true);
+  psnr_loss(leaf, truth).backward();
+  REQUIRE(leaf.grad().defined());
+  CHECK(torch::isfinite(leaf.grad()).all().item<bool>());
+  // The dim image's gradient is the larger: its error is 5 times smaller, its pull 5 times stronger.
+  CHECK(leaf.grad()[1].norm().item<double>() > 4 * leaf.grad()[0].norm().item<double>());
+  CHECK_THROWS(psnr_loss(x, truth.slice(3, 1)));
+}
+
 TEST_CASE("inversion crops equal the matching window of the whole first stage", "[nn]") {
   torch::manual_seed(9);
   const auto o = tiny_options(4);

@@ -201,6 +201,15 @@ torch::Tensor stripe_loss(const torch::Tensor& x_in, const torch::Tensor& y_in) 
   return (rows.square().sum() + cols.square().sum()) / static_cast<double>(rows.numel() + cols.numel());
 }
 
+torch::Tensor psnr_loss(const torch::Tensor& x_in, const torch::Tensor& y_in) {
+  TORCH_CHECK(x_in.sizes() == y_in.sizes() && x_in.dim() == 4, "psnr_loss: equal {B,C,H,W} inputs expected, got ",
+              x_in.sizes(), " and ", y_in.sizes());
+  AutocastOffGuard fp32;
+  const auto x = x_in.to(torch::kFloat32), y = y_in.to(torch::kFloat32);
+  const auto per_image = (x - y).square().flatten(1).mean(1);  // {B}
+  return 10.0 * torch::log10(per_image.clamp_min(1e-10)).mean();
+}
+
 torch::Tensor ssim_loss(const torch::Tensor& x_in, const torch::Tensor& y_in) {
   TORCH_CHECK(x_in.sizes() == y_in.sizes() && x_in.dim() == 4 && x_in.size(2) >= 11 && x_in.size(3) >= 11,
               "ssim_loss: equal {B,C,H,W} inputs of at least 11x11 expected, got ", x_in.sizes(), " and ",

@@ -92,4 +92,11 @@ torch::Tensor gradient_loss(const torch::Tensor& x, const torch::Tensor& y);
 // along a row, and a slowly varying error, do not.
 torch::Tensor stripe_loss(const torch::Tensor& x, const torch::Tensor& y);
 
+// PSNR term: minus the batch's mean PSNR in dB (peak 1), -mean_i 10 log10(MSE_i), each image's MSE
+// over its own pixels. It is the evaluation's score, so every image counts in decibels: a dim
+// scene's small absolute errors weigh as much as a bright scene's large ones, where the pooled MSE
+// term gives them a fraction of the gradient (its gradient is the MSE term's scaled per image by
+// 4.34 / MSE_i). Negative, and finite for an exact reconstruction (MSE floored at 1e-10, 100 dB).
+torch::Tensor psnr_loss(const torch::Tensor& x, const torch::Tensor& y);
+
 }  // namespace flatnet

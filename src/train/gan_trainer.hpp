@@ -48,8 +48,8 @@ struct TrainOptions {
   double w_ssim = 0.0;  // weight of the structural term 1 - SSIM
   // Terms that need no downloaded weights (nn/losses.hpp): feature matching on the discriminator's
   // layers (trains the discriminator even when w_adversarial is 0), focal frequency, CIELAB chroma, gradient,
-  // row and column stripes (nn/losses.hpp stripe_loss).
-  double w_feature_matching = 0.0, w_frequency = 0.0, w_chroma = 0.0, w_gradient = 0.0, w_stripe = 0.0;
+  // row and column stripes (nn/losses.hpp stripe_loss), minus the mean PSNR (psnr_loss).
+  double w_feature_matching = 0.0, w_frequency = 0.0, w_chroma = 0.0, w_gradient = 0.0, w_stripe = 0.0, w_psnr = 0.0;
   // The discriminator is trained (one step per generator step) when a term needs it.
   bool trains_discriminator() const { return w_adversarial > 0 || w_feature_matching > 0; }
   double ema_decay =
@@ -86,7 +86,7 @@ ValidationResult validate(Generator& generator, const std::vector<Sample>& sampl
 
 struct StepLosses {
   double loss = 0, mse = 0, ssim = 0, perceptual = 0, adversarial = 0, discriminator = 0;
-  double feature_matching = 0, frequency = 0, chroma = 0, gradient = 0, stripe = 0;
+  double feature_matching = 0, frequency = 0, chroma = 0, gradient = 0, stripe = 0, psnr = 0;
   StepLosses& operator+=(const StepLosses& o);
   StepLosses operator/(double n) const;
 };

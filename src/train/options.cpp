@@ -96,6 +96,7 @@ const std::vector<OptionField<TrainOptions>>& train_fields() {
           {"loss.chroma", &O::w_chroma, WEIGHT},
           {"loss.gradient", &O::w_gradient, WEIGHT},
           {"loss.stripe", &O::w_stripe, WEIGHT},
+          {"loss.psnr", &O::w_psnr, WEIGHT},
           {"discriminator.real_label_min", &O::real_label_min, SHARE},
           {"discriminator.fake_label_max", &O::fake_label_max, SHARE},
       });
