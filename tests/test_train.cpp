@@ -442,6 +442,83 @@ TEST_CASE("EMA: the average follows the weights with the warmed-up decay, is che
   CHECK(torch::allclose(ema.average()->parameters()[0], w0 + 0.9, 1e-5, 1e-6));
 }
 
+TEST_CASE("refresh_batch_norm: each layer's statistics become the plain mean over the batches, whatever they were",
+          "[train]") {
+  Setup setup;
+  auto source = std::make_shared<MemoryPairs>(6);
+  const auto opt = setup.options({}, 1);
+  auto loader = [&](int64_t first_step) {
+    LoaderOptions lo;
+    lo.batch = opt.batch;
+    lo.first_step = first_step;
+    lo.noise_augment = opt.noise_augment;
+    return std::make_unique<BatchLoader>(source, lo);
+  };
+  auto refreshed = [&](int64_t first_step, int64_t batches, bool garbage) {
+    torch::manual_seed(0);
+    Generator g(generator_options(setup.config, setup.camera, true));
+    if (garbage) {  // statistics the refresh must forget
+      torch::NoGradGuard no_grad;
+      for (auto& b : g->buffers()) b.fill_(7);
+    }
+    g->eval();  // as validation and export hold it
+    refresh_batch_norm(g, *loader(first_step), batches, opt);
+    std::map<std::string, torch::Tensor> stats;
+    for (const auto& b : g->named_buffers()) stats[b.key()] = b.value().clone();
+    return std::make_pair(g, stats);
+  };
+  auto [g, both] = refreshed(0, 2, /*garbage=*/true);
+  const auto first = refreshed(0, 1, false).second, second = refreshed(1, 1, false).second;
+  int64_t layers = 0;
+  for (const auto& [name, t] : both) {
+    INFO(name);
+    if (name.find("num_batches_tracked") != std::string::npos) {
+      CHECK(t.item<int64_t>() == 2);
+      continue;
+    }
+    ++layers;
+    // In training mode a layer normalises by its batch's statistics, so each batch's contribution
+    // is independent of the running values: the mean over two batches is the mean of the two.
+    CHECK(torch::allclose(t, (first.at(name) + second.at(name)) / 2, 1e-4, 1e-5));
+    CHECK_FALSE(torch::allclose(t, torch::full_like(t, 7)));
+  }
+  CHECK(layers >= 4);                      // the BatchNorm between the stages and the U-Net's
+  for (const auto& m : g->modules(false))  // the momentum is put back
+    if (auto* bn = dynamic_cast<torch::nn::BatchNorm2dImpl*>(m.get())) CHECK(bn->options.momentum().has_value());
+  CHECK_FALSE(g->is_training());  // left in the mode it was found in
+  CHECK_THROWS_WITH(refresh_batch_norm(g, *loader(0), 0, opt), Contains("train.bn_refresh"));
+}
+
+TEST_CASE("train.bn_refresh changes what is validated and exported, never the training", "[train]") {
+  test::Scratch s("bn_refresh");
+  Setup setup;
+  auto run = [&](const std::string& name, int64_t refresh) {
+    torch::manual_seed(0);
+    Generator g(generator_options(setup.config, setup.camera, true));
+    Discriminator d(discriminator_options(setup.config));
+    auto opt = setup.options(s.dir / name, 4);
+    opt.bn_refresh = refresh;
+    GanTrainer t(g, d, Vgg16Features(nullptr), std::make_shared<MemoryPairs>(6), load_all(MemoryPairs(2), 0, 1), opt,
+                 model_identity(setup.config, setup.camera));
+    return t.run();
+  };
+  const auto plain = run("plain", 0), refreshed = run("refreshed", 3);
+  CHECK(plain.last_step == refreshed.last_step);
+  const auto a = weights(s.dir / "plain" / "latest.ckpt"), b = weights(s.dir / "refreshed" / "latest.ckpt");
+  bool statistics_differ = false;
+  for (const auto& [name, t] : a) {
+    INFO(name);
+    const bool statistic = name.find("running_") != std::string::npos || name.find("num_batches") != std::string::npos;
+    if (statistic)
+      statistics_differ = statistics_differ || !torch::equal(t, b.at(name));
+    else
+      CHECK(torch::equal(t, b.at(name)));  // the same steps: the refresh draws its own batches
+  }
+  CHECK(statistics_differ);
+  CHECK(plain.last_psnr != refreshed.last_psnr);
+  CHECK_THROWS_WITH(Config::load({}, {"train.bn_refresh=-1"}), Contains("train.bn_refresh"));
+}
+
 TEST_CASE("NaN losses in a row stop training with a clear message and keep the last checkpoint", "[train]") {
   test::Scratch s("nan");
   Setup setup;

@@ -102,6 +102,30 @@ void WeightAverage::update(int64_t step) {
   for (size_t i = 0; i < avg_b.size(); ++i) avg_b[i].copy_(live_b[i]);
 }
 
+void refresh_batch_norm(Generator& g, BatchLoader& loader, int64_t batches, const TrainOptions& opt) {
+  require(batches > 0, train_key(&TrainOptions::bn_refresh), "needs 1 or more batches");
+  std::vector<std::pair<torch::nn::BatchNorm2dImpl*, c10::optional<double>>> layers;  // with their momentum
+  for (const auto& m : g->modules(/*include_self=*/false))
+    if (auto* bn = dynamic_cast<torch::nn::BatchNorm2dImpl*>(m.get())) {
+      layers.emplace_back(bn, bn->options.momentum());
+      bn->reset_running_stats();
+      bn->options.momentum(c10::nullopt);  // running = mean over the batches seen (1 / num_batches_tracked)
+    }
+  const bool was_training = g->is_training();
+  g->train();
+  g->set_autocast_bf16(opt.bf16);
+  {
+    torch::NoGradGuard no_grad;
+    for (int64_t i = 0; i < batches; ++i) {
+      const auto batch = loader.next();
+      const auto corners = crop_corners(opt, batch.meas.size(0), batch.gt.size(-1), batch.step);
+      (void)(corners.empty() ? g->forward(batch.meas) : g->forward_crops(batch.meas, corners, opt.crop));
+    }
+  }
+  for (auto& [bn, momentum] : layers) bn->options.momentum(momentum);
+  g->train(was_training);
+}
+
 namespace {
 
 torch::Tensor logits_fp32(Discriminator& d, const torch::Tensor& x, bool bf16) {
@@ -299,6 +323,8 @@ void GanTrainer::set_distributed(GradientAverager* collectives) {
 }
 
 void GanTrainer::set_learned_camera(CodePairCamera camera, CameraConfig geometry) {
+  // Its batches are scenes, captured through codes that change: no fixed capture to refresh on.
+  require(opt_.bn_refresh == 0, train_key(&TrainOptions::bn_refresh), "is not available with codes.learn");
   camera_ = std::move(camera);
   camera_geometry_ = std::move(geometry);
   opt_camera_ =
@@ -358,6 +384,7 @@ void GanTrainer::checkpoint_and_validate(TrainSummary& summary) {
     const auto rig = frozen_rig_ ? *frozen_rig_ : camera_->rig();
     for (auto& s : val_) s.meas = camera_->capture(s.scene.unsqueeze(0), gen, true, &rig)[0];
   }
+  if (opt_.bn_refresh > 0) refresh_exported_statistics();
   const auto v = validate(exported(), val_, opt_.batch, opt_.out / "samples.png");
   const double secs = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
   summary.last_psnr = v.psnr;
@@ -401,6 +428,19 @@ ModelIdentity GanTrainer::exported_identity() const {
 
 // One generator (and discriminator) step on the loader's next batch; a non-finite one puts the
 // batch-norm statistics back and rethrows (the loop skips it).
+void GanTrainer::refresh_exported_statistics() {
+  // Batches of their own (another seed), from the step reached: the training's data order, noise
+  // and random state are untouched, so a resumed run still repeats the straight one.
+  LoaderOptions lo;
+  lo.batch = opt_.batch;
+  lo.seed = opt_.seed + kRefreshSeedOffset;
+  lo.first_step = state_.step;
+  lo.workers = opt_.workers;
+  lo.noise_augment = opt_.noise_augment;
+  BatchLoader loader(train_, lo);
+  refresh_batch_norm(exported(), loader, opt_.bn_refresh, opt_);
+}
+
 void GanTrainer::train_step(BatchLoader& loader, int64_t step, StepTally& tally) {
   set_learning_rates(step);
   auto batch = loader.next();
