@@ -33,6 +33,23 @@ torch::Tensor uniform(int64_t n, double lo, double hi, at::Generator& gen) {
   return at::rand({n, 1}, gen) * (hi - lo) + lo;
 }
 
+// The generator's output on what training shows it: the batch's whole scenes, or the step's crops.
+torch::Tensor training_view(Generator& g, const Batch& batch, const TrainOptions& opt,
+                            const std::vector<std::pair<int64_t, int64_t>>& corners) {
+  return corners.empty() ? g->forward(batch.meas) : g->forward_crops(batch.meas, corners, opt.crop);
+}
+
+// The loader of the training's batches from `first_step`, drawn from `seed`.
+LoaderOptions training_loader(const TrainOptions& opt, uint64_t seed, int64_t first_step) {
+  LoaderOptions lo;
+  lo.batch = opt.batch;
+  lo.seed = seed;
+  lo.first_step = first_step;
+  lo.workers = opt.workers;
+  lo.noise_augment = opt.noise_augment;
+  return lo;
+}
+
 }  // namespace
 
 StepLosses& StepLosses::operator+=(const StepLosses& o) {
@@ -118,8 +135,7 @@ void refresh_batch_norm(Generator& g, BatchLoader& loader, int64_t batches, cons
     torch::NoGradGuard no_grad;
     for (int64_t i = 0; i < batches; ++i) {
       const auto batch = loader.next();
-      const auto corners = crop_corners(opt, batch.meas.size(0), batch.gt.size(-1), batch.step);
-      (void)(corners.empty() ? g->forward(batch.meas) : g->forward_crops(batch.meas, corners, opt.crop));
+      (void)training_view(g, batch, opt, crop_corners(opt, batch.meas.size(0), batch.gt.size(-1), batch.step));
     }
   }
   for (auto& [bn, momentum] : layers) bn->options.momentum(momentum);
@@ -146,9 +162,7 @@ StepLosses gan_step(Generator& g, Discriminator& d, Vgg16Features& vgg, torch::o
   const auto corners = crop_corners(opt, batch.meas.size(0), batch.gt.size(-1), step);
   const auto gt = crop_windows(batch.gt, corners, opt.crop);  // {B,3,n,n}
   g->set_autocast_bf16(opt.bf16);
-  auto generate = [&] {
-    return corners.empty() ? g->forward(batch.meas) : g->forward_crops(batch.meas, corners, opt.crop);
-  };
+  auto generate = [&] { return training_view(g, batch, opt, corners); };
   torch::Tensor fake;
   if (warmup) {
     torch::NoGradGuard no_grad;
@@ -426,21 +440,15 @@ ModelIdentity GanTrainer::exported_identity() const {
   return identity;
 }
 
-// One generator (and discriminator) step on the loader's next batch; a non-finite one puts the
-// batch-norm statistics back and rethrows (the loop skips it).
 void GanTrainer::refresh_exported_statistics() {
   // Batches of their own (another seed), from the step reached: the training's data order, noise
   // and random state are untouched, so a resumed run still repeats the straight one.
-  LoaderOptions lo;
-  lo.batch = opt_.batch;
-  lo.seed = opt_.seed + kRefreshSeedOffset;
-  lo.first_step = state_.step;
-  lo.workers = opt_.workers;
-  lo.noise_augment = opt_.noise_augment;
-  BatchLoader loader(train_, lo);
+  BatchLoader loader(train_, training_loader(opt_, opt_.seed + kRefreshSeedOffset, state_.step));
   refresh_batch_norm(exported(), loader, opt_.bn_refresh, opt_);
 }
 
+// One generator (and discriminator) step on the loader's next batch; a non-finite one puts the
+// batch-norm statistics back and rethrows (the loop skips it).
 void GanTrainer::train_step(BatchLoader& loader, int64_t step, StepTally& tally) {
   set_learning_rates(step);
   auto batch = loader.next();
@@ -493,12 +501,7 @@ TrainSummary GanTrainer::run() {
   TrainSummary summary;
   summary.first_step = state_.step;
   summary.best_psnr = state_.best_psnr;
-  LoaderOptions lo;
-  lo.batch = opt_.batch;
-  lo.seed = opt_.seed;
-  lo.first_step = state_.step;
-  lo.workers = opt_.workers;
-  lo.noise_augment = opt_.noise_augment;
+  auto lo = training_loader(opt_, opt_.seed, state_.step);
   if (sync_) lo.world_size = sync_->world_size(), lo.rank = sync_->rank();
   BatchLoader loader(train_, lo);
   const bool writer = !sync_ || sync_->rank() == 0;  // only rank 0 writes logs and checkpoints
