@@ -122,7 +122,7 @@ class WeightAverage {
 // statistics over `batches` batches from `loader` (forward passes in training mode on the training
 // crops, no gradients), as SWA's update_bn (Izmailov et al. 2018, sec. 3.2). A moving average of the
 // weights otherwise carries the live network's statistics: measured with other weights, and over
-// only the last ~1/momentum batches, whose random light moves the dim scenes' PSNR by up to 1 dB.
+// only the last ~1/momentum batches (at momentum 0.01 the two agree within 0.08 dB: results record).
 void refresh_batch_norm(Generator& g, BatchLoader& loader, int64_t batches, const TrainOptions& opt);
 
 // Data-parallel training's collectives (implemented with c10d in train/distributed.hpp).
