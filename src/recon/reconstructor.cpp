@@ -223,9 +223,9 @@ BuiltReconstructor make_reconstructor(const ReconstructorSpec& spec) {
     built.fit = model_camera_fit(m, built.no_fit);
     if (spec.levers.self_ensemble && m.spec.inversion_init == "calibfree")
       built.warning =
-          "the self-ensemble assumes an enhancer that works the same on a flipped image; a calibration-free model's "
-          "first stage shifts the scene and its enhancer undoes the shift, so flips hurt it (the shipped one: "
-          "-1.24 dB on the held-out set, docs/evaluation.md)";
+          "the self-ensemble assumes an enhancer that works the same on a flipped image; a first stage started from "
+          "pseudo-random Toeplitz matrices shifts the scene and its enhancer undoes the shift, so flips hurt it (such "
+          "a model: -1.24 dB on the held-out set, docs/evaluation.md)";
     return built;
   }
   if (spec.method == "opencv") {
