@@ -896,6 +896,22 @@ TEST_CASE("model cards: flatnet info tells what a model file holds, export recor
   for (const auto& p : a.generator->named_parameters())
     CHECK(torch::equal(p.value(), b.generator->named_parameters()[p.key()]));
 
+  // The mean of a model file and a checkpoint (its moving average), recorded as such; one input
+  // kind at a time, and never over one of the inputs.
+  r = test::run_flatnet("export --average-of " + q(model) + "," + q(s.dir / "run" / "latest.ckpt") + " --out " +
+                        q(s.dir / "mean.flatnet"));
+  INFO(r.output);
+  REQUIRE(r.code == 0);
+  r = test::run_flatnet("info " + q(s.dir / "mean.flatnet"));
+  CHECK_THAT(r.output, Contains("mean of 2 models: model.flatnet, latest.ckpt") && Contains("3 steps"));
+  r = test::run_flatnet("export --average-of " + q(model) + "," + q(scored) + " --model " + q(model) + " --out " +
+                        q(s.dir / "x.flatnet"));
+  CHECK(r.code == 2);
+  CHECK_THAT(r.output, Contains("--average-of"));
+  r = test::run_flatnet("export --average-of " + q(model) + "," + q(scored) + " --force --out " + q(scored));
+  CHECK(r.code == 2);
+  CHECK(load_model_file(scored).provenance.scores.size() > 0);  // the input is untouched
+
   // Bad input: a scores file that is not one, a method that is not there, a file that is not a model.
   std::ofstream(s.dir / "junk.json") << "{not json";
   r = test::run_flatnet("export --model " + q(model) + " --out " + q(s.dir / "x.flatnet") +

@@ -17,6 +17,7 @@
 #include "io/mat.hpp"
 #include "io/safetensors.hpp"
 #include "io/torch_file.hpp"
+#include "nn/checkpoint.hpp"
 #include "nn/model_file.hpp"
 #include "tiny_model.hpp"
 
@@ -434,6 +435,78 @@ TEST_CASE(".mat files as MATLAB, scipy and FlatNet's release wrote them pass the
     INFO(f);
     CHECK_NOTHROW(MatReader(f).names());
   }
+}
+
+TEST_CASE("averaged models (export --average-of): the mean of the weights, of one model and camera only",
+          "[model][average]") {
+  test::Scratch s("average");
+  const auto config = tiny_config();
+  const auto camera = test::tiny_camera();
+  std::vector<Generator> generators;
+  std::vector<std::filesystem::path> paths;
+  for (int i = 0; i < 3; ++i) {
+    generators.push_back(test::random_generator(config, camera));
+    paths.push_back(s.dir / ("m" + std::to_string(i) + ".flatnet"));
+    Provenance record;
+    record.trained_steps = std::to_string(1000 * (i + 1));
+    record.scores = R"({"heldout": {"images": 2, "psnr": 20.0}})";
+    save_model_file(paths.back(), generators.back(), config, camera, record);
+  }
+  const auto mean = average_models(paths);
+  // Every parameter and floating-point buffer is the mean of the three; integer buffers
+  // (num_batches_tracked) are the last file's.
+  auto check_mean = [&](const std::string& name, const torch::Tensor& got, auto tensors_of) {
+    INFO(name);
+    if (!got.is_floating_point()) {
+      CHECK(torch::equal(got, tensors_of(generators[2])[name]));
+      return;
+    }
+    const auto expect =
+        (tensors_of(generators[0])[name].to(torch::kFloat64) + tensors_of(generators[1])[name].to(torch::kFloat64) +
+         tensors_of(generators[2])[name].to(torch::kFloat64)) /
+        3;
+    CHECK(torch::allclose(got.to(torch::kFloat64), expect, 1e-6, 1e-7));
+    CHECK_FALSE(torch::equal(got, tensors_of(generators[2])[name]));  // not simply one of them
+  };
+  for (const auto& p : mean.generator->named_parameters())
+    check_mean(p.key(), p.value(), [](Generator& g) { return g->named_parameters(); });
+  int buffers = 0;
+  for (const auto& b : mean.generator->named_buffers()) {
+    ++buffers;
+    check_mean(b.key(), b.value(), [](Generator& g) { return g->named_buffers(); });
+  }
+  CHECK(buffers > 0);  // batch-norm running statistics are averaged too
+  // The last file's record, every file named as the source, and no held-out scores (they were
+  // measured on one file's weights, not on the mean).
+  CHECK(mean.provenance.trained_steps == "3000");
+  CHECK(mean.provenance.scores.empty());
+  CHECK_THAT(mean.provenance.source, Contains("mean of 3 models") && Contains("m0.flatnet") && Contains("m2.flatnet"));
+
+  // The mean of a model with itself is that model, and the mean written and read again is the mean.
+  const auto same = average_models({paths[0], paths[0]});
+  for (const auto& p : same.generator->named_parameters())
+    CHECK(torch::allclose(p.value(), generators[0]->named_parameters()[p.key()], 1e-6, 1e-8));
+  auto written = mean;
+  save_model_file(s.dir / "mean.flatnet", written.generator, model_identity(mean));
+  const auto read_back = load_model_file(s.dir / "mean.flatnet");
+  for (const auto& p : read_back.generator->named_parameters())
+    CHECK(torch::equal(p.value(), mean.generator->named_parameters()[p.key()]));
+  CHECK(read_back.provenance.source == mean.provenance.source);
+
+  // Refused, naming the file: one file alone, another architecture, another camera, not a model.
+  CHECK_THROWS_WITH(average_models({paths[0]}), Contains("at least two"));
+  const auto wide_config = Config::load({}, {"model.unet.width=4"});
+  auto wide = test::random_generator(wide_config, camera);
+  save_model_file(s.dir / "wide.flatnet", wide, wide_config, camera);
+  CHECK_THROWS_WITH(average_models({paths[0], s.dir / "wide.flatnet"}),
+                    Contains("wide.flatnet") && Contains("different model"));
+  auto other_camera = camera;
+  other_camera.name = "bench-2";
+  save_model_file(s.dir / "other.flatnet", generators[1], config, other_camera);
+  CHECK_THROWS_WITH(average_models({paths[0], paths[1], s.dir / "other.flatnet"}),
+                    Contains("other.flatnet") && Contains("another camera") && Contains("bench-2"));
+  write_file(s.dir / "junk.flatnet", "not a model");
+  CHECK_THROWS_WITH(average_models({paths[0], s.dir / "junk.flatnet"}), Contains("junk.flatnet"));
 }
 
 TEST_CASE("reinit inversion (train --reinit) keeps the enhancer and gives the first stage this camera's initialisation",

@@ -519,6 +519,39 @@ TEST_CASE("train.bn_refresh changes what is validated and exported, never the tr
   CHECK_THROWS_WITH(Config::load({}, {"train.bn_refresh=-1"}), Contains("train.bn_refresh"));
 }
 
+TEST_CASE("train.keep_every keeps the exported model at those steps, and export --average-of takes their mean",
+          "[train][average]") {
+  test::Scratch s("keep_every");
+  Setup setup;
+  torch::manual_seed(0);
+  Generator g(generator_options(setup.config, setup.camera, true));
+  Discriminator d(discriminator_options(setup.config));
+  auto opt = setup.options(s.dir / "run", 8);
+  opt.keep_every = 4;  // validations at 2, 4, 6, 8: kept at 4 and 8
+  GanTrainer t(g, d, Vgg16Features(nullptr), std::make_shared<MemoryPairs>(6), load_all(MemoryPairs(2), 0, 1), opt,
+               model_identity(setup.config, setup.camera));
+  t.run();
+  const auto kept = s.dir / "run" / "kept";
+  CHECK(std::filesystem::exists(kept / "step4.flatnet"));
+  CHECK(std::filesystem::exists(kept / "step8.flatnet"));
+  CHECK_FALSE(std::filesystem::exists(kept / "step2.flatnet"));
+  CHECK_FALSE(std::filesystem::exists(kept / "step6.flatnet"));
+  // The last kept one is the run's model.flatnet; the earlier one is another set of weights.
+  const auto last = load_model_file(kept / "step8.flatnet"),
+             final_model = load_model_file(s.dir / "run" / "model.flatnet");
+  const auto first = load_model_file(kept / "step4.flatnet");
+  CHECK(last.provenance.trained_steps == "8");
+  CHECK(first.provenance.trained_steps == "4");
+  const auto mean = average_models({kept / "step4.flatnet", kept / "step8.flatnet"});
+  for (const auto& p : final_model.generator->named_parameters()) {
+    INFO(p.key());
+    CHECK(torch::equal(p.value(), last.generator->named_parameters()[p.key()]));
+    const auto expect = (first.generator->named_parameters()[p.key()] + p.value()) / 2;
+    CHECK(torch::allclose(mean.generator->named_parameters()[p.key()], expect, 1e-6, 1e-7));
+  }
+  CHECK_THROWS_WITH(Config::load({}, {"train.keep_every=-1"}), Contains("train.keep_every"));
+}
+
 TEST_CASE("NaN losses in a row stop training with a clear message and keep the last checkpoint", "[train]") {
   test::Scratch s("nan");
   Setup setup;

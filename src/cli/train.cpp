@@ -107,7 +107,11 @@ int export_model(int argc, char** argv) {
   cxxopts::Options o("flatnet export", "Export a trained model: a self-contained model file, or a PyTorch state_dict.");
   o.add_options()("checkpoint", "training checkpoint (RUN/best.ckpt or latest.ckpt)", cxxopts::value<std::string>())(
       "model", "model file (instead of --checkpoint; for --state-dict)", cxxopts::value<std::string>())(
-      "out", "file to write", cxxopts::value<std::string>())(
+      "average-of",
+      "instead of --checkpoint or --model: the mean of the weights of these model files or checkpoints "
+      "(A,B,...; checkpoints give their moving average), e.g. the last snapshots of one run's low-rate end; "
+      "one model and camera, the last file's record",
+      cxxopts::value<std::vector<std::string>>())("out", "file to write", cxxopts::value<std::string>())(
       "state-dict", "write torch.save(state_dict) with FlatNet-sep's parameter names instead of a model file")(
       "flatnet-checkpoint", "write FlatNet's checkpoint layout {'gen_state_dict': state_dict} (its main.py loads it)")(
       "onnx",
@@ -123,17 +127,27 @@ int export_model(int argc, char** argv) {
   add_common(o);
   cxxopts::ParseResult r;
   if (!parse(o, argc, argv, r)) return 0;
-  require((r.count("out") + r.count("onnx") == 1) && (r.count("checkpoint") + r.count("model") == 1), "export",
-          "one of --checkpoint CKPT or --model MODEL, and one of --out FILE or --onnx FILE, are required");
+  require((r.count("out") + r.count("onnx") == 1) &&
+              (r.count("checkpoint") + r.count("model") + r.count("average-of") == 1),
+          "export",
+          "one of --checkpoint CKPT, --model MODEL or --average-of A,B,..., and one of --out FILE or --onnx FILE, are "
+          "required");
   require(r.count("state-dict") + r.count("flatnet-checkpoint") + r.count("onnx") <= 1, "export",
           "give one of --state-dict, --flatnet-checkpoint and --onnx");
   const std::filesystem::path out = r.count("onnx") ? r["onnx"].as<std::string>() : r["out"].as<std::string>();
-  const std::string input = r.count("checkpoint") ? r["checkpoint"].as<std::string>() : r["model"].as<std::string>();
-  require_new_output(out, r.count("force") > 0, {input});
+  std::vector<std::filesystem::path> inputs;
+  if (r.count("average-of"))
+    for (const auto& a : r["average-of"].as<std::vector<std::string>>()) inputs.emplace_back(a);
+  else
+    inputs.emplace_back(r.count("checkpoint") ? r["checkpoint"].as<std::string>() : r["model"].as<std::string>());
+  require_new_output(out, r.count("force") > 0, inputs);
   require(!r.count("scores") || !(r.count("onnx") || r.count("state-dict") || r.count("flatnet-checkpoint")),
           "--scores", "is recorded in a model file (--out), not in ONNX or state-dict exports");
   bool average = false;
-  auto m = r.count("checkpoint") ? model_from_checkpoint(input, &average) : load_model_file(input);
+  auto m = r.count("average-of")   ? average_models(inputs)
+           : r.count("checkpoint") ? model_from_checkpoint(inputs[0], &average)
+                                   : load_model_file(inputs[0]);
+  if (r.count("average-of")) std::cerr << "averaging the weights of " << inputs.size() << " models\n";
   if (r.count("scores"))
     m.provenance.scores = recorded_scores(r["scores"].as<std::vector<std::string>>(),
                                           r.count("method") ? r["method"].as<std::string>() : "");

@@ -2,6 +2,7 @@
 
 #include <cmath>
 #include <limits>
+#include <sstream>
 
 #include <nlohmann/json.hpp>
 
@@ -245,6 +246,88 @@ ModelFile model_from_checkpoint(const std::filesystem::path& path, bool* used_av
   // PSNR is not a number is damaged or edited, and a model exported from it would carry that.
   for (const char* key : {"step", "best_psnr"}) stored_number(s, key, path);
   return detail::read_generator(s, path, used_average);
+}
+
+ModelFile load_trained_model(const std::filesystem::path& path) {
+  return is_checkpoint_file(path) ? model_from_checkpoint(path) : load_model_file(path);
+}
+
+namespace {
+
+// The generator's tensors by name, parameters and buffers alike.
+std::vector<std::pair<std::string, torch::Tensor>> generator_tensors(Generator& g) {
+  std::vector<std::pair<std::string, torch::Tensor>> out;
+  for (const auto& p : g->named_parameters()) out.emplace_back(p.key(), p.value());
+  for (const auto& b : g->named_buffers()) out.emplace_back(b.key(), b.value());
+  return out;
+}
+
+std::string strip(const std::string& line) {
+  const auto begin = line.find_first_not_of(' ');
+  return begin == std::string::npos ? "" : line.substr(begin);
+}
+
+// The first line where two YAML texts differ, as "theirs (against ours)"; "" when they are equal.
+std::string first_difference(const std::string& ours, const std::string& theirs) {
+  std::istringstream a(ours), b(theirs);
+  std::string line_a, line_b;
+  while (true) {
+    const bool more_a = static_cast<bool>(std::getline(a, line_a)), more_b = static_cast<bool>(std::getline(b, line_b));
+    if (!more_a && !more_b) return "";
+    if (!more_a || !more_b || line_a != line_b) return "'" + strip(line_b) + "' against '" + strip(line_a) + "'";
+  }
+}
+
+void require_same_model(const ModelFile& first, const ModelFile& other, const std::filesystem::path& first_path,
+                        const std::filesystem::path& path) {
+  const auto difference = first_difference(model_spec_yaml(first.spec), model_spec_yaml(other.spec));
+  require(difference.empty(), path,
+          "holds a different model from " + first_path.string() + " (model spec " + difference +
+              "); only models of one spec can be averaged");
+  require(camera_geometry_yaml(other.camera) == camera_geometry_yaml(first.camera) &&
+              other.camera.name == first.camera.name,
+          path,
+          "is for another camera than " + first_path.string() + " (camera '" + other.camera.name + "' against '" +
+              first.camera.name + "', or another geometry); average models of one camera");
+}
+
+}  // namespace
+
+ModelFile average_models(const std::vector<std::filesystem::path>& paths) {
+  require(paths.size() >= 2, "--average-of", "needs at least two model files or checkpoints to average");
+  torch::NoGradGuard no_grad;
+  ModelFile result;
+  std::vector<torch::Tensor> sums;  // float64 sums of the floating tensors, in generator_tensors order
+  std::string sources;
+  for (size_t i = 0; i < paths.size(); ++i) {
+    auto m = load_trained_model(paths[i]);
+    auto tensors = generator_tensors(m.generator);
+    if (i == 0) {
+      for (const auto& t : tensors)
+        sums.push_back(t.second.is_floating_point() ? t.second.to(torch::kFloat64) : torch::Tensor());
+    } else {
+      require_same_model(result, m, paths[0], paths[i]);
+      for (size_t k = 0; k < tensors.size(); ++k)
+        if (sums[k].defined()) sums[k].add_(tensors[k].second.to(torch::kFloat64));
+    }
+    sources += (i ? ", " : "") + paths[i].filename().string();
+    if (i == 0) {
+      result = m;  // fixes the spec and camera every other file must match
+    } else if (i + 1 == paths.size()) {
+      // The last file's record is kept, and its generator takes the mean (its integer buffers stay).
+      result.generator = m.generator;
+      result.recipe = m.recipe;
+      result.recipe_values = m.recipe_values;
+      result.provenance = m.provenance;
+    }
+  }
+  auto target = generator_tensors(result.generator);
+  for (size_t k = 0; k < target.size(); ++k)
+    if (sums[k].defined()) target[k].second.copy_(sums[k] / static_cast<double>(paths.size()));
+  result.provenance.source = "mean of " + std::to_string(paths.size()) + " models: " + sources;
+  result.provenance.scores.clear();
+  result.generator->eval();
+  return result;
 }
 
 }  // namespace flatnet

@@ -47,5 +47,17 @@ TrainState load_checkpoint(const std::filesystem::path& path, Generator& g, Disc
 // A checkpoint's generator as a model file (what `flatnet export` does): the moving average of
 // the weights when the run kept one, else the live weights. `used_average` tells which.
 ModelFile model_from_checkpoint(const std::filesystem::path& path, bool* used_average = nullptr);
+// A model file or a checkpoint (its moving average when it kept one) as a model.
+ModelFile load_trained_model(const std::filesystem::path& path);
+
+// The mean of several trained models' weights (`flatnet export --average-of`): checkpoint averaging
+// along one run's low-learning-rate end, as stochastic weight averaging does (Izmailov et al.,
+// UAI 2018), or a "model soup" of fine-tunings from one start (Wortsman et al., ICML 2022). Each
+// parameter and floating-point buffer (batch-norm running statistics) is the mean over the files,
+// summed in double; integer buffers are the last file's. Every file must hold the same model spec
+// and camera geometry as the first, else an error naming the file that differs. The result keeps
+// the last file's record (recipe, steps, training time, best validation) and names every file as
+// its source; held-out scores are dropped (they belong to one file's weights, not the mean).
+ModelFile average_models(const std::vector<std::filesystem::path>& paths);
 
 }  // namespace flatnet

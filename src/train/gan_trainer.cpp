@@ -428,6 +428,15 @@ void GanTrainer::checkpoint_and_validate(TrainSummary& summary) {
   }
   save_checkpoint(opt_.out / "latest.ckpt", g_, d_, *opt_g_, *opt_d_, state_, identity_, ema, checkpoint_camera());
   save_model_file(opt_.out / "model.flatnet", exported(), exported_identity());
+  if (opt_.keep_every > 0 && state_.step % opt_.keep_every == 0) keep_model();
+}
+
+// A copy of the exported model that later validations do not replace: RUN/kept/step<N>.flatnet
+// (the mean of a run's last ones, `flatnet export --average-of`, often beats its last alone).
+void GanTrainer::keep_model() {
+  const auto kept = opt_.out / "kept";
+  std::filesystem::create_directories(kept);
+  save_model_file(kept / ("step" + std::to_string(state_.step) + ".flatnet"), exported(), exported_identity());
 }
 
 ModelIdentity GanTrainer::exported_identity() const {

@@ -54,6 +54,9 @@ struct TrainOptions {
   bool trains_discriminator() const { return w_adversarial > 0 || w_feature_matching > 0; }
   double ema_decay =
       0.0;  // exponential moving average of the generator's weights (0: off); used to validate and export
+  // Every this many steps (at a validation), the exported model is also kept as
+  // RUN/kept/step<N>.flatnet, for `flatnet export --average-of` over a run's end (0: off).
+  int64_t keep_every = 0;
   // Batches over which the validated and exported weights' batch-norm statistics are re-estimated
   // before each validation (0: off; refresh_batch_norm below).
   int64_t bn_refresh = 0;
@@ -198,6 +201,7 @@ class GanTrainer {
   static constexpr uint64_t kRefreshSeedOffset = 0x5EED;  // its batches' seed, beside the training's
   // What model.flatnet records: the run's identity with its steps, time and best validation PSNR.
   ModelIdentity exported_identity() const;
+  void keep_model();  // RUN/kept/step<N>.flatnet (train.keep_every)
   // Training time in all: the checkpoint's record plus this run's time so far.
   double trained_seconds() const { return loop_ ? loop_->trained_seconds() : state_.train_seconds; }
   const TrainingLoop* loop_ = nullptr;   // while run() runs: its clock
