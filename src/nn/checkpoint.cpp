@@ -254,11 +254,10 @@ ModelFile load_trained_model(const std::filesystem::path& path) {
 
 namespace {
 
-// The generator's tensors by name, parameters and buffers alike.
+// The generator's parameters and buffers, in the order a file stores them (add_module).
 std::vector<std::pair<std::string, torch::Tensor>> generator_tensors(Generator& g) {
   std::vector<std::pair<std::string, torch::Tensor>> out;
-  for (const auto& p : g->named_parameters()) out.emplace_back(p.key(), p.value());
-  for (const auto& b : g->named_buffers()) out.emplace_back(b.key(), b.value());
+  add_module(out, "generator", *g);
   return out;
 }
 
