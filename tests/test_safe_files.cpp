@@ -175,6 +175,56 @@ TEST_CASE("hostile safetensors files: one clear error naming the file, nothing l
           "CRC-32");
 }
 
+TEST_CASE("a file's kind comes from its header alone; the header gets every check", "[safe][model]") {
+  test::Scratch s("st_kind");
+  const auto config = tiny_config();
+  const auto camera = test::tiny_camera();
+  auto g = test::random_generator(config, camera);
+  save_model_file(s.dir / "m.flatnet", g, config, camera);
+  // The metadata read from the header is the metadata the whole-file reader returns.
+  CHECK(read_safetensors_metadata(s.dir / "m.flatnet") == read_safetensors(s.dir / "m.flatnet").metadata);
+  CHECK_FALSE(is_checkpoint_file(s.dir / "m.flatnet"));
+  // A checkpoint's header over a buffer that is not read: a wrong CRC-32 and a tensor past the end
+  // still tell the kind (loading it is refused, naming the file).
+  const std::string checkpoint_header = R"({"__metadata__":{"format":"flatnet-checkpoint","data_crc32":"00000000"},)"
+                                        R"("a":{"dtype":"F32","shape":[1000],"data_offsets":[0,4000]}})";
+  write_file(s.dir / "c.flatnet", handmade(checkpoint_header, "1234"));
+  CHECK(is_checkpoint_file(s.dir / "c.flatnet"));
+  CHECK(read_safetensors_metadata(s.dir / "c.flatnet").at("format") == "flatnet-checkpoint");
+  CHECK(read_safetensors_metadata(s.dir / "c.flatnet").count(kCrcKey) == 0);
+  CHECK_THROWS_WITH(read_safetensors(s.dir / "c.flatnet"), Contains("c.flatnet") && Contains("truncated"));
+  // Written the way Python writes one (json.dumps, struct.pack, no padding, no metadata at all).
+  if (have_python()) {
+    const auto r = test::run_shell(
+        "python3 -c \"import json, struct, sys; h = json.dumps({'w': {'dtype': 'F32', 'shape': [2], "
+        "'data_offsets': [0, 8]}}).encode(); open(sys.argv[1], 'wb').write(struct.pack('<Q', len(h)) + h + "
+        "struct.pack('<2f', 1.5, -2))\" " +
+        test::q(s.dir / "py.safetensors"));
+    REQUIRE(r.code == 0);
+    CHECK(read_safetensors_metadata(s.dir / "py.safetensors").empty());
+    CHECK_FALSE(is_checkpoint_file(s.dir / "py.safetensors"));
+  }
+  // The header's own faults, each naming the file.
+  auto refused = [&](const std::string& name, const std::string& bytes, const std::string& why) {
+    INFO(name);
+    write_file(s.dir / name, bytes);
+    CHECK_THROWS_WITH(read_safetensors_metadata(s.dir / name), Contains(name) && Contains(why));
+    CHECK_THROWS_WITH(is_checkpoint_file(s.dir / name), Contains(name) && Contains(why));
+  };
+  refused("huge_header.st", std::string(8, '\xff') + "{}", "over the limit");
+  refused("long_header.st", handmade(checkpoint_header, "").substr(0, 40), "truncated");
+  refused("not_json.st", handmade("{\"a\": nope}", ""), "not valid JSON");
+  refused("meta.st", handmade(R"({"__metadata__":{"format":1}})", ""), "not a string");
+  CHECK_THROWS_WITH(is_checkpoint_file(s.dir / "absent.flatnet"),
+                    Contains("absent.flatnet") && Contains("no such file"));
+  CHECK_THROWS_WITH(is_checkpoint_file(s.dir), Contains("is a folder"));
+  CHECK_THROWS_WITH(read_safetensors_metadata(s.dir / "short"),
+                    Contains("short") && Contains("no such file"));  // before it exists
+  write_file(s.dir / "short", "abc");
+  CHECK_THROWS_WITH(read_safetensors_metadata(s.dir / "short"), Contains("short") && Contains("not a safetensors"));
+  CHECK_FALSE(is_checkpoint_file(s.dir / "short"));  // neither safetensors nor an archive: not a checkpoint
+}
+
 TEST_CASE("format-1 model files (TorchScript archives) are read as data, with the same outputs", "[safe][model]") {
   test::Scratch s("format1");
   const auto config = tiny_config();
@@ -376,9 +426,14 @@ TEST_CASE("fifos and devices are refused at once, never waited on", "[safe]") {
   CHECK_THROWS_WITH(load_camera_config(fifo), Contains("pipe") && Contains("not a regular file"));
   CHECK_THROWS_WITH(read_torch_file(fifo), Contains("pipe") && Contains("not a regular file"));
   CHECK_THROWS_WITH(read_file_text("/dev/zero"), Contains("/dev/zero") && Contains("not a regular file"));
+  CHECK_THROWS_WITH(read_file_head(fifo, 9), Contains("pipe") && Contains("not a regular file"));
+  CHECK_THROWS_WITH(is_checkpoint_file(fifo), Contains("pipe") && Contains("not a regular file"));
   CHECK(std::chrono::steady_clock::now() - t0 < std::chrono::seconds(5));
   write_file(s.dir / "big.bin", std::string(100, 'x'));
   CHECK_THROWS_WITH(read_file_text(s.dir / "big.bin", 10), Contains("big.bin") && Contains("over the limit"));
+  // A head is the first bytes, or the whole file when it is shorter.
+  CHECK(read_file_head(s.dir / "big.bin", 10) == std::string(10, 'x'));
+  CHECK(read_file_head(s.dir / "big.bin", 1000) == std::string(100, 'x'));
 }
 
 namespace {

@@ -316,48 +316,76 @@ void parallel_for_index(int64_t n, int workers, const std::function<void(int64_t
   if (error) std::rethrow_exception(error);
 }
 
-std::string read_file_text(const fs::path& path, uint64_t max_bytes) {
-  // O_NONBLOCK: opening a fifo must not wait for a writer; it is refused below, like a device.
-  const int fd = ::open(path.c_str(), O_RDONLY | O_NONBLOCK | O_CLOEXEC);
-  if (fd < 0) {
-    const int err = errno;
-    require(err != ENOENT, path, "no such file");
-    throw Error(path, std::string("cannot be opened for reading (") + std::strerror(err) + ")");
+namespace {
+
+// An open regular file (a fifo or device is refused at once, never waited on) and its size.
+struct RegularFile {
+  int fd = -1;
+  uint64_t size = 0;
+  int64_t blocks = 0;
+  RegularFile(const RegularFile&) = delete;
+  RegularFile& operator=(const RegularFile&) = delete;
+  explicit RegularFile(const fs::path& path) {
+    // O_NONBLOCK: opening a fifo must not wait for a writer; it is refused below, like a device.
+    fd = ::open(path.c_str(), O_RDONLY | O_NONBLOCK | O_CLOEXEC);
+    if (fd < 0) {
+      const int err = errno;
+      require(err != ENOENT, path, "no such file");
+      throw Error(path, std::string("cannot be opened for reading (") + std::strerror(err) + ")");
+    }
+    struct stat st {};
+    const bool examined = ::fstat(fd, &st) == 0;
+    if (!examined || !S_ISREG(st.st_mode)) {
+      ::close(fd);  // the destructor does not run when the constructor throws
+      require(examined, path, "cannot be examined (fstat failed)");
+      require(!S_ISDIR(st.st_mode), path, "is a folder, not a file");
+      throw Error(path, "is not a regular file (a fifo, socket or device); flatnet reads only files");
+    }
+    size = static_cast<uint64_t>(st.st_size);
+    blocks = static_cast<int64_t>(st.st_blocks);
   }
-  struct Closer {
-    int fd;
-    ~Closer() { ::close(fd); }
-  } closer{fd};
-  struct stat st {};
-  require(::fstat(fd, &st) == 0, path, "cannot be examined (fstat failed)");
-  require(!S_ISDIR(st.st_mode), path, "is a folder, not a file");
-  require(S_ISREG(st.st_mode), path, "is not a regular file (a fifo, socket or device); flatnet reads only files");
-  const auto size = static_cast<uint64_t>(st.st_size);
-  require(size <= max_bytes, path,
-          "is " + std::to_string(size) + " bytes, over the limit of " + std::to_string(max_bytes) +
+  ~RegularFile() { ::close(fd); }
+
+  // The first `count` bytes (count <= size), into memory allocated here.
+  std::string read(const fs::path& path, uint64_t count) const {
+    std::string bytes;
+    try {
+      bytes.assign(count, '\0');
+    } catch (const std::bad_alloc&) {
+      throw Error(path, "is " + std::to_string(count) + " bytes; there is not enough memory to read it");
+    }
+    size_t done = 0;
+    while (done < count) {
+      const auto n = ::read(fd, bytes.data() + done, count - done);
+      if (n < 0 && errno == EINTR) continue;
+      require(n >= 0, path, std::string("read failed (") + std::strerror(errno) + ")");
+      if (n == 0) break;  // the file shrank while being read
+      done += static_cast<size_t>(n);
+    }
+    require(done == count, path, "changed size while being read");
+    return bytes;
+  }
+};
+
+}  // namespace
+
+std::string read_file_text(const fs::path& path, uint64_t max_bytes) {
+  const RegularFile file(path);
+  require(file.size <= max_bytes, path,
+          "is " + std::to_string(file.size) + " bytes, over the limit of " + std::to_string(max_bytes) +
               " for this kind of file");
   // A sparse file (holes that read as zeros) claims a size its disk blocks do not hold: 5 GiB of
   // nothing would be allocated and read. Real files fill their blocks (compression aside: 1/8).
-  const auto on_disk = static_cast<uint64_t>(st.st_blocks) * 512;
-  require(size <= (64ull << 20) || on_disk >= size / 8, path,
-          "is sparse: it claims " + std::to_string(size) + " bytes and holds " + std::to_string(on_disk) +
+  const auto on_disk = static_cast<uint64_t>(file.blocks) * 512;
+  require(file.size <= (64ull << 20) || on_disk >= file.size / 8, path,
+          "is sparse: it claims " + std::to_string(file.size) + " bytes and holds " + std::to_string(on_disk) +
               " on disk (a damaged or hostile file)");
-  std::string bytes;
-  try {
-    bytes.assign(size, '\0');
-  } catch (const std::bad_alloc&) {
-    throw Error(path, "is " + std::to_string(size) + " bytes; there is not enough memory to read it");
-  }
-  size_t done = 0;
-  while (done < size) {
-    const auto n = ::read(fd, bytes.data() + done, size - done);
-    if (n < 0 && errno == EINTR) continue;
-    require(n >= 0, path, std::string("read failed (") + std::strerror(errno) + ")");
-    if (n == 0) break;  // the file shrank while being read
-    done += static_cast<size_t>(n);
-  }
-  require(done == size, path, "changed size while being read");
-  return bytes;
+  return file.read(path, file.size);
+}
+
+std::string read_file_head(const fs::path& path, uint64_t count) {
+  const RegularFile file(path);
+  return file.read(path, std::min(count, file.size));
 }
 
 std::string file_fingerprint(const fs::path& path) {

@@ -77,6 +77,9 @@ constexpr uint64_t kMaxInputBytes = 16ull << 30;
 constexpr uint64_t kMaxModelFileBytes = 4ull << 30;
 std::string read_file_text(const fs::path& path, uint64_t max_bytes = kMaxInputBytes);
 std::vector<char> read_bytes(const fs::path& path, uint64_t max_bytes = kMaxInputBytes);
+// The first `count` bytes of a file (all of it when it is shorter), with the same checks on what the
+// file is: to tell a file's kind from its header without reading a model's weights.
+std::string read_file_head(const fs::path& path, uint64_t count);
 // The same checks without reading, for files a library opens itself (images, .mat, YAML): errors
 // name a missing file, a folder, or a fifo, socket or device (which would block or never end).
 void require_regular_file(const fs::path& path);

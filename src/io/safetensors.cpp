@@ -197,38 +197,65 @@ void write_safetensors(const std::filesystem::path& path,
   write_bytes_atomically(path, safetensors_bytes(tensors, metadata));
 }
 
-SafeTensors parse_safetensors(const std::string& bytes, const std::filesystem::path& path,
-                              const SafeTensorsLimits& limits) {
+namespace {
+
+// The header's length N from the file's first 8 bytes, checked against the limit and against the
+// `available` bytes that follow them (the whole file's, or a header-only read's).
+uint64_t header_length(const std::string& bytes, uint64_t available, const std::filesystem::path& path,
+                       const SafeTensorsLimits& limits) {
   if (bytes.size() < 8) throw Error(path, "is not a safetensors file (" + std::to_string(bytes.size()) + " bytes)");
   const uint64_t n = little_endian_u64(bytes.data());
   if (n > limits.max_header_bytes)
     throw Error(path, "safetensors header claims " + std::to_string(n) + " bytes, over the limit of " +
                           std::to_string(limits.max_header_bytes));
-  if (n > bytes.size() - 8)
+  if (n > available)
     throw Error(path, "truncated: the safetensors header claims " + std::to_string(n) + " bytes, the file holds " +
-                          std::to_string(bytes.size() - 8));
-  if (n < 2 || bytes[8] != '{') throw Error(path, "is not a safetensors file (its header is not a JSON object)");
+                          std::to_string(available));
+  return n;
+}
+
+// The header object from bytes [8, 8 + n), its size within the limits.
+json header_object(const std::string& bytes, uint64_t n, const std::filesystem::path& path,
+                   const SafeTensorsLimits& limits) {
+  if (n < 2 || bytes.size() < 9 || bytes[8] != '{')
+    throw Error(path, "is not a safetensors file (its header is not a JSON object)");
   // Each tensor's entry has 4 keys (its name, dtype, shape, data_offsets); metadata up to its own limit.
-  const auto header = parse_header(bytes.substr(8, n), path, 4 * (limits.max_tensors + 1) + limits.max_metadata_keys);
+  auto header = parse_header(bytes.substr(8, n), path, 4 * (limits.max_tensors + 1) + limits.max_metadata_keys);
   if (!header.is_object()) throw Error(path, "safetensors header is not a JSON object");
   if (static_cast<int64_t>(header.size()) > limits.max_tensors + 1)
     throw Error(path, "safetensors header lists " + std::to_string(header.size()) + " tensors, over the limit");
-  SafeTensors out;
-  std::vector<Entry> entries;
-  for (const auto& [name, v] : header.items()) {
-    if (name == "__metadata__") {
-      if (!v.is_object()) throw Error(path, "__metadata__ is not an object");
-      if (static_cast<int64_t>(v.size()) > limits.max_metadata_keys)
-        throw Error(path, "__metadata__ holds " + std::to_string(v.size()) + " keys, over the limit of " +
-                              std::to_string(limits.max_metadata_keys));
-      for (const auto& [k, s] : v.items()) {
-        if (!s.is_string()) throw Error(path, "__metadata__ '" + k + "' is not a string");
-        out.metadata[k] = s.get<std::string>();
-      }
-      continue;
-    }
-    entries.push_back(parse_entry(name, v, path));
+  return header;
+}
+
+// "__metadata__" as strings (empty when the header has none).
+std::map<std::string, std::string> metadata_of(const json& header, const std::filesystem::path& path,
+                                               const SafeTensorsLimits& limits) {
+  std::map<std::string, std::string> out;
+  const auto it = header.find("__metadata__");
+  if (it == header.end()) return out;
+  const auto& v = *it;
+  if (!v.is_object()) throw Error(path, "__metadata__ is not an object");
+  if (static_cast<int64_t>(v.size()) > limits.max_metadata_keys)
+    throw Error(path, "__metadata__ holds " + std::to_string(v.size()) + " keys, over the limit of " +
+                          std::to_string(limits.max_metadata_keys));
+  for (const auto& [k, s] : v.items()) {
+    if (!s.is_string()) throw Error(path, "__metadata__ '" + k + "' is not a string");
+    out[k] = s.get<std::string>();
   }
+  return out;
+}
+
+}  // namespace
+
+SafeTensors parse_safetensors(const std::string& bytes, const std::filesystem::path& path,
+                              const SafeTensorsLimits& limits) {
+  const uint64_t n = header_length(bytes, bytes.size() >= 8 ? bytes.size() - 8 : 0, path, limits);
+  const auto header = header_object(bytes, n, path, limits);
+  SafeTensors out;
+  out.metadata = metadata_of(header, path, limits);
+  std::vector<Entry> entries;
+  for (const auto& [name, v] : header.items())
+    if (name != "__metadata__") entries.push_back(parse_entry(name, v, path));
   // The entries must tile the buffer exactly: no holes, no overlaps, nothing past the end.
   std::sort(entries.begin(), entries.end(),
             [](const Entry& a, const Entry& b) { return a.begin != b.begin ? a.begin < b.begin : a.end < b.end; });
@@ -258,6 +285,17 @@ SafeTensors parse_safetensors(const std::string& bytes, const std::filesystem::p
 
 SafeTensors read_safetensors(const std::filesystem::path& path, const SafeTensorsLimits& limits) {
   return parse_safetensors(read_file_text(path, limits.max_file_bytes), path, limits);
+}
+
+std::map<std::string, std::string> read_safetensors_metadata(const std::filesystem::path& path,
+                                                             const SafeTensorsLimits& limits) {
+  const auto first = read_file_head(path, 8);
+  const uint64_t claimed = header_length(first, limits.max_header_bytes, path, limits);
+  const auto head = read_file_head(path, 8 + claimed);  // {8 + N bytes}, or fewer in a truncated file
+  const uint64_t n = header_length(head, head.size() - 8, path, limits);
+  auto metadata = metadata_of(header_object(head, n, path, limits), path, limits);
+  metadata.erase(kCrcKey);  // the buffer it covers is not read here
+  return metadata;
 }
 
 }  // namespace flatnet

@@ -57,6 +57,11 @@ void write_safetensors(const std::filesystem::path& path,
 SafeTensors parse_safetensors(const std::string& bytes, const std::filesystem::path& path,
                               const SafeTensorsLimits& limits = {});
 SafeTensors read_safetensors(const std::filesystem::path& path, const SafeTensorsLimits& limits = {});
+// The "__metadata__" strings alone, from the file's first 8 + N bytes: the tensors are neither read
+// nor checked (nor is the CRC-32, which covers them), so a file's kind is known without reading its
+// weights. The header gets parse_safetensors's checks.
+std::map<std::string, std::string> read_safetensors_metadata(const std::filesystem::path& path,
+                                                             const SafeTensorsLimits& limits = {});
 
 // Whether the bytes start like a safetensors file (a plausible length, then '{').
 bool looks_like_safetensors(const std::string& bytes);

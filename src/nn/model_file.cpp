@@ -58,13 +58,14 @@ ModelFile load_model_file(const std::filesystem::path& path) {
 }
 
 bool is_checkpoint_file(const std::filesystem::path& path) {
-  const auto bytes = read_file_text(path, kMaxModelFileBytes);
-  if (looks_like_safetensors(bytes)) {
-    const auto st = parse_safetensors(bytes, path);
-    const auto it = st.metadata.find("format");
-    return it != st.metadata.end() && it->second == kCheckpointFormat;
+  // The header alone (a checkpoint is ~48 MB at width 32): 8 length bytes, then the JSON object.
+  const auto head = read_file_head(path, 9);
+  if (head.size() == 9 && head[8] == '{') {
+    const auto metadata = read_safetensors_metadata(path);
+    const auto it = metadata.find("format");
+    return it != metadata.end() && it->second == kCheckpointFormat;
   }
-  if (bytes.compare(0, 4, "PK\x03\x04") == 0) {
+  if (head.compare(0, 4, "PK\x03\x04") == 0) {
     const auto meta = detail::read_format1(path).meta;
     const auto it = meta.find("format");
     return it != meta.end() && it->second == kCheckpointFormat;
