@@ -1,6 +1,8 @@
 // Networks, losses, configs and model files: shapes, gradients, names, round trips, errors.
 #include "catch_torch.hpp"
 #include <fstream>
+#include <map>
+#include <sstream>
 
 #include <ATen/autocast_mode.h>
 
@@ -516,6 +518,53 @@ TEST_CASE("the stripe term is eval's stripe energy (squared, over 255^2), ignore
   CHECK(torch::isfinite(x.grad()).all().item<bool>());
   // Descending the gradient lowers the stripes.
   CHECK(stripe_loss(striped - 1e4 * x.grad(), y).item<double>() < stripe_loss(striped, y).item<double>());
+}
+
+TEST_CASE("scripts/stripe_split.py reproduces eval's stripe energy and splits it into rows and columns",
+          "[nn][loss][python]") {
+  if (std::system("/usr/bin/python3 -c 'import numpy, PIL' >/dev/null 2>&1") != 0)
+    SKIP_TEST("/usr/bin/python3 has no numpy or Pillow");
+  test::Scratch s("stripe_split");
+  const auto y = read_rgb(test::data_dir() / "golden" / "inet_n02980441_castle_scene.png");  // {3,H,W}
+  const auto rows = (torch::arange(y.size(1)) % 4 == 0).to(torch::kFloat32).view({1, -1, 1});
+  // One picture striped along its rows only, one along its columns only (8 codes, every fourth).
+  const auto by_rows = (y + 8.0 / 255 * rows).clamp(0, 1),
+             by_cols = (y + 8.0 / 255 * rows.view({1, 1, -1})).clamp(0, 1);
+  std::filesystem::create_directories(s.dir / "gt");
+  std::filesystem::create_directories(s.dir / "set" / "rows");
+  std::filesystem::create_directories(s.dir / "set" / "cols");
+  write_rgb8(s.dir / "gt" / "a.png", y);
+  write_rgb8(s.dir / "set" / "rows" / "a.png", by_rows);
+  write_rgb8(s.dir / "set" / "cols" / "a.png", by_cols);
+  const auto script = test::source_dir() / "scripts" / "stripe_split.py";
+  const auto r = test::run_shell("/usr/bin/python3 " + test::q(script) + " " + test::q(s.dir / "set") + " " +
+                                 test::q(s.dir / "gt") + " rows cols");
+  REQUIRE(r.code == 0);
+  // method stripes fixed rows border inside cols border inside
+  std::istringstream lines(r.output);
+  std::string header, name;
+  std::getline(lines, header);
+  std::map<std::string, std::vector<double>> got;
+  for (int i = 0; i < 2 && lines >> name; ++i) {
+    auto& v = got[name];
+    for (double x; v.size() < 8 && lines >> x;) v.push_back(x);
+  }
+  REQUIRE(got["rows"].size() == 8);
+  REQUIRE(got["cols"].size() == 8);
+  // Eval's stripe energy of the files as written (8-bit), to the script's 3 decimals.
+  CHECK(got["rows"][0] == Approx(stripe_energy(read_rgb(s.dir / "set" / "rows" / "a.png"), y)).margin(1e-3));
+  CHECK(got["cols"][0] == Approx(stripe_energy(read_rgb(s.dir / "set" / "cols" / "a.png"), y)).margin(1e-3));
+  CHECK(got["rows"][1] == Approx(got["rows"][0]).margin(1e-3));  // one picture: all of it is the fixed pattern
+  // Row stripes land in the row profile, column stripes in the column profile; border + inside = total.
+  CHECK(got["rows"][2] > 20 * got["rows"][5]);
+  CHECK(got["cols"][5] > 20 * got["cols"][2]);
+  CHECK(got["rows"][3] + got["rows"][4] == Approx(got["rows"][2]).margin(1.0));
+  // A missing truth is named.
+  std::filesystem::remove(s.dir / "gt" / "a.png");
+  const auto bad = test::run_shell("/usr/bin/python3 " + test::q(script) + " " + test::q(s.dir / "set") + " " +
+                                   test::q(s.dir / "gt") + " rows");
+  CHECK(bad.code != 0);
+  CHECK_THAT(bad.output, Catch::Matchers::Contains("a.png missing"));
 }
 
 TEST_CASE("the PSNR term is minus eval's mean PSNR, counts every image in decibels, and has a gradient", "[nn][loss]") {
