@@ -57,9 +57,10 @@ void write_safetensors(const std::filesystem::path& path,
 SafeTensors parse_safetensors(const std::string& bytes, const std::filesystem::path& path,
                               const SafeTensorsLimits& limits = {});
 SafeTensors read_safetensors(const std::filesystem::path& path, const SafeTensorsLimits& limits = {});
-// The "__metadata__" strings alone, from the file's first 8 + N bytes: the tensors are neither read
-// nor checked (nor is the CRC-32, which covers them), so a file's kind is known without reading its
-// weights. The header gets parse_safetensors's checks.
+// The "__metadata__" strings alone, from the file's first 8 + N bytes, so a file's kind is known
+// without reading its weights. The header's length, JSON, nesting, key counts and metadata get
+// parse_safetensors's checks; the tensor entries and the buffer are not read (nor is the CRC-32,
+// which covers the buffer): loading the file checks them.
 std::map<std::string, std::string> read_safetensors_metadata(const std::filesystem::path& path,
                                                              const SafeTensorsLimits& limits = {});
 
