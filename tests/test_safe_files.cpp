@@ -52,6 +52,14 @@ void save_format1_model(const std::filesystem::path& path, Generator& g, const C
 
 Config tiny_config() { return Config::load({}, {"model.unet.width=2"}); }
 
+// A model file of the tiny config with random weights, for tests that need only the file.
+void save_tiny_model(const std::filesystem::path& path) {
+  const auto config = tiny_config();
+  const auto camera = test::tiny_camera();
+  auto g = test::random_generator(config, camera);
+  save_model_file(path, g, config, camera);
+}
+
 bool have_python() { return std::system("python3 -c 'import json, struct, zlib' >/dev/null 2>&1") == 0; }
 
 }  // namespace
@@ -177,10 +185,7 @@ TEST_CASE("hostile safetensors files: one clear error naming the file, nothing l
 
 TEST_CASE("a file's kind comes from its header alone; the header gets every check", "[safe][model]") {
   test::Scratch s("st_kind");
-  const auto config = tiny_config();
-  const auto camera = test::tiny_camera();
-  auto g = test::random_generator(config, camera);
-  save_model_file(s.dir / "m.flatnet", g, config, camera);
+  save_tiny_model(s.dir / "m.flatnet");
   // The metadata read from the header is the metadata the whole-file reader returns.
   CHECK(read_safetensors_metadata(s.dir / "m.flatnet") == read_safetensors(s.dir / "m.flatnet").metadata);
   CHECK_FALSE(is_checkpoint_file(s.dir / "m.flatnet"));
@@ -297,10 +302,7 @@ torch.jit.save(torch.jit.script(Evil()), sys.argv[1])
 
 TEST_CASE("a model file's spec is checked against its weights before the network is built", "[safe][model]") {
   test::Scratch s("sizes");
-  const auto config = tiny_config();
-  const auto camera = test::tiny_camera();
-  auto g = test::random_generator(config, camera);
-  save_model_file(s.dir / "m.flatnet", g, config, camera);
+  save_tiny_model(s.dir / "m.flatnet");
   // `legacy`: as files from before the typed spec, whose embedded training config describes the model.
   auto tamper = [&](const std::string& name, const std::string& key, const std::string& from, const std::string& to,
                     bool legacy = false) {
