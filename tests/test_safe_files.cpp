@@ -183,7 +183,7 @@ TEST_CASE("hostile safetensors files: one clear error naming the file, nothing l
           "CRC-32");
 }
 
-TEST_CASE("a file's kind comes from its header alone; the header gets every check", "[safe][model]") {
+TEST_CASE("a file's kind comes from its header alone, and the header gets every check", "[safe][model]") {
   test::Scratch s("st_kind");
   save_tiny_model(s.dir / "m.flatnet");
   // The metadata read from the header is the metadata the whole-file reader returns.
