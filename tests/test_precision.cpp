@@ -112,6 +112,18 @@ TEST_CASE("OpenBLAS gets its SkylakeX kernels on AVX-512 CPUs it predates, unles
   CHECK(better_openblas_core("", avx512, nullptr).empty());  // not OpenBLAS
 }
 
+TEST_CASE("under oneDNN's AVX2 cap OpenBLAS gets its AVX2 kernels, whatever it chose", "[precision][blas]") {
+  const auto avx512 =
+      parse_cpuinfo("model name : X\nflags : fpu avx2 fma avx512f avx512cd avx512bw avx512dq avx512vl\n");
+  const auto capped = with_onednn_isa(avx512, 0x7);  // dnnl_cpu_isa_avx2
+  REQUIRE(capped.onednn_capped);
+  CHECK(better_openblas_core("SkylakeX", capped, nullptr) == "Haswell");
+  CHECK(better_openblas_core("Prescott", capped, nullptr) == "Haswell");  // a CPU OpenBLAS predates
+  CHECK(better_openblas_core("Haswell", capped, nullptr).empty());
+  CHECK(better_openblas_core("Zen", capped, nullptr).empty());
+  CHECK(better_openblas_core("Prescott", capped, "Prescott").empty());  // the user's OPENBLAS_CORETYPE
+}
+
 TEST_CASE("the CLI runs OpenBLAS on the kernels chosen for this CPU and says which", "[precision][blas][cli]") {
   const std::string row = "bench --rows peak_gemm_fp32 --repeats 1 --warmup 0 --threads 1";
   const auto chosen = test::run_shell("env -u OPENBLAS_CORETYPE " + std::string(FLATNET_BINARY) + " " + row);

@@ -23,10 +23,11 @@ std::string openblas_core() {
 std::string better_openblas_core(const std::string& current, const CpuFeatures& cpu, const char* user_choice) {
   if (user_choice != nullptr && *user_choice != '\0') return "";
   if (current.empty()) return "";
-  const bool avx512_kernels = current == "SkylakeX" || current == "Cooperlake" || current == "SapphireRapids";
   // Under oneDNN's ISA cap (ONEDNN_MAX_CPU_ISA=AVX2) the whole process behaves as the AVX2 kind:
-  // OpenBLAS, which does not read that cap, gets its AVX2 kernels too.
-  if (!cpu.avx512_core) return cpu.onednn_capped && avx512_kernels ? "Haswell" : "";
+  // OpenBLAS, which does not read that cap, gets its AVX2 kernels too, whatever it chose. A CPU it
+  // predates gets its SSE3 fallback "Prescott" (Emerald Rapids on 0.3.21), which the cap must not keep.
+  const bool avx2_kernels = current == "Haswell" || current == "Zen";
+  if (!cpu.avx512_core) return cpu.onednn_capped && !avx2_kernels ? "Haswell" : "";
   if (current == "SkylakeX" || current == "SapphireRapids") return "";
   return "SkylakeX";
 }

@@ -17,7 +17,8 @@ std::string openblas_core();
 
 // The OpenBLAS core to ask for instead of `current`, or "" to keep it: SkylakeX on CPUs with
 // AVX-512 (F, CD, BW, DQ, VL) where OpenBLAS chose anything but SkylakeX or its own newer
-// SapphireRapids; Haswell where oneDNN is capped below AVX-512 (the AVX2 kind, whole process);
+// SapphireRapids; Haswell where oneDNN is capped below AVX-512 (the AVX2 kind, whole process) and
+// OpenBLAS chose another set than Haswell or Zen;
 // "" when `user_choice` (OPENBLAS_CORETYPE) is set or the BLAS is not OpenBLAS.
 std::string better_openblas_core(const std::string& current, const CpuFeatures& cpu, const char* user_choice);
 
