@@ -81,6 +81,38 @@ TEST_CASE("output folders: a second command is refused while one writes, --force
   CHECK_NOTHROW(claim_output_folder(dir, role("recon")));
 }
 
+TEST_CASE("output folders: a folder removed under its command is written no more", "[outputs]") {
+  test::Scratch s("removed");
+  const auto dir = s.dir / "run";
+  auto held = claim_output_folder(dir, role("train"));
+  write_text_atomically(dir / "latest.ckpt", "one");
+  write_text_atomically(dir / "kept" / "step500.flatnet", "kept");  // a subfolder of the held one
+  CHECK(read_file_text(dir / "latest.ckpt", 16) == "one");
+  // The user removes the run while it trains: its next write neither re-creates the folder nor writes.
+  std::filesystem::remove_all(dir);
+  CHECK_THROWS_WITH(write_text_atomically(dir / "best.ckpt", "old run"),
+                    Contains(dir.string()) && Contains("was removed, moved or replaced") && Contains("best.ckpt"));
+  CHECK_FALSE(std::filesystem::exists(dir));
+  // Another run starts in its place (its own lock file): the old command still writes nothing there.
+  std::filesystem::create_directories(dir);
+  touch(dir / kOutputLock, "pid 1, flatnet train\n");
+  touch(dir / "latest.ckpt", "new run");
+  CHECK_THROWS_WITH(write_text_atomically(dir / "latest.ckpt", "old run"), Contains("was removed, moved or replaced"));
+  CHECK_THROWS(write_text_atomically(dir / "kept" / "step1000.flatnet", "old run"));
+  CHECK(read_file_text(dir / "latest.ckpt", 16) == "new run");
+  CHECK_FALSE(std::filesystem::exists(dir / "kept"));
+  // Files outside every held folder are untouched by the check.
+  CHECK_NOTHROW(write_text_atomically(s.dir / "elsewhere.txt", "fine"));
+  held = OutputClaim();
+  CHECK_NOTHROW(write_text_atomically(dir / "latest.ckpt", "no claim held"));
+  // A folder named with a trailing separator (`--out RUN/`) is held the same.
+  const auto other = s.dir / "other";
+  auto slash = claim_output_folder(other / "", role("train"));
+  std::filesystem::remove_all(other);
+  CHECK_THROWS_WITH(write_text_atomically(other / "latest.ckpt", "x"), Contains("was removed, moved or replaced"));
+  CHECK_FALSE(std::filesystem::exists(other));
+}
+
 TEST_CASE("output folders: a command refused on bad input leaves no folder behind", "[outputs]") {
   test::Scratch s("unwind");
   const auto dir = s.dir / "new";

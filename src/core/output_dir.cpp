@@ -5,9 +5,12 @@
 #include <sys/stat.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <cstring>
 #include <fstream>
+#include <mutex>
 #include <sstream>
+#include <vector>
 
 #include "core/error.hpp"
 #include "core/util.hpp"
@@ -81,7 +84,70 @@ int lock_folder(const fs::path& dir, const OutputRole& role) {
   return fd;
 }
 
+// The folders this process holds claims on, and the descriptor of each one's locked file.
+struct HeldFolder {
+  fs::path dir;  // absolute, lexically normal
+  int fd;
+};
+std::mutex held_mutex;
+std::vector<HeldFolder> held_folders;
+
+fs::path normal_absolute(const fs::path& p) {
+  std::error_code ec;
+  auto n = fs::absolute(p, ec);
+  n = (ec ? p : n).lexically_normal();
+  // "RUN/" names the folder RUN: its empty last component would match no file inside it.
+  if (!n.has_filename() && n.has_relative_path()) n = n.parent_path();
+  return n;
+}
+
+void hold(const fs::path& dir, int fd) {
+  std::lock_guard<std::mutex> lock(held_mutex);
+  held_folders.push_back({normal_absolute(dir), fd});
+}
+
+void unhold(int fd) {
+  std::lock_guard<std::mutex> lock(held_mutex);
+  held_folders.erase(
+      std::remove_if(held_folders.begin(), held_folders.end(), [fd](const HeldFolder& h) { return h.fd == fd; }),
+      held_folders.end());
+}
+
+// Whether `dir`'s lock file is the very file `fd` locked (same device and inode).
+bool lock_is_ours(const fs::path& dir, int fd) {
+  struct stat held = {};
+  struct stat now = {};
+  if (::fstat(fd, &held) != 0) return false;
+  if (::lstat((dir / kOutputLock).c_str(), &now) != 0) return false;
+  return held.st_dev == now.st_dev && held.st_ino == now.st_ino;
+}
+
 }  // namespace
+
+void require_claim_intact(const fs::path& file) {
+  std::lock_guard<std::mutex> lock(held_mutex);
+  if (held_folders.empty()) return;
+  const auto target = normal_absolute(file);
+  // The innermost held folder that holds `file`; the write passes if a claim on it still holds its
+  // lock (one process claims a folder once, unless it was removed and claimed again).
+  const fs::path* innermost = nullptr;
+  for (const auto& h : held_folders) {
+    const auto end = std::mismatch(h.dir.begin(), h.dir.end(), target.begin(), target.end()).first;
+    const bool inside = end == h.dir.end();
+    if (inside &&
+        (!innermost || std::distance(h.dir.begin(), h.dir.end()) > std::distance(innermost->begin(), innermost->end())))
+      innermost = &h.dir;
+  }
+  if (!innermost) return;
+  const bool intact = std::any_of(held_folders.begin(), held_folders.end(), [&](const HeldFolder& h) {
+    return h.dir == *innermost && lock_is_ours(h.dir, h.fd);
+  });
+  require(intact, *innermost,
+          "was removed, moved or replaced while this flatnet command wrote to it (its " + std::string(kOutputLock) +
+              " is no longer this command's); nothing more is written there, so no other command's files are "
+              "overwritten (" +
+              file.filename().string() + " not written)");
+}
 
 OutputClaim::OutputClaim(OutputClaim&& other) noexcept { *this = std::move(other); }
 
@@ -117,6 +183,7 @@ void OutputClaim::release() noexcept {
   } catch (...) {
     // Best effort: the claim's own files stay.
   }
+  unhold(fd_);
   ::close(fd_);  // closing drops the flock
   fd_ = -1;
 }
@@ -138,6 +205,7 @@ OutputClaim claim_output_folder(const fs::path& dir, const OutputRole& role) {
     if (claim.created_dir_) fs::remove_all(dir);
     throw;
   }  // before reading the marker: no other command changes it now
+  hold(dir, claim.fd_);
   Marker m;
   bool marked = read_marker(dir, m);
   if (!marked && !role.own_file.empty() && fs::exists(dir / role.own_file)) {

@@ -12,6 +12,11 @@
 //  - while a command holds the claim, the folder is locked (flock on `.flatnet-lock`, which names the
 //    holder): a second command is refused at once, whatever `force` says. The kernel drops the lock
 //    when the process ends, however it ends.
+//  - every atomic write into a held folder (core/util.hpp: checkpoints, models, tables) first checks
+//    that the folder's lock is still the one the claim holds. A folder removed, moved or replaced
+//    while its command ran (a user's `rm -rf RUN` and a new run started there) is written no more:
+//    the write is refused, instead of the old command re-creating the folder or overwriting the
+//    new command's files.
 #include <filesystem>
 #include <string>
 
@@ -51,6 +56,11 @@ class OutputClaim {
 
 // Errors name the folder and what is wrong (another role, other settings, foreign files, locked).
 OutputClaim claim_output_folder(const std::filesystem::path& dir, const OutputRole& role);
+
+// Refuses (Error naming the folder) a write to `file` inside a folder this process claimed whose
+// `.flatnet-lock` is gone or is no longer the file the claim locked. A file outside every held
+// folder passes. Called by write_atomically before it makes folders and again before its rename.
+void require_claim_intact(const std::filesystem::path& file);
 
 // The marker's file name, for code that lists a folder's own files.
 constexpr const char* kOutputMarker = ".flatnet-output";

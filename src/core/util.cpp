@@ -1,5 +1,7 @@
 #include "core/util.hpp"
 
+#include "core/output_dir.hpp"
+
 #include <algorithm>
 #include <openssl/evp.h>
 
@@ -82,6 +84,7 @@ int set_threads(int n) {
 }
 
 void write_atomically(const fs::path& path, const std::function<void(const fs::path&)>& write_to) {
+  require_claim_intact(path);  // before any folder is made: a removed run folder is not re-created
   if (path.has_parent_path()) {
     std::error_code ec;
     fs::create_directories(path.parent_path(), ec);
@@ -98,6 +101,7 @@ void write_atomically(const fs::path& path, const std::function<void(const fs::p
   // the final name is neither created nor replaced.
   try {
     write_to(tmp);
+    require_claim_intact(path);
     fs::rename(tmp, path);
   } catch (const Error&) {
     remove_tmp();
