@@ -127,26 +127,23 @@ bool lock_is_ours(const fs::path& dir, int fd) {
 void require_claim_intact(const fs::path& file) {
   std::lock_guard<std::mutex> lock(held_mutex);
   if (held_folders.empty()) return;
-  const auto target = normal_absolute(file);
-  // The innermost held folder that holds `file`; the write passes if a claim on it still holds its
-  // lock (one process claims a folder once, unless it was removed and claimed again).
-  const fs::path* innermost = nullptr;
-  for (const auto& h : held_folders) {
-    const auto end = std::mismatch(h.dir.begin(), h.dir.end(), target.begin(), target.end()).first;
-    const bool inside = end == h.dir.end();
-    if (inside &&
-        (!innermost || std::distance(h.dir.begin(), h.dir.end()) > std::distance(innermost->begin(), innermost->end())))
-      innermost = &h.dir;
+  // The innermost held folder that holds `file` (walking up from the file); the write passes if a
+  // claim on it still holds its lock (one process claims a folder once, unless it was removed and
+  // claimed again).
+  for (auto dir = normal_absolute(file).parent_path();; dir = dir.parent_path()) {
+    const auto on_dir = [&](const HeldFolder& h) { return h.dir == dir; };
+    if (std::any_of(held_folders.begin(), held_folders.end(), on_dir)) {
+      const bool intact = std::any_of(held_folders.begin(), held_folders.end(),
+                                      [&](const HeldFolder& h) { return on_dir(h) && lock_is_ours(h.dir, h.fd); });
+      require(intact, dir,
+              "was removed, moved or replaced while this flatnet command wrote to it (its " + std::string(kOutputLock) +
+                  " is no longer this command's); nothing more is written there, so no other command's files are "
+                  "overwritten (" +
+                  file.filename().string() + " not written)");
+      return;
+    }
+    if (dir == dir.parent_path()) return;  // the root: `file` is in no held folder
   }
-  if (!innermost) return;
-  const bool intact = std::any_of(held_folders.begin(), held_folders.end(), [&](const HeldFolder& h) {
-    return h.dir == *innermost && lock_is_ours(h.dir, h.fd);
-  });
-  require(intact, *innermost,
-          "was removed, moved or replaced while this flatnet command wrote to it (its " + std::string(kOutputLock) +
-              " is no longer this command's); nothing more is written there, so no other command's files are "
-              "overwritten (" +
-              file.filename().string() + " not written)");
 }
 
 OutputClaim::OutputClaim(OutputClaim&& other) noexcept { *this = std::move(other); }
