@@ -131,6 +131,20 @@ TEST_CASE("output folders: a command refused on bad input leaves no folder behin
   }
   CHECK(std::filesystem::exists(dir));
   CHECK(std::filesystem::is_empty(dir));
+  // A folder removed while its command failed, and claimed again by a new run (only that run's
+  // marker and lock in it so far): the failing command's undo leaves the new run's folder alone.
+  const auto run = s.dir / "run";
+  OutputClaim new_run;
+  try {
+    auto failing = claim_output_folder(run, role("train"));
+    std::filesystem::remove_all(run);
+    new_run = claim_output_folder(run, role("train"));
+    throw Error("bad input found after the claim");
+  } catch (const Error&) {
+  }
+  CHECK(std::filesystem::exists(run / kOutputMarker));
+  CHECK(std::filesystem::exists(run / kOutputLock));
+  CHECK_THROWS_WITH(claim_output_folder(run, role("train")), Contains("another flatnet command is writing"));
 }
 
 TEST_CASE("outputs never replace inputs: infer into a dataset's gt, patterns into raw captures", "[outputs][cli]") {

@@ -169,13 +169,14 @@ void OutputClaim::release() noexcept {
   if (fd_ < 0) return;
   try {
     const bool failing = std::uncaught_exceptions() > exceptions_at_claim_;
-    if (failing && wrote_marker_ && foreign_entries(dir_).first == 0) {  // nothing but our marker and lock
-      if (created_dir_) {
-        fs::remove_all(dir_);
-      } else {
-        fs::remove(dir_ / kOutputMarker);
-        fs::remove(dir_ / kOutputLock);
-      }
+    // Undone only while the folder is still the one this claim locked (a folder removed and
+    // re-claimed by another run holds that run's marker and lock), and only file by file: our
+    // marker, our lock, then the folder if that left it empty. Nothing else is ever removed.
+    if (failing && wrote_marker_ && lock_is_ours(dir_, fd_) && foreign_entries(dir_).first == 0) {
+      fs::remove(dir_ / kOutputMarker);
+      fs::remove(dir_ / kOutputLock);
+      std::error_code not_empty;
+      if (created_dir_) fs::remove(dir_, not_empty);
     }
   } catch (...) {
     // Best effort: the claim's own files stay.
@@ -193,13 +194,17 @@ OutputClaim claim_output_folder(const fs::path& dir, const OutputRole& role) {
   if (fs::exists(dir)) {
     require(fs::is_directory(dir), dir, "exists and is not a folder");
   } else {
-    fs::create_directories(dir);
-    claim.created_dir_ = true;
+    // True only for the command whose mkdir made it: of two started at once on a new folder, the
+    // other one does not count it as its own.
+    claim.created_dir_ = fs::create_directories(dir);
   }
   try {
     claim.fd_ = lock_folder(dir, role);
   } catch (...) {
-    if (claim.created_dir_) fs::remove_all(dir);
+    // Refused (e.g. the other command of such a pair holds the lock): the folder goes only if it is
+    // still empty, never with the files of the command that holds it.
+    std::error_code not_empty;
+    if (claim.created_dir_) fs::remove(dir, not_empty);
     throw;
   }  // before reading the marker: no other command changes it now
   hold(dir, claim.fd_);
