@@ -840,7 +840,8 @@ TEST_CASE("model cards: flatnet info tells what a model file holds, export recor
       0);
   auto r = test::run_flatnet("train --config " + q(test::source_dir() / "configs" / "sim_transpose.yaml") +
                              " --set data.dataset=" + q(s.dir / "ds") + " --set model.unet.width=2" + kOnDisk +
-                             " --set train.iterations=3 --set train.val_every=1 --out " + q(s.dir / "run"));
+                             " --set loss.stripe=3 --set train.iterations=3 --set train.val_every=1 --out " +
+                             q(s.dir / "run"));
   INFO(r.output);
   REQUIRE(r.code == 0);
   const auto model = s.dir / "run" / "model.flatnet";
@@ -856,7 +857,7 @@ TEST_CASE("model cards: flatnet info tells what a model file holds, export recor
   CHECK_THAT(r.output, Contains("model file") && Contains("U-Net, width 2") && Contains("transpose init"));
   CHECK_THAT(r.output, Contains("3 steps") && Contains("best validation PSNR"));
   CHECK_THAT(r.output, Contains("written   20") && Contains("none recorded"));
-  CHECK_THAT(r.output, Contains("1 mse + 0.2 ssim"));
+  CHECK_THAT(r.output, Contains("1 mse + 0.2 ssim") && Contains(" + 3 stripe"));  // every term of the loss
 
   // A checkpoint too, shown with its moving average when it kept one.
   r = test::run_flatnet("info " + q(s.dir / "run" / "latest.ckpt"));

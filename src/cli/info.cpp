@@ -28,8 +28,8 @@ std::string join(const std::vector<std::string>& items, const std::string& separ
 // "1 mse + 0.2 ssim" from the recorded training config ("not recorded" without one).
 std::string join_nonzero_losses(const ModelFile& m) {
   std::string out;
-  for (const char* term :
-       {"mse", "ssim", "perceptual", "adversarial", "feature_matching", "frequency", "chroma", "gradient"}) {
+  for (const char* term : {"mse", "ssim", "perceptual", "adversarial", "feature_matching", "frequency", "chroma",
+                           "gradient", "stripe", "psnr"}) {
     const auto text = m.recorded(std::string("loss.") + term);
     if (text.empty() || !is_decimal_number(text) || std::strtod(text.c_str(), nullptr) == 0) continue;
     std::ostringstream os;
