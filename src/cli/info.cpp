@@ -25,15 +25,18 @@ std::string join(const std::vector<std::string>& items, const std::string& separ
   return out;
 }
 
-// "1 mse + 0.2 ssim" from the recorded training config ("not recorded" without one).
+// "1 mse + 0.2 ssim" from the recorded training config ("not recorded" without one): every loss
+// weight the trainer reads (its option table), so a new term is never left out here.
 std::string join_nonzero_losses(const ModelFile& m) {
+  const std::string prefix = "loss.";
   std::string out;
-  for (const char* term : {"mse", "ssim", "perceptual", "adversarial", "feature_matching", "frequency", "chroma",
-                           "gradient", "stripe", "psnr"}) {
-    const auto text = m.recorded(std::string("loss.") + term);
+  for (const auto& field : train_fields()) {
+    const std::string key = field.key;
+    if (key.rfind(prefix, 0) != 0) continue;
+    const auto text = m.recorded(key);
     if (text.empty() || !is_decimal_number(text) || std::strtod(text.c_str(), nullptr) == 0) continue;
     std::ostringstream os;
-    os << (out.empty() ? "" : " + ") << std::strtod(text.c_str(), nullptr) << " " << term;
+    os << (out.empty() ? "" : " + ") << std::strtod(text.c_str(), nullptr) << " " << key.substr(prefix.size());
     out += os.str();
   }
   return out.empty() ? (m.recipe.empty() ? "not recorded" : "none") : out;

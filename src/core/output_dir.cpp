@@ -84,6 +84,12 @@ int lock_folder(const fs::path& dir, const OutputRole& role) {
   return fd;
 }
 
+// Removes `dir` only if it is empty (rmdir): never anything another command wrote into it.
+void remove_if_empty(const fs::path& dir) {
+  std::error_code not_empty;
+  fs::remove(dir, not_empty);
+}
+
 // The folders this process holds claims on, and the descriptor of each one's locked file.
 struct HeldFolder {
   fs::path dir;  // absolute, lexically normal
@@ -175,8 +181,7 @@ void OutputClaim::release() noexcept {
     if (failing && wrote_marker_ && lock_is_ours(dir_, fd_) && foreign_entries(dir_).first == 0) {
       fs::remove(dir_ / kOutputMarker);
       fs::remove(dir_ / kOutputLock);
-      std::error_code not_empty;
-      if (created_dir_) fs::remove(dir_, not_empty);
+      if (created_dir_) remove_if_empty(dir_);
     }
   } catch (...) {
     // Best effort: the claim's own files stay.
@@ -203,8 +208,7 @@ OutputClaim claim_output_folder(const fs::path& dir, const OutputRole& role) {
   } catch (...) {
     // Refused (e.g. the other command of such a pair holds the lock): the folder goes only if it is
     // still empty, never with the files of the command that holds it.
-    std::error_code not_empty;
-    if (claim.created_dir_) fs::remove(dir, not_empty);
+    if (claim.created_dir_) remove_if_empty(dir);
     throw;
   }  // before reading the marker: no other command changes it now
   hold(dir, claim.fd_);
