@@ -33,10 +33,12 @@ std::string join_nonzero_losses(const ModelFile& m) {
   for (const auto& field : train_fields()) {
     const std::string key = field.key;
     if (key.rfind(prefix, 0) != 0) continue;
-    const auto text = m.recorded(key);
-    if (text.empty() || !is_decimal_number(text) || std::strtod(text.c_str(), nullptr) == 0) continue;
+    const auto text = m.recorded(key);  // "" when not recorded, which is no number
+    if (!is_decimal_number(text)) continue;
+    const double weight = std::strtod(text.c_str(), nullptr);
+    if (weight == 0) continue;
     std::ostringstream os;
-    os << (out.empty() ? "" : " + ") << std::strtod(text.c_str(), nullptr) << " " << key.substr(prefix.size());
+    os << (out.empty() ? "" : " + ") << weight << " " << key.substr(prefix.size());
     out += os.str();
   }
   return out.empty() ? (m.recipe.empty() ? "not recorded" : "none") : out;
