@@ -4,6 +4,7 @@
 
 #include "core/error.hpp"
 #include "helpers.hpp"
+#include "io/safetensors.hpp"
 #include "nn/model_file.hpp"
 #include "nn/model_spec.hpp"
 #include "tiny_model.hpp"
@@ -82,7 +83,7 @@ TEST_CASE("the shipped models read without training defaults, and rewritten give
   for (const auto* name : {"flatnet-sim-transpose", "flatnet-sim-calibfree"}) {
     INFO(name);
     const auto file = test::source_dir() / "models" / (std::string(name) + ".flatnet");
-    auto m = load_model_file(file);  // the transpose one written before the spec: converted from its config
+    auto m = load_model_file(file);
     CHECK(m.spec.unet_width == 32);
     CHECK(m.spec.level_input);
     // The calibration-free model's first stage starts from the transposes of a camera identified from its
@@ -91,6 +92,13 @@ TEST_CASE("the shipped models read without training defaults, and rewritten give
     CHECK(m.spec.inversion_init == "transpose");
     CHECK(m.recorded("train.crop") == "128");
     CHECK(m.recorded("no.such.key").empty());
+    // As written before the typed spec (the transpose model shipped until 2026-12-01 was such a file):
+    // the embedded training config alone converts to the same spec.
+    auto tensors = read_safetensors(file);
+    REQUIRE(tensors.metadata.erase("model_spec") == 1);
+    const auto legacy = s.dir / (std::string(name) + "-legacy.flatnet");
+    write_safetensors(legacy, tensors.tensors, tensors.metadata);
+    CHECK(model_spec_yaml(load_model_file(legacy).spec) == model_spec_yaml(m.spec));
     const auto again = s.dir / (std::string(name) + ".flatnet");
     save_model_file(again, m.generator, model_identity(m));
     auto r = load_model_file(again);
