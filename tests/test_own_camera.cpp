@@ -253,3 +253,26 @@ TEST_CASE("docs/own-camera.md: the walkthrough's commands run as the page writes
   CHECK(std::filesystem::exists(s.dir / "my_rec" / "camera_fit.csv"));
   CHECK(std::filesystem::exists(s.dir / "my_report"));
 }
+
+TEST_CASE("models/stages: the identified camera kept for the calibration-free line loads, and its training copy "
+          "differs only in colour_mix and the rig",
+          "[own-camera][stages]") {
+  const auto dir = test::source_dir() / "models" / "stages" / "identified-camera";
+  const auto camera = flatnet::load_camera_config(dir / "camera.yaml");
+  const auto train = flatnet::load_camera_config(dir / "camera_train.yaml");
+  CHECK(camera.colour_mix.size() == 4);  // identified with the factors: b, gb, gr, r
+  CHECK(train.colour_mix.empty());       // the network learns the colour itself
+  CHECK(camera.rig.empty());
+  REQUIRE(std::filesystem::exists(train.rig));
+  CHECK(std::filesystem::equivalent(train.rig, test::rig_path()));
+  CHECK(std::filesystem::equivalent(train.calibration, camera.calibration));
+  CHECK(train.raw.rotation == camera.raw.rotation);
+  CHECK(camera.raw.rotation != 0);  // identified, not the geometry's 0
+  CHECK(train.noise_gain == camera.noise_gain);
+  CHECK(train.fit_threshold == camera.fit_threshold);
+  const auto calib = flatnet::load_calibration(train.calibration, train);
+  CHECK(calib.P.sizes() == torch::IntArrayRef({4, 500, 256}));
+  CHECK(calib.Q.sizes() == torch::IntArrayRef({4, 620, 256}));
+  CHECK(torch::isfinite(calib.P).all().item<bool>());
+  CHECK(torch::isfinite(calib.Q).all().item<bool>());
+}
