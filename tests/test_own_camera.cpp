@@ -254,9 +254,10 @@ TEST_CASE("docs/own-camera.md: the walkthrough's commands run as the page writes
   CHECK(std::filesystem::exists(s.dir / "my_report"));
 }
 
-TEST_CASE("models/stages: the identified camera kept for the calibration-free line loads, and its training copy "
-          "differs only in colour_mix and the rig",
-          "[own-camera][stages]") {
+TEST_CASE(
+    "models/stages: the identified camera kept for the calibration-free line loads, and its training copy "
+    "differs only in colour_mix and the rig",
+    "[own-camera][stages]") {
   const auto dir = test::source_dir() / "models" / "stages" / "identified-camera";
   const auto camera = flatnet::load_camera_config(dir / "camera.yaml");
   const auto train = flatnet::load_camera_config(dir / "camera_train.yaml");
