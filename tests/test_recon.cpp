@@ -338,6 +338,19 @@ TEST_CASE("the differentiable oneDNN product has torch::matmul's value and gradi
   }
 }
 
+// The camera fit of a tiny model trained with `camera` whose training config records `data.camera`
+// as `recorded` (a path on the training machine), with `why` set when there is none.
+static std::shared_ptr<const CameraFit> fit_of_model_recording(const std::filesystem::path& dir,
+                                                               const CameraConfig& camera, const std::string& recorded,
+                                                               std::string& why) {
+  auto config = Config::load(
+      {}, {"model.unet.width=2", "model.inversion.init=random", "model.level_input=true", "data.camera=" + recorded});
+  Generator g(generator_options(config, camera, false));
+  const auto file = dir / "m.flatnet";
+  save_model_file(file, g, config, camera);
+  return model_camera_fit(load_model_file(file), why);
+}
+
 TEST_CASE("a model trained elsewhere finds its camera among flatnet's own in a camera's folder too",
           "[recon][camera-fit]") {
   // The training machine's path is gone here; the camera lies under configs/cameras/ in a folder of
@@ -345,12 +358,26 @@ TEST_CASE("a model trained elsewhere finds its camera among flatnet's own in a c
   test::Scratch s("camera_elsewhere");
   const auto camera =
       load_camera_config(test::source_dir() / "configs" / "cameras" / "flatnet_prototype" / "camera.yaml");
-  auto config = Config::load({}, {"model.unet.width=2", "model.inversion.init=random", "model.level_input=true",
-                                  "data.camera=/nowhere/configs/cameras/flatnet_prototype/camera.yaml"});
-  Generator g(generator_options(config, camera, false));
-  save_model_file(s.dir / "m.flatnet", g, config, camera);
   std::string why;
-  const auto fit = model_camera_fit(load_model_file(s.dir / "m.flatnet"), why);
+  const auto fit = fit_of_model_recording(s.dir, camera, "/nowhere/configs/cameras/flatnet_prototype/camera.yaml", why);
   INFO(why);
   CHECK(fit != nullptr);
+}
+
+TEST_CASE("a model trained in another checkout finds a camera kept among flatnet's models", "[recon][camera-fit]") {
+  // The shipped calibration-free model records the identified camera's path in the checkout it was
+  // trained in (.../models/stages/identified-camera/camera_train.yaml); elsewhere it is found at the
+  // same place among flatnet's own models, so its captures' fit is still judged.
+  test::Scratch s("camera_in_models");
+  const auto camera =
+      load_camera_config(test::source_dir() / "models" / "stages" / "identified-camera" / "camera_train.yaml");
+  std::string why;
+  const auto fit =
+      fit_of_model_recording(s.dir, camera, "/nowhere/checkout/models/stages/identified-camera/camera_train.yaml", why);
+  INFO(why);
+  CHECK(fit != nullptr);
+  // A path that names no camera among the models stays unjudged, with the reason.
+  std::string why_not;
+  CHECK(fit_of_model_recording(s.dir, camera, "/nowhere/checkout/models/no_such_camera.yaml", why_not) == nullptr);
+  CHECK_THAT(why_not, Contains("names no calibration"));
 }

@@ -158,8 +158,10 @@ namespace {
 
 // The camera a model was trained with: its file's camera when that names a calibration; else the
 // camera file its training config names (data.camera), or, when that path is not on this machine
-// (a model trained elsewhere), the file of the same name among flatnet's own cameras
-// (configs/cameras): either only when its name and geometry are the model's.
+// (a model trained elsewhere or in another checkout), the same place among flatnet's own cameras
+// (configs/cameras) or models (models/stages/identified-camera/, the shipped calibration-free
+// model's), then the file of the same name among the cameras: any only when its name and geometry
+// are the model's.
 CameraConfig training_camera(const ModelFile& m) {
   if (!m.camera.calibration.empty()) return m.camera;
   const std::filesystem::path recorded = m.recorded_camera();
@@ -167,11 +169,16 @@ CameraConfig training_camera(const ModelFile& m) {
   std::vector<std::filesystem::path> candidates{recorded};
   try {
     // Where it lies under a `cameras` folder (configs/cameras/flatnet_prototype/camera.yaml), the same
-    // place among flatnet's own cameras; then the file name alone.
+    // place among flatnet's own cameras; under a `models` folder, the same place among its models;
+    // then the file name alone.
     const auto own = data_dir() / "configs" / "cameras";
-    std::filesystem::path below;
-    for (const auto& part : recorded) below = part == "cameras" ? std::filesystem::path() : below / part;
+    std::filesystem::path below, below_models;
+    for (const auto& part : recorded) {
+      below = part == "cameras" ? std::filesystem::path() : below / part;
+      below_models = part == "models" ? std::filesystem::path(part) : below_models / part;
+    }
     if (!below.empty() && below != recorded) candidates.push_back(own / below);
+    if (!below_models.empty() && *below_models.begin() == "models") candidates.push_back(data_dir() / below_models);
     candidates.push_back(own / recorded.filename());
   } catch (const Error&) {  // an installation without its data folder: the recorded path alone
   }
