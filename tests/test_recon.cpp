@@ -1,4 +1,6 @@
 // recon/ and eval/: Tikhonov, TV, the Reconstructor interface and its batch loop, metrics.
+#include <fstream>
+
 #include "catch_torch.hpp"
 
 #include "io/camera_config.hpp"
@@ -380,4 +382,15 @@ TEST_CASE("a model trained in another checkout finds a camera kept among flatnet
   std::string why_not;
   CHECK(fit_of_model_recording(s.dir, camera, "/nowhere/checkout/models/no_such_camera.yaml", why_not) == nullptr);
   CHECK_THAT(why_not, Contains("names no calibration"));
+  // The recorded path is the model file's word: a file there that is no camera leaves the model usable
+  // and unjudged, and a path that climbs out with `..` is not looked for among flatnet's models.
+  const auto not_a_camera = s.dir / "notes.txt";
+  std::ofstream(not_a_camera) << "a file a hostile model names as its camera\n";
+  for (const auto& recorded : {not_a_camera.string(), std::string("/nowhere/models/stages/../stages/identified-camera/"
+                                                                  "camera_train.yaml")}) {
+    INFO(recorded);
+    std::string why_hint;
+    CHECK(fit_of_model_recording(s.dir, camera, recorded, why_hint) == nullptr);
+    CHECK_THAT(why_hint, Contains("names no calibration"));
+  }
 }

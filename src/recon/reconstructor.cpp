@@ -161,7 +161,9 @@ namespace {
 // (a model trained elsewhere or in another checkout), the same place among flatnet's own cameras
 // (configs/cameras) or models (models/stages/identified-camera/, the shipped calibration-free
 // model's), then the file of the same name among the cameras: any only when its name and geometry
-// are the model's.
+// are the model's. The recorded path comes from the model file, so it is a hint and nothing more: a
+// file there that is not a camera is passed over, and a path with `..` is never moved into
+// flatnet's folders.
 CameraConfig training_camera(const ModelFile& m) {
   if (!m.camera.calibration.empty()) return m.camera;
   const std::filesystem::path recorded = m.recorded_camera();
@@ -173,18 +175,26 @@ CameraConfig training_camera(const ModelFile& m) {
     // then the file name alone.
     const auto own = data_dir() / "configs" / "cameras";
     std::filesystem::path below, below_models;
+    bool climbs = false;
     for (const auto& part : recorded) {
+      climbs = climbs || part == "..";
       below = part == "cameras" ? std::filesystem::path() : below / part;
       below_models = part == "models" ? std::filesystem::path(part) : below_models / part;
     }
-    if (!below.empty() && below != recorded) candidates.push_back(own / below);
-    if (!below_models.empty() && *below_models.begin() == "models") candidates.push_back(data_dir() / below_models);
+    if (!climbs && !below.empty() && below != recorded) candidates.push_back(own / below);
+    if (!climbs && !below_models.empty() && *below_models.begin() == "models")
+      candidates.push_back(data_dir() / below_models);
     candidates.push_back(own / recorded.filename());
   } catch (const Error&) {  // an installation without its data folder: the recorded path alone
   }
   for (const auto& path : candidates) {
     if (!std::filesystem::is_regular_file(path)) continue;
-    auto cam = load_camera_config(path);
+    CameraConfig cam;
+    try {
+      cam = load_camera_config(path);
+    } catch (const Error&) {  // not a camera file (or not a readable one): not the model's camera
+      continue;
+    }
     const bool same = cam.name == m.camera.name && cam.raw.crop == m.camera.raw.crop &&
                       cam.scene_size == m.camera.scene_size && cam.raw.raw_height == m.camera.raw.raw_height &&
                       cam.raw.raw_width == m.camera.raw.raw_width;
