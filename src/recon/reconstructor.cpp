@@ -156,6 +156,24 @@ std::shared_ptr<const CameraFit> camera_fit_of(const CameraConfig& camera, std::
 
 namespace {
 
+// The part of `path` after its last component named `folder` (configs/cameras/a/b.yaml, "cameras":
+// a/b.yaml); empty when no component is, or when the path climbs with `..` anywhere, so that a
+// path read from a file is never moved into flatnet's folders.
+std::filesystem::path part_after_last(const std::filesystem::path& path, const std::string& folder) {
+  std::filesystem::path after;
+  bool found = false;
+  for (const auto& part : path) {
+    if (part == "..") return {};
+    if (part == folder) {
+      after.clear();
+      found = true;
+    } else {
+      after /= part;
+    }
+  }
+  return found ? after : std::filesystem::path();
+}
+
 // The camera a model was trained with: its file's camera when that names a calibration; else the
 // camera file its training config names (data.camera), or, when that path is not on this machine
 // (a model trained elsewhere or in another checkout), the same place among flatnet's own cameras
@@ -174,16 +192,10 @@ CameraConfig training_camera(const ModelFile& m) {
     // place among flatnet's own cameras; under a `models` folder, the same place among its models;
     // then the file name alone.
     const auto own = data_dir() / "configs" / "cameras";
-    std::filesystem::path below, below_models;
-    bool climbs = false;
-    for (const auto& part : recorded) {
-      climbs = climbs || part == "..";
-      below = part == "cameras" ? std::filesystem::path() : below / part;
-      below_models = part == "models" ? std::filesystem::path(part) : below_models / part;
+    for (const auto& [folder, mine] : {std::pair{"cameras", own}, std::pair{"models", data_dir() / "models"}}) {
+      const auto below = part_after_last(recorded, folder);
+      if (!below.empty()) candidates.push_back(mine / below);
     }
-    if (!climbs && !below.empty() && below != recorded) candidates.push_back(own / below);
-    if (!climbs && !below_models.empty() && *below_models.begin() == "models")
-      candidates.push_back(data_dir() / below_models);
     candidates.push_back(own / recorded.filename());
   } catch (const Error&) {  // an installation without its data folder: the recorded path alone
   }
