@@ -327,10 +327,27 @@ TEST_CASE("train, export, import and infer from the command line, and bad input 
   auto fresh = test::run_flatnet(base + " --set train.iterations=1 --out " + q(s.dir / "dead"));
   CHECK(fresh.code == 2);
   CHECK_THAT(fresh.output, Contains("never reached its first checkpoint") && Contains("--force"));
+  // The old run's kept models go too (export --average-of would mix two runs), and a kept/ that is a
+  // link is removed as a link: the folder it points to is not the run's and keeps its files.
+  std::filesystem::create_directories(s.dir / "dead" / "kept");
+  test::write_file(s.dir / "dead" / "kept" / "step2.flatnet", "the old run's model");
   fresh = test::run_flatnet(base + " --set train.iterations=1 --set train.val_every=1 --out " + q(s.dir / "dead") +
                             " --force");
   CHECK(fresh.code == 0);
   CHECK(read_lines(s.dir / "dead" / "val.csv").size() == 2);  // header and this run's one row
+  CHECK_FALSE(std::filesystem::exists(s.dir / "dead" / "kept" / "step2.flatnet"));
+  std::filesystem::create_directories(s.dir / "elsewhere");
+  test::write_file(s.dir / "elsewhere" / "step2.flatnet", "not the run's");
+  std::filesystem::remove_all(s.dir / "dead" / "kept");
+  std::filesystem::create_directory_symlink(s.dir / "elsewhere", s.dir / "dead" / "kept");
+  fresh = test::run_flatnet(base + " --set train.iterations=2 --set train.val_every=1 --set train.keep_every=1 --out " +
+                            q(s.dir / "dead") + " --force");
+  INFO(fresh.output);
+  CHECK(fresh.code == 0);
+  CHECK_FALSE(std::filesystem::is_symlink(s.dir / "dead" / "kept"));
+  CHECK(std::filesystem::exists(s.dir / "dead" / "kept" / "step2.flatnet"));
+  CHECK(test::read_file(s.dir / "elsewhere" / "step2.flatnet") == "not the run's");
+  CHECK_FALSE(std::filesystem::exists(s.dir / "elsewhere" / "step1.flatnet"));
   // Another run's checkpoint copied in: refused, naming both runs and --force; the folder unchanged.
   const auto own_checkpoint = read_bytes(s.dir / "run" / "latest.ckpt");
   std::filesystem::copy_file(s.dir / "dead" / "latest.ckpt", s.dir / "run" / "latest.ckpt",

@@ -1,4 +1,6 @@
 // recon/ and eval/: Tikhonov, TV, the Reconstructor interface and its batch loop, metrics.
+#include <sys/stat.h>
+
 #include <fstream>
 
 #include "catch_torch.hpp"
@@ -10,6 +12,7 @@
 #include "eval/report.hpp"
 #include "helpers.hpp"
 #include "nn/onednn_conv.hpp"
+#include "optics/camera.hpp"
 #include "optics/separable_inverse.hpp"
 #include "io/image.hpp"
 #include "io/raw.hpp"
@@ -392,5 +395,33 @@ TEST_CASE("a model trained in another checkout finds a camera kept among flatnet
     std::string why_hint;
     CHECK(fit_of_model_recording(s.dir, camera, recorded, why_hint) == nullptr);
     CHECK_THAT(why_hint, Contains("names no calibration"));
+  }
+}
+
+TEST_CASE("whatever lies behind a model's recorded camera is passed over, never an error",
+          "[recon][camera-fit][hostile]") {
+  test::Scratch s("camera_hint_hostile");
+  // The model's camera, and a camera file of the same name and geometry whose calibration is broken.
+  const std::string geometry =
+      "name: hinted\nraw_height: 64\nraw_width: 64\ncrop: [0, 0, 20, 24]\nscene_size: 16\ncentring: level\n";
+  const auto camera = camera_from_yaml_text(geometry, "hinted.yaml");
+  auto nan_calib = Calibration{torch::rand({4, 20, 16}, torch::kFloat64), torch::rand({4, 24, 16}, torch::kFloat64)};
+  nan_calib.P[0][0][0] = NAN;
+  save_calibration(s.dir / "nan.mat", nan_calib);
+  std::ofstream(s.dir / "nan.yaml") << geometry << "calibration: nan.mat\n";
+  std::ofstream(s.dir / "sparse.mat").close();
+  std::filesystem::resize_file(s.dir / "sparse.mat", 2ull << 30);  // 2 GB of holes
+  std::ofstream(s.dir / "sparse.yaml") << geometry << "calibration: sparse.mat\n";
+  std::filesystem::create_symlink(s.dir / "loop_b.yaml", s.dir / "loop_a.yaml");
+  std::filesystem::create_symlink(s.dir / "loop_a.yaml", s.dir / "loop_b.yaml");
+  REQUIRE(mkfifo((s.dir / "fifo.yaml").c_str(), 0600) == 0);
+  for (const auto& recorded : {s.dir / "nan.yaml", s.dir / "sparse.mat", s.dir / "sparse.yaml", s.dir / "loop_a.yaml",
+                               s.dir / "fifo.yaml", s.dir / (std::string(300, 'x') + ".yaml")}) {
+    INFO(recorded);
+    std::string why;
+    std::shared_ptr<const CameraFit> fit;
+    CHECK_NOTHROW(fit = fit_of_model_recording(s.dir, camera, recorded.string(), why));
+    CHECK(fit == nullptr);
+    CHECK_THAT(why, Contains("names no calibration"));
   }
 }

@@ -552,6 +552,23 @@ TEST_CASE("train.keep_every keeps the exported model at those steps, and export 
   CHECK_THROWS_WITH(Config::load({}, {"train.keep_every=-1"}), Contains("train.keep_every"));
 }
 
+TEST_CASE("a run's kept/ that is a link is never written through", "[train][average][hostile]") {
+  test::Scratch s("keep_through_link");
+  Setup setup;
+  std::filesystem::create_directories(s.dir / "run");
+  std::filesystem::create_directories(s.dir / "elsewhere");
+  std::filesystem::create_directory_symlink(s.dir / "elsewhere", s.dir / "run" / "kept");
+  torch::manual_seed(0);
+  Generator g(generator_options(setup.config, setup.camera, true));
+  Discriminator d(discriminator_options(setup.config));
+  auto opt = setup.options(s.dir / "run", 2);
+  opt.keep_every = 2;
+  GanTrainer t(g, d, Vgg16Features(nullptr), std::make_shared<MemoryPairs>(6), load_all(MemoryPairs(2), 0, 1), opt,
+               model_identity(setup.config, setup.camera));
+  CHECK_THROWS_WITH(t.run(), Contains("kept") && Contains("is a link"));
+  CHECK(std::filesystem::is_empty(s.dir / "elsewhere"));
+}
+
 TEST_CASE("NaN losses in a row stop training with a clear message and keep the last checkpoint", "[train]") {
   test::Scratch s("nan");
   Setup setup;

@@ -59,6 +59,25 @@ void print_held_out(const std::vector<HeldOutPair>& held) {
 
 // `flatnet calibrate --meas-list M --gt-list R --references`: a handful of direct captures and
 // someone else's reconstructions of them (optics/calibrate_references.hpp).
+// A pair listed twice (the same files, or a capture with the same pixels under another name) would
+// be fitted twice and, worse, "held out" while still among the calibration pairs: refused, named.
+void require_distinct_pairs(const std::vector<Pair>& pairs, const std::vector<ReferencePair>& refs) {
+  std::error_code ec;
+  for (size_t i = 0; i < pairs.size(); ++i)
+    for (size_t j = 0; j < i; ++j) {
+      const bool same_file = std::filesystem::equivalent(pairs[i].meas, pairs[j].meas, ec) ||
+                             std::filesystem::equivalent(pairs[i].gt, pairs[j].gt, ec);
+      const bool same_pixels =
+          torch::equal(refs[i].meas, refs[j].meas) || torch::equal(refs[i].reference, refs[j].reference);
+      if (same_file || same_pixels)
+        throw Error(pairs[i].meas, std::string("repeats pair ") + std::to_string(j + 1) + " (" +
+                                       printable(pairs[j].meas.string()) + ", " + printable(pairs[j].gt.string()) +
+                                       (same_file ? "): the same file" : "): the same pixels") +
+                                       "; list each capture once (a repeated pair would be held out while still "
+                                       "fitted, and its leave-one-out score would mean nothing)");
+    }
+}
+
 int calibrate_from_reference_pairs(const cxxopts::ParseResult& r, const CameraConfig& camera,
                                    const std::vector<Pair>& pairs, const std::filesystem::path& out) {
   const auto order = r["reference-order"].as<std::string>();
@@ -75,12 +94,16 @@ int calibrate_from_reference_pairs(const cxxopts::ParseResult& r, const CameraCo
     noise_samples.push_back({planes, window.mean({1, 2}),
                              at_full_scale(window, camera.raw.adc_bits).to(torch::kFloat32).mean().item<double>()});
   }
+  require_distinct_pairs(pairs, refs);
   ReferenceCalibrationOptions o;
   o.seed = r["seed"].as<uint64_t>();
   o.shift.min_shift = r["min-shift"].as<double>();
   o.shift.max_shift = r["max-shift"].as<double>();
-  require(o.shift.min_shift > 0 && o.shift.max_shift > o.shift.min_shift && o.shift.max_shift <= 16, "--min-shift",
-          "0 < --min-shift < --max-shift <= 16 sensor pixels per scene pixel");
+  require(o.shift.min_shift >= kSmallestShiftSearched && o.shift.max_shift > o.shift.min_shift &&
+              o.shift.max_shift <= kLargestShiftSearched,
+          "--min-shift",
+          "0.05 <= --min-shift < --max-shift <= 16 sensor pixels per scene pixel (a smaller shift is not a "
+          "FlatCam's shadow, and the search's cost grows with the range's ratio)");
   std::cerr << "calibrate: " << refs.size() << " captures with reference reconstructions (" << order
             << "), shifts searched from " << o.shift.min_shift << " to " << o.shift.max_shift << " both ways\n";
   double held_mean = -1, held_leak = 0;
@@ -155,6 +178,8 @@ int calibrate_from_reference_pairs(const cxxopts::ParseResult& r, const CameraCo
 // its file lists already; printed. A share of the frame too large to be stuck pixels is reported and
 // not listed.
 constexpr size_t kHotPixelFrames = 64, kHotPixelFramesAtLeast = 16;
+// Fewer display-capture pairs than this cannot identify free factors (they need thousands).
+constexpr int64_t kFewPairs = 64;
 std::vector<std::array<int64_t, 2>> hot_pixels_of(const std::vector<Pair>& pairs, const CameraConfig& camera) {
   auto listed = camera.raw.hot_pixels;
   if (pairs.size() < kHotPixelFramesAtLeast) {
@@ -175,6 +200,12 @@ std::vector<std::array<int64_t, 2>> hot_pixels_of(const std::vector<Pair>& pairs
   listed.insert(listed.end(), found.begin(), found.end());
   std::sort(listed.begin(), listed.end());
   listed.erase(std::unique(listed.begin(), listed.end()), listed.end());
+  require(static_cast<int64_t>(listed.size()) <= kMaxHotPixels, "calibrate",
+          std::to_string(found.size()) + " hot pixels found and " + std::to_string(camera.raw.hot_pixels.size()) +
+              " listed by the camera file make " + std::to_string(listed.size()) + ", more than the " +
+              std::to_string(kMaxHotPixels) +
+              " a camera file may list: too many to be stuck pixels (a broken "
+              "sensor, or a camera file listing another sensor's); check the camera file's hot_pixels");
   std::cout << "hot pixels: " << found.size() << " found in " << finder.frames() << " captures (" << listed.size()
             << " listed in the camera file; each is replaced by its neighbours' mean)\n";
   return listed;
@@ -289,6 +320,10 @@ int calibrate_from_dataset(const cxxopts::ParseResult& r) {
   const auto limit = r["limit"].as<int64_t>();
   require(limit >= 0, "--limit", "0 (all) or more");
   if (limit > 0 && static_cast<int64_t>(pairs.size()) > limit) pairs.resize(static_cast<size_t>(limit));
+  // The pairs' files are inputs too (a reference .mat, a capture): no output lands on one, even with --force.
+  for (const auto& p : pairs) inputs.insert(inputs.end(), {p.meas, p.gt});
+  require_new_output(out, force, inputs);
+  require_new_output(out.parent_path() / "camera.yaml", force, inputs);
   if (r.count("references")) return calibrate_from_reference_pairs(r, camera, pairs, out);
   camera.raw.hot_pixels = hot_pixels_of(pairs, camera);
   const auto N = camera.scene_size;
@@ -313,8 +348,15 @@ int calibrate_from_dataset(const cxxopts::ParseResult& r) {
   const auto rotation = r["rotation"].as<std::string>();
   require(rotation == "estimate" || rotation == "keep", "--rotation",
           "estimate (search the mask's rotation on the sensor) or keep (the camera file's), not '" + rotation + "'");
+  // The rotation search fits the shift structure at each angle: free factors absorb a rotation instead.
+  require(!(rotation == "estimate" && o.structure == FactorStructure::Free && r.count("rotation")), "--rotation",
+          "estimate needs --structure shift (free factors absorb a rotation and cannot measure it); give "
+          "--rotation keep, or state the angle in the camera file");
   if (rotation == "estimate" && o.structure == FactorStructure::Shift)
     camera.raw.rotation = rotation_of(pairs, camera, o);
+  else if (o.structure == FactorStructure::Free)
+    std::cout << "rotation: " << camera.raw.rotation
+              << " rad from the camera file (not searched: free factors absorb a rotation)\n";
   std::cerr << "calibrate: " << pairs.size() << " display-capture pairs, " << camera.raw.crop[2] << "x"
             << camera.raw.crop[3] << " planes, " << N << "x" << N << " scenes\n";
   const auto fit =
@@ -357,6 +399,13 @@ int calibrate_from_dataset(const cxxopts::ParseResult& r) {
     std::cout << "shift structure rejected: it explains " << std::setprecision(3) << fit.structure_explains
               << " of what free factors explain (a mask that is not one moving shadow?); free factors were fitted, "
                  "which need thousands of pairs\n";
+  // A handful of pairs whose shadow no shift explains are, most often, direct captures and someone's
+  // reconstructions of them (FlatNet's fc_*.png and rec_*.png), not display captures of photographs.
+  if (fit.structure_rejected && static_cast<int64_t>(pairs.size()) < kFewPairs)
+    std::cerr << "calibrate: warning: " << pairs.size()
+              << " pairs whose shadow no shift explains look like captures and reconstructions of them, not display "
+                 "captures of photographs; for those, run `flatnet calibrate --references` (same lists); free "
+                 "factors from so few pairs do not describe the camera\n";
   else if (o.structure == FactorStructure::Shift)
     std::cout << "shift structure: the shadow moves " << std::setprecision(6) << fit.shift_rows
               << " sensor pixels per scene row, " << fit.shift_cols << " per scene column; it explains "

@@ -41,8 +41,6 @@ std::filesystem::path default_camera_path() { return data_dir() / "configs" / "c
 
 namespace {
 
-constexpr int64_t kMaxHotPixels = 100000;
-
 const std::vector<std::string> kKnownKeys = {
     "name",       "raw_height",  "raw_width",   "adc_bits",      "rotation",        "crop",
     "centring",   "scene_size",  "calibration", "rig",           "tikhonov_lambda", "tv_lambda",
@@ -76,6 +74,19 @@ void validate(const CameraConfig& c, const std::filesystem::path& path) {
       for (const double v : row)
         require(std::isfinite(v) && std::abs(v) <= 10, path,
                 "colour_mix: each share is a finite number within [-10, 10]");
+    constexpr double kColourMixSumTolerance = 0.02;
+    constexpr const char* kPlaneNames[] = {"b", "gb", "gr", "r"};
+    // Each row is a plane's shares of the primaries, scaled to sum 1 (calibrate --dataset writes it so):
+    // a row summing to 2 would brighten that plane's scene twice over, silently.
+    for (size_t p = 0; p < c.colour_mix.size(); ++p) {
+      const auto& row = c.colour_mix[p];
+      const double sum = row[0] + row[1] + row[2];
+      require(std::abs(sum - 1) <= kColourMixSumTolerance, path,
+              "colour_mix: row " + std::to_string(p + 1) + " (" + std::string(kPlaneNames[p]) + ") sums to " +
+                  std::to_string(sum) + "; each plane's shares of the primaries sum to 1 (within " +
+                  std::to_string(kColourMixSumTolerance) +
+                  "): scale the row, or put the plane's gain in the calibration");
+    }
     // The primaries must be recoverable from the planes: the mix has rank 3, not barely.
     const auto smallest = torch::linalg_svdvals(colour_mix_matrix(c.colour_mix)).min().item<double>();
     require(smallest > 1e-3, path,

@@ -23,6 +23,8 @@ enum class Centring {
 // to its sensor to within a few milliradians (FlatNet's prototype: 0.00174); more is a unit mistake
 // (degrees for radians), not a camera.
 inline constexpr double kMaxCameraRotation = 0.175;
+// The most hot pixels a camera file may list: a sensor with more is broken, not calibrated.
+inline constexpr int64_t kMaxHotPixels = 100000;
 
 // How a raw frame becomes measurement planes (FlatNet's demosaic_raw, made explicit).
 struct RawGeometry {

@@ -13,16 +13,18 @@ namespace flatnet {
 namespace {
 
 constexpr int kMaxYamlDepth = 32;
-// Nodes a document may expand to, aliases counted at every use: defaults.yaml has ~200. A "billion
-// laughs" alias bomb of 600 bytes expands to 10^9 nodes; the walk stops at the bound, so it and every
-// later walk of the same tree stays bounded.
-constexpr int64_t kMaxYamlNodes = 100000;
+// Nodes a document may expand to, aliases counted at every use: defaults.yaml has ~200, and the
+// largest file flatnet writes is a camera file listing its most hot pixels (kMaxHotPixels, 100,000
+// [row, col] pairs: 3 nodes each), so the bound is that and room to spare. A "billion laughs" alias
+// bomb of 600 bytes expands to 10^9 nodes; the walk stops at the bound, so it and every later walk of
+// the same tree stays bounded (400,000 nodes: about 0.1 s).
+constexpr int64_t kMaxYamlNodes = 400000;
 
 void check_keys(const YAML::Node& node, const std::filesystem::path& where, int depth, int64_t& nodes) {
   require(depth <= kMaxYamlDepth, where, "YAML nests deeper than " + std::to_string(kMaxYamlDepth) + " levels");
   require(++nodes <= kMaxYamlNodes, where,
           "YAML expands to more than " + std::to_string(kMaxYamlNodes) +
-              " nodes (aliases that repeat aliases?); flatnet's files need a few hundred");
+              " nodes (aliases that repeat aliases?); flatnet's own files need at most 300,000");
   if (node.IsMap()) {
     std::set<std::string> seen;
     for (const auto& kv : node) {

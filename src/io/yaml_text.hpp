@@ -11,7 +11,9 @@
 
 namespace flatnet {
 
-constexpr uint64_t kMaxYamlBytes = 1u << 20;  // 1 MiB: defaults.yaml is 6 KB
+// 4 MiB: defaults.yaml is 6 KB; the largest file flatnet writes is a camera file listing its most hot
+// pixels (kMaxHotPixels pairs of 5-digit numbers: about 1.6 MB).
+constexpr uint64_t kMaxYamlBytes = 4u << 20;
 
 // Parses `text` (from `where`, named in errors).
 YAML::Node parse_yaml_document(const std::string& text, const std::filesystem::path& where);

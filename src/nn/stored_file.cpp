@@ -217,6 +217,10 @@ std::pair<ModelSpec, CameraConfig> stored_model(const Stored& s, const std::file
   auto spec = stored_spec != s.meta.end() ? parse_model_spec(stored_spec->second, path, /*strict=*/true)
                                           : parse_model_spec(s.text("config", path), path, /*strict=*/false);
   auto camera = camera_from_yaml_text(s.text("camera", path), path);
+  // A bench is a simulated camera's truth, for simulation only: flatnet never writes one into a model.
+  require(!camera.bench.any(), path,
+          "its camera carries a bench: section (simulated bench errors); a model file never does: not a file "
+          "flatnet wrote, or one edited by hand");
   check_sizes_against_weights(spec, camera, s, path);
   return {spec, camera};
 }

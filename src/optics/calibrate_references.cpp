@@ -2,7 +2,9 @@
 
 #include "optics/camera_fit.hpp"
 
+#include <chrono>
 #include <cmath>
+#include <iostream>
 #include <functional>
 #include <limits>
 #include <iomanip>
@@ -137,8 +139,9 @@ torch::Tensor bin2(const torch::Tensor& t) { return torch::avg_pool2d(t.unsqueez
 // sign pairs, each point a converged fit of both factors, then each axis's whole grid alone, then
 // golden-section search within one grid step of the best point.
 std::pair<double, double> search_shifts(const Tensors& Y, const Tensors& R, const ReferenceCalibrationOptions& o) {
-  require_option(o.shift.min_shift > 0 && o.shift.max_shift > o.shift.min_shift, "calibrate.references",
-                 "the shift search needs 0 < min_shift < max_shift");
+  require_option(o.shift.min_shift >= kSmallestShiftSearched && o.shift.max_shift > o.shift.min_shift &&
+                     o.shift.max_shift <= kLargestShiftSearched,
+                 "calibrate.references", "the shift search needs 0.05 <= min_shift < max_shift <= 16");
   Tensors Yb, Xb;
   for (size_t i = 0; i < Y.size(); ++i) Yb.push_back(bin2(Y[i])), Xb.push_back(bin2(R[i]));
   constexpr int kAlternations = 3;
@@ -146,11 +149,16 @@ std::pair<double, double> search_shifts(const Tensors& Y, const Tensors& R, cons
   std::vector<double> magnitudes;
   for (double a = o.shift.min_shift; a <= o.shift.max_shift * (1 + 1e-9); a *= kGridStep) magnitudes.push_back(a);
   double best = std::numeric_limits<double>::infinity(), rows = 0, cols = 0;
+  // The grid's points: 4 sign pairs, then each axis's 2 signs, per magnitude (the golden-section
+  // refinement after them costs about as much as 30 more).
+  const auto points = static_cast<int64_t>(magnitudes.size()) * 8;
+  Progress progress("shift search", points, o.progress);
   for (const double sign_rows : {-1.0, 1.0})
     for (const double sign_cols : {-1.0, 1.0})
       for (const double a : magnitudes) {
         const double J = objective_at(Yb, Xb, sign_rows * a, sign_cols * a, kAlternations, o.seed);
         if (J < best) best = J, rows = sign_rows * a, cols = sign_cols * a;
+        progress.tick();
       }
   // Each axis alone over its whole range (the two magnitudes need not be equal).
   const auto scan = [&](const std::function<double(double)>& J, double& at) {
@@ -158,6 +166,7 @@ std::pair<double, double> search_shifts(const Tensors& Y, const Tensors& R, cons
       for (const double a : magnitudes) {
         const double j = J(sign * a);
         if (j < best) best = j, at = sign * a;
+        progress.tick();
       }
   };
   scan([&](double s) { return objective_at(Yb, Xb, s, cols, kAlternations, o.seed); }, rows);
@@ -168,6 +177,7 @@ std::pair<double, double> search_shifts(const Tensors& Y, const Tensors& R, cons
     cols = golden_section_minimum([&](double s) { return objective_at(Yb, Xb, rows, s, kAlternations, o.seed); },
                                   cols / kGridStep, cols * kGridStep, 1e-3);
   }
+  progress.finish();
   return {rows, cols};
 }
 
@@ -288,7 +298,18 @@ std::vector<HeldOutPair> leave_one_out(const std::vector<ReferencePair>& pairs, 
                                        const ReferenceCalibrationOptions& options) {
   require_option(pairs.size() >= 3, "calibrate.references", "leave-one-out needs at least 3 pairs");
   std::vector<HeldOutPair> out;
+  const auto start = std::chrono::steady_clock::now();
   for (size_t held = 0; held < pairs.size(); ++held) {
+    if (options.progress) {  // each held-out fit is a whole calibration: say which, and the time left
+      const double spent = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+      std::cerr << "leave-one-out " << held + 1 << "/" << pairs.size() << ": calibrating without "
+                << printable(pairs[held].name);
+      if (held > 0)
+        std::cerr << " ("
+                  << format_duration(spent / static_cast<double>(held) * static_cast<double>(pairs.size() - held))
+                  << " left, then the calibration from all pairs)";
+      std::cerr << "\n" << std::flush;
+    }
     std::vector<ReferencePair> others;
     for (size_t i = 0; i < pairs.size(); ++i)
       if (i != held) others.push_back(pairs[i]);

@@ -165,7 +165,17 @@ torch::Tensor sensor_readout(const Rig& rig, const torch::Tensor& signal, bool n
   // float32 throughout: electron counts (< 2^24) and 10-16-bit codes are exact in it, and its
   // normal sampler is 7x faster than float64's (the simulator feeds training on the fly).
   auto s = signal.to(torch::kFloat32);
-  if (noise) {
+  // A full well beyond kCountableElectrons (a camera file's tiny noise_gain) has shot noise far below
+  // float32's resolution of the signal, and its electron counts overflow float32 (inf / inf, read back
+  // as code 0): such a sensor is read in units of the full well instead, where nothing overflows.
+  constexpr double kCountableElectrons = 1e12;
+  if (noise && !(rig.full_well <= kCountableElectrons)) {
+    const double shot_scale = std::sqrt(1.0 / rig.full_well), read_sigma = rig.read_noise / rig.full_well;
+    s = s +
+        torch::sqrt(s.clamp_min(0)) * static_cast<float>(shot_scale) *
+            at::normal(0.0, 1.0, s.sizes(), gen, s.options()) +
+        at::normal(0.0, std::isfinite(read_sigma) ? read_sigma : 0.0, s.sizes(), gen, s.options());
+  } else if (noise) {
     auto electrons = photon_electrons(s.clamp_min(0) * static_cast<float>(rig.full_well), gen) +
                      at::normal(0.0, rig.read_noise, s.sizes(), gen, s.options());
     s = electrons / static_cast<float>(rig.full_well);
@@ -227,13 +237,16 @@ Calibration load_shift_calibration(const MatReader& mat, const std::filesystem::
   require(std::isfinite(shift_rows) && std::isfinite(shift_cols) && std::abs(shift_rows) >= 1e-3 &&
               std::abs(shift_cols) >= 1e-3 && std::abs(shift_rows) <= 64 && std::abs(shift_cols) <= 64,
           path, "shift_rows / shift_cols must be finite, 0.001 to 64 sensor pixels per scene pixel");
+  // A compact file is one form or the other: full matrices beside it would be ignored without a word.
+  for (const char* c : kChannelNames)
+    require(!mat.has(std::string("P1") + c) && !mat.has(std::string("Q1") + c), path,
+            std::string("holds both a compact calibration (shift_rows, profiles) and full matrices (P1") + c +
+                ", ...); keep one form: flatnet cannot tell which one you meant");
   // The profile's length follows from the geometry: checked before anything is expanded.
-  const auto length = [&](int64_t m, double shift) {
-    return m + static_cast<int64_t>(std::floor(std::abs(shift) * static_cast<double>(n - 1) + 1e-9)) + 1;
-  };
+  const auto length = [&](int64_t m, double shift) { return shift_profile_length(m, n, shift, 1.0); };
   const auto profile = [&](const char* name, int64_t L) {
     auto t = mat.read(name);
-    require(t.dim() == 2 && t.size(0) == 4 && std::abs(t.size(1) - L) <= 1, path,
+    require(t.dim() == 2 && t.size(0) == 4 && t.size(1) >= L && t.size(1) <= L + 1, path,
             std::string(name) + " must be 4 x " + std::to_string(L) + " for this camera's crop, scene and shift");
     require(torch::isfinite(t).all().item<bool>(), path, std::string(name) + " contains NaN or Inf");
     return t.to(torch::kFloat64);
@@ -242,9 +255,23 @@ Calibration load_shift_calibration(const MatReader& mat, const std::filesystem::
   return {shift_factor(fr, h, n, shift_rows, 1.0), shift_factor(fc, w, n, shift_cols, 1.0)};
 }
 
-}  // namespace
+// A factor's entries are a pixel's response to a scene pixel (calibrations seen: largest 0.006 to 2).
+// Far outside that, Tikhonov's filter s / (s^2 + lambda) over- or underflows in float32 and every
+// picture comes out uniform: refused, named, instead.
+constexpr double kSmallestFactorPeak = 1e-6, kLargestFactorPeak = 1e4;
 
-Calibration load_calibration(const std::filesystem::path& path, const CameraConfig& camera) {
+Calibration with_plausible_scale(Calibration calib, const std::filesystem::path& path) {
+  for (const auto& [name, factor] : {std::pair{"P (rows)", calib.P}, std::pair{"Q (columns)", calib.Q}}) {
+    const double peak = factor.abs().max().item<double>();
+    require(peak >= kSmallestFactorPeak && peak <= kLargestFactorPeak, path,
+            std::string("the factor ") + name + "'s largest entry is " + std::to_string(peak) +
+                ", outside the plausible [1e-06, 1e+04] (a pixel's response to one scene pixel): a calibration "
+                "scaled by mistake; rescale it (the pictures' brightness follows the camera's exposure, not this)");
+  }
+  return calib;
+}
+
+Calibration read_calibration(const std::filesystem::path& path, const CameraConfig& camera) {
   MatReader mat(path);
   const auto h = camera.raw.crop[2], w = camera.raw.crop[3], n = camera.scene_size;
   if (mat.has("shift_rows")) return load_shift_calibration(mat, path, h, w, n);
@@ -267,6 +294,12 @@ Calibration load_calibration(const std::filesystem::path& path, const CameraConf
     Q.push_back(q);
   }
   return {torch::stack(P), torch::stack(Q)};
+}
+
+}  // namespace
+
+Calibration load_calibration(const std::filesystem::path& path, const CameraConfig& camera) {
+  return with_plausible_scale(read_calibration(path, camera), path);
 }
 
 void save_shift_calibration(const std::filesystem::path& path, const torch::Tensor& profile_rows,

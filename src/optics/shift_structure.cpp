@@ -56,6 +56,10 @@ torch::Tensor objective(const torch::Tensor& F, const torch::Tensor& G, const to
 
 }  // namespace
 
+int64_t shift_profile_length(int64_t rows, int64_t scene, double shift, double spacing) {
+  return sampling(rows, scene, shift, spacing).length;
+}
+
 torch::Tensor shift_factor(const torch::Tensor& profile, int64_t rows, int64_t scene, double shift, double spacing) {
   const auto s = sampling(rows, scene, shift, spacing);
   require_option(profile.dim() == 2 && profile.size(1) >= s.length, "calibration",
@@ -157,8 +161,11 @@ ShiftFactor solve_shift_factor(const torch::Tensor& G, const torch::Tensor& H, d
 }
 
 double search_shift(const torch::Tensor& G, const torch::Tensor& H, const ShiftFitOptions& o, double sigma2) {
-  require_option(o.min_shift > 0 && o.max_shift > o.min_shift && o.grid_step > 0 && o.shift_tolerance > 0,
-                 "calibrate.dataset", "the shift search needs 0 < min_shift < max_shift and positive steps");
+  require_option(o.min_shift >= kSmallestShiftSearched && o.max_shift > o.min_shift &&
+                     o.max_shift <= kLargestShiftSearched && o.grid_step >= kFinestShiftGridStep &&
+                     o.shift_tolerance > 0,
+                 "calibrate.dataset",
+                 "the shift search needs 0.05 <= min_shift < max_shift <= 16 and a grid step of at least 0.01");
   const auto cost = [&](double shift, int iterations) {
     const auto fit = fit_shift_factor(G, H, shift, o, iterations);
     const auto channels = static_cast<double>(fit.profile.size(0)), samples = static_cast<double>(fit.profile.size(1));

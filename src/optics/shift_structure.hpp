@@ -24,6 +24,11 @@
 
 namespace flatnet {
 
+// The search's bounds: a shadow that moves less than a twentieth of a sensor pixel per scene pixel
+// is not a FlatCam's (a 256-pixel scene would move it by under 13 pixels), and a grid finer than 1 %
+// only costs time. With these the coarse grid is at most log(16/0.05)/log(1.01) ~ 580 points a sign.
+constexpr double kSmallestShiftSearched = 0.05, kLargestShiftSearched = 16.0, kFinestShiftGridStep = 0.01;
+
 struct ShiftFitOptions {
   double spacing = 1.0;    // sensor pixels between the profile's samples
   double min_shift = 0.5;  // |shift| searched, sensor pixels per scene pixel
@@ -43,6 +48,8 @@ struct ShiftFactor {
 };
 
 // The centred factor C F(f) of (1) for a profile {C,L}.
+// The samples a profile needs for a factor of `rows` sensor rows and `scene` scene pixels at `shift`.
+int64_t shift_profile_length(int64_t rows, int64_t scene, double shift, double spacing);
 torch::Tensor shift_factor(const torch::Tensor& profile, int64_t rows, int64_t scene, double shift, double spacing);
 
 // The least-squares profile (2) for one shift. G {C,N,N}, H {C,m,N}; `warm` a profile {C,L} to start from.

@@ -2,6 +2,7 @@
 
 #include <functional>
 #include <iomanip>
+#include <iostream>
 #include <sstream>
 
 #include <opencv2/core/version.hpp>
@@ -184,6 +185,12 @@ std::filesystem::path part_after_last(const std::filesystem::path& path, const s
 // flatnet's folders.
 CameraConfig training_camera(const ModelFile& m) {
   if (!m.camera.calibration.empty()) return m.camera;
+  // Whatever lies behind a hint (a link loop, an overlong name, a FIFO, a camera whose calibration
+  // holds NaN or is a sparse giant) is passed over with one line, never an error: the hint is optional.
+  const auto pass_over = [](const std::filesystem::path& path, const std::string& why) {
+    std::cerr << "camera fit: the model's recorded training camera " << printable(path.string())
+              << " is passed over: " << printable(why) << "\n";
+  };
   const std::filesystem::path recorded = m.recorded_camera();
   if (recorded.empty()) return m.camera;
   std::vector<std::filesystem::path> candidates{recorded};
@@ -200,17 +207,23 @@ CameraConfig training_camera(const ModelFile& m) {
   } catch (const Error&) {  // an installation without its data folder: the recorded path alone
   }
   for (const auto& path : candidates) {
-    if (!std::filesystem::is_regular_file(path)) continue;
+    std::error_code ec;
+    if (!std::filesystem::is_regular_file(path, ec)) {
+      if (ec && ec != std::errc::no_such_file_or_directory) pass_over(path, ec.message());
+      continue;
+    }
     CameraConfig cam;
     try {
       cam = load_camera_config(path);
-    } catch (const Error&) {  // not a camera file (or not a readable one): not the model's camera
-      continue;
+      const bool same = cam.name == m.camera.name && cam.raw.crop == m.camera.raw.crop &&
+                        cam.scene_size == m.camera.scene_size && cam.raw.raw_height == m.camera.raw.raw_height &&
+                        cam.raw.raw_width == m.camera.raw.raw_width;
+      if (!same) continue;
+      if (!cam.calibration.empty()) (void)load_calibration(cam.calibration, cam);  // read now: its errors pass it over
+      return cam;
+    } catch (const std::exception& e) {  // not a camera file, or one whose calibration cannot be read
+      pass_over(path, e.what());
     }
-    const bool same = cam.name == m.camera.name && cam.raw.crop == m.camera.raw.crop &&
-                      cam.scene_size == m.camera.scene_size && cam.raw.raw_height == m.camera.raw.raw_height &&
-                      cam.raw.raw_width == m.camera.raw.raw_width;
-    if (same) return cam;
   }
   return m.camera;
 }

@@ -117,6 +117,10 @@ CodesignOptions codesign_options(const Config& c, const CameraConfig& camera) {
           "needs data.source: simulate (photographs in data.images)");
   require(camera.raw.rotation == 0, camera_key,
           "co-design simulates unrotated captures; this camera's rotation is " + std::to_string(camera.raw.rotation));
+  // Co-design builds its own optics from the codes it learns: a bench's errors would be dropped.
+  require(!camera.bench.any(), camera_key,
+          "co-design simulates the codes it learns on an ideal bench; this camera has a bench: section (" +
+              printable(camera.name) + "): give a camera without one");
   return o;
 }
 
@@ -179,6 +183,18 @@ std::vector<std::filesystem::path> run_files(const std::filesystem::path& out) {
   for (const char* name : {"latest.ckpt", "best.ckpt", "model.flatnet", "log.csv", "val.csv", "config.yaml",
                            "samples.png", "curve.png", "run_id.txt"})
     if (std::filesystem::exists(out / name)) found.push_back(out / name);
+  // The run's kept models (train.keep_every): left beside a new run's, export --average-of would mix
+  // two runs. A kept/ that is a link is the link alone: what it points to is not the run's.
+  const auto kept = out / "kept";
+  const auto kept_status = std::filesystem::symlink_status(kept);
+  if (std::filesystem::is_symlink(kept_status)) {
+    found.push_back(kept);
+  } else if (std::filesystem::is_directory(kept_status)) {
+    for (const auto& entry : std::filesystem::directory_iterator(kept)) {
+      const auto name = entry.path().filename().string();
+      if (name.rfind("step", 0) == 0 && entry.path().extension() == ".flatnet") found.push_back(entry.path());
+    }
+  }
   return found;
 }
 

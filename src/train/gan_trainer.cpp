@@ -435,6 +435,10 @@ void GanTrainer::checkpoint_and_validate(TrainSummary& summary) {
 // (the mean of a run's last ones, `flatnet export --average-of`, often beats its last alone).
 void GanTrainer::keep_model() {
   const auto kept = opt_.out / "kept";
+  // Never written through a link flatnet did not make: the models would land in another folder.
+  require(!std::filesystem::is_symlink(kept), kept,
+          "is a link; kept models are written only into the run's own folder (remove the link, or start afresh "
+          "with --force)");
   std::filesystem::create_directories(kept);
   save_model_file(kept / ("step" + std::to_string(state_.step) + ".flatnet"), exported(), exported_identity());
 }

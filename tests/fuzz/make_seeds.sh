@@ -12,7 +12,7 @@ corpus=tests/fuzz/corpus
 tmp=$(mktemp -d)
 trap 'rm -rf "$tmp"' EXIT
 rm -rf "$corpus"
-for h in safetensors model_file checkpoint torch_file onnx yaml mat image dataset_lists csv_log; do
+for h in safetensors model_file checkpoint torch_file onnx yaml mat image dataset_lists csv_log calibration; do
   mkdir -p "$corpus/fuzz_$h"
 done
 
@@ -38,6 +38,16 @@ for i in range(16):
 # .mat as SciPy writes it: a calibration's names, small; one compressed, one with a struct and text.
 small = {"P1b": rng.standard_normal((6, 4)), "Q1b": rng.standard_normal((7, 4)), "adc_bits": np.full((1, 1), 10.0)}
 scipy.io.savemat(f"{corpus}/fuzz_mat/calib_small.mat", small)
+# Calibrations for fuzz_calibration's tiny camera (12x14 planes, 8-pixel scenes), as SciPy writes
+# them: full factors, and a compact shift-structured file (profiles 16 and 18 samples at +-0.5).
+full = {}
+for c in ("b", "gb", "gr", "r"):
+    full["P1" + c] = rng.random((12, 8)) * 0.01
+    full["Q1" + c] = rng.random((14, 8)) * 0.01
+scipy.io.savemat(f"{corpus}/fuzz_calibration/full.mat", full)
+scipy.io.savemat(f"{corpus}/fuzz_calibration/compact.mat",
+                 {"profile_rows": rng.random((4, 16)), "profile_cols": rng.random((4, 18)),
+                  "shift_rows": np.array([[0.5]]), "shift_cols": np.array([[-0.5]])})
 scipy.io.savemat(f"{corpus}/fuzz_mat/compressed.mat", small, do_compression=True)
 scipy.io.savemat(f"{corpus}/fuzz_mat/mixed.mat", {"s": {"a": np.arange(3.0)}, "t": "text", "i": np.int16([[1, 2]])})
 # Captures: 16-bit single-channel PNG and TIFF (the first byte picks the extension), an 8-bit RGB PNG.
@@ -70,6 +80,17 @@ cp "$tmp/run/latest.ckpt" "$corpus/fuzz_checkpoint/latest.ckpt"
 cp "$tmp/run/config.yaml" "$corpus/fuzz_yaml/config.yaml"
 cp tests/data/cameras/tiny.yaml "$corpus/fuzz_yaml/tiny.yaml"
 cp configs/cameras/sim_level.yaml "$corpus/fuzz_yaml/camera.yaml"
+# A camera file with every optional section: a bench, hot pixels and a colour mix.
+cat > "$corpus/fuzz_yaml/camera_sections.yaml" <<'YAML'
+name: sections
+raw_height: 32
+raw_width: 32
+crop: [0, 0, 12, 14]
+scene_size: 8
+hot_pixels: [[1, 2], [30, 31]]
+colour_mix: [[0.1, 0.1, 0.8], [0.05, 0.9, 0.05], [0.05, 0.9, 0.05], [0.8, 0.1, 0.1]]
+bench: {crosstalk: 0.2, mask_rotation: 0.01, second_term: 0.1, flicker: 0.05, stray_light: 0.02, hot_pixels: 3, display_shift: 1, display_scale: 1.05}
+YAML
 cp "$tmp/run/val.csv" "$corpus/fuzz_csv_log/val.csv"
 cp "$tmp/run/log.csv" "$corpus/fuzz_csv_log/log.csv"
 printf 'meas/p0.png\nmeas/p1.png\n\0gt/p0.png\ngt/p1.png\n' > "$corpus/fuzz_dataset_lists/lists"
