@@ -81,8 +81,9 @@ TEST_CASE("calibrate --references names a pair listed twice, by file or by pixel
   // The same capture under another name.
   std::filesystem::copy_file(s.dir / "c2.png", s.dir / "c2_copy.png");
   std::filesystem::copy_file(s.dir / "r2.png", s.dir / "r2_copy.png");
-  r = test::run_flatnet(reference_lists(s.dir, {"c1.png", "c2.png", "c2_copy.png"}, {"r1.png", "r2.png", "r2_copy.png"}) +
-                        " --out " + q(s.dir / "out" / "calib.mat"));
+  r = test::run_flatnet(
+      reference_lists(s.dir, {"c1.png", "c2.png", "c2_copy.png"}, {"r1.png", "r2.png", "r2_copy.png"}) + " --out " +
+      q(s.dir / "out" / "calib.mat"));
   CHECK(r.code == 2);
   CHECK_THAT(r.output, Contains("c2_copy.png") && Contains("repeats pair 2") && Contains("the same pixels"));
   CHECK_FALSE(std::filesystem::exists(s.dir / "out" / "calib.mat"));
@@ -124,7 +125,8 @@ TEST_CASE("a compact calibration names its file and variable, and never hides fu
   camera.raw.crop = {0, 0, 40, 50};
   camera.scene_size = 16;
   const double shift_rows = -0.6, shift_cols = 1.3;
-  const auto L_rows = shift_profile_length(40, 16, shift_rows, 1.0), L_cols = shift_profile_length(50, 16, shift_cols, 1.0);
+  const auto L_rows = shift_profile_length(40, 16, shift_rows, 1.0),
+             L_cols = shift_profile_length(50, 16, shift_cols, 1.0);
   auto gen = at::detail::createCPUGenerator(4);
   const auto fr = at::rand({4, L_rows}, gen).to(torch::kFloat64), fc = at::rand({4, L_cols}, gen).to(torch::kFloat64);
   save_shift_calibration(s.dir / "ok.mat", fr, fc, shift_rows, shift_cols);
@@ -153,8 +155,8 @@ TEST_CASE("a compact calibration names its file and variable, and never hides fu
 TEST_CASE("camera files: colour-mix rows sum to 1, and the most hot pixels flatnet writes read back",
           "[safe][hostile][yaml]") {
   const std::string head = "name: c\nraw_height: 1024\nraw_width: 1280\ncrop: [0, 0, 500, 620]\n";
-  CHECK_NOTHROW(camera_from_yaml_text(
-      head + "colour_mix: [[0, 0, 1], [0, 1, 0], [0, 1, 0], [0.98, 0.01, 0.01]]\n", "ok.yaml"));
+  CHECK_NOTHROW(
+      camera_from_yaml_text(head + "colour_mix: [[0, 0, 1], [0, 1, 0], [0, 1, 0], [0.98, 0.01, 0.01]]\n", "ok.yaml"));
   CHECK_THROWS_WITH(
       camera_from_yaml_text(head + "colour_mix: [[0, 0, 2], [0, 1, 0], [0, 1, 0], [1, 0, 0]]\n", "double.yaml"),
       Contains("double.yaml") && Contains("row 1 (b) sums to 2") && Contains("sum to 1"));

@@ -1,5 +1,7 @@
 // flatnet train / export / import / infer: the FlatNet reconstruction network's commands.
+#include <cmath>
 #include <iostream>
+#include <sstream>
 
 #include "cli/commands.hpp"
 #include "core/error.hpp"
@@ -222,7 +224,13 @@ int infer(int argc, char** argv) {
       "require-fit", "refuse (exit 2) when a capture does not fit the model's camera (OUT/camera_fit.csv)")(
       "self-ensemble",
       "average the enhancer over the image and its three flips (test-time self-ensemble; about 4x the enhancer's "
-      "time; libtorch engine)");
+      "time; libtorch engine)")(
+      "data-consistency",
+      "C > 0: correct each picture by its capture where the camera measures it well (Tikhonov on the picture's "
+      "residual, regulariser C^2 tikhonov_lambda; 10 for the shipped models, docs/evaluation.md); 0: off",
+      cxxopts::value<double>()->default_value("0"))(
+      "consistency-blur", "sigma (scene pixels) of a Gaussian on that correction: its coarse part alone (0: none)",
+      cxxopts::value<double>()->default_value("0"));
   add_force_folder(o);
   add_precision(o);
   add_common(o);
@@ -242,6 +250,14 @@ int infer(int argc, char** argv) {
   spec.levers.self_ensemble = r.count("self-ensemble") > 0;
   require(!spec.levers.self_ensemble || engine == "libtorch", "--self-ensemble",
           "runs on the libtorch engine (an ONNX file holds the plain model)");
+  spec.data_consistency = r["data-consistency"].as<double>();
+  spec.consistency_blur = r["consistency-blur"].as<double>();
+  require(std::isfinite(spec.consistency_blur) && spec.consistency_blur >= 0 && spec.consistency_blur <= 64,
+          "--consistency-blur", "0 (none) to 64 scene pixels");
+  require(std::isfinite(spec.data_consistency) && spec.data_consistency >= 0 && spec.data_consistency <= 1e3,
+          "--data-consistency", "0 (off) or a strength in (0, 1000]");
+  require(spec.data_consistency == 0 || engine == "libtorch", "--data-consistency",
+          "runs on the libtorch engine (an ONNX file carries no calibration)");
   BatchOptions opt;
   opt.out = r["out"].as<std::string>();
   opt.batch = std::max(1, r["batch"].as<int>());
@@ -252,9 +268,14 @@ int infer(int argc, char** argv) {
   auto built = make_reconstructor(spec);
   if (!built.warning.empty()) std::cerr << "warning: " << built.warning << "\n";
   // One folder holds one model's reconstructions: a rerun with another model is refused, not mixed.
-  const auto claim = claim_out(r, opt.out, "infer", "model " + file_fingerprint(spec.model));
+  std::ostringstream settings;
+  settings << "model " << file_fingerprint(spec.model);
+  if (spec.data_consistency > 0)
+    settings << " data-consistency " << spec.data_consistency << " blur " << spec.consistency_blur;
+  const auto claim = claim_out(r, opt.out, "infer", settings.str());
   if (engine == "opencv")
     std::cerr << "engine: " << built.engine->describe() << " (--levers and --precision apply to libtorch)\n";
+  if (spec.data_consistency > 0) std::cerr << "engine: " << built.engine->describe() << "\n";
   opt.fit = built.fit.get();
   opt.require_fit = r.count("require-fit") > 0;
   require(!opt.require_fit || opt.fit, "--require-fit", "cannot judge the captures: " + built.no_fit);

@@ -12,6 +12,7 @@
 #include "io/image.hpp"
 #include "io/raw.hpp"
 #include "nn/model_file.hpp"
+#include "recon/data_consistency.hpp"
 #include "recon/opencv_engine.hpp"
 #include "recon/tikhonov.hpp"
 
@@ -263,6 +264,16 @@ BuiltReconstructor make_reconstructor(const ReconstructorSpec& spec) {
         make_flatnet(m.generator, camera, spec.levers, "FlatNet " + spec.model.filename().string()), camera, nullptr,
         ""};
     built.fit = model_camera_fit(m, built.no_fit);
+    if (spec.data_consistency > 0) {
+      const auto own = spec.use_camera && !spec.camera.calibration.empty() ? spec.camera : training_camera(m);
+      require_option(!own.calibration.empty(), "infer.data_consistency",
+                     "needs the camera's calibration: the model's training camera is not here (give --camera with a "
+                     "camera file that names one)");
+      auto dc_camera = own;
+      dc_camera.raw.centring = camera.raw.centring;  // the planes arrive preprocessed as the model reads them
+      built.engine = with_data_consistency(std::move(built.engine), load_calibration(own.calibration, own), dc_camera,
+                                           {spec.data_consistency, spec.consistency_blur});
+    }
     if (spec.levers.self_ensemble && m.spec.inversion_init == "calibfree")
       built.warning =
           "the self-ensemble assumes an enhancer that works the same on a flipped image; a first stage started from "

@@ -59,6 +59,11 @@ struct ReconstructorSpec {
   double lambda = 0;                  // tikhonov, tv (<= 0: the camera's)
   std::filesystem::path model;        // flatnet (.flatnet), opencv (.onnx)
   InferenceLevers levers;             // flatnet
+  // flatnet: > 0 corrects each picture by its capture where the calibration resolves it well
+  // (recon/data_consistency.hpp, strength c); the calibration is the given camera's, else the model's
+  // training camera's.
+  double data_consistency = 0;
+  double consistency_blur = 0;  // sigma of a Gaussian on that correction (scene pixels)
   // The first capture it will read (optional): its header is checked against the camera (size,
   // depth) before anything the camera's size sets is built (a calibration's SVDs, the camera fit's
   // reference). The rest are checked as each is read.

@@ -1,0 +1,108 @@
+#include "recon/data_consistency.hpp"
+
+#include <cmath>
+#include <iomanip>
+#include <sstream>
+
+#include "core/error.hpp"
+#include "io/image.hpp"
+#include "io/raw.hpp"
+
+namespace flatnet {
+
+DataConsistency::DataConsistency(const Calibration& calib, const CameraConfig& camera, DataConsistencyOptions o)
+    : centring_(camera.raw.centring),
+      P_(calib.P.to(torch::kFloat32)),
+      Q_(calib.Q.to(torch::kFloat32)),
+      mix_(camera.colour_mix.empty() ? torch::Tensor()
+                                     : colour_mix_matrix(camera.colour_mix).to(torch::kFloat32)),
+      svd_(separable_inverse(calib.P, calib.Q, camera.tikhonov_lambda)) {
+  require_option(std::isfinite(o.strength) && o.strength > 0 && o.strength <= 1e3, "infer.data_consistency",
+                 "the strength c of the data-consistency step lies in (0, 1000]");
+  require_option(std::isfinite(o.blur) && o.blur >= 0 && o.blur <= 64, "infer.consistency_blur",
+                 "the correction's blur is 0 (none) to 64 scene pixels");
+  const double lambda = camera.tikhonov_lambda;
+  const auto s = svd_.sL.unsqueeze(2) * svd_.sR.unsqueeze(1);  // {4,N,N} float64: s_Li s_Rj
+  gain_pairs_ = (s >= std::sqrt(lambda)).to(torch::kFloat32);
+  filter_ = (s / (s.square() + o.strength * o.strength * lambda)).to(torch::kFloat32);
+  measured_share_ = (s >= o.strength * std::sqrt(lambda)).to(torch::kFloat64).mean().item<double>();
+  if (o.blur > 0) {
+    const auto radius = static_cast<int64_t>(std::ceil(3 * o.blur));
+    const auto x = torch::arange(-radius, radius + 1, torch::kFloat32);
+    auto g = torch::exp(-x.square() / (2 * o.blur * o.blur));
+    g = g / g.sum();
+    blur_ = torch::outer(g, g).expand({4, 1, 2 * radius + 1, 2 * radius + 1}).contiguous();
+  }
+}
+
+torch::Tensor DataConsistency::to_planes(const torch::Tensor& srgb) const {
+  const auto rgb = srgb_to_linear(srgb.to(torch::kFloat32));  // {B,3,N,N}
+  if (!mix_.defined()) return rgb_to_bayer_planes(rgb);
+  return torch::einsum("pc,bchw->bphw", {mix_, rgb});  // each plane's shares of the primaries
+}
+
+torch::Tensor DataConsistency::from_planes(const torch::Tensor& planes) const {
+  const auto rgb = mix_.defined() ? unmix_primaries(planes, mix_.to(torch::kFloat64)) : bayer_planes_to_rgb(planes);
+  return linear_to_srgb(rgb.clamp(0, 1));
+}
+
+torch::Tensor DataConsistency::operator()(const torch::Tensor& planes, const torch::Tensor& picture) const {
+  c10::InferenceMode no_grad;
+  const auto Y = without_level(planes.to(torch::kFloat32), centring_);                   // {B,4,h,w}
+  const auto X = to_planes(picture);                                                      // {B,4,N,N}
+  const auto AX = torch::matmul(torch::matmul(P_, X), Q_.transpose(1, 2));                // {B,4,h,w}
+  const auto coefficients = [&](const torch::Tensor& Z) {                                 // U_L^T Z U_R
+    return torch::matmul(torch::matmul(svd_.ULt, Z), svd_.UR);
+  };
+  const auto cY = coefficients(Y), cX = coefficients(AX);                                 // {B,4,N,N}
+  // The capture's exposure against the picture's: one gain per capture, least squares on the pairs
+  // the camera measures above its noise.
+  const auto a = (cY * cX * gain_pairs_).sum({1, 2, 3}) / (cX * cX * gain_pairs_).sum({1, 2, 3}).clamp_min(1e-30);
+  const auto usable = torch::isfinite(a) & (a > 0);
+  const auto gain = torch::where(usable, a, torch::ones_like(a)).view({-1, 1, 1, 1});
+  // (1): the residual's coefficients through the regularised inverse, in the picture's units.
+  const auto residual = (cY / gain - cX) * filter_;
+  auto correction = torch::matmul(torch::matmul(svd_.VL, residual), svd_.VRt);  // {B,4,N,N}
+  if (blur_.defined()) {
+    const auto r = blur_.size(2) / 2;
+    const std::vector<int64_t> ones{1, 1};
+    correction = torch::conv2d(torch::reflection_pad2d(correction, {r, r, r, r}), blur_, torch::Tensor(), ones,
+                               std::vector<int64_t>{0, 0}, ones, /*groups=*/4);
+  }
+  const auto corrected = from_planes((X + correction).clamp_min(0));
+  // A capture with no usable exposure (dark, or not this camera's) keeps the network's picture.
+  return torch::where(usable.view({-1, 1, 1, 1}), corrected, picture.to(corrected.scalar_type()));
+}
+
+namespace {
+
+class ConsistentReconstructor final : public Reconstructor {
+ public:
+  ConsistentReconstructor(std::unique_ptr<Reconstructor> engine, std::shared_ptr<const DataConsistency> step,
+                          double strength)
+      : engine_(std::move(engine)), step_(std::move(step)), strength_(strength) {}
+  std::string describe() const override {
+    std::ostringstream s;
+    s << engine_->describe() << " + data consistency (c " << std::setprecision(3) << strength_ << ": the capture "
+      << "decides " << std::setprecision(3) << 100 * step_->measured_share() << " % of singular pairs)";
+    return s.str();
+  }
+  torch::Tensor reconstruct(const torch::Tensor& planes) override {
+    return (*step_)(planes, engine_->reconstruct(planes));
+  }
+
+ private:
+  std::unique_ptr<Reconstructor> engine_;
+  std::shared_ptr<const DataConsistency> step_;
+  double strength_;
+};
+
+}  // namespace
+
+std::unique_ptr<Reconstructor> with_data_consistency(std::unique_ptr<Reconstructor> engine, const Calibration& calib,
+                                                     const CameraConfig& camera, DataConsistencyOptions options) {
+  auto step = std::make_shared<const DataConsistency>(calib, camera, options);
+  return std::make_unique<ConsistentReconstructor>(std::move(engine), std::move(step), options.strength);
+}
+
+}  // namespace flatnet
