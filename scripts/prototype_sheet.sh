@@ -1,10 +1,13 @@
 #!/usr/bin/env bash
-# FlatNet's real prototype, reconstructed three ways, side by side (the README's first picture):
-# FlatNet's own Tikhonov (rec_*.png), flatnet's Tikhonov with the calibration identified from them
-# (configs/cameras/flatnet_prototype/), and flatnet's model for the prototype.
+# FlatNet's real prototype, side by side (the README's first picture): FlatNet's own Tikhonov
+# (rec_*.png), flatnet's Tikhonov with the calibration identified from them
+# (configs/cameras/flatnet_prototype/), flatnet's model for the prototype, the same with the capture's
+# data-consistency step (infer --data-consistency 10 --consistency-blur 1), and, on fc_8 alone,
+# FlatNet's own network trained on real captures (flatnet_r_8.png: FlatNet published no other).
 #   scripts/prototype_sheet.sh [MODEL] [OUT]
 # MODEL: models/flatnet-prototype-transpose.flatnet; OUT: a folder (default /tmp/prototype_sheet),
-# which gets tikhonov/, model/ (with camera_fit.csv) and sheet.png. Needs ../shared/data/flatnet
+# which gets tikhonov/, model/ and consistent/ (with camera_fit.csv) and sheet.png, and prints
+# colour and detail per unit of luma on fc_8 against FlatNet-R's (scripts/colour_detail.py). Needs ../shared/data/flatnet
 # (FLATNET_DATA: another folder with fc_6..9.png and rec_6..9.png).
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -20,21 +23,29 @@ mkdir -p "$out/captures"
 for i in 6 7 8 9; do cp "$data/fc_$i.png" "$out/captures/"; done
 "$flatnet" recon --method tikhonov --camera "$camera" --input "$out/captures" --out "$out/tikhonov" --require-fit --force
 "$flatnet" infer --model "$model" --input "$out/captures" --out "$out/model" --require-fit --force
+"$flatnet" infer --model "$model" --input "$out/captures" --out "$out/consistent" --require-fit --force \
+  --data-consistency 10 --consistency-blur 1
 /usr/bin/python3 - "$data" "$out" <<'PY'
 import sys
 from PIL import Image, ImageDraw
 data, out = sys.argv[1], sys.argv[2]
 columns = [("FlatNet's Tikhonov", lambda i: f"{data}/rec_{i}.png"),
            ("flatnet Tikhonov", lambda i: f"{out}/tikhonov/fc_{i}.png"),
-           ("flatnet model", lambda i: f"{out}/model/fc_{i}.png")]
+           ("flatnet model", lambda i: f"{out}/model/fc_{i}.png"),
+           ("+ data consistency", lambda i: f"{out}/consistent/fc_{i}.png"),
+           ("FlatNet-R (fc_8 only)", lambda i: f"{data}/flatnet_r_8.png" if i == 8 else None)]
 size, pad, head = 256, 4, 22
 sheet = Image.new("RGB", (len(columns) * (size + pad) + pad, head + 4 * (size + pad) + pad), "white")
 draw = ImageDraw.Draw(sheet)
 for c, (label, path) in enumerate(columns):
     draw.text((pad + c * (size + pad) + 6, 5), label, fill="black")
     for r, i in enumerate([6, 7, 8, 9]):
+        if path(i) is None:
+            continue
         image = Image.open(path(i)).convert("RGB").resize((size, size))
         sheet.paste(image, (pad + c * (size + pad), head + pad + r * (size + pad)))
 sheet.save(f"{out}/sheet.png")
 print(f"wrote {out}/sheet.png")
 PY
+/usr/bin/python3 scripts/colour_detail.py "$data/flatnet_r_8.png" "$out/model/fc_8.png" "$out/consistent/fc_8.png" \
+  "$data/rec_8.png"
