@@ -58,8 +58,7 @@ TEST_CASE("data consistency leaves a picture its capture explains, at any exposu
   CHECK(step.measured_share() > 0.5);  // this well-conditioned camera measures most pairs far above lambda
 }
 
-TEST_CASE("data consistency moves a washed-out picture toward the scene its capture holds",
-          "[recon][consistency]") {
+TEST_CASE("data consistency moves a washed-out picture toward the scene its capture holds", "[recon][consistency]") {
   Bench b;
   const auto truth = linear_to_srgb(b.rgb);
   // The network's picture, washed out: half of every colour replaced by the pixel's grey.

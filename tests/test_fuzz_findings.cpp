@@ -56,6 +56,24 @@ TEST_CASE("fuzz finding: a .mat struct whose field claims 520 M doubles is refus
       Contains("fuzz_mat-struct-field-claims-4gb.bin") && Contains("520093699 values") && Contains("its data holds 3"));
 }
 
+TEST_CASE("fuzz finding: a .mat whose header is neither v5 nor v7.3 never reaches matio's v4 reader", "[safe][fuzz]") {
+  // 16 bytes before a v5 header moved its version field onto 0x0200 (v7.3), with no HDF5 file behind
+  // it: matio then read the file as MATLAB v4 and took "MATL" for a name length (a 1.3 GB malloc).
+  CHECK_THROWS_WITH(MatReader(finding("fuzz_mat-v73-flag-read-as-v4.bin")),
+                    Contains("fuzz_mat-v73-flag-read-as-v4.bin") && Contains("MATLAB"));
+  test::Scratch s("fuzz_mat_v4");
+  // A v5 header with another version number, and a file of v4's layout: refused before matio alike.
+  std::string v5(128, ' ');
+  v5.replace(0, 19, "MATLAB 5.0 MAT-file");
+  v5[124] = 0x03, v5[125] = 0x00, v5[126] = 'I', v5[127] = 'M';
+  test::write_file(s.dir / "version.mat", v5);
+  CHECK_THROWS_WITH(MatReader(s.dir / "version.mat"), Contains("version.mat") && Contains("v5"));
+  std::string v4(200, '\0');
+  v4.replace(16, 4, "MATL");
+  test::write_file(s.dir / "v4.mat", v4);
+  CHECK_THROWS_WITH(MatReader(s.dir / "v4.mat"), Contains("v4.mat") && Contains("does not begin with"));
+}
+
 TEST_CASE("fuzz finding: a list line naming a file the file system refuses is the list's error, with its line",
           "[safe][fuzz]") {
   test::Scratch s("fuzz_lists_finding");

@@ -403,7 +403,7 @@ TEST_CASE("configs mean what they say: no stray paths, no hex, no duplicate keys
   CHECK_THROWS_WITH(Config::load(s.dir / "dup.yaml"), Contains("dup.yaml") && Contains("'lr' is given twice"));
   write_file(s.dir / "two.yaml", "train:\n  lr: 1.0e-4\n---\ntrain:\n  lr: 2.0e-4\n");
   CHECK_THROWS_WITH(Config::load(s.dir / "two.yaml"), Contains("two.yaml") && Contains("more than one YAML document"));
-  write_file(s.dir / "big.yaml", "train:\n  " + std::string(2 << 20, 'x') + ": 1\n");
+  write_file(s.dir / "big.yaml", "train:\n  " + std::string(5 << 20, 'x') + ": 1\n");  // over 4 MiB
   CHECK_THROWS_WITH(Config::load(s.dir / "big.yaml"), Contains("big.yaml") && Contains("over the limit"));
   // Cameras: NaN rotation, infinite or absurd regularisation, absurd scene sizes.
   const std::string camera = "raw_height: 40\nraw_width: 48\ncrop: [0, 0, 20, 24]\nscene_size: 16\n";

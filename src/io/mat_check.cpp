@@ -209,10 +209,19 @@ void check_element(const unsigned char* p, uint64_t left, const std::filesystem:
 void check_mat5_sizes(const std::string& bytes, const std::filesystem::path& path) {
   require(bytes.size() >= 128, path, "not a readable MATLAB .mat file (shorter than its 128-byte header)");
   const auto* p = reinterpret_cast<const unsigned char*>(bytes.data());
+  // Both versions open with the text "MATLAB": matio reads a file whose header it does not take as
+  // v5 or v7.3 as MATLAB v4, whose first bytes are sizes ("MATL" as a name length: a 1.3 GB malloc,
+  // found by scripts/fuzz.sh), so only a v5 or v7.3 header reaches it.
+  require(bytes.compare(0, 6, "MATLAB") == 0, path,
+          "not a MATLAB v5 or v7.3 .mat file (its header does not begin with \"MATLAB\"; flatnet reads v5 and v7.3)");
   const uint16_t version = p[124] | p[125] << 8;
-  if (version == 0x0200) return;  // v7.3: an HDF5 file (its own checks)
+  if (version == 0x0200) {  // v7.3: an HDF5 file behind a 512-byte user block (HDF5's own checks)
+    require(bytes.size() >= 520 && bytes.compare(512, 8, "\x89HDF\r\n\x1a\n") == 0, path,
+            "claims MATLAB v7.3 but holds no HDF5 file after its 512-byte header");
+    return;
+  }
   require(
-      p[126] == 'I' && p[127] == 'M', path,
+      version == 0x0100 && p[126] == 'I' && p[127] == 'M', path,
       "not a little-endian MATLAB v5 .mat file (flatnet reads v5 and v7.3 files written on little-endian machines)");
   for (uint64_t at = 128; at < bytes.size();) {
     uint64_t used = 0;

@@ -14,8 +14,7 @@ DataConsistency::DataConsistency(const Calibration& calib, const CameraConfig& c
     : centring_(camera.raw.centring),
       P_(calib.P.to(torch::kFloat32)),
       Q_(calib.Q.to(torch::kFloat32)),
-      mix_(camera.colour_mix.empty() ? torch::Tensor()
-                                     : colour_mix_matrix(camera.colour_mix).to(torch::kFloat32)),
+      mix_(camera.colour_mix.empty() ? torch::Tensor() : colour_mix_matrix(camera.colour_mix).to(torch::kFloat32)),
       svd_(separable_inverse(calib.P, calib.Q, camera.tikhonov_lambda)) {
   require_option(std::isfinite(o.strength) && o.strength > 0 && o.strength <= 1e3, "infer.data_consistency",
                  "the strength c of the data-consistency step lies in (0, 1000]");
@@ -48,13 +47,13 @@ torch::Tensor DataConsistency::from_planes(const torch::Tensor& planes) const {
 
 torch::Tensor DataConsistency::operator()(const torch::Tensor& planes, const torch::Tensor& picture) const {
   c10::InferenceMode no_grad;
-  const auto Y = without_level(planes.to(torch::kFloat32), centring_);                   // {B,4,h,w}
-  const auto X = to_planes(picture);                                                      // {B,4,N,N}
-  const auto AX = torch::matmul(torch::matmul(P_, X), Q_.transpose(1, 2));                // {B,4,h,w}
-  const auto coefficients = [&](const torch::Tensor& Z) {                                 // U_L^T Z U_R
+  const auto Y = without_level(planes.to(torch::kFloat32), centring_);      // {B,4,h,w}
+  const auto X = to_planes(picture);                                        // {B,4,N,N}
+  const auto AX = torch::matmul(torch::matmul(P_, X), Q_.transpose(1, 2));  // {B,4,h,w}
+  const auto coefficients = [&](const torch::Tensor& Z) {                   // U_L^T Z U_R
     return torch::matmul(torch::matmul(svd_.ULt, Z), svd_.UR);
   };
-  const auto cY = coefficients(Y), cX = coefficients(AX);                                 // {B,4,N,N}
+  const auto cY = coefficients(Y), cX = coefficients(AX);  // {B,4,N,N}
   // The capture's exposure against the picture's: one gain per capture, least squares on the pairs
   // the camera measures above its noise.
   const auto a = (cY * cX * gain_pairs_).sum({1, 2, 3}) / (cX * cX * gain_pairs_).sum({1, 2, 3}).clamp_min(1e-30);

@@ -40,13 +40,13 @@ class DataConsistency {
   double measured_share() const { return measured_share_; }
 
  private:
-  torch::Tensor to_planes(const torch::Tensor& srgb) const;    // {B,3,N,N} sRGB -> {B,4,N,N} linear
+  torch::Tensor to_planes(const torch::Tensor& srgb) const;      // {B,3,N,N} sRGB -> {B,4,N,N} linear
   torch::Tensor from_planes(const torch::Tensor& planes) const;  // {B,4,N,N} linear -> {B,3,N,N} sRGB
 
   Centring centring_;
-  torch::Tensor P_, Q_;    // {4,h,N}, {4,w,N} float32
-  torch::Tensor mix_;      // {4,3} float32, or undefined (b = B, gb = gr = G, r = R)
-  SeparableInverse svd_;   // the SVDs of P and Q
+  torch::Tensor P_, Q_;       // {4,h,N}, {4,w,N} float32
+  torch::Tensor mix_;         // {4,3} float32, or undefined (b = B, gb = gr = G, r = R)
+  SeparableInverse svd_;      // the SVDs of P and Q
   torch::Tensor gain_pairs_;  // {4,N,N} float32: 1 where s_ij >= sqrt(lambda), the exposure's fit
   torch::Tensor filter_;      // {4,N,N} float32: s / (s^2 + c^2 lambda) of (1)
   torch::Tensor blur_;        // {4,1,k,k} float32 Gaussian, or undefined
