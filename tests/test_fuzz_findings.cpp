@@ -74,6 +74,12 @@ TEST_CASE("fuzz finding: a .mat whose header is neither v5 nor v7.3 never reache
   CHECK_THROWS_WITH(MatReader(s.dir / "v4.mat"), Contains("v4.mat") && Contains("does not begin with"));
 }
 
+TEST_CASE("fuzz finding: a .mat function handle claiming 6 x 69 M elements is refused before matio lists it",
+          "[safe][fuzz]") {
+  CHECK_THROWS_WITH(MatReader(finding("fuzz_mat-function-handle-claims-3gb.bin")),
+                    Contains("fuzz_mat-function-handle-claims-3gb.bin") && Contains("MATLAB class 16"));
+}
+
 TEST_CASE("fuzz finding: a list line naming a file the file system refuses is the list's error, with its line",
           "[safe][fuzz]") {
   test::Scratch s("fuzz_lists_finding");
