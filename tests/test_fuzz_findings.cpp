@@ -80,6 +80,12 @@ TEST_CASE("fuzz finding: a .mat function handle claiming 6 x 69 M elements is re
                     Contains("fuzz_mat-function-handle-claims-3gb.bin") && Contains("MATLAB class 16"));
 }
 
+TEST_CASE("fuzz finding: a .mat struct whose name is not text, read as 0 fields here and 2^27 by matio, is refused",
+          "[safe][fuzz]") {
+  CHECK_THROWS_WITH(MatReader(finding("fuzz_mat-struct-name-not-text.bin")),
+                    Contains("fuzz_mat-struct-name-not-text.bin") && Contains("name is not stored as text"));
+}
+
 TEST_CASE("fuzz finding: a list line naming a file the file system refuses is the list's error, with its line",
           "[safe][fuzz]") {
   test::Scratch s("fuzz_lists_finding");

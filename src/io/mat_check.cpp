@@ -89,6 +89,12 @@ void check_matrix(const unsigned char* m, uint64_t size, const std::filesystem::
   require(flags.type == 6 && flags.bytes == 8, path, "damaged .mat file: a variable without array flags");
   const uint32_t cls = m[8] & 0xff;
   const bool complex = m[9] & 0x08;
+  // Function handles (16), opaque objects (17) and unknown classes: matio makes one pointer per element
+  // the dimensions claim before it reads any (found by scripts/fuzz.sh: a 376-byte function handle
+  // claiming 6 x 69 M elements, a 3.3 GB malloc). flatnet reads none of them: refused.
+  require(cls >= 1 && cls <= 15, path,
+          "a variable of MATLAB class " + std::to_string(cls) +
+              " (a function handle, an object or unknown); flatnet reads numeric arrays, text, cells and structs");
   uint64_t at = 16;
   need(at, 8, "dimensions");
   const auto dims = read_tag(m + at);
@@ -106,6 +112,9 @@ void check_matrix(const unsigned char* m, uint64_t size, const std::filesystem::
   need(at, 8, "name");
   const auto name_tag = read_tag(m + at);
   need(at + name_tag.header, name_tag.bytes, "name");
+  // Names are miINT8 (1) in every writer: a name of another type is read one way here and another
+  // way by matio (found by scripts/fuzz.sh: a struct this check read as 0 fields, matio as 2^27).
+  require(name_tag.type == 1, path, "damaged .mat file: a variable's name is not stored as text");
   const std::string name(reinterpret_cast<const char*>(m + at + name_tag.header), name_tag.bytes);
   at += stored_size(name_tag);
   const auto where = "variable '" + printable(name) + "'";  // a name from the file: escaped
@@ -120,11 +129,15 @@ void check_matrix(const unsigned char* m, uint64_t size, const std::filesystem::
     need(at, 8, "field name length");
     const auto length_tag = read_tag(m + at);
     need(at + length_tag.header, 4, "field name length");
+    require(length_tag.type == 5 && length_tag.bytes == 4, path,
+            "damaged .mat file: " + where + "'s field name length is not one 32-bit integer");
     const uint64_t length = u32(m + at + length_tag.header);
     at += stored_size(length_tag);
     need(at, 8, "field names");
     const auto names = read_tag(m + at);
     need(at + names.header, names.bytes, "field names");
+    require(names.type == 1 && (length == 0 ? names.bytes == 0 : names.bytes % length == 0), path,
+            "damaged .mat file: " + where + "'s field names do not fill whole names of its field name length");
     const uint64_t fields = length == 0 ? 0 : names.bytes / length;
     at += stored_size(names);
     uint64_t elements = 0;
@@ -135,12 +148,6 @@ void check_matrix(const unsigned char* m, uint64_t size, const std::filesystem::
   if (cls == 4 && count > size)
     throw Error(path, where + " declares " + std::to_string(count) + " characters in " + std::to_string(size) +
                           " bytes (hostile or damaged file?)");
-  // Function handles (16), opaque objects (17) and unknown classes: matio makes one pointer per element
-  // the dimensions claim before it reads any (found by scripts/fuzz.sh: a 376-byte function handle
-  // claiming 6 x 69 M elements, a 3.3 GB malloc). flatnet reads none of them: refused.
-  require(cls >= 1 && cls <= 15, path,
-          where + " is of MATLAB class " + std::to_string(cls) +
-              " (a function handle, an object or unknown); flatnet reads numeric arrays, text, cells and structs");
   if (cls < 6) return;  // chars, sparse: not read by flatnet
   if (overflow || count > kMaxVariableBytes)
     throw Error(path, where + " declares " + (overflow ? std::string("more than 2^64") : std::to_string(count)) +
