@@ -54,12 +54,10 @@ TEST_CASE("calibrate --references never writes over one of the files it reads, e
   test::Scratch s("round5_reference_out");
   const auto base = reference_lists(s.dir, {"c1.png", "c2.png", "c3.png"}, {"r1.png", "r2.mat", "r3.png"});
   write_file(s.dir / "r2.mat", "a reference the user keeps");  // its content is never read before the check
-  for (const std::string target : {"r2.mat", "c1.png.mat"}) {
-    INFO(target);
-    if (target == "c1.png.mat") continue;  // (a capture is never a .mat: --out's extension refuses it first)
-    const auto r = test::run_flatnet(base + " --out " + q(s.dir / target) + " --force");
+  {
+    const auto r = test::run_flatnet(base + " --out " + q(s.dir / "r2.mat") + " --force");
     CHECK(r.code == 2);
-    CHECK_THAT(r.output, Contains(target) && Contains("is also the input"));
+    CHECK_THAT(r.output, Contains("r2.mat") && Contains("is also the input"));
   }
   CHECK(read_file(s.dir / "r2.mat") == "a reference the user keeps");
   // The camera.yaml written beside the calibration is checked the same way: a reference named camera.yaml.

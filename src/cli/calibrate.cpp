@@ -291,10 +291,6 @@ int calibrate_from_dataset(const cxxopts::ParseResult& r) {
   for (const auto* flag : {"meas-list", "gt-list"})
     if (r.count(flag)) inputs.push_back(r[flag].as<std::string>());
   const bool force = r.count("force") > 0;
-  require_new_output(out, force, inputs);
-  // The camera.yaml written beside it is an output too: an existing one (perhaps hand-tuned) is
-  // replaced only with --force, and never when it is one of the inputs.
-  require_new_output(out.parent_path() / "camera.yaml", force, inputs);
   std::vector<Pair> pairs;
   if (r.count("meas-list") || r.count("gt-list")) {  // FlatNet's own list files
     require(r.count("meas-list") && r.count("gt-list"), "--meas-list", "give both --meas-list and --gt-list");
@@ -320,7 +316,9 @@ int calibrate_from_dataset(const cxxopts::ParseResult& r) {
   const auto limit = r["limit"].as<int64_t>();
   require(limit >= 0, "--limit", "0 (all) or more");
   if (limit > 0 && static_cast<int64_t>(pairs.size()) > limit) pairs.resize(static_cast<size_t>(limit));
-  // The pairs' files are inputs too (a reference .mat, a capture): no output lands on one, even with --force.
+  // The pairs' files are inputs too (a reference .mat, a capture): no output lands on one, even with
+  // --force. The camera.yaml written beside the calibration is an output too: an existing one (perhaps
+  // hand-tuned) is replaced only with --force, and never when it is one of the inputs.
   for (const auto& p : pairs) inputs.insert(inputs.end(), {p.meas, p.gt});
   require_new_output(out, force, inputs);
   require_new_output(out.parent_path() / "camera.yaml", force, inputs);
@@ -395,18 +393,18 @@ int calibrate_from_dataset(const cxxopts::ParseResult& r) {
                 << known.colour_mix[p][1] << "/" << known.colour_mix[p][2];
     std::cout << "\n";
   }
-  if (fit.structure_rejected)
+  if (fit.structure_rejected) {
     std::cout << "shift structure rejected: it explains " << std::setprecision(3) << fit.structure_explains
               << " of what free factors explain (a mask that is not one moving shadow?); free factors were fitted, "
                  "which need thousands of pairs\n";
-  // A handful of pairs whose shadow no shift explains are, most often, direct captures and someone's
-  // reconstructions of them (FlatNet's fc_*.png and rec_*.png), not display captures of photographs.
-  if (fit.structure_rejected && static_cast<int64_t>(pairs.size()) < kFewPairs)
-    std::cerr << "calibrate: warning: " << pairs.size()
-              << " pairs whose shadow no shift explains look like captures and reconstructions of them, not display "
-                 "captures of photographs; for those, run `flatnet calibrate --references` (same lists); free "
-                 "factors from so few pairs do not describe the camera\n";
-  else if (o.structure == FactorStructure::Shift)
+    // A handful of pairs whose shadow no shift explains are, most often, direct captures and someone's
+    // reconstructions of them (FlatNet's fc_*.png and rec_*.png), not display captures of photographs.
+    if (static_cast<int64_t>(pairs.size()) < kFewPairs)
+      std::cerr << "calibrate: warning: " << pairs.size()
+                << " pairs whose shadow no shift explains look like captures and reconstructions of them, not "
+                   "display captures of photographs; for those, run `flatnet calibrate --references` (same lists); "
+                   "free factors from so few pairs do not describe the camera\n";
+  } else if (o.structure == FactorStructure::Shift)
     std::cout << "shift structure: the shadow moves " << std::setprecision(6) << fit.shift_rows
               << " sensor pixels per scene row, " << fit.shift_cols << " per scene column; it explains "
               << std::setprecision(3) << fit.structure_explains << " of what free factors explain\n";

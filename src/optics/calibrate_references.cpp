@@ -2,9 +2,7 @@
 
 #include "optics/camera_fit.hpp"
 
-#include <chrono>
 #include <cmath>
-#include <iostream>
 #include <functional>
 #include <limits>
 #include <iomanip>
@@ -298,18 +296,10 @@ std::vector<HeldOutPair> leave_one_out(const std::vector<ReferencePair>& pairs, 
                                        const ReferenceCalibrationOptions& options) {
   require_option(pairs.size() >= 3, "calibrate.references", "leave-one-out needs at least 3 pairs");
   std::vector<HeldOutPair> out;
-  const auto start = std::chrono::steady_clock::now();
+  // Each held-out fit is a whole calibration: the bar says which pair is out, and the time left.
+  Progress progress("leave-one-out", static_cast<int64_t>(pairs.size()), options.progress);
   for (size_t held = 0; held < pairs.size(); ++held) {
-    if (options.progress) {  // each held-out fit is a whole calibration: say which, and the time left
-      const double spent = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
-      std::cerr << "leave-one-out " << held + 1 << "/" << pairs.size() << ": calibrating without "
-                << printable(pairs[held].name);
-      if (held > 0)
-        std::cerr << " ("
-                  << format_duration(spent / static_cast<double>(held) * static_cast<double>(pairs.size() - held))
-                  << " left, then the calibration from all pairs)";
-      std::cerr << "\n" << std::flush;
-    }
+    progress.set_status("without " + printable(pairs[held].name));
     std::vector<ReferencePair> others;
     for (size_t i = 0; i < pairs.size(); ++i)
       if (i != held) others.push_back(pairs[i]);
@@ -328,7 +318,9 @@ std::vector<HeldOutPair> leave_one_out(const std::vector<ReferencePair>& pairs, 
     const double leak = coded_leak(pairs[held].meas.to(torch::kFloat32), U, V);  // nan where not measurable
     if (std::isfinite(leak)) h.leak = leak;
     out.push_back(h);
+    progress.tick();
   }
+  progress.finish();
   return out;
 }
 

@@ -47,9 +47,9 @@ struct ShiftFactor {
   torch::Tensor objective;  // {C} J at the fit, float64
 };
 
-// The centred factor C F(f) of (1) for a profile {C,L}.
 // The samples a profile needs for a factor of `rows` sensor rows and `scene` scene pixels at `shift`.
 int64_t shift_profile_length(int64_t rows, int64_t scene, double shift, double spacing);
+// The centred factor C F(f) of (1) for a profile {C,L}.
 torch::Tensor shift_factor(const torch::Tensor& profile, int64_t rows, int64_t scene, double shift, double spacing);
 
 // The least-squares profile (2) for one shift. G {C,N,N}, H {C,m,N}; `warm` a profile {C,L} to start from.

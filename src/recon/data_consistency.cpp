@@ -15,7 +15,8 @@ DataConsistency::DataConsistency(const Calibration& calib, const CameraConfig& c
       P_(calib.P.to(torch::kFloat32)),
       Q_(calib.Q.to(torch::kFloat32)),
       mix_(camera.colour_mix.empty() ? torch::Tensor() : colour_mix_matrix(camera.colour_mix).to(torch::kFloat32)),
-      svd_(separable_inverse(calib.P, calib.Q, camera.tikhonov_lambda)) {
+      svd_(separable_inverse(calib.P, calib.Q, camera.tikhonov_lambda)),
+      strength_(o.strength) {
   require_option(std::isfinite(o.strength) && o.strength > 0 && o.strength <= 1e3, "infer.data_consistency",
                  "the strength c of the data-consistency step lies in (0, 1000]");
   require_option(std::isfinite(o.blur) && o.blur >= 0 && o.blur <= 64, "infer.consistency_blur",
@@ -77,12 +78,12 @@ namespace {
 
 class ConsistentReconstructor final : public Reconstructor {
  public:
-  ConsistentReconstructor(std::unique_ptr<Reconstructor> engine, std::shared_ptr<const DataConsistency> step,
-                          double strength)
-      : engine_(std::move(engine)), step_(std::move(step)), strength_(strength) {}
+  ConsistentReconstructor(std::unique_ptr<Reconstructor> engine, std::shared_ptr<const DataConsistency> step)
+      : engine_(std::move(engine)), step_(std::move(step)) {}
   std::string describe() const override {
     std::ostringstream s;
-    s << engine_->describe() << " + data consistency (c " << std::setprecision(3) << strength_ << ": the capture "
+    s << engine_->describe() << " + data consistency (c " << std::setprecision(3) << step_->strength()
+      << ": the capture "
       << "decides " << std::setprecision(3) << 100 * step_->measured_share() << " % of singular pairs)";
     return s.str();
   }
@@ -93,7 +94,6 @@ class ConsistentReconstructor final : public Reconstructor {
  private:
   std::unique_ptr<Reconstructor> engine_;
   std::shared_ptr<const DataConsistency> step_;
-  double strength_;
 };
 
 }  // namespace
@@ -101,7 +101,7 @@ class ConsistentReconstructor final : public Reconstructor {
 std::unique_ptr<Reconstructor> with_data_consistency(std::unique_ptr<Reconstructor> engine, const Calibration& calib,
                                                      const CameraConfig& camera, DataConsistencyOptions options) {
   auto step = std::make_shared<const DataConsistency>(calib, camera, options);
-  return std::make_unique<ConsistentReconstructor>(std::move(engine), std::move(step), options.strength);
+  return std::make_unique<ConsistentReconstructor>(std::move(engine), std::move(step));
 }
 
 }  // namespace flatnet

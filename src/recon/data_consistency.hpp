@@ -38,6 +38,7 @@ class DataConsistency {
   torch::Tensor operator()(const torch::Tensor& planes, const torch::Tensor& picture) const;
   // The share of singular pairs the capture dominates in (1), s_ij >= c sqrt(lambda) (mean over channels).
   double measured_share() const { return measured_share_; }
+  double strength() const { return strength_; }
 
  private:
   torch::Tensor to_planes(const torch::Tensor& srgb) const;      // {B,3,N,N} sRGB -> {B,4,N,N} linear
@@ -51,6 +52,7 @@ class DataConsistency {
   torch::Tensor filter_;      // {4,N,N} float32: s / (s^2 + c^2 lambda) of (1)
   torch::Tensor blur_;        // {4,1,k,k} float32 Gaussian, or undefined
   double measured_share_ = 0;
+  double strength_;
 };
 
 // A reconstructor whose pictures are made consistent with their captures by (1).
