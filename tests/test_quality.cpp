@@ -9,7 +9,9 @@
 #include "helpers.hpp"
 #include "tiny_model.hpp"
 #include "io/image.hpp"
+#include "io/camera_config.hpp"
 #include "io/raw.hpp"
+#include "optics/camera.hpp"
 #include "optics/simulator.hpp"
 #include "io/config.hpp"
 #include "train/data.hpp"
@@ -29,14 +31,14 @@ TEST_CASE("scene light: exposure scales linear light, a lamp adds a bright warm 
   const auto display = torch::rand({3, 32, 32});
   SceneLight dim;
   dim.exposure = 0.25;
-  CHECK(torch::allclose(lit_scene(display, dim), 0.25 * srgb_to_linear(display), 1e-5, 1e-6));
+  CHECK(torch::allclose(lit_scene(display, dim, 0), 0.25 * srgb_to_linear(display), 1e-5, 1e-6));
   SceneLight lamp;
   lamp.lamp = true, lamp.lamp_gain = 30, lamp.lamp_row = 10.5, lamp.lamp_col = 20.5, lamp.lamp_radius = 2;
-  const auto lit = lit_scene(display, lamp);
+  const auto lit = lit_scene(display, lamp, 0);
   CHECK(lit[0][10][20].item<double>() > 30);                             // red at the centre: 30 x 1.0 over the scene
   CHECK(lit[2][10][20].item<double>() < lit[0][10][20].item<double>());  // warm: less blue
   CHECK(torch::equal(lit.slice(1, 0, 5), srgb_to_linear(display).slice(1, 0, 5)));  // far rows untouched
-  const auto truth = visible_scene(lit);
+  const auto truth = visible_scene(lit, 0);
   CHECK(truth.max().item<double>() == 1.0);
   CHECK(truth[0][10][20].item<double>() == 1.0);
   // Drawing: probability 0 leaves the display's light; 1 always redraws, within the range.
@@ -59,7 +61,7 @@ TEST_CASE("a dim scene's capture is the bright one's scaled, through the real ri
   SceneLight dim;
   dim.exposure = 0.5;
   const auto bright = simulate_raw(rig, scene, false).to(torch::kFloat64);
-  const auto half = simulate_raw_linear(rig, lit_scene(scene, dim), false).to(torch::kFloat64);
+  const auto half = simulate_raw_linear(rig, lit_scene(scene, dim, 0), false).to(torch::kFloat64);
   CHECK(torch::equal(simulate_raw_linear(rig, srgb_to_linear(scene), false), simulate_raw(rig, scene, false)));
   // Stored codes = 64 (q); q = round((S + dark) 1023): halving S halves (q - dark code), to within a code.
   const double dark = rig.dark * 1023 * 64;
@@ -76,11 +78,56 @@ TEST_CASE("on-the-fly simulation with light augmentation: truth follows the draw
   SimulatedPairs dim(images, rig, camera, 0, half), plain(images, rig, camera, 0);
   const auto a = dim.load(0, 0), b = dim.load(0, 0), c = plain.load(0, 0);
   CHECK(torch::equal(a.meas, b.meas));
-  CHECK(torch::allclose(a.gt, visible_scene(0.5 * srgb_to_linear(c.gt)), 0, 1e-6));
+  CHECK(torch::allclose(a.gt, visible_scene(0.5 * srgb_to_linear(c.gt), 0), 0, 1e-6));
   CHECK(a.gt.mean().item<double>() < 0.85 * c.gt.mean().item<double>());
   CHECK_FALSE(torch::equal(
       a.meas, c.meas));  // (noise-free scaling: the test above; with noise the centred planes are noise-dominated)
   CHECK_FALSE(torch::equal(dim.load(0, 1).meas, a.meas));  // another epoch, another draw of the noise
+}
+
+TEST_CASE("a camera's display_gamma shows photographs as v^gamma to simulation and training, and back",
+          "[quality][light][display-gamma]") {
+  const auto v = torch::linspace(0, 1, 101);
+  CHECK(torch::equal(display_to_light(v, 0), srgb_to_linear(v)));
+  CHECK(torch::allclose(display_to_light(v, 1.25), torch::pow(v, 1.25)));
+  for (const double gamma : {0.0, 0.8, 1.25, 2.2})
+    CHECK(torch::allclose(light_to_display(display_to_light(v, gamma), gamma), v, 1e-5, 1e-5));
+  CHECK(torch::allclose(light_to_display(torch::tensor({-0.5, 2.0}), 1.25), torch::tensor({0.0, 1.0})));
+
+  // The rig shows a photograph through the camera's curve: simulate_raw of v is simulate_raw_linear
+  // of v^gamma, and not of the sRGB curve's light.
+  auto camera = load_camera_config(default_camera_path());
+  camera.display_gamma = 1.25;
+  auto rig = load_camera_rig(camera);
+  CHECK(rig.display_gamma == 1.25);
+  const auto display = read_rgb(test::data_dir() / "golden" / "bsds_16052_scene.png");
+  const auto raw = simulate_raw(rig, display, false);
+  CHECK(torch::equal(raw, simulate_raw_linear(rig, torch::pow(display, 1.25), false)));
+  CHECK_FALSE(torch::equal(raw, simulate_raw_linear(rig, srgb_to_linear(display), false)));
+
+  // Training: the truth of a dimmed photograph is its light at that exposure through the inverse curve.
+  LightAugment half;
+  half.exposure_probability = 1, half.exposure_min = 0.5, half.exposure_max = 0.5;
+  const auto shared = std::make_shared<const Rig>(rig);
+  std::vector<std::filesystem::path> images{test::data_dir() / "golden" / "bsds_16052_scene.png"};
+  SimulatedPairs dim(images, shared, camera, 0, half), plain(images, shared, camera, 0);
+  const auto a = dim.load(0, 0), c = plain.load(0, 0);
+  CHECK(torch::allclose(a.gt, visible_scene(0.5 * torch::pow(c.gt, 1.25), 1.25), 0, 1e-6));
+  // 0.5^(1/1.25) = 0.57 of the display's values (the sRGB curve would give about 0.73).
+  CHECK(a.gt.mean().item<double>() == Approx(0.574 * c.gt.mean().item<double>()).epsilon(0.02));
+}
+
+TEST_CASE("display_gamma in a camera file: read, written, carried, and a power in [0.5, 3]",
+          "[quality][display-gamma][io]") {
+  const std::string head = "raw_height: 1024\nraw_width: 1280\nscene_size: 256\n";
+  CHECK(camera_from_yaml_text(head, "plain.yaml").display_gamma == 0);
+  const auto camera = camera_from_yaml_text(head + "display_gamma: 1.25\n", "tone.yaml");
+  CHECK(camera.display_gamma == 1.25);
+  CHECK(camera_from_yaml_text(camera_geometry_yaml(camera), "model").display_gamma == 1.25);
+  for (const char* bad : {"0.3", "45", "-1", ".nan"})
+    CHECK_THROWS_WITH(
+        camera_from_yaml_text(head + "display_gamma: " + bad + "\n", "bad.yaml"),
+        Contains("bad.yaml") && Contains("display_gamma is 0 (the sRGB curve) or a power within [0.5, 3]"));
 }
 
 TEST_CASE("judged validation lights item i as display, dim or lamp in turn, the same at every load",
@@ -102,7 +149,7 @@ TEST_CASE("judged validation lights item i as display, dim or lamp in turn, the 
   CHECK(torch::equal(s[0].gt, display.gt));
   CHECK(torch::equal(s[0].meas, display.meas));
   // dim: a third of the display's light (make_eval_sets.sh's --exposure 0.33).
-  CHECK(torch::allclose(s[1].gt, visible_scene(kJudgedDimExposure * srgb_to_linear(display.gt)), 0, 1e-6));
+  CHECK(torch::allclose(s[1].gt, visible_scene(kJudgedDimExposure * srgb_to_linear(display.gt), 0), 0, 1e-6));
   CHECK(s[1].meas.abs().sum().item<double>() < display.meas.abs().sum().item<double>());
   // lamp: a small disk at white in the truth, the rest of the scene as displayed.
   const auto changed = (s[2].gt - display.gt).abs().amax(0) > 1e-6;  // {N,N}

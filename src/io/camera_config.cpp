@@ -45,7 +45,7 @@ const std::vector<std::string> kKnownKeys = {
     "name",       "raw_height",  "raw_width",   "adc_bits",      "rotation",        "crop",
     "centring",   "scene_size",  "calibration", "rig",           "tikhonov_lambda", "tv_lambda",
     "noise_gain", "noise_floor", "dark",        "fit_threshold", "leak_threshold",  "open_light",
-    "bench",      "hot_pixels",  "colour_mix"};
+    "bench",      "hot_pixels",  "colour_mix",  "display_gamma"};
 
 void validate(const CameraConfig& c, const std::filesystem::path& path) {
   const auto& g = c.raw;
@@ -102,6 +102,9 @@ void validate(const CameraConfig& c, const std::filesystem::path& path) {
   require(
       std::isfinite(c.leak_threshold) && (c.leak_threshold == 0 || (c.leak_threshold >= 1 && c.leak_threshold <= 1e3)),
       path, "leak_threshold is 0 (the camera fit's own) or a ratio within [1, 1000]");
+  require(std::isfinite(c.display_gamma) && (c.display_gamma == 0 || (c.display_gamma >= kLeastDisplayGamma &&
+                                                                      c.display_gamma <= kLargestDisplayGamma)),
+          path, "display_gamma is 0 (the sRGB curve) or a power within [0.5, 3]");
   require(std::isfinite(c.open_light) && c.open_light >= 0 && c.open_light <= 1e3, path,
           "open_light is 0 (unknown) or a plane's level per unit of mean scene light, within (0, 1000]");
   // Above ~1e4 the SVD filter s / (s^2 + lambda) is ~0 for any real camera: black images, not an answer.
@@ -158,6 +161,7 @@ std::string camera_geometry_yaml(const CameraConfig& c) {
   if (c.fit_threshold > 0) os << "fit_threshold: " << c.fit_threshold << "\n";
   if (c.leak_threshold > 0) os << "leak_threshold: " << c.leak_threshold << "\n";
   if (c.open_light > 0) os << "open_light: " << c.open_light << "\n";
+  if (c.display_gamma > 0) os << "display_gamma: " << c.display_gamma << "\n";
   if (!c.colour_mix.empty()) {
     os << "colour_mix: [";
     for (size_t p = 0; p < c.colour_mix.size(); ++p)
@@ -236,6 +240,7 @@ CameraConfig camera_from_node(const YAML::Node& y, const std::filesystem::path& 
     if (y["fit_threshold"]) c.fit_threshold = y["fit_threshold"].as<double>();
     if (y["leak_threshold"]) c.leak_threshold = y["leak_threshold"].as<double>();
     if (y["open_light"]) c.open_light = y["open_light"].as<double>();
+    if (y["display_gamma"]) c.display_gamma = y["display_gamma"].as<double>();
     if (y["bench"]) c.bench = bench_from_node(y["bench"], path);
     if (y["colour_mix"]) {
       const auto rows = y["colour_mix"];

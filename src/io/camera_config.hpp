@@ -25,6 +25,8 @@ enum class Centring {
 inline constexpr double kMaxCameraRotation = 0.175;
 // The most hot pixels a camera file may list: a sensor with more is broken, not calibrated.
 inline constexpr int64_t kMaxHotPixels = 100000;
+// CameraConfig::display_gamma's range: a display or tone curve's power, not a unit mistake.
+inline constexpr double kLeastDisplayGamma = 0.5, kLargestDisplayGamma = 3.0;
 
 // How a raw frame becomes measurement planes (FlatNet's demosaic_raw, made explicit).
 struct RawGeometry {
@@ -88,6 +90,12 @@ struct CameraConfig {
   // mean(X)). 0 = unknown. `flatnet calibrate --references` measures it; with the noise model it lets
   // a camera known only from its calibration be simulated through it (optics/camera.hpp calibration_rig).
   double open_light = 0;
+  // How a displayed photograph's value v (0..1) becomes light in the calibration's scene units:
+  // v^display_gamma, or the sRGB curve when 0. A calibration measured in linear light (Hadamard
+  // patterns, display-capture pairs) takes sRGB; one identified from someone else's reconstructions
+  // is in their tone, which may not be linear (FlatNet's prototype: docs/own-camera.md). Simulation
+  // and training show photographs through it, and reconstructions are displayed through its inverse.
+  double display_gamma = 0;
   // The share of each display primary (R, G, B) that each Bayer plane (b, gb, gr, r) sees: colour
   // filters and a display's spectra overlap. Each row sums to 1 (a grey scene gives every plane its
   // level). Empty: none (b sees B alone, gb and gr G, r R). `flatnet calibrate --dataset` identifies

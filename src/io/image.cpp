@@ -220,6 +220,14 @@ torch::Tensor linear_to_srgb(const torch::Tensor& x) {
   return torch::where(c <= 0.0031308, c * 12.92, 1.055 * torch::pow(c, 1.0 / 2.4) - 0.055);
 }
 
+torch::Tensor display_to_light(const torch::Tensor& x, double gamma) {
+  return gamma > 0 ? torch::pow(x.clamp_min(0.0), gamma) : srgb_to_linear(x);
+}
+
+torch::Tensor light_to_display(const torch::Tensor& x, double gamma) {
+  return gamma > 0 ? torch::pow(x.clamp(0.0, 1.0), 1.0 / gamma) : linear_to_srgb(x);
+}
+
 torch::Tensor bayer_planes_to_rgb(const torch::Tensor& planes) {
   // planes: {..,4,H,W} (b, gb, gr, r) -> {..,3,H,W} (R, G, B)
   auto b = planes.select(-3, 0), gb = planes.select(-3, 1), gr = planes.select(-3, 2), r = planes.select(-3, 3);

@@ -120,6 +120,7 @@ Rig load_camera_rig(const CameraConfig& camera) {
     std::cerr << "camera '" << printable(camera.name) << "' has no rig: simulated through its calibration\n";
     auto rig = calibration_rig(load_calibration(camera.calibration, camera), camera);
     rig.bench = camera.bench;
+    rig.display_gamma = camera.display_gamma;
     return rig;
   }
   require(!camera.rig.empty(), camera.name,
@@ -127,6 +128,7 @@ Rig load_camera_rig(const CameraConfig& camera) {
           "its calibration");
   auto rig = load_rig(camera.rig);
   rig.bench = camera.bench;
+  rig.display_gamma = camera.display_gamma;
   require(rig.scene_size() == camera.scene_size, camera.rig,
           "models a " + std::to_string(rig.scene_size()) + "-pixel scene, and camera '" + printable(camera.name) +
               "' says scene_size " + std::to_string(camera.scene_size));
@@ -188,7 +190,7 @@ torch::Tensor sensor_readout(const Rig& rig, const torch::Tensor& signal, bool n
 torch::Tensor simulate_raw(const Rig& rig, const torch::Tensor& scene_srgb, bool noise,
                            c10::optional<at::Generator> gen) {
   TORCH_CHECK(scene_srgb.dim() == 3 && scene_srgb.size(0) == 3, "scene must be {3,N,N}");
-  return simulate_raw_linear(rig, srgb_to_linear(scene_srgb.to(torch::kFloat32)), noise, gen);
+  return simulate_raw_linear(rig, display_to_light(scene_srgb.to(torch::kFloat32), rig.display_gamma), noise, gen);
 }
 
 torch::Tensor simulate_raw_linear(const Rig& rig, const torch::Tensor& scene_linear, bool noise,

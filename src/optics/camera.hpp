@@ -26,7 +26,8 @@ struct Rig {
   double read_noise = 4;     // electrons, standard deviation
   double dark = 0.02;        // full-scale units
   int adc_bits = 10;
-  BenchErrors bench;  // a simulated bench's errors (optics/bench.hpp; none by default)
+  BenchErrors bench;         // a simulated bench's errors (optics/bench.hpp; none by default)
+  double display_gamma = 0;  // how a displayed photograph becomes light (CameraConfig::display_gamma)
   int64_t scene_size() const { return phil.size(2); }
 };
 

@@ -19,8 +19,8 @@ torch::Tensor display_scene(const std::filesystem::path& image, int64_t size) {
   return torch::round(rgb.clamp(0, 1) * 255.0f) / 255.0f;  // what an 8-bit display shows
 }
 
-torch::Tensor lit_scene(const torch::Tensor& display_srgb, const SceneLight& light) {
-  auto linear = srgb_to_linear(display_srgb.to(torch::kFloat32)) * light.exposure;  // {3,N,N}
+torch::Tensor lit_scene(const torch::Tensor& display_srgb, const SceneLight& light, double display_gamma) {
+  auto linear = display_to_light(display_srgb.to(torch::kFloat32), display_gamma) * light.exposure;  // {3,N,N}
   if (light.lamp) {
     const int64_t N = linear.size(-1);
     const auto idx = torch::arange(N, torch::kFloat32) + 0.5f;
@@ -34,8 +34,9 @@ torch::Tensor lit_scene(const torch::Tensor& display_srgb, const SceneLight& lig
   return linear;
 }
 
-torch::Tensor visible_scene(const torch::Tensor& linear) {
-  return torch::round(linear_to_srgb(linear.clamp(0, 1)) * 255.0f) / 255.0f;  // as an 8-bit ground-truth image
+torch::Tensor visible_scene(const torch::Tensor& linear, double display_gamma) {
+  return torch::round(light_to_display(linear.clamp(0, 1), display_gamma) * 255.0f) /
+         255.0f;  // as an 8-bit ground-truth image
 }
 
 void place_lamp(SceneLight& light, int64_t n, at::Generator& gen) {
@@ -304,9 +305,9 @@ SimulateReport simulate_dataset(const Rig& rig, const SimulateOptions& opt) {
       light.lamp_gain = opt.lamp_gain;
       auto lamp_gen = at::detail::createCPUGenerator(stable_hash(names[i] + "#lamp", opt.seed));
       if (opt.lamp) place_lamp(light, opt.size, lamp_gen);
-      const auto linear = lit_scene(scene, light);
+      const auto linear = lit_scene(scene, light, rig.display_gamma);
       raw = simulate_raw_linear(rig, linear, opt.noise, gen);
-      scene = visible_scene(linear);
+      scene = visible_scene(linear, rig.display_gamma);
     }
     write_rgb8(gt_path, scene);
     write_gray16(meas_path, raw);

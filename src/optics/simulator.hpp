@@ -16,10 +16,12 @@ struct SceneLight {
   double lamp_gain = 20;                               // its radiance relative to display white
   double lamp_row = 0, lamp_col = 0, lamp_radius = 2;  // centre and radius in scene pixels
 };
-// exposure * srgb_to_linear(display) + lamp: {3,N,N} linear light.
-torch::Tensor lit_scene(const torch::Tensor& display_srgb, const SceneLight& light);
-// What a reconstruction should show of a linear scene: sRGB of the scene clipped to display white.
-torch::Tensor visible_scene(const torch::Tensor& linear);
+// exposure * display_to_light(display, display_gamma) + lamp: {3,N,N} linear light
+// (display_gamma: CameraConfig's, 0 for the sRGB curve).
+torch::Tensor lit_scene(const torch::Tensor& display_srgb, const SceneLight& light, double display_gamma);
+// What a reconstruction should show of a linear scene: the display value of the scene clipped to
+// display white, through the same curve.
+torch::Tensor visible_scene(const torch::Tensor& linear, double display_gamma);
 
 // Random scene light for training (data.light.* in the config).
 struct LightAugment {

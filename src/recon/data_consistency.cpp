@@ -15,6 +15,7 @@ DataConsistency::DataConsistency(const Calibration& calib, const CameraConfig& c
       P_(calib.P.to(torch::kFloat32)),
       Q_(calib.Q.to(torch::kFloat32)),
       mix_(camera.colour_mix.empty() ? torch::Tensor() : colour_mix_matrix(camera.colour_mix).to(torch::kFloat32)),
+      display_gamma_(camera.display_gamma),
       svd_(separable_inverse(calib.P, calib.Q, camera.tikhonov_lambda)),
       strength_(o.strength) {
   require_option(std::isfinite(o.strength) && o.strength > 0 && o.strength <= 1e3, "infer.data_consistency",
@@ -36,14 +37,14 @@ DataConsistency::DataConsistency(const Calibration& calib, const CameraConfig& c
 }
 
 torch::Tensor DataConsistency::to_planes(const torch::Tensor& srgb) const {
-  const auto rgb = srgb_to_linear(srgb.to(torch::kFloat32));  // {B,3,N,N}
+  const auto rgb = display_to_light(srgb.to(torch::kFloat32), display_gamma_);  // {B,3,N,N}
   if (!mix_.defined()) return rgb_to_bayer_planes(rgb);
   return torch::einsum("pc,bchw->bphw", {mix_, rgb});  // each plane's shares of the primaries
 }
 
 torch::Tensor DataConsistency::from_planes(const torch::Tensor& planes) const {
   const auto rgb = mix_.defined() ? unmix_primaries(planes, mix_.to(torch::kFloat64)) : bayer_planes_to_rgb(planes);
-  return linear_to_srgb(rgb.clamp(0, 1));
+  return light_to_display(rgb.clamp(0, 1), display_gamma_);
 }
 
 torch::Tensor DataConsistency::operator()(const torch::Tensor& planes, const torch::Tensor& picture) const {

@@ -47,6 +47,7 @@ class DataConsistency {
   Centring centring_;
   torch::Tensor P_, Q_;       // {4,h,N}, {4,w,N} float32
   torch::Tensor mix_;         // {4,3} float32, or undefined (b = B, gb = gr = G, r = R)
+  double display_gamma_ = 0;  // CameraConfig::display_gamma: the picture's values <-> light
   SeparableInverse svd_;      // the SVDs of P and Q
   torch::Tensor gain_pairs_;  // {4,N,N} float32: 1 where s_ij >= sqrt(lambda), the exposure's fit
   torch::Tensor filter_;      // {4,N,N} float32: s / (s^2 + c^2 lambda) of (1)

@@ -35,18 +35,20 @@ class ClassicalReconstructor final : public Reconstructor {
       : solve_(std::move(solve)),
         description_(std::move(description)),
         centring_(camera.raw.centring),
+        display_gamma_(camera.display_gamma),
         mix_(camera.colour_mix.empty() ? torch::Tensor() : colour_mix_matrix(camera.colour_mix)) {}
   std::string describe() const override { return description_; }
   torch::Tensor reconstruct(const torch::Tensor& planes) override {
     const auto X = solve_(without_level(planes, centring_));  // {B,4,N,N}
     const auto rgb = mix_.defined() ? unmix_primaries(X, mix_) : bayer_planes_to_rgb(X);
-    return linear_to_srgb(rgb.clamp(0, 1));  // {B,3,N,N}
+    return light_to_display(rgb, display_gamma_);  // {B,3,N,N}
   }
 
  private:
   Solve solve_;
   std::string description_;
   Centring centring_;
+  double display_gamma_;
   torch::Tensor mix_;  // {4,3} or undefined
 };
 

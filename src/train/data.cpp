@@ -57,16 +57,17 @@ Sample SimulatedPairs::load(int64_t i, int64_t epoch) const {
   auto gen =
       at::detail::createCPUGenerator(stable_hash(image.filename().string() + "#" + std::to_string(epoch), seed_));
   s.name = image.filename().string();
-  torch::Tensor linear = srgb_to_linear(s.gt);
+  const double gamma = camera_.display_gamma;
+  torch::Tensor linear = display_to_light(s.gt, gamma);
   if (judged_) {
     s.condition = static_cast<int>(i % kJudgedConditionCount);
     if (s.condition != 0) {  // display captures keep the display image as truth, as the held-out set does
-      linear = lit_scene(s.gt, judged_light(s.condition, camera_.scene_size, gen));
-      s.gt = visible_scene(linear);
+      linear = lit_scene(s.gt, judged_light(s.condition, camera_.scene_size, gen), gamma);
+      s.gt = visible_scene(linear, gamma);
     }
   } else if (light_.active()) {
-    linear = lit_scene(s.gt, draw_scene_light(light_, camera_.scene_size, gen));
-    s.gt = visible_scene(linear);
+    linear = lit_scene(s.gt, draw_scene_light(light_, camera_.scene_size, gen), gamma);
+    s.gt = visible_scene(linear, gamma);
   }
   if (!rig_) {
     s.scene = linear;
