@@ -158,6 +158,9 @@ int calibrate_from_reference_pairs(const cxxopts::ParseResult& r, const CameraCo
             << " per scene column\nfit residual ||Y - P (a R + b) Q^T|| / ||Y||:";
   for (int c = 0; c < 4; ++c) std::cout << " " << kChannelNames[c] << " " << std::setprecision(4) << fit.residual[c];
   std::cout << "\n";
+  std::cout << "the calibration is in the references' units: if they are not the display's linear light (a "
+               "stretched or tone-mapped picture), set the camera file's display_gamma before training through it "
+               "(docs/own-camera.md, \"The references' tone\")\n";
   if (noise.found) {
     std::cout << "sensor noise: variance " << noise.noise_gain << " x (level - " << noise.dark << ") + "
               << noise.noise_floor << "; open light " << known.open_light
