@@ -15,15 +15,30 @@ from PIL import Image
 from scipy import ndimage
 
 
-def measures(path):
-    rgb = np.asarray(Image.open(path).convert("RGB").resize((256, 256), Image.BICUBIC), dtype=np.float64) / 255
+def load(path):
+    """A picture as {256,256,3} values in [0, 1] (bicubic)."""
+    return np.asarray(Image.open(path).convert("RGB").resize((256, 256), Image.BICUBIC), dtype=np.float64) / 255
+
+
+def luma_of(rgb):
+    return 0.299 * rgb[..., 0] + 0.587 * rgb[..., 1] + 0.114 * rgb[..., 2]
+
+
+def colourfulness_per_luma(rgb):
     r, g, b = rgb[..., 0], rgb[..., 1], rgb[..., 2]
-    luma = 0.299 * r + 0.587 * g + 0.114 * b
     rg, yb = r - g, 0.5 * (r + g) - b
     colour = np.hypot(rg.std(), yb.std()) + 0.3 * np.hypot(rg.mean(), yb.mean())
-    detail = np.hypot(ndimage.sobel(luma, 0), ndimage.sobel(luma, 1)).mean()
-    mean = max(luma.mean(), 1e-9)
-    return colour / mean, detail / mean
+    return colour / max(luma_of(rgb).mean(), 1e-9)
+
+
+def detail_per_luma(rgb):
+    luma = luma_of(rgb)
+    return np.hypot(ndimage.sobel(luma, 0), ndimage.sobel(luma, 1)).mean() / max(luma.mean(), 1e-9)
+
+
+def measures(path):
+    rgb = load(path)
+    return colourfulness_per_luma(rgb), detail_per_luma(rgb)
 
 
 def main():

@@ -10,26 +10,17 @@ Usage: scripts/reference_tone.py PICTURE.png TRUSTED.png [PICTURE.png TRUSTED.pn
   PICTURE: the model's output (camera display_gamma 0); TRUSTED: another picture of the same scene
   (FlatNet-R's fc_8: ../shared/data/flatnet/flatnet_r_8.png).
 """
+import os
 import sys
 
 import numpy as np
-from PIL import Image
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from colour_detail import colourfulness_per_luma, load  # noqa: E402  (the measure colour_detail.py prints)
 
 
 def srgb_to_linear(v):
     return np.where(v <= 0.04045, v / 12.92, ((v + 0.055) / 1.055) ** 2.4)
-
-
-def colourfulness_per_luma(rgb):
-    r, g, b = rgb[..., 0], rgb[..., 1], rgb[..., 2]
-    luma = 0.299 * r + 0.587 * g + 0.114 * b
-    rg, yb = r - g, 0.5 * (r + g) - b
-    colour = np.hypot(rg.std(), yb.std()) + 0.3 * np.hypot(rg.mean(), yb.mean())
-    return colour / max(luma.mean(), 1e-9)
-
-
-def load(path):
-    return np.asarray(Image.open(path).convert("RGB").resize((256, 256), Image.BICUBIC), dtype=np.float64) / 255
 
 
 def tone(picture, trusted):

@@ -38,7 +38,7 @@ torch::Tensor resize(const torch::Tensor& chw, int64_t h, int64_t w);
 torch::Tensor srgb_to_linear(const torch::Tensor& x);
 torch::Tensor linear_to_srgb(const torch::Tensor& x);
 // A display value -> light in a calibration's scene units, and back (CameraConfig::display_gamma):
-// the power x^gamma, or the sRGB curves above when gamma is 0. to_display clamps to [0, 1].
+// the power x^gamma, or the sRGB curves above when gamma is 0. light_to_display clamps to [0, 1].
 torch::Tensor display_to_light(const torch::Tensor& x, double gamma);
 torch::Tensor light_to_display(const torch::Tensor& x, double gamma);
 

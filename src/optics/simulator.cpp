@@ -35,8 +35,8 @@ torch::Tensor lit_scene(const torch::Tensor& display_srgb, const SceneLight& lig
 }
 
 torch::Tensor visible_scene(const torch::Tensor& linear, double display_gamma) {
-  return torch::round(light_to_display(linear.clamp(0, 1), display_gamma) * 255.0f) /
-         255.0f;  // as an 8-bit ground-truth image
+  // As an 8-bit ground-truth image (light_to_display clips to display white).
+  return torch::round(light_to_display(linear, display_gamma) * 255.0f) / 255.0f;
 }
 
 void place_lamp(SceneLight& light, int64_t n, at::Generator& gen) {

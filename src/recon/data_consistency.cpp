@@ -44,7 +44,7 @@ torch::Tensor DataConsistency::to_planes(const torch::Tensor& srgb) const {
 
 torch::Tensor DataConsistency::from_planes(const torch::Tensor& planes) const {
   const auto rgb = mix_.defined() ? unmix_primaries(planes, mix_.to(torch::kFloat64)) : bayer_planes_to_rgb(planes);
-  return light_to_display(rgb.clamp(0, 1), display_gamma_);
+  return light_to_display(rgb, display_gamma_);  // clipped to [0, 1]
 }
 
 torch::Tensor DataConsistency::operator()(const torch::Tensor& planes, const torch::Tensor& picture) const {
