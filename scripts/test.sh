@@ -8,8 +8,11 @@ bash scripts/build.sh
 cd build
 # Two test processes at a time, one intra-op thread each (tests/test_main.cpp).
 export FLATNET_TEST_THREADS=${FLATNET_TEST_THREADS:-1}
-if [ $# -gt 0 ]; then
-  ctest --output-on-failure -j 2 -L "$1"
-else
-  ctest --output-on-failure -j 2
-fi
+start=$SECONDS
+status=0
+ctest --output-on-failure -j 2 ${1:+-L "$1"} | tee ctest.log || status=$?
+# The time, and the ten slowest tests (CTest's "N/M Test #K: name ... Passed 12.34 sec" lines).
+echo "tests: $((SECONDS - start)) s on $(nproc) cores${1:+ (label $1)}; the ten slowest:"
+grep -E 'Test +#[0-9]+: .* sec$' ctest.log | sed -E 's/^.*Test +#[0-9]+: (.*[^ .]) *\.+ *[A-Za-z*]+.* +([0-9.]+) sec$/\2 s  \1/' |
+  sort -g -r | head -n 10
+exit "$status"

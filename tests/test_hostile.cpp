@@ -7,7 +7,6 @@
 #include <sys/wait.h>
 #include <unistd.h>
 
-#include <chrono>
 #include <csignal>
 #include <fstream>
 
@@ -136,10 +135,10 @@ TEST_CASE("YAML: an alias bomb is refused at once, in every reader", "[safe][hos
     bomb += std::string(1, c) + ": &" + c + " [*" + prev + ", *" + prev + ", *" + prev + ", *" + prev + ", *" + prev +
             ", *" + prev + ", *" + prev + ", *" + prev + ", *" + prev + "]\n";
   }
-  const auto start = std::chrono::steady_clock::now();
+  // The message is the refusal's own (the expansion is counted, not carried out); no clock judges it,
+  // so a loaded machine cannot fail it.
   CHECK_THROWS_WITH(parse_yaml_document(bomb, "bomb.yaml"), Contains("bomb.yaml") && Contains("expands to more than"));
   CHECK_THROWS_WITH(camera_from_yaml_text(bomb, "camera.yaml"), Contains("expands to more than"));
-  CHECK(std::chrono::steady_clock::now() - start < std::chrono::seconds(5));
   test::Scratch s("hostile_yaml");
   write_file(s.dir / "bomb.yaml", bomb);
   const auto r = test::run_flatnet("train --config " + q(s.dir / "bomb.yaml") + " --out " + q(s.dir / "run"));

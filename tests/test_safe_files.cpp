@@ -5,7 +5,6 @@
 
 #include <sys/stat.h>
 
-#include <chrono>
 #include <fstream>
 #include <nlohmann/json.hpp>
 
@@ -421,7 +420,8 @@ TEST_CASE("fifos and devices are refused at once, never waited on", "[safe]") {
   test::Scratch s("fifo");
   const auto fifo = s.dir / "pipe";
   REQUIRE(::mkfifo(fifo.c_str(), 0600) == 0);
-  const auto t0 = std::chrono::steady_clock::now();
+  // A reader that waited on the fifo (no writer ever opens it) would block for ever: the refusal is
+  // the verdict, and a wait would be a hang that CTest ends, not a clock this test reads.
   CHECK_THROWS_WITH(read_file_text(fifo), Contains("pipe") && Contains("not a regular file"));
   CHECK_THROWS_WITH(load_model_file(fifo), Contains("pipe") && Contains("not a regular file"));
   CHECK_THROWS_WITH(Config::load(fifo), Contains("pipe"));
@@ -430,7 +430,6 @@ TEST_CASE("fifos and devices are refused at once, never waited on", "[safe]") {
   CHECK_THROWS_WITH(read_file_text("/dev/zero"), Contains("/dev/zero") && Contains("not a regular file"));
   CHECK_THROWS_WITH(read_file_head(fifo, 9), Contains("pipe") && Contains("not a regular file"));
   CHECK_THROWS_WITH(is_checkpoint_file(fifo), Contains("pipe") && Contains("not a regular file"));
-  CHECK(std::chrono::steady_clock::now() - t0 < std::chrono::seconds(5));
   write_file(s.dir / "big.bin", std::string(100, 'x'));
   CHECK_THROWS_WITH(read_file_text(s.dir / "big.bin", 10), Contains("big.bin") && Contains("over the limit"));
   // A head is the first bytes, or the whole file when it is shorter.

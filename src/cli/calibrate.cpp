@@ -228,6 +228,21 @@ CapturePair capture_pair_of(const torch::Tensor& window, const torch::Tensor& sc
                      saturated};
 }
 
+// One line when one axis's shift is borne out by the pairs and the other's is not (each axis's
+// structured factor against a free one, with the other axis structured), with what to try.
+void say_unfound_axis(const DatasetCalibration& fit) {
+  const auto& share = fit.axis_explains;
+  const bool rows = share[0] >= kStructureExplainsAtLeast, cols = share[1] >= kStructureExplainsAtLeast;
+  if (rows == cols) return;
+  const char* found = rows ? "row" : "column";
+  const char* lost = rows ? "column" : "row";
+  std::cerr << "calibrate: warning: the " << found << " shift (" << std::setprecision(4)
+            << fit.searched_shifts[rows ? 0 : 1] << ") is found but not the " << lost << " shift (its search gave "
+            << fit.searched_shifts[rows ? 1 : 0] << ", which explains " << std::setprecision(3) << share[rows ? 1 : 0]
+            << " of what a free factor explains): check the camera file's crop and rotation along the " << lost
+            << "s, and calibrate from more pairs (all of --limit's; 500 or more)\n";
+}
+
 // The mask's rotation on the sensor (optics/rotation_estimate.hpp): the first pairs are decoded once
 // and calibrated again at each angle the search tries; printed, angle by angle.
 constexpr int64_t kRotationPairs = 64, kRotationPairsAtLeast = 8;
@@ -246,6 +261,7 @@ double rotation_of(const std::vector<Pair>& pairs, const CameraConfig& camera, D
   }
   o.progress = false;
   o.iterations = std::min(o.iterations, 4);
+  o.judge_structure = false;  // the angle is read from the structured model's residual; the main fit judges
   auto geometry = camera.raw;
   torch::Tensor valid;  // the window's pixels read from inside the planes at the angle tried
   const auto window_pair = [&](int64_t i) {
@@ -411,6 +427,7 @@ int calibrate_from_dataset(const cxxopts::ParseResult& r) {
     std::cout << "shift structure: the shadow moves " << std::setprecision(6) << fit.shift_rows
               << " sensor pixels per scene row, " << fit.shift_cols << " per scene column; it explains "
               << std::setprecision(3) << fit.structure_explains << " of what free factors explain\n";
+  if (o.structure == FactorStructure::Shift) say_unfound_axis(fit);
   if (truth) {  // a simulated camera: how close to its true response
     const auto err = calibration_error(fit.calib, *truth);
     std::cout << "relative error against the rig's true response: P " << 100 * err.p << " %, Q " << 100 * err.q

@@ -21,8 +21,14 @@
 // pin down: their fine detail, which photographs hardly show, stays unknown. So after `free_passes`
 // free steps each factor is fitted with the shift structure of a FlatCam (optics/shift_structure.hpp:
 // column j is column 0's shadow moved by j * shift pixels), about 1,000 unknowns, the shift found from
-// the data; `FactorStructure::Free` keeps the free fit for a camera without that structure, and a
-// structured model that explains less than 0.3 of what the free one explains is rejected for it.
+// the data; `FactorStructure::Free` keeps the free fit for a camera without that structure.
+// The verdict on the structure: once both factors have searched their shift twice (each search
+// sharper once the other factor is structured), the structured model's residual over the pairs is
+// set against the free model's before it, each as the coded energy it explains beyond M alone, less
+// sigma^2 per parameter (what fitting the noise alone explains). Below 0.3 the structure is rejected
+// and the free model is taken up again. (Judged at the first structured step instead, with Q still
+// free, a bench camera's moving shadow was rejected: the free Q's errors, which only a free P
+// follows, left the structured P 0.2-0.28 of the free one's share from 150 pairs, issue 94.)
 // Colour cross-talk: a Bayer plane sees a mix of the display's primaries, X_c = sum_k m_ck X_k
 // (k in R, G, B; a filter passes some of its neighbours' light, a display's primaries overlap). For
 // fixed P, Q and M, (2) is linear in plane c's three shares: Y_c ~ sum_k m_ck (P_c Xz_k Q_c^T + s_k M_c),
@@ -43,6 +49,10 @@
 
 namespace flatnet {
 
+// Below this share of what free factors explain, the structure is rejected (the header's verdict):
+// a camera whose mask is no moving shadow (random factors) leaves it near 0.16.
+constexpr double kStructureExplainsAtLeast = 0.3;
+
 struct CapturePair {
   torch::Tensor meas;    // {4,rows,cols} preprocessed (double-centred) capture planes
   torch::Tensor scene;   // {4,N,N} the scene shown, linear light, per Bayer channel
@@ -61,7 +71,9 @@ struct DatasetCalibrationOptions {
   int64_t cache_bytes = 2ll << 30;  // decoded pairs kept in memory; the rest are re-read
   bool progress = true;
   FactorStructure structure = FactorStructure::Shift;
-  int free_passes = 2;       // free steps before the structured ones (they give the shift search its start)
+  int free_passes = 2;          // free steps before the structured ones (they give the shift search its start)
+  bool judge_structure = true;  // false: keep the structure whatever the verdict (the rotation search
+                                // measures the structured model's residual; the main fit judges)
   bool identify_mix = true;  // fit each plane's shares of the primaries (else b sees B alone, ...)
   int64_t mix_pairs = 128;   // the pairs the mix is fitted to
   ShiftFitOptions shift;
@@ -83,10 +95,14 @@ struct DatasetCalibration {
   int iterations = 0;
   // The shadow's move per scene pixel, in sensor pixels (signed), when the fit is structured; else 0.
   double shift_rows = 0, shift_cols = 0;
-  // The coded energy the structured P explains over what the free P explains, at the first structured
-  // step; below 0.3 the structure is rejected and free factors are fitted.
+  // The coded energy the structured model explains over what the free model explains (the header's
+  // verdict); below 0.3 the structure is rejected and free factors are fitted.
   double structure_explains = 0;
   bool structure_rejected = false;
+  // Each axis's structured factor against a free one on the same step, at its second search (rows:
+  // P with Q structured; columns: Q with P structured): which axis's shift the data do not bear out.
+  std::array<double, 2> axis_explains{};
+  std::array<double, 2> searched_shifts{};  // rows, columns: what the searches found, kept or not
 };
 
 // Scene planes {4,N,N} (b, gb, gr, r) as each Bayer plane sees them through a colour mix {4,3}.
