@@ -546,9 +546,9 @@ TEST_CASE("distributed training from the command line: two local ranks, resume, 
                             q(s.dir / "dead") + sets +
                             " --set train.iterations=100000 --set train.log_every=1 --dist-timeout 60";
   const std::string first_step = "[ \"$(wc -l < " + q(s.dir / "dead" / "log.csv") + " 2>/dev/null)\" -ge 2 ]";
-  r = run("bash -c " + q(env + " RANK=1 " + train + " > /dev/null 2>&1 & P=$!; " + env + " RANK=0 " + train +
-                         " & Q=$!; while kill -0 $Q 2>/dev/null && ! " + first_step +
-                         "; do sleep 0.1; done; kill -9 $P; wait $Q"));
+  r = run("bash -c " +
+          q(env + " RANK=1 " + train + " > /dev/null 2>&1 & P=$!; " + env + " RANK=0 " + train +
+            " & Q=$!; while kill -0 $Q 2>/dev/null && ! " + first_step + "; do sleep 0.1; done; kill -9 $P; wait $Q"));
   INFO(r.output);
   CHECK(r.code == 2);
   CHECK_THAT(r.output, Contains("lost contact with the others"));

@@ -261,7 +261,6 @@ double rotation_of(const std::vector<Pair>& pairs, const CameraConfig& camera, D
   }
   o.progress = false;
   o.iterations = std::min(o.iterations, 4);
-  o.judge_structure = false;  // the angle is read from the structured model's residual; the main fit judges
   auto geometry = camera.raw;
   torch::Tensor valid;  // the window's pixels read from inside the planes at the angle tried
   const auto window_pair = [&](int64_t i) {

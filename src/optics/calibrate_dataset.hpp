@@ -71,9 +71,7 @@ struct DatasetCalibrationOptions {
   int64_t cache_bytes = 2ll << 30;  // decoded pairs kept in memory; the rest are re-read
   bool progress = true;
   FactorStructure structure = FactorStructure::Shift;
-  int free_passes = 2;          // free steps before the structured ones (they give the shift search its start)
-  bool judge_structure = true;  // false: keep the structure whatever the verdict (the rotation search
-                                // measures the structured model's residual; the main fit judges)
+  int free_passes = 2;       // free steps before the structured ones (they give the shift search its start)
   bool identify_mix = true;  // fit each plane's shares of the primaries (else b sees B alone, ...)
   int64_t mix_pairs = 128;   // the pairs the mix is fitted to
   ShiftFitOptions shift;
