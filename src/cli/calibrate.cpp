@@ -261,6 +261,10 @@ double rotation_of(const std::vector<Pair>& pairs, const CameraConfig& camera, D
   }
   o.progress = false;
   o.iterations = std::min(o.iterations, 4);
+  // The angle is read from the structured model's residual (free factors absorb a rotation); whether
+  // the camera has the structure is the main fit's verdict. A few mrad do not move the shadow's shift:
+  // the first angle's searches serve the others (each fit would otherwise search four times).
+  o.judge_structure = false;
   auto geometry = camera.raw;
   torch::Tensor valid;  // the window's pixels read from inside the planes at the angle tried
   const auto window_pair = [&](int64_t i) {
@@ -277,6 +281,7 @@ double rotation_of(const std::vector<Pair>& pairs, const CameraConfig& camera, D
         },
         geometry.crop[2], geometry.crop[3], camera.scene_size, o);
     const double d = rotation_residual_projection(count, window_pair, fit, {geometry.crop[0], geometry.crop[1]});
+    if (o.shifts[0] == 0) o.shifts = fit.searched_shifts;
     std::cout << "rotation: at " << std::setprecision(5) << angle << " rad the residual holds " << std::setprecision(3)
               << d << " rad of rotation\n"
               << std::flush;

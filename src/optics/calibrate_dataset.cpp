@@ -157,10 +157,14 @@ struct StructuredFactor {
 };
 
 // noise_var {4}: the noise's variance per capture value, for the search's penalty (undefined: none).
+// known: the shift when it is already known (fitted without a search), else 0.
 std::pair<torch::Tensor, torch::Tensor> solve_structured_step(const Sums& t, const ShiftFitOptions& o,
-                                                              const torch::Tensor& noise_var, StructuredFactor& state) {
+                                                              const torch::Tensor& noise_var, double known,
+                                                              StructuredFactor& state) {
   const auto [gram, rhs] = reduced(t);
-  if (state.steps < 2) {
+  if (known != 0) {
+    state.shift = known;
+  } else if (state.steps < 2) {
     const auto g = gram.narrow(0, 1, 1), h = rhs.narrow(0, 1, 1);
     const double sigma2 = noise_var.defined() ? noise_var[1].item<double>() : 0.0;
     state.shift = search_shift(g, h, o, sigma2);
@@ -355,7 +359,7 @@ DatasetCalibration calibrate_from_pairs(int64_t count, const std::function<Captu
         judged = true;
         const double samples = static_cast<double>(p_shape.profile.size(1) + q_shape.profile.size(1));
         result.structure_explains = structure_share(free, uniform_only_energy(sums), energy, samples);
-        if (result.structure_explains < kStructureExplainsAtLeast) {
+        if (o.judge_structure && result.structure_explains < kStructureExplainsAtLeast) {
           result.structure_rejected = true;  // back to the free model, and free steps from here on
           P = free.P, Q = free.Q, M = free.M, mix = free.mix;
           if (identify_mix) pairs.set_mix(mix);
@@ -382,15 +386,15 @@ DatasetCalibration calibrate_from_pairs(int64_t count, const std::function<Captu
     const bool shaped = structured && !result.structure_rejected;
     // A step that changes the model's form (free to structured, a new shift) is not compared with the last.
     if (shaped && p_shape.steps < 2) last = std::numeric_limits<double>::infinity();
-    auto [F, Mp] = shaped ? solve_structured_step(sums, o.shift, noise_var, p_shape)
+    auto [F, Mp] = shaped ? solve_structured_step(sums, o.shift, noise_var, o.shifts[0], p_shape)
                           : solve_step(sums, o.ridge, P.defined() ? prior_for(P) : torch::Tensor());
     if (shaped && p_shape.steps == 2)  // the row shift's second search, with Q structured
       result.axis_explains[0] = axis_explains(sums, F, p_shape.profile.size(1), o.ridge, prior_for(P), noise_var);
     P = F.to(torch::kFloat32);
     M = Mp.to(torch::kFloat32);
     const auto qsums = accumulate(pairs, q_design);
-    auto [G, Mq] =
-        shaped ? solve_structured_step(qsums, o.shift, noise_var, q_shape) : solve_step(qsums, o.ridge, prior_for(Q));
+    auto [G, Mq] = shaped ? solve_structured_step(qsums, o.shift, noise_var, o.shifts[1], q_shape)
+                          : solve_step(qsums, o.ridge, prior_for(Q));
     if (shaped && q_shape.steps == 2)  // the column shift's, with P structured
       result.axis_explains[1] = axis_explains(qsums, G, q_shape.profile.size(1), o.ridge, prior_for(Q), noise_var);
     Q = G.to(torch::kFloat32);

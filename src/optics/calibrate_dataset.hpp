@@ -71,9 +71,12 @@ struct DatasetCalibrationOptions {
   int64_t cache_bytes = 2ll << 30;  // decoded pairs kept in memory; the rest are re-read
   bool progress = true;
   FactorStructure structure = FactorStructure::Shift;
-  int free_passes = 2;       // free steps before the structured ones (they give the shift search its start)
-  bool identify_mix = true;  // fit each plane's shares of the primaries (else b sees B alone, ...)
-  int64_t mix_pairs = 128;   // the pairs the mix is fitted to
+  int free_passes = 2;             // free steps before the structured ones (they give the shift search its start)
+  std::array<double, 2> shifts{};  // rows, columns: shifts already known, fitted without a search (0: search)
+  bool judge_structure = true;     // false: keep the structure whatever its share (the rotation search
+                                   // reads the structured model's residual; the main fit judges)
+  bool identify_mix = true;        // fit each plane's shares of the primaries (else b sees B alone, ...)
+  int64_t mix_pairs = 128;         // the pairs the mix is fitted to
   ShiftFitOptions shift;
 };
 
