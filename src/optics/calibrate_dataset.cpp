@@ -183,17 +183,22 @@ double explained(const std::pair<torch::Tensor, torch::Tensor>& normal, const to
   return (2 * (F * rhs).sum() - (torch::matmul(F, gram) * F).sum()).item<double>();
 }
 
+// A structured fit's share of the coded energy a free fit explains, each less what its parameters
+// would fit of the noise alone (sigma^2 each, Akaike's correction). Parameters per channel: free
+// m N, structured the profile's samples; sigma2 summed over the channels like the energies.
+double penalised_share(double shaped, double shaped_params, double free, double free_params, double sigma2) {
+  return (shaped - sigma2 * shaped_params) / std::max(1e-300, free - sigma2 * free_params);
+}
+
 // One axis's structured factor against the free one on the same step's sums (the other factor
-// structured by then): the coded energy each explains, less what its parameters fit of the noise
-// alone (sigma^2 each: free m N per channel, structured the profile's samples).
+// structured by then).
 double axis_explains(const Sums& t, const torch::Tensor& shaped, int64_t profile_samples, double ridge,
                      const torch::Tensor& prior, const torch::Tensor& noise_var) {
   const auto free = solve_step(t, ridge, prior).first;
   const auto normal = reduced(t);
   const double sigma2 = noise_var.defined() ? noise_var.sum().item<double>() : 0.0;
-  const double free_params = static_cast<double>(free.size(1) * free.size(2));
-  return (explained(normal, shaped) - sigma2 * static_cast<double>(profile_samples)) /
-         std::max(1e-300, explained(normal, free) - sigma2 * free_params);
+  return penalised_share(explained(normal, shaped), static_cast<double>(profile_samples), explained(normal, free),
+                         static_cast<double>(free.size(1) * free.size(2)), sigma2);
 }
 
 // The residual energy {4} of the model with no coded part (M alone): what the coded part starts from.
@@ -206,18 +211,16 @@ struct FreeModel {
   torch::Tensor P, Q, M, mix;
   torch::Tensor energy;        // {4} its residual energy over the pairs
   torch::Tensor uniform_only;  // {4} the same pass's residual energy of M alone
-  torch::Tensor noise_var;     // {4} its residual per pixel: the noise, as near as the pairs tell
-  double params = 0;           // its parameters per channel, (rows + cols) N
 };
 
-// The structured model's share of the coded energy the free one explains, each less sigma^2 per
-// parameter (Akaike's correction: what fitting the noise alone would explain).
+// The structured model's share of the coded energy the free one explains; sigma^2 is the free
+// model's residual per pixel (the noise, as near as the pairs tell).
 double structure_share(const FreeModel& free, const torch::Tensor& uniform_only, const torch::Tensor& energy,
-                       double structured_params) {
-  const double sigma2 = free.noise_var.sum().item<double>();
-  const double shaped = (uniform_only - energy).sum().item<double>() - sigma2 * structured_params;
-  const double unshaped = (free.uniform_only - free.energy).sum().item<double>() - sigma2 * free.params;
-  return shaped / std::max(1e-300, unshaped);
+                       double structured_params, double pixels) {
+  const double free_params = static_cast<double>((free.P.size(1) + free.Q.size(1)) * free.P.size(2));
+  return penalised_share((uniform_only - energy).sum().item<double>(), structured_params,
+                         (free.uniform_only - free.energy).sum().item<double>(), free_params,
+                         free.energy.sum().item<double>() / pixels);
 }
 
 // The mix step (the header's): each plane's shares of the primaries for fixed P {4,m,N}, Q {4,k,N},
@@ -346,19 +349,12 @@ DatasetCalibration calibrate_from_pairs(int64_t count, const std::function<Captu
     if (P.defined()) {
       auto energy = residual_energy(sums, P.to(torch::kFloat64), M.to(torch::kFloat64));
       if (structured && p_shape.steps == 0) {  // the free model, before the structure is tried
-        free = {P,
-                Q,
-                M,
-                mix,
-                energy,
-                uniform_only_energy(sums),
-                energy / pixels,
-                static_cast<double>((rows + cols) * scene)};
+        free = {P, Q, M, mix, energy, uniform_only_energy(sums)};
       } else if (structured && !judged && (p_shape.steps >= 2 || it == o.iterations) && free.P.defined()) {
         // Both factors have searched their shift twice: the verdict on the whole structured model.
         judged = true;
         const double samples = static_cast<double>(p_shape.profile.size(1) + q_shape.profile.size(1));
-        result.structure_explains = structure_share(free, uniform_only_energy(sums), energy, samples);
+        result.structure_explains = structure_share(free, uniform_only_energy(sums), energy, samples, pixels);
         if (o.judge_structure && result.structure_explains < kStructureExplainsAtLeast) {
           result.structure_rejected = true;  // back to the free model, and free steps from here on
           P = free.P, Q = free.Q, M = free.M, mix = free.mix;
