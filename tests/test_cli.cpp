@@ -415,6 +415,17 @@ TEST_CASE("train, export, import and infer from the command line, and bad input 
   REQUIRE(r.code == 0);
   CHECK(std::filesystem::exists(s.dir / "rec" / "bsds_16052_scene.png"));
   CHECK_THAT(r.output, Contains("images/s"));
+  // Test-time adaptation: a few steps on two of the captures, then every capture reconstructed.
+  r = test::run_flatnet("infer --model " + q(model) + " --input " + q(s.dir / "ds" / "meas") + " --out " +
+                        q(s.dir / "rec-adapted") + " --adapt-steps 2 --adapt-captures 2");
+  INFO(r.output);
+  REQUIRE(r.code == 0);
+  CHECK_THAT(r.output, Contains("adaptation: adapted to 2 captures in 2 steps"));
+  CHECK(std::filesystem::exists(s.dir / "rec-adapted" / "bsds_16052_scene.png"));
+  r = test::run_flatnet("infer --model " + q(model) + " --input " + q(s.dir / "ds" / "meas") + " --out " +
+                        q(s.dir / "x") + " --adapt-steps 2 --adapt-lr 0");
+  CHECK(r.code == 2);
+  CHECK_THAT(r.output, Contains("--adapt-lr"));
 
   // export -> state dict -> import -> infer gives the same images.
   REQUIRE(test::run_flatnet("export --model " + q(model) + " --state-dict --out " + q(s.dir / "sd.pt")).code == 0);

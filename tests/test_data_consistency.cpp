@@ -90,3 +90,22 @@ TEST_CASE("data consistency keeps the picture of a capture with no usable exposu
   CHECK_THROWS_WITH(DataConsistency(b.calib, b.camera, {NAN, 0.0}), Contains("strength"));
   CHECK_THROWS_WITH(DataConsistency(b.calib, b.camera, {10.0, -1.0}), Contains("blur"));
 }
+
+TEST_CASE("a picture's disagreement with its capture: none when the capture explains it, at any exposure",
+          "[recon][consistency]") {
+  Bench b;
+  const DataConsistency step(b.calib, b.camera, {});
+  const auto picture = linear_to_srgb(b.rgb);
+  for (const double exposure : {0.2, 7.0}) {
+    INFO(exposure);
+    const auto d = step.disagreement(b.capture(b.rgb, exposure), picture);
+    CHECK(d.sizes() == torch::IntArrayRef({1}));
+    CHECK(d.item<double>() < 1e-6);
+  }
+  const auto grey = b.rgb.mean(1, true).expand_as(b.rgb);
+  const auto washed = linear_to_srgb(0.5 * b.rgb + 0.5 * grey).requires_grad_(true);
+  const auto d = step.disagreement(b.capture(b.rgb, 2.5), washed);
+  CHECK(d.item<double>() > 0.01);
+  d.sum().backward();  // differentiable in the picture
+  CHECK(washed.grad().abs().sum().item<double>() > 0);
+}

@@ -231,6 +231,23 @@ int infer(int argc, char** argv) {
       cxxopts::value<double>()->default_value("0"))(
       "consistency-blur", "sigma (scene pixels) of a Gaussian on that correction: its coarse part alone (0: none)",
       cxxopts::value<double>()->default_value("0"));
+  const AdaptationOptions adapt_defaults;  // the flags' defaults are the struct's
+  const auto text = [](double x) {
+    std::ostringstream t;
+    t << x;
+    return t.str();
+  };
+  o.add_options("test-time adaptation (the model fine-tuned on the captures themselves, no ground truth)")(
+      "adapt-steps",
+      "N > 0: first adapt the model to the captures for N Adam steps, on their disagreement with its pictures where "
+      "the camera measures well and a pull to the shipped weights (docs/evaluation.md); 0: off",
+      cxxopts::value<int64_t>()->default_value(std::to_string(adapt_defaults.steps)))(
+      "adapt-lr", "its Adam rate", cxxopts::value<double>()->default_value(text(adapt_defaults.lr)))(
+      "adapt-anchor", "weight of the pull to the shipped weights (relative squared distance)",
+      cxxopts::value<double>()->default_value(text(adapt_defaults.anchor)))(
+      "adapt-batch", "captures a step", cxxopts::value<int64_t>()->default_value(std::to_string(adapt_defaults.batch)))(
+      "adapt-captures", "at most this many of the captures adapt the model (evenly spread)",
+      cxxopts::value<int64_t>()->default_value(std::to_string(adapt_defaults.captures)));
   add_force_folder(o);
   add_precision(o);
   add_common(o);
@@ -258,11 +275,21 @@ int infer(int argc, char** argv) {
           "--data-consistency", "0 (off) or a strength in (0, 1000]");
   require(spec.data_consistency == 0 || engine == "libtorch", "--data-consistency",
           "runs on the libtorch engine (an ONNX file carries no calibration)");
+  spec.adapt.steps = r["adapt-steps"].as<int64_t>();
+  spec.adapt.lr = r["adapt-lr"].as<double>();
+  spec.adapt.anchor = r["adapt-anchor"].as<double>();
+  spec.adapt.batch = r["adapt-batch"].as<int64_t>();
+  spec.adapt.captures = r["adapt-captures"].as<int64_t>();
+  spec.adapt.bf16 = spec.levers.bf16;
+  check_adaptation_options(spec.adapt);
+  require(spec.adapt.steps == 0 || engine == "libtorch", "--adapt-steps",
+          "runs on the libtorch engine (an ONNX file is not trained)");
   BatchOptions opt;
   opt.out = r["out"].as<std::string>();
   opt.batch = std::max(1, r["batch"].as<int>());
   opt.label = "infer";
   const auto captures = collect_captures(r["input"].as<std::string>());
+  spec.adapt_on = captures;
   check_output_names(captures, opt.out);                         // never over a capture, even with --force
   if (!captures.empty()) spec.first_capture = captures.front();  // read once more, before the build
   auto built = make_reconstructor(spec);
@@ -272,10 +299,14 @@ int infer(int argc, char** argv) {
   settings << "model " << file_fingerprint(spec.model);
   if (spec.data_consistency > 0)
     settings << " data-consistency " << spec.data_consistency << " blur " << spec.consistency_blur;
+  if (spec.adapt.steps > 0)
+    settings << " adapt " << spec.adapt.steps << " lr " << spec.adapt.lr << " anchor " << spec.adapt.anchor << " batch "
+             << spec.adapt.batch << " captures " << spec.adapt.captures;
   const auto claim = claim_out(r, opt.out, "infer", settings.str());
   if (engine == "opencv")
     std::cerr << "engine: " << built.engine->describe() << " (--levers and --precision apply to libtorch)\n";
   if (spec.data_consistency > 0) std::cerr << "engine: " << built.engine->describe() << "\n";
+  if (!built.adaptation.empty()) std::cerr << "adaptation: " << built.adaptation << "\n";
   opt.fit = built.fit.get();
   opt.require_fit = r.count("require-fit") > 0;
   require(!opt.require_fit || opt.fit, "--require-fit", "cannot judge the captures: " + built.no_fit);

@@ -47,22 +47,29 @@ torch::Tensor DataConsistency::from_planes(const torch::Tensor& planes) const {
   return light_to_display(rgb, display_gamma_);  // clipped to [0, 1]
 }
 
-torch::Tensor DataConsistency::operator()(const torch::Tensor& planes, const torch::Tensor& picture) const {
-  c10::InferenceMode no_grad;
+DataConsistency::Coefficients DataConsistency::coefficients(const torch::Tensor& planes, const torch::Tensor& X) const {
   const auto Y = without_level(planes.to(torch::kFloat32), centring_);      // {B,4,h,w}
-  const auto X = to_planes(picture);                                        // {B,4,N,N}
   const auto AX = torch::matmul(torch::matmul(P_, X), Q_.transpose(1, 2));  // {B,4,h,w}
-  const auto coefficients = [&](const torch::Tensor& Z) {                   // U_L^T Z U_R
+  const auto on_pairs = [&](const torch::Tensor& Z) {                       // U_L^T Z U_R
     return torch::matmul(torch::matmul(svd_.ULt, Z), svd_.UR);
   };
-  const auto cY = coefficients(Y), cX = coefficients(AX);  // {B,4,N,N}
+  Coefficients c{on_pairs(Y), on_pairs(AX), {}, {}};  // {B,4,N,N}
   // The capture's exposure against the picture's: one gain per capture, least squares on the pairs
   // the camera measures above its noise.
-  const auto a = (cY * cX * gain_pairs_).sum({1, 2, 3}) / (cX * cX * gain_pairs_).sum({1, 2, 3}).clamp_min(1e-30);
-  const auto usable = torch::isfinite(a) & (a > 0);
-  const auto gain = torch::where(usable, a, torch::ones_like(a)).view({-1, 1, 1, 1});
+  const auto cX = c.picture.detach();
+  const auto a =
+      (c.capture * cX * gain_pairs_).sum({1, 2, 3}) / (cX * cX * gain_pairs_).sum({1, 2, 3}).clamp_min(1e-30);
+  c.usable = torch::isfinite(a) & (a > 0);
+  c.gain = torch::where(c.usable, a, torch::ones_like(a)).view({-1, 1, 1, 1});
+  return c;
+}
+
+torch::Tensor DataConsistency::operator()(const torch::Tensor& planes, const torch::Tensor& picture) const {
+  c10::InferenceMode no_grad;
+  const auto X = to_planes(picture);  // {B,4,N,N}
+  const auto c = coefficients(planes, X);
   // (1): the residual's coefficients through the regularised inverse, in the picture's units.
-  const auto residual = (cY / gain - cX) * filter_;
+  const auto residual = (c.capture / c.gain - c.picture) * filter_;
   auto correction = torch::matmul(torch::matmul(svd_.VL, residual), svd_.VRt);  // {B,4,N,N}
   if (blur_.defined()) {
     const auto r = blur_.size(2) / 2;
@@ -72,7 +79,13 @@ torch::Tensor DataConsistency::operator()(const torch::Tensor& planes, const tor
   }
   const auto corrected = from_planes((X + correction).clamp_min(0));
   // A capture with no usable exposure (dark, or not this camera's) keeps the network's picture.
-  return torch::where(usable.view({-1, 1, 1, 1}), corrected, picture.to(corrected.scalar_type()));
+  return torch::where(c.usable.view({-1, 1, 1, 1}), corrected, picture.to(corrected.scalar_type()));
+}
+
+torch::Tensor DataConsistency::disagreement(const torch::Tensor& planes, const torch::Tensor& picture) const {
+  const auto c = coefficients(planes, to_planes(picture));
+  const auto miss = ((c.capture - c.gain * c.picture).square() * gain_pairs_).sum({1, 2, 3});  // {B}
+  return miss / (c.capture.square() * gain_pairs_).sum({1, 2, 3}).clamp_min(1e-30);
 }
 
 namespace {
@@ -101,7 +114,11 @@ class ConsistentReconstructor final : public Reconstructor {
 
 std::unique_ptr<Reconstructor> with_data_consistency(std::unique_ptr<Reconstructor> engine, const Calibration& calib,
                                                      const CameraConfig& camera, DataConsistencyOptions options) {
-  auto step = std::make_shared<const DataConsistency>(calib, camera, options);
+  return with_data_consistency(std::move(engine), std::make_shared<const DataConsistency>(calib, camera, options));
+}
+
+std::unique_ptr<Reconstructor> with_data_consistency(std::unique_ptr<Reconstructor> engine,
+                                                     std::shared_ptr<const DataConsistency> step) {
   return std::make_unique<ConsistentReconstructor>(std::move(engine), std::move(step));
 }
 

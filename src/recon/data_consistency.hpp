@@ -39,8 +39,19 @@ class DataConsistency {
   // The share of singular pairs the capture dominates in (1), s_ij >= c sqrt(lambda) (mean over channels).
   double measured_share() const { return measured_share_; }
   double strength() const { return strength_; }
+  // How far a picture is from its capture on the pairs the camera measures above its noise
+  // (s_ij >= sqrt(lambda)): sum (U_L^T Y U_R - a U_L^T A X^ U_R)^2 over those pairs, relative to the
+  // capture's own energy there, one number per capture {B}, with a fitted as in (1) and held fixed.
+  // Differentiable in the picture: the loss of test-time adaptation (recon/adaptation.hpp).
+  torch::Tensor disagreement(const torch::Tensor& planes, const torch::Tensor& picture) const;
 
  private:
+  // The capture's and the picture's coefficients on the calibration's singular pairs, and the
+  // capture's exposure against the picture's (gain {B,1,1,1}; usable {B}: a finite positive fit).
+  struct Coefficients {
+    torch::Tensor capture, picture, gain, usable;  // {B,4,N,N}, {B,4,N,N}, {B,1,1,1}, {B}
+  };
+  Coefficients coefficients(const torch::Tensor& planes, const torch::Tensor& X) const;
   torch::Tensor to_planes(const torch::Tensor& srgb) const;      // {B,3,N,N} sRGB -> {B,4,N,N} linear
   torch::Tensor from_planes(const torch::Tensor& planes) const;  // {B,4,N,N} linear -> {B,3,N,N} sRGB
 
@@ -59,5 +70,7 @@ class DataConsistency {
 // A reconstructor whose pictures are made consistent with their captures by (1).
 std::unique_ptr<Reconstructor> with_data_consistency(std::unique_ptr<Reconstructor> engine, const Calibration& calib,
                                                      const CameraConfig& camera, DataConsistencyOptions options);
+std::unique_ptr<Reconstructor> with_data_consistency(std::unique_ptr<Reconstructor> engine,
+                                                     std::shared_ptr<const DataConsistency> step);
 
 }  // namespace flatnet

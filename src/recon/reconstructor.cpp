@@ -243,6 +243,49 @@ void check_capture_headers(const ReconstructorSpec& spec, const CameraConfig& ca
   if (!spec.first_capture.empty()) check_raw_header(spec.first_capture, camera.raw);
 }
 
+// The measurement through the camera's calibration that data consistency and test-time adaptation
+// share: the given camera's, else the model's training camera's (named when neither is here).
+std::shared_ptr<const DataConsistency> measurement_of(const ReconstructorSpec& spec, const ModelFile& m,
+                                                      const CameraConfig& camera) {
+  const auto own = spec.use_camera && !spec.camera.calibration.empty() ? spec.camera : training_camera(m);
+  require_option(!own.calibration.empty(), spec.data_consistency > 0 ? "infer.data_consistency" : "infer.adapt_steps",
+                 "needs the camera's calibration: the model's training camera is not here (give --camera with a "
+                 "camera file that names one)");
+  auto dc_camera = own;
+  dc_camera.raw.centring = camera.raw.centring;  // the planes arrive preprocessed as the model reads them
+  const DataConsistencyOptions o{spec.data_consistency > 0 ? spec.data_consistency : DataConsistencyOptions{}.strength,
+                                 spec.consistency_blur};
+  return std::make_shared<const DataConsistency>(load_calibration(own.calibration, own), dc_camera, o);
+}
+
+// Test-time adaptation of the loaded model to spec.adapt_on (before it is prepared for inference).
+std::string adapt_model(const ReconstructorSpec& spec, ModelFile& m, const CameraConfig& camera,
+                        const DataConsistency& measure) {
+  std::vector<torch::Tensor> planes;
+  for (const auto& path : adaptation_captures(spec.adapt_on, spec.adapt))
+    planes.push_back(load_capture(path, camera.raw).planes);  // {4,rows,cols}
+  return adapt_to_captures(m.generator, planes, measure, spec.adapt).summary();
+}
+
+BuiltReconstructor build_flatnet(const ReconstructorSpec& spec) {
+  auto m = load_model_file(spec.model);
+  const auto camera = spec.use_camera ? spec.camera : m.camera;
+  check_capture_headers(spec, camera);
+  const auto measure = spec.data_consistency > 0 || spec.adapt.steps > 0 ? measurement_of(spec, m, camera) : nullptr;
+  const auto adaptation = spec.adapt.steps > 0 ? adapt_model(spec, m, camera, *measure) : std::string();
+  BuiltReconstructor built{make_flatnet(m.generator, camera, spec.levers, "FlatNet " + spec.model.filename().string()),
+                           camera, nullptr, ""};
+  built.adaptation = adaptation;
+  built.fit = model_camera_fit(m, built.no_fit);
+  if (spec.data_consistency > 0) built.engine = with_data_consistency(std::move(built.engine), measure);
+  if (spec.levers.self_ensemble && m.spec.inversion_init == "calibfree")
+    built.warning =
+        "the self-ensemble assumes an enhancer that works the same on a flipped image; a first stage started from "
+        "pseudo-random Toeplitz matrices shifts the scene and its enhancer undoes the shift, so flips hurt it (such "
+        "a model: -1.24 dB on the held-out set, docs/evaluation.md)";
+  return built;
+}
+
 }  // namespace
 
 BuiltReconstructor make_reconstructor(const ReconstructorSpec& spec) {
@@ -258,31 +301,7 @@ BuiltReconstructor make_reconstructor(const ReconstructorSpec& spec) {
     built.fit = fit_of_calibration(calib, spec.camera, built.no_fit);
     return built;
   }
-  if (spec.method == "flatnet") {
-    auto m = load_model_file(spec.model);
-    const auto camera = spec.use_camera ? spec.camera : m.camera;
-    check_capture_headers(spec, camera);
-    BuiltReconstructor built{
-        make_flatnet(m.generator, camera, spec.levers, "FlatNet " + spec.model.filename().string()), camera, nullptr,
-        ""};
-    built.fit = model_camera_fit(m, built.no_fit);
-    if (spec.data_consistency > 0) {
-      const auto own = spec.use_camera && !spec.camera.calibration.empty() ? spec.camera : training_camera(m);
-      require_option(!own.calibration.empty(), "infer.data_consistency",
-                     "needs the camera's calibration: the model's training camera is not here (give --camera with a "
-                     "camera file that names one)");
-      auto dc_camera = own;
-      dc_camera.raw.centring = camera.raw.centring;  // the planes arrive preprocessed as the model reads them
-      built.engine = with_data_consistency(std::move(built.engine), load_calibration(own.calibration, own), dc_camera,
-                                           {spec.data_consistency, spec.consistency_blur});
-    }
-    if (spec.levers.self_ensemble && m.spec.inversion_init == "calibfree")
-      built.warning =
-          "the self-ensemble assumes an enhancer that works the same on a flipped image; a first stage started from "
-          "pseudo-random Toeplitz matrices shifts the scene and its enhancer undoes the shift, so flips hurt it (such "
-          "a model: -1.24 dB on the held-out set, docs/evaluation.md)";
-    return built;
-  }
+  if (spec.method == "flatnet") return build_flatnet(spec);
   if (spec.method == "opencv") {
     auto r = std::make_unique<OpenCvReconstructor>(spec.model);
     const auto camera = spec.use_camera ? spec.camera : r->engine().camera();

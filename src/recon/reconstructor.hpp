@@ -15,6 +15,7 @@
 #include "nn/generator.hpp"
 #include "nn/model_file.hpp"
 #include "optics/camera.hpp"
+#include "recon/adaptation.hpp"
 
 namespace flatnet {
 
@@ -64,6 +65,10 @@ struct ReconstructorSpec {
   // training camera's.
   double data_consistency = 0;
   double consistency_blur = 0;  // sigma of a Gaussian on that correction (scene pixels)
+  // flatnet: with adapt.steps > 0 the model is first adapted to these captures (recon/adaptation.hpp),
+  // through the same calibration as data consistency.
+  AdaptationOptions adapt;
+  std::vector<std::filesystem::path> adapt_on;
   // The first capture it will read (optional): its header is checked against the camera (size,
   // depth) before anything the camera's size sets is built (a calibration's SVDs, the camera fit's
   // reference). The rest are checked as each is read.
@@ -81,6 +86,7 @@ struct BuiltReconstructor {
   // What the caller should tell the user before reconstructing ("" when nothing): a lever the
   // model is known to suffer from.
   std::string warning = "";
+  std::string adaptation = "";  // test-time adaptation's summary ("" when none ran)
 };
 // Errors name what is missing or wrong (an unknown method, no calibration, a model file that is
 // not one, a camera that does not match the model).
