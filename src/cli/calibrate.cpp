@@ -471,7 +471,8 @@ int calibrate(int argc, char** argv) {
       "split", "train (the train list only) or all (train and val)",
       cxxopts::value<std::string>()->default_value("train"))("limit", "use the first N pairs (0: all)",
                                                              cxxopts::value<int64_t>()->default_value("0"))(
-      "iterations", "alternating least-squares steps at most", cxxopts::value<int>()->default_value("40"))(
+      "iterations", "alternating least-squares steps at most",
+      cxxopts::value<int>()->default_value(std::to_string(DatasetCalibrationOptions{}.iterations)))(
       "structure",
       "shift: each factor's columns are one profile moved by a shift found from the data (a FlatCam's "
       "shadow; few pairs suffice); free: every entry free (any separable camera; needs many pairs)",

@@ -63,7 +63,7 @@ struct CapturePair {
 enum class FactorStructure { Shift, Free };
 
 struct DatasetCalibrationOptions {
-  int iterations = 30;              // alternating passes at most (each reads the pairs twice)
+  int iterations = 40;              // alternating passes at most (each reads the pairs twice)
   double tolerance = 1e-4;          // stop when the relative residual improves by less than this
   double ridge = 1e-6;              // r above for the first step, relative to the Gram matrix's mean diagonal;
                                     // then r = noise variance / mean square of the factor (a Gaussian prior)

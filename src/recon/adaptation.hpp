@@ -2,7 +2,8 @@
 // Test-time adaptation (issue 90 #4): a model meets a real camera's captures with no ground truth,
 // so it is fine-tuned on the captures themselves for a few steps before it reconstructs them.
 //
-// The loss is the captures' own: how far each picture f_theta(y) is from its capture on the singular
+// Only the enhancer (theta) moves: the first stage is the camera's own inversion. The loss is the
+// captures' own: how far each picture f_theta(y) is from its capture on the singular
 // pairs the camera measures above its noise (DataConsistency::disagreement, relative to the
 // capture's energy there), plus a penalty that keeps the weights near the shipped ones theta_0
 // (L2-SP, Li et al. 2018), relative to their size:
@@ -22,12 +23,12 @@ namespace flatnet {
 class DataConsistency;  // recon/data_consistency.hpp
 
 struct AdaptationOptions {
-  int64_t steps = 0;     // Adam steps on (1); 0: off
-  int64_t batch = 4;     // captures per step, taken in turn
-  double lr = 1e-5;      // Adam's rate
-  double anchor = 1e3;   // mu of (1)
-  int64_t captures = 32; // at most this many captures adapt the model, evenly spread over those given
-  bool bf16 = false;     // the enhancer under bf16 autocast (weights and Adam's state stay fp32)
+  int64_t steps = 0;      // Adam steps on (1); 0: off
+  int64_t batch = 4;      // captures per step, taken in turn
+  double lr = 1e-5;       // Adam's rate
+  double anchor = 1e3;    // mu of (1)
+  int64_t captures = 32;  // at most this many captures adapt the model, evenly spread over those given
+  bool bf16 = false;      // the enhancer under bf16 autocast (weights and Adam's state stay fp32)
 };
 
 // Throws naming the option when a value is outside its range.
@@ -36,7 +37,7 @@ void check_adaptation_options(const AdaptationOptions& options);
 struct AdaptationReport {
   int64_t steps = 0, captures = 0;
   double disagreement_before = 0, disagreement_after = 0;  // (1)'s first term over the captures used
-  double distance = 0;                                     // ||theta - theta_0|| / ||theta_0|| at the end
+  double distance = 0;  // ||theta - theta_0|| / ||theta_0|| at the end (the enhancer's)
   double seconds = 0;
   std::string summary() const;  // one line for the log
 };
