@@ -52,7 +52,7 @@ Generator tiny_generator() {
 
 AdaptationOptions quick(double anchor) {
   AdaptationOptions o;
-  o.steps = 100, o.batch = 3, o.lr = 3e-3, o.anchor = anchor;
+  o.steps = 100, o.batch = 3, o.lr = 3e-3, o.anchor = anchor, o.brightness = 0;
   return o;
 }
 
@@ -78,6 +78,17 @@ TEST_CASE("test-time adaptation lowers the captures' disagreement, and its ancho
   CHECK(loose.distance > 0);
   CHECK((free->forward(torch::stack(b.captures)) - before).abs().max().item<double>() > 1e-3);
   CHECK_THAT(loose.summary(), Contains("adapted to 3 captures in 100 steps"));
+
+  // The brightness term keeps each picture's mean nearer the shipped model's.
+  const auto drift_of = [&](Generator& g) {
+    g->eval();
+    return (g->forward(torch::stack(b.captures)).mean() / before.mean() - 1).abs().item<double>();
+  };
+  auto steady = tiny_generator();
+  auto o = quick(0);
+  o.brightness = 1e3;
+  adapt_to_captures(steady, b.captures, measure, o);
+  CHECK(drift_of(steady) < 0.5 * drift_of(free));
 
   auto held = tiny_generator();
   const auto anchored = adapt_to_captures(held, b.captures, measure, quick(1e6));
@@ -110,5 +121,6 @@ TEST_CASE("test-time adaptation spreads the captures it uses and names bad setti
   CHECK_THROWS_WITH(check_adaptation_options(bad([](auto& o) { o.lr = NAN; })), Contains("adapt_lr"));
   CHECK_THROWS_WITH(check_adaptation_options(bad([](auto& o) { o.anchor = -1; })), Contains("adapt_anchor"));
   CHECK_THROWS_WITH(check_adaptation_options(bad([](auto& o) { o.batch = 0; })), Contains("adapt_batch"));
+  CHECK_THROWS_WITH(check_adaptation_options(bad([](auto& o) { o.brightness = -1; })), Contains("adapt_brightness"));
   CHECK_THROWS_WITH(check_adaptation_options(bad([](auto& o) { o.captures = 0; })), Contains("adapt_captures"));
 }

@@ -147,11 +147,34 @@ TEST_CASE("README.md is the front door: short, with the two set-up commands and 
   for (const auto& l : readme) text += l + "\n";
   CHECK(text.find("scripts/run.sh") != std::string::npos);
   CHECK(text.find("scripts/test.sh") != std::string::npos);
-  for (const char* page :
-       {"usage", "training", "evaluation", "deployment", "capture", "masks", "performance", "design"}) {
+  for (const char* page : {"usage", "training", "evaluation", "deployment", "capture", "masks", "performance", "design",
+                           "troubleshooting"}) {
     INFO(page);
     CHECK(text.find(std::string("docs/") + page + ".md") != std::string::npos);
   }
+}
+
+// docs/troubleshooting.md's headings quote the messages a user meets: each must still be in the source,
+// so a message reworded in the code fails here until the page follows it.
+TEST_CASE("every message docs/troubleshooting.md quotes is one flatnet prints", "[docs]") {
+  const auto root = test::source_dir();
+  std::string source;
+  for (const auto& e : std::filesystem::recursive_directory_iterator(root / "src"))
+    if (e.path().extension() == ".cpp" || e.path().extension() == ".hpp") {
+      std::ifstream in(e.path());
+      source += std::string(std::istreambuf_iterator<char>(in), {});
+    }
+  static const std::regex quoted(R"(^### `(.+)`$)");
+  int messages = 0;
+  for (const auto& line : lines_of(root / "docs" / "troubleshooting.md")) {
+    std::smatch m;
+    if (!std::regex_match(line, m, quoted)) continue;
+    ++messages;
+    INFO(m[1].str());
+    CHECK(source.find(m[1].str()) != std::string::npos);
+  }
+  CHECK(messages >= 12);
+  CHECK(source.find("a message no flatnet command prints") == std::string::npos);  // the search can fail
 }
 
 TEST_CASE("every shipped model has a card that matches its file: hash, held-out scores, the sections",

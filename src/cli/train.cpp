@@ -245,6 +245,8 @@ int infer(int argc, char** argv) {
       "adapt-lr", "its Adam rate", cxxopts::value<double>()->default_value(text(adapt_defaults.lr)))(
       "adapt-anchor", "weight of the pull to the shipped weights (relative squared distance)",
       cxxopts::value<double>()->default_value(text(adapt_defaults.anchor)))(
+      "adapt-brightness", "weight of the term that keeps each picture's brightness the shipped model's",
+      cxxopts::value<double>()->default_value(text(adapt_defaults.brightness)))(
       "adapt-batch", "captures a step", cxxopts::value<int64_t>()->default_value(std::to_string(adapt_defaults.batch)))(
       "adapt-captures", "at most this many of the captures adapt the model (evenly spread)",
       cxxopts::value<int64_t>()->default_value(std::to_string(adapt_defaults.captures)));
@@ -279,6 +281,7 @@ int infer(int argc, char** argv) {
   spec.adapt.lr = r["adapt-lr"].as<double>();
   spec.adapt.anchor = r["adapt-anchor"].as<double>();
   spec.adapt.batch = r["adapt-batch"].as<int64_t>();
+  spec.adapt.brightness = r["adapt-brightness"].as<double>();
   spec.adapt.captures = r["adapt-captures"].as<int64_t>();
   spec.adapt.bf16 = spec.levers.bf16;
   check_adaptation_options(spec.adapt);
@@ -300,8 +303,9 @@ int infer(int argc, char** argv) {
   if (spec.data_consistency > 0)
     settings << " data-consistency " << spec.data_consistency << " blur " << spec.consistency_blur;
   if (spec.adapt.steps > 0)
-    settings << " adapt " << spec.adapt.steps << " lr " << spec.adapt.lr << " anchor " << spec.adapt.anchor << " batch "
-             << spec.adapt.batch << " captures " << spec.adapt.captures;
+    settings << " adapt " << spec.adapt.steps << " lr " << spec.adapt.lr << " anchor " << spec.adapt.anchor
+             << " brightness " << spec.adapt.brightness << " batch " << spec.adapt.batch << " captures "
+             << spec.adapt.captures;
   const auto claim = claim_out(r, opt.out, "infer", settings.str());
   if (engine == "opencv")
     std::cerr << "engine: " << built.engine->describe() << " (--levers and --precision apply to libtorch)\n";

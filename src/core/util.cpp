@@ -150,7 +150,10 @@ bool has_extension(const fs::path& p, const std::vector<std::string>& extensions
 }
 
 std::vector<fs::path> list_images(const fs::path& dir, const std::vector<std::string>& extensions) {
-  require(fs::is_directory(dir), dir, "not a folder");
+  require(fs::is_directory(dir), dir,
+          fs::exists(dir) ? "not a folder"
+                          : "no such folder (the shipped configs read the photographs from "
+                            "../shared/data/images/train beside the checkout)");
   std::vector<fs::path> files;
   for (const auto& e : fs::directory_iterator(dir)) {
     const auto name = e.path().filename().string();

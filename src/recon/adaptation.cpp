@@ -18,6 +18,8 @@ void check_adaptation_options(const AdaptationOptions& o) {
   require_option(std::isfinite(o.anchor) && o.anchor >= 0 && o.anchor <= 1e9, "infer.adapt_anchor",
                  "0 (no pull to the shipped weights) to 1e9");
   require_option(o.captures >= 1 && o.captures <= 256, "infer.adapt_captures", "1 to 256 captures");
+  require_option(std::isfinite(o.brightness) && o.brightness >= 0 && o.brightness <= 1e6, "infer.adapt_brightness",
+                 "0 (the pictures' brightness free) to 1e6");
 }
 
 std::string AdaptationReport::summary() const {
@@ -52,6 +54,18 @@ double mean_disagreement(Generator& generator, const std::vector<torch::Tensor>&
   return sum / static_cast<double>(planes.size());
 }
 
+// Each capture's picture's mean value {n}, without gradients (what the brightness term holds).
+torch::Tensor picture_means(Generator& generator, const std::vector<torch::Tensor>& planes, int64_t batch) {
+  torch::NoGradGuard no_grad;
+  std::vector<torch::Tensor> means;
+  for (size_t first = 0; first < planes.size(); first += static_cast<size_t>(batch)) {
+    const auto last = std::min(planes.size(), first + static_cast<size_t>(batch));
+    const auto Y = torch::stack(std::vector<torch::Tensor>(planes.begin() + first, planes.begin() + last));
+    means.push_back(generator->forward(Y).to(torch::kFloat32).mean({1, 2, 3}));
+  }
+  return torch::cat(means).clamp_min(1e-3);
+}
+
 }  // namespace
 
 AdaptationReport adapt_to_captures(Generator& generator, const std::vector<torch::Tensor>& planes,
@@ -64,6 +78,7 @@ AdaptationReport adapt_to_captures(Generator& generator, const std::vector<torch
   AdaptationReport report;
   report.captures = static_cast<int64_t>(planes.size());
   report.disagreement_before = mean_disagreement(generator, planes, measure, o.batch);
+  const auto shipped_means = picture_means(generator, planes, o.batch);  // {n}
   std::vector<torch::Tensor> params, shipped;
   double shipped_norm2 = 0;
   // The enhancer alone: the first stage is the camera's own inversion, and fitted to a few captures it
@@ -82,10 +97,18 @@ AdaptationReport adapt_to_captures(Generator& generator, const std::vector<torch
   const auto n = static_cast<int64_t>(planes.size());
   for (int64_t step = 0; step < o.steps; ++step) {
     std::vector<torch::Tensor> batch;
-    for (int64_t k = 0; k < std::min(o.batch, n); ++k)
-      batch.push_back(planes[static_cast<size_t>((step * o.batch + k) % n)]);
+    std::vector<int64_t> index;
+    for (int64_t k = 0; k < std::min(o.batch, n); ++k) {
+      index.push_back((step * o.batch + k) % n);
+      batch.push_back(planes[static_cast<size_t>(index.back())]);
+    }
     const auto Y = torch::stack(batch);  // {b,4,rows,cols}
-    auto loss = measure.disagreement(Y, generator->forward(Y)).mean();
+    const auto picture = generator->forward(Y);
+    auto loss = measure.disagreement(Y, picture).mean();
+    if (o.brightness > 0) {  // (1)'s brightness term: the capture holds no level, the shipped picture's is kept
+      const auto target = shipped_means.index({torch::tensor(index)});
+      loss = loss + o.brightness * (picture.to(torch::kFloat32).mean({1, 2, 3}) / target - 1).square().mean();
+    }
     if (o.anchor > 0) {
       auto drift = torch::zeros({}, torch::kFloat32);
       for (size_t i = 0; i < params.size(); ++i) drift = drift + (params[i] - shipped[i]).square().sum();
