@@ -6,6 +6,7 @@
 
 #include <map>
 
+#include "consistency_bench.hpp"
 #include "io/camera_config.hpp"
 #include "io/image.hpp"
 #include "recon/adaptation.hpp"
@@ -16,21 +17,12 @@ using Catch::Matchers::Contains;
 
 namespace {
 
-constexpr int64_t kRows = 40, kCols = 48, kScene = 16;
+constexpr int64_t kRows = test::kBenchRows, kCols = test::kBenchCols, kScene = test::kBenchScene;
 
-struct Bench {
-  Calibration calib;
-  CameraConfig camera;
+struct Bench : test::SmallCamera {
   std::vector<torch::Tensor> captures;  // three scenes, each {4,h,w}
-  Bench() {
-    auto gen = at::detail::createCPUGenerator(11);
-    auto centred = [](torch::Tensor F) { return F - F.mean(1, true); };
-    calib = {centred(at::rand({4, kRows, kScene}, gen).to(torch::kFloat64)),
-             centred(at::rand({4, kCols, kScene}, gen).to(torch::kFloat64))};
-    camera.raw.crop = {0, 0, kRows, kCols};
-    camera.scene_size = kScene;
-    camera.raw.centring = Centring::plane;
-    camera.tikhonov_lambda = 1e-2;
+  Bench() : SmallCamera(11) {
+    auto gen = at::detail::createCPUGenerator(12);
     for (int k = 0; k < 3; ++k) {
       const auto rgb = 0.1 + 0.8 * at::rand({1, 3, kScene, kScene}, gen).to(torch::kFloat64);
       const auto X = rgb_to_bayer_planes(rgb);

@@ -3,6 +3,7 @@
 // the truth; a capture with no usable exposure keeps the network's picture; bad strengths are named.
 #include "catch_torch.hpp"
 
+#include "consistency_bench.hpp"
 #include "io/camera_config.hpp"
 #include "io/image.hpp"
 #include "recon/data_consistency.hpp"
@@ -12,21 +13,11 @@ using Catch::Matchers::Contains;
 
 namespace {
 
-constexpr int64_t kRows = 40, kCols = 48, kScene = 16;
+constexpr int64_t kRows = test::kBenchRows, kCols = test::kBenchCols, kScene = test::kBenchScene;
 
-struct Bench {
-  Calibration calib;
-  CameraConfig camera;
+struct Bench : test::SmallCamera {
   torch::Tensor rgb;  // {1,3,N,N} linear light, the scene
-  Bench() {
-    auto gen = at::detail::createCPUGenerator(7);
-    auto centred = [](torch::Tensor F) { return F - F.mean(1, true); };  // as calibrations are (centring)
-    calib = {centred(at::rand({4, kRows, kScene}, gen).to(torch::kFloat64)),
-             centred(at::rand({4, kCols, kScene}, gen).to(torch::kFloat64))};
-    camera.raw.crop = {0, 0, kRows, kCols};
-    camera.scene_size = kScene;
-    camera.raw.centring = Centring::plane;
-    camera.tikhonov_lambda = 1e-2;
+  Bench() : SmallCamera(7) {
     // A smooth, coloured scene: red on the left, blue on the right, green in a square.
     rgb = torch::full({1, 3, kScene, kScene}, 0.1);
     rgb.select(1, 0).narrow(2, 0, kScene / 2) += 0.6;

@@ -1,0 +1,28 @@
+#pragma once
+// A small camera for the data-consistency and adaptation tests: random centred factors (as
+// calibrations are after centring), {4,40,16} and {4,48,16}, plane centring, tikhonov_lambda 1e-2.
+#include <torch/torch.h>
+
+#include "io/camera_config.hpp"
+#include "optics/camera.hpp"
+
+namespace flatnet::test {
+
+constexpr int64_t kBenchRows = 40, kBenchCols = 48, kBenchScene = 16;
+
+struct SmallCamera {
+  Calibration calib;
+  CameraConfig camera;
+  explicit SmallCamera(uint64_t seed) {
+    auto gen = at::detail::createCPUGenerator(seed);
+    auto centred = [](torch::Tensor F) { return F - F.mean(1, true); };
+    calib = {centred(at::rand({4, kBenchRows, kBenchScene}, gen).to(torch::kFloat64)),
+             centred(at::rand({4, kBenchCols, kBenchScene}, gen).to(torch::kFloat64))};
+    camera.raw.crop = {0, 0, kBenchRows, kBenchCols};
+    camera.scene_size = kBenchScene;
+    camera.raw.centring = Centring::plane;
+    camera.tikhonov_lambda = 1e-2;
+  }
+};
+
+}  // namespace flatnet::test
