@@ -41,29 +41,25 @@ std::vector<std::filesystem::path> adaptation_captures(const std::vector<std::fi
 
 namespace {
 
-// (1)'s first term over all the captures, without gradients.
-double mean_disagreement(Generator& generator, const std::vector<torch::Tensor>& planes, const DataConsistency& measure,
-                         int64_t batch) {
+// One pass over all the captures without gradients: (1)'s first term, their mean, and each
+// picture's mean value {n} (what the brightness term holds).
+struct Pictures {
+  double disagreement = 0;
+  torch::Tensor means;
+};
+Pictures look_at(Generator& generator, const std::vector<torch::Tensor>& planes, const DataConsistency& measure,
+                 int64_t batch) {
   torch::NoGradGuard no_grad;
   double sum = 0;
-  for (size_t first = 0; first < planes.size(); first += static_cast<size_t>(batch)) {
-    const auto last = std::min(planes.size(), first + static_cast<size_t>(batch));
-    const auto Y = torch::stack(std::vector<torch::Tensor>(planes.begin() + first, planes.begin() + last));
-    sum += measure.disagreement(Y, generator->forward(Y)).sum().item<double>();
-  }
-  return sum / static_cast<double>(planes.size());
-}
-
-// Each capture's picture's mean value {n}, without gradients (what the brightness term holds).
-torch::Tensor picture_means(Generator& generator, const std::vector<torch::Tensor>& planes, int64_t batch) {
-  torch::NoGradGuard no_grad;
   std::vector<torch::Tensor> means;
   for (size_t first = 0; first < planes.size(); first += static_cast<size_t>(batch)) {
     const auto last = std::min(planes.size(), first + static_cast<size_t>(batch));
     const auto Y = torch::stack(std::vector<torch::Tensor>(planes.begin() + first, planes.begin() + last));
-    means.push_back(generator->forward(Y).to(torch::kFloat32).mean({1, 2, 3}));
+    const auto picture = generator->forward(Y);
+    sum += measure.disagreement(Y, picture).sum().item<double>();
+    means.push_back(picture.to(torch::kFloat32).mean({1, 2, 3}));
   }
-  return torch::cat(means).clamp_min(1e-3);
+  return {sum / static_cast<double>(planes.size()), torch::cat(means).clamp_min(1e-3)};
 }
 
 }  // namespace
@@ -77,8 +73,9 @@ AdaptationReport adapt_to_captures(Generator& generator, const std::vector<torch
   generator->set_autocast_bf16(o.bf16);
   AdaptationReport report;
   report.captures = static_cast<int64_t>(planes.size());
-  report.disagreement_before = mean_disagreement(generator, planes, measure, o.batch);
-  const auto shipped_means = picture_means(generator, planes, o.batch);  // {n}
+  const auto before = look_at(generator, planes, measure, o.batch);
+  report.disagreement_before = before.disagreement;
+  const auto& shipped_means = before.means;  // {n}
   std::vector<torch::Tensor> params, shipped;
   double shipped_norm2 = 0;
   // The enhancer alone: the first stage is the camera's own inversion, and fitted to a few captures it
@@ -127,7 +124,7 @@ AdaptationReport adapt_to_captures(Generator& generator, const std::vector<torch
   }
   progress.finish();
   report.steps = o.steps;
-  report.disagreement_after = mean_disagreement(generator, planes, measure, o.batch);
+  report.disagreement_after = look_at(generator, planes, measure, o.batch).disagreement;
   double moved2 = 0;
   for (size_t i = 0; i < params.size(); ++i) moved2 += (params[i].detach() - shipped[i]).square().sum().item<double>();
   report.distance = std::sqrt(moved2 / shipped_norm2);
