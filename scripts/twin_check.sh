@@ -10,8 +10,10 @@
 #              first four are the user's captures and are not scored
 #   references Tikhonov pictures of those four with the true calibration, in linear light, min-max
 #              stretched to 8 bits as FlatNet's rec_*
-#   recovered  `calibrate --references` from the four pairs and the geometry alone, then the shipped
-#              transpose model adapted through that calibration for STEPS steps
+#   white      one capture of a uniform white scene at 0.15 of the display's white (below full scale),
+#              with the same missed light: it sets the calibration's light unit (--white-capture)
+#   recovered  `calibrate --references --white-capture` from the four pairs, the white and the geometry
+#              alone, then the shipped transpose model adapted through that calibration for STEPS steps
 #   truth path the same adaptation through the true camera file
 # Usage: scripts/twin_check.sh [RUNS_DIR] [PHOTOS_DIR]   (STEPS=800, THREADS=2)
 # Resumable: what exists is reused. Prints both paths' held-out scores.
@@ -50,10 +52,17 @@ EOF
   ls refs | sed 's|^|refs/|' > captures.txt
   ls refs-ref/*.png > references.txt
 fi
-[ -f cal/camera.yaml ] || {
-  mkdir -p cal
+if [ ! -f white/missed.done ]; then
+  mkdir -p whiteimg
+  /usr/bin/python3 -c "from PIL import Image; Image.new('RGB', (256, 256), (255, 255, 255)).save('whiteimg/white.png')"
+  "$flatnet" simulate --images whiteimg --camera truth/camera.yaml --seed 1 --exposure 0.15 --out white --force > /dev/null
+  /usr/bin/python3 "$repo/scripts/missed_light.py" white/meas && touch white/missed.done
+fi
+[ -f calw/camera.yaml ] || {
+  mkdir -p calw
   "$flatnet" calibrate --references --meas-list captures.txt --gt-list references.txt --root . \
-    --camera "$repo/configs/cameras/flatnet_prototype_level.yaml" --out cal/calib.mat --compact > cal.log 2>&1
+    --camera "$repo/configs/cameras/flatnet_prototype_level.yaml" --out calw/calib.mat --compact \
+    --white-capture white/meas/white.png --white-light 0.15 > calw.log 2>&1
 }
 tail -n +5 heldout/val_meas.txt | sed 's|^|heldout/|' > scored_meas.txt
 
@@ -68,4 +77,4 @@ adapt() {  # NAME CAMERA
   echo "$1: $(grep "^rec-$1 " "eval-$1.log")"
 }
 adapt truth "$runs/truth/camera.yaml"
-adapt recovered "$runs/cal/camera.yaml"
+adapt recovered-white "$runs/calw/camera.yaml"

@@ -131,3 +131,66 @@ TEST_CASE("reference calibration names a flat capture, a flat reference and too 
   const std::vector<ReferencePair> two(pairs.begin(), pairs.begin() + 2);
   CHECK_THROWS_WITH(leave_one_out(two, 1e-4, quiet()), Contains("at least 3"));
 }
+
+namespace {
+
+torch::Tensor double_centred(const torch::Tensor& Y) {
+  return Y - Y.mean(1, true) - Y.mean(2, true) + Y.mean({1, 2}, true);
+}
+
+// How far the calibration's forward model of the true scene X is from the capture Y, relative.
+double forward_error(const Calibration& calib, const torch::Tensor& X, const torch::Tensor& Y) {
+  const auto model = double_centred(torch::matmul(torch::matmul(calib.P, X), calib.Q.transpose(1, 2)));
+  return ((model - Y.to(torch::kFloat64)).norm() / Y.to(torch::kFloat64).norm()).item<double>();
+}
+
+}  // namespace
+
+TEST_CASE("a white capture sets a reference calibration's light unit: the scene's light, not the references'",
+          "[optics][calibrate]") {
+  const StructuredCamera camera;
+  // References stretched as a displayed picture is: 2 x (0.8-1.3) x (1 + 0.2 i) as bright as the scenes.
+  std::vector<ReferencePair> pairs = {camera.pair(0, 0.02), camera.pair(1, 0.02), camera.pair(2, 0.02)};
+  for (auto& p : pairs) p.reference = 2 * p.reference;
+  auto fit = calibrate_from_references(pairs, quiet());
+  const auto X0 = scene(100);
+  // In the references' units the calibration does not explain the true scene's capture.
+  const double before = forward_error(fit.calib, X0, pairs[0].meas);
+  CHECK(before > 0.5);
+
+  // A uniform scene of light 0.7 (eq. 2), with the sensor's noise.
+  const double light = 0.7;
+  auto gen = at::detail::createCPUGenerator(9);
+  auto white = double_centred(torch::matmul(
+      torch::matmul(camera.P, torch::full({4, kScene, kScene}, light, torch::kFloat64)), camera.Q.transpose(1, 2)));
+  white = white + 0.01 * white.std() * at::randn(white.sizes(), gen).to(torch::kFloat64);
+  const auto frame = fit_white_frame(white.to(torch::kFloat32), fit.calib, 3e-4);
+  std::array<double, 4> scale{};
+  for (size_t c = 0; c < 4; ++c) {
+    CHECK(frame.residual[c] < 0.1);
+    scale[c] = light / frame.level[c];
+  }
+  const auto rows_before = fit.profile_rows.clone(), cols_before = fit.profile_cols.clone();
+  rescale_scene_units(fit, scale);
+  INFO("forward error before " << before);
+  CHECK(forward_error(fit.calib, X0, pairs[0].meas) < 0.1);
+  for (size_t c = 0; c < 4; ++c) {
+    INFO("channel " << c);
+    // The pairs' scenes, a R + b, are now the true scenes' light.
+    const double truth = X0[static_cast<int64_t>(c)].mean().item<double>();
+    CHECK(std::abs(fit.scene_means[0][c] / truth - 1) < 0.1);
+  }
+  // The profiles (what --compact writes) move with the factors.
+  for (size_t c = 0; c < 4; ++c) {
+    const auto k = 1 / std::sqrt(scale[c]);
+    const auto i = static_cast<int64_t>(c);
+    CHECK(torch::allclose(fit.profile_rows[i], rows_before[i] * k));
+    CHECK(torch::allclose(fit.profile_cols[i], cols_before[i] * k));
+  }
+
+  // A capture of a scene is no white frame: a uniform scene leaves most of its coded light.
+  const auto scene_frame = fit_white_frame(camera.pair(3, 0.0).meas, fit.calib, 3e-4);
+  CHECK(*std::max_element(scene_frame.residual.begin(), scene_frame.residual.end()) > 0.5);
+  CHECK_THROWS_WITH(fit_white_frame(torch::zeros({4, kRows + 1, kCols}), fit.calib, 3e-4), Contains("window"));
+  CHECK_THROWS_WITH(rescale_scene_units(fit, {1, 1, 0, 1}), Contains("positive"));
+}

@@ -104,21 +104,30 @@ TEST_CASE("the manual's relative links name files that exist and headings that e
 }
 
 // The manual says how flatnet works today; dated runs belong to the results record (docs/results/).
-TEST_CASE("the manual's pages carry no dated lines, and the training how-to stays short", "[docs]") {
+// models/README.md is a manual page too; the model cards keep their own training history.
+TEST_CASE("the manual's pages carry no dated lines and no earlier values, and the training how-to stays short",
+          "[docs]") {
   static const std::regex date(R"(\b20[0-9][0-9]-[01][0-9]-[0-3][0-9]\b)");
+  static const std::regex earlier(R"(\(was [0-9.-])");  // "4.54 (was 10.10)": the record keeps those
   const auto root = test::source_dir();
   int pages = 0;
+  bool models_readme = false;
   for (const auto& file : manual_files()) {
-    if (file.parent_path().filename() == "results" || file.parent_path() == root / "models") continue;
+    const bool card = file.parent_path() == root / "models" && file.filename() != "README.md";
+    if (file.parent_path().filename() == "results" || card) continue;
     ++pages;
+    models_readme = models_readme || file == root / "models" / "README.md";
     int n = 0;
     for (const auto& line : lines_of(file)) {
       ++n;
       INFO(file.string() << ":" << n << ": " << line);
       CHECK_FALSE(std::regex_search(line, date));
+      CHECK_FALSE(std::regex_search(line, earlier));
     }
   }
-  CHECK(pages >= 10);  // README and the docs pages
+  CHECK(models_readme);
+  CHECK(pages >= 11);  // README, models/README and the docs pages
+  CHECK(std::regex_search(std::string("| tikhonov | 4.54 (was 10.10) |"), earlier));
   CHECK(lines_of(root / "docs" / "training.md").size() <= 250);
   // The checker finds a date.
   CHECK(std::regex_search(std::string("Resumed on 2026-11-27 on the same Zen 3"), date));

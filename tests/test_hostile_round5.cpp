@@ -205,3 +205,27 @@ TEST_CASE("a bench belongs to a simulated camera alone: co-design and model file
   bench_camera.bench.crosstalk = 0.2;
   CHECK_THROWS_WITH(codesign_options(codesign, bench_camera), Contains("bench"));
 }
+
+TEST_CASE("calibrate --references names a white capture that is saturated, foreign or missing before any fit",
+          "[safe][hostile][calibrate]") {
+  test::Scratch s("round5_white_capture");
+  const auto base = reference_lists(s.dir, {"c1.png", "c2.png", "c3.png"}, {"r1.png", "r2.png", "r3.png"}) + " --out " +
+                    q(s.dir / "out" / "calib.mat");
+  write_gray16(s.dir / "white_sat.png", torch::full({128, 160}, 1023 * 64, torch::kInt32));
+  write_gray16(s.dir / "white_small.png", torch::full({64, 80}, 500 * 64, torch::kInt32));
+  const std::vector<std::pair<std::string, std::vector<std::string>>> cases = {
+      {"--white-capture " + q(s.dir / "white_sat.png"), {"white_sat.png", "saturated", "--white-light"}},
+      {"--white-capture " + q(s.dir / "white_small.png"), {"white_small.png"}},
+      {"--white-capture " + q(s.dir / "no_white.png"), {"no_white.png"}},
+      {"--white-capture " + q(s.dir / "white_sat.png") + " --white-light 0", {"--white-light", "(0, 1000]"}},
+      {"--white-capture " + q(s.dir / "white_sat.png") + " --white-light nan", {"--white-light"}},
+  };
+  for (const auto& [flags, words] : cases) {
+    INFO(flags);
+    const auto r = test::run_flatnet(base + " " + flags);
+    CHECK(r.code == 2);
+    for (const auto& w : words) CHECK_THAT(r.output, Contains(w));
+    CHECK_THAT(r.output, !Contains("leave-one-out"));  // named before the calibration's minutes
+  }
+  CHECK_FALSE(std::filesystem::exists(s.dir / "out" / "calib.mat"));
+}

@@ -78,6 +78,130 @@ void require_distinct_pairs(const std::vector<Pair>& pairs, const std::vector<Re
     }
 }
 
+// What the leave-one-out check found, for the camera file's header and the leak threshold.
+struct ReferenceChecks {
+  double lambda = 0;      // --reference-lambda
+  double held_mean = -1;  // mean held-out correlation (< 0: not checked)
+  double held_leak = 0;   // the largest leak of a held-out capture
+};
+
+// Sensor pixels at full scale a white capture may hold: more, and its level understates the light.
+constexpr double kWhiteSaturatedAtMost = 1e-3;
+// What a uniform scene may leave of a white capture's well-measured coded light (eq. 2's residual,
+// the mean over channels): the prototype's twin's white, with light the separable model misses,
+// leaves 0.31; captures of 40 photographs through it 0.56-0.85.
+constexpr double kWhiteResidualAtMost = 0.45;
+
+// --white-capture FILE [--white-light E]: a capture of a uniform white scene, read and checked before
+// any fit (a saturated or foreign frame is named at once, not after the calibration's minutes).
+struct WhiteCapture {
+  std::filesystem::path path;
+  double light = 1;      // relative to the display's white
+  torch::Tensor planes;  // {4,rows,cols} preprocessed as the pairs are
+};
+std::optional<WhiteCapture> white_capture_of(const cxxopts::ParseResult& r, const CameraConfig& camera) {
+  if (!r.count("white-capture")) return std::nullopt;
+  WhiteCapture white{r["white-capture"].as<std::string>(), r["white-light"].as<double>(), {}};
+  require(std::isfinite(white.light) && white.light > 0 && white.light <= 1e3, "--white-light",
+          "the white capture's light, relative to the display's white (1), within (0, 1000]");
+  const auto window = raw_window(load_raw_unit(white.path, camera.raw), camera.raw);  // {4,rows,cols}
+  const double saturated = at_full_scale(window, camera.raw.adc_bits).to(torch::kFloat32).mean().item<double>();
+  require(saturated <= kWhiteSaturatedAtMost, white.path,
+          "is saturated (" + std::to_string(100 * saturated) +
+              " % of its window at full scale): take it at a shorter exposure or a dimmer white, and give its "
+              "light with --white-light");
+  white.planes = without_level(double_centre(window, camera.raw.centring), camera.raw.centring);
+  return white;
+}
+
+// The calibration's light unit from the white capture (optics/calibrate_references.hpp eq. 2), so
+// pictures through it show the scene's light rather than the references' stretch. Refused, naming
+// the file, when it shows no uniform scene through this calibration.
+void set_scene_unit(const WhiteCapture& white, double lambda, ReferenceCalibration& fit) {
+  const auto frame = fit_white_frame(white.planes, fit.calib, lambda);
+  const double residual = (frame.residual[0] + frame.residual[1] + frame.residual[2] + frame.residual[3]) / 4;
+  require(residual <= kWhiteResidualAtMost, white.path,
+          "is not a uniform scene: a uniform scene leaves " + std::to_string(residual) +
+              " of its well-measured coded light unexplained (at most " + std::to_string(kWhiteResidualAtMost) +
+              "); the white must fill the camera's view");
+  std::array<double, 4> scale{};
+  for (size_t c = 0; c < 4; ++c) {
+    const std::string channel = kChannelNames[c];
+    require(std::isfinite(frame.level[c]) && frame.level[c] > 0, white.path,
+            "shows no white scene's shadow in channel " + channel + " (a dark frame, or another camera's?)");
+    scale[c] = white.light / frame.level[c];
+  }
+  rescale_scene_units(fit, scale);
+  std::cout << "light unit: " << printable(white.path.filename().string()) << " (light " << white.light
+            << ") reads, in the references' units,";
+  for (size_t c = 0; c < 4; ++c) std::cout << " " << kChannelNames[c] << " " << std::setprecision(4) << frame.level[c];
+  std::cout << " (a uniform scene leaves " << std::setprecision(3) << residual
+            << " of its well-measured coded light): the calibration is in the scene's light\n";
+}
+
+int write_reference_calibration(const cxxopts::ParseResult& r, const CameraConfig& camera,
+                                const ReferenceCalibration& fit, const std::vector<NoiseSample>& noise_samples,
+                                const ReferenceChecks& checks, const std::filesystem::path& out) {
+  const double lambda = checks.lambda, held_mean = checks.held_mean, held_leak = checks.held_leak;
+  if (r.count("compact"))
+    save_shift_calibration(out, fit.profile_rows, fit.profile_cols, fit.shift_rows, fit.shift_cols);
+  else
+    save_calibration(out, fit.calib);
+  auto known = camera;
+  known.tikhonov_lambda = absolute_tikhonov_lambda(separable_inverse(fit.calib.P, fit.calib.Q, 1.0), lambda);
+  const auto noise = fit_noise_model(noise_samples, fit.calib.P, fit.calib.Q);
+  if (noise.found) {
+    known.noise_gain = noise.noise_gain;
+    known.noise_floor = noise.noise_floor;
+    known.dark = noise.dark;
+    known.fit_threshold = noise.fit_threshold;
+    known.leak_threshold = noise.leak_threshold;
+    // A few captures' calibration misses structured light, and a capture it did not see leaks more
+    // than the captures it was fitted to: the held-out captures' leaks set the threshold too.
+    if (held_leak > 0 && noise.leak_threshold > 0)
+      known.leak_threshold = std::max(noise.leak_threshold, std::min(1e3, 1.1 * held_leak));
+    std::vector<torch::Tensor> levels;
+    for (const auto& sample : noise_samples) levels.push_back(sample.level);
+    known.open_light = open_light_of(levels, fit, noise.dark);
+  }
+  std::ostringstream head;
+  head << "# identified by `flatnet calibrate --references` from " << noise_samples.size()
+       << " captures and reconstructions of them; the shadow moves " << std::setprecision(6) << fit.shift_rows
+       << " sensor pixels per scene row, " << fit.shift_cols << " per scene column; residual per channel:";
+  for (const double v : fit.residual) head << " " << std::setprecision(4) << v;
+  if (held_mean >= 0) head << "\n# leave-one-out: mean held-out correlation " << std::setprecision(4) << held_mean;
+  if (r.count("white-capture"))
+    head << "\n# scene light from the white capture "
+         << printable(std::filesystem::path(r["white-capture"].as<std::string>()).filename().string()) << " (light "
+         << r["white-light"].as<double>() << "); without it the references' units";
+  head << "\n# tikhonov_lambda is " << lambda << " of the largest squared singular value product\n";
+  const auto yaml_path = write_camera_beside(out, known, head.str());
+  std::cout << "wrote " << out.string() << " and " << yaml_path.string() << "\nshift structure: the shadow moves "
+            << std::setprecision(6) << fit.shift_rows << " sensor pixels per scene row, " << fit.shift_cols
+            << " per scene column\nfit residual ||Y - P (a R + b) Q^T|| / ||Y||:";
+  for (int c = 0; c < 4; ++c) std::cout << " " << kChannelNames[c] << " " << std::setprecision(4) << fit.residual[c];
+  std::cout << "\n";
+  if (!r.count("white-capture"))
+    std::cout << "the calibration is in the references' units: pictures through it are as bright as they are; "
+                 "--white-capture sets the scene's light (docs/own-camera.md, \"The light unit\"); if they are "
+                 "not linear light (a tone-mapped picture), set the camera file's display_gamma before training "
+                 "through it (\"The references' tone\")\n";
+  if (noise.found) {
+    std::cout << "sensor noise: variance " << noise.noise_gain << " x (level - " << noise.dark << ") + "
+              << noise.noise_floor << "; open light " << known.open_light
+              << " x the scene's mean\ncamera fit: the captures' own fits";
+    for (const double f : noise.fits) std::cout << " " << std::setprecision(3) << f;
+    std::cout << ", threshold " << noise.fit_threshold;
+    if (known.leak_threshold > 0)
+      std::cout << ", leak up to " << known.leak_threshold << " (held-out captures leak up to " << held_leak << ")";
+    std::cout << " (written to the camera file)\n";
+  } else {
+    std::cout << "no noise model: it needs 2 captures or more whose noise grows with their light; the camera fit "
+                 "cannot judge this camera's captures until noise_gain, noise_floor and dark are in its file\n";
+  }
+  return 0;
+}
+
 int calibrate_from_reference_pairs(const cxxopts::ParseResult& r, const CameraConfig& camera,
                                    const std::vector<Pair>& pairs, const std::filesystem::path& out) {
   const auto order = r["reference-order"].as<std::string>();
@@ -95,6 +219,7 @@ int calibrate_from_reference_pairs(const cxxopts::ParseResult& r, const CameraCo
                              at_full_scale(window, camera.raw.adc_bits).to(torch::kFloat32).mean().item<double>()});
   }
   require_distinct_pairs(pairs, refs);
+  const auto white = white_capture_of(r, camera);
   ReferenceCalibrationOptions o;
   o.seed = r["seed"].as<uint64_t>();
   o.shift.min_shift = r["min-shift"].as<double>();
@@ -123,58 +248,9 @@ int calibrate_from_reference_pairs(const cxxopts::ParseResult& r, const CameraCo
   } else {
     std::cout << "leave-one-out needs 3 pairs or more: the calibration is not checked on held-out pairs\n";
   }
-  const auto fit = calibrate_from_references(refs, o);
-  if (r.count("compact"))
-    save_shift_calibration(out, fit.profile_rows, fit.profile_cols, fit.shift_rows, fit.shift_cols);
-  else
-    save_calibration(out, fit.calib);
-  auto known = camera;
-  known.tikhonov_lambda = absolute_tikhonov_lambda(separable_inverse(fit.calib.P, fit.calib.Q, 1.0), lambda);
-  const auto noise = fit_noise_model(noise_samples, fit.calib.P, fit.calib.Q);
-  if (noise.found) {
-    known.noise_gain = noise.noise_gain;
-    known.noise_floor = noise.noise_floor;
-    known.dark = noise.dark;
-    known.fit_threshold = noise.fit_threshold;
-    known.leak_threshold = noise.leak_threshold;
-    // A few captures' calibration misses structured light, and a capture it did not see leaks more
-    // than the captures it was fitted to: the held-out captures' leaks set the threshold too.
-    if (held_leak > 0 && noise.leak_threshold > 0)
-      known.leak_threshold = std::max(noise.leak_threshold, std::min(1e3, 1.1 * held_leak));
-    std::vector<torch::Tensor> levels;
-    for (const auto& sample : noise_samples) levels.push_back(sample.level);
-    known.open_light = open_light_of(levels, fit, noise.dark);
-  }
-  std::ostringstream head;
-  head << "# identified by `flatnet calibrate --references` from " << refs.size()
-       << " captures and reconstructions of them; the shadow moves " << std::setprecision(6) << fit.shift_rows
-       << " sensor pixels per scene row, " << fit.shift_cols << " per scene column; residual per channel:";
-  for (const double v : fit.residual) head << " " << std::setprecision(4) << v;
-  if (held_mean >= 0) head << "\n# leave-one-out: mean held-out correlation " << std::setprecision(4) << held_mean;
-  head << "\n# tikhonov_lambda is " << lambda << " of the largest squared singular value product\n";
-  const auto yaml_path = write_camera_beside(out, known, head.str());
-  std::cout << "wrote " << out.string() << " and " << yaml_path.string() << "\nshift structure: the shadow moves "
-            << std::setprecision(6) << fit.shift_rows << " sensor pixels per scene row, " << fit.shift_cols
-            << " per scene column\nfit residual ||Y - P (a R + b) Q^T|| / ||Y||:";
-  for (int c = 0; c < 4; ++c) std::cout << " " << kChannelNames[c] << " " << std::setprecision(4) << fit.residual[c];
-  std::cout << "\n";
-  std::cout << "the calibration is in the references' units: if they are not the display's linear light (a "
-               "stretched or tone-mapped picture), set the camera file's display_gamma before training through it "
-               "(docs/own-camera.md, \"The references' tone\")\n";
-  if (noise.found) {
-    std::cout << "sensor noise: variance " << noise.noise_gain << " x (level - " << noise.dark << ") + "
-              << noise.noise_floor << "; open light " << known.open_light
-              << " x the scene's mean\ncamera fit: the captures' own fits";
-    for (const double f : noise.fits) std::cout << " " << std::setprecision(3) << f;
-    std::cout << ", threshold " << noise.fit_threshold;
-    if (known.leak_threshold > 0)
-      std::cout << ", leak up to " << known.leak_threshold << " (held-out captures leak up to " << held_leak << ")";
-    std::cout << " (written to the camera file)\n";
-  } else {
-    std::cout << "no noise model: it needs 2 captures or more whose noise grows with their light; the camera fit "
-                 "cannot judge this camera's captures until noise_gain, noise_floor and dark are in its file\n";
-  }
-  return 0;
+  auto fit = calibrate_from_references(refs, o);
+  if (white) set_scene_unit(*white, lambda, fit);
+  return write_reference_calibration(r, camera, fit, noise_samples, {lambda, held_mean, held_leak}, out);
 }
 
 // The camera's hot pixels found from the first pairs' raw frames (optics/hot_pixels.hpp), with those
@@ -501,6 +577,11 @@ int calibrate(int argc, char** argv) {
       "min-shift", "smallest |shadow shift| searched, sensor pixels per scene pixel",
       cxxopts::value<double>()->default_value("0.2"))("max-shift", "largest |shadow shift| searched",
                                                       cxxopts::value<double>()->default_value("4"))(
+      "white-capture",
+      "a raw capture of a uniform white scene (the display's white filling the view), taken as the captures "
+      "were: sets the calibration's light unit, so pictures show the scene's light, not the references' stretch",
+      cxxopts::value<std::string>())("white-light", "the white capture's light relative to the display's white",
+                                     cxxopts::value<double>()->default_value("1"))(
       "compact",
       "write the calibration as its profiles and shifts (kilobytes; flatnet expands it) instead of "
       "FlatNet's P1b..Q1r matrices");

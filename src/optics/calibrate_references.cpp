@@ -287,6 +287,48 @@ double open_light_of(const std::vector<torch::Tensor>& levels, const ReferenceCa
   return std::isfinite(k) && k > 0 && k <= 1e3 ? k : 0.0;
 }
 
+WhiteFrameFit fit_white_frame(const torch::Tensor& planes, const Calibration& calib, double relative_lambda) {
+  require(planes.dim() == 3 && planes.size(0) == 4 && planes.size(1) == calib.P.size(1) &&
+              planes.size(2) == calib.Q.size(1),
+          "calibrate", "the white capture's planes do not match the calibration's window");
+  // Eq. (2) is fitted on the singular pairs the camera measures above its regulariser (s_L s_R >=
+  // sqrt(lambda), as the data-consistency step keeps): elsewhere the sensor's noise is most of what
+  // a capture holds, and a residual there would not tell a white from a scene.
+  const auto inverse = separable_inverse(calib.P, calib.Q, 1.0);
+  const double lambda = absolute_tikhonov_lambda(inverse, relative_lambda);
+  const auto measured =
+      (torch::einsum("ci,cj->cij", {inverse.sL, inverse.sR}) >= std::sqrt(lambda)).to(torch::kFloat64);  // {4,N,N}
+  const auto coefficients = [&](const torch::Tensor& Y) {  // U_L^T Y U_R on the measured pairs, {4,N,N}
+    return torch::matmul(torch::matmul(inverse.ULt.to(torch::kFloat64), Y), inverse.UR.to(torch::kFloat64)) * measured;
+  };
+  // Eq. (2)'s pattern: a uniform scene's shadow, double-centred as the capture is.
+  auto U = torch::einsum("ci,cj->cij", {calib.P.to(torch::kFloat64).sum(2), calib.Q.to(torch::kFloat64).sum(2)});
+  U = U - U.mean(1, true) - U.mean(2, true) + U.mean({1, 2}, true);
+  const auto CU = coefficients(U), CY = coefficients(planes.to(torch::kFloat64));
+  WhiteFrameFit out;
+  for (int c = 0; c < 4; ++c) {
+    const double uu = CU[c].square().sum().item<double>(), yy = CY[c].square().sum().item<double>();
+    const double m = uu > 0 ? (CU[c] * CY[c]).sum().item<double>() / uu : 0.0;
+    out.level[static_cast<size_t>(c)] = m;
+    out.residual[static_cast<size_t>(c)] = yy > 0 ? (CY[c] - m * CU[c]).norm().item<double>() / std::sqrt(yy) : 1.0;
+  }
+  return out;
+}
+
+void rescale_scene_units(ReferenceCalibration& fit, const std::array<double, 4>& scale) {
+  for (int c = 0; c < 4; ++c) {
+    const double s = scale[static_cast<size_t>(c)];
+    require(std::isfinite(s) && s > 0, "calibrate", "a scene unit must be a positive, finite scale");
+    const double k = 1.0 / std::sqrt(s);
+    fit.calib.P[c].mul_(k);
+    fit.calib.Q[c].mul_(k);
+    if (fit.profile_rows.defined()) fit.profile_rows[c].mul_(k);
+    if (fit.profile_cols.defined()) fit.profile_cols[c].mul_(k);
+    for (auto& g : fit.gain_offset) g[static_cast<size_t>(c)] *= s, g[static_cast<size_t>(4 + c)] *= s;
+    for (auto& m : fit.scene_means) m[static_cast<size_t>(c)] *= s;
+  }
+}
+
 double absolute_tikhonov_lambda(const SeparableInverse& inverse, double relative) {
   const double top = (inverse.sL.select(1, 0) * inverse.sR.select(1, 0)).max().item<double>();
   return relative * top * top;

@@ -70,6 +70,26 @@ ReferenceCalibration calibrate_from_references(const std::vector<ReferencePair>&
 // eq. 1), one slope through zero by least squares over pairs and planes. levels: {4} per pair, the
 // window's mean raw value. 0 when no positive, finite slope is found.
 double open_light_of(const std::vector<torch::Tensor>& levels, const ReferenceCalibration& fit, double dark);
+// ---- The light unit, from one capture of a white scene ------------------------------------------
+// A calibration identified from someone else's reconstructions is in their units, and a min-max
+// stretched picture says nothing of the scene's light: pictures made through it come out as bright as
+// the references, not as the scene (the prototype's twin: 2.1x its light, docs/own-camera.md). One
+// capture of a uniform scene of known light E (the display's white filling the view: E = 1) fixes
+// the unit. Its double-centred planes are, per channel, eq. (1) with R = 1:
+//   Y_white = m_c C P 1 1^T Q^T C + E,                                                     (2)
+// so m_c, the white's light in the calibration's units, is one least-squares number per channel, and
+// the scene's light is X = (E / m_c) X_cal: Y = (P / sqrt(s)) X (Q / sqrt(s))^T with s = E / m_c.
+struct WhiteFrameFit {
+  std::array<double, 4> level{};     // m_c: the white scene's light in the calibration's units
+  std::array<double, 4> residual{};  // ||Y - m_c U_c|| / ||Y||: what a uniform scene does not explain
+};
+// planes {4,rows,cols}: the white capture, preprocessed as the pairs were (double-centred, no level).
+// Fitted on the singular pairs above sqrt(lambda), lambda relative as absolute_tikhonov_lambda's.
+WhiteFrameFit fit_white_frame(const torch::Tensor& planes, const Calibration& calib, double relative_lambda);
+// The scene's values scaled per channel, X = scale_c X_cal: factors and profiles / sqrt(scale_c), the
+// pairs' gains, offsets and scene means x scale_c. Pictures through it show the scene's light.
+void rescale_scene_units(ReferenceCalibration& fit, const std::array<double, 4>& scale);
+
 // Pearson correlation per channel of a reconstruction {4,N,N} with a reference {4,N,N}, over the
 // reference's pixels above zero.
 std::array<double, 4> reference_correlation(const torch::Tensor& reconstruction, const torch::Tensor& reference);
