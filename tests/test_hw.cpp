@@ -69,6 +69,7 @@ bool gv_simulator_available() {
   static const bool ok =
       have_aravis() && std::system(
                            "command -v arv-fake-gv-camera-0.8 >/dev/null 2>&1 && command -v ip >/dev/null 2>&1 && "
+                           "command -v ss >/dev/null 2>&1 && "
                            "unshare -n true >/dev/null 2>&1") == 0;
   return ok;
 }
@@ -79,14 +80,18 @@ bool gv_simulator_available() {
 test::RunResult with_gv_simulator(const std::string& simulator_args, const std::string& body) {
   const std::string script =
       "ip link set lo up\n"
+      // Waits on the event, not on a clock: the simulator's GVCP port bound (at most 60 s of polls,
+      // so a simulator that never starts fails the test instead of hanging it).
+      "wait_bound() { i=0; until ss -lun | grep -q '127.0.0.1:3956 '; do i=$((i+1)); [ $i -gt 1200 ] && "
+      "return 1; sleep 0.05; done; }\n"
       "start_cam() { arv-fake-gv-camera-0.8 -i 127.0.0.1 -s TST " +
       simulator_args +
-      " >/dev/null 2>&1 & CAM=$!; sleep 1; }\n"
+      " >/dev/null 2>&1 & CAM=$!; wait_bound; }\n"
       "start_cam\n" +
       body + "\nrc=$?\nkill $CAM 2>/dev/null\nexit $rc\n";
   test::Scratch s("gvscript");
   std::ofstream(s.dir / "run.sh") << script;
-  return test::run_shell("timeout 120 unshare -n sh " + q(s.dir / "run.sh"));
+  return test::run_shell("timeout 600 unshare -n sh " + q(s.dir / "run.sh"));
 }
 
 std::string flatnet_bin() { return FLATNET_BINARY; }
@@ -406,8 +411,12 @@ TEST_CASE("GigE Vision simulator: capture, lost packets, a camera that goes and 
     return " & P=$!; for i in $(seq 300); do [ -e " + q(s.dir / dir / "capture_0000.png") +
            " ] && break; sleep 0.1; done; ";
   };
-  r = with_gv_simulator("", cap + "--frames 30 --timeout-ms 500 --retries 6 --out " + q(s.dir / "back") +
-                                first_frame("back") + "kill $CAM; sleep 1; start_cam; wait $P");
+  // The camera comes back once the capture has noticed it gone (its first retry), whatever the load.
+  const auto log = q(s.dir / "back.log");
+  r = with_gv_simulator("", cap + "--frames 30 --timeout-ms 500 --retries 6 --out " + q(s.dir / "back") + " > " +
+                                log + " 2>&1" + first_frame("back") + "kill $CAM; i=0; until grep -q '(retry ' " +
+                                log + "; do i=$((i+1)); [ $i -gt 1200 ] && break; sleep 0.05; done; start_cam; " +
+                                "wait $P; rc=$?; cat " + log + "; (exit $rc)");
   CHECK(r.code == 0);
   CHECK_THAT(r.output, Contains("reconnected") && Contains("wrote 30 captures"));
   CHECK(count_files(s.dir / "back", ".png") == 30);
