@@ -413,9 +413,9 @@ TEST_CASE("GigE Vision simulator: capture, lost packets, a camera that goes and 
   };
   // The camera comes back once the capture has noticed it gone (its first retry), whatever the load.
   const auto log = q(s.dir / "back.log");
-  r = with_gv_simulator("", cap + "--frames 30 --timeout-ms 500 --retries 6 --out " + q(s.dir / "back") + " > " +
-                                log + " 2>&1" + first_frame("back") + "kill $CAM; i=0; until grep -q '(retry ' " +
-                                log + "; do i=$((i+1)); [ $i -gt 1200 ] && break; sleep 0.05; done; start_cam; " +
+  r = with_gv_simulator("", cap + "--frames 30 --timeout-ms 500 --retries 6 --out " + q(s.dir / "back") + " > " + log +
+                                " 2>&1" + first_frame("back") + "kill $CAM; i=0; until grep -q '(retry ' " + log +
+                                "; do i=$((i+1)); [ $i -gt 1200 ] && break; sleep 0.05; done; start_cam; " +
                                 "wait $P; rc=$?; cat " + log + "; (exit $rc)");
   CHECK(r.code == 0);
   CHECK_THAT(r.output, Contains("reconnected") && Contains("wrote 30 captures"));

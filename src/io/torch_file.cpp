@@ -458,4 +458,20 @@ bool verify_zip_crcs(const std::filesystem::path& path) {
   return true;
 }
 
+ArchiveTopLevel read_archive_top_level(const std::filesystem::path& path) {
+  const auto root = read_torchscript_archive(path);
+  ArchiveTopLevel out;
+  for (const auto& [k, v] : root->entries) {
+    if (k->kind != PyValue::Kind::string) continue;
+    const auto& key = k->text;
+    if (v->kind == PyValue::Kind::string) out.text[key] = v->text;
+    if (v->kind == PyValue::Kind::integer) out.integers[key] = v->integer;
+    if (v->kind == PyValue::Kind::real) out.reals[key] = v->real;
+    if (v->kind == PyValue::Kind::tensor) out.tensors[key] = v->tensor;
+    if (v->is_dict())
+      for (auto& [name, t] : tensors_in(*v)) out.tensor_dicts[key][name] = t;
+  }
+  return out;
+}
+
 }  // namespace flatnet

@@ -11,6 +11,7 @@
 // tensor rebuilders of torch._utils, torch.Size and the typed storages. Anything else (a class, a
 // function that could run code) is refused with an error naming it.
 #include <filesystem>
+#include <map>
 #include <memory>
 #include <string>
 #include <utility>
@@ -61,6 +62,18 @@ PyRef read_torch_file(const std::filesystem::path& path);
 // attributes (parameters, buffers, submodules, strings). Nothing in the archive's code/ is run or
 // even read, so a module with a hostile __setstate__ is only a dict here.
 PyRef read_torchscript_archive(const std::filesystem::path& path);
+
+// A TorchScript archive's top level in one call: read_torchscript_archive, its string-keyed entries
+// sorted by kind (flatnet's format-1 model files and checkpoints hold nothing else). A nested dict's
+// tensors keep tensors_in's joined keys; entries of other kinds are left out.
+struct ArchiveTopLevel {
+  std::map<std::string, std::string> text;
+  std::map<std::string, int64_t> integers;
+  std::map<std::string, double> reals;
+  std::map<std::string, torch::Tensor> tensors;
+  std::map<std::string, std::map<std::string, torch::Tensor>> tensor_dicts;
+};
+ArchiveTopLevel read_archive_top_level(const std::filesystem::path& path);
 
 // Writes tensors as Python's torch.save(OrderedDict) does (zip container, pickle protocol 2,
 // _rebuild_tensor_v2 over one storage per tensor), so torch.load and load_state_dict read it.

@@ -11,6 +11,7 @@
 #include "io/safetensors.hpp"
 #include "nn/model_spec.hpp"
 #include "nn/optimizer_state.hpp"
+#include "nn/model_record.hpp"
 #include "nn/stored_file.hpp"
 
 namespace flatnet {

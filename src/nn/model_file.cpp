@@ -7,6 +7,7 @@
 #include "core/util.hpp"
 #include "io/safetensors.hpp"
 #include "io/torch_file.hpp"
+#include "nn/model_record.hpp"
 #include "nn/stored_file.hpp"
 #include "optics/camera.hpp"
 

@@ -1,9 +1,9 @@
 #pragma once
 // The container that model files (nn/model_file.hpp) and checkpoints (nn/checkpoint.hpp) share;
-// internal to nn. Format 2 is a safetensors file: every tensor under a prefix ("generator.",
-// "generator_ema.", "discriminator.", "optimizer_generator.", "optimizer_discriminator."), and
-// strings in __metadata__: format, format_version, model_spec (YAML, the typed generator spec),
-// config (YAML: the training recipe, kept as a record), camera (YAML), the provenance and, for
+// internal to nn, and knows nothing of the model it holds (nn/model_record.hpp reads that). Format 2 is a safetensors
+// file: every tensor under a prefix ("generator.", "generator_ema.", "discriminator.", "optimizer_generator.",
+// "optimizer_discriminator."), and strings in __metadata__: format, format_version, model_spec (YAML, the typed
+// generator spec), config (YAML: the training recipe, kept as a record), camera (YAML), the provenance and, for
 // checkpoints, step, best_psnr, run_id and each optimiser's parameter groups (JSON). Python reads it
 // with `safetensors.torch.load_file` (no code runs), or with nothing but json and struct.
 // Format 1 (before 2026-11) was a TorchScript archive; it is still read, as data
@@ -15,7 +15,7 @@
 #include <utility>
 #include <vector>
 
-#include "nn/model_file.hpp"
+#include <torch/torch.h>
 
 namespace flatnet::detail {
 
@@ -50,17 +50,5 @@ void fill_module(
 void add_module(std::vector<std::pair<std::string, torch::Tensor>>& out, const std::string& prefix,
                 torch::nn::Module& m);
 void load_module(const Stored& s, const std::string& key, torch::nn::Module& m, const std::filesystem::path& where);
-
-// The metadata every file of `format` starts with (written_at and written_on filled in now).
-std::map<std::string, std::string> header(const std::string& format, const ModelIdentity& identity);
-Provenance provenance_of(const Stored& s);
-
-// What the file says its generator is: its typed spec (files from before the spec: their embedded
-// config, converted) and its camera, both checked against the weights it holds before any network
-// of that size is built.
-std::pair<ModelSpec, CameraConfig> stored_model(const Stored& s, const std::filesystem::path& path);
-// The generator (with its spec, recipe and camera) from a model file or a checkpoint; from a
-// checkpoint that kept a moving average of the weights, the average.
-ModelFile read_generator(const Stored& s, const std::filesystem::path& path, bool* used_average = nullptr);
 
 }  // namespace flatnet::detail
