@@ -217,3 +217,55 @@ TEST_CASE("every shipped model has a card that matches its file: hash, held-out 
   }
   CHECK(cards >= 2);
 }
+
+namespace {
+
+// Functions defined at the file's top level (or in a namespace, not indented) whose bodies run past
+// `limit` lines: a definition opens on a line that starts with a name and ends with '{', and closes
+// at the first line that is '}' alone. Returns "file:line name (N lines)" for each.
+std::vector<std::string> long_functions(const std::filesystem::path& file, size_t limit) {
+  static const std::regex opening(R"(^[A-Za-z_].*\)( const)?( override)?( noexcept)? \{$)");
+  std::vector<std::string> out;
+  const auto lines = lines_of(file);
+  size_t start = 0;
+  bool open = false;
+  for (size_t i = 0; i < lines.size(); ++i) {
+    if (!open && std::regex_match(lines[i], opening) && lines[i].rfind("namespace", 0) != 0) {
+      open = true;
+      start = i;
+    } else if (open && lines[i] == "}") {
+      open = false;
+      if (i - start > limit)
+        out.push_back(file.string() + ":" + std::to_string(start + 1) + " " + lines[start].substr(0, 60) + " (" +
+                      std::to_string(i - start) + " lines)");
+    }
+  }
+  return out;
+}
+
+}  // namespace
+
+TEST_CASE("the house: no function in src/ over 100 lines, and the stored-file container knows no model",
+          "[docs][house]") {
+  const auto src = test::source_dir() / "src";
+  int files = 0;
+  for (const auto& e : std::filesystem::recursive_directory_iterator(src)) {
+    if (e.path().extension() != ".cpp") continue;
+    ++files;
+    for (const auto& f : long_functions(e.path(), 100)) FAIL_CHECK(f);
+  }
+  CHECK(files >= 50);
+  for (const auto* name : {"stored_file.hpp", "stored_file.cpp"})
+    for (const auto& line : lines_of(src / "nn" / name)) {
+      INFO(name << ": " << line);
+      CHECK(line.find("#include \"nn/model_file") == std::string::npos);
+    }
+  // The checker finds a long function.
+  test::Scratch s("long_function");
+  std::string text = "int f(int a) {\n";
+  for (int i = 0; i < 101; ++i) text += "  a += 1;\n";
+  text += "  return a;\n}\n";
+  test::write_file(s.dir / "long.cpp", text);
+  CHECK(long_functions(s.dir / "long.cpp", 100).size() == 1);
+  CHECK(long_functions(s.dir / "long.cpp", 200).empty());
+}

@@ -209,8 +209,8 @@ TEST_CASE("a bench belongs to a simulated camera alone: co-design and model file
 TEST_CASE("calibrate --references names a white capture that is saturated, foreign or missing before any fit",
           "[safe][hostile][calibrate]") {
   test::Scratch s("round5_white_capture");
-  const auto base = reference_lists(s.dir, {"c1.png", "c2.png", "c3.png"}, {"r1.png", "r2.png", "r3.png"}) + " --out " +
-                    q(s.dir / "out" / "calib.mat");
+  const auto lists = reference_lists(s.dir, {"c1.png", "c2.png", "c3.png"}, {"r1.png", "r2.png", "r3.png"});
+  const auto base = lists + " --out " + q(s.dir / "out" / "calib.mat");
   write_gray16(s.dir / "white_sat.png", torch::full({128, 160}, 1023 * 64, torch::kInt32));
   write_gray16(s.dir / "white_small.png", torch::full({64, 80}, 500 * 64, torch::kInt32));
   const std::vector<std::pair<std::string, std::vector<std::string>>> cases = {
@@ -227,5 +227,17 @@ TEST_CASE("calibrate --references names a white capture that is saturated, forei
     for (const auto& w : words) CHECK_THAT(r.output, Contains(w));
     CHECK_THAT(r.output, !Contains("leave-one-out"));  // named before the calibration's minutes
   }
+  // The white capture is an input: no output lands on it, even with --force; and it belongs to --references.
+  write_gray16(s.dir / "white_frame.png", torch::full({128, 160}, 500 * 64, torch::kInt32));
+  std::filesystem::rename(s.dir / "white_frame.png", s.dir / "white.mat");  // a .mat name, as --out needs
+  auto r = test::run_flatnet(lists + " --white-capture " + q(s.dir / "white.mat") + " --out " + q(s.dir / "white.mat") +
+                             " --force");
+  CHECK(r.code == 2);
+  CHECK_THAT(r.output, Contains("white.mat") && Contains("is also the input"));
+  r = test::run_flatnet("calibrate --dataset " + q(s.dir) + " --camera " +
+                        q(test::data_dir() / "cameras" / "tiny.yaml") + " --white-capture " + q(s.dir / "white.mat") +
+                        " --out " + q(s.dir / "out" / "calib.mat"));
+  CHECK(r.code == 2);
+  CHECK_THAT(r.output, Contains("--white-capture") && Contains("--references"));
   CHECK_FALSE(std::filesystem::exists(s.dir / "out" / "calib.mat"));
 }

@@ -378,18 +378,9 @@ double rotation_of(const std::vector<Pair>& pairs, const CameraConfig& camera, D
 
 // `flatnet calibrate --dataset DIR`: the calibration identified from display-capture pairs
 // (optics/calibrate_dataset.hpp), written with a camera.yaml beside it and the fit per channel.
-int calibrate_from_dataset(const cxxopts::ParseResult& r) {
-  auto camera = camera_from(r);
-  const std::filesystem::path out = r["out"].as<std::string>();
-  require(out.extension() == ".mat", "--out",
-          "the calibration is a .mat file (FlatNet's layout), got '" + out.string() + "'");
-  // Every file this command reads is an input that no output may land on, even with --force: the
-  // camera file given, the rig and calibration it names, and the lists.
-  std::vector<std::filesystem::path> inputs = {camera.rig, camera.calibration};
-  if (r.count("camera")) inputs.push_back(r["camera"].as<std::string>());
-  for (const auto* flag : {"meas-list", "gt-list"})
-    if (r.count(flag)) inputs.push_back(r[flag].as<std::string>());
-  const bool force = r.count("force") > 0;
+// The display-capture pairs `calibrate --dataset` (or --meas-list/--gt-list) names, the first
+// --limit of them.
+std::vector<Pair> dataset_pairs(const cxxopts::ParseResult& r) {
   std::vector<Pair> pairs;
   if (r.count("meas-list") || r.count("gt-list")) {  // FlatNet's own list files
     require(r.count("meas-list") && r.count("gt-list"), "--meas-list", "give both --meas-list and --gt-list");
@@ -408,27 +399,13 @@ int calibrate_from_dataset(const cxxopts::ParseResult& r) {
     require(!pairs.empty(), dir,
             "holds no train_meas.txt / val_meas.txt lists (FlatNet's layout); or give --meas-list and --gt-list");
   }
-  // A simulated camera's truth, for the error printed at the end: read now, so that a missing rig
-  // is named before the fit runs.
-  std::optional<Calibration> truth;
-  if (!camera.rig.empty()) truth = ideal_calibration(load_camera_rig(camera), camera.raw);
   const auto limit = r["limit"].as<int64_t>();
   require(limit >= 0, "--limit", "0 (all) or more");
   if (limit > 0 && static_cast<int64_t>(pairs.size()) > limit) pairs.resize(static_cast<size_t>(limit));
-  // The pairs' files are inputs too (a reference .mat, a capture): no output lands on one, even with
-  // --force. The camera.yaml written beside the calibration is an output too: an existing one (perhaps
-  // hand-tuned) is replaced only with --force, and never when it is one of the inputs.
-  for (const auto& p : pairs) inputs.insert(inputs.end(), {p.meas, p.gt});
-  require_new_output(out, force, inputs);
-  require_new_output(out.parent_path() / "camera.yaml", force, inputs);
-  if (r.count("references")) return calibrate_from_reference_pairs(r, camera, pairs, out);
-  camera.raw.hot_pixels = hot_pixels_of(pairs, camera);
-  const auto N = camera.scene_size;
-  auto load = [&](int64_t i) {
-    const auto& p = pairs[static_cast<size_t>(i)];
-    const auto window = raw_window(load_raw_unit(p.meas, camera.raw), camera.raw);  // {4,rows,cols}
-    return capture_pair_of(window, scene_planes_of(p.gt, N), camera.raw);
-  };
+  return pairs;
+}
+
+DatasetCalibrationOptions dataset_calibration_options(const cxxopts::ParseResult& r) {
   DatasetCalibrationOptions o;
   o.iterations = r["iterations"].as<int>();
   o.seed = r["seed"].as<uint64_t>();
@@ -442,22 +419,13 @@ int calibrate_from_dataset(const cxxopts::ParseResult& r) {
   require(colour_mix == "identify" || colour_mix == "none", "--colour-mix",
           "identify (fit each plane's shares of the primaries) or none, not '" + colour_mix + "'");
   o.identify_mix = colour_mix == "identify";
-  const auto rotation = r["rotation"].as<std::string>();
-  require(rotation == "estimate" || rotation == "keep", "--rotation",
-          "estimate (search the mask's rotation on the sensor) or keep (the camera file's), not '" + rotation + "'");
-  // The rotation search fits the shift structure at each angle: free factors absorb a rotation instead.
-  require(!(rotation == "estimate" && o.structure == FactorStructure::Free && r.count("rotation")), "--rotation",
-          "estimate needs --structure shift (free factors absorb a rotation and cannot measure it); give "
-          "--rotation keep, or state the angle in the camera file");
-  if (rotation == "estimate" && o.structure == FactorStructure::Shift)
-    camera.raw.rotation = rotation_of(pairs, camera, o);
-  else if (o.structure == FactorStructure::Free)
-    std::cout << "rotation: " << camera.raw.rotation
-              << " rad from the camera file (not searched: free factors absorb a rotation)\n";
-  std::cerr << "calibrate: " << pairs.size() << " display-capture pairs, " << camera.raw.crop[2] << "x"
-            << camera.raw.crop[3] << " planes, " << N << "x" << N << " scenes\n";
-  const auto fit =
-      calibrate_from_pairs(static_cast<int64_t>(pairs.size()), load, camera.raw.crop[2], camera.raw.crop[3], N, o);
+  return o;
+}
+
+// The calibration, its camera file and what the fit found, printed.
+void write_dataset_calibration(const DatasetCalibration& fit, const CameraConfig& camera,
+                               const DatasetCalibrationOptions& o, size_t pair_count,
+                               const std::optional<Calibration>& truth, const std::filesystem::path& out) {
   save_calibration(out, fit.calib);
   auto known = camera;
   known.noise_gain = fit.noise_gain;
@@ -498,8 +466,8 @@ int calibrate_from_dataset(const cxxopts::ParseResult& r) {
                  "which need thousands of pairs\n";
     // A handful of pairs whose shadow no shift explains are, most often, direct captures and someone's
     // reconstructions of them (FlatNet's fc_*.png and rec_*.png), not display captures of photographs.
-    if (static_cast<int64_t>(pairs.size()) < kFewPairs)
-      std::cerr << "calibrate: warning: " << pairs.size()
+    if (static_cast<int64_t>(pair_count) < kFewPairs)
+      std::cerr << "calibrate: warning: " << pair_count
                 << " pairs whose shadow no shift explains look like captures and reconstructions of them, not "
                    "display captures of photographs; for those, run `flatnet calibrate --references` (same lists); "
                    "free factors from so few pairs do not describe the camera\n";
@@ -513,12 +481,67 @@ int calibrate_from_dataset(const cxxopts::ParseResult& r) {
     std::cout << "relative error against the rig's true response: P " << 100 * err.p << " %, Q " << 100 * err.q
               << " %, forward model " << 100 * err.forward << " %\n";
   }
+}
+
+int calibrate_from_dataset(const cxxopts::ParseResult& r) {
+  auto camera = camera_from(r);
+  const std::filesystem::path out = r["out"].as<std::string>();
+  require(out.extension() == ".mat", "--out",
+          "the calibration is a .mat file (FlatNet's layout), got '" + out.string() + "'");
+  // Every file this command reads is an input that no output may land on, even with --force: the
+  // camera file given, the rig and calibration it names, and the lists.
+  std::vector<std::filesystem::path> inputs = {camera.rig, camera.calibration};
+  if (r.count("camera")) inputs.push_back(r["camera"].as<std::string>());
+  for (const auto* flag : {"meas-list", "gt-list", "white-capture"})
+    if (r.count(flag)) inputs.push_back(r[flag].as<std::string>());
+  require(!r.count("white-capture") || r.count("references"), "--white-capture",
+          "sets the light unit of a calibration from references (--references); a display-capture calibration "
+          "is in the display's light already");
+  const bool force = r.count("force") > 0;
+  auto pairs = dataset_pairs(r);
+  // A simulated camera's truth, for the error printed at the end: read now, so that a missing rig
+  // is named before the fit runs.
+  std::optional<Calibration> truth;
+  if (!camera.rig.empty()) truth = ideal_calibration(load_camera_rig(camera), camera.raw);
+  // The pairs' files are inputs too (a reference .mat, a capture): no output lands on one, even with
+  // --force. The camera.yaml written beside the calibration is an output too: an existing one (perhaps
+  // hand-tuned) is replaced only with --force, and never when it is one of the inputs.
+  for (const auto& p : pairs) inputs.insert(inputs.end(), {p.meas, p.gt});
+  require_new_output(out, force, inputs);
+  require_new_output(out.parent_path() / "camera.yaml", force, inputs);
+  if (r.count("references")) return calibrate_from_reference_pairs(r, camera, pairs, out);
+  camera.raw.hot_pixels = hot_pixels_of(pairs, camera);
+  const auto N = camera.scene_size;
+  auto load = [&](int64_t i) {
+    const auto& p = pairs[static_cast<size_t>(i)];
+    const auto window = raw_window(load_raw_unit(p.meas, camera.raw), camera.raw);  // {4,rows,cols}
+    return capture_pair_of(window, scene_planes_of(p.gt, N), camera.raw);
+  };
+  const auto o = dataset_calibration_options(r);
+  const auto rotation = r["rotation"].as<std::string>();
+  require(rotation == "estimate" || rotation == "keep", "--rotation",
+          "estimate (search the mask's rotation on the sensor) or keep (the camera file's), not '" + rotation + "'");
+  // The rotation search fits the shift structure at each angle: free factors absorb a rotation instead.
+  require(!(rotation == "estimate" && o.structure == FactorStructure::Free && r.count("rotation")), "--rotation",
+          "estimate needs --structure shift (free factors absorb a rotation and cannot measure it); give "
+          "--rotation keep, or state the angle in the camera file");
+  if (rotation == "estimate" && o.structure == FactorStructure::Shift)
+    camera.raw.rotation = rotation_of(pairs, camera, o);
+  else if (o.structure == FactorStructure::Free)
+    std::cout << "rotation: " << camera.raw.rotation
+              << " rad from the camera file (not searched: free factors absorb a rotation)\n";
+  std::cerr << "calibrate: " << pairs.size() << " display-capture pairs, " << camera.raw.crop[2] << "x"
+            << camera.raw.crop[3] << " planes, " << N << "x" << N << " scenes\n";
+  const auto fit =
+      calibrate_from_pairs(static_cast<int64_t>(pairs.size()), load, camera.raw.crop[2], camera.raw.crop[3], N, o);
+  write_dataset_calibration(fit, camera, o, pairs.size(), truth, out);
   return 0;
 }
 
 }  // namespace
 
-int calibrate(int argc, char** argv) {
+// Every flag of `flatnet calibrate`, by group.
+cxxopts::Options calibrate_options() {
   cxxopts::Options o("flatnet calibrate",
                      "FlatCam calibration (Asif et al. 2017) from separable Hadamard pattern captures.\n"
                      "  simulated:  flatnet calibrate --rig RIG.mat|CAMERA.yaml --out calib.mat\n"
@@ -586,6 +609,11 @@ int calibrate(int argc, char** argv) {
       "write the calibration as its profiles and shifts (kilobytes; flatnet expands it) instead of "
       "FlatNet's P1b..Q1r matrices");
   add_common(o);
+  return o;
+}
+
+int calibrate(int argc, char** argv) {
+  auto o = calibrate_options();
   cxxopts::ParseResult r;
   if (!parse(o, argc, argv, r)) return 0;
   const int level = r["level"].as<int>();

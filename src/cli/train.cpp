@@ -207,7 +207,8 @@ int import_model(int argc, char** argv) {
   return 0;
 }
 
-int infer(int argc, char** argv) {
+// Every flag of `flatnet infer`.
+cxxopts::Options infer_options() {
   cxxopts::Options o("flatnet infer", "Reconstruct raw captures with a trained FlatNet model.");
   o.add_options()("model", "model file (models/*.flatnet or RUN/model.flatnet; an .onnx file with --engine opencv)",
                   cxxopts::value<std::string>())(
@@ -253,12 +254,11 @@ int infer(int argc, char** argv) {
   add_force_folder(o);
   add_precision(o);
   add_common(o);
-  cxxopts::ParseResult r;
-  if (!parse(o, argc, argv, r)) return 0;
-  require(r.count("model") && r.count("input") && r.count("out"), "infer",
-          "--model MODEL, --input DIR|FILE and --out DIR are required");
-  const auto engine = r["engine"].as<std::string>();
-  require(engine == "libtorch" || engine == "opencv", "--engine", "libtorch or opencv expected, got '" + engine + "'");
+  return o;
+}
+
+// What `infer` builds, from its flags (each checked, the flag named).
+ReconstructorSpec infer_spec(const cxxopts::ParseResult& r, const std::string& engine) {
   ReconstructorSpec spec;
   spec.method = engine == "opencv" ? "opencv" : "flatnet";
   spec.model = r["model"].as<std::string>();
@@ -287,6 +287,31 @@ int infer(int argc, char** argv) {
   check_adaptation_options(spec.adapt);
   require(spec.adapt.steps == 0 || engine == "libtorch", "--adapt-steps",
           "runs on the libtorch engine (an ONNX file is not trained)");
+  return spec;
+}
+
+// What makes one folder's reconstructions one model's: a rerun with other settings is refused.
+std::string infer_settings(const ReconstructorSpec& spec) {
+  std::ostringstream settings;
+  settings << "model " << file_fingerprint(spec.model);
+  if (spec.data_consistency > 0)
+    settings << " data-consistency " << spec.data_consistency << " blur " << spec.consistency_blur;
+  if (spec.adapt.steps > 0)
+    settings << " adapt " << spec.adapt.steps << " lr " << spec.adapt.lr << " anchor " << spec.adapt.anchor
+             << " brightness " << spec.adapt.brightness << " batch " << spec.adapt.batch << " captures "
+             << spec.adapt.captures;
+  return settings.str();
+}
+
+int infer(int argc, char** argv) {
+  auto o = infer_options();
+  cxxopts::ParseResult r;
+  if (!parse(o, argc, argv, r)) return 0;
+  require(r.count("model") && r.count("input") && r.count("out"), "infer",
+          "--model MODEL, --input DIR|FILE and --out DIR are required");
+  const auto engine = r["engine"].as<std::string>();
+  require(engine == "libtorch" || engine == "opencv", "--engine", "libtorch or opencv expected, got '" + engine + "'");
+  auto spec = infer_spec(r, engine);
   BatchOptions opt;
   opt.out = r["out"].as<std::string>();
   opt.batch = std::max(1, r["batch"].as<int>());
@@ -298,15 +323,7 @@ int infer(int argc, char** argv) {
   auto built = make_reconstructor(spec);
   if (!built.warning.empty()) std::cerr << "warning: " << built.warning << "\n";
   // One folder holds one model's reconstructions: a rerun with another model is refused, not mixed.
-  std::ostringstream settings;
-  settings << "model " << file_fingerprint(spec.model);
-  if (spec.data_consistency > 0)
-    settings << " data-consistency " << spec.data_consistency << " blur " << spec.consistency_blur;
-  if (spec.adapt.steps > 0)
-    settings << " adapt " << spec.adapt.steps << " lr " << spec.adapt.lr << " anchor " << spec.adapt.anchor
-             << " brightness " << spec.adapt.brightness << " batch " << spec.adapt.batch << " captures "
-             << spec.adapt.captures;
-  const auto claim = claim_out(r, opt.out, "infer", settings.str());
+  const auto claim = claim_out(r, opt.out, "infer", infer_settings(spec));
   if (engine == "opencv")
     std::cerr << "engine: " << built.engine->describe() << " (--levers and --precision apply to libtorch)\n";
   if (spec.data_consistency > 0) std::cerr << "engine: " << built.engine->describe() << "\n";
