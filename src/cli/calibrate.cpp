@@ -78,6 +78,14 @@ void require_distinct_pairs(const std::vector<Pair>& pairs, const std::vector<Re
     }
 }
 
+// A capture preprocessed as the reference pairs are (rotation, crop, double-centring, no level), with
+// its window's level and saturated share (the noise model's sample).
+NoiseSample capture_sample(const std::filesystem::path& path, const CameraConfig& camera) {
+  const auto window = raw_window(load_raw_unit(path, camera.raw), camera.raw);  // {4,rows,cols}
+  return {without_level(double_centre(window, camera.raw.centring), camera.raw.centring), window.mean({1, 2}),
+          at_full_scale(window, camera.raw.adc_bits).to(torch::kFloat32).mean().item<double>()};
+}
+
 // What the leave-one-out check found, for the camera file's header and the leak threshold.
 struct ReferenceChecks {
   double lambda = 0;      // --reference-lambda
@@ -96,7 +104,7 @@ constexpr double kWhiteResidualAtMost = 0.45;
 // any fit (a saturated or foreign frame is named at once, not after the calibration's minutes).
 struct WhiteCapture {
   std::filesystem::path path;
-  double light = 1;      // relative to the display's white
+  double light = 0;      // relative to the display's white (--white-light, whose default is 1)
   torch::Tensor planes;  // {4,rows,cols} preprocessed as the pairs are
 };
 std::optional<WhiteCapture> white_capture_of(const cxxopts::ParseResult& r, const CameraConfig& camera) {
@@ -104,13 +112,12 @@ std::optional<WhiteCapture> white_capture_of(const cxxopts::ParseResult& r, cons
   WhiteCapture white{r["white-capture"].as<std::string>(), r["white-light"].as<double>(), {}};
   require(std::isfinite(white.light) && white.light > 0 && white.light <= 1e3, "--white-light",
           "the white capture's light, relative to the display's white (1), within (0, 1000]");
-  const auto window = raw_window(load_raw_unit(white.path, camera.raw), camera.raw);  // {4,rows,cols}
-  const double saturated = at_full_scale(window, camera.raw.adc_bits).to(torch::kFloat32).mean().item<double>();
-  require(saturated <= kWhiteSaturatedAtMost, white.path,
-          "is saturated (" + std::to_string(100 * saturated) +
+  const auto sample = capture_sample(white.path, camera);
+  require(sample.saturated <= kWhiteSaturatedAtMost, white.path,
+          "is saturated (" + std::to_string(100 * sample.saturated) +
               " % of its window at full scale): take it at a shorter exposure or a dimmer white, and give its "
               "light with --white-light");
-  white.planes = without_level(double_centre(window, camera.raw.centring), camera.raw.centring);
+  white.planes = sample.meas;
   return white;
 }
 
@@ -141,7 +148,8 @@ void set_scene_unit(const WhiteCapture& white, double lambda, ReferenceCalibrati
 
 int write_reference_calibration(const cxxopts::ParseResult& r, const CameraConfig& camera,
                                 const ReferenceCalibration& fit, const std::vector<NoiseSample>& noise_samples,
-                                const ReferenceChecks& checks, const std::filesystem::path& out) {
+                                const ReferenceChecks& checks, const std::optional<WhiteCapture>& white,
+                                const std::filesystem::path& out) {
   const double lambda = checks.lambda, held_mean = checks.held_mean, held_leak = checks.held_leak;
   if (r.count("compact"))
     save_shift_calibration(out, fit.profile_rows, fit.profile_cols, fit.shift_rows, fit.shift_cols);
@@ -170,10 +178,9 @@ int write_reference_calibration(const cxxopts::ParseResult& r, const CameraConfi
        << " sensor pixels per scene row, " << fit.shift_cols << " per scene column; residual per channel:";
   for (const double v : fit.residual) head << " " << std::setprecision(4) << v;
   if (held_mean >= 0) head << "\n# leave-one-out: mean held-out correlation " << std::setprecision(4) << held_mean;
-  if (r.count("white-capture"))
-    head << "\n# scene light from the white capture "
-         << printable(std::filesystem::path(r["white-capture"].as<std::string>()).filename().string()) << " (light "
-         << r["white-light"].as<double>() << "); without it the references' units";
+  if (white)
+    head << "\n# scene light from the white capture " << printable(white->path.filename().string()) << " (light "
+         << white->light << "); without it the references' units";
   head << "\n# tikhonov_lambda is " << lambda << " of the largest squared singular value product\n";
   const auto yaml_path = write_camera_beside(out, known, head.str());
   std::cout << "wrote " << out.string() << " and " << yaml_path.string() << "\nshift structure: the shadow moves "
@@ -181,7 +188,7 @@ int write_reference_calibration(const cxxopts::ParseResult& r, const CameraConfi
             << " per scene column\nfit residual ||Y - P (a R + b) Q^T|| / ||Y||:";
   for (int c = 0; c < 4; ++c) std::cout << " " << kChannelNames[c] << " " << std::setprecision(4) << fit.residual[c];
   std::cout << "\n";
-  if (!r.count("white-capture"))
+  if (!white)
     std::cout << "the calibration is in the references' units: pictures through it are as bright as they are; "
                  "--white-capture sets the scene's light (docs/own-camera.md, \"The light unit\"); if they are "
                  "not linear light (a tone-mapped picture), set the camera file's display_gamma before training "
@@ -212,11 +219,9 @@ int calibrate_from_reference_pairs(const cxxopts::ParseResult& r, const CameraCo
   std::vector<ReferencePair> refs;
   std::vector<NoiseSample> noise_samples;
   for (const auto& p : pairs) {
-    const auto window = raw_window(load_raw_unit(p.meas, camera.raw), camera.raw);  // {4,rows,cols}
-    const auto planes = without_level(double_centre(window, camera.raw.centring), camera.raw.centring);
-    refs.push_back({p.meas.filename().string(), planes, reference_planes(p.gt, camera.scene_size, order)});
-    noise_samples.push_back({planes, window.mean({1, 2}),
-                             at_full_scale(window, camera.raw.adc_bits).to(torch::kFloat32).mean().item<double>()});
+    noise_samples.push_back(capture_sample(p.meas, camera));
+    refs.push_back(
+        {p.meas.filename().string(), noise_samples.back().meas, reference_planes(p.gt, camera.scene_size, order)});
   }
   require_distinct_pairs(pairs, refs);
   const auto white = white_capture_of(r, camera);
@@ -250,7 +255,7 @@ int calibrate_from_reference_pairs(const cxxopts::ParseResult& r, const CameraCo
   }
   auto fit = calibrate_from_references(refs, o);
   if (white) set_scene_unit(*white, lambda, fit);
-  return write_reference_calibration(r, camera, fit, noise_samples, {lambda, held_mean, held_leak}, out);
+  return write_reference_calibration(r, camera, fit, noise_samples, {lambda, held_mean, held_leak}, white, out);
 }
 
 // The camera's hot pixels found from the first pairs' raw frames (optics/hot_pixels.hpp), with those

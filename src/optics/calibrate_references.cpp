@@ -296,8 +296,7 @@ WhiteFrameFit fit_white_frame(const torch::Tensor& planes, const Calibration& ca
   // a capture holds, and a residual there would not tell a white from a scene.
   const auto inverse = separable_inverse(calib.P, calib.Q, 1.0);
   const double lambda = absolute_tikhonov_lambda(inverse, relative_lambda);
-  const auto measured =
-      (torch::einsum("ci,cj->cij", {inverse.sL, inverse.sR}) >= std::sqrt(lambda)).to(torch::kFloat64);  // {4,N,N}
+  const auto measured = well_measured_pairs(inverse.sL, inverse.sR, lambda);  // {4,N,N}
   const auto coefficients = [&](const torch::Tensor& Y) {  // U_L^T Y U_R on the measured pairs, {4,N,N}
     return torch::matmul(torch::matmul(inverse.ULt.to(torch::kFloat64), Y), inverse.UR.to(torch::kFloat64)) * measured;
   };

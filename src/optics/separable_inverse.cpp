@@ -1,5 +1,7 @@
 #include "optics/separable_inverse.hpp"
 
+#include <cmath>
+
 namespace flatnet {
 
 SeparableInverse separable_inverse(const torch::Tensor& P, const torch::Tensor& Q, double lambda) {
@@ -15,6 +17,11 @@ SeparableInverse separable_inverse(const torch::Tensor& P, const torch::Tensor& 
   s.sR = sR;
   s.filter = tikhonov_filter(sL, sR, lambda);
   return s;
+}
+
+torch::Tensor well_measured_pairs(const torch::Tensor& sL, const torch::Tensor& sR, double lambda) {
+  const auto s = sL.to(torch::kFloat64).unsqueeze(2) * sR.to(torch::kFloat64).unsqueeze(1);  // {4,N,N}
+  return (s >= std::sqrt(lambda)).to(torch::kFloat64);
 }
 
 torch::Tensor tikhonov_filter(const torch::Tensor& sL, const torch::Tensor& sR, double lambda) {

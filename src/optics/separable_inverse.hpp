@@ -17,6 +17,9 @@ struct SeparableInverse {
 SeparableInverse separable_inverse(const torch::Tensor& P, const torch::Tensor& Q, double lambda);
 // The filter of eq. 2.6 for another lambda (the SVDs unchanged).
 torch::Tensor tikhonov_filter(const torch::Tensor& sL, const torch::Tensor& sR, double lambda);
+// The singular pairs the camera measures above its regulariser, s_Li s_Rj >= sqrt(lambda): {4,N,N}
+// float64, 1 on them and 0 elsewhere (where the sensor's noise is most of what a capture holds).
+torch::Tensor well_measured_pairs(const torch::Tensor& sL, const torch::Tensor& sR, double lambda);
 // Y {B,4,h,w} -> X {B,4,N,N}, in the order (U_L^T Y) U_R, then V_L (Z o filter) V_R^T.
 torch::Tensor apply_separable_inverse(const torch::Tensor& ULt, const torch::Tensor& UR, const torch::Tensor& VL,
                                       const torch::Tensor& VRt, const torch::Tensor& filter, const torch::Tensor& Y);

@@ -24,7 +24,7 @@ DataConsistency::DataConsistency(const Calibration& calib, const CameraConfig& c
                  "the correction's blur is 0 (none) to 64 scene pixels");
   const double lambda = camera.tikhonov_lambda;
   const auto s = svd_.sL.unsqueeze(2) * svd_.sR.unsqueeze(1);  // {4,N,N} float64: s_Li s_Rj
-  gain_pairs_ = (s >= std::sqrt(lambda)).to(torch::kFloat32);
+  gain_pairs_ = well_measured_pairs(svd_.sL, svd_.sR, lambda).to(torch::kFloat32);
   filter_ = (s / (s.square() + o.strength * o.strength * lambda)).to(torch::kFloat32);
   measured_share_ = (s >= o.strength * std::sqrt(lambda)).to(torch::kFloat64).mean().item<double>();
   if (o.blur > 0) {
