@@ -104,7 +104,7 @@ constexpr double kWhiteResidualAtMost = 0.45;
 // any fit (a saturated or foreign frame is named at once, not after the calibration's minutes).
 struct WhiteCapture {
   std::filesystem::path path;
-  double light = 0;      // relative to the display's white (--white-light, whose default is 1)
+  double light = 0;      // relative to the display's white (--white-light)
   torch::Tensor planes;  // {4,rows,cols} preprocessed as the pairs are
 };
 std::optional<WhiteCapture> white_capture_of(const cxxopts::ParseResult& r, const CameraConfig& camera) {
