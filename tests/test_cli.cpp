@@ -245,9 +245,15 @@ TEST_CASE("bad input: one clear line, exit code 2", "[cli][errors]") {
   // A flag value of the wrong type names the flag.
   r = test::run_flatnet("recon --method tikhonov --lambda nan --input " + q(golden) + " --out " + q(s.dir / "o"));
   CHECK(r.code == 2);
-  CHECK_THAT(r.output, Contains("--lambda: 'nan' is not a valid value"));
+  CHECK_THAT(r.output, Contains("--lambda: 'nan' is not a finite decimal number"));
   r = test::run_flatnet("simulate --images x --out y --val-fraction=half");
-  CHECK_THAT(r.output, Contains("--val-fraction: 'half' is not a valid value"));
+  CHECK_THAT(r.output, Contains("--val-fraction: 'half' is not a finite decimal number"));
+  r = test::run_flatnet("simulate --images x --out y --limit=2.5");
+  CHECK_THAT(r.output, Contains("--limit: '2.5' is not a whole number"));
+  r = test::run_flatnet("simulate --images x --out y --seed=-3");
+  CHECK_THAT(r.output, Contains("--seed: '-3' is negative"));
+  r = test::run_flatnet("simulate --images x --out y --noise=loud");
+  CHECK_THAT(r.output, Contains("--noise: 'loud': must be on or off"));
   // A library error names the option's key; the command shows its flag (no text is searched for names).
   r = test::run_flatnet("simulate --images x --out y --lamp-gain -1");
   CHECK(r.code == 2);

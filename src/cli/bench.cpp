@@ -77,6 +77,42 @@ nlohmann::json row_json(const BenchRow& row, double gflops, double share) {
 
 }  // namespace
 
+namespace {
+
+void set_bench_levers(BenchOptions& s, const std::string& text) {
+  try {
+    s.levers = parse_inference_levers(text);
+  } catch (const Error&) {
+    throw std::invalid_argument("expected none or a list of fold, channels-last, gemm-up, bf16, onednn");
+  }
+}
+std::string bench_levers_text(const BenchOptions& s) { return inference_levers_text(s.levers); }
+
+const FlagTable<BenchOptions>& bench_flags() {
+  using S = BenchOptions;
+  static const FlagTable<S> rows = {
+      {"repeats", &S::repeats, "timed runs per row", 1, 1e6, "at least 1"},
+      {"warmup", &S::warmup, "untimed runs before them", 0, 1e6, "0 or more"},
+      {"levers", FlagText<S>{set_bench_levers, bench_levers_text},
+       "inference levers for infer_*: none, or a list of fold, channels-last, gemm-up, bf16, onednn (onednn: with "
+       "bf16)"},
+  };
+  return rows;
+}
+
+const FlagTable<PrecisionChoice>& bench_precision_flags() {
+  static const FlagTable<PrecisionChoice> rows = {
+      {"precision", &PrecisionChoice::precision,
+       "auto|fp32|bf16|both: precision of the infer_* and train_* rows (both: each row twice, the bf16 one named "
+       "ROW_bf16); auto is bf16 where the CPU has it natively"},
+  };
+  return rows;
+}
+
+}  // namespace
+
+CommandFlags bench_command_flags() { return command_flags("bench", bench_flags(), bench_precision_flags()); }
+
 int bench(int argc, char** argv) {
   cxxopts::Options o("flatnet bench",
                      "Time the hot paths (median and min of N runs after warm-up, peak memory per row).\n"
@@ -84,29 +120,21 @@ int bench(int argc, char** argv) {
   o.add_options()("rows",
                   "comma list of rows (default: all; peak: the machine's practical peak rows, which then give "
                   "every row its share of the peak)",
-                  cxxopts::value<std::string>())("repeats", "timed runs per row",
-                                                 cxxopts::value<int>()->default_value("5"))(
-      "warmup", "untimed runs before them", cxxopts::value<int>()->default_value("1"))(
-      "levers",
-      "inference levers for infer_*: none, or a list of fold, channels-last, gemm-up, bf16, onednn (onednn: with bf16)",
-      cxxopts::value<std::string>()->default_value("fold,channels-last,gemm-up,onednn"))(
-      "json", "also write the results to this JSON file", cxxopts::value<std::string>())(
+                  cxxopts::value<std::string>())("json", "also write the results to this JSON file",
+                                                 cxxopts::value<std::string>())(
       "profile",
       "after each row, one more run under LibTorch's profiler; print its N costliest operators by self time "
       "(and all of them into --json)",
-      cxxopts::value<int>())("profile-shapes", "with --profile: tell operators apart by input shapes and types")(
-      "precision",
-      "auto|fp32|bf16|both: precision of the infer_* and train_* rows (both: each row twice, the bf16 "
-      "one named ROW_bf16); auto is bf16 where the CPU has it natively",
-      cxxopts::value<std::string>()->default_value("auto"));
+      cxxopts::value<int>())("profile-shapes", "with --profile: tell operators apart by input shapes and types");
+  add_flags(o, bench_flags());
+  add_flags(o, bench_precision_flags());
   add_common(o);
   cxxopts::ParseResult r;
   if (!parse(o, argc, argv, r)) return 0;
   BenchOptions opt;
-  opt.repeats = r["repeats"].as<int>();
-  opt.warmup = r["warmup"].as<int>();
-  opt.levers = parse_inference_levers(r["levers"].as<std::string>());
-  require(opt.repeats >= 1 && opt.warmup >= 0, "bench", "--repeats must be >= 1 and --warmup >= 0");
+  read_flags(r, bench_flags(), opt);
+  PrecisionChoice chosen;
+  read_flags(r, bench_precision_flags(), chosen);
   const int profile_top = r.count("profile") ? r["profile"].as<int>() : 0;
   require(profile_top >= 0, "bench", "--profile takes a count of operators to print (>= 0)");
   opt.profile = r.count("profile") > 0;
@@ -115,7 +143,7 @@ int bench(int argc, char** argv) {
     std::filesystem::create_directories(std::filesystem::absolute(r["json"].as<std::string>()).parent_path());
   require(!opt.profile_shapes || opt.profile, "bench", "--profile-shapes goes with --profile N");
   const auto rows = rows_to_run(r.count("rows") ? r["rows"].as<std::string>() : std::string());
-  const auto choice = r["precision"].as<std::string>();
+  const auto choice = chosen.precision;
   std::vector<bool> precisions;  // bf16 or not, per pass over a precision-dependent row
   if (choice == "both")
     precisions = {false, true};

@@ -23,6 +23,27 @@ namespace flatnet::cli {
 
 namespace {
 
+// The settings of `flatnet calibrate` that have a default (the rest are files and folders); each
+// default is the library's where one exists.
+struct CalibrateSettings {
+  int average = 4;           // frames averaged per pattern (simulated)
+  std::string noise = "on";  // on|off (simulated)
+  uint64_t seed = 0;
+  int level = kDefaultPatternLevel;
+  std::string split = "train";
+  int64_t limit = 0;
+  int iterations = DatasetCalibrationOptions{}.iterations;
+  std::string structure = "shift";
+  std::string colour_mix = "identify";
+  std::string rotation = "estimate";
+  double cache_mb = static_cast<double>(DatasetCalibrationOptions{}.cache_bytes >> 20);
+  std::string reference_order = "rgb";
+  double reference_lambda = 3e-4;
+  double min_shift = ReferenceCalibrationOptions{}.shift.min_shift;
+  double max_shift = ReferenceCalibrationOptions{}.shift.max_shift;
+  double white_light = 1;
+};
+
 // The camera.yaml written beside a calibration made from data: the geometry given, with this
 // calibration and no rig (a camera known only from its data), under a comment saying how it was made.
 std::filesystem::path write_camera_beside(const std::filesystem::path& calibration, CameraConfig known,
@@ -107,9 +128,10 @@ struct WhiteCapture {
   double light = 0;      // relative to the display's white (--white-light)
   torch::Tensor planes;  // {4,rows,cols} preprocessed as the pairs are
 };
-std::optional<WhiteCapture> white_capture_of(const cxxopts::ParseResult& r, const CameraConfig& camera) {
+std::optional<WhiteCapture> white_capture_of(const cxxopts::ParseResult& r, const CalibrateSettings& s,
+                                             const CameraConfig& camera) {
   if (!r.count("white-capture")) return std::nullopt;
-  WhiteCapture white{r["white-capture"].as<std::string>(), r["white-light"].as<double>(), {}};
+  WhiteCapture white{r["white-capture"].as<std::string>(), s.white_light, {}};
   require(std::isfinite(white.light) && white.light > 0 && white.light <= 1e3, "--white-light",
           "the white capture's light, relative to the display's white (1), within (0, 1000]");
   const auto sample = capture_sample(white.path, camera);
@@ -209,11 +231,12 @@ int write_reference_calibration(const cxxopts::ParseResult& r, const CameraConfi
   return 0;
 }
 
-int calibrate_from_reference_pairs(const cxxopts::ParseResult& r, const CameraConfig& camera,
-                                   const std::vector<Pair>& pairs, const std::filesystem::path& out) {
-  const auto order = r["reference-order"].as<std::string>();
+int calibrate_from_reference_pairs(const cxxopts::ParseResult& r, const CalibrateSettings& s,
+                                   const CameraConfig& camera, const std::vector<Pair>& pairs,
+                                   const std::filesystem::path& out) {
+  const auto order = s.reference_order;
   require(order == "rgb" || order == "bgr", "--reference-order", "rgb or bgr, not '" + printable(order) + "'");
-  const double lambda = r["reference-lambda"].as<double>();
+  const double lambda = s.reference_lambda;
   require(std::isfinite(lambda) && lambda > 0 && lambda < 1, "--reference-lambda",
           "a relative regulariser in (0, 1), such as 3e-4");
   std::vector<ReferencePair> refs;
@@ -224,11 +247,11 @@ int calibrate_from_reference_pairs(const cxxopts::ParseResult& r, const CameraCo
         {p.meas.filename().string(), noise_samples.back().meas, reference_planes(p.gt, camera.scene_size, order)});
   }
   require_distinct_pairs(pairs, refs);
-  const auto white = white_capture_of(r, camera);
+  const auto white = white_capture_of(r, s, camera);
   ReferenceCalibrationOptions o;
-  o.seed = r["seed"].as<uint64_t>();
-  o.shift.min_shift = r["min-shift"].as<double>();
-  o.shift.max_shift = r["max-shift"].as<double>();
+  o.seed = s.seed;
+  o.shift.min_shift = s.min_shift;
+  o.shift.max_shift = s.max_shift;
   require(o.shift.min_shift >= kSmallestShiftSearched && o.shift.max_shift > o.shift.min_shift &&
               o.shift.max_shift <= kLargestShiftSearched,
           "--min-shift",
@@ -385,7 +408,7 @@ double rotation_of(const std::vector<Pair>& pairs, const CameraConfig& camera, D
 // (optics/calibrate_dataset.hpp), written with a camera.yaml beside it and the fit per channel.
 // The display-capture pairs `calibrate --dataset` (or --meas-list/--gt-list) names, the first
 // --limit of them.
-std::vector<Pair> dataset_pairs(const cxxopts::ParseResult& r) {
+std::vector<Pair> dataset_pairs(const cxxopts::ParseResult& r, const CalibrateSettings& s) {
   std::vector<Pair> pairs;
   if (r.count("meas-list") || r.count("gt-list")) {  // FlatNet's own list files
     require(r.count("meas-list") && r.count("gt-list"), "--meas-list", "give both --meas-list and --gt-list");
@@ -399,28 +422,28 @@ std::vector<Pair> dataset_pairs(const cxxopts::ParseResult& r) {
       if (!std::filesystem::exists(lists.meas_list)) continue;
       const auto part = read_pairs(lists);
       pairs.insert(pairs.end(), part.begin(), part.end());
-      if (r["split"].as<std::string>() == split) break;
+      if (s.split == split) break;
     }
     require(!pairs.empty(), dir,
             "holds no train_meas.txt / val_meas.txt lists (FlatNet's layout); or give --meas-list and --gt-list");
   }
-  const auto limit = r["limit"].as<int64_t>();
+  const auto limit = s.limit;
   require(limit >= 0, "--limit", "0 (all) or more");
   if (limit > 0 && static_cast<int64_t>(pairs.size()) > limit) pairs.resize(static_cast<size_t>(limit));
   return pairs;
 }
 
-DatasetCalibrationOptions dataset_calibration_options(const cxxopts::ParseResult& r) {
+DatasetCalibrationOptions dataset_calibration_options(const CalibrateSettings& s) {
   DatasetCalibrationOptions o;
-  o.iterations = r["iterations"].as<int>();
-  o.seed = r["seed"].as<uint64_t>();
-  o.cache_bytes = static_cast<int64_t>(r["cache-mb"].as<double>() * (1 << 20));
+  o.iterations = s.iterations;
+  o.seed = s.seed;
+  o.cache_bytes = static_cast<int64_t>(s.cache_mb * (1 << 20));
   require(o.iterations >= 1 && o.cache_bytes >= 0, "calibrate", "--iterations >= 1 and --cache-mb >= 0");
-  const auto structure = r["structure"].as<std::string>();
+  const auto structure = s.structure;
   require(structure == "shift" || structure == "free", "calibrate",
           "--structure is shift (a FlatCam's shadow moves with the scene) or free, not '" + structure + "'");
   o.structure = structure == "shift" ? FactorStructure::Shift : FactorStructure::Free;
-  const auto colour_mix = r["colour-mix"].as<std::string>();
+  const auto colour_mix = s.colour_mix;
   require(colour_mix == "identify" || colour_mix == "none", "--colour-mix",
           "identify (fit each plane's shares of the primaries) or none, not '" + colour_mix + "'");
   o.identify_mix = colour_mix == "identify";
@@ -488,7 +511,7 @@ void write_dataset_calibration(const DatasetCalibration& fit, const CameraConfig
   }
 }
 
-int calibrate_from_dataset(const cxxopts::ParseResult& r) {
+int calibrate_from_dataset(const cxxopts::ParseResult& r, const CalibrateSettings& s) {
   auto camera = camera_from(r);
   const std::filesystem::path out = r["out"].as<std::string>();
   require(out.extension() == ".mat", "--out",
@@ -503,7 +526,7 @@ int calibrate_from_dataset(const cxxopts::ParseResult& r) {
           "sets the light unit of a calibration from references (--references); a display-capture calibration "
           "is in the display's light already");
   const bool force = r.count("force") > 0;
-  auto pairs = dataset_pairs(r);
+  auto pairs = dataset_pairs(r, s);
   // A simulated camera's truth, for the error printed at the end: read now, so that a missing rig
   // is named before the fit runs.
   std::optional<Calibration> truth;
@@ -514,7 +537,7 @@ int calibrate_from_dataset(const cxxopts::ParseResult& r) {
   for (const auto& p : pairs) inputs.insert(inputs.end(), {p.meas, p.gt});
   require_new_output(out, force, inputs);
   require_new_output(out.parent_path() / "camera.yaml", force, inputs);
-  if (r.count("references")) return calibrate_from_reference_pairs(r, camera, pairs, out);
+  if (r.count("references")) return calibrate_from_reference_pairs(r, s, camera, pairs, out);
   camera.raw.hot_pixels = hot_pixels_of(pairs, camera);
   const auto N = camera.scene_size;
   auto load = [&](int64_t i) {
@@ -522,8 +545,8 @@ int calibrate_from_dataset(const cxxopts::ParseResult& r) {
     const auto window = raw_window(load_raw_unit(p.meas, camera.raw), camera.raw);  // {4,rows,cols}
     return capture_pair_of(window, scene_planes_of(p.gt, N), camera.raw);
   };
-  const auto o = dataset_calibration_options(r);
-  const auto rotation = r["rotation"].as<std::string>();
+  const auto o = dataset_calibration_options(s);
+  const auto rotation = s.rotation;
   require(rotation == "estimate" || rotation == "keep", "--rotation",
           "estimate (search the mask's rotation on the sensor) or keep (the camera file's), not '" + rotation + "'");
   // The rotation search fits the shift structure at each angle: free factors absorb a rotation instead.
@@ -543,7 +566,56 @@ int calibrate_from_dataset(const cxxopts::ParseResult& r) {
   return 0;
 }
 
+using CS = CalibrateSettings;
+
+const FlagTable<CS>& calibrate_pattern_flags() {
+  static const FlagTable<CS> rows = {
+      {"average", &CS::average, "frames averaged per pattern (simulated)", 1, 100000, "at least 1 frame"},
+      {"noise", &CS::noise, "on|off (simulated)"},
+      {"seed", &CS::seed, "noise seed (simulated); the random starts of a fit from pairs"},
+      {"level", &CS::level, "display code (sRGB) of the patterns' bright parts", 1, 255, "1 to 255"},
+  };
+  return rows;
+}
+
+const FlagTable<CS>& calibrate_dataset_flags() {
+  static const FlagTable<CS> rows = {
+      {"split", &CS::split, "train (the train list only) or all (train and val)"},
+      {"limit", &CS::limit, "use the first N pairs (0: all)", 0, 1e12, "0 (all) or more"},
+      {"iterations", &CS::iterations, "alternating least-squares steps at most", 1, 1e6, "at least 1"},
+      {"structure", &CS::structure,
+       "shift: each factor's columns are one profile moved by a shift found from the data (a FlatCam's "
+       "shadow; few pairs suffice); free: every entry free (any separable camera; needs many pairs)"},
+      {"colour-mix", &CS::colour_mix,
+       "identify: each Bayer plane's shares of the display's three primaries are fitted with the factors and "
+       "written to the camera file (cross-talk); none: b sees blue alone, gb and gr green, r red"},
+      {"rotation", &CS::rotation,
+       "estimate: the mask's rotation on the sensor is searched (a calibration of the first pairs per angle "
+       "tried) and written to the camera file; keep: the camera file's rotation"},
+      {"cache-mb", &CS::cache_mb, "decoded pairs kept in memory (the rest are re-read each pass)", 0, 1e9,
+       "0 or more megabytes"},
+  };
+  return rows;
+}
+
+const FlagTable<CS>& calibrate_reference_flags() {
+  static const FlagTable<CS> rows = {
+      {"reference-order", &CS::reference_order, "colour order of the reference files: rgb or bgr"},
+      {"reference-lambda", &CS::reference_lambda,
+       "Tikhonov regulariser of the held-out check and the camera file, relative to the largest squared "
+       "singular value product"},
+      {"min-shift", &CS::min_shift, "smallest |shadow shift| searched, sensor pixels per scene pixel"},
+      {"max-shift", &CS::max_shift, "largest |shadow shift| searched"},
+      {"white-light", &CS::white_light, "the white capture's light relative to the display's white"},
+  };
+  return rows;
+}
+
 }  // namespace
+
+CommandFlags calibrate_command_flags() {
+  return command_flags("calibrate", calibrate_pattern_flags(), calibrate_dataset_flags(), calibrate_reference_flags());
+}
 
 // Every flag of `flatnet calibrate`, by group.
 cxxopts::Options calibrate_options() {
@@ -560,59 +632,28 @@ cxxopts::Options calibrate_options() {
       cxxopts::value<std::string>())("camera", "camera .yaml for --captures (geometry, preprocessing)",
                                      cxxopts::value<std::string>())("out", "calibration .mat to write (FlatNet layout)",
                                                                     cxxopts::value<std::string>())(
-      "force", "replace an existing --out file")("average", "frames averaged per pattern (simulated)",
-                                                 cxxopts::value<int>()->default_value("4"))(
-      "noise", "on|off (simulated)", cxxopts::value<std::string>()->default_value("on"))(
-      "seed", "noise seed (simulated)", cxxopts::value<uint64_t>()->default_value("0"))(
-      "level", "display code (sRGB, 1..255) of the patterns' bright parts",
-      cxxopts::value<int>()->default_value(std::to_string(kDefaultPatternLevel)));
-  o.add_options("from display-capture pairs")("dataset",
-                                              "dataset folder in FlatNet's layout (train_meas.txt, train_gt.txt, ...)",
-                                              cxxopts::value<std::string>())(
-      "meas-list", "FlatNet's own capture list (with --gt-list)", cxxopts::value<std::string>())(
+      "force", "replace an existing --out file");
+  add_flags(o, calibrate_pattern_flags());
+  const std::string pairs_group = "from display-capture pairs";
+  o.add_options(pairs_group)("dataset", "dataset folder in FlatNet's layout (train_meas.txt, train_gt.txt, ...)",
+                             cxxopts::value<std::string>())("meas-list", "FlatNet's own capture list (with --gt-list)",
+                                                            cxxopts::value<std::string>())(
       "gt-list", "FlatNet's own photograph list", cxxopts::value<std::string>())(
-      "root", "folder the lists' lines are relative to (default: the lists' folder)", cxxopts::value<std::string>())(
-      "split", "train (the train list only) or all (train and val)",
-      cxxopts::value<std::string>()->default_value("train"))("limit", "use the first N pairs (0: all)",
-                                                             cxxopts::value<int64_t>()->default_value("0"))(
-      "iterations", "alternating least-squares steps at most",
-      cxxopts::value<int>()->default_value(std::to_string(DatasetCalibrationOptions{}.iterations)))(
-      "structure",
-      "shift: each factor's columns are one profile moved by a shift found from the data (a FlatCam's "
-      "shadow; few pairs suffice); free: every entry free (any separable camera; needs many pairs)",
-      cxxopts::value<std::string>()->default_value("shift"))(
-      "colour-mix",
-      "identify: each Bayer plane's shares of the display's three primaries are fitted with the factors and "
-      "written to the camera file (cross-talk); none: b sees blue alone, gb and gr green, r red",
-      cxxopts::value<std::string>()->default_value("identify"))(
-      "rotation",
-      "estimate: the mask's rotation on the sensor is searched (a calibration of the first " +
-          std::to_string(kRotationPairs) +
-          " pairs per angle tried) and written to the camera file; keep: the camera file's rotation",
-      cxxopts::value<std::string>()->default_value("estimate"))(
-      "cache-mb", "decoded pairs kept in memory (the rest are re-read each pass)",
-      cxxopts::value<double>()->default_value("2048"));
-  o.add_options("from a few captures and reconstructions of them (with --meas-list/--gt-list)")(
+      "root", "folder the lists' lines are relative to (default: the lists' folder)", cxxopts::value<std::string>());
+  add_flags(o, calibrate_dataset_flags(), pairs_group);
+  const std::string references_group = "from a few captures and reconstructions of them (with --meas-list/--gt-list)";
+  o.add_options(references_group)(
       "references",
       "the photographs are someone else's reconstructions of the captures (a lost calibration): "
       "a gain and offset per pair and channel, pixels clipped at zero left out, judged by leave-one-out")(
-      "reference-order", "colour order of the reference files: rgb or bgr",
-      cxxopts::value<std::string>()->default_value("rgb"))(
-      "reference-lambda",
-      "Tikhonov regulariser of the held-out check and the camera file, relative to the largest "
-      "squared singular value product",
-      cxxopts::value<double>()->default_value("3e-4"))(
-      "min-shift", "smallest |shadow shift| searched, sensor pixels per scene pixel",
-      cxxopts::value<double>()->default_value("0.2"))("max-shift", "largest |shadow shift| searched",
-                                                      cxxopts::value<double>()->default_value("4"))(
       "white-capture",
       "a raw capture of a uniform white scene (the display's white filling the view), taken as the captures "
       "were: sets the calibration's light unit, so pictures show the scene's light, not the references' stretch",
-      cxxopts::value<std::string>())("white-light", "the white capture's light relative to the display's white",
-                                     cxxopts::value<double>()->default_value("1"))(
+      cxxopts::value<std::string>())(
       "compact",
       "write the calibration as its profiles and shifts (kilobytes; flatnet expands it) instead of "
       "FlatNet's P1b..Q1r matrices");
+  add_flags(o, calibrate_reference_flags(), references_group);
   add_common(o);
   return o;
 }
@@ -621,7 +662,10 @@ int calibrate(int argc, char** argv) {
   auto o = calibrate_options();
   cxxopts::ParseResult r;
   if (!parse(o, argc, argv, r)) return 0;
-  const int level = r["level"].as<int>();
+  CalibrateSettings s;
+  for (const auto* table : {&calibrate_pattern_flags(), &calibrate_dataset_flags(), &calibrate_reference_flags()})
+    read_flags(r, *table, s);
+  const int level = s.level;
 
   if (r.count("write-patterns")) {
     const auto camera = camera_from(r);
@@ -640,9 +684,8 @@ int calibrate(int argc, char** argv) {
   require(r.count("out"), "calibrate", "--out FILE.mat is required");
   require(r.count("rig") + r.count("captures") + (r.count("dataset") || r.count("meas-list")) == 1, "calibrate",
           "give exactly one of --rig, --captures or --dataset (--meas-list)");
-  require(r["split"].as<std::string>() == "train" || r["split"].as<std::string>() == "all", "--split",
-          "expected train or all");
-  if (r.count("dataset") || r.count("meas-list")) return calibrate_from_dataset(r);
+  require(s.split == "train" || s.split == "all", "--split", "expected train or all");
+  if (r.count("dataset") || r.count("meas-list")) return calibrate_from_dataset(r, s);
   const std::filesystem::path out = r["out"].as<std::string>();
   std::vector<std::filesystem::path> inputs;
   for (const auto* flag : {"rig", "camera"})
@@ -660,10 +703,9 @@ int calibrate(int argc, char** argv) {
     const auto& camera = *rig_camera;
     require(!camera.rig.empty(), r["rig"].as<std::string>(), "names no rig to simulate with");
     const auto rig = load_camera_rig(camera);
-    const bool noise = r["noise"].as<std::string>() == "on";
-    const int average = std::max(1, r["average"].as<int>());
-    auto capture = rig_pattern_capture(rig, camera.raw, level, noise, average,
-                                       at::detail::createCPUGenerator(r["seed"].as<uint64_t>()));
+    const bool noise = s.noise == "on";
+    const int average = std::max(1, s.average);
+    auto capture = rig_pattern_capture(rig, camera.raw, level, noise, average, at::detail::createCPUGenerator(s.seed));
     est = estimate_calibration(camera.scene_size, capture, level);
     truth = ideal_calibration(rig, camera.raw);
   } else {

@@ -15,6 +15,58 @@ namespace flatnet::cli {
 
 namespace {
 
+const FlagTable<DeviceSettings>& device_flags() {
+  using S = DeviceSettings;
+  static const FlagTable<S> rows = {
+      {"packet-size", &S::packet_size, "GigE Vision packet size, bytes (0: negotiated)", 0, 65536, "0 to 65536"},
+      {"timeout-ms", &S::timeout_ms, "wait per frame before it counts as failed", 1, 1e7, "a positive wait"},
+      {"retries", &S::retries, "failed frames (timeout, incomplete, disconnect) retried before giving up", 0, 1e6,
+       "0 or more"},
+  };
+  return rows;
+}
+
+void set_monitor(DisplayOptions& d, const std::string& text) {
+  char comma = 0;
+  std::istringstream in(text);
+  in >> d.x >> comma >> d.y;
+  if (in.fail() || comma != ',') throw std::invalid_argument("expected X,Y");
+}
+std::string monitor_text(const DisplayOptions& d) { return std::to_string(d.x) + "," + std::to_string(d.y); }
+
+const FlagTable<DisplayOptions>& display_flags() {
+  using S = DisplayOptions;
+  static const FlagTable<S> rows = {
+      {"display", &S::kind, "window | none (headless: nothing is shown)"},
+      {"monitor", FlagText<S>{set_monitor, monitor_text},
+       "X,Y: top-left of the monitor to use in the desktop (see xrandr)"},
+      {"scale", &S::scale, "integer magnification of the scene on screen (0: largest that fits)", 0, 64, "0 to 64"},
+  };
+  return rows;
+}
+
+// A display-capture collection's settings; `Average` sets how many frames each capture averages by
+// default (a photograph 1, a calibration pattern 4).
+template <int Average>
+struct CollectSettings : CollectOptions {
+  CollectSettings() { average = Average; }
+};
+
+template <class S>
+const FlagTable<S>& collect_flags() {
+  static const FlagTable<S> rows = {
+      {"average", static_cast<int S::*>(&CollectOptions::average), "frames averaged per capture", 1, 100000,
+       "at least 1 frame"},
+      {"limit", static_cast<int64_t S::*>(&CollectOptions::limit), "stop after this many new captures (0: all)", 0,
+       1e12, "0 (all) or more"},
+      {"settle-ms", static_cast<int S::*>(&CollectOptions::settle_ms),
+       "wait after showing a scene before the frames that count", 0, 1e7, "0 or more"},
+  };
+  return rows;
+}
+using PhotoCollect = CollectSettings<1>;
+using PatternCollect = CollectSettings<4>;
+
 void add_camera_flags(cxxopts::Options& o) {
   o.add_options("camera")("device", "camera id from 'flatnet cameras' ('fake': Aravis's built-in fake camera)",
                           cxxopts::value<std::string>())(
@@ -25,11 +77,8 @@ void add_camera_flags(cxxopts::Options& o) {
       "gain", "gain, dB (auto gain is switched off)", cxxopts::value<double>())(
       "frame-rate", "acquisition frame rate, Hz", cxxopts::value<double>())(
       "region", "sensor region WxH+X+Y, or 'keep' (default: the camera file's raw size at +0+0)",
-      cxxopts::value<std::string>())("packet-size", "GigE Vision packet size, bytes (default: negotiated)",
-                                     cxxopts::value<int64_t>()->default_value("0"))(
-      "timeout-ms", "wait per frame before it counts as failed", cxxopts::value<int>()->default_value("2000"))(
-      "retries", "failed frames (timeout, incomplete, disconnect) retried before giving up",
-      cxxopts::value<int>()->default_value("3"));
+      cxxopts::value<std::string>());
+  add_flags(o, device_flags(), "camera");
 }
 
 std::array<int64_t, 4> parse_region(const std::string& s) {
@@ -49,6 +98,7 @@ std::array<int64_t, 4> parse_region(const std::string& s) {
 
 DeviceSettings device_settings(const cxxopts::ParseResult& r, const CameraConfig& camera) {
   DeviceSettings s;
+  read_flags(r, device_flags(), s);
   if (r.count("pixel-format")) s.pixel_format = r["pixel-format"].as<std::string>();
   if (r.count("exposure")) s.exposure_us = r["exposure"].as<double>();
   if (r.count("gain")) s.gain_db = r["gain"].as<double>();
@@ -58,10 +108,6 @@ DeviceSettings device_settings(const cxxopts::ParseResult& r, const CameraConfig
     s.region = std::array<int64_t, 4>{0, 0, camera.raw.raw_width, camera.raw.raw_height};
   else if (region != "keep")
     s.region = parse_region(region);
-  s.packet_size = r["packet-size"].as<int64_t>();
-  s.timeout_ms = r["timeout-ms"].as<int>();
-  s.retries = std::max(0, r["retries"].as<int>());
-  require(s.timeout_ms > 0, "--timeout-ms", "must be positive");
   return s;
 }
 
@@ -71,35 +117,18 @@ std::unique_ptr<FrameSource> open_from_flags(const cxxopts::ParseResult& r, cons
   return open_camera(r["device"].as<std::string>(), device_settings(r, camera));
 }
 
-void add_display_flags(cxxopts::Options& o) {
-  o.add_options("display")("display", "window | none (headless: nothing is shown)",
-                           cxxopts::value<std::string>()->default_value("window"))(
-      "monitor", "X,Y: top-left of the monitor to use in the desktop (see xrandr)",
-      cxxopts::value<std::string>()->default_value("0,0"))(
-      "scale", "integer magnification of the scene on screen (0: largest that fits)",
-      cxxopts::value<int>()->default_value("0"))("settle-ms", "wait after showing a scene before the frames that count",
-                                                 cxxopts::value<int>()->default_value("500"));
-}
-
 DisplayOptions display_options(const cxxopts::ParseResult& r) {
   DisplayOptions d;
-  d.kind = r["display"].as<std::string>();
-  const auto monitor = r["monitor"].as<std::string>();
-  char comma = 0;
-  std::istringstream in(monitor);
-  in >> d.x >> comma >> d.y;
-  require(!in.fail() && comma == ',', "--monitor", "expected X,Y, got '" + monitor + "'");
-  d.scale = r["scale"].as<int>();
+  read_flags(r, display_flags(), d);
   return d;
 }
 
-// Flags and objects every display-capture command shares.
-void add_collect_flags(cxxopts::Options& o, int default_average) {
-  o.add_options("collection")("average", "frames averaged per capture",
-                              cxxopts::value<int>()->default_value(std::to_string(default_average)))(
-      "limit", "stop after this many new captures (0: all)", cxxopts::value<int64_t>()->default_value("0"));
+// Flags and objects every display-capture command shares (S: PhotoCollect or PatternCollect).
+template <class S>
+void add_collect_flags(cxxopts::Options& o) {
+  add_flags(o, collect_flags<S>(), "collection");
   add_camera_flags(o);
-  add_display_flags(o);
+  add_flags(o, display_flags(), "display");
   add_common(o);
 }
 
@@ -116,14 +145,61 @@ CollectionSession open_collection(const cxxopts::ParseResult& r, const CameraCon
   return s;
 }
 
+template <class S>
 CollectOptions collect_options(const cxxopts::ParseResult& r) {
-  CollectOptions c;
-  c.average = r["average"].as<int>();
-  c.settle_ms = r["settle-ms"].as<int>();
-  c.limit = r["limit"].as<int64_t>();
-  require(c.average >= 1, "--average", "must be at least 1");
-  require(c.settle_ms >= 0, "--settle-ms", "must not be negative");
+  S c;
+  read_flags(r, collect_flags<S>(), c);
   return c;
+}
+
+const FlagTable<CaptureOptions>& capture_flags() {
+  using S = CaptureOptions;
+  static const FlagTable<S> rows = {
+      {"frames", &S::frames, "captures to write", 1, 1e9, "at least 1"},
+      {"average", &S::average, "frames averaged into each capture", 1, 100000, "at least 1 frame"},
+      {"prefix", &S::prefix, "file name prefix (PREFIX_0000.png, after any already there)"},
+  };
+  return rows;
+}
+
+const FlagTable<DatasetCollectOptions>& capture_dataset_flags() {
+  using S = DatasetCollectOptions;
+  static const FlagTable<S> rows = {
+      {"val-fraction", &S::val_fraction, "share of photographs in the validation lists", 0, 1, "0 to 1"},
+      {"seed", &S::seed, "split seed"},
+  };
+  return rows;
+}
+
+struct PatternSettings {
+  int level = kDefaultPatternLevel;
+};
+
+const FlagTable<PatternSettings>& pattern_flags() {
+  static const FlagTable<PatternSettings> rows = {
+      {"level", &PatternSettings::level, "display code (sRGB) of the patterns' bright parts", 1, 255, "1 to 255"},
+  };
+  return rows;
+}
+
+// `flatnet live`'s window and run length.
+struct LiveSettings {
+  double lambda = ReconstructorSpec{}.lambda;
+  int scale = 2;
+  int64_t frames = LiveOptions{}.frames;
+  double seconds = LiveOptions{}.seconds;
+};
+
+const FlagTable<LiveSettings>& live_flags() {
+  using S = LiveSettings;
+  static const FlagTable<S> rows = {
+      {"lambda", &S::lambda, "Tikhonov regulariser (0: the camera file's)"},
+      {"frames", &S::frames, "stop after this many frames (0: until Esc, q or Ctrl-C)", 0, 1e12,
+       "0 (no limit) or more"},
+      {"seconds", &S::seconds, "stop after this long (0: no limit)", 0, 1e7, "0 (no limit) or more"},
+      {"scale", &S::scale, "magnification of the reconstruction on screen", 1, 64, "1 to 64"},
+  };
+  return rows;
 }
 
 void print_report(const CollectReport& rep, const std::string& what) {
@@ -153,11 +229,8 @@ int cameras(int argc, char** argv) {
 
 int capture(int argc, char** argv) {
   cxxopts::Options o("flatnet capture", "Capture raw frames (16-bit PNG + JSON sidecar) from a camera.");
-  o.add_options()("out", "output folder", cxxopts::value<std::string>())("frames", "captures to write",
-                                                                         cxxopts::value<int>()->default_value("1"))(
-      "average", "frames averaged into each capture", cxxopts::value<int>()->default_value("1"))(
-      "prefix", "file name prefix (PREFIX_0000.png, after any already there)",
-      cxxopts::value<std::string>()->default_value("capture"));
+  o.add_options()("out", "output folder", cxxopts::value<std::string>());
+  add_flags(o, capture_flags());
   add_camera_flags(o);
   add_common(o);
   cxxopts::ParseResult r;
@@ -165,11 +238,8 @@ int capture(int argc, char** argv) {
   require(r.count("out"), "capture", "--out DIR is required");
   const auto camera = camera_from(r);
   CaptureOptions opt;
+  read_flags(r, capture_flags(), opt);
   opt.out = r["out"].as<std::string>();
-  opt.frames = r["frames"].as<int>();
-  opt.average = r["average"].as<int>();
-  opt.prefix = r["prefix"].as<std::string>();
-  require(opt.average >= 1, "--average", "must be at least 1");
   auto source = open_from_flags(r, camera);
   watch_interrupts();
   const auto rep = capture_frames(*source, opt);
@@ -188,22 +258,20 @@ int capture_dataset(int argc, char** argv) {
       "Display-capture dataset: show each photograph full screen, capture, write a FlatNet-layout pair.\n"
       "Resumable: run the same command again after an interruption.");
   o.add_options()("images", "folder of photographs", cxxopts::value<std::string>())(
-      "out", "dataset folder (meas/, gt/, train_*.txt, val_*.txt)", cxxopts::value<std::string>())(
-      "val-fraction", "share of photographs in the validation lists", cxxopts::value<double>()->default_value("0.1"))(
-      "seed", "split seed", cxxopts::value<uint64_t>()->default_value("0"));
-  add_collect_flags(o, 1);
+      "out", "dataset folder (meas/, gt/, train_*.txt, val_*.txt)", cxxopts::value<std::string>());
+  add_flags(o, capture_dataset_flags());
+  add_collect_flags<PhotoCollect>(o);
   add_force_folder(o);
   cxxopts::ParseResult r;
   if (!parse(o, argc, argv, r)) return 0;
   require(r.count("images") && r.count("out"), "capture-dataset", "--images DIR and --out DIR are required");
   const auto camera = camera_from(r);
   DatasetCollectOptions opt;
+  read_flags(r, capture_dataset_flags(), opt);
   opt.out = r["out"].as<std::string>();
   const auto claim = claim_out(r, opt.out, "capture-dataset");
   opt.scene_size = camera.scene_size;
-  opt.val_fraction = r["val-fraction"].as<double>();
-  opt.seed = r["seed"].as<uint64_t>();
-  opt.collect = collect_options(r);
+  opt.collect = collect_options<PhotoCollect>(r);
   const auto images = list_images(r["images"].as<std::string>(), kImageExtensions);
   require(!images.empty(), r["images"].as<std::string>(), "no photographs (.png .jpg .tif .bmp) in this folder");
   auto session = open_collection(r, camera);
@@ -220,9 +288,9 @@ int capture_calibration(int argc, char** argv) {
       "Resumable: run the same command again after an interruption.");
   o.add_options()("out", "folder for the pattern captures (NAME.png + NAME.json)", cxxopts::value<std::string>())(
       "calib-out", "calibration .mat to write once every pattern is captured (default: OUT/calib.mat)",
-      cxxopts::value<std::string>())("level", "display code (sRGB, 1..255) of the patterns' bright parts",
-                                     cxxopts::value<int>()->default_value(std::to_string(kDefaultPatternLevel)));
-  add_collect_flags(o, 4);
+      cxxopts::value<std::string>());
+  add_flags(o, pattern_flags());
+  add_collect_flags<PatternCollect>(o);
   add_force_folder(o);
   cxxopts::ParseResult r;
   if (!parse(o, argc, argv, r)) return 0;
@@ -231,13 +299,15 @@ int capture_calibration(int argc, char** argv) {
   const std::filesystem::path out = r["out"].as<std::string>();
   const std::filesystem::path calib_out =
       r.count("calib-out") ? std::filesystem::path(r["calib-out"].as<std::string>()) : out / "calib.mat";
-  const int level = r["level"].as<int>();
+  PatternSettings pattern;
+  read_flags(r, pattern_flags(), pattern);
+  const int level = pattern.level;
   std::vector<CollectItem> items;
   for (auto& p : calibration_patterns(camera.scene_size, level))
     items.push_back({p.name + ".png", [img = p.image] { return img; }});
   const auto claim = claim_out(r, out, "capture-calibration");
   auto session = open_collection(r, camera);
-  const auto rep = collect(items, *session.source, *session.display, collect_options(r),
+  const auto rep = collect(items, *session.source, *session.display, collect_options<PatternCollect>(r),
                            [&](const std::string& n) { return out / n; });
   print_report(rep, "capture-calibration " + out.string());
   if (rep.stopped) {
@@ -251,30 +321,39 @@ int capture_calibration(int argc, char** argv) {
   return 0;
 }
 
+CommandFlags capture_command_flags() { return command_flags("capture", capture_flags(), device_flags()); }
+CommandFlags capture_dataset_command_flags() {
+  return command_flags("capture-dataset", capture_dataset_flags(), collect_flags<PhotoCollect>(), device_flags(),
+                       display_flags());
+}
+CommandFlags capture_calibration_command_flags() {
+  return command_flags("capture-calibration", pattern_flags(), collect_flags<PatternCollect>(), device_flags(),
+                       display_flags());
+}
+CommandFlags live_command_flags() { return command_flags("live", live_flags(), device_flags()); }
+
 int live(int argc, char** argv) {
   cxxopts::Options o("flatnet live", "Live view: grab, reconstruct (Tikhonov or FlatNet), show with the frame rate.");
   o.add_options()("model", "FlatNet model file (its camera preprocessing is used)", cxxopts::value<std::string>())(
       "calib", "calibration .mat for Tikhonov (default: the camera file's)", cxxopts::value<std::string>())(
-      "lambda", "Tikhonov regulariser (default: the camera file's)", cxxopts::value<double>()->default_value("0"))(
       "no-window", "print the frame rate instead of showing the reconstruction")(
-      "frames", "stop after this many frames (0: until Esc, q or Ctrl-C)",
-      cxxopts::value<int64_t>()->default_value("0"))("seconds", "stop after this long (0: no limit)",
-                                                     cxxopts::value<double>()->default_value("0"))(
-      "scale", "magnification of the reconstruction on screen", cxxopts::value<int>()->default_value("2"))(
       "require-fit", "stop (exit 2) when a frame does not fit the camera the reconstruction is for");
+  add_flags(o, live_flags());
   add_precision(o);
   add_camera_flags(o);
   add_common(o);
   cxxopts::ParseResult r;
   if (!parse(o, argc, argv, r)) return 0;
   require(!(r.count("model") && r.count("calib")), "live", "give --model or --calib, not both");
+  LiveSettings set;
+  read_flags(r, live_flags(), set);
   ReconstructorSpec spec;
   spec.method = r.count("model") ? "flatnet" : "tikhonov";
   spec.use_camera = !r.count("model") || r.count("camera");  // a model preprocesses as it was trained
   if (spec.use_camera) spec.camera = camera_from(r);
   if (r.count("model")) spec.model = r["model"].as<std::string>();
   if (r.count("calib")) spec.calibration = r["calib"].as<std::string>();
-  spec.lambda = r["lambda"].as<double>();
+  spec.lambda = set.lambda;
   spec.levers.bf16 = r.count("model") && precision_from(r) == Precision::bf16;
   auto built = make_reconstructor(spec);
   const auto& camera = built.camera;
@@ -284,13 +363,13 @@ int live(int argc, char** argv) {
     DisplayOptions d;
     d.fullscreen = false;
     d.title = "flatnet live";
-    d.scale = std::max(1, r["scale"].as<int>());
+    d.scale = set.scale;
     display = make_display(d);
   }
   LiveOptions opt;
   opt.geometry = camera.raw;
-  opt.frames = r["frames"].as<int64_t>();
-  opt.seconds = r["seconds"].as<double>();
+  opt.frames = set.frames;
+  opt.seconds = set.seconds;
   opt.log = display ? nullptr : &std::cout;
   opt.fit = built.fit.get();
   opt.warn = &std::cerr;

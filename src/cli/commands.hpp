@@ -5,15 +5,45 @@
 #include <string>
 #include <vector>
 
+#include "cli/flag_rows.hpp"
 #include "io/camera_config.hpp"
 #include "io/option_table.hpp"
 #include "core/output_dir.hpp"
 #include "core/precision.hpp"
 #include "nn/lpips.hpp"
 
+namespace flatnet {
+struct SimulateOptions;    // optics/simulator.hpp
+struct ReconstructorSpec;  // recon/reconstructor.hpp
+struct BatchOptions;       // recon/batch.hpp
+struct EvalOptions;        // eval/report.hpp
+struct ReportOptions;      // eval/thesis_report.hpp
+struct MaskReportOptions;  // eval/mask_report.hpp
+}  // namespace flatnet
+
 namespace flatnet::cli {
 
 int simulate(int argc, char** argv);
+// Each command's flag rows (cli/flag_rows.hpp), and all of them for `flatnet options --for`.
+const FlagTable<SimulateOptions>& simulate_flags();
+CommandFlags calibrate_command_flags();
+CommandFlags recon_command_flags();
+// --batch and --require-fit of every command that reconstructs files (recon, infer).
+const FlagTable<BatchOptions>& batch_flags();
+CommandFlags eval_command_flags();
+CommandFlags fit_niqe_command_flags();
+CommandFlags report_command_flags();
+CommandFlags infer_command_flags();
+CommandFlags mask_eval_command_flags();
+CommandFlags mask_report_command_flags();
+CommandFlags mask_camera_command_flags();
+CommandFlags bench_command_flags();
+CommandFlags demo_command_flags();
+CommandFlags capture_command_flags();
+CommandFlags capture_dataset_command_flags();
+CommandFlags capture_calibration_command_flags();
+CommandFlags live_command_flags();
+std::vector<CommandFlags> every_command_flags();
 int calibrate(int argc, char** argv);
 int recon(int argc, char** argv);
 int eval(int argc, char** argv);
@@ -75,6 +105,10 @@ std::vector<std::string> row_flag_settings(const cxxopts::ParseResult& r, const 
 }
 
 // Shared flag handling.
+struct CommonSettings {
+  int threads = 0;  // 0: all cores
+};
+const FlagTable<CommonSettings>& common_flags();
 void add_common(cxxopts::Options& options);  // --threads, --help
 // Parses; prints help and returns false on --help. Applies --threads.
 bool parse(cxxopts::Options& options, int argc, char** argv, cxxopts::ParseResult& result);
@@ -84,6 +118,10 @@ void require_new_output(const std::filesystem::path& out, bool force,
 // The repeated --set key=value overrides (none when absent).
 std::vector<std::string> set_overrides(const cxxopts::ParseResult& r);
 // --precision auto|fp32|bf16 (auto: bf16 where the CPU runs it natively).
+struct PrecisionChoice {
+  std::string precision = "auto";
+};
+const FlagTable<PrecisionChoice>& precision_flags();
 void add_precision(cxxopts::Options& options);
 // The resolved choice, printed once to stderr ("precision: bf16 (AMX)"); asks for AMX tiles when bf16.
 Precision precision_from(const cxxopts::ParseResult& r);

@@ -30,28 +30,26 @@ std::string flag_or_key(const std::string& key) {
   return registered_flags().count(flag) ? "--" + flag : key;
 }
 
+const FlagTable<CommonSettings>& common_flags() {
+  static const FlagTable<CommonSettings> rows = {
+      {"threads", &CommonSettings::threads, "CPU threads (0: all cores)", 0, 1024, "0 (all cores) to 1024"},
+  };
+  return rows;
+}
+
 void add_common(cxxopts::Options& options) {
-  options.add_options("common")("threads", "CPU threads (default: all cores)",
-                                cxxopts::value<int>()->default_value("0"))("h,help", "show this help");
+  add_flags(options, common_flags(), "common");
+  options.add_options("common")("h,help", "show this help");
 }
 
 namespace {
 
-// The one place where numeric flags are checked: every flag of this name, in every command, that
-// the user gave.
+// Numeric flags declared by hand (no row: no default), checked wherever a command has one of this
+// name and the user gave it; a row's number is checked by its own range (cli/flag_rows.hpp).
 const std::vector<NumberRule>& number_rules() {
   static const std::vector<NumberRule> rules = {
-      {"threads", 0, 1024, "0 (all cores) to 1024"},
-      {"batch", 1, 4096, "1 to 4096 per batch"},
-      {"workers", 1, 256, "1 to 256"},
-      {"average", 1, 100000, "at least 1 frame"},
       {"lambda", 1e-12, 1e6, "a positive regulariser (leave it out for the camera file's)"},
-      {"repeats", 1, 1e6, "at least 1"},
-      {"warmup", 0, 1e6, "0 or more"},
-      {"frames", 0, 1e9, "0 (no limit) or more"},
-      {"seconds", 0, 1e7, "0 (no limit) or more"},
       {"exposure", 1e-6, 1e6, "a positive factor"},
-      {"val-fraction", 0, 1, "0 to 1"},
   };
   return rules;
 }
@@ -140,7 +138,9 @@ bool parse(cxxopts::Options& options, int argc, char** argv, cxxopts::ParseResul
   }
   if (!result.unmatched().empty()) throw Error("unexpected argument '" + result.unmatched()[0] + "'");
   check_numbers(result);
-  set_threads(result["threads"].as<int>());
+  CommonSettings common;
+  read_flags(result, common_flags(), common);
+  set_threads(common.threads);
   return true;
 }
 
@@ -185,13 +185,20 @@ std::pair<std::string, LpipsFiles> lpips_from(const cxxopts::ParseResult& r) {
   }
 }
 
-void add_precision(cxxopts::Options& options) {
-  options.add_options()("precision", "auto|fp32|bf16: auto is bf16 where the CPU has AMX or AVX512-BF16, else fp32",
-                        cxxopts::value<std::string>()->default_value("auto"));
+const FlagTable<PrecisionChoice>& precision_flags() {
+  static const FlagTable<PrecisionChoice> rows = {
+      {"precision", &PrecisionChoice::precision,
+       "auto|fp32|bf16: auto is bf16 where the CPU has AMX or AVX512-BF16, else fp32"},
+  };
+  return rows;
 }
 
+void add_precision(cxxopts::Options& options) { add_flags(options, precision_flags()); }
+
 Precision precision_from(const cxxopts::ParseResult& r) {
-  const auto p = resolve_precision(r["precision"].as<std::string>(), "--precision");
+  PrecisionChoice chosen;
+  read_flags(r, precision_flags(), chosen);
+  const auto p = resolve_precision(chosen.precision, "--precision");
   if (p == Precision::bf16) request_amx_permission();
   std::cerr << "precision: " << describe_precision(p) << "\n";
   return p;

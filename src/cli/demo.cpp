@@ -42,18 +42,32 @@ std::vector<std::pair<std::string, std::filesystem::path>> shipped_models() {
   return out;
 }
 
+struct DemoSettings {
+  std::filesystem::path out = "demo_out";
+};
+
+const FlagTable<DemoSettings>& demo_flags() {
+  static const FlagTable<DemoSettings> rows = {{"out", &DemoSettings::out, "output folder"}};
+  return rows;
+}
+
 }  // namespace
+
+CommandFlags demo_command_flags() { return command_flags("demo", demo_flags()); }
 
 int demo(int argc, char** argv) {
   cxxopts::Options o("flatnet demo", "Simulate captures of a few photographs, reconstruct them, and evaluate.");
-  o.add_options()("out", "output folder", cxxopts::value<std::string>()->default_value("demo_out"))(
-      "images", "photographs to use (default: python3-skimage's sample photographs)", cxxopts::value<std::string>())(
-      "camera", "camera .yaml (default: the reference camera)", cxxopts::value<std::string>());
+  add_flags(o, demo_flags());
+  o.add_options()("images", "photographs to use (default: python3-skimage's sample photographs)",
+                  cxxopts::value<std::string>())("camera", "camera .yaml (default: the reference camera)",
+                                                 cxxopts::value<std::string>());
   add_force_folder(o);
   add_common(o);
   cxxopts::ParseResult r;
   if (!parse(o, argc, argv, r)) return 0;
-  const std::filesystem::path out = r["out"].as<std::string>();
+  DemoSettings set;
+  read_flags(r, demo_flags(), set);
+  const auto out = set.out;
   const auto claim = claim_out(r, out, "demo");
   const auto camera = camera_from(r);
   const auto images = r.count("images") ? std::filesystem::path(r["images"].as<std::string>())

@@ -198,30 +198,120 @@ int info(int argc, char** argv) {
   return 0;
 }
 
+namespace {
+
+// The rows of a command's own flags (cli/flag_rows.hpp), as `flatnet options` prints settings.
+int print_command_flags(const CommandFlags& command, const std::string& prefix, bool markdown) {
+  static const std::regex pipe("\\|");
+  const auto cell = [](const std::string& text) { return std::regex_replace(text, pipe, "\\|"); };
+  if (markdown) std::cout << "| flag | default | range | what it does |\n|---|---|---|---|\n";
+  size_t shown = 0;
+  for (const auto& f : command.describe()) {
+    if (f.flag.compare(0, prefix.size(), prefix) != 0) continue;
+    ++shown;
+    const auto value = f.is_switch ? std::string("(switch)") : f.default_text.empty() ? "\"\"" : f.default_text;
+    if (markdown) {
+      std::cout << "| `--" << f.flag << "` | `" << cell(value) << "` | " << f.range << " | " << cell(f.doc) << " |\n";
+      continue;
+    }
+    std::cout << std::left << std::setw(24) << ("--" + f.flag) << " " << std::setw(14) << value << " " << f.doc;
+    if (!f.range.empty()) std::cout << " [" << f.range << "]";
+    std::cout << "\n";
+  }
+  require(shown > 0, "--for " + command.command, "has no flag starting with '" + prefix + "'");
+  return 0;
+}
+
+// A value for `row` other than its default, inside its range: what --check gives the flag.
+std::string other_value(const FlagDescription& row, const std::string& range_lo) {
+  if (!range_lo.empty() && range_lo != row.default_text) return range_lo;
+  return row.default_text == "1" ? "2" : "1";
+}
+
+// Holds every command's flags to their structs: with no flag given each member keeps its struct's
+// default; each numeric or text flag given a value sets its member to it; a flag given its default's
+// text reads back the same default. Returns the problems found.
+std::vector<std::string> check_command_flags() {
+  std::vector<std::string> problems;
+  for (const auto& command : every_command_flags()) {
+    const auto where = "flatnet " + command.command + ": ";
+    const auto rows = command.describe();
+    const auto untouched = command.parse({});
+    for (const auto& row : rows) {
+      const auto value = untouched.find(row.flag);
+      if (value == untouched.end() || value->second != row.default_text)
+        problems.push_back(where + "--" + row.flag + " without the flag is not the struct's default " +
+                           row.default_text);
+      if (row.is_switch) {
+        if (command.parse({"--" + row.flag}).at(row.flag) != "true")
+          problems.push_back(where + "the switch --" + row.flag + " does not set its member");
+        continue;
+      }
+      if (!row.default_text.empty() &&
+          command.parse({"--" + row.flag, row.default_text}).at(row.flag) != row.default_text)
+        problems.push_back(where + "--" + row.flag + " " + row.default_text + " does not read back as its default");
+      const bool number = is_decimal_number(row.default_text);
+      const auto given = number ? other_value(row, "") : std::string("flag-check-text");
+      try {
+        const auto got = command.parse({"--" + row.flag, given}).at(row.flag);
+        if (got != given) problems.push_back(where + "--" + row.flag + " " + given + " set its member to " + got);
+      } catch (const Error&) {  // a text with its own reader (on|off, a list), or a range that excludes it
+      }
+    }
+  }
+  return problems;
+}
+
+}  // namespace
+
 // flatnet options: every setting a trainer reads, with its default, range and documentation,
-// from the defaults file where they are declared (io/config.hpp, describe_settings).
+// from the defaults file where they are declared (io/config.hpp, describe_settings); or a
+// command's own flags, from its rows.
 int options(int argc, char** argv) {
   cxxopts::Options o("flatnet options",
                      "Every setting of a trainer's config, with its default, its range and what it does. Set them in "
                      "an experiment file (--config) or with --set key=value.");
   o.add_options()("prefix", "only keys starting with this (train., loss.lr ...)", cxxopts::value<std::string>())(
-      "for", "train (flatnet train), mask (mask train) or separable (mask separable)",
-      cxxopts::value<std::string>()->default_value("train"))(
-      "defaults", "a defaults file to describe instead (a .yaml)", cxxopts::value<std::string>())(
-      "markdown", "print a Markdown table");
+      "for",
+      "train (flatnet train), mask (mask train) or separable (mask separable): a trainer's config settings; or "
+      "any other command (simulate, recon, 'eval fit-niqe' ...): its flags (default: train)",
+      cxxopts::value<std::string>())("defaults", "a defaults file to describe instead (a .yaml)",
+                                     cxxopts::value<std::string>())("markdown", "print a Markdown table")(
+      "check",
+      "check that every command's flags agree with their option structs (the defaults --help shows are "
+      "the structs', and each flag sets its member)");
   o.parse_positional({"prefix"});
   o.positional_help("[PREFIX]");
   add_common(o);
   cxxopts::ParseResult r;
   if (!parse(o, argc, argv, r)) return 0;
-  const auto which = r["for"].as<std::string>();
-  const std::map<std::string, std::string> files = {
-      {"train", "defaults.yaml"}, {"mask", "mask_defaults.yaml"}, {"separable", "separable_defaults.yaml"}};
-  require(files.count(which), "--for", "must be train, mask or separable, got '" + which + "'");
-  const std::filesystem::path file = r.count("defaults") ? std::filesystem::path(r["defaults"].as<std::string>())
-                                                         : data_dir() / "configs" / files.at(which);
+  if (r.count("check")) {
+    const auto problems = check_command_flags();
+    size_t flags = 0;
+    const auto commands = every_command_flags();
+    for (const auto& c : commands) flags += c.describe().size();
+    for (const auto& p : problems) std::cout << p << "\n";
+    std::cout << commands.size() << " flag tables, " << flags << " flags: "
+              << (problems.empty() ? "every default is its struct's and every flag sets its member"
+                                   : std::to_string(problems.size()) + " problems")
+              << "\n";
+    return problems.empty() ? 0 : 1;
+  }
+  const auto which = r.count("for") ? r["for"].as<std::string>() : std::string("train");
   const auto prefix = r.count("prefix") ? r["prefix"].as<std::string>() : std::string();
   const bool markdown = r.count("markdown") > 0;
+  const std::map<std::string, std::string> files = {
+      {"train", "defaults.yaml"}, {"mask", "mask_defaults.yaml"}, {"separable", "separable_defaults.yaml"}};
+  if (!files.count(which) && !r.count("defaults")) {
+    std::string names;
+    for (const auto& command : every_command_flags()) {
+      if (command.command == which) return print_command_flags(command, prefix, markdown);
+      names += ", " + command.command;
+    }
+    throw Error("--for", "'" + printable(which) + "' is no command with flags: give train, mask, separable" + names);
+  }
+  const std::filesystem::path file = r.count("defaults") ? std::filesystem::path(r["defaults"].as<std::string>())
+                                                         : data_dir() / "configs" / files.at(which);
   if (markdown) std::cout << "| key | default | range | what it does |\n|---|---|---|---|\n";
   size_t shown = 0;
   for (const auto& s : describe_settings(file)) {
@@ -240,6 +330,26 @@ int options(int argc, char** argv) {
   }
   require(shown > 0, file, "has no setting starting with '" + prefix + "'");
   return 0;
+}
+
+std::vector<CommandFlags> every_command_flags() {
+  return {command_flags("simulate", simulate_flags()),
+          calibrate_command_flags(),
+          recon_command_flags(),
+          eval_command_flags(),
+          fit_niqe_command_flags(),
+          report_command_flags(),
+          infer_command_flags(),
+          mask_eval_command_flags(),
+          mask_report_command_flags(),
+          mask_camera_command_flags(),
+          bench_command_flags(),
+          demo_command_flags(),
+          capture_command_flags(),
+          capture_dataset_command_flags(),
+          capture_calibration_command_flags(),
+          live_command_flags(),
+          command_flags("every command", common_flags(), precision_flags())};
 }
 
 }  // namespace flatnet::cli

@@ -107,24 +107,40 @@ int mask_train(int argc, char** argv) {
   return interrupted() ? 130 : 0;
 }
 
+// The settings of `flatnet mask eval`.
+struct MaskEvalSettings {
+  double noise = WienerCamera{}.noise_sigma;
+  int64_t count = 0;
+};
+
+const FlagTable<MaskEvalSettings>& mask_eval_flags() {
+  using S = MaskEvalSettings;
+  static const FlagTable<S> rows = {
+      {"noise", &S::noise, "Gaussian noise sigma", 1e-12, 1, "a positive sigma up to 1"},
+      {"count", &S::count, "use at most this many photographs (0: all)", 0, 1e12, "0 (all) or more"},
+  };
+  return rows;
+}
+
 // gamma tuned on the first quarter, PSNR on the rest.
 int mask_eval(int argc, char** argv) {
   cxxopts::Options o("flatnet mask eval", "Throughput, tuned gamma and mean PSNR of a mask under the Wiener protocol.");
   o.add_options()("mask", "mask.png (16-bit, 65535 = transparent), mls or m02", cxxopts::value<std::string>())(
       "images", "photographs: gamma is tuned on the first quarter, PSNR measured on the rest",
-      cxxopts::value<std::string>())("noise", "Gaussian noise sigma", cxxopts::value<double>()->default_value("3e-4"))(
-      "count", "use at most this many photographs (0: all)", cxxopts::value<int>()->default_value("0"));
+      cxxopts::value<std::string>());
+  add_flags(o, mask_eval_flags());
   add_common(o);
   cxxopts::ParseResult r;
   if (!parse(o, argc, argv, r)) return 0;
   require(r.count("mask") && r.count("images"), "mask eval", "--mask and --images are required");
+  MaskEvalSettings set;
+  read_flags(r, mask_eval_flags(), set);
   WienerCamera cam;
-  cam.noise_sigma = r["noise"].as<double>();
-  require(cam.noise_sigma > 0, "--noise", "must be positive");
+  cam.noise_sigma = set.noise;
   const auto window = load_mask_window(r["mask"].as<std::string>(), cam);
   require(window.min().item<double>() >= 0 && window.max().item<double>() <= 1, r["mask"].as<std::string>(),
           "transmittance outside [0, 1]");
-  const auto images = first(list_images(r["images"].as<std::string>(), kImageExtensions), r["count"].as<int>());
+  const auto images = first(list_images(r["images"].as<std::string>(), kImageExtensions), set.count);
   require(images.size() >= 2, r["images"].as<std::string>(), "needs at least 2 readable images");
   const auto scenes = load_luma_scenes(images, cam.scene, 2);
   const int64_t n_tune = std::max<int64_t>(1, scenes.size(0) / 4);
@@ -147,6 +163,16 @@ std::string shown(const std::filesystem::path& p) {
   return !rel.empty() && *rel.begin() != ".." ? rel.string() : p.string();
 }
 
+const FlagTable<MaskReportOptions>& mask_report_flags() {
+  using S = MaskReportOptions;
+  static const FlagTable<S> rows = {
+      {"noise", &S::noise, "Wiener protocol: noise sigma of the main table", 1e-12, 1, "a positive sigma up to 1"},
+      {"tune-count", &S::tune_count, "held-out photographs that tune gamma and lambda", 1, 1e12, "at least 1"},
+      {"count", &S::count, "held-out photographs scored after those (0: the rest)", 0, 1e12, "0 (the rest) or more"},
+  };
+  return rows;
+}
+
 int mask_report(int argc, char** argv) {
   cxxopts::Options o(
       "flatnet mask report",
@@ -157,17 +183,15 @@ int mask_report(int argc, char** argv) {
       "images", "photographs; the held-out split (as training's and simulate's) is used",
       cxxopts::value<std::string>())("out", "folder for report.md, masks.png, sweep.png, separable_sweep.png",
                                      cxxopts::value<std::string>())(
-      "noise", "Wiener protocol: noise sigma of the main table", cxxopts::value<double>()->default_value("3e-4"))(
-      "tune-count", "held-out photographs that tune gamma and lambda", cxxopts::value<int>()->default_value("50"))(
-      "count", "held-out photographs scored after those (0: the rest)", cxxopts::value<int>()->default_value("0"))(
       "codes",
       "separable code pairs NAME=codes.mat (comma-separated; 'none': no separable section). Default: MLS, the shipped "
       "separable-learned codes and their binary variant; rank-1 --masks are added as sign(u), sign(v)",
-      cxxopts::value<std::vector<std::string>>())(
-      "sections", "wiener, separable, or both (comma-separated)",
-      cxxopts::value<std::vector<std::string>>()->default_value("wiener,separable"))(
+      cxxopts::value<std::vector<std::string>>())("sections",
+                                                  "wiener, separable, or both (comma-separated; default: both)",
+                                                  cxxopts::value<std::vector<std::string>>())(
       "flatnet", "FlatNet models trained on a code pair's camera, NAME=model.flatnet (NAME as in --codes)",
       cxxopts::value<std::vector<std::string>>());
+  add_flags(o, mask_report_flags());
   add_force_folder(o);
   add_common(o);
   add_precision(o);
@@ -175,16 +199,15 @@ int mask_report(int argc, char** argv) {
   if (!parse(o, argc, argv, r)) return 0;
   require(r.count("images") && r.count("out"), "mask report", "--images and --out are required");
   MaskReportOptions opt;
+  read_flags(r, mask_report_flags(), opt);
   opt.images = r["images"].as<std::string>();
   opt.out = r["out"].as<std::string>();
   const auto claim = claim_out(r, opt.out, "mask report");
-  opt.noise = r["noise"].as<double>();
-  opt.tune_count = r["tune-count"].as<int>();
-  opt.count = r["count"].as<int>();
-  require(opt.count >= 0, "--count", "must be 0 (all) or positive");
   bool separable = false;
   opt.wiener = false;
-  for (const auto& section : r["sections"].as<std::vector<std::string>>()) {
+  const auto sections = r.count("sections") ? r["sections"].as<std::vector<std::string>>()
+                                            : std::vector<std::string>{"wiener", "separable"};
+  for (const auto& section : sections) {
     require(section == "wiener" || section == "separable", "--sections",
             "takes wiener and/or separable, got '" + section + "'");
     (section == "wiener" ? opt.wiener : separable) = true;
@@ -296,6 +319,26 @@ int mask_separable(int argc, char** argv) {
   return interrupted() ? 130 : 0;
 }
 
+// The settings of `flatnet mask camera`.
+struct MaskCameraSettings {
+  double calib_error = 0.03;
+  uint64_t seed = 0;
+  std::string centring = "plane";
+  bool force = false;
+};
+
+const FlagTable<MaskCameraSettings>& mask_camera_flags() {
+  using S = MaskCameraSettings;
+  static const FlagTable<S> rows = {
+      {"calib-error", &S::calib_error, "relative (Frobenius) error of the calibration, as a real one has", 0, 1,
+       "0 to 1 (0.03: 3 %)"},
+      {"seed", &S::seed, "seed of that error"},
+      {"centring", &S::centring, "plane, or level (for models that read the light level, as the shipped ones)"},
+      {"force", &S::force, "replace the files of an existing camera in --out"},
+  };
+  return rows;
+}
+
 // flatnet mask camera: the reference camera with another separable code pair.
 int mask_camera(int argc, char** argv) {
   cxxopts::Options o(
@@ -308,23 +351,19 @@ int mask_camera(int argc, char** argv) {
       "random-codes",
       "instead of --codes: a seeded pair of random +-1 codes, 511 each (another FlatCam, for adaptation tests); "
       "written to OUT/codes.mat",
-      cxxopts::value<uint64_t>())("out", "folder to write", cxxopts::value<std::string>())(
-      "calib-error", "relative (Frobenius) error of the calibration, as a real one has",
-      cxxopts::value<double>()->default_value("0.03"))("seed", "seed of that error",
-                                                       cxxopts::value<uint64_t>()->default_value("0"))(
-      "centring", "plane, or level (for models that read the light level, as the shipped ones)",
-      cxxopts::value<std::string>()->default_value("plane"))("force",
-                                                             "replace the files of an existing camera in --out");
+      cxxopts::value<uint64_t>())("out", "folder to write", cxxopts::value<std::string>());
+  add_flags(o, mask_camera_flags());
   add_common(o);
   cxxopts::ParseResult r;
   if (!parse(o, argc, argv, r)) return 0;
   require(r.count("codes") + r.count("random-codes") == 1 && r.count("out"), "mask camera",
           "one of --codes FILE or --random-codes SEED, and --out DIR, are required");
+  MaskCameraSettings set;
+  read_flags(r, mask_camera_flags(), set);
   const std::filesystem::path out = r["out"].as<std::string>();
   const std::filesystem::path codes_path =
       r.count("codes") ? std::filesystem::path(r["codes"].as<std::string>()) : out / "codes.mat";
-  const double error = r["calib-error"].as<double>();
-  require(std::isfinite(error) && error >= 0 && error <= 1, "--calib-error", "0 to 1 (0.03: 3 %)");
+  const double error = set.calib_error;
   CodePair codes;
   if (r.count("codes")) {
     codes = load_code_pair(codes_path);
@@ -336,12 +375,11 @@ int mask_camera(int argc, char** argv) {
   const auto& u = codes.rows;
   const auto& v = codes.cols;
   const auto claim = claim_out(r, out, "mask camera");
-  for (const char* f : {"rig.mat", "calib.mat", "camera.yaml"})
-    require_new_output(out / f, r.count("force") > 0, {codes_path});
+  for (const char* f : {"rig.mat", "calib.mat", "camera.yaml"}) require_new_output(out / f, set.force, {codes_path});
   if (r.count("random-codes")) write_mat(codes_path, {{"code_rows", codes.rows}, {"code_cols", codes.cols}});
   auto camera = load_camera_config(default_camera_path());
-  camera.raw.centring = parse_centring(r["centring"].as<std::string>(), "--centring");
-  write_code_pair_camera(out, codes, camera, error, r["seed"].as<uint64_t>(),
+  camera.raw.centring = parse_centring(set.centring, "--centring");
+  write_code_pair_camera(out, codes, camera, error, set.seed,
                          "The reference camera with the codes of " + codes_path.string() + " (`flatnet mask camera`)");
   std::cout << "camera with codes " << codes_path.string() << " (" << u.numel() << " x " << v.numel()
             << " features, mean "
@@ -351,6 +389,10 @@ int mask_camera(int argc, char** argv) {
 }
 
 }  // namespace
+
+CommandFlags mask_eval_command_flags() { return command_flags("mask eval", mask_eval_flags()); }
+CommandFlags mask_report_command_flags() { return command_flags("mask report", mask_report_flags()); }
+CommandFlags mask_camera_command_flags() { return command_flags("mask camera", mask_camera_flags()); }
 
 int mask(int argc, char** argv) {
   const std::string usage =

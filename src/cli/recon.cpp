@@ -13,37 +13,53 @@
 
 namespace flatnet::cli {
 
+const FlagTable<ReconstructorSpec>& recon_method_flags() {
+  using S = ReconstructorSpec;
+  static const FlagTable<S> rows = {
+      {"method", &S::method, "tikhonov | tv"},
+      {"lambda", &S::lambda, "regularisation weight (0: the camera file's)"},
+  };
+  return rows;
+}
+
+const FlagTable<BatchOptions>& batch_flags() {
+  using S = BatchOptions;
+  static const FlagTable<S> rows = {
+      {"batch", &S::batch, "captures per batch", 1, 4096, "1 to 4096 per batch"},
+      {"require-fit", &S::require_fit,
+       "refuse (exit 2) when a capture does not fit the camera (the model's, or the calibration's; "
+       "OUT/camera_fit.csv)"},
+  };
+  return rows;
+}
+
 int recon(int argc, char** argv) {
   cxxopts::Options o("flatnet recon", "Reconstruct raw captures with a classical method.");
-  o.add_options()("method", "tikhonov | tv", cxxopts::value<std::string>()->default_value("tikhonov"))(
-      "camera", "camera .yaml (default: the reference camera)", cxxopts::value<std::string>())(
+  o.add_options()("camera", "camera .yaml (default: the reference camera)", cxxopts::value<std::string>())(
       "calib", "calibration .mat (default: the camera's)", cxxopts::value<std::string>())(
       "input", "raw capture PNG or folder of them", cxxopts::value<std::string>())("out", "output folder",
-                                                                                   cxxopts::value<std::string>())(
-      "lambda", "regularisation weight (default: the camera file's)", cxxopts::value<double>()->default_value("0"))(
-      "batch", "captures per batch", cxxopts::value<int>()->default_value("8"))(
-      "require-fit", "refuse (exit 2) when a capture does not fit the calibration's camera (OUT/camera_fit.csv)");
+                                                                                   cxxopts::value<std::string>());
+  add_flags(o, recon_method_flags());
+  add_flags(o, batch_flags());
   add_force_folder(o);
   add_common(o);
   cxxopts::ParseResult r;
   if (!parse(o, argc, argv, r)) return 0;
   require(r.count("input") && r.count("out"), "recon", "--input DIR|FILE and --out DIR are required");
   ReconstructorSpec spec;
-  spec.method = r["method"].as<std::string>();
+  read_flags(r, recon_method_flags(), spec);
   parse_classical_method(spec.method);  // recon is the classical command: flatnet models go through infer
   spec.camera = camera_from(r);
   if (r.count("calib")) spec.calibration = r["calib"].as<std::string>();
-  spec.lambda = r["lambda"].as<double>();
   BatchOptions opt;
+  read_flags(r, batch_flags(), opt);
   opt.out = r["out"].as<std::string>();
-  opt.batch = std::max(1, r["batch"].as<int>());
   opt.label = spec.method;
   const auto captures = collect_captures(r["input"].as<std::string>());
   check_output_names(captures, opt.out);                         // before the calibration's SVDs
   if (!captures.empty()) spec.first_capture = captures.front();  // read once more, before the build
   auto built = make_reconstructor(spec);
   opt.fit = built.fit.get();
-  opt.require_fit = r.count("require-fit") > 0;
   require(!opt.require_fit || opt.fit, "--require-fit", "cannot judge the captures: " + built.no_fit);
   const auto claim = claim_out(r, opt.out, "recon");
   const auto rep = reconstruct_files(*built.engine, built.camera, captures, opt);
@@ -56,6 +72,30 @@ int recon(int argc, char** argv) {
 
 namespace {
 
+// The settings of `flatnet eval fit-niqe` (the photographs' split is simulate's).
+struct FitNiqeSettings {
+  int64_t patch = 48;
+  int64_t size = 256;
+  double val_fraction = SimulateOptions{}.val_fraction;
+  uint64_t split_seed = 1;
+  int64_t limit = 0;
+  bool force = false;
+};
+
+const FlagTable<FitNiqeSettings>& fit_niqe_flags() {
+  using S = FitNiqeSettings;
+  static const FlagTable<S> rows = {
+      {"patch", &S::patch, "patch side in pixels at full scale (the paper: 96; flatnet's 256-pixel images: 48)"},
+      {"size", &S::size, "scene side the photographs are shown at", 16, 8192, "16 to 8192 pixels"},
+      {"val-fraction", &S::val_fraction,
+       "photographs held out (as simulate's split with --split-seed): never fitted on", 0, 1, "0 to 1"},
+      {"split-seed", &S::split_seed, "seed of that split"},
+      {"limit", &S::limit, "fit on the first N training photographs only (0: all)", 0, 1e12, "0 (all) or more"},
+      {"force", &S::force, "replace an existing --out file"},
+  };
+  return rows;
+}
+
 std::filesystem::path shipped_niqe() { return data_dir() / "models" / "niqe.mat"; }
 
 // flatnet eval fit-niqe: the NIQE model of pristine photographs, as a display shows them (the
@@ -63,28 +103,20 @@ std::filesystem::path shipped_niqe() { return data_dir() / "models" / "niqe.mat"
 int fit_niqe_command(int argc, char** argv) {
   cxxopts::Options o("flatnet eval fit-niqe", "Fit NIQE's pristine model on photographs (models/niqe.mat).");
   o.add_options()("images", "folder of photographs", cxxopts::value<std::string>())("out", "model file to write (.mat)",
-                                                                                    cxxopts::value<std::string>())(
-      "patch", "patch side in pixels at full scale (the paper: 96; flatnet's 256-pixel images: 48)",
-      cxxopts::value<int64_t>()->default_value("48"))("size", "scene side the photographs are shown at",
-                                                      cxxopts::value<int64_t>()->default_value("256"))(
-      "val-fraction", "photographs held out (as simulate's split with --split-seed): never fitted on",
-      cxxopts::value<double>()->default_value("0.1"))("split-seed", "seed of that split",
-                                                      cxxopts::value<uint64_t>()->default_value("1"))(
-      "limit", "fit on the first N training photographs only (0: all)", cxxopts::value<int64_t>()->default_value("0"))(
-      "force", "replace an existing --out file");
+                                                                                    cxxopts::value<std::string>());
+  add_flags(o, fit_niqe_flags());
   add_common(o);
   cxxopts::ParseResult r;
   if (!parse(o, argc, argv, r)) return 0;
   require(r.count("images") && r.count("out"), "eval fit-niqe", "--images DIR and --out FILE are required");
+  FitNiqeSettings set;
+  read_flags(r, fit_niqe_flags(), set);
   const std::filesystem::path out = r["out"].as<std::string>();
-  require_new_output(out, r.count("force") > 0, {});
-  const auto patch = r["patch"].as<int64_t>(), size = r["size"].as<int64_t>();
+  require_new_output(out, set.force, {});
+  const auto patch = set.patch, size = set.size;
   require(patch >= 8 && patch % 2 == 0 && patch <= size, "--patch", "an even size from 8 to --size");
-  auto train =
-      split_image_files(r["images"].as<std::string>(), r["val-fraction"].as<double>(), r["split-seed"].as<uint64_t>())
-          .first;
-  if (r["limit"].as<int64_t>() > 0 && static_cast<int64_t>(train.size()) > r["limit"].as<int64_t>())
-    train.resize(r["limit"].as<int64_t>());
+  auto train = split_image_files(r["images"].as<std::string>(), set.val_fraction, set.split_seed).first;
+  if (set.limit > 0 && static_cast<int64_t>(train.size()) > set.limit) train.resize(set.limit);
   const auto model = fit_niqe(
       train, [&](const std::filesystem::path& p) { return display_scene(p, size); }, patch);
   save_niqe(out, model);
@@ -95,6 +127,13 @@ int fit_niqe_command(int argc, char** argv) {
 
 }  // namespace
 
+const FlagTable<EvalOptions>& eval_flags() {
+  static const FlagTable<EvalOptions> rows = {
+      {"sheet-rows", &EvalOptions::sheet_rows, "images in the contact sheet", 1, 1000, "1 to 1000"},
+  };
+  return rows;
+}
+
 int eval(int argc, char** argv) {
   if (argc > 1 && std::string(argv[1]) == "fit-niqe") return fit_niqe_command(argc - 1, argv + 1);
   cxxopts::Options o("flatnet eval",
@@ -102,19 +141,19 @@ int eval(int argc, char** argv) {
                      "ground truth ('flatnet eval fit-niqe' fits NIQE's model).");
   o.add_options()("gt", "ground-truth folder", cxxopts::value<std::string>())(
       "out", "reconstructions: a folder of PNGs, or of one subfolder per method; reports are written here",
-      cxxopts::value<std::string>())("sheet-rows", "images in the contact sheet",
-                                     cxxopts::value<int>()->default_value("6"))(
+      cxxopts::value<std::string>())(
       "niqe", "NIQE model (.mat from `flatnet eval fit-niqe`), or none (default: the shipped models/niqe.mat)",
       cxxopts::value<std::string>());
+  add_flags(o, eval_flags());
   add_lpips(o);
   add_common(o);
   cxxopts::ParseResult r;
   if (!parse(o, argc, argv, r)) return 0;
   require(r.count("gt") && r.count("out"), "eval", "--gt DIR and --out DIR are required");
   EvalOptions opt;
+  read_flags(r, eval_flags(), opt);
   opt.gt = r["gt"].as<std::string>();
   opt.out = r["out"].as<std::string>();
-  opt.sheet_rows = r["sheet-rows"].as<int>();
   if (r.count("niqe")) {
     if (r["niqe"].as<std::string>() != "none") opt.niqe_model = r["niqe"].as<std::string>();
   } else if (std::filesystem::exists(shipped_niqe())) {
@@ -167,6 +206,15 @@ int inversion_report_command(int argc, char** argv) {
 
 }  // namespace
 
+const FlagTable<ReportOptions>& report_flags() {
+  static const FlagTable<ReportOptions> rows = {
+      {"tv-count", &ReportOptions::tv_count,
+       "TV on the first N captures of each set (0: all; FISTA takes seconds per capture)", 0, 1e12, "0 (all) or more"},
+      {"rows", &ReportOptions::figure_rows, "scenes per figure", 1, 1000, "1 to 1000"},
+  };
+  return rows;
+}
+
 int report(int argc, char** argv) {
   if (argc > 1 && std::string(argv[1]) == "inversion") return inversion_report_command(argc - 1, argv + 1);
   cxxopts::Options o(
@@ -181,10 +229,8 @@ int report(int argc, char** argv) {
       cxxopts::value<std::vector<std::string>>())(
       "camera", "camera .yaml for Tikhonov and TV (default: the reference camera)", cxxopts::value<std::string>())(
       "out", "report folder (report.md, figures, reconstructions)", cxxopts::value<std::string>())(
-      "niqe", "NIQE model, or none (default: models/niqe.mat)", cxxopts::value<std::string>())(
-      "tv-count", "TV on the first N captures of each set (0: all; FISTA takes seconds per capture)",
-      cxxopts::value<int64_t>()->default_value("30"))("rows", "scenes per figure",
-                                                      cxxopts::value<int>()->default_value("4"));
+      "niqe", "NIQE model, or none (default: models/niqe.mat)", cxxopts::value<std::string>());
+  add_flags(o, report_flags());
   add_lpips(o);
   add_precision(o);
   add_force_folder(o);
@@ -193,6 +239,7 @@ int report(int argc, char** argv) {
   if (!parse(o, argc, argv, r)) return 0;
   require(r.count("sets") && r.count("out"), "report", "--sets NAME=DIR,... and --out DIR are required");
   ReportOptions opt;
+  read_flags(r, report_flags(), opt);
   opt.camera = camera_from(r);
   opt.out = r["out"].as<std::string>();
   const auto claim = claim_out(r, opt.out, "report");
@@ -209,9 +256,6 @@ int report(int argc, char** argv) {
     opt.niqe_model = shipped_niqe();
   }
   std::tie(opt.lpips, opt.lpips_files) = lpips_from(r);
-  opt.tv_count = r["tv-count"].as<int64_t>();
-  require(opt.tv_count >= 0, "--tv-count", "0 (all) or more");
-  opt.figure_rows = std::max(1, r["rows"].as<int>());
   const auto precision = precision_from(r);
   opt.levers.bf16 = precision == Precision::bf16;
   opt.machine = cpu_features().summary() + ", " + std::to_string(at::get_num_threads()) + " threads, models in " +
@@ -221,5 +265,10 @@ int report(int argc, char** argv) {
   std::cout << make_report(opt) << "wrote " << (opt.out / "report.md").string() << "\n";
   return 0;
 }
+
+CommandFlags recon_command_flags() { return command_flags("recon", recon_method_flags(), batch_flags()); }
+CommandFlags eval_command_flags() { return command_flags("eval", eval_flags()); }
+CommandFlags fit_niqe_command_flags() { return command_flags("eval fit-niqe", fit_niqe_flags()); }
+CommandFlags report_command_flags() { return command_flags("report", report_flags()); }
 
 }  // namespace flatnet::cli

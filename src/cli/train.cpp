@@ -46,8 +46,10 @@ int train(int argc, char** argv) {
       "rank", "this process, 0..world-size-1", cxxopts::value<int>())("master-addr", "host of rank 0 (rendezvous)",
                                                                       cxxopts::value<std::string>())(
       "master-port", "TCP port of the rendezvous on rank 0", cxxopts::value<int>())(
-      "dist-timeout", "seconds a collective may wait before the job fails",
-      cxxopts::value<double>()->default_value("300"));
+      "dist-timeout",
+      "seconds a collective may wait before the job fails (default: " +
+          std::to_string(static_cast<int>(DistributedOptions{}.timeout_s)) + ")",
+      cxxopts::value<double>());
   add_common(o);
   cxxopts::ParseResult r;
   if (!parse(o, argc, argv, r)) return 0;
@@ -74,7 +76,7 @@ int train(int argc, char** argv) {
   if (r.count("rank")) dist.rank = r["rank"].as<int>();
   if (r.count("master-addr")) dist.master_addr = r["master-addr"].as<std::string>();
   if (r.count("master-port")) dist.master_port = r["master-port"].as<int>();
-  dist.timeout_s = r["dist-timeout"].as<double>();
+  if (r.count("dist-timeout")) dist.timeout_s = r["dist-timeout"].as<double>();
   // Rank 0 writes the run folder: it claims it (one run at a time; never a folder of other output).
   // A --resume with nothing to resume is refused before the folder is touched.
   OutputClaim claim;
@@ -207,50 +209,87 @@ int import_model(int argc, char** argv) {
   return 0;
 }
 
+namespace {
+
+// The engine `infer` runs the model on (its only setting that is not the reconstructor's).
+struct InferEngine {
+  std::string engine = "libtorch";
+};
+
+const FlagTable<InferEngine>& infer_engine_flags() {
+  static const FlagTable<InferEngine> rows = {
+      {"engine", &InferEngine::engine,
+       "libtorch, or opencv: an ONNX file from `flatnet export --onnx` through OpenCV's DNN module"},
+  };
+  return rows;
+}
+
+void set_levers(ReconstructorSpec& s, const std::string& text) {
+  try {
+    const auto self_ensemble = s.levers.self_ensemble;
+    s.levers = parse_inference_levers(text);
+    s.levers.self_ensemble = self_ensemble;
+  } catch (const Error&) {
+    throw std::invalid_argument("expected none or a list of fold, channels-last, gemm-up, onednn");
+  }
+}
+std::string levers_text(const ReconstructorSpec& s) { return inference_levers_text(s.levers); }
+
+const FlagTable<ReconstructorSpec>& infer_flags() {
+  using S = ReconstructorSpec;
+  static const FlagTable<S> rows = {
+      {"levers", FlagText<S>{set_levers, levers_text},
+       "exact inference speed-ups: none, or a list of fold, channels-last, gemm-up, onednn (bf16 and onednn: see "
+       "--precision)"},
+      {"data-consistency", &S::data_consistency,
+       "C > 0: correct each picture by its capture where the camera measures it well (Tikhonov on the picture's "
+       "residual, regulariser C^2 tikhonov_lambda; 10 for the shipped models, docs/evaluation.md); 0: off",
+       0, 1e3, "0 (off) or a strength in (0, 1000]"},
+      {"consistency-blur", &S::consistency_blur,
+       "sigma (scene pixels) of a Gaussian on that correction: its coarse part alone (0: none)", 0, 64,
+       "0 (none) to 64 scene pixels"},
+  };
+  return rows;
+}
+
+const FlagTable<AdaptationOptions>& adaptation_flags() {
+  using S = AdaptationOptions;
+  static const FlagTable<S> rows = {
+      {"adapt-steps", &S::steps,
+       "N > 0: first adapt the model to the captures for N Adam steps, on their disagreement with its pictures where "
+       "the camera measures well and a pull to the shipped weights (docs/evaluation.md); 0: off"},
+      {"adapt-lr", &S::lr, "its Adam rate"},
+      {"adapt-anchor", &S::anchor, "weight of the pull to the shipped weights (relative squared distance)"},
+      {"adapt-brightness", &S::brightness,
+       "weight of the term that keeps each picture's brightness the shipped model's"},
+      {"adapt-batch", &S::batch, "captures a step"},
+      {"adapt-captures", &S::captures, "at most this many of the captures adapt the model (evenly spread)"},
+  };
+  return rows;
+}
+
+}  // namespace
+
+CommandFlags infer_command_flags() {
+  return command_flags("infer", infer_engine_flags(), infer_flags(), batch_flags(), adaptation_flags());
+}
+
 // Every flag of `flatnet infer`.
 cxxopts::Options infer_options() {
   cxxopts::Options o("flatnet infer", "Reconstruct raw captures with a trained FlatNet model.");
   o.add_options()("model", "model file (models/*.flatnet or RUN/model.flatnet; an .onnx file with --engine opencv)",
-                  cxxopts::value<std::string>())(
-      "engine", "libtorch, or opencv: an ONNX file from `flatnet export --onnx` through OpenCV's DNN module",
-      cxxopts::value<std::string>()->default_value("libtorch"))("input", "raw capture PNG or folder of them",
-                                                                cxxopts::value<std::string>())(
+                  cxxopts::value<std::string>())("input", "raw capture PNG or folder of them",
+                                                 cxxopts::value<std::string>())(
       "out", "output folder (PNGs with the captures' names)", cxxopts::value<std::string>())(
       "camera", "camera .yaml whose preprocessing to use (default: the model's)", cxxopts::value<std::string>())(
-      "batch", "captures per batch", cxxopts::value<int>()->default_value("4"))(
-      "levers",
-      "exact inference speed-ups: none, or a list of fold, channels-last, gemm-up, onednn (bf16 and onednn: see "
-      "--precision)",
-      cxxopts::value<std::string>()->default_value("fold,channels-last,gemm-up,onednn"))(
-      "require-fit", "refuse (exit 2) when a capture does not fit the model's camera (OUT/camera_fit.csv)")(
       "self-ensemble",
       "average the enhancer over the image and its three flips (test-time self-ensemble; about 4x the enhancer's "
-      "time; libtorch engine)")(
-      "data-consistency",
-      "C > 0: correct each picture by its capture where the camera measures it well (Tikhonov on the picture's "
-      "residual, regulariser C^2 tikhonov_lambda; 10 for the shipped models, docs/evaluation.md); 0: off",
-      cxxopts::value<double>()->default_value("0"))(
-      "consistency-blur", "sigma (scene pixels) of a Gaussian on that correction: its coarse part alone (0: none)",
-      cxxopts::value<double>()->default_value("0"));
-  const AdaptationOptions adapt_defaults;  // the flags' defaults are the struct's
-  const auto text = [](double x) {
-    std::ostringstream t;
-    t << x;
-    return t.str();
-  };
-  o.add_options("test-time adaptation (the model fine-tuned on the captures themselves, no ground truth)")(
-      "adapt-steps",
-      "N > 0: first adapt the model to the captures for N Adam steps, on their disagreement with its pictures where "
-      "the camera measures well and a pull to the shipped weights (docs/evaluation.md); 0: off",
-      cxxopts::value<int64_t>()->default_value(std::to_string(adapt_defaults.steps)))(
-      "adapt-lr", "its Adam rate", cxxopts::value<double>()->default_value(text(adapt_defaults.lr)))(
-      "adapt-anchor", "weight of the pull to the shipped weights (relative squared distance)",
-      cxxopts::value<double>()->default_value(text(adapt_defaults.anchor)))(
-      "adapt-brightness", "weight of the term that keeps each picture's brightness the shipped model's",
-      cxxopts::value<double>()->default_value(text(adapt_defaults.brightness)))(
-      "adapt-batch", "captures a step", cxxopts::value<int64_t>()->default_value(std::to_string(adapt_defaults.batch)))(
-      "adapt-captures", "at most this many of the captures adapt the model (evenly spread)",
-      cxxopts::value<int64_t>()->default_value(std::to_string(adapt_defaults.captures)));
+      "time; libtorch engine)");
+  add_flags(o, infer_engine_flags());
+  add_flags(o, infer_flags());
+  add_flags(o, batch_flags());
+  add_flags(o, adaptation_flags(),
+            "test-time adaptation (the model fine-tuned on the captures themselves, no ground truth)");
   add_force_folder(o);
   add_precision(o);
   add_common(o);
@@ -260,29 +299,18 @@ cxxopts::Options infer_options() {
 // What `infer` builds, from its flags (each checked, the flag named).
 ReconstructorSpec infer_spec(const cxxopts::ParseResult& r, const std::string& engine) {
   ReconstructorSpec spec;
+  read_flags(r, infer_flags(), spec);
+  read_flags(r, adaptation_flags(), spec.adapt);
   spec.method = engine == "opencv" ? "opencv" : "flatnet";
   spec.model = r["model"].as<std::string>();
   spec.use_camera = r.count("camera") > 0;  // else the preprocessing the model file carries
   if (spec.use_camera) spec.camera = load_camera_config(r["camera"].as<std::string>());
-  spec.levers = parse_inference_levers(r["levers"].as<std::string>());
   if (precision_from(r) == Precision::bf16) spec.levers.bf16 = true;  // the enhancer in bf16; inversion, sigmoid fp32
   spec.levers.self_ensemble = r.count("self-ensemble") > 0;
   require(!spec.levers.self_ensemble || engine == "libtorch", "--self-ensemble",
           "runs on the libtorch engine (an ONNX file holds the plain model)");
-  spec.data_consistency = r["data-consistency"].as<double>();
-  spec.consistency_blur = r["consistency-blur"].as<double>();
-  require(std::isfinite(spec.consistency_blur) && spec.consistency_blur >= 0 && spec.consistency_blur <= 64,
-          "--consistency-blur", "0 (none) to 64 scene pixels");
-  require(std::isfinite(spec.data_consistency) && spec.data_consistency >= 0 && spec.data_consistency <= 1e3,
-          "--data-consistency", "0 (off) or a strength in (0, 1000]");
   require(spec.data_consistency == 0 || engine == "libtorch", "--data-consistency",
           "runs on the libtorch engine (an ONNX file carries no calibration)");
-  spec.adapt.steps = r["adapt-steps"].as<int64_t>();
-  spec.adapt.lr = r["adapt-lr"].as<double>();
-  spec.adapt.anchor = r["adapt-anchor"].as<double>();
-  spec.adapt.batch = r["adapt-batch"].as<int64_t>();
-  spec.adapt.brightness = r["adapt-brightness"].as<double>();
-  spec.adapt.captures = r["adapt-captures"].as<int64_t>();
   spec.adapt.bf16 = spec.levers.bf16;
   check_adaptation_options(spec.adapt);
   require(spec.adapt.steps == 0 || engine == "libtorch", "--adapt-steps",
@@ -309,12 +337,14 @@ int infer(int argc, char** argv) {
   if (!parse(o, argc, argv, r)) return 0;
   require(r.count("model") && r.count("input") && r.count("out"), "infer",
           "--model MODEL, --input DIR|FILE and --out DIR are required");
-  const auto engine = r["engine"].as<std::string>();
+  InferEngine chosen;
+  read_flags(r, infer_engine_flags(), chosen);
+  const auto engine = chosen.engine;
   require(engine == "libtorch" || engine == "opencv", "--engine", "libtorch or opencv expected, got '" + engine + "'");
   auto spec = infer_spec(r, engine);
   BatchOptions opt;
+  read_flags(r, batch_flags(), opt);
   opt.out = r["out"].as<std::string>();
-  opt.batch = std::max(1, r["batch"].as<int>());
   opt.label = "infer";
   const auto captures = collect_captures(r["input"].as<std::string>());
   spec.adapt_on = captures;
@@ -329,7 +359,6 @@ int infer(int argc, char** argv) {
   if (spec.data_consistency > 0) std::cerr << "engine: " << built.engine->describe() << "\n";
   if (!built.adaptation.empty()) std::cerr << "adaptation: " << built.adaptation << "\n";
   opt.fit = built.fit.get();
-  opt.require_fit = r.count("require-fit") > 0;
   require(!opt.require_fit || opt.fit, "--require-fit", "cannot judge the captures: " + built.no_fit);
   if (built.fit)
     std::cerr << "camera: the model is for camera '" << printable(built.fit->camera_name())

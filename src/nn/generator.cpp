@@ -316,6 +316,15 @@ InferenceLevers parse_inference_levers(const std::string& s) {
   return l;
 }
 
+std::string inference_levers_text(const InferenceLevers& l) {
+  std::string text;
+  for (const auto& [on, name] :
+       {std::pair{l.fold_batchnorm, "fold"}, std::pair{l.channels_last, "channels-last"},
+        std::pair{l.gemm_upsample, "gemm-up"}, std::pair{l.bf16, "bf16"}, std::pair{l.onednn, "onednn"}})
+    if (on) text += (text.empty() ? "" : ",") + std::string(name);
+  return text.empty() ? "none" : text;
+}
+
 InputStage parse_input_stage(const std::string& s) {
   if (s == "inversion") return InputStage::inversion;
   if (s == "tikhonov") return InputStage::tikhonov;

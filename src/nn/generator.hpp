@@ -138,6 +138,8 @@ torch::Tensor flip_ensemble(const std::function<torch::Tensor(const torch::Tenso
 
 // "none" or a comma list of fold, channels-last, gemm-up, bf16, onednn.
 InferenceLevers parse_inference_levers(const std::string& s);
+// The speed-ups on, as parse_inference_levers reads them ("none" when none; self_ensemble is not one).
+std::string inference_levers_text(const InferenceLevers& l);
 
 // The module's 4-D parameters (convolution weights) in channels-last order, the layout oneDNN
 // convolves fastest; the values are unchanged.
