@@ -64,7 +64,7 @@ TEST_CASE("train's flags come from its option rows: --iterations, --minutes, --b
   // A flag's value is checked by its row's range, and an error names the flag the user typed.
   auto r = test::run_flatnet(train + " --batch 0");
   CHECK(r.code == 2);
-  CHECK_THAT(r.output, Contains("--batch: '0' is out of range: 1 to 4096 per batch"));
+  CHECK_THAT(r.output, Contains("train.batch = 0 is out of range: 1 to 4096 samples"));  // the row's range
   r = test::run_flatnet(train + " --precision fp16");
   CHECK(r.code == 2);
   CHECK_THAT(r.output, Contains("--precision: expected auto, fp32 or bf16, got 'fp16'"));
@@ -864,7 +864,7 @@ TEST_CASE("flatnet options: every setting with its default, range and documentat
   CHECK_THAT(r.output, Contains("defaults.yaml") && Contains("no setting starting with 'nosuch.'"));
   r = test::run_flatnet("options --for gan");
   CHECK(r.code == 2);
-  CHECK_THAT(r.output, Contains("train, mask or separable"));
+  CHECK_THAT(r.output, Contains("give train, mask, separable, simulate"));
 }
 
 TEST_CASE("model cards: flatnet info tells what a model file holds, export records held-out scores", "[cli][info]") {

@@ -64,8 +64,8 @@ TEST_CASE("flag rows: the struct's defaults, every member set by its flag, error
   CHECK(none.count == 3);
   CHECK_FALSE(none.force);
   CHECK(none.loud);
-  const auto all = parsed({"--rate", "0.5", "--count", "9", "--seed", "11", "--force", "--mode", "slow", "--out",
-                           "a b", "--loud", "off"});
+  const auto all = parsed(
+      {"--rate", "0.5", "--count", "9", "--seed", "11", "--force", "--mode", "slow", "--out", "a b", "--loud", "off"});
   CHECK(all.rate == 0.5);
   CHECK(all.count == 9);
   CHECK(all.seed == 11);
@@ -106,9 +106,9 @@ TEST_CASE("every command's flags agree with their structs, and no flag default i
   INFO(r.output);
   CHECK(r.code == 0);
   CHECK_THAT(r.output, Contains("every default is its struct's and every flag sets its member"));
-  for (const std::string command : {"simulate", "calibrate", "recon", "eval", "eval fit-niqe", "report", "infer",
-                                    "mask eval", "mask report", "mask camera", "bench", "demo", "capture",
-                                    "capture-dataset", "capture-calibration", "live", "every command"}) {
+  for (const std::string command :
+       {"simulate", "calibrate", "recon", "eval", "eval fit-niqe", "report", "infer", "mask eval", "mask report",
+        "mask camera", "bench", "demo", "capture", "capture-dataset", "capture-calibration", "live", "every command"}) {
     INFO(command);
     const auto listed = test::run_flatnet("options --for '" + command + "'");
     CHECK(listed.code == 0);

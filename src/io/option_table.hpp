@@ -74,6 +74,12 @@ std::string key_of(const std::vector<OptionField<S>>& fields, T S::*member, cons
     if (const auto* m = std::get_if<T S::*>(&f.member); m && *m == member) return prefix + f.key;
   throw std::logic_error("option table: no row binds this member");
 }
+// A member a struct inherits (a trainer's options extend the shared schedule).
+template <class S, class T, class Base,
+          std::enable_if_t<std::is_base_of_v<Base, S> && !std::is_same_v<Base, S>, int> = 0>
+std::string key_of(const std::vector<OptionField<S>>& fields, T Base::*member, const std::string& prefix = "") {
+  return key_of(fields, static_cast<T S::*>(member), prefix);
+}
 
 // One member from its key (a missing key or a value of the wrong kind is an error naming the key).
 template <class T>

@@ -27,22 +27,19 @@ namespace flatnet {
 enum class LrSchedule { halving, cosine };
 LrSchedule parse_lr_schedule(const std::string& s, const std::string& key = "train.schedule");
 
-struct TrainOptions {
-  int64_t iterations = 20000;
-  // Wall-clock budget (0: none): training stops cleanly after this many minutes in all (resumes
-  // included) with a final checkpoint and model file; a cosine schedule then spans the budget.
-  double minutes = 0;
-  int64_t batch = 4;
-  double lr = 1e-4, lr_discriminator = 1e-4, lr_inversion_scale = 1.0;
+// The schedule (train/loop.hpp): 20,000 steps of 4, lr 1e-4, validation every 500 and a log row every
+// 10 steps; with train.minutes the run stops cleanly at the budget with a final checkpoint and model
+// file, and a cosine schedule spans the budget.
+struct TrainOptions : Schedule {
+  TrainOptions() : Schedule{20000, 0, 4, 1e-4, 0, 500, 10, true} {}
+  double lr_discriminator = 1e-4, lr_inversion_scale = 1.0;
   // halving: lr * 0.5^floor(step / lr_halve_every) (the thesis); cosine: lr * (1 + cos(pi t)) / 2 with
   // t = step / iterations, or with a time budget the larger of that and the budget's elapsed fraction.
   LrSchedule schedule = LrSchedule::halving;
   int64_t lr_halve_every = 5000;
   int64_t discriminator_warmup = 0;
   double noise_augment = 0.003;
-  uint64_t seed = 0;
   int workers = 1;
-  int64_t val_every = 500, log_every = 10;
   int64_t val_count = 64;  // validation samples loaded by the caller (0: all)
   double w_mse = 1.0, w_perceptual = 1.2, w_adversarial = 0.6;
   double w_ssim = 0.0;  // weight of the structural term 1 - SSIM
@@ -68,7 +65,6 @@ struct TrainOptions {
   bool gemm_upsample = true;     // transposed convolutions as GEMMs
   int64_t check_sync_every = 0;  // distributed: verify bit-identical parameters every N steps (0: never)
   std::filesystem::path out;     // run folder: latest.ckpt, best.ckpt, model.flatnet, log.csv, val.csv, samples.png
-  bool progress = true;
 };
 
 struct TrainSummary {

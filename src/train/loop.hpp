@@ -15,17 +15,26 @@
 
 namespace flatnet {
 
-struct LoopOptions {
-  std::string label = "train";  // the progress bar's
-  int64_t first_step = 0;       // steps done before this run (a resumed run's)
-  int64_t iterations = 1;       // the step the run ends at, when it has no time budget
+// The schedule every trainer shares (the train.* rows iterations, minutes, batch, lr, seed, val_every,
+// log_every of train/options.cpp), one struct the three trainers' options and the loop's extend; each
+// trainer sets its own defaults in its constructor (its defaults file's, or the thesis's recipe).
+struct Schedule {
+  int64_t iterations = 1;  // the step the run ends at, when it has no time budget
   // Wall-clock budget of the whole run, resumed parts included (0: none). A budget is the run's
   // length: the run ends when it is spent, whatever `iterations` says (train.minutes alone bounds it).
   double minutes = 0;
-  double seconds_before = 0;  // seconds the run trained before (resume)
-  int64_t log_every = 50, val_every = 500;
+  int64_t batch = 4;  // samples per step
+  double lr = 1e-4;   // the main optimiser's rate
+  uint64_t seed = 0;  // initialisation, data order and augmentation
+  int64_t val_every = 500, log_every = 50;
   bool progress = true;
-  bool writer = true;  // logs and checkpoints (rank 0 of a data-parallel run; the others only step)
+};
+
+struct LoopOptions : Schedule {
+  std::string label = "train";  // the progress bar's
+  int64_t first_step = 0;       // steps done before this run (a resumed run's)
+  double seconds_before = 0;    // seconds the run trained before (resume)
+  bool writer = true;           // logs and checkpoints (rank 0 of a data-parallel run; the others only step)
   // For the non-finite error: where the last good state is, and what to change.
   std::string last_good = "nothing was saved";
   std::string remedy = "a lower train.lr";
@@ -33,17 +42,12 @@ struct LoopOptions {
   bool skip_nonfinite = true;
 };
 
-// The loop's schedule from a trainer's options (any with iterations, minutes, log_every,
-// val_every and progress), with the progress bar's label and where the last good state is.
-template <class TrainerOptions>
-LoopOptions loop_schedule(const TrainerOptions& o, std::string label, std::string last_good) {
+// The loop's options from a trainer's schedule, with the progress bar's label and where the last
+// good state is.
+inline LoopOptions loop_schedule(const Schedule& o, std::string label, std::string last_good) {
   LoopOptions lo;
+  static_cast<Schedule&>(lo) = o;
   lo.label = std::move(label);
-  lo.iterations = o.iterations;
-  lo.minutes = o.minutes;
-  lo.log_every = o.log_every;
-  lo.val_every = o.val_every;
-  lo.progress = o.progress;
   lo.last_good = std::move(last_good);
   return lo;
 }

@@ -7,20 +7,18 @@
 #include <vector>
 
 #include "optics/mask.hpp"
+#include "train/loop.hpp"
 
 namespace flatnet {
 
-struct MaskTrainOptions {
-  int64_t iterations = 10000;
-  int64_t batch = 4;
+// The schedule (train/loop.hpp): 10,000 steps of 4 at lr 1e-4, validation every 500, a log row every
+// 50; with train.minutes the run stops early, writing its mask.
+struct MaskTrainOptions : Schedule {
+  MaskTrainOptions() : Schedule{10000, 0, 4, 1e-4, 0, 500, 50, true} {}
   std::string optimizer = "sgd";  // sgd (thesis: momentum 0.5, lr 1e-4) | adam
-  double lr = 1e-4, momentum = 0.5;
-  double gamma_init = 1e-6;  // Wiener regulariser to start from (MLS tunes to ~1e-6)
-  double minutes = 0;        // wall-clock budget (0: none); the run stops early, writing its mask
-  int64_t val_every = 500, log_every = 50;
-  uint64_t seed = 0;
+  double momentum = 0.5;
+  double gamma_init = 1e-6;   // Wiener regulariser to start from (MLS tunes to ~1e-6)
   std::filesystem::path out;  // mask.png, vectors.mat, gamma.txt, log.csv, val.csv, curve.png, latest.ckpt
-  bool progress = true;
   // Continue the run in `out` from its latest.ckpt (written at every validation, at the end and
   // when stopped early): the mask, the regulariser, the optimiser's state, the data order and the
   // logs up to that step, so that a resumed run takes the steps the straight run would have.

@@ -76,6 +76,11 @@ template <class T>
 std::string train_key(T TrainOptions::*member) {
   return key_of(train_fields(), member);
 }
+// The shared schedule's members (train_key(&TrainOptions::batch) names a Schedule member).
+template <class T>
+std::string train_key(T Schedule::*member) {
+  return train_key(static_cast<T TrainOptions::*>(member));
+}
 template <class T>
 std::string data_key(T DataOptions::*member) {
   return key_of(data_fields(), member, "data.");

@@ -14,9 +14,14 @@
 
 #include <torch/torch.h>
 
+#include "train/loop.hpp"
+
 namespace flatnet {
 
-struct SeparableTrainOptions {
+// The schedule (train/loop.hpp): 1,000 Adam steps of 8 at lr 0.02 (on the codes' pre-activations), a
+// log row every 25, validation every 100; with train.minutes the run stops early, writing its codes.
+struct SeparableTrainOptions : Schedule {
+  SeparableTrainOptions() : Schedule{1000, 0, 8, 0.02, 0, 100, 25, true} {}
   std::filesystem::path images;  // photographs; the training side of simulate's split
   double val_fraction = 0.1;     // that split (flatnet simulate's defaults: the same photographs held out)
   uint64_t split_seed = 1;
@@ -24,16 +29,10 @@ struct SeparableTrainOptions {
   int64_t code_length = 511;         // elements per code when init_codes is empty
   int64_t train_limit = 400;         // photographs loaded for training (0: all)
   int64_t val_count = 32;            // held-out-split photographs for validation
-  int64_t iterations = 1000, batch = 8;
-  double minutes = 0;         // wall-clock budget (0: none); the run stops early, writing its codes
-  double lr = 0.02;           // Adam, on the codes' pre-activations
-  double lambda_init = 1e-4;  // Tikhonov regulariser (absolute, as recon's), learned as its log
+  double lambda_init = 1e-4;         // Tikhonov regulariser (absolute, as recon's), learned as its log
   double target_throughput = 0.5, throughput_tolerance = 0.05;
   bool binary = false;
-  uint64_t seed = 0;
-  int64_t log_every = 25, val_every = 100;
   std::filesystem::path out;  // codes.mat, lambda.txt, log.csv, curve.png, latest.ckpt
-  bool progress = true;
   // Continue the run in `out` from its latest.ckpt (written at every validation, at the end and
   // when stopped early): codes, lambda, Adam's moments, the step and the data and noise generator.
   bool resume = false;
