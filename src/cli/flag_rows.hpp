@@ -101,7 +101,7 @@ bool is_switch(const FlagRow<S>& row) {
 template <class T>
 void assign_number(const std::string& flag, const std::string& text, double lo, double hi, const char* range,
                    T& member) {
-  const NumberRule rule{flag.c_str(), lo, hi, *range ? range : "a number"};
+  const NumberRule rule{flag.c_str(), lo, hi, *range ? range : std::is_integral_v<T> ? "a whole number" : "a number"};
   const auto problem = number_problem(text, rule);
   if (!problem.empty()) throw Error("--" + flag, "'" + printable(text) + "' " + problem + ": " + rule.meaning);
   const double value = std::stod(text);
