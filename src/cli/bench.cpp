@@ -79,21 +79,12 @@ nlohmann::json row_json(const BenchRow& row, double gflops, double share) {
 
 namespace {
 
-void set_bench_levers(BenchOptions& s, const std::string& text) {
-  try {
-    s.levers = parse_inference_levers(text);
-  } catch (const Error&) {
-    throw std::invalid_argument("expected none or a list of fold, channels-last, gemm-up, bf16, onednn");
-  }
-}
-std::string bench_levers_text(const BenchOptions& s) { return inference_levers_text(s.levers); }
-
 const FlagTable<BenchOptions>& bench_flags() {
   using S = BenchOptions;
   static const FlagTable<S> rows = {
       {"repeats", &S::repeats, "timed runs per row", 1, 1e6, "at least 1"},
       {"warmup", &S::warmup, "untimed runs before them", 0, 1e6, "0 or more"},
-      {"levers", FlagText<S>{set_bench_levers, bench_levers_text},
+      {"levers", FlagText<S>{set_levers_of<S, &S::levers>, levers_text_of<S, &S::levers>},
        "inference levers for infer_*: none, or a list of fold, channels-last, gemm-up, bf16, onednn (onednn: with "
        "bf16)"},
   };

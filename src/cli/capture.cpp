@@ -193,7 +193,8 @@ struct LiveSettings {
 const FlagTable<LiveSettings>& live_flags() {
   using S = LiveSettings;
   static const FlagTable<S> rows = {
-      {"lambda", &S::lambda, "Tikhonov regulariser (0: the camera file's)"},
+      {"lambda", &S::lambda, "Tikhonov regulariser (0: the camera file's)", 1e-12, 1e6,
+       "a positive regulariser (leave it out for the camera file's)"},
       {"frames", &S::frames, "stop after this many frames (0: until Esc, q or Ctrl-C)", 0, 1e12,
        "0 (no limit) or more"},
       {"seconds", &S::seconds, "stop after this long (0: no limit)", 0, 1e7, "0 (no limit) or more"},

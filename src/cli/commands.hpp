@@ -10,6 +10,7 @@
 #include "io/option_table.hpp"
 #include "core/output_dir.hpp"
 #include "core/precision.hpp"
+#include "nn/generator.hpp"
 #include "nn/lpips.hpp"
 
 namespace flatnet {
@@ -102,6 +103,20 @@ std::vector<std::string> row_flag_settings(const cxxopts::ParseResult& r, const 
     sets.push_back(prefix + f.key + "=" + (is_switch ? std::string("true") : r[f.flag].template as<std::string>()));
   }
   return sets;
+}
+
+// The --levers row's reader and writer for a struct whose member M holds the levers (infer's spec,
+// bench's options): the text parse_inference_levers reads, whose errors name the flag; the
+// self-ensemble, not a speed-up, keeps its own switch.
+template <class S, InferenceLevers S::*M>
+void set_levers_of(S& s, const std::string& text) {
+  const bool self_ensemble = (s.*M).self_ensemble;
+  s.*M = parse_inference_levers(text);
+  (s.*M).self_ensemble = self_ensemble;
+}
+template <class S, InferenceLevers S::*M>
+std::string levers_text_of(const S& s) {
+  return inference_levers_text(s.*M);
 }
 
 // Shared flag handling.

@@ -48,7 +48,6 @@ namespace {
 // name and the user gave it; a row's number is checked by its own range (cli/flag_rows.hpp).
 const std::vector<NumberRule>& number_rules() {
   static const std::vector<NumberRule> rules = {
-      {"lambda", 1e-12, 1e6, "a positive regulariser (leave it out for the camera file's)"},
       {"exposure", 1e-6, 1e6, "a positive factor"},
   };
   return rules;

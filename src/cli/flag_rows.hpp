@@ -33,7 +33,9 @@ namespace flatnet::cli {
 // A setting its own functions read and show (an enum's name, on|off, a list).
 template <class S>
 struct FlagText {
-  void (*set)(S& s, const std::string& text);  // throws std::invalid_argument(what is wrong) on a bad text
+  // Throws std::invalid_argument(what is wrong) on a bad text, shown after the flag; a library
+  // reader's Error (which names its option key, shown as the flag) passes as it is.
+  void (*set)(S& s, const std::string& text);
   std::string (*get)(const S& s);
 };
 

@@ -17,7 +17,8 @@ const FlagTable<ReconstructorSpec>& recon_method_flags() {
   using S = ReconstructorSpec;
   static const FlagTable<S> rows = {
       {"method", &S::method, "tikhonov | tv"},
-      {"lambda", &S::lambda, "regularisation weight (0: the camera file's)"},
+      {"lambda", &S::lambda, "regularisation weight (0: the camera file's)", 1e-12, 1e6,
+       "a positive regulariser (leave it out for the camera file's)"},
   };
   return rows;
 }

@@ -19,6 +19,17 @@
 
 namespace flatnet::cli {
 
+namespace {
+
+const FlagTable<DistributedOptions>& distributed_flags() {
+  static const FlagTable<DistributedOptions> rows = {
+      {"dist-timeout", &DistributedOptions::timeout_s, "seconds a collective may wait before the job fails"},
+  };
+  return rows;
+}
+
+}  // namespace
+
 int train(int argc, char** argv) {
   cxxopts::Options o("flatnet train", "Train a FlatNet reconstruction network (GAN, FlatNet-sep).");
   o.add_options()("config", "experiment config (configs/*.yaml); defaults.yaml alone when absent",
@@ -45,11 +56,8 @@ int train(int argc, char** argv) {
       "world-size", "processes in the job", cxxopts::value<int>())(
       "rank", "this process, 0..world-size-1", cxxopts::value<int>())("master-addr", "host of rank 0 (rendezvous)",
                                                                       cxxopts::value<std::string>())(
-      "master-port", "TCP port of the rendezvous on rank 0", cxxopts::value<int>())(
-      "dist-timeout",
-      "seconds a collective may wait before the job fails (default: " +
-          std::to_string(static_cast<int>(DistributedOptions{}.timeout_s)) + ")",
-      cxxopts::value<double>());
+      "master-port", "TCP port of the rendezvous on rank 0", cxxopts::value<int>());
+  add_flags(o, distributed_flags(), "distributed (defaults: torchrun's WORLD_SIZE, RANK, MASTER_ADDR, MASTER_PORT)");
   add_common(o);
   cxxopts::ParseResult r;
   if (!parse(o, argc, argv, r)) return 0;
@@ -76,7 +84,7 @@ int train(int argc, char** argv) {
   if (r.count("rank")) dist.rank = r["rank"].as<int>();
   if (r.count("master-addr")) dist.master_addr = r["master-addr"].as<std::string>();
   if (r.count("master-port")) dist.master_port = r["master-port"].as<int>();
-  if (r.count("dist-timeout")) dist.timeout_s = r["dist-timeout"].as<double>();
+  read_flags(r, distributed_flags(), dist);
   // Rank 0 writes the run folder: it claims it (one run at a time; never a folder of other output).
   // A --resume with nothing to resume is refused before the folder is touched.
   OutputClaim claim;
@@ -224,21 +232,10 @@ const FlagTable<InferEngine>& infer_engine_flags() {
   return rows;
 }
 
-void set_levers(ReconstructorSpec& s, const std::string& text) {
-  try {
-    const auto self_ensemble = s.levers.self_ensemble;
-    s.levers = parse_inference_levers(text);
-    s.levers.self_ensemble = self_ensemble;
-  } catch (const Error&) {
-    throw std::invalid_argument("expected none or a list of fold, channels-last, gemm-up, onednn");
-  }
-}
-std::string levers_text(const ReconstructorSpec& s) { return inference_levers_text(s.levers); }
-
 const FlagTable<ReconstructorSpec>& infer_flags() {
   using S = ReconstructorSpec;
   static const FlagTable<S> rows = {
-      {"levers", FlagText<S>{set_levers, levers_text},
+      {"levers", FlagText<S>{set_levers_of<S, &S::levers>, levers_text_of<S, &S::levers>},
        "exact inference speed-ups: none, or a list of fold, channels-last, gemm-up, onednn (bf16 and onednn: see "
        "--precision)"},
       {"data-consistency", &S::data_consistency,
