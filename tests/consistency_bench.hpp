@@ -4,6 +4,7 @@
 #include <torch/torch.h>
 
 #include "io/camera_config.hpp"
+#include "nn/generator.hpp"
 #include "optics/camera.hpp"
 
 namespace flatnet::test {
@@ -24,5 +25,16 @@ struct SmallCamera {
     camera.tikhonov_lambda = 1e-2;
   }
 };
+
+// A small random FlatNet generator for this camera: random first stage, a U-Net of width 2.
+inline Generator small_generator() {
+  torch::manual_seed(3);
+  GeneratorOptions o;
+  o.rows = kBenchRows, o.cols = kBenchCols, o.scene = kBenchScene;
+  o.inversion.phil = torch::randn({kBenchRows, kBenchScene, 1}) * 0.2;
+  o.inversion.phir = torch::randn({kBenchCols, kBenchScene, 1}) * 0.2;
+  o.unet.width = 2;
+  return Generator(o);
+}
 
 }  // namespace flatnet::test

@@ -32,16 +32,6 @@ struct Bench : test::SmallCamera {
   }
 };
 
-Generator tiny_generator() {
-  torch::manual_seed(3);
-  GeneratorOptions o;
-  o.rows = kRows, o.cols = kCols, o.scene = kScene;
-  o.inversion.phil = torch::randn({kRows, kScene, 1}) * 0.2;
-  o.inversion.phir = torch::randn({kCols, kScene, 1}) * 0.2;
-  o.unet.width = 2;
-  return Generator(o);
-}
-
 AdaptationOptions quick(double anchor) {
   AdaptationOptions o;
   o.steps = 100, o.batch = 3, o.lr = 3e-3, o.anchor = anchor, o.brightness = 0;
@@ -54,7 +44,7 @@ TEST_CASE("test-time adaptation lowers the captures' disagreement, and its ancho
           "[recon][adaptation]") {
   Bench b;
   const DataConsistency measure(b.calib, b.camera, {});
-  auto free = tiny_generator();
+  auto free = test::small_generator();
   free->eval();  // as adaptation runs it: a forward pass in training mode would move the batch norms
   const auto before = free->forward(torch::stack(b.captures)).detach();
   std::map<std::string, torch::Tensor> first_stage;  // the camera's own inversion: never adapted
@@ -76,13 +66,13 @@ TEST_CASE("test-time adaptation lowers the captures' disagreement, and its ancho
     g->eval();
     return (g->forward(torch::stack(b.captures)).mean() / before.mean() - 1).abs().item<double>();
   };
-  auto steady = tiny_generator();
+  auto steady = test::small_generator();
   auto o = quick(0);
   o.brightness = 1e3;
   adapt_to_captures(steady, b.captures, measure, o);
   CHECK(drift_of(steady) < 0.5 * drift_of(free));
 
-  auto held = tiny_generator();
+  auto held = test::small_generator();
   const auto anchored = adapt_to_captures(held, b.captures, measure, quick(1e6));
   CHECK(anchored.distance < 0.5 * loose.distance);
   CHECK(std::abs(anchored.disagreement_before - loose.disagreement_before) < 1e-9);  // the same start

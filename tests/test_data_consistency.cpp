@@ -1,12 +1,15 @@
 // The data-consistency step (recon/data_consistency.hpp, eq. 1): a picture the capture fully explains
 // is left as it is, whatever the exposure; a picture that misses the scene's colour is moved toward
 // the truth; a capture with no usable exposure keeps the network's picture; bad strengths are named.
+// As a layer (model.consistency) it is differentiable, finite on black pixels, and a generator
+// trains through it on whole scenes.
 #include "catch_torch.hpp"
 
 #include "consistency_bench.hpp"
 #include "io/camera_config.hpp"
 #include "io/image.hpp"
 #include "recon/data_consistency.hpp"
+#include "train/gan_trainer.hpp"
 
 using namespace flatnet;
 using Catch::Matchers::Contains;
@@ -99,4 +102,50 @@ TEST_CASE("a picture's disagreement with its capture: none when the capture expl
   CHECK(d.item<double>() > 0.01);
   d.sum().backward();  // differentiable in the picture
   CHECK(washed.grad().abs().sum().item<double>() > 0);
+}
+
+TEST_CASE("the data-consistency layer: the step's pictures, a finite gradient on black pixels",
+          "[recon][consistency]") {
+  Bench b;
+  const DataConsistency step(b.calib, b.camera, {3.0, 1.0});
+  const auto y = b.capture(b.rgb, 2.0);
+  auto picture = linear_to_srgb(0.5 * b.rgb);
+  picture.narrow(3, 0, 5).zero_();  // black columns: the display curve's slope is infinite at 0
+  picture.requires_grad_(true);
+  const auto layer = step.correct(y, picture);
+  CHECK(torch::allclose(layer.detach(), step(y, picture.detach()), 0, 1e-6));
+  layer.square().sum().backward();
+  CHECK(torch::isfinite(picture.grad()).all().item<bool>());
+  CHECK(picture.grad().abs().sum().item<double>() > 0);
+}
+
+TEST_CASE("a generator trains through the data-consistency layer, on whole scenes only", "[train][consistency]") {
+  Bench b;
+  const DataConsistency layer(b.calib, b.camera, {3.0, 0.0});
+  auto gen = at::detail::createCPUGenerator(5);
+  const auto scenes = 0.1 + 0.8 * at::rand({2, 3, kScene, kScene}, gen).to(torch::kFloat64);
+  std::vector<torch::Tensor> meas;
+  for (int64_t i = 0; i < 2; ++i) meas.push_back(b.capture(scenes[i].unsqueeze(0), 1.0)[0]);
+  const Batch batch{torch::stack(meas), linear_to_srgb(scenes).to(torch::kFloat32), 0};  // {2,4,h,w}, {2,3,N,N}
+  auto g = test::small_generator();
+  Discriminator d(DiscriminatorOptions{});
+  Vgg16Features none(nullptr);
+  torch::optim::Adam opt_g(g->parameters(), 3e-3), opt_d(d->parameters(), 1e-3);
+  TrainOptions t;
+  t.w_mse = 1, t.w_ssim = 0, t.w_perceptual = 0, t.w_adversarial = 0, t.crop = 0, t.bf16 = false;
+  const auto first = gan_step(g, d, none, opt_g, opt_d, t, batch, 0, nullptr, &layer).mse;
+  double last = first;
+  for (int64_t step = 1; step < 40; ++step)
+    last = gan_step(g, d, none, opt_g, opt_d, t, batch, step, nullptr, &layer).mse;
+  INFO(first << " -> " << last);
+  CHECK(std::isfinite(last));
+  CHECK(last < 0.7 * first);
+  // What the losses saw is the corrected picture: validation scores it the same way.
+  std::vector<Sample> val(2);
+  for (int64_t i = 0; i < 2; ++i) val[i].meas = batch.meas[i], val[i].gt = batch.gt[i];
+  const auto with = validate(g, val, 2, {}, 0, &layer), without = validate(g, val, 2, {}, 0);
+  CHECK(with.psnr != Approx(without.psnr));
+  // The correction needs the whole scene: a crop is refused, naming the setting.
+  t.crop = 8;
+  CHECK_THROWS_WITH(gan_step(g, d, none, opt_g, opt_d, t, batch, 40, nullptr, &layer), Contains("train.crop"));
 }

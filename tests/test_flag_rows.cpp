@@ -114,7 +114,18 @@ TEST_CASE("every command's flags agree with their structs, and no flag default i
     CHECK(listed.code == 0);
   }
   r = test::run_flatnet("options --for infer --markdown");
-  CHECK_THAT(r.output, Contains("| `--adapt-steps` | `0` |") && Contains("| `--batch` | `4` | 1 to 4096 per batch |"));
+  CHECK_THAT(r.output, Contains("| `--adapt-steps` | `0` |") && Contains("| `--batch` | `4` | 1 to 4096 per batch |") &&
+                           Contains("| `--data-consistency` | `model` |") &&
+                           Contains("| `--consistency-blur` | `model` |"));
+  // The data-consistency step: the model's own unless given; off, or a number in range.
+  const auto infer = "infer --model " + test::q(test::source_dir() / "models" / "flatnet-sim-transpose.flatnet") +
+                     " --input /nonexistent --out /nonexistent ";
+  r = test::run_flatnet(infer + "--data-consistency mdel");
+  CHECK(r.code == 2);
+  CHECK_THAT(r.output, Contains("--data-consistency") && Contains("'mdel'") && Contains("model, off, or a strength"));
+  r = test::run_flatnet(infer + "--consistency-blur 65");
+  CHECK(r.code == 2);
+  CHECK_THAT(r.output, Contains("--consistency-blur") && Contains("out of range"));
   r = test::run_flatnet("options --for warp");
   CHECK(r.code == 2);
   CHECK_THAT(r.output, Contains("'warp' is no command with flags") && Contains("mask camera"));

@@ -668,7 +668,7 @@ TEST_CASE("every setting of the defaults files is bound by an option table's row
   const auto configs = test::source_dir() / "configs";
   // Rows name their keys for errors and make path keys; a member no row binds is a programming error.
   CHECK(train_key(&TrainOptions::crop) == "train.crop");
-  CHECK(model_key(&ModelSpec::unet_width) == "model.unet.width");
+  CHECK(model_key<&ModelSpec::unet, &UNetOptions::width>() == "model.unet.width");
   CHECK(data_key(&DataOptions::camera) == "data.camera");
   CHECK(discriminator_key(&DiscriminatorOptions::width) == "discriminator.width");
   CHECK_THROWS_AS(train_key(&TrainOptions::bf16), std::logic_error);

@@ -19,8 +19,8 @@ TEST_CASE("a model spec reads back from its YAML as it was written", "[model][co
                         "model.level_input=true", "model.inversion.shared=false", "model.inversion.seed=7"});
   const auto spec = model_spec(config);
   CHECK(spec.enhancer == "nafnet");
-  CHECK(spec.nafnet_width == 8);
-  CHECK(spec.nafnet_dec_blocks == 2);
+  CHECK(spec.nafnet.width == 8);
+  CHECK(spec.nafnet.dec_blocks == 2);
   CHECK(spec.inversion_slope == 1.887);
   CHECK(spec.bn_momentum == 0.1);
   CHECK(spec.level_input);
@@ -58,10 +58,10 @@ TEST_CASE("an older file's training config converts to a spec: its other section
       "  inversion:\n    init: transpose\n    shared: true\n    channel: gb\n"
       "train:\n  batch: 8\n  renamed_key: 3\nloss:\n  mse: 1.0\n";
   const auto spec = parse_model_spec(old, "old.flatnet", /*strict=*/false);
-  CHECK(spec.unet_width == 32);
+  CHECK(spec.unet.width == 32);
   CHECK(spec.inversion_init == "transpose");
   CHECK_FALSE(spec.level_input);  // the default of a key the file predates
-  CHECK(spec.nafnet_width == 16);
+  CHECK(spec.nafnet.width == 16);
   CHECK(spec.bn_momentum == 0.99);
 }
 
@@ -84,7 +84,7 @@ TEST_CASE("the shipped models read without training defaults, and rewritten give
     INFO(name);
     const auto file = test::source_dir() / "models" / (std::string(name) + ".flatnet");
     auto m = load_model_file(file);
-    CHECK(m.spec.unet_width == 32);
+    CHECK(m.spec.unet.width == 32);
     CHECK(m.spec.level_input);
     // The calibration-free model's first stage starts from the transposes of a camera identified from its
     // training pairs (its card), with slower batch-norm statistics.

@@ -17,6 +17,7 @@
 #include "io/image.hpp"
 #include "io/raw.hpp"
 #include "nn/model_file.hpp"
+#include "recon/data_consistency.hpp"
 #include "recon/reconstructor.hpp"
 #include "recon/tikhonov.hpp"
 #include "recon/batch.hpp"
@@ -424,4 +425,34 @@ TEST_CASE("whatever lies behind a model's recorded camera is passed over, never 
     CHECK(fit == nullptr);
     CHECK_THAT(why, Contains("names no calibration"));
   }
+}
+
+TEST_CASE("a model trained with the data-consistency layer applies it at inference unless told otherwise",
+          "[recon][interface][consistency]") {
+  ModelSpec trained, plain;
+  trained.consistency_strength = 10, trained.consistency_blur = 1;
+  ReconstructorSpec spec;  // the model's own, by default
+  CHECK(consistency_of(spec, trained).strength == 10);
+  CHECK(consistency_of(spec, trained).blur == 1);
+  CHECK(consistency_of(spec, plain).strength == 0);  // a model trained without it: none
+  spec.data_consistency = 0;                         // off
+  CHECK(consistency_of(spec, trained).strength == 0);
+  spec.data_consistency = 3, spec.consistency_blur = 0;  // the user's, over the model's
+  CHECK(consistency_of(spec, trained).strength == 3);
+  CHECK(consistency_of(spec, trained).blur == 0);
+  spec.consistency_blur = ReconstructorSpec::kModelsOwn;  // a strength for a plain model: no blur of its own
+  CHECK(consistency_of(spec, plain).blur == 0);
+  // End to end: the model file records it, and the engine applies it.
+  test::Scratch s("model_consistency");
+  auto m = load_model_file(test::source_dir() / "models" / "flatnet-sim-transpose.flatnet");
+  auto identity = model_identity(m);
+  identity.spec.consistency_strength = 10, identity.spec.consistency_blur = 1;
+  save_model_file(s.dir / "dc.flatnet", m.generator, identity);
+  ReconstructorSpec own;
+  own.method = "flatnet";
+  own.use_camera = false;
+  own.model = s.dir / "dc.flatnet";
+  const auto built = make_reconstructor(own);
+  CHECK(built.corrected);
+  CHECK_THAT(built.engine->describe(), Contains("data consistency (c 10"));
 }

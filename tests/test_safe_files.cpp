@@ -321,7 +321,7 @@ TEST_CASE("a model file's spec is checked against its weights before the network
                     Contains("old-wide.flatnet") && Contains("model.unet.width = 4096 disagrees with the weights"));
   // The training config is a record beside a stored spec: a width written there is not read.
   tamper("recipe.flatnet", "config", "width: 2\n", "width: 4096\n");
-  CHECK(load_model_file(s.dir / "recipe.flatnet").spec.unet_width == 2);
+  CHECK(load_model_file(s.dir / "recipe.flatnet").spec.unet.width == 2);
   tamper("future.flatnet", "model_spec", "unet:\n", "warp: 9\n  unet:\n");
   CHECK_THROWS_WITH(load_model_file(s.dir / "future.flatnet"),
                     Contains("future.flatnet") && Contains("model.warp") && Contains("newer"));

@@ -147,6 +147,7 @@ int info(int argc, char** argv) {
         {"first_stage", first_stage_text(spec)},
         {"enhancer", enhancer_text(spec)},
         {"level_input", spec.level_input},
+        {"consistency", {{"strength", spec.consistency_strength}, {"blur", spec.consistency_blur}}},
         {"parameters", parameters},
         {"camera", {{"name", cam.name}, {"crop", {cam.raw.crop[2], cam.raw.crop[3]}}, {"scene", cam.scene_size}}},
         {"losses", join_nonzero_losses(m)},
@@ -173,8 +174,8 @@ int info(int argc, char** argv) {
   line("kind", std::string(checkpoint ? "training checkpoint" : "model file") + ", format " +
                    std::to_string(m.format_version) + (checkpoint && average ? " (its moving average shown)" : ""));
   line("model", first_stage_text(spec) + " -> " + enhancer_text(spec) +
-                    (spec.level_input ? ", light level as input" : "") + "; " + std::to_string(parameters) +
-                    " parameters");
+                    (spec.level_input ? ", light level as input" : "") + consistency_text(spec) + "; " +
+                    std::to_string(parameters) + " parameters");
   line("camera", cam.name + ": " + std::to_string(cam.raw.crop[2]) + "x" + std::to_string(cam.raw.crop[3]) +
                      " measurement -> " + std::to_string(cam.scene_size) + "x" + std::to_string(cam.scene_size) +
                      " scene (" + data_key(&DataOptions::camera) + " " +

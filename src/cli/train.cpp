@@ -164,6 +164,10 @@ int export_model(int argc, char** argv) {
     m.provenance.scores = recorded_scores(r["scores"].as<std::vector<std::string>>(),
                                           r.count("method") ? r["method"].as<std::string>() : "");
   if (average) std::cerr << "exporting the moving average of the weights (train.ema_decay)\n";
+  if (m.spec.consistency_strength > 0 && (r.count("onnx") || r.count("state-dict") || r.count("flatnet-checkpoint")))
+    std::cerr << "warning: this model was trained with its pictures corrected by their captures (model.consistency); "
+                 "the exported network does not hold that step (recon/data_consistency.hpp: apply it after the "
+                 "network, through the camera's calibration)\n";
   if (r.count("onnx")) {
     const auto rep = export_onnx(out, m.generator, m.camera);
     std::cout << "wrote ONNX " << out.string() << " (" << rep.nodes << " nodes, " << rep.initializers
@@ -232,19 +236,45 @@ const FlagTable<InferEngine>& infer_engine_flags() {
   return rows;
 }
 
+// --data-consistency model|off|C and --consistency-blur model|S: the model's own unless given.
+constexpr const char* kModelsOwnText = "model";
+double model_or_number(const std::string& text, const NumberRule& rule) {
+  if (text == kModelsOwnText) return ReconstructorSpec::kModelsOwn;
+  const auto problem = number_problem(text, rule);
+  if (!problem.empty()) throw std::invalid_argument(problem + ": " + rule.meaning);
+  return std::stod(text);
+}
+std::string model_or_number_text(double value) {
+  if (value == ReconstructorSpec::kModelsOwn) return kModelsOwnText;
+  std::ostringstream s;
+  s << value;
+  return s.str();
+}
+void set_consistency_strength(ReconstructorSpec& s, const std::string& text) {
+  s.data_consistency =
+      text == "off" ? 0 : model_or_number(text, {"data-consistency", 0, 1e3, "model, off, or a strength in (0, 1000]"});
+}
+std::string consistency_strength_text(const ReconstructorSpec& s) {
+  return s.data_consistency == 0 ? "off" : model_or_number_text(s.data_consistency);
+}
+void set_consistency_blur(ReconstructorSpec& s, const std::string& text) {
+  s.consistency_blur = model_or_number(text, {"consistency-blur", 0, 64, "model, or 0 (none) to 64 scene pixels"});
+}
+std::string consistency_blur_text(const ReconstructorSpec& s) { return model_or_number_text(s.consistency_blur); }
+
 const FlagTable<ReconstructorSpec>& infer_flags() {
   using S = ReconstructorSpec;
   static const FlagTable<S> rows = {
       {"levers", FlagText<S>{set_levers_of<S, &S::levers>, levers_text_of<S, &S::levers>},
        "exact inference speed-ups: none, or a list of fold, channels-last, gemm-up, onednn (bf16 and onednn: see "
        "--precision)"},
-      {"data-consistency", &S::data_consistency,
+      {"data-consistency", FlagText<S>{set_consistency_strength, consistency_strength_text},
        "C > 0: correct each picture by its capture where the camera measures it well (Tikhonov on the picture's "
-       "residual, regulariser C^2 tikhonov_lambda; 10 for the shipped models, docs/evaluation.md); 0: off",
-       0, 1e3, "0 (off) or a strength in (0, 1000]"},
-      {"consistency-blur", &S::consistency_blur,
-       "sigma (scene pixels) of a Gaussian on that correction: its coarse part alone (0: none)", 0, 64,
-       "0 (none) to 64 scene pixels"},
+       "residual, regulariser C^2 tikhonov_lambda; 10 for the shipped models, docs/evaluation.md); off; model: the "
+       "model's own (a model trained with the step, model.consistency, applies it; others do not)"},
+      {"consistency-blur", FlagText<S>{set_consistency_blur, consistency_blur_text},
+       "sigma (scene pixels, 0 to 64) of a Gaussian on that correction: its coarse part alone (0: none); model: the "
+       "model's own (0 for a model trained without the step)"},
   };
   return rows;
 }
@@ -306,7 +336,7 @@ ReconstructorSpec infer_spec(const cxxopts::ParseResult& r, const std::string& e
   spec.levers.self_ensemble = r.count("self-ensemble") > 0;
   require(!spec.levers.self_ensemble || engine == "libtorch", "--self-ensemble",
           "runs on the libtorch engine (an ONNX file holds the plain model)");
-  require(spec.data_consistency == 0 || engine == "libtorch", "--data-consistency",
+  require(spec.data_consistency <= 0 || engine == "libtorch", "--data-consistency",
           "runs on the libtorch engine (an ONNX file carries no calibration)");
   spec.adapt.bf16 = spec.levers.bf16;
   check_adaptation_options(spec.adapt);
@@ -319,7 +349,7 @@ ReconstructorSpec infer_spec(const cxxopts::ParseResult& r, const std::string& e
 std::string infer_settings(const ReconstructorSpec& spec) {
   std::ostringstream settings;
   settings << "model " << file_fingerprint(spec.model);
-  if (spec.data_consistency > 0)
+  if (spec.data_consistency != ReconstructorSpec::kModelsOwn || spec.consistency_blur != ReconstructorSpec::kModelsOwn)
     settings << " data-consistency " << spec.data_consistency << " blur " << spec.consistency_blur;
   if (spec.adapt.steps > 0)
     settings << " adapt " << spec.adapt.steps << " lr " << spec.adapt.lr << " anchor " << spec.adapt.anchor
@@ -353,7 +383,7 @@ int infer(int argc, char** argv) {
   const auto claim = claim_out(r, opt.out, "infer", infer_settings(spec));
   if (engine == "opencv")
     std::cerr << "engine: " << built.engine->describe() << " (--levers and --precision apply to libtorch)\n";
-  if (spec.data_consistency > 0) std::cerr << "engine: " << built.engine->describe() << "\n";
+  if (built.corrected) std::cerr << "engine: " << built.engine->describe() << "\n";
   if (!built.adaptation.empty()) std::cerr << "adaptation: " << built.adaptation << "\n";
   opt.fit = built.fit.get();
   require(!opt.require_fit || opt.fit, "--require-fit", "cannot judge the captures: " + built.no_fit);

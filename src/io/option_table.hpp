@@ -11,8 +11,11 @@
 // The tables live beside the structs' readers: nn/model_spec (the model's), train/options (the
 // trainers', the light augmentation's, co-design's, the mask's and its camera's).
 #include <cstdint>
+#include <cstdlib>
 #include <filesystem>
+#include <iomanip>
 #include <limits>
+#include <sstream>
 #include <stdexcept>
 #include <string>
 #include <type_traits>
@@ -29,6 +32,21 @@ struct Choice {
   void (*read)(const Config& c, const std::string& key, S& s);  // fills the member; errors name `key`
   std::string (*text)(const S& s) = nullptr;  // the member as comparable text (none: not compared, as paths)
   bool path = false;                          // the value may name a file (resolved against the file that set it)
+};
+
+// A member of a member struct (ModelSpec's unet.width is UNetOptions::width of ModelSpec::unet): a
+// Choice whose reader and text reach s.*Outer.*Inner, so the inner struct is held whole and its
+// defaults are its own. key_of finds its row by nested_member<Outer, Inner>'s reader.
+template <auto Outer, auto Inner>
+struct NestedMember {
+  template <class S>
+  static auto& of(S& s) {
+    return (s.*Outer).*Inner;
+  }
+  template <class S>
+  static void read(const Config& c, const std::string& key, S& s);
+  template <class S>
+  static std::string text(const S& s);
 };
 
 template <class S>
@@ -81,6 +99,16 @@ std::string key_of(const std::vector<OptionField<S>>& fields, T Base::*member, c
   return key_of(fields, static_cast<T S::*>(member), prefix);
 }
 
+// A nested member's key (key_of for s.*Outer.*Inner): model_key's nested form calls this.
+template <auto Outer, auto Inner, class S>
+std::string nested_key_of(const std::vector<OptionField<S>>& fields, const std::string& prefix = "") {
+  for (const auto& f : fields)
+    if (const auto* c = std::get_if<Choice<S>>(&f.member);
+        c && c->read == &NestedMember<Outer, Inner>::template read<S>)
+      return prefix + f.key;
+  throw std::logic_error("option table: no row binds this nested member");
+}
+
 // One member from its key (a missing key or a value of the wrong kind is an error naming the key).
 template <class T>
 void read_member(const Config& c, const std::string& key, T& member) {
@@ -98,6 +126,42 @@ void read_member(const Config& c, const std::string& key, T& member) {
     member = c.str(key);
   else
     member = c.path(key);
+}
+
+template <auto Outer, auto Inner>
+template <class S>
+void NestedMember<Outer, Inner>::read(const Config& c, const std::string& key, S& s) {
+  read_member(c, key, of(s));
+}
+
+// A member's value as the text a config holds: numbers exactly (a double to the digits that read back).
+template <class T>
+std::string member_text(const T& value) {
+  if constexpr (std::is_same_v<T, bool>) {
+    return value ? "true" : "false";
+  } else if constexpr (std::is_integral_v<T>) {
+    return std::to_string(value);
+  } else if constexpr (std::is_floating_point_v<T>) {
+    for (int digits = 6;; ++digits) {  // the shortest text that reads back (17 digits always do)
+      std::ostringstream os;
+      os << std::setprecision(digits) << value;
+      if (digits >= 17 || std::strtod(os.str().c_str(), nullptr) == value) return os.str();
+    }
+  } else {
+    return std::filesystem::path(value).string();
+  }
+}
+
+template <auto Outer, auto Inner>
+template <class S>
+std::string NestedMember<Outer, Inner>::text(const S& s) {
+  return member_text(of(s));
+}
+
+// The row binding s.*Outer.*Inner (a Choice<S>): {"unet.width", nested_member<&S::unet, &UNetOptions::width, S>()}.
+template <auto Outer, auto Inner, class S>
+Choice<S> nested_member() {
+  return Choice<S>{&NestedMember<Outer, Inner>::template read<S>, &NestedMember<Outer, Inner>::template text<S>};
 }
 
 // Fills every field of `s` from `c`, each key read as `prefix` + its row's key (a missing key or a

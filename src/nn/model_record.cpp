@@ -72,19 +72,19 @@ void check_sizes_against_weights(const ModelSpec& spec, const CameraConfig& came
   }
   const auto count = static_cast<int64_t>(g.size());
   if (spec.enhancer == "unet")
-    expect("enhancer.outc.conv.weight", 1, spec.unet_width, model_key(&ModelSpec::unet_width));
+    expect("enhancer.outc.conv.weight", 1, spec.unet.width, model_key<&ModelSpec::unet, &UNetOptions::width>());
   if (spec.enhancer == "dncnn") {
-    expect("enhancer.body.0.weight", 0, spec.dncnn_width, "model.dncnn.width");
-    require(spec.dncnn_layers <= count, path, "model.dncnn.layers exceeds the weights the file holds");
+    expect("enhancer.body.0.weight", 0, spec.dncnn.width, model_key<&ModelSpec::dncnn, &DnCNNOptions::width>());
+    require(spec.dncnn.layers <= count, path, "model.dncnn.layers exceeds the weights the file holds");
   }
   if (spec.enhancer == "rcan") {
-    expect("enhancer.head.weight", 0, spec.rcan_width, "model.rcan.width");
-    require(spec.rcan_groups * spec.rcan_blocks <= count, path,
+    expect("enhancer.head.weight", 0, spec.rcan.width, model_key<&ModelSpec::rcan, &RCANOptions::width>());
+    require(spec.rcan.groups * spec.rcan.blocks <= count, path,
             "model.rcan.groups x blocks exceeds the weights the file holds");
   }
   if (spec.enhancer == "nafnet") {
-    expect("enhancer.intro.weight", 0, spec.nafnet_width, "model.nafnet.width");
-    require(4 * (spec.nafnet_enc_blocks + spec.nafnet_dec_blocks) + spec.nafnet_middle_blocks <= count, path,
+    expect("enhancer.intro.weight", 0, spec.nafnet.width, model_key<&ModelSpec::nafnet, &NAFNetOptions::width>());
+    require(4 * (spec.nafnet.enc_blocks + spec.nafnet.dec_blocks) + spec.nafnet.middle_blocks <= count, path,
             "model.nafnet block counts exceed the weights the file holds");
   }
 }

@@ -32,17 +32,20 @@ const std::vector<OptionField<ModelSpec>>& model_spec_fields() {
       {"enhancer", &S::enhancer},
       {"level_input", &S::level_input},
       {"bn_momentum", &S::bn_momentum, 0, 1, "0 to 1"},
-      {"unet.width", &S::unet_width, 1, kWidths, "1 to 4096 filters"},
-      {"dncnn.layers", &S::dncnn_layers, 3, kCounts, "3 to 1000 layers"},
-      {"dncnn.width", &S::dncnn_width, 1, kWidths, "1 to 4096 filters"},
-      {"nafnet.width", &S::nafnet_width, 1, kWidths, "1 to 4096 channels"},
-      {"nafnet.enc_blocks", &S::nafnet_enc_blocks, 0, kCounts, "0 to 1000 blocks"},
-      {"nafnet.middle_blocks", &S::nafnet_middle_blocks, 0, kCounts, "0 to 1000 blocks"},
-      {"nafnet.dec_blocks", &S::nafnet_dec_blocks, 0, kCounts, "0 to 1000 blocks"},
-      {"rcan.groups", &S::rcan_groups, 1, kCounts, "1 to 1000"},
-      {"rcan.blocks", &S::rcan_blocks, 1, kCounts, "1 to 1000"},
-      {"rcan.width", &S::rcan_width, 1, kWidths, "1 to 4096 filters"},
-      {"rcan.reduction", &S::rcan_reduction, 1, kWidths, "1 to 4096"},
+      {"consistency.strength", &S::consistency_strength, 0, 1000, "0 (none) to 1000"},
+      {"consistency.blur", &S::consistency_blur, 0, 64, "0 (none) to 64 scene pixels"},
+      {"unet.width", nested_member<&S::unet, &UNetOptions::width, S>(), 1, kWidths, "1 to 4096 filters"},
+      {"dncnn.layers", nested_member<&S::dncnn, &DnCNNOptions::layers, S>(), 3, kCounts, "3 to 1000 layers"},
+      {"dncnn.width", nested_member<&S::dncnn, &DnCNNOptions::width, S>(), 1, kWidths, "1 to 4096 filters"},
+      {"nafnet.width", nested_member<&S::nafnet, &NAFNetOptions::width, S>(), 1, kWidths, "1 to 4096 channels"},
+      {"nafnet.enc_blocks", nested_member<&S::nafnet, &NAFNetOptions::enc_blocks, S>(), 0, kCounts, "0 to 1000 blocks"},
+      {"nafnet.middle_blocks", nested_member<&S::nafnet, &NAFNetOptions::middle_blocks, S>(), 0, kCounts,
+       "0 to 1000 blocks"},
+      {"nafnet.dec_blocks", nested_member<&S::nafnet, &NAFNetOptions::dec_blocks, S>(), 0, kCounts, "0 to 1000 blocks"},
+      {"rcan.groups", nested_member<&S::rcan, &RCANOptions::groups, S>(), 1, kCounts, "1 to 1000"},
+      {"rcan.blocks", nested_member<&S::rcan, &RCANOptions::blocks, S>(), 1, kCounts, "1 to 1000"},
+      {"rcan.width", nested_member<&S::rcan, &RCANOptions::width, S>(), 1, kWidths, "1 to 4096 filters"},
+      {"rcan.reduction", nested_member<&S::rcan, &RCANOptions::reduction, S>(), 1, kWidths, "1 to 4096"},
   };
   return fields;
 }
@@ -82,7 +85,8 @@ std::map<std::string, std::string> spec_values(const ModelSpec& spec) {
         [&](auto member) {
           auto& text = out[std::string("model.") + f.key];
           if constexpr (std::is_same_v<decltype(member), Choice<ModelSpec>>) {
-            throw std::logic_error("model spec: a choice row cannot be written back as text");  // none today
+            if (!member.text) throw std::logic_error("model spec: a row without text cannot be written back");
+            text = member.text(spec);  // an enhancer's setting (nested_member)
           } else {
             write_text(text, spec.*member);
           }
@@ -214,19 +218,9 @@ GeneratorOptions generator_options(const ModelSpec& s, const CameraConfig& camer
   o.preprocessor.depth = s.preprocessor_depth;
   o.level_input = s.level_input;
   const int64_t enhancer_inputs = o.level_input ? 8 : 4;  // first stage (+ light level)
-  o.unet.in_channels = o.dncnn.in_channels = o.rcan.in_channels = o.nafnet.in_channels = enhancer_inputs;
   o.enhancer = parse_enhancer(s.enhancer);
-  o.unet.width = s.unet_width;
-  o.dncnn.layers = s.dncnn_layers;
-  o.dncnn.width = s.dncnn_width;
-  o.rcan.groups = s.rcan_groups;
-  o.rcan.blocks = s.rcan_blocks;
-  o.rcan.width = s.rcan_width;
-  o.rcan.reduction = s.rcan_reduction;
-  o.nafnet.width = s.nafnet_width;
-  o.nafnet.enc_blocks = s.nafnet_enc_blocks;
-  o.nafnet.middle_blocks = s.nafnet_middle_blocks;
-  o.nafnet.dec_blocks = s.nafnet_dec_blocks;
+  o.unet = s.unet, o.dncnn = s.dncnn, o.rcan = s.rcan, o.nafnet = s.nafnet;
+  o.unet.in_channels = o.dncnn.in_channels = o.rcan.in_channels = o.nafnet.in_channels = enhancer_inputs;
   o.unet.bn_momentum = o.bn_momentum;
   require(o.unet.width >= 1 && o.dncnn.width >= 1 && o.rcan.width >= 1 && o.nafnet.width >= 1, "config",
           "model widths must be positive");
@@ -263,15 +257,23 @@ DiscriminatorOptions discriminator_options(const Config& c) {
   return o;
 }
 
+std::string consistency_text(const ModelSpec& spec) {
+  if (spec.consistency_strength <= 0) return "";
+  std::ostringstream s;
+  s << ", pictures corrected by their captures (data consistency c " << spec.consistency_strength << ", blur "
+    << spec.consistency_blur << " px)";
+  return s.str();
+}
+
 std::string enhancer_text(const ModelSpec& s) {
   std::ostringstream os;
-  if (s.enhancer == "unet") os << "U-Net, width " << s.unet_width;
-  if (s.enhancer == "dncnn") os << "DnCNN, " << s.dncnn_layers << " layers of " << s.dncnn_width;
+  if (s.enhancer == "unet") os << "U-Net, width " << s.unet.width;
+  if (s.enhancer == "dncnn") os << "DnCNN, " << s.dncnn.layers << " layers of " << s.dncnn.width;
   if (s.enhancer == "rcan")
-    os << "RCAN, " << s.rcan_groups << " groups x " << s.rcan_blocks << " blocks of " << s.rcan_width;
+    os << "RCAN, " << s.rcan.groups << " groups x " << s.rcan.blocks << " blocks of " << s.rcan.width;
   if (s.enhancer == "nafnet")
-    os << "NAFNet, width " << s.nafnet_width << ", blocks " << s.nafnet_enc_blocks << "/" << s.nafnet_middle_blocks
-       << "/" << s.nafnet_dec_blocks;
+    os << "NAFNet, width " << s.nafnet.width << ", blocks " << s.nafnet.enc_blocks << "/" << s.nafnet.middle_blocks
+       << "/" << s.nafnet.dec_blocks;
   return os.str();
 }
 

@@ -31,19 +31,31 @@ struct ModelSpec {
   std::string enhancer = "unet";                  // unet | dncnn | rcan | nafnet
   bool level_input = false;                       // the enhancer also reads each plane's light level
   double bn_momentum = 0.99;                      // PyTorch convention (FlatNet: 0.99)
-  int64_t unet_width = 128;
-  int64_t dncnn_layers = 19, dncnn_width = 64;
-  int64_t nafnet_width = 16, nafnet_enc_blocks = 1, nafnet_middle_blocks = 1, nafnet_dec_blocks = 1;
-  int64_t rcan_groups = 5, rcan_blocks = 10, rcan_width = 64, rcan_reduction = 16;
+  // The network's picture corrected by its capture through the camera's calibration
+  // (recon/data_consistency.hpp, eq. 1), in training and at inference: its strength c (0: none) and
+  // the correction's blur (scene pixels).
+  double consistency_strength = 0;
+  double consistency_blur = 0;
+  // The enhancers' own options, whole: the rows bind their sizes (unet.width, dncnn.layers, ...), the
+  // defaults are theirs; channels and batch-norm momentum are the generator's to set.
+  UNetOptions unet;
+  DnCNNOptions dncnn;
+  NAFNetOptions nafnet;
+  RCANOptions rcan;
 };
 
 // The schema's rows for the model section, keys relative to "model." ("unet.width").
 const std::vector<OptionField<ModelSpec>>& model_spec_fields();
 
-// A model row's config key: model_key(&ModelSpec::unet_width) is "model.unet.width".
+// A model row's config key: model_key(&ModelSpec::level_input) is "model.level_input", and an
+// enhancer's, model_key<&ModelSpec::unet, &UNetOptions::width>(), "model.unet.width".
 template <class T>
 std::string model_key(T ModelSpec::*member) {
   return key_of(model_spec_fields(), member, "model.");
+}
+template <auto Outer, auto Inner>
+std::string model_key() {
+  return nested_key_of<Outer, Inner>(model_spec_fields(), "model.");
 }
 
 // The spec a config's `model:` section describes (a value out of range or of the wrong kind: an
@@ -80,5 +92,7 @@ std::string discriminator_key(T DiscriminatorOptions::*member) {
 // what `flatnet info` and the model cards say a model is.
 std::string first_stage_text(const ModelSpec& spec);
 std::string enhancer_text(const ModelSpec& spec);
+// ", pictures corrected by their captures (data consistency c 10, blur 1 px)", or "" for a model without.
+std::string consistency_text(const ModelSpec& spec);
 
 }  // namespace flatnet

@@ -10,6 +10,10 @@
 
 namespace flatnet {
 
+namespace {
+constexpr double kDarkestLight = 1e-6;  // of display white: 0.004 of an 8-bit step after the curve
+}  // namespace
+
 DataConsistency::DataConsistency(const Calibration& calib, const CameraConfig& camera, DataConsistencyOptions o)
     : centring_(camera.raw.centring),
       P_(calib.P.to(torch::kFloat32)),
@@ -66,6 +70,10 @@ DataConsistency::Coefficients DataConsistency::coefficients(const torch::Tensor&
 
 torch::Tensor DataConsistency::operator()(const torch::Tensor& planes, const torch::Tensor& picture) const {
   c10::InferenceMode no_grad;
+  return correct(planes, picture);
+}
+
+torch::Tensor DataConsistency::correct(const torch::Tensor& planes, const torch::Tensor& picture) const {
   const auto X = to_planes(picture);  // {B,4,N,N}
   const auto c = coefficients(planes, X);
   // (1): the residual's coefficients through the regularised inverse, in the picture's units.
@@ -77,7 +85,9 @@ torch::Tensor DataConsistency::operator()(const torch::Tensor& planes, const tor
     correction = torch::conv2d(torch::reflection_pad2d(correction, {r, r, r, r}), blur_, torch::Tensor(), ones,
                                std::vector<int64_t>{0, 0}, ones, /*groups=*/4);
   }
-  const auto corrected = from_planes((X + correction).clamp_min(0));
+  // Light floored just above 0, not at it: the display curve's slope (x^(1/gamma), sRGB's x^(1/2.4))
+  // is infinite at 0, and a layer that trains must give a finite gradient on a black pixel.
+  const auto corrected = from_planes((X + correction).clamp_min(kDarkestLight));
   // A capture with no usable exposure (dark, or not this camera's) keeps the network's picture.
   return torch::where(c.usable.view({-1, 1, 1, 1}), corrected, picture.to(corrected.scalar_type()));
 }

@@ -36,6 +36,8 @@ class DataConsistency {
   DataConsistency(const Calibration& calib, const CameraConfig& camera, DataConsistencyOptions options);
   // planes {B,4,h,w} as loaded (light level included), picture {B,3,N,N} sRGB -> {B,3,N,N} sRGB.
   torch::Tensor operator()(const torch::Tensor& planes, const torch::Tensor& picture) const;
+  // The same, differentiable in the picture: the layer a model with model.consistency trains with.
+  torch::Tensor correct(const torch::Tensor& planes, const torch::Tensor& picture) const;
   // The share of singular pairs the capture dominates in (1), s_ij >= c sqrt(lambda) (mean over channels).
   double measured_share() const { return measured_share_; }
   double strength() const { return strength_; }

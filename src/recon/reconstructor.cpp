@@ -243,18 +243,31 @@ void check_capture_headers(const ReconstructorSpec& spec, const CameraConfig& ca
   if (!spec.first_capture.empty()) check_raw_header(spec.first_capture, camera.raw);
 }
 
+}  // namespace
+
+DataConsistencyOptions consistency_of(const ReconstructorSpec& spec, const ModelSpec& model) {
+  const bool own = spec.data_consistency == ReconstructorSpec::kModelsOwn;
+  DataConsistencyOptions o;
+  o.strength = own ? model.consistency_strength : spec.data_consistency;
+  o.blur = spec.consistency_blur != ReconstructorSpec::kModelsOwn ? spec.consistency_blur
+           : model.consistency_strength > 0                       ? model.consistency_blur
+                                                                  : 0;
+  return o;
+}
+
+namespace {
+
 // The measurement through the camera's calibration that data consistency and test-time adaptation
 // share: the given camera's, else the model's training camera's (named when neither is here).
 std::shared_ptr<const DataConsistency> measurement_of(const ReconstructorSpec& spec, const ModelFile& m,
-                                                      const CameraConfig& camera) {
+                                                      const CameraConfig& camera, DataConsistencyOptions o) {
   const auto own = spec.use_camera && !spec.camera.calibration.empty() ? spec.camera : training_camera(m);
-  require_option(!own.calibration.empty(), spec.data_consistency > 0 ? "infer.data_consistency" : "infer.adapt_steps",
+  require_option(!own.calibration.empty(), o.strength > 0 ? "infer.data_consistency" : "infer.adapt_steps",
                  "needs the camera's calibration: the model's training camera is not here (give --camera with a "
                  "camera file that names one)");
   auto dc_camera = own;
   dc_camera.raw.centring = camera.raw.centring;  // the planes arrive preprocessed as the model reads them
-  const DataConsistencyOptions o{spec.data_consistency > 0 ? spec.data_consistency : DataConsistencyOptions{}.strength,
-                                 spec.consistency_blur};
+  if (o.strength <= 0) o.strength = DataConsistencyOptions{}.strength;  // adaptation's measure alone
   return std::make_shared<const DataConsistency>(load_calibration(own.calibration, own), dc_camera, o);
 }
 
@@ -271,13 +284,16 @@ BuiltReconstructor build_flatnet(const ReconstructorSpec& spec) {
   auto m = load_model_file(spec.model);
   const auto camera = spec.use_camera ? spec.camera : m.camera;
   check_capture_headers(spec, camera);
-  const auto measure = spec.data_consistency > 0 || spec.adapt.steps > 0 ? measurement_of(spec, m, camera) : nullptr;
+  const auto consistency = consistency_of(spec, m.spec);
+  const bool corrects = consistency.strength > 0;
+  const auto measure = corrects || spec.adapt.steps > 0 ? measurement_of(spec, m, camera, consistency) : nullptr;
   const auto adaptation = spec.adapt.steps > 0 ? adapt_model(spec, m, camera, *measure) : std::string();
   BuiltReconstructor built{make_flatnet(m.generator, camera, spec.levers, "FlatNet " + spec.model.filename().string()),
                            camera, nullptr, ""};
   built.adaptation = adaptation;
   built.fit = model_camera_fit(m, built.no_fit);
-  if (spec.data_consistency > 0) built.engine = with_data_consistency(std::move(built.engine), measure);
+  if (corrects) built.engine = with_data_consistency(std::move(built.engine), measure);
+  built.corrected = corrects;
   if (spec.levers.self_ensemble && m.spec.inversion_init == "calibfree")
     built.warning =
         "the self-ensemble assumes an enhancer that works the same on a flipped image; a first stage started from "

@@ -61,10 +61,12 @@ struct ReconstructorSpec {
   std::filesystem::path model;        // flatnet (.flatnet), opencv (.onnx)
   InferenceLevers levers;             // flatnet
   // flatnet: > 0 corrects each picture by its capture where the calibration resolves it well
-  // (recon/data_consistency.hpp, strength c); the calibration is the given camera's, else the model's
-  // training camera's.
-  double data_consistency = 0;
-  double consistency_blur = 0;  // sigma of a Gaussian on that correction (scene pixels)
+  // (recon/data_consistency.hpp, strength c); 0: off; kModelsOwn: the model's own
+  // (model.consistency: off for a model trained without it). The calibration is the given camera's,
+  // else the model's training camera's.
+  static constexpr double kModelsOwn = -1;
+  double data_consistency = kModelsOwn;
+  double consistency_blur = kModelsOwn;  // sigma of a Gaussian on that correction (scene pixels)
   // flatnet: with adapt.steps > 0 the model is first adapted to these captures (recon/adaptation.hpp),
   // through the same calibration as data consistency.
   AdaptationOptions adapt;
@@ -87,7 +89,12 @@ struct BuiltReconstructor {
   // model is known to suffer from.
   std::string warning = "";
   std::string adaptation = "";  // test-time adaptation's summary ("" when none ran)
+  bool corrected = false;       // the pictures pass the data-consistency step (the engine describes it)
 };
+// The data-consistency step a FlatNet spec asks of a model with `model`'s spec: the model's own
+// (model.consistency) where the spec says kModelsOwn, else the spec's; strength 0: none.
+struct DataConsistencyOptions;  // recon/data_consistency.hpp
+DataConsistencyOptions consistency_of(const ReconstructorSpec& spec, const ModelSpec& model);
 // Errors name what is missing or wrong (an unknown method, no calibration, a model file that is
 // not one, a camera that does not match the model).
 BuiltReconstructor make_reconstructor(const ReconstructorSpec& spec);

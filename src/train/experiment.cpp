@@ -17,6 +17,7 @@
 #include "nn/model_file.hpp"
 #include "optics/camera.hpp"
 #include "optics/simulator.hpp"
+#include "recon/data_consistency.hpp"
 #include "train/options.hpp"
 #include "train/run_id.hpp"
 
@@ -38,10 +39,27 @@ LightAugment light_options(const Config& c) {
 
 // The width setting of the model's enhancer (what a user lowers when the model does not fit).
 std::string enhancer_width_key(const ModelSpec& spec) {
-  if (spec.enhancer == "dncnn") return model_key(&ModelSpec::dncnn_width);
-  if (spec.enhancer == "rcan") return model_key(&ModelSpec::rcan_width);
-  if (spec.enhancer == "nafnet") return model_key(&ModelSpec::nafnet_width);
-  return model_key(&ModelSpec::unet_width);
+  if (spec.enhancer == "dncnn") return model_key<&ModelSpec::dncnn, &DnCNNOptions::width>();
+  if (spec.enhancer == "rcan") return model_key<&ModelSpec::rcan, &RCANOptions::width>();
+  if (spec.enhancer == "nafnet") return model_key<&ModelSpec::nafnet, &NAFNetOptions::width>();
+  return model_key<&ModelSpec::unet, &UNetOptions::width>();
+}
+
+}  // namespace
+
+namespace {
+
+// model.consistency's layer through the training camera's calibration (none when it is 0).
+std::shared_ptr<const DataConsistency> consistency_layer(const ModelSpec& spec, const CameraConfig& camera,
+                                                         const TrainOptions& opts) {
+  if (spec.consistency_strength <= 0) return nullptr;
+  const auto key = model_key(&ModelSpec::consistency_strength);
+  require(opts.crop == 0, train_key(&TrainOptions::crop),
+          "must be 0 with " + key + ": the correction needs whole scenes");
+  require(!camera.calibration.empty(), key, "corrects through the camera's calibration, and data.camera names none");
+  return std::make_shared<const DataConsistency>(
+      load_calibration(camera.calibration, camera), camera,
+      DataConsistencyOptions{spec.consistency_strength, spec.consistency_blur});
 }
 
 }  // namespace
@@ -252,13 +270,13 @@ double training_bytes_per_sample(const ModelSpec& m, int64_t crop, const CameraC
   // floats per layer, channel and pixel (conv, batch norm, ReLU and their gradients).
   double floats = 0;
   if (m.enhancer == "dncnn")
-    floats = 8.0 * m.dncnn_layers * m.dncnn_width * pixels;
+    floats = 8.0 * m.dncnn.layers * m.dncnn.width * pixels;
   else if (m.enhancer == "rcan")
-    floats = 8.0 * 3 * m.rcan_groups * m.rcan_blocks * m.rcan_width * pixels;
+    floats = 8.0 * 3 * m.rcan.groups * m.rcan.blocks * m.rcan.width * pixels;
   else if (m.enhancer == "nafnet")  // ~40 floats per channel and pixel per block; each level has half the U-Net's
-    floats = 40.0 * m.nafnet_width * pixels * 2 * (m.nafnet_enc_blocks + m.nafnet_dec_blocks + 1);
+    floats = 40.0 * m.nafnet.width * pixels * 2 * (m.nafnet.enc_blocks + m.nafnet.dec_blocks + 1);
   else
-    floats = 34.0 * m.unet_width * pixels;
+    floats = 34.0 * m.unet.width * pixels;
   // The first stage: the measurement, W1^T Y and the scene, per Bayer plane, with gradients.
   const double rows = camera.raw.crop[2], cols = camera.raw.crop[3], n = camera.scene_size;
   floats += 3.0 * 4 * (rows * cols + n * cols + n * n);
@@ -275,13 +293,13 @@ double training_fixed_bytes(const ModelSpec& m, const CameraConfig& camera) {
   const auto square = [](double x) { return x * x; };
   double params = 0;
   if (m.enhancer == "dncnn")
-    params = 9.0 * m.dncnn_layers * square(m.dncnn_width);
+    params = 9.0 * m.dncnn.layers * square(m.dncnn.width);
   else if (m.enhancer == "rcan")
-    params = 2 * 9.0 * m.rcan_groups * m.rcan_blocks * square(m.rcan_width);
+    params = 2 * 9.0 * m.rcan.groups * m.rcan.blocks * square(m.rcan.width);
   else if (m.enhancer == "nafnet")
-    params = 31e6 * square(m.nafnet_width / 64.0);
+    params = 31e6 * square(m.nafnet.width / 64.0);
   else
-    params = 31e6 * square(m.unet_width / 64.0);
+    params = 31e6 * square(m.unet.width / 64.0);
   // The first stage: W1 {rows,N} and W2 {cols,N} per Bayer plane.
   params += 4.0 * (camera.raw.crop[2] + camera.raw.crop[3]) * camera.scene_size;
   // The pre-processor's 3x3 convolutions: 4 -> width, (depth - 2) x width -> width, width -> 4.
@@ -388,6 +406,7 @@ ExperimentResult run_experiment(const ExperimentOptions& o) {
   auto vgg = vgg_if_needed(config, opts);
   const auto spec = model_spec(config);
   require_memory_for(spec, camera, opts);
+  const auto consistency = consistency_layer(spec, camera, opts);
   CodePairCamera learned{nullptr};  // co-design: the camera whose codes learn with the network
   CodesignOptions codesign;
   if (config.flag(codes_key(&CodesignOptions::learn))) {
@@ -429,6 +448,12 @@ ExperimentResult run_experiment(const ExperimentOptions& o) {
         << learned->throughput().item<double>() << "), learned until " << codesign.freeze_at * 100
         << " % of the run; their camera in " << (out / "camera").string() << "\n";
     trainer.set_learned_camera(learned, camera);
+  }
+  if (consistency) {
+    log << "data consistency: pictures corrected by their captures (c " << spec.consistency_strength << ", blur "
+        << spec.consistency_blur << " px: the capture decides " << 100 * consistency->measured_share()
+        << " % of singular pairs)\n";
+    trainer.set_consistency(consistency);
   }
   if (resume)
     log << trainer.resume(latest, best_psnr) << "\n";  // every rank reads rank 0's checkpoint (a shared folder)

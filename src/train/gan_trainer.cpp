@@ -7,6 +7,7 @@
 #include "core/precision.hpp"
 #include "core/util.hpp"
 #include "eval/metrics.hpp"
+#include "recon/data_consistency.hpp"
 #include "train/distributed.hpp"
 #include "train/loop.hpp"
 #include "train/nonfinite.hpp"
@@ -34,8 +35,14 @@ torch::Tensor uniform(int64_t n, double lo, double hi, at::Generator& gen) {
 }
 
 // The generator's output on what training shows it: the batch's whole scenes, or the step's crops.
+// With the data-consistency layer, the whole scenes corrected by their captures.
 torch::Tensor training_view(Generator& g, const Batch& batch, const TrainOptions& opt,
-                            const std::vector<std::pair<int64_t, int64_t>>& corners) {
+                            const std::vector<std::pair<int64_t, int64_t>>& corners,
+                            const DataConsistency* consistency) {
+  if (consistency) {
+    require(corners.empty(), "train.crop", "must be 0 with model.consistency: the correction needs whole scenes");
+    return consistency->correct(batch.meas, g->forward(batch.meas));  // {B,3,N,N}
+  }
   return corners.empty() ? g->forward(batch.meas) : g->forward_crops(batch.meas, corners, opt.crop);
 }
 
@@ -135,7 +142,8 @@ void refresh_batch_norm(Generator& g, BatchLoader& loader, int64_t batches, cons
     torch::NoGradGuard no_grad;
     for (int64_t i = 0; i < batches; ++i) {
       const auto batch = loader.next();
-      (void)training_view(g, batch, opt, crop_corners(opt, batch.meas.size(0), batch.gt.size(-1), batch.step));
+      (void)training_view(g, batch, opt, crop_corners(opt, batch.meas.size(0), batch.gt.size(-1), batch.step),
+                          nullptr);  // batch norm sits before the correction
     }
   }
   for (auto& [bn, momentum] : layers) bn->options.momentum(momentum);
@@ -153,7 +161,7 @@ torch::Tensor logits_fp32(Discriminator& d, const torch::Tensor& x, bool bf16) {
 
 StepLosses gan_step(Generator& g, Discriminator& d, Vgg16Features& vgg, torch::optim::Optimizer& opt_g,
                     torch::optim::Optimizer& opt_d, const TrainOptions& opt, const Batch& batch, int64_t step,
-                    GradientAverager* sync) {
+                    GradientAverager* sync, const DataConsistency* consistency) {
   StepLosses out;
   const bool adversarial = opt.trains_discriminator();
   const bool perceptual = opt.w_perceptual > 0;
@@ -162,7 +170,7 @@ StepLosses gan_step(Generator& g, Discriminator& d, Vgg16Features& vgg, torch::o
   const auto corners = crop_corners(opt, batch.meas.size(0), batch.gt.size(-1), step);
   const auto gt = crop_windows(batch.gt, corners, opt.crop);  // {B,3,n,n}
   g->set_autocast_bf16(opt.bf16);
-  auto generate = [&] { return training_view(g, batch, opt, corners); };
+  auto generate = [&] { return training_view(g, batch, opt, corners, consistency); };
   torch::Tensor fake;
   if (warmup) {
     torch::NoGradGuard no_grad;
@@ -228,7 +236,7 @@ StepLosses gan_step(Generator& g, Discriminator& d, Vgg16Features& vgg, torch::o
 }
 
 ValidationResult validate(Generator& generator, const std::vector<Sample>& samples, int64_t batch,
-                          const std::filesystem::path& sheet, int sheet_rows) {
+                          const std::filesystem::path& sheet, int sheet_rows, const DataConsistency* consistency) {
   ValidationResult r;
   if (samples.empty()) return r;
   std::vector<double> psnr_sum(kJudgedConditionCount, 0), ssim_sum(kJudgedConditionCount, 0);
@@ -241,7 +249,9 @@ ValidationResult validate(Generator& generator, const std::vector<Sample>& sampl
   for (size_t i = 0; i < samples.size(); i += batch) {
     std::vector<torch::Tensor> meas;
     for (size_t j = i; j < std::min(samples.size(), i + batch); ++j) meas.push_back(samples[j].meas);
-    const auto out = generator->forward(torch::stack(meas));
+    const auto planes = torch::stack(meas);
+    const auto out =
+        consistency ? consistency->correct(planes, generator->forward(planes)) : generator->forward(planes);
     for (int64_t j = 0; j < out.size(0); ++j) {
       const auto& s = samples[i + j];
       const auto c = static_cast<size_t>(s.condition);
@@ -345,6 +355,13 @@ void GanTrainer::set_learned_camera(CodePairCamera camera, CameraConfig geometry
       std::make_unique<torch::optim::Adam>(camera_->parameters(), torch::optim::AdamOptions(camera_->options().lr));
 }
 
+void GanTrainer::set_consistency(std::shared_ptr<const DataConsistency> consistency) {
+  require(!camera_, "model.consistency", "is not available with codes.learn (the calibration changes as it learns)");
+  require(opt_.crop == 0, train_key(&TrainOptions::crop),
+          "must be 0 with model.consistency: the correction needs whole scenes");
+  consistency_ = std::move(consistency);
+}
+
 CheckpointCamera GanTrainer::checkpoint_camera() {
   return camera_ ? CheckpointCamera{camera_.get(), opt_camera_.get()} : CheckpointCamera{};
 }
@@ -399,7 +416,7 @@ void GanTrainer::checkpoint_and_validate(TrainSummary& summary) {
     for (auto& s : val_) s.meas = camera_->capture(s.scene.unsqueeze(0), gen, true, &rig)[0];
   }
   if (opt_.bn_refresh > 0) refresh_exported_statistics();
-  const auto v = validate(exported(), val_, opt_.batch, opt_.out / "samples.png");
+  const auto v = validate(exported(), val_, opt_.batch, opt_.out / "samples.png", 4, consistency_.get());
   const double secs = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
   summary.last_psnr = v.psnr;
   summary.last_ssim = v.ssim;
@@ -469,7 +486,7 @@ void GanTrainer::train_step(BatchLoader& loader, int64_t step, StepTally& tally)
   StepLosses l;
   try {
     if (camera_) batch.meas = capture_batch(batch, step);
-    l = gan_step(g_, d_, vgg_, *opt_g_, *opt_d_, opt_, batch, step, sync_);
+    l = gan_step(g_, d_, vgg_, *opt_g_, *opt_d_, opt_, batch, step, sync_, consistency_.get());
     if (camera_) step_codes(step);
   } catch (const NonFiniteStep&) {
     torch::NoGradGuard no_grad;

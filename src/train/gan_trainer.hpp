@@ -24,6 +24,8 @@
 
 namespace flatnet {
 
+class DataConsistency;  // recon/data_consistency.hpp
+
 enum class LrSchedule { halving, cosine };
 LrSchedule parse_lr_schedule(const std::string& s, const std::string& key = "train.schedule");
 
@@ -83,8 +85,10 @@ struct ValidationResult {
 // Runs the generator over samples (eval mode, batches of `batch`); returns means and, when
 // `sheet` is set, writes a contact sheet of the first `sheet_rows` (truth | output). Samples
 // under several lights (judged validation) weigh each condition alike, whatever its count.
+// With `consistency`, each output is corrected by its capture first (model.consistency).
 ValidationResult validate(Generator& generator, const std::vector<Sample>& samples, int64_t batch,
-                          const std::filesystem::path& sheet = {}, int sheet_rows = 4);
+                          const std::filesystem::path& sheet = {}, int sheet_rows = 4,
+                          const DataConsistency* consistency = nullptr);
 
 struct StepLosses {
   double loss = 0, mse = 0, ssim = 0, perceptual = 0, adversarial = 0, discriminator = 0;
@@ -143,10 +147,12 @@ class GradientAverager {
 // One training step (see the file comment) on `batch`; `step` seeds the label smoothing. With
 // `sync`, gradients are averaged across processes before each optimiser step. Throws
 // NonFiniteStep (train/nonfinite.hpp) on a non-finite loss before any parameter changes; run()
-// skips such a step, and stops after kNonFiniteLimit in a row.
+// skips such a step, and stops after kNonFiniteLimit in a row. With `consistency`, the generator's
+// pictures are corrected by their captures (a layer of the model, model.consistency) before the
+// losses see them: whole scenes only (train.crop 0).
 StepLosses gan_step(Generator& g, Discriminator& d, Vgg16Features& vgg, torch::optim::Optimizer& opt_g,
                     torch::optim::Optimizer& opt_d, const TrainOptions& opt, const Batch& batch, int64_t step,
-                    GradientAverager* sync = nullptr);
+                    GradientAverager* sync = nullptr, const DataConsistency* consistency = nullptr);
 
 class GanTrainer {
  public:
@@ -173,6 +179,9 @@ class GanTrainer {
   // captured through the current codes with fixed noise. Call before set_distributed(), resume()
   // and run().
   void set_learned_camera(CodePairCamera camera, CameraConfig geometry);
+  // model.consistency: the data-consistency layer through the camera's calibration, in every
+  // training step and validation. Whole scenes only (train.crop 0). Call before run().
+  void set_consistency(std::shared_ptr<const DataConsistency> consistency);
   // Stops after the current step and writes a checkpoint when interrupted() (core/util.hpp).
   TrainSummary run();
 
@@ -218,6 +227,7 @@ class GanTrainer {
   std::optional<Rig> frozen_rig_;   // its camera once the codes are frozen (built once)
   std::unique_ptr<torch::optim::Adam> opt_camera_;
   CameraConfig camera_geometry_;
+  std::shared_ptr<const DataConsistency> consistency_;  // model.consistency only
 };
 
 }  // namespace flatnet
