@@ -242,6 +242,12 @@ void initialise_from_model(const ExperimentOptions& o, const Config& config, con
         << "); fresh optimisers and discriminator\n";
   else
     log << "initialised from " << o.init_from.string() << " (fresh optimisers)\n";
+  // The step after the network is the config's to say: a model trained with it, fine-tuned without
+  // it, learns to make pictures without the capture's help (and the reverse), so say which.
+  const auto from = load_model_file(o.init_from).spec.consistency_strength;
+  if (from != spec.consistency_strength)
+    log << "note: " << o.init_from.string() << " was trained with " << model_key(&ModelSpec::consistency_strength)
+        << " " << from << "; this run trains with " << spec.consistency_strength << " (its config's)\n";
   if (o.reinit_inversion && transfer) {
     auto source_camera = o.source_camera;
     if (source_camera.empty()) source_camera = load_model_file(o.init_from).recorded_camera();
