@@ -8,11 +8,15 @@ bash scripts/build.sh
 cd build
 # Two test processes at a time, one intra-op thread each (tests/test_main.cpp).
 export FLATNET_TEST_THREADS=${FLATNET_TEST_THREADS:-1}
+# Threads that wait sleep instead of spinning: beside other jobs on the machine a spinning OpenMP
+# thread holds a core another process needs (a training step 1.9x slower; passive waiting halves
+# that, docs/results/performance.md). libgomp reads it when it loads, so it is set here.
+export OMP_WAIT_POLICY=${OMP_WAIT_POLICY:-PASSIVE}
 start=$SECONDS
 status=0
 ctest --output-on-failure -j 2 ${1:+-L "$1"} | tee ctest.log || status=$?
 # The time, and the ten slowest tests (CTest's "N/M Test #K: name ... Passed 12.34 sec" lines).
 echo "tests: $((SECONDS - start)) s on $(nproc) cores${1:+ (label $1)}; the ten slowest:"
 grep -E 'Test +#[0-9]+: .* sec$' ctest.log | sed -E 's/^.*Test +#[0-9]+: (.*[^ .]) *\.+ *[A-Za-z*]+.* +([0-9.]+) sec$/\2 s  \1/' |
-  sort -g -r | head -n 10
+  sort -g -r | sed -n '1,10p'  # sed reads all: head would close the pipe early, and pipefail end the script with 141
 exit "$status"
