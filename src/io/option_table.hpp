@@ -147,8 +147,10 @@ std::string member_text(const T& value) {
       os << std::setprecision(digits) << value;
       if (digits >= 17 || std::strtod(os.str().c_str(), nullptr) == value) return os.str();
     }
+  } else if constexpr (std::is_same_v<T, std::string>) {
+    return value;
   } else {
-    return std::filesystem::path(value).string();
+    return value.string();  // a path
   }
 }
 

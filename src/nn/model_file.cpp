@@ -81,7 +81,10 @@ int model_file_version(const std::filesystem::path& path) {
 }
 
 void init_generator_from(const std::filesystem::path& model, Generator& g, GeneratorPart part) {
-  auto m = load_model_file(model);
+  init_generator_from(load_model_file(model), model, g, part);
+}
+
+void init_generator_from(const ModelFile& m, const std::filesystem::path& model, Generator& g, GeneratorPart part) {
   const auto theirs = m.generator->named_parameters(), their_buffers = m.generator->named_buffers();
   const bool adds_level = g->options().level_input && !m.generator->options().level_input;
   const auto ours = g->named_parameters(), our_buffers = g->named_buffers();

@@ -83,6 +83,9 @@ int model_file_version(const std::filesystem::path& path);
 // was built with (this camera's), and may differ in shape from the file's.
 enum class GeneratorPart { all, enhancer };
 void init_generator_from(const std::filesystem::path& model, Generator& g, GeneratorPart part = GeneratorPart::all);
+// The same from a model file already read (`model` names it in errors).
+void init_generator_from(const ModelFile& m, const std::filesystem::path& model, Generator& g,
+                         GeneratorPart part = GeneratorPart::all);
 
 // FlatNet-sep name of one of our parameter names ("inversion.PhiL" -> "PhiL",
 // "enhancer.inc.conv.conv.0.weight" -> "inc.conv.conv.0.weight").

@@ -1,7 +1,6 @@
 #include "nn/model_spec.hpp"
 
 #include <cmath>
-#include <iomanip>
 #include <regex>
 #include <sstream>
 
@@ -52,31 +51,6 @@ const std::vector<OptionField<ModelSpec>>& model_spec_fields() {
 
 namespace {
 
-// The shortest decimal text that reads back as the same double.
-std::string exact_text(double v) {
-  for (int digits = 6; digits <= 17; ++digits) {
-    std::ostringstream os;
-    os << std::setprecision(digits) << v;
-    if (std::strtod(os.str().c_str(), nullptr) == v) return os.str();
-  }
-  return std::to_string(v);
-}
-
-// One setting's value as the text a config holds.
-template <class T>
-void write_text(std::string& text, const T& value) {
-  if constexpr (std::is_same_v<T, double>)
-    text = exact_text(value);
-  else if constexpr (std::is_same_v<T, bool>)
-    text = value ? "true" : "false";
-  else if constexpr (std::is_same_v<T, std::string>)
-    text = value;
-  else if constexpr (std::is_same_v<T, std::filesystem::path>)
-    text = value.string();
-  else
-    text = std::to_string(value);
-}
-
 // The spec's settings as dotted keys with their text ("model.unet.width" -> "32").
 std::map<std::string, std::string> spec_values(const ModelSpec& spec) {
   std::map<std::string, std::string> out;
@@ -88,7 +62,7 @@ std::map<std::string, std::string> spec_values(const ModelSpec& spec) {
             if (!member.text) throw std::logic_error("model spec: a row without text cannot be written back");
             text = member.text(spec);  // an enhancer's setting (nested_member)
           } else {
-            write_text(text, spec.*member);
+            text = member_text(spec.*member);
           }
         },
         f.member);

@@ -45,15 +45,13 @@ std::string enhancer_width_key(const ModelSpec& spec) {
   return model_key<&ModelSpec::unet, &UNetOptions::width>();
 }
 
-}  // namespace
-
-namespace {
-
 // model.consistency's layer through the training camera's calibration (none when it is 0).
-std::shared_ptr<const DataConsistency> consistency_layer(const ModelSpec& spec, const CameraConfig& camera,
-                                                         const TrainOptions& opts) {
+std::shared_ptr<const DataConsistency> consistency_layer(const Config& config, const ModelSpec& spec,
+                                                         const CameraConfig& camera, const TrainOptions& opts) {
   if (spec.consistency_strength <= 0) return nullptr;
   const auto key = model_key(&ModelSpec::consistency_strength);
+  require(!config.flag(codes_key(&CodesignOptions::learn)), key,
+          "is not available with " + codes_key(&CodesignOptions::learn) + " (the calibration changes as it learns)");
   require(opts.crop == 0, train_key(&TrainOptions::crop),
           "must be 0 with " + key + ": the correction needs whole scenes");
   require(!camera.calibration.empty(), key, "corrects through the camera's calibration, and data.camera names none");
@@ -235,7 +233,8 @@ void initialise_from_model(const ExperimentOptions& o, const Config& config, con
                            std::ostream& log) {
   const auto spec = model_spec(config);
   const bool transfer = spec.inversion_init == "transfer";
-  init_generator_from(o.init_from, g, o.reinit_inversion ? GeneratorPart::enhancer : GeneratorPart::all);
+  const auto source_model = load_model_file(o.init_from);  // read once: weights, spec and recorded camera
+  init_generator_from(source_model, o.init_from, g, o.reinit_inversion ? GeneratorPart::enhancer : GeneratorPart::all);
   if (o.reinit_inversion)
     log << "initialised from " << o.init_from.string() << ": its enhancer (with the level path) and batch norm; "
         << "the first stage afresh for this camera (model.inversion.init " << spec.inversion_init
@@ -244,13 +243,13 @@ void initialise_from_model(const ExperimentOptions& o, const Config& config, con
     log << "initialised from " << o.init_from.string() << " (fresh optimisers)\n";
   // The step after the network is the config's to say: a model trained with it, fine-tuned without
   // it, learns to make pictures without the capture's help (and the reverse), so say which.
-  const auto from = load_model_file(o.init_from).spec.consistency_strength;
+  const auto from = source_model.spec.consistency_strength;
   if (from != spec.consistency_strength)
     log << "note: " << o.init_from.string() << " was trained with " << model_key(&ModelSpec::consistency_strength)
         << " " << from << "; this run trains with " << spec.consistency_strength << " (its config's)\n";
   if (o.reinit_inversion && transfer) {
     auto source_camera = o.source_camera;
-    if (source_camera.empty()) source_camera = load_model_file(o.init_from).recorded_camera();
+    if (source_camera.empty()) source_camera = source_model.recorded_camera();
     require_option(std::filesystem::exists(source_camera), "experiment.source_camera",
                    "the camera " + o.init_from.string() + " was trained for (" + source_camera.string() +
                        ") is not here; name its camera .yaml with " + option_key("experiment.source_camera"));
@@ -412,7 +411,7 @@ ExperimentResult run_experiment(const ExperimentOptions& o) {
   auto vgg = vgg_if_needed(config, opts);
   const auto spec = model_spec(config);
   require_memory_for(spec, camera, opts);
-  const auto consistency = consistency_layer(spec, camera, opts);
+  const auto consistency = consistency_layer(config, spec, camera, opts);
   CodePairCamera learned{nullptr};  // co-design: the camera whose codes learn with the network
   CodesignOptions codesign;
   if (config.flag(codes_key(&CodesignOptions::learn))) {

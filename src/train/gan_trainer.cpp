@@ -40,7 +40,8 @@ torch::Tensor training_view(Generator& g, const Batch& batch, const TrainOptions
                             const std::vector<std::pair<int64_t, int64_t>>& corners,
                             const DataConsistency* consistency) {
   if (consistency) {
-    require(corners.empty(), "train.crop", "must be 0 with model.consistency: the correction needs whole scenes");
+    require(corners.empty(), train_key(&TrainOptions::crop),
+            "must be 0 with model.consistency: the correction needs whole scenes");
     return consistency->correct(batch.meas, g->forward(batch.meas));  // {B,3,N,N}
   }
   return corners.empty() ? g->forward(batch.meas) : g->forward_crops(batch.meas, corners, opt.crop);
@@ -353,13 +354,6 @@ void GanTrainer::set_learned_camera(CodePairCamera camera, CameraConfig geometry
   camera_geometry_ = std::move(geometry);
   opt_camera_ =
       std::make_unique<torch::optim::Adam>(camera_->parameters(), torch::optim::AdamOptions(camera_->options().lr));
-}
-
-void GanTrainer::set_consistency(std::shared_ptr<const DataConsistency> consistency) {
-  require(!camera_, "model.consistency", "is not available with codes.learn (the calibration changes as it learns)");
-  require(opt_.crop == 0, train_key(&TrainOptions::crop),
-          "must be 0 with model.consistency: the correction needs whole scenes");
-  consistency_ = std::move(consistency);
 }
 
 CheckpointCamera GanTrainer::checkpoint_camera() {

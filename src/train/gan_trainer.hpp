@@ -180,8 +180,9 @@ class GanTrainer {
   // and run().
   void set_learned_camera(CodePairCamera camera, CameraConfig geometry);
   // model.consistency: the data-consistency layer through the camera's calibration, in every
-  // training step and validation. Whole scenes only (train.crop 0). Call before run().
-  void set_consistency(std::shared_ptr<const DataConsistency> consistency);
+  // training step and validation. Whole scenes only (train.crop 0), no co-design (run_experiment
+  // checks both before anything is written). Call before run().
+  void set_consistency(std::shared_ptr<const DataConsistency> consistency) { consistency_ = std::move(consistency); }
   // Stops after the current step and writes a checkpoint when interrupted() (core/util.hpp).
   TrainSummary run();
 
