@@ -112,6 +112,34 @@ TEST_CASE("bench errors: a rotated mask turns the response, and a second term ad
   CHECK(torch::equal(bench_signal(BenchErrors{}, rig, planes, signal), signal));
 }
 
+TEST_CASE("bench errors: a calibration that errs changes each capture's coded light by its share, around the truth",
+          "[optics][bench]") {
+  const auto rig = load_rig(test::rig_path());
+  const auto n = rig.scene_size();
+  torch::manual_seed(6);
+  const auto planes = torch::rand({1, 4, n, n});
+  const auto signal = expected_signal(rig, planes);
+  CHECK(torch::equal(bench_calibration(BenchErrors{}, rig, planes, signal, c10::nullopt), signal));
+  auto coded_only = rig;  // the coded light alone: the open part's light is not the calibration's
+  coded_only.vig_rows = torch::zeros_like(rig.vig_rows);
+  coded_only.vig_cols = torch::zeros_like(rig.vig_cols);
+  const auto coded = expected_signal(coded_only, planes);
+  const auto change = [&](double error, uint64_t seed) {
+    BenchErrors erring;
+    erring.calibration_error = error;
+    auto gen = at::make_generator<at::CPUGeneratorImpl>(seed);
+    return bench_calibration(erring, rig, planes, signal, gen) - signal;
+  };
+  // Each channel's coded light changes by exactly that share of it.
+  const auto share = change(0.03, 1).norm(2, {2, 3}) / coded.norm(2, {2, 3});
+  CHECK(torch::allclose(share, torch::full_like(share, 0.03), 1e-3));
+  // Redrawn for every capture, and zero-mean: 16 draws average to about a quarter of one draw's change.
+  CHECK_FALSE(torch::allclose(change(0.03, 1), change(0.03, 2)));
+  auto sum = torch::zeros_like(signal);
+  for (uint64_t seed = 1; seed <= 16; ++seed) sum += change(0.03, seed);
+  CHECK((sum / 16).norm().item<double>() / change(0.03, 1).norm().item<double>() == Approx(0.25).epsilon(0.25));
+}
+
 TEST_CASE("a camera file's bench section is read, and a value out of range or an unknown error is named",
           "[optics][bench][config]") {
   test::Scratch s("bench_camera");
@@ -119,7 +147,9 @@ TEST_CASE("a camera file's bench section is read, and a value out of range or an
     std::ofstream(s.dir / "camera.yaml") << "name: bench\nrig: " << test::rig_path().string() << "\nbench:\n" << bench;
     return s.dir / "camera.yaml";
   };
-  const auto camera = load_camera_config(write("  crosstalk: 0.2\n  mask_rotation: 0.004\n  hot_pixels: 300\n"));
+  const auto camera =
+      load_camera_config(write("  crosstalk: 0.2\n  mask_rotation: 0.004\n  hot_pixels: 300\n  calibration_error: 0.03\n"));
+  CHECK(camera.bench.calibration_error == 0.03);
   CHECK(camera.bench.crosstalk == 0.2);
   CHECK(camera.bench.mask_rotation == 0.004);
   CHECK(camera.bench.hot_pixels == 300);
@@ -129,6 +159,8 @@ TEST_CASE("a camera file's bench section is read, and a value out of range or an
   CHECK_THROWS_WITH(load_camera_config(write("  crosstalk: 0.9\n")),
                     Contains("camera.yaml") && Contains("bench.crosstalk") && Contains("0.5"));
   CHECK_THROWS_WITH(load_camera_config(write("  ghosts: 1\n")), Contains("unknown bench error 'bench.ghosts'"));
+  CHECK_THROWS_WITH(load_camera_config(write("  calibration_error: -0.1\n")),
+                    Contains("bench.calibration_error") && Contains("0 to 0.5"));
   // The bench is the simulated camera's truth, never a model's: model files keep the geometry only.
   CHECK_THAT(camera_geometry_yaml(camera), !Contains("bench:") && !Contains("crosstalk"));
 }

@@ -106,13 +106,23 @@ TEST_CASE("three captures and reconstructions of them identify a shift-structure
   // bright as reference 0 in every channel, so its gain (reference to scene) is 1 / 1.4 of pair 0's.
   for (int c = 0; c < 4; ++c) CHECK(std::abs(fit.gain_offset[2][c] / fit.gain_offset[0][c] - 1 / 1.4) < 0.05);
   // Held out, each pair's Tikhonov follows its reference.
-  const auto held = leave_one_out(pairs, 1e-4, quiet());
+  // With the whole calibration given, each held-out fit's factors are measured against it: close
+  // (the pairs agree) and not identical (each fit saw other pairs and other noise).
+  const auto whole = calibrate_from_references(pairs, quiet());
+  const auto held = leave_one_out(pairs, 1e-4, quiet(), &whole.calib);
   REQUIRE(held.size() == 4);
   for (const auto& h : held) {
     INFO(h.name);
     for (const double c : h.correlation) CHECK(c > 0.95);
     CHECK(std::abs(h.shift_rows - kShiftRows) < 0.02);
+    CHECK(h.change_p > 1e-6);
+    CHECK(h.change_p < 0.2);
+    CHECK(h.change_q > 1e-6);
+    CHECK(h.change_q < 0.2);
+    CHECK(h.change_coded > 1e-6);
+    CHECK(h.change_coded < 0.2);
   }
+  CHECK(leave_one_out(pairs, 1e-4, quiet())[0].change_p < 0);  // not given: not measured
 }
 
 TEST_CASE("reference calibration names a flat capture, a flat reference and too few pairs for leave-one-out",

@@ -319,6 +319,10 @@ TEST_CASE("train, export, import and infer from the command line, and bad input 
                                           q(s.dir / "judged_dataset"));
   CHECK(judged_dataset.code == 2);
   CHECK_THAT(judged_dataset.output, Contains("data.val_light") && Contains("data.source: simulate"));
+  auto erring_dataset = test::run_flatnet(base + " --set data.calibration_error=0.03 --set train.iterations=1 --out " +
+                                          q(s.dir / "judged_dataset"));
+  CHECK(erring_dataset.code == 2);
+  CHECK_THAT(erring_dataset.output, Contains("data.calibration_error") && Contains("data.source: simulate"));
   auto unknown_light = test::run_flatnet(base + " --set data.val_light=bright --set train.iterations=1 --out " +
                                          q(s.dir / "judged_dataset"));
   CHECK(unknown_light.code == 2);

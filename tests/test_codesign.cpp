@@ -204,4 +204,9 @@ TEST_CASE("flatnet train with codes.learn: the codes move, the camera is written
   CHECK(r.code == 2);
   CHECK_THAT(r.output, Contains("codes.learn") && Contains("data.source: simulate"));
   CHECK_FALSE(std::filesystem::exists(s.dir / "disk"));
+  // The codes it learns are their own calibration: an erring one to train through is refused.
+  r = test::run_flatnet(base + " --set data.calibration_error=0.1 --set train.iterations=1 --out " + q(s.dir / "err"));
+  CHECK(r.code == 2);
+  CHECK_THAT(r.output, Contains("data.calibration_error") && Contains("codes.learn"));
+  CHECK_FALSE(std::filesystem::exists(s.dir / "err"));
 }

@@ -67,6 +67,9 @@ TEST_CASE(
   // The shadow's move, as the study found it: about -0.47 sensor pixels per scene pixel on both axes.
   const auto yaml = test::read_file(s.dir / "cal" / "camera.yaml");
   CHECK_THAT(yaml, Contains("-0.47"));
+  // The calibration's own uncertainty (the leave-one-out jackknife), with what trains with it.
+  CHECK_THAT(yaml, Contains("coded light is uncertain by") && Contains("data.calibration_error"));
+  CHECK_THAT(r.output, Contains("from the whole calibration (P, Q, coded light)"));
   // The sensor's noise model, the camera fit's thresholds and the open light, from the captures.
   CHECK_THAT(yaml, Contains("noise_gain:") && Contains("fit_threshold:") && Contains("open_light:"));
   const auto written = load_camera_config(s.dir / "cal" / "camera.yaml");

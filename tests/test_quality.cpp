@@ -176,9 +176,12 @@ TEST_CASE("train with judged validation: val.csv holds each light's PSNR and pic
                            " --set data.images=" + q(photos) +
                            " --set data.val_fraction=0.5 --set model.unet.width=2 --set train.batch=1"
                            " --set train.crop=64 --set train.val_every=2 --set data.val_light=judged";
-  auto r = test::run_flatnet(base + " --set train.iterations=2 --out " + q(s.dir / "run"));
+  // Training captures through a calibration that errs (data.calibration_error), validation not.
+  auto r = test::run_flatnet(base + " --set data.calibration_error=0.03 --set train.iterations=2 --out " +
+                             q(s.dir / "run"));
   INFO(r.output);
   REQUIRE(r.code == 0);
+  CHECK_THAT(r.output, Contains("calibration erring by 3 %") && Contains("validation through the camera's own"));
   const auto lines = read_lines(s.dir / "run" / "val.csv");
   REQUIRE(lines.size() == 2);
   CHECK(lines[0] == "step,psnr,ssim,seconds,psnr_display,psnr_dim,psnr_lamp");

@@ -68,12 +68,15 @@ torch::Tensor reference_planes(const std::filesystem::path& path, int64_t N, con
 void print_held_out(const std::vector<HeldOutPair>& held) {
   std::cout << "leave-one-out: each pair reconstructed (Tikhonov) from a calibration of the others, Pearson "
                "correlation with its reference (pixels clipped at zero left out)\n"
-            << "  pair                  b      gb     gr     r      shifts (rows, cols)\n";
+            << "  pair                  b      gb     gr     r      shifts (rows, cols)   from the whole calibration (P, Q, coded light)\n";
   for (const auto& h : held) {
     std::cout << "  " << std::left << std::setw(20) << printable(h.name).substr(0, 20) << std::right << std::fixed
               << std::setprecision(3);
     for (const double c : h.correlation) std::cout << " " << std::setw(6) << c;
-    std::cout << "   " << std::setprecision(4) << h.shift_rows << ", " << h.shift_cols << "\n";
+    std::cout << "   " << std::setprecision(4) << h.shift_rows << ", " << h.shift_cols;
+    if (h.change_p >= 0)
+      std::cout << "   " << std::setprecision(3) << h.change_p << ", " << h.change_q << ", " << h.change_coded;
+    std::cout << "\n";
     std::cout.unsetf(std::ios::fixed);
   }
 }
@@ -112,6 +115,7 @@ struct ReferenceChecks {
   double lambda = 0;      // --reference-lambda
   double held_mean = -1;  // mean held-out correlation (< 0: not checked)
   double held_leak = 0;   // the largest leak of a held-out capture
+  double held_change = -1;  // the held-out fits' mean coded-light distance from the whole one's
 };
 
 // Sensor pixels at full scale a white capture may hold: more, and its level understates the light.
@@ -200,6 +204,10 @@ int write_reference_calibration(const cxxopts::ParseResult& r, const CameraConfi
        << " sensor pixels per scene row, " << fit.shift_cols << " per scene column; residual per channel:";
   for (const double v : fit.residual) head << " " << std::setprecision(4) << v;
   if (held_mean >= 0) head << "\n# leave-one-out: mean held-out correlation " << std::setprecision(4) << held_mean;
+  if (checks.held_change >= 0)
+    head << "; its coded light is uncertain by " << std::setprecision(3) << checks.held_change
+         << " of itself (the jackknife of the pairs' coded light: sqrt(n - 1) x the rms distance of a calibration "
+            "without one pair from this one, on that pair's scene): train with data.calibration_error of that size";
   if (white)
     head << "\n# scene light from the white capture " << printable(white->path.filename().string()) << " (light "
          << white->light << "); without it the references' units";
@@ -259,26 +267,35 @@ int calibrate_from_reference_pairs(const cxxopts::ParseResult& r, const Calibrat
           "FlatCam's shadow, and the search's cost grows with the range's ratio)");
   std::cerr << "calibrate: " << refs.size() << " captures with reference reconstructions (" << order
             << "), shifts searched from " << o.shift.min_shift << " to " << o.shift.max_shift << " both ways\n";
-  double held_mean = -1, held_leak = 0;
+  // The whole calibration first: the held-out fits are measured against it as well.
+  auto fit = calibrate_from_references(refs, o);
+  ReferenceChecks checks{lambda};
   if (refs.size() >= 3) {
-    const auto held = leave_one_out(refs, lambda, o);
-    for (const auto& h : held) held_leak = std::max(held_leak, h.leak);
+    const auto held = leave_one_out(refs, lambda, o, &fit.calib);
     print_held_out(held);
-    double sum = 0;
-    for (const auto& h : held) sum += (h.correlation[0] + h.correlation[1] + h.correlation[2] + h.correlation[3]) / 4;
-    held_mean = sum / static_cast<double>(held.size());
+    double sum = 0, squared_change = 0;
+    for (const auto& h : held) {
+      checks.held_leak = std::max(checks.held_leak, h.leak);
+      sum += (h.correlation[0] + h.correlation[1] + h.correlation[2] + h.correlation[3]) / 4;
+      squared_change += h.change_coded * h.change_coded;
+    }
+    const auto n = static_cast<double>(held.size());
+    checks.held_mean = sum / n;
+    // The jackknife's spread: a fit from n - 1 pairs moves by 1 / (n (n - 1)) of a pair's variance from
+    // the whole fit, the whole fit by 1 / n from the truth, so its uncertainty is sqrt(n - 1) times the
+    // rms move (Efron and Stein, 1981).
+    checks.held_change = std::sqrt((n - 1) * squared_change / n);
     // The structure is judged on the held-out pairs: a calibration that cannot reconstruct a pair it
     // did not see has fitted the pairs, not the camera.
-    require(held_mean >= 0.5, "calibrate",
-            "held-out pairs are not reconstructed (mean correlation " + std::to_string(held_mean) +
+    require(checks.held_mean >= 0.5, "calibrate",
+            "held-out pairs are not reconstructed (mean correlation " + std::to_string(checks.held_mean) +
                 "): the references are not reconstructions of these captures, the colour order is wrong "
                 "(--reference-order), or the shifts lie outside --min-shift..--max-shift");
   } else {
     std::cout << "leave-one-out needs 3 pairs or more: the calibration is not checked on held-out pairs\n";
   }
-  auto fit = calibrate_from_references(refs, o);
   if (white) set_scene_unit(*white, lambda, fit);
-  return write_reference_calibration(r, camera, fit, noise_samples, {lambda, held_mean, held_leak}, white, out);
+  return write_reference_calibration(r, camera, fit, noise_samples, checks, white, out);
 }
 
 // The camera's hot pixels found from the first pairs' raw frames (optics/hot_pixels.hpp), with those

@@ -186,7 +186,8 @@ static BenchErrors bench_from_node(const YAML::Node& y, const std::filesystem::p
       {{"stray_light", 0, 0.5, "full scale, 0 to 0.5"}, &b.stray_light},
       {{"hot_pixels", 0, 1e5, "0 to 100000 pixels"}, &hot},
       {{"display_shift", -16, 16, "scene pixels, -16 to 16"}, &b.display_shift},
-      {{"display_scale", 0.8, 1.25, "0.8 to 1.25"}, &b.display_scale}};
+      {{"display_scale", 0.8, 1.25, "0.8 to 1.25"}, &b.display_scale},
+      {{"calibration_error", 0, 0.5, "a share of the coded light, 0 to 0.5"}, &b.calibration_error}};
   for (const auto& kv : y) {
     const auto key = kv.first.as<std::string>(), text = kv.second.as<std::string>();
     const auto row = std::find_if(std::begin(rows), std::end(rows), [&](const auto& r) { return key == r.first.name; });

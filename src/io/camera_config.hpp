@@ -56,9 +56,13 @@ struct BenchErrors {
   int64_t hot_pixels = 0;    // raw pixels stuck bright, at fixed places
   double display_shift = 0;  // the photograph shown this many scene pixels off-centre (down and right)
   double display_scale = 1;  // and scaled by this about its centre
+  // Each capture's coded light comes through a calibration that errs by this share of that light
+  // (iid Gaussian factor errors, redrawn for every capture): the camera differs from what its
+  // calibration says (the size `calibrate --references`'s leave-one-out shows).
+  double calibration_error = 0;
   bool any() const {
     return crosstalk != 0 || mask_rotation != 0 || second_term != 0 || flicker != 0 || stray_light != 0 ||
-           hot_pixels != 0 || display_shift != 0 || display_scale != 1;
+           hot_pixels != 0 || display_shift != 0 || display_scale != 1 || calibration_error != 0;
   }
 };
 

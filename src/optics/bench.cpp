@@ -71,6 +71,22 @@ torch::Tensor bench_signal(const BenchErrors& bench, const Rig& rig, const torch
   return s;
 }
 
+torch::Tensor bench_calibration(const BenchErrors& bench, const Rig& rig, const torch::Tensor& planes,
+                                const torch::Tensor& signal, c10::optional<at::Generator> gen) {
+  if (bench.calibration_error <= 0) return signal;
+  const auto X = planes.to(torch::kFloat32);
+  const auto coded = [&](const torch::Tensor& L, const torch::Tensor& R) {  // {1,4,h,w}
+    return torch::matmul(torch::matmul(L, X), R.transpose(1, 2));
+  };
+  // Each factor plus iid Gaussian entries; the change that makes in the coded light is then scaled,
+  // per channel, to calibration_error of that light (what leave-one-out measures on real scenes).
+  const auto erred = [&](const torch::Tensor& phi) { return phi + at::normal(0.0, 1.0, phi.sizes(), gen, phi.options()) * phi.abs().mean(); };
+  const auto light = coded(rig.phil, rig.phir);
+  const auto change = coded(erred(rig.phil), erred(rig.phir)) - light;
+  const auto scale = light.norm(2, {2, 3}, true) / change.norm(2, {2, 3}, true).clamp_min(1e-30);
+  return signal + rig.gain.view({1, 4, 1, 1}) * change * (bench.calibration_error * scale);
+}
+
 torch::Tensor bench_hot_pixels(const BenchErrors& bench, const torch::Tensor& raw, int adc_bits) {
   if (bench.hot_pixels <= 0) return raw;
   auto gen = at::make_generator<at::CPUGeneratorImpl>(7919 + static_cast<uint64_t>(raw.numel()));

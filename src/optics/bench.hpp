@@ -3,7 +3,8 @@
 // arise along the capture chain of simulate_raw_linear (optics/camera.hpp):
 //   display:  the photograph shown off-centre and scaled; each capture's exposure flickers
 //   colour:   each Bayer plane sees a mix of the display's three primaries (cross-talk)
-//   optics:   a second, weaker separable term; the mask rotated on the sensor; stray light
+//   optics:   a second, weaker separable term; the mask rotated on the sensor; stray light; a
+//             calibration that errs, redrawn per capture
 //   sensor:   hot pixels stuck bright at fixed places
 // With no errors (BenchErrors{}) every step returns its input.
 #include <torch/torch.h>
@@ -29,6 +30,12 @@ torch::Tensor bench_crosstalk(const BenchErrors& bench, const torch::Tensor& rgb
 // rising linearly to stray_light at the bottom-right corner.
 torch::Tensor bench_signal(const BenchErrors& bench, const Rig& rig, const torch::Tensor& planes,
                            const torch::Tensor& signal);
+
+// The signal {1,4,h,w} of scene planes {1,4,N,N} through a calibration that errs, redrawn for every
+// capture (from `gen`): the change that iid Gaussian entries added to both factors make in the coded
+// light P X Q^T, scaled per channel to calibration_error of that light's norm, added.
+torch::Tensor bench_calibration(const BenchErrors& bench, const Rig& rig, const torch::Tensor& planes,
+                                const torch::Tensor& signal, c10::optional<at::Generator> gen);
 
 // Hot pixels on a stored raw frame {2h,2w} int32: hot_pixels places fixed by the frame's size, each
 // stuck at 40-100 % of full scale (whole ADC steps of an adc_bits sensor).

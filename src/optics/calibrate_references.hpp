@@ -103,11 +103,18 @@ struct HeldOutPair {
   std::array<double, 4> correlation{};    // b, gb, gr, r
   double shift_rows = 0, shift_cols = 0;  // the shifts the other pairs chose
   double leak = 0;  // its coded leak against their calibration (optics/camera_fit.hpp); 0: not measurable
+  // How far the others' calibration lies from the whole one's (< 0: not given): each factor, scaled to
+  // fit (calibration_error), and the coded light it predicts of this pair's scene (its reference),
+  // ||P' X Q'^T - P X Q^T|| / ||P X Q^T||: the calibration's own uncertainty where scenes put their
+  // light (calibrate's jackknife of these sets data.calibration_error's size).
+  double change_p = -1, change_q = -1, change_coded = -1;
 };
 
 // Each pair reconstructed (Tikhonov with `lambda`, relative as the camera file's tikhonov_lambda)
 // from a calibration of the others. Needs at least 3 pairs.
+// With `whole` (the calibration from all pairs), each held-out fit's distance from it too.
 std::vector<HeldOutPair> leave_one_out(const std::vector<ReferencePair>& pairs, double lambda,
-                                       const ReferenceCalibrationOptions& options);
+                                       const ReferenceCalibrationOptions& options,
+                                       const Calibration* whole = nullptr);
 
 }  // namespace flatnet

@@ -199,7 +199,8 @@ torch::Tensor simulate_raw_linear(const Rig& rig, const torch::Tensor& scene_lin
   // A bench's errors (none for a plain rig) where they arise: display, colour, optics, sensor.
   const auto shown = bench_display(rig.bench, scene_linear.to(torch::kFloat32), gen);
   auto planes = rgb_to_bayer_planes(bench_crosstalk(rig.bench, shown)).unsqueeze(0);
-  const auto signal = bench_signal(rig.bench, rig, planes, expected_signal(rig, planes));
+  const auto coded = bench_calibration(rig.bench, rig, planes, expected_signal(rig, planes), gen);
+  const auto signal = bench_signal(rig.bench, rig, planes, coded);
   auto codes = sensor_readout(rig, signal, noise, gen)[0];  // {4,h,w}
   return bench_hot_pixels(rig.bench, adc_to_stored(bayer_merge(codes), rig.adc_bits), rig.adc_bits);
 }

@@ -31,6 +31,18 @@ DataOptions data_options(const Config& c) {
   return d;
 }
 
+// The rig the training captures come through: the camera's, with data.calibration_error's erring
+// calibration when it is set (the network learns not to trust its first stage more than the camera
+// deserves; validation keeps the camera's own rig).
+std::shared_ptr<const Rig> training_rig(const std::shared_ptr<const Rig>& rig, const DataOptions& d) {
+  if (!rig || d.calibration_error <= 0) return rig;
+  auto erring = std::make_shared<Rig>(*rig);
+  erring->bench.calibration_error = d.calibration_error;
+  std::cerr << "data: each training capture through a calibration erring by " << 100 * d.calibration_error
+            << " % (" << data_key(&DataOptions::calibration_error) << "), validation through the camera's own\n";
+  return erring;
+}
+
 LightAugment light_options(const Config& c) {
   LightAugment light;
   read_options(c, light_fields(), light, "data.light.");
@@ -85,6 +97,9 @@ std::pair<std::shared_ptr<const PairSource>, std::shared_ptr<const PairSource>> 
     require(d.val_light == ValidationLight::display, validation_light_key(),
             "judged validation lights photographs through the rig (data.source: simulate); a dataset's "
             "validation pairs are judged as they were captured");
+    require(d.calibration_error == 0, data_key(&DataOptions::calibration_error),
+            "errs the calibration photographs are simulated through (data.source: simulate); a dataset's "
+            "captures are what they are");
     DatasetLists train, val;
     if (!d.dataset.empty()) {
       train = split_lists(d.dataset, "train");
@@ -105,6 +120,9 @@ std::pair<std::shared_ptr<const PairSource>, std::shared_ptr<const PairSource>> 
     require(codesign || can_simulate(camera), data_key(&DataOptions::camera),
             "names no rig, and has no open_light to be simulated through its calibration; on-the-fly simulation "
             "needs one of them");
+    require(!codesign || d.calibration_error == 0, data_key(&DataOptions::calibration_error),
+            "is not available with " + codes_key(&CodesignOptions::learn) +
+                " (the codes it learns are their own calibration; codes.calib_error is the written camera's)");
     auto rig = codesign ? nullptr : std::make_shared<const Rig>(load_camera_rig(camera));
     auto [train_images, val_images] = split_image_files(d.images, d.val_fraction, d.split_seed);
     const auto seed = static_cast<uint64_t>(c.integer(train_key(&TrainOptions::seed)));
@@ -113,7 +131,7 @@ std::pair<std::shared_ptr<const PairSource>, std::shared_ptr<const PairSource>> 
             "needs exposure_min <= exposure_max and lamp_min <= lamp_max");
     // Validation on display captures (the held-out set's conditions), or on the three conditions the
     // evaluation sets judge (display, dim, lamp) in turn.
-    return {std::make_shared<SimulatedPairs>(train_images, rig, camera, seed, light),
+    return {std::make_shared<SimulatedPairs>(train_images, training_rig(rig, d), camera, seed, light),
             std::make_shared<SimulatedPairs>(val_images, rig, camera, seed + 1, LightAugment{},
                                              d.val_light == ValidationLight::judged)};
   }

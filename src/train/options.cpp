@@ -120,6 +120,7 @@ const std::vector<OptionField<DataOptions>>& data_fields() {
       {"val_fraction", &O::val_fraction, SHARE},
       {"split_seed", &O::split_seed},
       {kValidationLight, choice<O, ValidationLight, &O::val_light, parse_validation_light>()},
+      {"calibration_error", &O::calibration_error, 0, 0.5, "a share of the coded light, 0 to 0.5 (0.1: 10 %)"},
   };
   return fields;
 }
