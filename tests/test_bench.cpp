@@ -147,8 +147,8 @@ TEST_CASE("a camera file's bench section is read, and a value out of range or an
     std::ofstream(s.dir / "camera.yaml") << "name: bench\nrig: " << test::rig_path().string() << "\nbench:\n" << bench;
     return s.dir / "camera.yaml";
   };
-  const auto camera =
-      load_camera_config(write("  crosstalk: 0.2\n  mask_rotation: 0.004\n  hot_pixels: 300\n  calibration_error: 0.03\n"));
+  const auto camera = load_camera_config(
+      write("  crosstalk: 0.2\n  mask_rotation: 0.004\n  hot_pixels: 300\n  calibration_error: 0.03\n"));
   CHECK(camera.bench.calibration_error == 0.03);
   CHECK(camera.bench.crosstalk == 0.2);
   CHECK(camera.bench.mask_rotation == 0.004);

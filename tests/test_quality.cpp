@@ -177,8 +177,8 @@ TEST_CASE("train with judged validation: val.csv holds each light's PSNR and pic
                            " --set data.val_fraction=0.5 --set model.unet.width=2 --set train.batch=1"
                            " --set train.crop=64 --set train.val_every=2 --set data.val_light=judged";
   // Training captures through a calibration that errs (data.calibration_error), validation not.
-  auto r = test::run_flatnet(base + " --set data.calibration_error=0.03 --set train.iterations=2 --out " +
-                             q(s.dir / "run"));
+  auto r =
+      test::run_flatnet(base + " --set data.calibration_error=0.03 --set train.iterations=2 --out " + q(s.dir / "run"));
   INFO(r.output);
   REQUIRE(r.code == 0);
   CHECK_THAT(r.output, Contains("calibration erring by 3 %") && Contains("validation through the camera's own"));

@@ -68,7 +68,8 @@ torch::Tensor reference_planes(const std::filesystem::path& path, int64_t N, con
 void print_held_out(const std::vector<HeldOutPair>& held) {
   std::cout << "leave-one-out: each pair reconstructed (Tikhonov) from a calibration of the others, Pearson "
                "correlation with its reference (pixels clipped at zero left out)\n"
-            << "  pair                  b      gb     gr     r      shifts (rows, cols)   from the whole calibration (P, Q, coded light)\n";
+            << "  pair                  b      gb     gr     r      shifts (rows, cols)   from the whole calibration "
+               "(P, Q, coded light)\n";
   for (const auto& h : held) {
     std::cout << "  " << std::left << std::setw(20) << printable(h.name).substr(0, 20) << std::right << std::fixed
               << std::setprecision(3);
@@ -112,9 +113,9 @@ NoiseSample capture_sample(const std::filesystem::path& path, const CameraConfig
 
 // What the leave-one-out check found, for the camera file's header and the leak threshold.
 struct ReferenceChecks {
-  double lambda = 0;      // --reference-lambda
-  double held_mean = -1;  // mean held-out correlation (< 0: not checked)
-  double held_leak = 0;   // the largest leak of a held-out capture
+  double lambda = 0;        // --reference-lambda
+  double held_mean = -1;    // mean held-out correlation (< 0: not checked)
+  double held_leak = 0;     // the largest leak of a held-out capture
   double held_change = -1;  // the held-out fits' mean coded-light distance from the whole one's
 };
 

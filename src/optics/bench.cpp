@@ -80,7 +80,9 @@ torch::Tensor bench_calibration(const BenchErrors& bench, const Rig& rig, const 
   };
   // Each factor plus iid Gaussian entries; the change that makes in the coded light is then scaled,
   // per channel, to calibration_error of that light (what leave-one-out measures on real scenes).
-  const auto erred = [&](const torch::Tensor& phi) { return phi + at::normal(0.0, 1.0, phi.sizes(), gen, phi.options()) * phi.abs().mean(); };
+  const auto erred = [&](const torch::Tensor& phi) {
+    return phi + at::normal(0.0, 1.0, phi.sizes(), gen, phi.options()) * phi.abs().mean();
+  };
   const auto light = coded(rig.phil, rig.phir);
   const auto change = coded(erred(rig.phil), erred(rig.phir)) - light;
   const auto scale = light.norm(2, {2, 3}, true) / change.norm(2, {2, 3}, true).clamp_min(1e-30);

@@ -114,7 +114,6 @@ struct HeldOutPair {
 // from a calibration of the others. Needs at least 3 pairs.
 // With `whole` (the calibration from all pairs), each held-out fit's distance from it too.
 std::vector<HeldOutPair> leave_one_out(const std::vector<ReferencePair>& pairs, double lambda,
-                                       const ReferenceCalibrationOptions& options,
-                                       const Calibration* whole = nullptr);
+                                       const ReferenceCalibrationOptions& options, const Calibration* whole = nullptr);
 
 }  // namespace flatnet

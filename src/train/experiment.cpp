@@ -38,8 +38,8 @@ std::shared_ptr<const Rig> training_rig(const std::shared_ptr<const Rig>& rig, c
   if (!rig || d.calibration_error <= 0) return rig;
   auto erring = std::make_shared<Rig>(*rig);
   erring->bench.calibration_error = d.calibration_error;
-  std::cerr << "data: each training capture through a calibration erring by " << 100 * d.calibration_error
-            << " % (" << data_key(&DataOptions::calibration_error) << "), validation through the camera's own\n";
+  std::cerr << "data: each training capture through a calibration erring by " << 100 * d.calibration_error << " % ("
+            << data_key(&DataOptions::calibration_error) << "), validation through the camera's own\n";
   return erring;
 }
 
