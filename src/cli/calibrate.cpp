@@ -116,7 +116,7 @@ struct ReferenceChecks {
   double lambda = 0;        // --reference-lambda
   double held_mean = -1;    // mean held-out correlation (< 0: not checked)
   double held_leak = 0;     // the largest leak of a held-out capture
-  double held_change = -1;  // the held-out fits' mean coded-light distance from the whole one's
+  double held_change = -1;  // the jackknife of the held-out fits' coded-light distance (< 0: not measured)
 };
 
 // Sensor pixels at full scale a white capture may hold: more, and its level understates the light.

@@ -99,7 +99,7 @@ std::function<torch::Tensor(const std::string&)> rig_pattern_capture(const Rig& 
   };
 }
 
-CalibrationError calibration_error(const Calibration& est, const Calibration& truth) {
+CalibrationError calibration_error(const Calibration& est, const Calibration& truth, const torch::Tensor& scene) {
   auto aligned = [](const torch::Tensor& e, const torch::Tensor& t) {
     auto alpha = (e * t).sum({1, 2}) / (e * e).sum({1, 2});  // best scalar per channel
     auto err = (alpha.view({-1, 1, 1}) * e - t).norm(2, {1, 2}) / t.norm(2, {1, 2});
@@ -110,7 +110,8 @@ CalibrationError calibration_error(const Calibration& est, const Calibration& tr
   out.q = aligned(est.Q.to(torch::kFloat64), truth.Q.to(torch::kFloat64));
   auto gen = at::detail::createCPUGenerator(7);
   const auto N = truth.P.size(2);
-  auto X = at::rand({4, N, N}, gen, torch::TensorOptions().dtype(torch::kFloat64));
+  const auto X = scene.defined() ? scene.to(torch::kFloat64)
+                                 : at::rand({4, N, N}, gen, torch::TensorOptions().dtype(torch::kFloat64));
   auto fwd = [&](const Calibration& c) {
     return torch::matmul(torch::matmul(c.P.to(torch::kFloat64), X), c.Q.to(torch::kFloat64).transpose(1, 2));
   };

@@ -47,8 +47,10 @@ std::function<torch::Tensor(const std::string&)> rig_pattern_capture(const Rig& 
 // (P*s, Q/s is the same camera): each factor is compared after its best scalar fit.
 struct CalibrationError {
   double p = 0, q = 0;  // ||a P_est - P|| / ||P||, averaged over channels
-  double forward = 0;   // ||P_e X Q_e^T - P X Q^T|| / ||P X Q^T|| on random scenes
+  double forward = 0;   // ||P_e X Q_e^T - P X Q^T|| / ||P X Q^T|| on random scenes, or on `scene`
 };
-CalibrationError calibration_error(const Calibration& estimate, const Calibration& truth);
+// `scene` {4,N,N}: the planes the forward error is measured on (undefined: uniform random ones).
+CalibrationError calibration_error(const Calibration& estimate, const Calibration& truth,
+                                   const torch::Tensor& scene = {});
 
 }  // namespace flatnet

@@ -334,20 +334,6 @@ double absolute_tikhonov_lambda(const SeparableInverse& inverse, double relative
   return relative * top * top;
 }
 
-namespace {
-
-// ||P' X Q'^T - P X Q^T|| / ||P X Q^T|| over all channels, X the scene planes {4,N,N}.
-double coded_light_change(const Calibration& other, const Calibration& whole, const torch::Tensor& scene) {
-  const auto X = scene.to(torch::kFloat64);
-  const auto coded = [&](const Calibration& c) {
-    return torch::matmul(torch::matmul(c.P.to(torch::kFloat64), X), c.Q.to(torch::kFloat64).transpose(1, 2));
-  };
-  const auto truth = coded(whole);
-  return ((coded(other) - truth).norm() / truth.norm().clamp_min(1e-300)).item<double>();
-}
-
-}  // namespace
-
 std::vector<HeldOutPair> leave_one_out(const std::vector<ReferencePair>& pairs, double lambda,
                                        const ReferenceCalibrationOptions& options, const Calibration* whole) {
   require_option(pairs.size() >= 3, "calibrate.references", "leave-one-out needs at least 3 pairs");
@@ -374,10 +360,10 @@ std::vector<HeldOutPair> leave_one_out(const std::vector<ReferencePair>& pairs, 
     const double leak = coded_leak(pairs[held].meas.to(torch::kFloat32), U, V);  // nan where not measurable
     if (std::isfinite(leak)) h.leak = leak;
     if (whole) {
-      const auto change = calibration_error(fit.calib, *whole);
+      const auto change = calibration_error(fit.calib, *whole, pairs[held].reference);
       h.change_p = change.p;
       h.change_q = change.q;
-      h.change_coded = coded_light_change(fit.calib, *whole, pairs[held].reference);
+      h.change_coded = change.forward;
     }
     out.push_back(h);
     progress.tick();

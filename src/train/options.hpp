@@ -23,8 +23,8 @@ struct DataOptions {
   double val_fraction = 0.1;
   int64_t split_seed = 1;
   ValidationLight val_light = ValidationLight::display;  // simulate: display | judged (kJudgedConditions in turn)
-  // simulate: each training capture through a calibration that errs by this relative amount, redrawn
-  // per capture (BenchErrors::calibration_error; validation keeps the camera's own). 0: the camera's.
+  // simulate: each training capture through a calibration that errs by this share of its coded light,
+  // redrawn per capture (BenchErrors::calibration_error; validation keeps the camera's own). 0: the camera's.
   double calibration_error = 0;
 };
 
