@@ -33,7 +33,8 @@ RunResult run_shell(const std::string& command);
 
 // Ends the running test as skipped. Under CTest (which sets FLATNET_CTEST) the process exits with
 // code 77, which CTest reports as "Not Run (Skipped)", never as passed; run by hand it warns and
-// returns. Use SKIP_TEST(why), which also returns from the test case.
+// returns. Use SKIP_TEST(why), which also returns from the test case, and tag the test [solo]: in
+// a process shared with other test cases (tests/ctest_groups.hpp) a skip fails instead.
 [[maybe_unused]] void skip(const std::string& why);
 #define SKIP_TEST(why)          \
   do {                          \

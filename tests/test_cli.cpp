@@ -512,7 +512,7 @@ TEST_CASE("train, export, import and infer from the command line, and bad input 
   CHECK_FALSE(std::filesystem::exists(s.dir / "bad"));
 }
 
-TEST_CASE("the shipped models run on FlatNet's real prototype captures", "[cli][flatnet-data]") {
+TEST_CASE("the shipped models run on FlatNet's real prototype captures", "[cli][flatnet-data][solo]") {
   const auto data = test::shared_dir() / "data" / "flatnet";
   const auto model = test::source_dir() / "models" / "flatnet-sim-calibfree.flatnet";
   if (!std::filesystem::exists(data / "fc_6.png") || !std::filesystem::exists(model)) {
@@ -576,7 +576,7 @@ TEST_CASE("distributed training from the command line: two local ranks, resume, 
 }
 
 TEST_CASE("a full disk: exit 2 naming the file, no temp files left, no broken file under a final name",
-          "[cli][errors][disk]") {
+          "[cli][errors][disk][solo]") {
   test::Scratch s("full_disk");
   const auto disk = s.dir / "disk";
   std::filesystem::create_directories(disk);

@@ -204,7 +204,7 @@ TEST_CASE("checkpoint state is checked by its own rules: Adam's moments and beta
 }
 
 TEST_CASE("a torch.save archive whose version record claims a gigabyte is refused before LibTorch inflates it",
-          "[safe][hostile][torchfile]") {
+          "[safe][hostile][torchfile][solo]") {
   if (!test::python_has_torch() && std::system("/usr/bin/python3 -c 'import zipfile' >/dev/null 2>&1") != 0)
     SKIP_TEST("no /usr/bin/python3 to write the zip file");
   test::Scratch s("hostile_zip");

@@ -76,7 +76,7 @@ TEST_CASE("report.html is one self-contained page with escaped names", "[report]
   CHECK_THAT(page, Contains("class=\"compare\"") && Contains("type=\"range\""));
 }
 
-TEST_CASE("report.html in headless Chromium: its script runs and the page renders", "[report][chromium]") {
+TEST_CASE("report.html in headless Chromium: its script runs and the page renders", "[report][chromium][solo]") {
   const auto which = test::run_shell("command -v chromium || command -v chromium-browser");
   if (which.code != 0) SKIP_TEST("no chromium (Debian package chromium; scripts/setup.sh installs it)");
   const std::string chromium = which.output.substr(0, which.output.find('\n'));

@@ -233,7 +233,7 @@ TEST_CASE("scenes are magnified by whole pixels and centred on black", "[hw][uni
   CHECK(canvas[0][0][2].item<int>() == 0);  // the black border
 }
 
-TEST_CASE("fake camera: formats, averaging, sidecars, refusals", "[hw][fake]") {
+TEST_CASE("fake camera: formats, averaging, sidecars, refusals", "[hw][fake][solo]") {
   if (!fake_camera_available()) {
     SKIP_TEST("built without Aravis");
   }
@@ -289,7 +289,8 @@ TEST_CASE("fake camera: formats, averaging, sidecars, refusals", "[hw][fake]") {
   CHECK(count_files(s.dir / "x", ".png") == 0);
 }
 
-TEST_CASE("fake camera: a display-capture dataset survives an interruption and reads as a training set", "[hw][fake]") {
+TEST_CASE("fake camera: a display-capture dataset survives an interruption and reads as a training set",
+          "[hw][fake][solo]") {
   if (!fake_camera_available()) {
     SKIP_TEST("built without Aravis");
   }
@@ -323,7 +324,7 @@ TEST_CASE("fake camera: a display-capture dataset survives an interruption and r
   CHECK(read_pairs(split_lists(s.dir / "ds", "val")).size() == 2);
 }
 
-TEST_CASE("fake camera: calibration collection, then the calibration", "[hw][fake]") {
+TEST_CASE("fake camera: calibration collection, then the calibration", "[hw][fake][solo]") {
   if (!fake_camera_available()) {
     SKIP_TEST("built without Aravis");
   }
@@ -343,7 +344,7 @@ TEST_CASE("fake camera: calibration collection, then the calibration", "[hw][fak
   CHECK(std::filesystem::exists(s.dir / "cal" / "col_000_pos.png"));
 }
 
-TEST_CASE("fake camera: live view with Tikhonov and with a FlatNet model", "[hw][fake]") {
+TEST_CASE("fake camera: live view with Tikhonov and with a FlatNet model", "[hw][fake][solo]") {
   if (!fake_camera_available()) {
     SKIP_TEST("built without Aravis");
   }
@@ -370,7 +371,7 @@ TEST_CASE("fake camera: live view with Tikhonov and with a FlatNet model", "[hw]
   }
 }
 
-TEST_CASE("fake camera: scenes shown in a real window (Xvfb)", "[hw][fake][window]") {
+TEST_CASE("fake camera: scenes shown in a real window (Xvfb)", "[hw][fake][window][solo]") {
   if (!fake_camera_available() || std::system("command -v xvfb-run >/dev/null 2>&1") != 0) {
     SKIP_TEST("Aravis or xvfb-run missing");
   }

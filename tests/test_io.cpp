@@ -30,7 +30,7 @@ TEST_CASE(".mat round trip keeps MATLAB's indexing (column-major)", "[io][mat]")
   CHECK_FALSE(m.has("zz"));
 }
 
-TEST_CASE(".mat v7.3 round trip when matio supports HDF5", "[io][mat]") {
+TEST_CASE(".mat v7.3 round trip when matio supports HDF5", "[io][mat][solo]") {
   test::Scratch s("mat73");
   auto a = torch::rand({5, 7}, torch::kFloat64);
   try {
@@ -230,12 +230,31 @@ TEST_CASE("parallel_for_index starts nothing after an error, and rethrows the fi
 TEST_CASE("all cores means the cores this process may run on (its affinity)", "[core][threads][cli]") {
   CHECK(all_cores() >= 1);
   const int before = at::get_num_threads();
-  CHECK(set_threads(0) == all_cores());
+  const int chosen = set_threads(0);
+  CHECK(chosen >= 1);
+  CHECK(chosen <= all_cores());
   set_threads(before);
   const auto pinned = test::run_shell("taskset -c 0 " + std::string(FLATNET_BINARY) +
                                       " bench --rows peak_gemm_fp32 --repeats 1 --warmup 0");
   REQUIRE(pinned.code == 0);
   CHECK_THAT(pinned.output, Contains("flatnet bench: 1 threads"));
+}
+
+TEST_CASE("by default threads take the cores that other work leaves free and --threads overrides it",
+          "[core][threads][cli][solo]") {
+  if (all_cores() < 2) SKIP_TEST("one core: nothing to leave free");
+  // Two cores of this process's set; a busy loop holds the second for the whole command.
+  const std::string cores = "taskset -c 0,1 ";
+  const std::string bench = std::string(FLATNET_BINARY) + " bench --rows peak_gemm_fp32 --repeats 1 --warmup 0";
+  const std::string busy = "taskset -c 1 sh -c \"while :; do :; done\" & B=$!; sleep 0.3; ";
+  auto held = test::run_shell("bash -c " + test::q(busy + cores + bench + "; s=$?; kill $B; exit $s"));
+  INFO(held.output);
+  REQUIRE(held.code == 0);
+  CHECK_THAT(held.output, Contains("flatnet bench: 1 threads"));
+  auto asked = test::run_shell("bash -c " + test::q(busy + cores + bench + " --threads 2; s=$?; kill $B; exit $s"));
+  INFO(asked.output);
+  REQUIRE(asked.code == 0);
+  CHECK_THAT(asked.output, Contains("flatnet bench: 2 threads"));
 }
 
 TEST_CASE("worker threads run single-threaded, and BLAS from two workers at once gives each its own answer",

@@ -48,7 +48,7 @@ struct ScopedEnv {
 
 }  // namespace
 
-TEST_CASE("LPIPS equals the Python reference on torchvision's and lpips' file layouts", "[lpips][python]") {
+TEST_CASE("LPIPS equals the Python reference on torchvision's and lpips' file layouts", "[lpips][python][solo]") {
   if (!test::python_has_torch()) SKIP_TEST("/usr/bin/python3 has no torch");
   test::Scratch s("lpips_py");
   const auto script = test::source_dir() / "scripts" / "lpips_reference.py";

@@ -2,10 +2,28 @@
 #include "catch_torch.hpp"
 
 #include "core/util.hpp"
+#include "ctest_groups.hpp"
 #include "train/options.hpp"
 
 #include <cstdlib>
+#include <iostream>
+#include <set>
 #include <string>
+
+namespace {
+
+// `flatnet_tests --list-groups`: the groups that hold at least one test case, one per line, for
+// tests/add_ctest_groups.cmake to turn into CTest entries.
+int list_groups(Catch::Session& session) {
+  std::set<std::string> groups;
+  for (const Catch::TestCase& test_case : Catch::getAllTestCasesSorted(session.config()))
+    if (!test_case.isHidden() && !test::runs_alone(test_case))
+      groups.insert(test::group_of(test_case.getTestCaseInfo()));
+  for (const std::string& group : groups) std::cout << group << "\n";
+  return 0;
+}
+
+}  // namespace
 
 int main(int argc, char* argv[]) {
   // scripts/test.sh runs two test processes at once (ctest -j 2) and sets FLATNET_TEST_THREADS=1:
@@ -13,5 +31,7 @@ int main(int argc, char* argv[]) {
   const char* threads = std::getenv("FLATNET_TEST_THREADS");
   flatnet::register_option_tables();
   flatnet::set_threads(threads ? std::atoi(threads) : 0);
-  return Catch::Session().run(argc, argv);
+  Catch::Session session;
+  if (argc == 2 && std::string(argv[1]) == "--list-groups") return list_groups(session);
+  return session.run(argc, argv);
 }

@@ -254,7 +254,7 @@ TEST_CASE("model files and state dicts round trip, and wrong files give clear er
                     Contains("nan.flatnet") && Contains("enhancer.outc.conv.weight") && Contains("NaN"));
 }
 
-TEST_CASE("the C++ generator equals a Python reference of FlatNet-sep on the same weights", "[nn][python]") {
+TEST_CASE("the C++ generator equals a Python reference of FlatNet-sep on the same weights", "[nn][python][solo]") {
   if (std::system("/usr/bin/python3 -c 'import torch' >/dev/null 2>&1") != 0) {
     SKIP_TEST("/usr/bin/python3 has no torch");
   }
@@ -303,7 +303,7 @@ TEST_CASE("the C++ generator equals a Python reference of FlatNet-sep on the sam
   }
 }
 
-TEST_CASE("at paper width, the exported state dict loads into FlatNet-sep with strict=True", "[nn][python]") {
+TEST_CASE("at paper width, the exported state dict loads into FlatNet-sep with strict=True", "[nn][python][solo]") {
   if (!test::python_has_torch()) SKIP_TEST("/usr/bin/python3 has no torch");
   test::Scratch s("paper_sd");
   const auto script = test::source_dir() / "scripts" / "flatnet_reference.py";
@@ -521,7 +521,7 @@ TEST_CASE("the stripe term is eval's stripe energy (squared, over 255^2), ignore
 }
 
 TEST_CASE("scripts/stripe_split.py reproduces eval's stripe energy and splits it into rows and columns",
-          "[nn][loss][python]") {
+          "[nn][loss][python][solo]") {
   if (std::system("/usr/bin/python3 -c 'import numpy, PIL' >/dev/null 2>&1") != 0)
     SKIP_TEST("/usr/bin/python3 has no numpy or Pillow");
   test::Scratch s("stripe_split");

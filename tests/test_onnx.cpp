@@ -89,7 +89,7 @@ torch::Tensor run_in_onnxruntime(const std::filesystem::path& model, const torch
 }  // namespace
 
 TEST_CASE("ONNX export has a batch axis: ONNX Runtime computes what LibTorch computes, batch 1 and 3",
-          "[onnx][onnxruntime]") {
+          "[onnx][onnxruntime][solo]") {
   if (test::run_shell("command -v node").code != 0) SKIP_TEST("no node (scripts/setup.sh installs nodejs)");
   if (!std::filesystem::exists(onnxruntime_dir() / "node_modules" / "onnxruntime-node" / "package.json"))
     SKIP_TEST("no onnxruntime-node under " + onnxruntime_dir().string() + " (scripts/setup.sh installs it)");

@@ -65,7 +65,7 @@ TEST_CASE("calibration-free matrices: Toeplitz-like with the geometry's slope, s
   CHECK(geometry_slope(g) == Approx(20.0 / 10.6));
 }
 
-TEST_CASE("FlatNet's released calibration-free matrices load per channel", "[optics][codes][shared]") {
+TEST_CASE("FlatNet's released calibration-free matrices load per channel", "[optics][codes][shared][solo]") {
   const auto f = test::shared_dir() / "data" / "flatnet" / "phil_toep_slope22.mat";
   if (!std::filesystem::exists(f)) SKIP_TEST(f.string() + " not present");
   auto phil = load_flatnet_toeplitz(f, "phil");

@@ -207,7 +207,7 @@ TEST_CASE("a short bf16 autocast training run tracks the fp32 loss curve", "[pre
 }
 
 TEST_CASE("oneDNN convolutions (prepacked weights, fused bias and ReLU) compute the convolution",
-          "[precision][bf16][onednn]") {
+          "[precision][bf16][onednn][solo]") {
   if (!cpu_features().onednn_bf16)
     SKIP_TEST("oneDNN has no bf16 convolution on " + cpu_features().onednn_isa + " (" + cpu_features().summary() +
               "); it needs AVX-512");

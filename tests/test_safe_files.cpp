@@ -95,7 +95,7 @@ TEST_CASE("safetensors: round trip of every dtype, and the file follows the spec
 }
 
 TEST_CASE("model files and checkpoints are read by an independent reader that follows the specification",
-          "[safe][model][python]") {
+          "[safe][model][python][solo]") {
   if (!have_python()) SKIP_TEST("no python3");
   test::Scratch s("st_python");
   const auto config = tiny_config();
@@ -250,7 +250,7 @@ TEST_CASE("format-1 model files (TorchScript archives) are read as data, with th
 }
 
 TEST_CASE("a TorchScript model with a __setstate__ is never run by any command that loads models",
-          "[safe][model][python]") {
+          "[safe][model][python][solo]") {
   if (!test::python_has_torch()) SKIP_TEST("/usr/bin/python3 has no torch");
   test::Scratch s("setstate");
   // The module's __setstate__ prints a marker when LibTorch's (or Python's) loader restores it, as
@@ -373,7 +373,7 @@ TEST_CASE("hostile pickles: cycles, deep nesting, huge lengths and amplifying vi
 }
 
 TEST_CASE("a view that claims more elements than its storage holds is refused before the copy",
-          "[safe][torchfile][python]") {
+          "[safe][torchfile][python][solo]") {
   if (!test::python_has_torch()) SKIP_TEST("/usr/bin/python3 has no torch");
   test::Scratch s("amplify");
   const auto r = test::run_shell(

@@ -162,7 +162,7 @@ TEST_CASE("flatnet import finds the generator in every layout people save", "[to
 }
 
 TEST_CASE("flatnet import reads what Python writes: OrderedDict, FlatNet checkpoints, DataParallel, legacy",
-          "[torchfile][import][python]") {
+          "[torchfile][import][python][solo]") {
   if (!test::python_has_torch()) SKIP_TEST("/usr/bin/python3 has no torch");
   test::Scratch s("torchfile_python");
   const auto config = Config::load({}, {"model.unet.width=2"});
@@ -211,7 +211,7 @@ torch.save(collections.OrderedDict(list(od.items()) + [('extra.weight', torch.on
 }
 
 TEST_CASE("VGG-16 weights load as Python writes them: convert_vgg16.py, torchvision's own file, features.state_dict()",
-          "[torchfile][python][vgg]") {
+          "[torchfile][python][vgg][solo]") {
   if (!test::python_has_torch()) SKIP_TEST("/usr/bin/python3 has no torch");
   test::Scratch s("vgg_python");
   // Tensor k (in torchvision's order) holds k + 1e-3 * arange: each loaded value says where it came from.

@@ -121,7 +121,7 @@ std::string levers_text_of(const S& s) {
 
 // Shared flag handling.
 struct CommonSettings {
-  int threads = 0;  // 0: all cores
+  int threads = 0;  // 0: the cores other work leaves free (free_cores)
 };
 const FlagTable<CommonSettings>& common_flags();
 void add_common(cxxopts::Options& options);  // --threads, --help

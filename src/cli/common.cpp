@@ -32,7 +32,8 @@ std::string flag_or_key(const std::string& key) {
 
 const FlagTable<CommonSettings>& common_flags() {
   static const FlagTable<CommonSettings> rows = {
-      {"threads", &CommonSettings::threads, "CPU threads (0: all cores)", 0, 1024, "0 (all cores) to 1024"},
+      {"threads", &CommonSettings::threads, "CPU threads (0: the cores other work leaves free)", 0, 1024,
+       "0 (the free cores) to 1024"},
   };
   return rows;
 }

@@ -95,6 +95,10 @@ int train(int argc, char** argv) {
     claim = claim_out(r, e.out, "train", "", "latest.ckpt");
   }
   watch_interrupts();
+  // --threads 0 takes the cores other work leaves free (free_cores): say so when that is fewer than all.
+  if (at::get_num_threads() < all_cores())
+    std::cerr << "threads: " << at::get_num_threads() << " of " << all_cores()
+              << " cores (--threads sets it; by default, the cores that other work leaves free)\n";
   const auto result = run_experiment(e);
   const auto& s = result.summary;
   if (!result.writer) {
@@ -102,7 +106,8 @@ int train(int argc, char** argv) {
     return interrupted() ? 130 : 0;
   }
   std::cout << "steps " << s.first_step << ".." << s.last_step << " in " << format_duration(s.seconds) << " ("
-            << s.steps_per_s << " steps/s, data wait " << s.loader_wait_s << " s)\n"
+            << s.steps_per_s << " steps/s on " << at::get_num_threads() << " threads, data wait " << s.loader_wait_s
+            << " s)\n"
             << "validation: last PSNR " << s.last_psnr << " SSIM " << s.last_ssim << ", best PSNR " << s.best_psnr
             << "\nmodel: " << (e.out / "model.flatnet").string() << "\n";
   if (s.budget_reached)

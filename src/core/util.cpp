@@ -27,6 +27,7 @@
 #include <atomic>
 #include <mutex>
 #include <cstring>
+#include <map>
 #include <regex>
 #include <sstream>
 #include <thread>
@@ -77,8 +78,55 @@ int all_cores() {
   return static_cast<int>(std::max(1u, std::thread::hardware_concurrency()));
 }
 
+namespace {
+
+// Each CPU's busy and total ticks since boot, from /proc/stat's "cpuN user nice system idle iowait
+// irq softirq steal" lines (idle and iowait are the idle ticks). Empty where it cannot be read.
+std::map<int, std::pair<uint64_t, uint64_t>> cpu_ticks() {
+  std::map<int, std::pair<uint64_t, uint64_t>> ticks;
+  std::ifstream in("/proc/stat");
+  for (std::string line; std::getline(in, line);) {
+    if (line.rfind("cpu", 0) != 0 || line.size() < 4 || !std::isdigit(static_cast<unsigned char>(line[3]))) continue;
+    std::istringstream fields(line.substr(3));
+    int cpu = -1;
+    fields >> cpu;
+    uint64_t value = 0, total = 0, idle = 0;
+    for (int i = 0; i < 8 && fields >> value; ++i) {
+      total += value;
+      if (i == 3 || i == 4) idle += value;
+    }
+    if (cpu >= 0) ticks[cpu] = {total - idle, total};
+  }
+  return ticks;
+}
+
+}  // namespace
+
+int free_cores() {
+  cpu_set_t allowed;
+  CPU_ZERO(&allowed);
+  if (sched_getaffinity(0, sizeof(allowed), &allowed) != 0) return all_cores();
+  // The kernel counts in ticks of 10 ms: 50 ms gives each CPU 5, enough to tell a core another job
+  // holds (5 busy) from an idle one (0-1).
+  const auto before = cpu_ticks();
+  std::this_thread::sleep_for(std::chrono::milliseconds(50));
+  const auto after = cpu_ticks();
+  double busy = 0;  // cores' worth of other work on this process's CPUs
+  int read = 0;
+  for (const auto& [cpu, now] : after) {
+    const auto then = before.find(cpu);
+    if (cpu >= CPU_SETSIZE || !CPU_ISSET(cpu, &allowed) || then == before.end()) continue;
+    const uint64_t total = now.second - then->second.second;
+    if (total == 0) continue;
+    busy += static_cast<double>(now.first - then->second.first) / static_cast<double>(total);
+    ++read;
+  }
+  if (read == 0) return all_cores();
+  return std::max(1, all_cores() - static_cast<int>(std::lround(busy)));
+}
+
 int set_threads(int n) {
-  if (n <= 0) n = all_cores();
+  if (n <= 0) n = free_cores();
   at::set_num_threads(n);
   return n;
 }

@@ -25,7 +25,12 @@ void keep_freed_memory();
 // a container's cpuset likewise), at least 1. The one meaning of "all cores" in flatnet.
 int all_cores();
 
-// Sets LibTorch's intra-op threads; n <= 0 means all_cores(). Returns the count used.
+// The cores of all_cores() that other work leaves free now, at least 1: the busy share of each
+// allowed CPU over 50 ms (/proc/stat), summed and rounded, taken away. A thread on a core another
+// job holds makes both wait (a training step 1.9x slower beside one busy core, docs/performance.md).
+int free_cores();
+
+// Sets LibTorch's intra-op threads; n <= 0 means free_cores(). Returns the count used.
 int set_threads(int n);
 
 // Writes a file atomically: `write_to` receives a temporary path in the same folder (same
