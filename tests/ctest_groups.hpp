@@ -6,6 +6,7 @@
 //   [slow]  the slow label's end-to-end runs, or
 //   [solo]  a test that can skip (SKIP_TEST ends its process with exit 77, which would end the rest
 //           of a group and report them all as skipped), or one long enough to want a core of its own.
+// Hidden test cases ([.]) belong to no entry: they run only when named.
 #include "catch_torch.hpp"
 
 #include <string>
