@@ -3,7 +3,6 @@
 #include "catch_torch.hpp"
 
 #include <fstream>
-#include <iterator>
 #include <sstream>
 
 #include "ctest_groups.hpp"

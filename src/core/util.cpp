@@ -122,7 +122,7 @@ int free_cores() {
     ++read;
   }
   if (read == 0) return all_cores();
-  return std::max(1, all_cores() - static_cast<int>(std::lround(busy)));
+  return std::max(1, CPU_COUNT(&allowed) - static_cast<int>(std::lround(busy)));
 }
 
 int set_threads(int n) {
