@@ -595,6 +595,30 @@ TEST_CASE("the PSNR term is minus eval's mean PSNR, counts every image in decibe
   CHECK_THROWS(psnr_loss(x, truth.slice(3, 1)));
 }
 
+TEST_CASE("the first stage is FlatNet's leaky_relu(W1^T Y W2), values and gradients, per channel or shared", "[nn]") {
+  torch::manual_seed(12);
+  for (const int64_t k : {4, 1}) {
+    INFO("k = " << k);
+    const auto o = tiny_options(k);
+    FlatInversion inv(o.inversion);
+    const auto Y0 = torch::randn({3, 4, o.rows, o.cols});
+    auto Y1 = Y0.clone().requires_grad_(), Y2 = Y0.clone().requires_grad_();
+    const auto L = inv->PhiL.detach().clone().requires_grad_(), R = inv->PhiR.detach().clone().requires_grad_();
+    // The reference: torch::matmul over {B,4,...} with the weights as {k,rows,N}, {k,cols,N}.
+    const auto X = torch::matmul(L.permute({2, 0, 1}).transpose(1, 2), torch::matmul(Y2, R.permute({2, 0, 1})));
+    const auto reference = torch::leaky_relu(X, 0.01).flip({1});
+    const auto mine = inv->forward(Y1);
+    REQUIRE(mine.sizes() == reference.sizes());
+    CHECK(torch::allclose(mine, reference, 1e-4, 1e-5));
+    const auto weights = torch::randn_like(reference);
+    (mine * weights).sum().backward();
+    (reference * weights).sum().backward();
+    CHECK(torch::allclose(Y1.grad(), Y2.grad(), 1e-4, 1e-5));
+    CHECK(torch::allclose(inv->PhiL.grad(), L.grad(), 1e-4, 1e-5));
+    CHECK(torch::allclose(inv->PhiR.grad(), R.grad(), 1e-4, 1e-5));
+  }
+}
+
 TEST_CASE("inversion crops equal the matching window of the whole first stage", "[nn]") {
   torch::manual_seed(9);
   const auto o = tiny_options(4);

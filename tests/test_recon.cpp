@@ -311,6 +311,14 @@ TEST_CASE("Tikhonov through oneDNN's GEMM equals the reference products, batches
   CHECK(torch::allclose(onednn_bmm(a.slice(0, 0, 1), b), torch::matmul(a.slice(0, 0, 1), b), 1e-5, 1e-5));
   CHECK(torch::allclose(onednn_bmm(a, b.slice(0, 0, 1)), torch::matmul(a, b.slice(0, 0, 1)), 1e-5, 1e-5));
   CHECK_THROWS(onednn_bmm(a, torch::randn({3, 4, 4})));
+  // Transposed views are read in place, other layouts copied first: the same products.
+  const auto at = torch::randn({3, 5, 7}), bt = torch::randn({3, 4, 5});
+  CHECK(torch::allclose(onednn_bmm(at.transpose(1, 2), bt.transpose(1, 2)),
+                        torch::bmm(at.transpose(1, 2), bt.transpose(1, 2)), 1e-5, 1e-5));
+  CHECK(torch::allclose(onednn_bmm(at.slice(0, 0, 1).transpose(1, 2), b),
+                        torch::matmul(at.slice(0, 0, 1).transpose(1, 2), b), 1e-5, 1e-5));
+  const auto permuted = torch::randn({5, 3, 7}).permute({1, 2, 0});  // {3,7,5}, neither layout
+  CHECK(torch::allclose(onednn_bmm(permuted, b), torch::bmm(permuted, b), 1e-5, 1e-5));
   // The reconstruction: batch 1 and 2, against the optics layer's reference order.
   Calibration c;
   c.P = torch::randn({4, 40, 16}) / std::sqrt(40.0);

@@ -114,7 +114,8 @@ int bench(int argc, char** argv) {
                   cxxopts::value<std::string>())("json", "also write the results to this JSON file",
                                                  cxxopts::value<std::string>())(
       "profile",
-      "after each row, one more run under LibTorch's profiler; print its N costliest operators by self time "
+      "after each row, one more run under LibTorch's profiler (after one that warms it up); print its N costliest "
+      "operators by self time "
       "(and all of them into --json)",
       cxxopts::value<int>())("profile-shapes", "with --profile: tell operators apart by input shapes and types");
   add_flags(o, bench_flags());

@@ -21,14 +21,6 @@ FlatInversionImpl::FlatInversionImpl(const InversionOptions& o) : negative_slope
   PhiR = register_parameter("PhiR", o.phir.to(torch::kFloat32).clone());
 }
 
-torch::Tensor FlatInversionImpl::forward(const torch::Tensor& Y) {
-  // Y {B,4,rows,cols}. Weights as {k,rows,N} / {k,cols,N}; k = 1 broadcasts over the channels.
-  const auto L = PhiL.permute({2, 0, 1});                                // {k,rows,N}
-  const auto R = PhiR.permute({2, 0, 1});                                // {k,cols,N}
-  const auto X = torch::matmul(L.transpose(1, 2), torch::matmul(Y, R));  // {B,4,N,N}
-  return torch::leaky_relu(X, negative_slope_).flip({1});                // (b,gb,gr,r) -> (r,gr,gb,b)
-}
-
 namespace {
 
 // L^T Y R for {k,rows,n} L, {4,rows,cols} Y, {k,cols,m} R (k = 1 or 4): through oneDNN's fp32 GEMM
@@ -38,11 +30,26 @@ torch::Tensor first_stage_product(const torch::Tensor& L, const torch::Tensor& Y
   const bool onednn = Y.is_cpu() && Y.scalar_type() == torch::kFloat32 && L.scalar_type() == torch::kFloat32 &&
                       R.scalar_type() == torch::kFloat32 && Y.dim() == 3;
   if (!onednn) return torch::matmul(L.transpose(1, 2), torch::matmul(Y, R));
-  const auto YR = onednn_matmul_autograd(Y.contiguous(), R.contiguous());  // {4,rows,m}
-  return onednn_matmul_autograd(L.transpose(1, 2).contiguous(), YR);       // {4,n,m}
+  const auto YR = onednn_matmul_autograd(Y, R);          // {4,rows,m}
+  return onednn_matmul_autograd(L.transpose(1, 2), YR);  // {4,n,m}
 }
 
 }  // namespace
+
+torch::Tensor FlatInversionImpl::forward(const torch::Tensor& Y) {
+  // Y {B,4,rows,cols}. Weights as {k,rows,N} / {k,cols,N}; k = 1 broadcasts over the channels.
+  const auto L = PhiL.permute({2, 0, 1});  // {k,rows,N}
+  const auto R = PhiR.permute({2, 0, 1});  // {k,cols,N}
+  torch::Tensor X;                         // {B,4,N,N}
+  if (Y.dim() == 4) {                      // one sample at a time, so that each product can go through oneDNN
+    std::vector<torch::Tensor> samples;
+    for (int64_t b = 0; b < Y.size(0); ++b) samples.push_back(first_stage_product(L, Y[b], R));
+    X = torch::stack(samples);
+  } else {
+    X = torch::matmul(L.transpose(1, 2), torch::matmul(Y, R));
+  }
+  return torch::leaky_relu(X, negative_slope_).flip({1});  // (b,gb,gr,r) -> (r,gr,gb,b)
+}
 
 torch::Tensor FlatInversionImpl::forward_crops(const torch::Tensor& Y,
                                                const std::vector<std::pair<int64_t, int64_t>>& corners, int64_t size) {

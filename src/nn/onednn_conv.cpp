@@ -2,6 +2,7 @@
 
 #include <oneapi/dnnl/dnnl.hpp>
 
+#include <atomic>
 #include <mutex>
 
 #include "core/error.hpp"
@@ -106,17 +107,25 @@ struct MatmulPlan {
   dnnl::memory::desc a, b, c;
 };
 
-// Made once per shape (batch of A, of B, M, K, N), shared by the threads that ask.
-MatmulPlan& matmul_plan(int64_t batch_a, int64_t batch_b, int64_t m, int64_t k, int64_t n) {
+// A {batch,rows,cols} operand as oneDNN reads it: row-major, or (transposed) the transpose of a
+// row-major {batch,cols,rows} tensor, read in place instead of copied.
+dnnl::memory::desc operand_desc(int64_t batch, int64_t rows, int64_t cols, bool transposed) {
+  if (!transposed) return dnnl::memory::desc({batch, rows, cols}, dt::f32, tag::abc);
+  return dnnl::memory::desc({batch, rows, cols}, dt::f32, dnnl::memory::dims{rows * cols, 1, rows});
+}
+
+// Made once per shape (batch of A, of B, M, K, N, which operands are transposed), shared by the
+// threads that ask.
+MatmulPlan& matmul_plan(int64_t batch_a, int64_t batch_b, int64_t m, int64_t k, int64_t n, bool a_t, bool b_t) {
   static std::mutex mutex;
-  static std::map<std::array<int64_t, 5>, std::unique_ptr<MatmulPlan>> plans;
+  static std::map<std::array<int64_t, 7>, std::unique_ptr<MatmulPlan>> plans;
   std::lock_guard<std::mutex> lock(mutex);
-  auto& slot = plans[{batch_a, batch_b, m, k, n}];
+  auto& slot = plans[{batch_a, batch_b, m, k, n, a_t, b_t}];
   if (!slot) {
     auto plan = std::make_unique<MatmulPlan>();
     const int64_t batch = std::max(batch_a, batch_b);
-    plan->a = dnnl::memory::desc({batch_a, m, k}, dt::f32, tag::abc);
-    plan->b = dnnl::memory::desc({batch_b, k, n}, dt::f32, tag::abc);
+    plan->a = operand_desc(batch_a, m, k, a_t);
+    plan->b = operand_desc(batch_b, k, n, b_t);
     plan->c = dnnl::memory::desc({batch, m, n}, dt::f32, tag::abc);
     const dnnl::matmul::desc desc(plan->a, plan->b, plan->c);
     plan->primitive = dnnl::matmul(dnnl::matmul::primitive_desc(desc, cpu_engine()));
@@ -125,21 +134,37 @@ MatmulPlan& matmul_plan(int64_t batch_a, int64_t batch_b, int64_t m, int64_t k, 
   return *slot;
 }
 
+// fp32 and row-major, or the transpose of a row-major tensor (a view as x.transpose(1, 2) gives),
+// which oneDNN reads in place; anything else is copied row-major first.
+std::pair<torch::Tensor, bool> gemm_operand(const torch::Tensor& x) {
+  auto t = x.to(torch::kFloat32);
+  if (t.is_contiguous()) return {t, false};
+  if (t.transpose(1, 2).is_contiguous()) return {t, true};
+  return {t.contiguous(), false};
+}
+
+std::atomic<uint64_t> bmm_flops{0};
+
 }  // namespace
 
+uint64_t onednn_bmm_flops() { return bmm_flops.load(); }
+
 torch::Tensor onednn_bmm(const torch::Tensor& a_in, const torch::Tensor& b_in) {
+  RECORD_FUNCTION("flatnet::onednn_bmm", c10::ArrayRef<c10::IValue>{});
   TORCH_CHECK(a_in.dim() == 3 && b_in.dim() == 3 && a_in.size(2) == b_in.size(1) &&
                   (a_in.size(0) == b_in.size(0) || a_in.size(0) == 1 || b_in.size(0) == 1),
               "onednn_bmm: {batch,M,K} x {batch,K,N} expected, got ", a_in.sizes(), " and ", b_in.sizes());
-  const auto a = a_in.to(torch::kFloat32).contiguous(), b = b_in.to(torch::kFloat32).contiguous();
+  const auto [a, a_t] = gemm_operand(a_in);
+  const auto [b, b_t] = gemm_operand(b_in);
   const int64_t m = a.size(1), k = a.size(2), n = b.size(2);
-  const auto& plan = matmul_plan(a.size(0), b.size(0), m, k, n);
+  const auto& plan = matmul_plan(a.size(0), b.size(0), m, k, n, a_t, b_t);
   auto c = torch::empty({std::max(a.size(0), b.size(0)), m, n}, a.options());
   dnnl::memory am(plan.a, cpu_engine(), a.data_ptr()), bm(plan.b, cpu_engine(), b.data_ptr()),
       cm(plan.c, cpu_engine(), c.data_ptr());
   auto& stream = cpu_stream();
   plan.primitive.execute(stream, {{DNNL_ARG_SRC, am}, {DNNL_ARG_WEIGHTS, bm}, {DNNL_ARG_DST, cm}});
   stream.wait();
+  bmm_flops += static_cast<uint64_t>(2 * c.size(0) * m * k * n);
   return c;
 }
 
@@ -158,8 +183,8 @@ class OneDnnMatmulFunction : public torch::autograd::Function<OneDnnMatmulFuncti
     const auto grad = grads[0].contiguous();  // {batch,M,N}
     auto reduce_to = [](torch::Tensor g, int64_t batch) { return batch == 1 && g.size(0) > 1 ? g.sum(0, true) : g; };
     torch::Tensor grad_a, grad_b;
-    if (a.requires_grad()) grad_a = reduce_to(onednn_bmm(grad, b.transpose(1, 2).contiguous()), a.size(0));
-    if (b.requires_grad()) grad_b = reduce_to(onednn_bmm(a.transpose(1, 2).contiguous(), grad), b.size(0));
+    if (a.requires_grad()) grad_a = reduce_to(onednn_bmm(grad, b.transpose(1, 2)), a.size(0));
+    if (b.requires_grad()) grad_b = reduce_to(onednn_bmm(a.transpose(1, 2), grad), b.size(0));
     return {grad_a, grad_b};
   }
 };

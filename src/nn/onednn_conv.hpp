@@ -44,6 +44,10 @@ class OneDnnConv {
 // AVX-512 machines oneDNN's fp32 GEMM kernels run about twice as fast as OpenBLAS's at the
 // Tikhonov reconstruction's shapes (`flatnet bench --rows peak,tikhonov`). Inference only: no autograd.
 torch::Tensor onednn_bmm(const torch::Tensor& a, const torch::Tensor& b);
+// The work onednn_bmm has done since the process started, in FLOPs (2 per multiply-add). LibTorch's
+// profiler counts only ATen's operators, so `flatnet bench` adds this counter's rise over a counted
+// run (count_gflop). In the profiler's tables the products show as flatnet::onednn_bmm.
+uint64_t onednn_bmm_flops();
 // The same product, differentiable: its backward is two more oneDNN GEMMs (dA = dC B^T and
 // dB = A^T dC, summed over a broadcast batch). fp32; what FlatNet's first stage trains with.
 torch::Tensor onednn_matmul_autograd(const torch::Tensor& a, const torch::Tensor& b);

@@ -17,7 +17,7 @@ namespace flatnet {
 
 namespace {
 
-const char* const kLogHeader =
+const char* const kGanLogHeader =
     "step,loss,mse,ssim_loss,perceptual,adversarial,discriminator,lr,steps_per_s,feature_matching,frequency,chroma,"
     "gradient,stripe,psnr";
 // psnr and ssim: the mean over the conditions validated (data.val_light); the last three columns,
@@ -532,7 +532,7 @@ TrainSummary GanTrainer::run() {
   if (writer) {
     std::filesystem::create_directories(opt_.out);
     // A resumed run's logs keep their rows up to the checkpoint (the later ones are repeated now).
-    log_ = CsvLog::resume(opt_.out / "log.csv", kLogHeader, state_.step);
+    log_ = CsvLog::resume(opt_.out / "log.csv", kGanLogHeader, state_.step);
     val_log_ = CsvLog::resume(opt_.out / "val.csv", kValHeader, state_.step);
   }
   g_->train();

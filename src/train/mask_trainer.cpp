@@ -42,7 +42,7 @@ std::unique_ptr<torch::optim::Optimizer> make_optimizer(const std::vector<torch:
   throw Error("config: train.optimizer must be sgd or adam, got '" + o.optimizer + "'");
 }
 
-const char* const kLogHeader = "step,loss,psnr,gamma,throughput";
+const char* const kMaskLogHeader = "step,loss,psnr,gamma,throughput";
 const char* const kValHeader = "step,val_psnr,gamma,throughput";
 
 }  // namespace
@@ -102,7 +102,7 @@ class MaskTrainer {
     }
     state_.run_id = settle_run_id(o_.out, o_.resume, state_.run_id, checkpoint_path_, o_.force);
     const auto log_file = o_.out / "log.csv", val_file = o_.out / "val.csv";
-    log_ = o_.resume ? CsvLog::resume(log_file, kLogHeader, first_step_) : CsvLog(log_file, kLogHeader);
+    log_ = o_.resume ? CsvLog::resume(log_file, kMaskLogHeader, first_step_) : CsvLog(log_file, kMaskLogHeader);
     val_log_ = o_.resume ? CsvLog::resume(val_file, kValHeader, first_step_) : CsvLog(val_file, kValHeader);
     add_rows(train_curve_, *log_, 2);  // a resumed run's rows up to its checkpoint (none for a new run)
     add_rows(val_curve_, *val_log_, 1);

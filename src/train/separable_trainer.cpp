@@ -89,7 +89,7 @@ double separable_psnr(const torch::Tensor& u, const torch::Tensor& v, double lam
 
 namespace {
 
-const char* const kLogHeader = "step,loss,throughput,lambda,val_psnr";
+const char* const kSeparableLogHeader = "step,loss,throughput,lambda,val_psnr";
 
 // The photographs of the split as luma scenes {B,N,N} in sRGB: training (up to train_limit) and
 // validation (up to val_count).
@@ -185,7 +185,7 @@ class SeparableTrainer {
     }
     state_.run_id = settle_run_id(o_.out, o_.resume, state_.run_id, checkpoint_path_, o_.force);
     const auto file = o_.out / "log.csv";
-    log_ = o_.resume ? CsvLog::resume(file, kLogHeader, first_step_) : CsvLog(file, kLogHeader);
+    log_ = o_.resume ? CsvLog::resume(file, kSeparableLogHeader, first_step_) : CsvLog(file, kSeparableLogHeader);
     for (const auto& [x, loss] : log_->column(1))  // a resumed run's rows up to its checkpoint (none for a new run)
       train_curve_.x.push_back(x), train_curve_.y.push_back(-10 * std::log10(std::max(1e-12, loss)));
     for (const auto& [x, psnr] : log_->column(4)) val_curve_.x.push_back(x), val_curve_.y.push_back(psnr);
