@@ -24,6 +24,13 @@ def flags(e):
         out.append(a)
     return ' '.join(shlex.quote(a) for a in out)
 by_file = {os.path.relpath(e['file']): e for e in entries}
+# A unity build (FLATNET_UNITY_BUILD) compiles Unity/unity_N_cxx.cxx, which #includes a layer's
+# sources: each of them gets that entry's flags.
+for e in entries:
+    if '/Unity/' in e['file']:
+        for line in open(e['file']):
+            if line.startswith('#include "') and line.rstrip().endswith('.cpp"'):
+                by_file[os.path.relpath(line.strip()[len('#include "'):-1])] = e
 header_flags = next(flags(e) for f, e in by_file.items() if f.startswith('src/nn/')) + ' -Isrc'
 for h in sorted(glob.glob('src/*/*.hpp')):
     print(h + '\t' + header_flags)

@@ -12,6 +12,7 @@
 #include "helpers.hpp"
 #include "tiny_model.hpp"
 #include "nn/generator.hpp"
+#include "nn/onednn_conv.hpp"
 #include "nn/losses.hpp"
 #include "io/config.hpp"
 #include "nn/checkpoint.hpp"
@@ -593,6 +594,48 @@ TEST_CASE("the PSNR term is minus eval's mean PSNR, counts every image in decibe
   // The dim image's gradient is the larger: its error is 5 times smaller, its pull 5 times stronger.
   CHECK(leaf.grad()[1].norm().item<double>() > 4 * leaf.grad()[0].norm().item<double>());
   CHECK_THROWS(psnr_loss(x, truth.slice(3, 1)));
+}
+
+TEST_CASE("batch norm and ReLU as one oneDNN primitive: LibTorch's values, gradients and running statistics",
+          "[nn][onednn]") {
+  torch::manual_seed(13);
+  for (const auto type : {torch::kFloat32, torch::kBFloat16}) {
+    INFO(type);
+    const auto cl = at::MemoryFormat::ChannelsLast;
+    const auto x0 = (torch::randn({3, 5, 6, 7}) * 2 + 0.5).to(type).contiguous(cl);
+    if (!onednn_batch_norm_relu_runs(x0)) {
+      CHECK(type == torch::kBFloat16);  // fp32 runs on every CPU oneDNN supports
+      continue;
+    }
+    torch::nn::BatchNorm2d reference(torch::nn::BatchNormOptions(5).momentum(0.3));
+    {
+      torch::NoGradGuard no_grad;
+      reference->weight.uniform_(0.5, 1.5);
+      reference->bias.uniform_(-0.5, 0.5);
+    }
+    auto weight = reference->weight.detach().clone().requires_grad_();
+    auto bias = reference->bias.detach().clone().requires_grad_();
+    auto running_mean = torch::zeros({5}), running_var = torch::ones({5});
+    auto x1 = x0.clone().requires_grad_(), x2 = x0.clone().requires_grad_();
+    const auto mine = onednn_batch_norm_relu(x1, weight, bias, running_mean, running_var, 0.3, 1e-5);
+    const auto expected = torch::relu(reference->forward(x2));  // LibTorch's batch norm in bf16 keeps bf16
+    REQUIRE(mine.sizes() == expected.sizes());
+    CHECK(mine.scalar_type() == type);
+    CHECK(mine.is_contiguous(cl));
+    const double tol = type == torch::kFloat32 ? 1e-4 : 3e-2;
+    CHECK(torch::allclose(mine.to(torch::kFloat32), expected.to(torch::kFloat32), tol, tol));
+    CHECK((mine == 0).sum().item<int64_t>() > 0);  // the ReLU is there
+    CHECK(torch::allclose(running_mean, reference->running_mean, 1e-4, 1e-5));
+    CHECK(torch::allclose(running_var, reference->running_var, 1e-4, 1e-5));
+    const auto weights = torch::randn(mine.sizes()).to(type);
+    (mine.to(torch::kFloat32) * weights.to(torch::kFloat32)).sum().backward();
+    (expected.to(torch::kFloat32) * weights.to(torch::kFloat32)).sum().backward();
+    CHECK(torch::allclose(x1.grad().to(torch::kFloat32), x2.grad().to(torch::kFloat32), tol, tol));
+    CHECK(torch::allclose(weight.grad(), reference->weight.grad(), 10 * tol, tol));
+    CHECK(torch::allclose(bias.grad(), reference->bias.grad(), 10 * tol, tol));
+  }
+  CHECK_FALSE(onednn_batch_norm_relu_runs(torch::randn({2, 3, 4, 4})));  // channels-first: LibTorch's path
+  CHECK_FALSE(onednn_batch_norm_relu_runs(torch::randn({1, 3, 1, 1}).contiguous(at::MemoryFormat::ChannelsLast)));
 }
 
 TEST_CASE("the first stage is FlatNet's leaky_relu(W1^T Y W2), values and gradients, per channel or shared", "[nn]") {

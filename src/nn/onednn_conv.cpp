@@ -4,6 +4,7 @@
 
 #include <atomic>
 #include <mutex>
+#include <tuple>
 
 #include "core/error.hpp"
 
@@ -193,6 +194,136 @@ class OneDnnMatmulFunction : public torch::autograd::Function<OneDnnMatmulFuncti
 
 torch::Tensor onednn_matmul_autograd(const torch::Tensor& a, const torch::Tensor& b) {
   return OneDnnMatmulFunction::apply(a, b);
+}
+
+namespace {
+
+// Forward and backward primitives for one shape and type, made once and shared.
+struct NormPlan {
+  dnnl::batch_normalization_forward::primitive_desc forward_pd;
+  dnnl::batch_normalization_forward forward;
+  dnnl::batch_normalization_backward backward;
+  dnnl::memory::desc data, stats;
+};
+
+// nullptr where oneDNN has no kernel for this type here (bf16 below AVX-512).
+NormPlan* norm_plan(int64_t B, int64_t C, int64_t H, int64_t W, at::ScalarType type, double eps) {
+  static std::mutex mutex;
+  static std::map<std::tuple<int64_t, int64_t, int64_t, int64_t, int, double>, std::unique_ptr<NormPlan>> plans;
+  std::lock_guard<std::mutex> lock(mutex);
+  const auto key = std::make_tuple(B, C, H, W, static_cast<int>(type), eps);
+  const auto found = plans.find(key);
+  if (found != plans.end()) return found->second.get();
+  std::unique_ptr<NormPlan> plan;
+  try {
+    plan = std::make_unique<NormPlan>();
+    plan->data = dnnl::memory::desc({B, C, H, W}, type == at::kBFloat16 ? dt::bf16 : dt::f32, tag::nhwc);
+    plan->stats = dnnl::memory::desc({C}, dt::f32, tag::a);
+    const auto flags = dnnl::normalization_flags::use_scale | dnnl::normalization_flags::use_shift |
+                       dnnl::normalization_flags::fuse_norm_relu;
+    const auto e = static_cast<float>(eps);
+    plan->forward_pd = dnnl::batch_normalization_forward::primitive_desc(
+        dnnl::batch_normalization_forward::desc(dnnl::prop_kind::forward_training, plan->data, e, flags), cpu_engine());
+    plan->forward = dnnl::batch_normalization_forward(plan->forward_pd);
+    plan->backward = dnnl::batch_normalization_backward(dnnl::batch_normalization_backward::primitive_desc(
+        dnnl::batch_normalization_backward::desc(dnnl::prop_kind::backward, plan->data, plan->data, e, flags),
+        cpu_engine(), plan->forward_pd));
+  } catch (const dnnl::error&) {
+    plan.reset();  // no kernel: LibTorch's operators run it
+  }
+  return (plans[key] = std::move(plan)).get();
+}
+
+dnnl::memory wrap(const dnnl::memory::desc& desc, const torch::Tensor& t) {
+  return dnnl::memory(desc, cpu_engine(), t.data_ptr());
+}
+
+class BatchNormReluFunction : public torch::autograd::Function<BatchNormReluFunction> {
+ public:
+  static torch::Tensor forward(torch::autograd::AutogradContext* ctx, const torch::Tensor& x,
+                               const torch::Tensor& weight, const torch::Tensor& bias, torch::Tensor running_mean,
+                               torch::Tensor running_var, double momentum, double eps) {
+    const int64_t B = x.size(0), C = x.size(1), H = x.size(2), W = x.size(3);
+    auto* plan = norm_plan(B, C, H, W, x.scalar_type(), eps);
+    TORCH_CHECK(plan, "onednn_batch_norm_relu: no oneDNN kernel for ", x.scalar_type());
+    const auto f32 = torch::TensorOptions().dtype(torch::kFloat32);
+    const auto scale = weight.detach().to(torch::kFloat32).contiguous();
+    const auto shift = bias.detach().to(torch::kFloat32).contiguous();
+    auto y = torch::empty_like(x, at::MemoryFormat::ChannelsLast);
+    auto mean = torch::empty({C}, f32), var = torch::empty({C}, f32);
+    auto workspace = torch::empty({static_cast<int64_t>(plan->forward_pd.workspace_desc().get_size())},
+                                  torch::TensorOptions().dtype(torch::kUInt8));
+    auto& stream = cpu_stream();
+    plan->forward.execute(stream, {{DNNL_ARG_SRC, wrap(plan->data, x)},
+                                   {DNNL_ARG_DST, wrap(plan->data, y)},
+                                   {DNNL_ARG_SCALE, wrap(plan->stats, scale)},
+                                   {DNNL_ARG_SHIFT, wrap(plan->stats, shift)},
+                                   {DNNL_ARG_MEAN, wrap(plan->stats, mean)},
+                                   {DNNL_ARG_VARIANCE, wrap(plan->stats, var)},
+                                   {DNNL_ARG_WORKSPACE, wrap(plan->forward_pd.workspace_desc(), workspace)}});
+    stream.wait();
+    {  // LibTorch's running statistics: the batch's mean, and its variance made unbiased
+      torch::NoGradGuard no_grad;
+      const double n = static_cast<double>(B * H * W);
+      running_mean.mul_(1 - momentum).add_(mean.to(running_mean.scalar_type()), momentum);
+      running_var.mul_(1 - momentum).add_(var.to(running_var.scalar_type()), momentum * n / (n - 1));
+    }
+    ctx->save_for_backward({x, weight, bias, mean, var, workspace});
+    ctx->saved_data["eps"] = eps;
+    return y;
+  }
+
+  static torch::autograd::variable_list backward(torch::autograd::AutogradContext* ctx,
+                                                 torch::autograd::variable_list grads) {
+    const auto saved = ctx->get_saved_variables();
+    const auto &x = saved[0], &weight = saved[1], &bias = saved[2], &mean = saved[3], &var = saved[4],
+               &workspace = saved[5];
+    const int64_t B = x.size(0), C = x.size(1), H = x.size(2), W = x.size(3);
+    auto* plan = norm_plan(B, C, H, W, x.scalar_type(), ctx->saved_data["eps"].toDouble());
+
+    const auto grad = grads[0].to(x.scalar_type()).contiguous(at::MemoryFormat::ChannelsLast);
+    const auto scale = weight.detach().to(torch::kFloat32).contiguous();
+    const auto shift = bias.detach().to(torch::kFloat32).contiguous();  // oneDNN 2.6 asks for it
+    auto grad_x = torch::empty_like(x, at::MemoryFormat::ChannelsLast);
+    auto grad_scale = torch::empty({C}, torch::kFloat32), grad_shift = torch::empty({C}, torch::kFloat32);
+    auto& stream = cpu_stream();
+    plan->backward.execute(stream, {{DNNL_ARG_SRC, wrap(plan->data, x)},
+                                    {DNNL_ARG_DIFF_DST, wrap(plan->data, grad)},
+                                    {DNNL_ARG_MEAN, wrap(plan->stats, mean)},
+                                    {DNNL_ARG_VARIANCE, wrap(plan->stats, var)},
+                                    {DNNL_ARG_SCALE, wrap(plan->stats, scale)},
+                                    {DNNL_ARG_SHIFT, wrap(plan->stats, shift)},
+                                    {DNNL_ARG_WORKSPACE, wrap(plan->forward_pd.workspace_desc(), workspace)},
+                                    {DNNL_ARG_DIFF_SRC, wrap(plan->data, grad_x)},
+                                    {DNNL_ARG_DIFF_SCALE, wrap(plan->stats, grad_scale)},
+                                    {DNNL_ARG_DIFF_SHIFT, wrap(plan->stats, grad_shift)}});
+    stream.wait();
+    return {grad_x,
+            grad_scale.to(weight.scalar_type()),
+            grad_shift.to(weight.scalar_type()),
+            torch::Tensor(),
+            torch::Tensor(),
+            torch::Tensor(),
+            torch::Tensor()};
+  }
+};
+
+}  // namespace
+
+bool onednn_batch_norm_relu_runs(const torch::Tensor& x) {
+  if (!x.defined() || !x.is_cpu() || x.dim() != 4 || !x.is_contiguous(at::MemoryFormat::ChannelsLast)) return false;
+  if (x.scalar_type() != torch::kFloat32 && x.scalar_type() != torch::kBFloat16) return false;
+  if (x.size(0) * x.size(2) * x.size(3) < 2) return false;  // LibTorch refuses one value per channel
+  return norm_plan(x.size(0), x.size(1), x.size(2), x.size(3), x.scalar_type(), 1e-5) != nullptr;
+}
+
+torch::Tensor onednn_batch_norm_relu(const torch::Tensor& x, const torch::Tensor& weight, const torch::Tensor& bias,
+                                     torch::Tensor running_mean, torch::Tensor running_var, double momentum,
+                                     double eps) {
+  TORCH_CHECK(x.dim() == 4 && weight.numel() == x.size(1) && bias.numel() == x.size(1),
+              "onednn_batch_norm_relu: x {B,C,H,W} and C weights and biases expected, got ", x.sizes(), ", ",
+              weight.sizes(), ", ", bias.sizes());
+  return BatchNormReluFunction::apply(x, weight, bias, running_mean, running_var, momentum, eps);
 }
 
 }  // namespace flatnet

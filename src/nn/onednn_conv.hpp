@@ -52,4 +52,17 @@ uint64_t onednn_bmm_flops();
 // dB = A^T dC, summed over a broadcast batch). fp32; what FlatNet's first stage trains with.
 torch::Tensor onednn_matmul_autograd(const torch::Tensor& a, const torch::Tensor& b);
 
+// Training-mode batch norm and the ReLU after it, as one oneDNN primitive forward and one backward
+// (LibTorch 1.13 runs batch norm, ReLU and their backward as four passes over the activations):
+//   y = max(0, weight (x - mean) / sqrt(var + eps) + bias),  mean and (biased) var over {B,H,W},
+// as torch::batch_norm in training mode then torch::relu. running_mean and running_var move by
+// `momentum` towards the batch's mean and unbiased variance, as LibTorch's do. Gradients reach x,
+// weight and bias. x {B,C,H,W}: channels-last, fp32 or bf16 (weight, bias and the statistics fp32).
+torch::Tensor onednn_batch_norm_relu(const torch::Tensor& x, const torch::Tensor& weight, const torch::Tensor& bias,
+                                     torch::Tensor running_mean, torch::Tensor running_var, double momentum,
+                                     double eps);
+// Whether onednn_batch_norm_relu runs x here: a CPU {B,C,H,W} channels-last fp32 or bf16 tensor,
+// more than one value per channel, and a oneDNN kernel for its type on this CPU (bf16 needs AVX-512).
+bool onednn_batch_norm_relu_runs(const torch::Tensor& x);
+
 }  // namespace flatnet
