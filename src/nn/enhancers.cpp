@@ -72,7 +72,7 @@ struct DoubleConvImpl : nn::Module {
   static torch::Tensor batch_norm_relu(nn::BatchNorm2dImpl& bn, const torch::Tensor& x) {
     const auto& o = bn.options;
     if (!bn.is_training() || !o.affine() || !o.track_running_stats() || !o.momentum().has_value() ||
-        !onednn_batch_norm_relu_runs(x))
+        !onednn_batch_norm_relu_runs(x, o.eps()))
       return bn.forward(x).relu_();
     {
       torch::NoGradGuard no_grad;

@@ -46,7 +46,7 @@ torch::Tensor FlatInversionImpl::forward(const torch::Tensor& Y) {
     for (int64_t b = 0; b < Y.size(0); ++b) samples.push_back(first_stage_product(L, Y[b], R));
     X = torch::stack(samples);
   } else {
-    X = torch::matmul(L.transpose(1, 2), torch::matmul(Y, R));
+    X = first_stage_product(L, Y, R);
   }
   return torch::leaky_relu(X, negative_slope_).flip({1});  // (b,gb,gr,r) -> (r,gr,gb,b)
 }

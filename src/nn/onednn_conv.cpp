@@ -268,22 +268,21 @@ class BatchNormReluFunction : public torch::autograd::Function<BatchNormReluFunc
       running_mean.mul_(1 - momentum).add_(mean.to(running_mean.scalar_type()), momentum);
       running_var.mul_(1 - momentum).add_(var.to(running_var.scalar_type()), momentum * n / (n - 1));
     }
-    ctx->save_for_backward({x, weight, bias, mean, var, workspace});
+    // The fp32 scale and shift as oneDNN read them (its 2.6 backward asks for the shift as well).
+    ctx->save_for_backward({x, scale, shift, mean, var, workspace});
     ctx->saved_data["eps"] = eps;
+    ctx->saved_data["weight_type"] = weight.scalar_type();
     return y;
   }
 
   static torch::autograd::variable_list backward(torch::autograd::AutogradContext* ctx,
                                                  torch::autograd::variable_list grads) {
     const auto saved = ctx->get_saved_variables();
-    const auto &x = saved[0], &weight = saved[1], &bias = saved[2], &mean = saved[3], &var = saved[4],
+    const auto &x = saved[0], &scale = saved[1], &shift = saved[2], &mean = saved[3], &var = saved[4],
                &workspace = saved[5];
     const int64_t B = x.size(0), C = x.size(1), H = x.size(2), W = x.size(3);
     auto* plan = norm_plan(B, C, H, W, x.scalar_type(), ctx->saved_data["eps"].toDouble());
-
     const auto grad = grads[0].to(x.scalar_type()).contiguous(at::MemoryFormat::ChannelsLast);
-    const auto scale = weight.detach().to(torch::kFloat32).contiguous();
-    const auto shift = bias.detach().to(torch::kFloat32).contiguous();  // oneDNN 2.6 asks for it
     auto grad_x = torch::empty_like(x, at::MemoryFormat::ChannelsLast);
     auto grad_scale = torch::empty({C}, torch::kFloat32), grad_shift = torch::empty({C}, torch::kFloat32);
     auto& stream = cpu_stream();
@@ -298,9 +297,10 @@ class BatchNormReluFunction : public torch::autograd::Function<BatchNormReluFunc
                                     {DNNL_ARG_DIFF_SCALE, wrap(plan->stats, grad_scale)},
                                     {DNNL_ARG_DIFF_SHIFT, wrap(plan->stats, grad_shift)}});
     stream.wait();
+    const auto weight_type = ctx->saved_data["weight_type"].toScalarType();
     return {grad_x,
-            grad_scale.to(weight.scalar_type()),
-            grad_shift.to(weight.scalar_type()),
+            grad_scale.to(weight_type),
+            grad_shift.to(weight_type),
             torch::Tensor(),
             torch::Tensor(),
             torch::Tensor(),
@@ -310,11 +310,11 @@ class BatchNormReluFunction : public torch::autograd::Function<BatchNormReluFunc
 
 }  // namespace
 
-bool onednn_batch_norm_relu_runs(const torch::Tensor& x) {
+bool onednn_batch_norm_relu_runs(const torch::Tensor& x, double eps) {
   if (!x.defined() || !x.is_cpu() || x.dim() != 4 || !x.is_contiguous(at::MemoryFormat::ChannelsLast)) return false;
   if (x.scalar_type() != torch::kFloat32 && x.scalar_type() != torch::kBFloat16) return false;
   if (x.size(0) * x.size(2) * x.size(3) < 2) return false;  // LibTorch refuses one value per channel
-  return norm_plan(x.size(0), x.size(1), x.size(2), x.size(3), x.scalar_type(), 1e-5) != nullptr;
+  return norm_plan(x.size(0), x.size(1), x.size(2), x.size(3), x.scalar_type(), eps) != nullptr;
 }
 
 torch::Tensor onednn_batch_norm_relu(const torch::Tensor& x, const torch::Tensor& weight, const torch::Tensor& bias,

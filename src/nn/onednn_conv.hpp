@@ -63,6 +63,7 @@ torch::Tensor onednn_batch_norm_relu(const torch::Tensor& x, const torch::Tensor
                                      double eps);
 // Whether onednn_batch_norm_relu runs x here: a CPU {B,C,H,W} channels-last fp32 or bf16 tensor,
 // more than one value per channel, and a oneDNN kernel for its type on this CPU (bf16 needs AVX-512).
-bool onednn_batch_norm_relu_runs(const torch::Tensor& x);
+// The primitives it makes for (x, eps) are kept for the call that follows.
+bool onednn_batch_norm_relu_runs(const torch::Tensor& x, double eps = 1e-5);
 
 }  // namespace flatnet
