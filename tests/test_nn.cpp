@@ -12,6 +12,7 @@
 #include "helpers.hpp"
 #include "tiny_model.hpp"
 #include "nn/generator.hpp"
+#include "nn/fused_adam.hpp"
 #include "nn/onednn_conv.hpp"
 #include "nn/losses.hpp"
 #include "io/config.hpp"
@@ -596,46 +597,91 @@ TEST_CASE("the PSNR term is minus eval's mean PSNR, counts every image in decibe
   CHECK_THROWS(psnr_loss(x, truth.slice(3, 1)));
 }
 
-TEST_CASE("batch norm and ReLU as one oneDNN primitive: LibTorch's values, gradients and running statistics",
+TEST_CASE("batch norm and its activation (ReLU, swish) by oneDNN: LibTorch's values, gradients and running statistics",
           "[nn][onednn]") {
   torch::manual_seed(13);
-  for (const auto type : {torch::kFloat32, torch::kBFloat16}) {
-    INFO(type);
-    const auto cl = at::MemoryFormat::ChannelsLast;
-    const auto x0 = (torch::randn({3, 5, 6, 7}) * 2 + 0.5).to(type).contiguous(cl);
-    if (!onednn_batch_norm_relu_runs(x0)) {
-      CHECK(type == torch::kBFloat16);  // fp32 runs on every CPU oneDNN supports
-      continue;
+  for (const auto activation : {NormActivation::relu, NormActivation::swish})
+    for (const auto type : {torch::kFloat32, torch::kBFloat16}) {
+      const bool relu = activation == NormActivation::relu;
+      INFO((relu ? "relu " : "swish ") << type);
+      const auto cl = at::MemoryFormat::ChannelsLast;
+      const auto x0 = (torch::randn({3, 5, 6, 7}) * 2 + 0.5).to(type).contiguous(cl);
+      if (!onednn_batch_norm_runs(x0, 1e-5, activation)) {
+        CHECK(type == torch::kBFloat16);  // fp32 runs on every CPU oneDNN supports
+        continue;
+      }
+      torch::nn::BatchNorm2d reference(torch::nn::BatchNormOptions(5).momentum(0.3));
+      {
+        torch::NoGradGuard no_grad;
+        reference->weight.uniform_(0.5, 1.5);
+        reference->bias.uniform_(-0.5, 0.5);
+      }
+      auto weight = reference->weight.detach().clone().requires_grad_();
+      auto bias = reference->bias.detach().clone().requires_grad_();
+      auto running_mean = torch::zeros({5}), running_var = torch::ones({5});
+      auto x1 = x0.clone().requires_grad_(), x2 = x0.clone().requires_grad_();
+      const auto mine =
+          onednn_batch_norm_activation(x1, weight, bias, running_mean, running_var, 0.3, 1e-5, activation);
+      const auto normed = reference->forward(x2);  // LibTorch's batch norm in bf16 keeps bf16
+      const auto expected = relu ? torch::relu(normed) : normed * torch::sigmoid(normed);
+      REQUIRE(mine.sizes() == expected.sizes());
+      CHECK(mine.scalar_type() == type);
+      CHECK(mine.is_contiguous(cl));
+      const double tol = type == torch::kFloat32 ? 1e-4 : 3e-2;
+      CHECK(torch::allclose(mine.to(torch::kFloat32), expected.to(torch::kFloat32), tol, tol));
+      if (relu)
+        CHECK((mine == 0).sum().item<int64_t>() > 0);  // the ReLU is there
+      else
+        CHECK((mine < -0.05).sum().item<int64_t>() > 0);  // swish dips below zero (to -0.278)
+      CHECK(torch::allclose(running_mean, reference->running_mean, 1e-4, 1e-5));
+      CHECK(torch::allclose(running_var, reference->running_var, 1e-4, 1e-5));
+      const auto weights = torch::randn(mine.sizes()).to(type);
+      (mine.to(torch::kFloat32) * weights.to(torch::kFloat32)).sum().backward();
+      (expected.to(torch::kFloat32) * weights.to(torch::kFloat32)).sum().backward();
+      CHECK(torch::allclose(x1.grad().to(torch::kFloat32), x2.grad().to(torch::kFloat32), tol, tol));
+      CHECK(torch::allclose(weight.grad(), reference->weight.grad(), 10 * tol, tol));
+      CHECK(torch::allclose(bias.grad(), reference->bias.grad(), 10 * tol, tol));
     }
-    torch::nn::BatchNorm2d reference(torch::nn::BatchNormOptions(5).momentum(0.3));
-    {
-      torch::NoGradGuard no_grad;
-      reference->weight.uniform_(0.5, 1.5);
-      reference->bias.uniform_(-0.5, 0.5);
-    }
-    auto weight = reference->weight.detach().clone().requires_grad_();
-    auto bias = reference->bias.detach().clone().requires_grad_();
-    auto running_mean = torch::zeros({5}), running_var = torch::ones({5});
-    auto x1 = x0.clone().requires_grad_(), x2 = x0.clone().requires_grad_();
-    const auto mine = onednn_batch_norm_relu(x1, weight, bias, running_mean, running_var, 0.3, 1e-5);
-    const auto expected = torch::relu(reference->forward(x2));  // LibTorch's batch norm in bf16 keeps bf16
-    REQUIRE(mine.sizes() == expected.sizes());
-    CHECK(mine.scalar_type() == type);
-    CHECK(mine.is_contiguous(cl));
-    const double tol = type == torch::kFloat32 ? 1e-4 : 3e-2;
-    CHECK(torch::allclose(mine.to(torch::kFloat32), expected.to(torch::kFloat32), tol, tol));
-    CHECK((mine == 0).sum().item<int64_t>() > 0);  // the ReLU is there
-    CHECK(torch::allclose(running_mean, reference->running_mean, 1e-4, 1e-5));
-    CHECK(torch::allclose(running_var, reference->running_var, 1e-4, 1e-5));
-    const auto weights = torch::randn(mine.sizes()).to(type);
-    (mine.to(torch::kFloat32) * weights.to(torch::kFloat32)).sum().backward();
-    (expected.to(torch::kFloat32) * weights.to(torch::kFloat32)).sum().backward();
-    CHECK(torch::allclose(x1.grad().to(torch::kFloat32), x2.grad().to(torch::kFloat32), tol, tol));
-    CHECK(torch::allclose(weight.grad(), reference->weight.grad(), 10 * tol, tol));
-    CHECK(torch::allclose(bias.grad(), reference->bias.grad(), 10 * tol, tol));
+  CHECK_FALSE(onednn_batch_norm_runs(torch::randn({2, 3, 4, 4})));  // channels-first: LibTorch's path
+  CHECK_FALSE(onednn_batch_norm_runs(torch::randn({1, 3, 1, 1}).contiguous(at::MemoryFormat::ChannelsLast)));
+}
+
+TEST_CASE("a module's batch norm and swish: oneDNN in training counts its batches, LibTorch's in eval, same values",
+          "[nn][onednn]") {
+  torch::manual_seed(14);
+  const auto x = torch::randn({2, 4, 5, 5}).contiguous(at::MemoryFormat::ChannelsLast);
+  torch::nn::BatchNorm2d bn(4), reference(4);
+  const auto swish = [](const torch::Tensor& z) { return z * torch::sigmoid(z); };
+  const auto trained = batch_norm_activation(*bn, x, NormActivation::swish);
+  CHECK(torch::allclose(trained, swish(reference->forward(x)), 1e-4, 1e-5));
+  CHECK(bn->num_batches_tracked.item<int64_t>() == 1);
+  CHECK(torch::allclose(bn->running_var, reference->running_var, 1e-4, 1e-6));
+  bn->eval(), reference->eval();
+  const auto evaluated = batch_norm_activation(*bn, x, NormActivation::swish);  // running statistics
+  CHECK(torch::allclose(evaluated, swish(reference->forward(x)), 1e-4, 1e-5));
+  CHECK(bn->num_batches_tracked.item<int64_t>() == 1);
+}
+
+TEST_CASE("the discriminator with channels-last weights: the same logits and gradients as with plain ones", "[nn]") {
+  torch::manual_seed(15);
+  Discriminator plain(DiscriminatorOptions{"thesis", 8});
+  Discriminator nhwc(DiscriminatorOptions{"thesis", 8});
+  {
+    torch::NoGradGuard no_grad;
+    const auto from = plain->parameters(), to = nhwc->parameters();
+    for (size_t i = 0; i < from.size(); ++i) to[i].copy_(from[i]);
   }
-  CHECK_FALSE(onednn_batch_norm_relu_runs(torch::randn({2, 3, 4, 4})));  // channels-first: LibTorch's path
-  CHECK_FALSE(onednn_batch_norm_relu_runs(torch::randn({1, 3, 1, 1}).contiguous(at::MemoryFormat::ChannelsLast)));
+  weights_to_channels_last(*nhwc);
+  REQUIRE(nhwc->parameters()[0].is_contiguous(at::MemoryFormat::ChannelsLast));
+  const auto image = torch::rand({2, 3, 32, 32});  // NCHW, as the loader gives the truth
+  auto a = image.clone().requires_grad_(), b = image.clone().requires_grad_();
+  const auto la = plain->forward(a), lb = nhwc->forward(b);
+  CHECK(torch::allclose(la, lb, 1e-4, 1e-5));
+  la.sum().backward();
+  lb.sum().backward();
+  CHECK(torch::allclose(a.grad(), b.grad(), 1e-4, 1e-6));
+  const auto ga = plain->parameters()[0].grad(), gb = nhwc->parameters()[0].grad();
+  CHECK(torch::allclose(ga, gb, 1e-4, 1e-6));
 }
 
 TEST_CASE("the first stage is FlatNet's leaky_relu(W1^T Y W2), values and gradients, per channel or shared", "[nn]") {
@@ -768,4 +814,69 @@ TEST_CASE("every number in the defaults files has a range rule, and every rule a
     INFO(key << " = " << value << " has no range rule (its option table's row)");
     CHECK(std::find(ranged.begin(), ranged.end(), key) != ranged.end());
   }
+}
+
+TEST_CASE(
+    "FusedAdam updates as torch::optim::Adam: plain and channels-last weights, weight decay, amsgrad, no gradient",
+    "[nn]") {
+  torch::manual_seed(16);
+  const auto make_params = [] {
+    torch::manual_seed(17);
+    return std::vector<torch::Tensor>{
+        torch::randn({8, 3, 3, 3}).contiguous(at::MemoryFormat::ChannelsLast).requires_grad_(),  // a conv's weight
+        torch::randn({8}).requires_grad_(), torch::randn({5, 7}).requires_grad_(),
+        torch::randn({4}).requires_grad_()};  // the last never gets a gradient
+  };
+  auto ours = make_params(), theirs = make_params();
+  const auto groups = [](const std::vector<torch::Tensor>& p) {
+    std::vector<torch::optim::OptimizerParamGroup> g;
+    g.emplace_back(std::vector<torch::Tensor>{p[0], p[1], p[3]}, std::make_unique<torch::optim::AdamOptions>(1e-2));
+    auto decayed = std::make_unique<torch::optim::AdamOptions>(3e-2);
+    decayed->weight_decay(0.1).betas({0.8, 0.99});
+    g.emplace_back(std::vector<torch::Tensor>{p[2]}, std::move(decayed));
+    return g;
+  };
+  FusedAdam fused(groups(ours), torch::optim::AdamOptions(1e-2));
+  torch::optim::Adam reference(groups(theirs), torch::optim::AdamOptions(1e-2));
+  for (int step = 0; step < 6; ++step) {
+    const auto target = torch::randn({1});
+    for (auto* set : {&ours, &theirs}) {
+      auto& p = *set;
+      ((p[0] * p[0]).sum() * target + p[1].sin().sum() + (p[2] - target).pow(2).sum()).backward();
+    }
+    fused.step();
+    reference.step();
+    CHECK(fused.one_pass_updates() == 3);  // all but the parameter without a gradient
+    for (size_t i = 0; i < ours.size(); ++i) {
+      INFO("step " << step << " parameter " << i);
+      CHECK(torch::allclose(ours[i], theirs[i], 1e-5, 1e-7));
+    }
+    fused.zero_grad();
+    reference.zero_grad();
+  }
+  CHECK(ours[0].is_contiguous(at::MemoryFormat::ChannelsLast));
+  CHECK(torch::equal(ours[3], theirs[3]));  // no gradient, no update, no state
+  {  // moments read back from a checkpoint are contiguous: still one pass, the same update
+    auto& state = static_cast<torch::optim::AdamParamState&>(
+        *fused.state().at(c10::guts::to_string(ours[0].unsafeGetTensorImpl())));
+    state.exp_avg(state.exp_avg().contiguous());
+    REQUIRE_FALSE(state.exp_avg().is_contiguous(at::MemoryFormat::ChannelsLast));
+    ((ours[0] * ours[0]).sum() + ours[1].sum() + ours[2].sum()).backward();
+    ((theirs[0] * theirs[0]).sum() + theirs[1].sum() + theirs[2].sum()).backward();
+    fused.step(), reference.step();
+    CHECK(fused.one_pass_updates() == 3);
+    CHECK(torch::allclose(ours[0], theirs[0], 1e-5, 1e-7));
+  }
+  CHECK(fused.state().size() == reference.state().size());  // the state a checkpoint saves
+  // amsgrad takes torch::optim::Adam's own update; a gradient in another layout too.
+  auto a = torch::randn({6}).requires_grad_(), b = a.detach().clone().requires_grad_();
+  FusedAdam fused_ams({a}, torch::optim::AdamOptions(1e-2).amsgrad(true));
+  torch::optim::Adam reference_ams({b}, torch::optim::AdamOptions(1e-2).amsgrad(true));
+  for (int step = 0; step < 3; ++step) {
+    (a * a).sum().backward(), (b * b).sum().backward();
+    fused_ams.step(), reference_ams.step();
+    CHECK(fused_ams.one_pass_updates() == 0);
+    fused_ams.zero_grad(), reference_ams.zero_grad();
+  }
+  CHECK(torch::allclose(a, b, 1e-6, 1e-8));
 }

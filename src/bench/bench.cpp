@@ -16,6 +16,7 @@
 #include "optics/mask.hpp"
 #include "recon/reconstructor.hpp"
 #include "recon/tikhonov.hpp"
+#include "nn/fused_adam.hpp"
 #include "train/data.hpp"
 #include "train/gan_trainer.hpp"
 
@@ -192,6 +193,7 @@ BenchRow train_row(const std::string& name, int64_t width, bool paper, const Ben
   g->prepare_training(o.levers);
   DiscriminatorOptions dopt;
   Discriminator d(dopt);
+  if (o.levers.channels_last) weights_to_channels_last(*d);    // as GanTrainer
   Vgg16Features vgg(false);                                    // random weights: the cost is what is measured
   if (o.levers.channels_last) weights_to_channels_last(*vgg);  // as GanTrainer
   TrainOptions t;
@@ -200,8 +202,8 @@ BenchRow train_row(const std::string& name, int64_t width, bool paper, const Ben
   t.w_perceptual = paper ? 1.2 : 0.0;
   t.w_adversarial = paper ? 0.6 : 1e-3;
   t.bf16 = o.bf16;
-  torch::optim::Adam opt_g(g->parameters(), torch::optim::AdamOptions(1e-4).betas({0.9, 0.999}));
-  torch::optim::Adam opt_d(d->parameters(), torch::optim::AdamOptions(1e-4).betas({0.9, 0.999}));
+  FusedAdam opt_g(g->parameters(), torch::optim::AdamOptions(1e-4).betas({0.9, 0.999}));  // as GanTrainer
+  FusedAdam opt_d(d->parameters(), torch::optim::AdamOptions(1e-4).betas({0.9, 0.999}));
   g->train();
   d->train();
   Batch batch;
@@ -234,7 +236,8 @@ BenchRow train_recipe_row(const std::string& name, const BenchOptions& o) {
   Generator g(options);
   g->prepare_training(o.levers);
   Discriminator d(DiscriminatorOptions{});
-  Vgg16Features vgg(false);  // unused: the recipe has no perceptual term
+  if (o.levers.channels_last) weights_to_channels_last(*d);  // as GanTrainer
+  Vgg16Features vgg(false);                                  // unused: the recipe has no perceptual term
   TrainOptions t;
   t.batch = 8;
   t.crop = 128;
@@ -245,8 +248,8 @@ BenchRow train_recipe_row(const std::string& name, const BenchOptions& o) {
   t.w_feature_matching = 0.05;
   t.w_chroma = 0.5;
   t.bf16 = o.bf16;
-  torch::optim::Adam opt_g(g->parameters(), torch::optim::AdamOptions(1e-4));
-  torch::optim::Adam opt_d(d->parameters(), torch::optim::AdamOptions(1e-4));
+  FusedAdam opt_g(g->parameters(), torch::optim::AdamOptions(1e-4));  // as GanTrainer
+  FusedAdam opt_d(d->parameters(), torch::optim::AdamOptions(1e-4));
   g->train();
   d->train();
   Batch batch;

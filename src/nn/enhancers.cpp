@@ -63,22 +63,9 @@ struct DoubleConvImpl : nn::Module {
     if (!is_training() || conv->size() != 6) return conv->forward(x);
     // Training: each batch norm and its ReLU as one oneDNN primitive where it runs.
     auto h = conv[0]->as<nn::Conv2dImpl>()->forward(x);
-    h = batch_norm_relu(*conv[1]->as<nn::BatchNorm2dImpl>(), h);
+    h = batch_norm_activation(*conv[1]->as<nn::BatchNorm2dImpl>(), h, NormActivation::relu);
     h = conv[3]->as<nn::Conv2dImpl>()->forward(h);
-    return batch_norm_relu(*conv[4]->as<nn::BatchNorm2dImpl>(), h);
-  }
-  // Training-mode batch norm then ReLU: onednn_batch_norm_relu (one pass each way instead of
-  // LibTorch's four; the same numbers to rounding, test [onednn]), else LibTorch's operators.
-  static torch::Tensor batch_norm_relu(nn::BatchNorm2dImpl& bn, const torch::Tensor& x) {
-    const auto& o = bn.options;
-    if (!bn.is_training() || !o.affine() || !o.track_running_stats() || !o.momentum().has_value() ||
-        !onednn_batch_norm_relu_runs(x, o.eps()))
-      return bn.forward(x).relu_();
-    {
-      torch::NoGradGuard no_grad;
-      bn.num_batches_tracked += 1;  // as BatchNorm2d's own forward counts them
-    }
-    return onednn_batch_norm_relu(x, bn.weight, bn.bias, bn.running_mean, bn.running_var, *o.momentum(), o.eps());
+    return batch_norm_activation(*conv[4]->as<nn::BatchNorm2dImpl>(), h, NormActivation::relu);
   }
   void fold_batchnorm() { conv = replace_module("conv", fold_sequential(conv)); }
   // After fold_batchnorm (conv, ReLU, conv, ReLU): both convolutions with their ReLUs fused, run by

@@ -7,6 +7,7 @@
 #include "core/error.hpp"
 #include "core/util.hpp"
 #include "io/torch_file.hpp"
+#include "nn/onednn_conv.hpp"
 
 namespace flatnet {
 
@@ -31,10 +32,14 @@ torch::Tensor DiscriminatorImpl::forward(const torch::Tensor& x) { return featur
 
 std::vector<torch::Tensor> DiscriminatorImpl::features(const torch::Tensor& x) {
   std::vector<torch::Tensor> out;
-  auto h = x;
+  // The input follows the weights' layout (weights_to_channels_last): an NCHW image into NHWC weights
+  // sends every convolution and its gradients through oneDNN's reorders (2-3x the backward's time).
+  const auto& first = convs_[0]->as<nn::Conv2dImpl>()->weight;
+  const bool channels_last = first.is_contiguous(at::MemoryFormat::ChannelsLast) && !first.is_contiguous();
+  auto h = channels_last ? x.contiguous(at::MemoryFormat::ChannelsLast) : x;
   for (size_t i = 0; i < convs_->size(); ++i) {
-    h = norms_[i]->as<nn::BatchNorm2dImpl>()->forward(convs_[i]->as<nn::Conv2dImpl>()->forward(h));
-    h = h * torch::sigmoid(h);  // swish
+    h = batch_norm_activation(*norms_[i]->as<nn::BatchNorm2dImpl>(), convs_[i]->as<nn::Conv2dImpl>()->forward(h),
+                              NormActivation::swish);
     out.push_back(h);
   }
   out.push_back(out_->forward(h).mean({2, 3}));  // {B,1}

@@ -5,6 +5,7 @@
 #include <atomic>
 #include <mutex>
 #include <tuple>
+#include <unordered_map>
 
 #include "core/error.hpp"
 
@@ -198,20 +199,25 @@ torch::Tensor onednn_matmul_autograd(const torch::Tensor& a, const torch::Tensor
 
 namespace {
 
-// Forward and backward primitives for one shape and type, made once and shared.
+// Forward and backward primitives for one shape, type and activation, made once and shared. ReLU
+// rides in the batch norm itself (fuse_norm_relu, its mask in the workspace); swish is an eltwise
+// primitive after it, whose backward reads the batch norm's output (saved).
 struct NormPlan {
   dnnl::batch_normalization_forward::primitive_desc forward_pd;
   dnnl::batch_normalization_forward forward;
   dnnl::batch_normalization_backward backward;
+  dnnl::eltwise_forward swish_forward;    // swish only
+  dnnl::eltwise_backward swish_backward;  // swish only
   dnnl::memory::desc data, stats;
 };
 
 // nullptr where oneDNN has no kernel for this type here (bf16 below AVX-512).
-NormPlan* norm_plan(int64_t B, int64_t C, int64_t H, int64_t W, at::ScalarType type, double eps) {
+NormPlan* norm_plan(int64_t B, int64_t C, int64_t H, int64_t W, at::ScalarType type, double eps,
+                    NormActivation activation) {
   static std::mutex mutex;
-  static std::map<std::tuple<int64_t, int64_t, int64_t, int64_t, int, double>, std::unique_ptr<NormPlan>> plans;
+  static std::map<std::tuple<int64_t, int64_t, int64_t, int64_t, int, double, int>, std::unique_ptr<NormPlan>> plans;
   std::lock_guard<std::mutex> lock(mutex);
-  const auto key = std::make_tuple(B, C, H, W, static_cast<int>(type), eps);
+  const auto key = std::make_tuple(B, C, H, W, static_cast<int>(type), eps, static_cast<int>(activation));
   const auto found = plans.find(key);
   if (found != plans.end()) return found->second.get();
   std::unique_ptr<NormPlan> plan;
@@ -219,8 +225,9 @@ NormPlan* norm_plan(int64_t B, int64_t C, int64_t H, int64_t W, at::ScalarType t
     plan = std::make_unique<NormPlan>();
     plan->data = dnnl::memory::desc({B, C, H, W}, type == at::kBFloat16 ? dt::bf16 : dt::f32, tag::nhwc);
     plan->stats = dnnl::memory::desc({C}, dt::f32, tag::a);
-    const auto flags = dnnl::normalization_flags::use_scale | dnnl::normalization_flags::use_shift |
-                       dnnl::normalization_flags::fuse_norm_relu;
+    const bool relu = activation == NormActivation::relu;
+    auto flags = dnnl::normalization_flags::use_scale | dnnl::normalization_flags::use_shift;
+    if (relu) flags = flags | dnnl::normalization_flags::fuse_norm_relu;
     const auto e = static_cast<float>(eps);
     plan->forward_pd = dnnl::batch_normalization_forward::primitive_desc(
         dnnl::batch_normalization_forward::desc(dnnl::prop_kind::forward_training, plan->data, e, flags), cpu_engine());
@@ -228,6 +235,16 @@ NormPlan* norm_plan(int64_t B, int64_t C, int64_t H, int64_t W, at::ScalarType t
     plan->backward = dnnl::batch_normalization_backward(dnnl::batch_normalization_backward::primitive_desc(
         dnnl::batch_normalization_backward::desc(dnnl::prop_kind::backward, plan->data, plan->data, e, flags),
         cpu_engine(), plan->forward_pd));
+    if (!relu) {  // swish(z) = z sigmoid(z): oneDNN's eltwise_swish with alpha 1
+      const auto swish_pd = dnnl::eltwise_forward::primitive_desc(
+          dnnl::eltwise_forward::desc(dnnl::prop_kind::forward_training, dnnl::algorithm::eltwise_swish, plan->data,
+                                      1.f, 0.f),
+          cpu_engine());
+      plan->swish_forward = dnnl::eltwise_forward(swish_pd);
+      plan->swish_backward = dnnl::eltwise_backward(dnnl::eltwise_backward::primitive_desc(
+          dnnl::eltwise_backward::desc(dnnl::algorithm::eltwise_swish, plan->data, plan->data, 1.f, 0.f), cpu_engine(),
+          swish_pd));
+    }
   } catch (const dnnl::error&) {
     plan.reset();  // no kernel: LibTorch's operators run it
   }
@@ -238,29 +255,36 @@ dnnl::memory wrap(const dnnl::memory::desc& desc, const torch::Tensor& t) {
   return dnnl::memory(desc, cpu_engine(), t.data_ptr());
 }
 
-class BatchNormReluFunction : public torch::autograd::Function<BatchNormReluFunction> {
+class BatchNormActivationFunction : public torch::autograd::Function<BatchNormActivationFunction> {
  public:
   static torch::Tensor forward(torch::autograd::AutogradContext* ctx, const torch::Tensor& x,
                                const torch::Tensor& weight, const torch::Tensor& bias, torch::Tensor running_mean,
-                               torch::Tensor running_var, double momentum, double eps) {
+                               torch::Tensor running_var, double momentum, double eps, int64_t activation) {
     const int64_t B = x.size(0), C = x.size(1), H = x.size(2), W = x.size(3);
-    auto* plan = norm_plan(B, C, H, W, x.scalar_type(), eps);
-    TORCH_CHECK(plan, "onednn_batch_norm_relu: no oneDNN kernel for ", x.scalar_type());
+    const auto act = static_cast<NormActivation>(activation);
+    auto* plan = norm_plan(B, C, H, W, x.scalar_type(), eps, act);
+    TORCH_CHECK(plan, "onednn_batch_norm_activation: no oneDNN kernel for ", x.scalar_type());
     const auto f32 = torch::TensorOptions().dtype(torch::kFloat32);
     const auto scale = weight.detach().to(torch::kFloat32).contiguous();
     const auto shift = bias.detach().to(torch::kFloat32).contiguous();
-    auto y = torch::empty_like(x, at::MemoryFormat::ChannelsLast);
+    auto normed = torch::empty_like(x, at::MemoryFormat::ChannelsLast);  // ReLU: the output; swish: its input
     auto mean = torch::empty({C}, f32), var = torch::empty({C}, f32);
     auto workspace = torch::empty({static_cast<int64_t>(plan->forward_pd.workspace_desc().get_size())},
                                   torch::TensorOptions().dtype(torch::kUInt8));
     auto& stream = cpu_stream();
-    plan->forward.execute(stream, {{DNNL_ARG_SRC, wrap(plan->data, x)},
-                                   {DNNL_ARG_DST, wrap(plan->data, y)},
-                                   {DNNL_ARG_SCALE, wrap(plan->stats, scale)},
-                                   {DNNL_ARG_SHIFT, wrap(plan->stats, shift)},
-                                   {DNNL_ARG_MEAN, wrap(plan->stats, mean)},
-                                   {DNNL_ARG_VARIANCE, wrap(plan->stats, var)},
-                                   {DNNL_ARG_WORKSPACE, wrap(plan->forward_pd.workspace_desc(), workspace)}});
+    std::unordered_map<int, dnnl::memory> args{
+        {DNNL_ARG_SRC, wrap(plan->data, x)},        {DNNL_ARG_DST, wrap(plan->data, normed)},
+        {DNNL_ARG_SCALE, wrap(plan->stats, scale)}, {DNNL_ARG_SHIFT, wrap(plan->stats, shift)},
+        {DNNL_ARG_MEAN, wrap(plan->stats, mean)},   {DNNL_ARG_VARIANCE, wrap(plan->stats, var)}};
+    if (act == NormActivation::relu)
+      args.emplace(DNNL_ARG_WORKSPACE, wrap(plan->forward_pd.workspace_desc(), workspace));
+    plan->forward.execute(stream, args);
+    auto y = normed;
+    if (act == NormActivation::swish) {
+      y = torch::empty_like(normed, at::MemoryFormat::ChannelsLast);
+      plan->swish_forward.execute(stream,
+                                  {{DNNL_ARG_SRC, wrap(plan->data, normed)}, {DNNL_ARG_DST, wrap(plan->data, y)}});
+    }
     stream.wait();
     {  // LibTorch's running statistics: the batch's mean, and its variance made unbiased
       torch::NoGradGuard no_grad;
@@ -268,9 +292,11 @@ class BatchNormReluFunction : public torch::autograd::Function<BatchNormReluFunc
       running_mean.mul_(1 - momentum).add_(mean.to(running_mean.scalar_type()), momentum);
       running_var.mul_(1 - momentum).add_(var.to(running_var.scalar_type()), momentum * n / (n - 1));
     }
-    // The fp32 scale and shift as oneDNN read them (its 2.6 backward asks for the shift as well).
-    ctx->save_for_backward({x, scale, shift, mean, var, workspace});
+    // The fp32 scale and shift as oneDNN read them (its 2.6 backward asks for the shift as well);
+    // ReLU's mask (workspace), or swish's input.
+    ctx->save_for_backward({x, scale, shift, mean, var, act == NormActivation::relu ? workspace : normed});
     ctx->saved_data["eps"] = eps;
+    ctx->saved_data["activation"] = activation;
     ctx->saved_data["weight_type"] = weight.scalar_type();
     return y;
   }
@@ -278,24 +304,33 @@ class BatchNormReluFunction : public torch::autograd::Function<BatchNormReluFunc
   static torch::autograd::variable_list backward(torch::autograd::AutogradContext* ctx,
                                                  torch::autograd::variable_list grads) {
     const auto saved = ctx->get_saved_variables();
-    const auto &x = saved[0], &scale = saved[1], &shift = saved[2], &mean = saved[3], &var = saved[4],
-               &workspace = saved[5];
+    const auto &x = saved[0], &scale = saved[1], &shift = saved[2], &mean = saved[3], &var = saved[4];
     const int64_t B = x.size(0), C = x.size(1), H = x.size(2), W = x.size(3);
-    auto* plan = norm_plan(B, C, H, W, x.scalar_type(), ctx->saved_data["eps"].toDouble());
-    const auto grad = grads[0].to(x.scalar_type()).contiguous(at::MemoryFormat::ChannelsLast);
+    const auto act = static_cast<NormActivation>(ctx->saved_data["activation"].toInt());
+    auto* plan = norm_plan(B, C, H, W, x.scalar_type(), ctx->saved_data["eps"].toDouble(), act);
+    auto grad = grads[0].to(x.scalar_type()).contiguous(at::MemoryFormat::ChannelsLast);
+    auto& stream = cpu_stream();
+    if (act == NormActivation::swish) {  // d/dz of z sigmoid(z), from the saved z
+      auto grad_normed = torch::empty_like(x, at::MemoryFormat::ChannelsLast);
+      plan->swish_backward.execute(stream, {{DNNL_ARG_SRC, wrap(plan->data, saved[5])},
+                                            {DNNL_ARG_DIFF_DST, wrap(plan->data, grad)},
+                                            {DNNL_ARG_DIFF_SRC, wrap(plan->data, grad_normed)}});
+      grad = grad_normed;
+    }
     auto grad_x = torch::empty_like(x, at::MemoryFormat::ChannelsLast);
     auto grad_scale = torch::empty({C}, torch::kFloat32), grad_shift = torch::empty({C}, torch::kFloat32);
-    auto& stream = cpu_stream();
-    plan->backward.execute(stream, {{DNNL_ARG_SRC, wrap(plan->data, x)},
-                                    {DNNL_ARG_DIFF_DST, wrap(plan->data, grad)},
-                                    {DNNL_ARG_MEAN, wrap(plan->stats, mean)},
-                                    {DNNL_ARG_VARIANCE, wrap(plan->stats, var)},
-                                    {DNNL_ARG_SCALE, wrap(plan->stats, scale)},
-                                    {DNNL_ARG_SHIFT, wrap(plan->stats, shift)},
-                                    {DNNL_ARG_WORKSPACE, wrap(plan->forward_pd.workspace_desc(), workspace)},
-                                    {DNNL_ARG_DIFF_SRC, wrap(plan->data, grad_x)},
-                                    {DNNL_ARG_DIFF_SCALE, wrap(plan->stats, grad_scale)},
-                                    {DNNL_ARG_DIFF_SHIFT, wrap(plan->stats, grad_shift)}});
+    std::unordered_map<int, dnnl::memory> args{{DNNL_ARG_SRC, wrap(plan->data, x)},
+                                               {DNNL_ARG_DIFF_DST, wrap(plan->data, grad)},
+                                               {DNNL_ARG_MEAN, wrap(plan->stats, mean)},
+                                               {DNNL_ARG_VARIANCE, wrap(plan->stats, var)},
+                                               {DNNL_ARG_SCALE, wrap(plan->stats, scale)},
+                                               {DNNL_ARG_SHIFT, wrap(plan->stats, shift)},
+                                               {DNNL_ARG_DIFF_SRC, wrap(plan->data, grad_x)},
+                                               {DNNL_ARG_DIFF_SCALE, wrap(plan->stats, grad_scale)},
+                                               {DNNL_ARG_DIFF_SHIFT, wrap(plan->stats, grad_shift)}};
+    if (act == NormActivation::relu)
+      args.emplace(DNNL_ARG_WORKSPACE, wrap(plan->forward_pd.workspace_desc(), saved[5]));
+    plan->backward.execute(stream, args);
     stream.wait();
     const auto weight_type = ctx->saved_data["weight_type"].toScalarType();
     return {grad_x,
@@ -304,26 +339,46 @@ class BatchNormReluFunction : public torch::autograd::Function<BatchNormReluFunc
             torch::Tensor(),
             torch::Tensor(),
             torch::Tensor(),
+            torch::Tensor(),
             torch::Tensor()};
   }
 };
 
+torch::Tensor apply_activation(const torch::Tensor& x, NormActivation activation) {
+  return activation == NormActivation::relu ? x.relu_() : x * torch::sigmoid(x);  // x: the batch norm's own output
+}
+
 }  // namespace
 
-bool onednn_batch_norm_relu_runs(const torch::Tensor& x, double eps) {
+bool onednn_batch_norm_runs(const torch::Tensor& x, double eps, NormActivation activation) {
   if (!x.defined() || !x.is_cpu() || x.dim() != 4 || !x.is_contiguous(at::MemoryFormat::ChannelsLast)) return false;
   if (x.scalar_type() != torch::kFloat32 && x.scalar_type() != torch::kBFloat16) return false;
   if (x.size(0) * x.size(2) * x.size(3) < 2) return false;  // LibTorch refuses one value per channel
-  return norm_plan(x.size(0), x.size(1), x.size(2), x.size(3), x.scalar_type(), eps) != nullptr;
+  return norm_plan(x.size(0), x.size(1), x.size(2), x.size(3), x.scalar_type(), eps, activation) != nullptr;
 }
 
-torch::Tensor onednn_batch_norm_relu(const torch::Tensor& x, const torch::Tensor& weight, const torch::Tensor& bias,
-                                     torch::Tensor running_mean, torch::Tensor running_var, double momentum,
-                                     double eps) {
+torch::Tensor onednn_batch_norm_activation(const torch::Tensor& x, const torch::Tensor& weight,
+                                           const torch::Tensor& bias, torch::Tensor running_mean,
+                                           torch::Tensor running_var, double momentum, double eps,
+                                           NormActivation activation) {
   TORCH_CHECK(x.dim() == 4 && weight.numel() == x.size(1) && bias.numel() == x.size(1),
-              "onednn_batch_norm_relu: x {B,C,H,W} and C weights and biases expected, got ", x.sizes(), ", ",
+              "onednn_batch_norm_activation: x {B,C,H,W} and C weights and biases expected, got ", x.sizes(), ", ",
               weight.sizes(), ", ", bias.sizes());
-  return BatchNormReluFunction::apply(x, weight, bias, running_mean, running_var, momentum, eps);
+  return BatchNormActivationFunction::apply(x, weight, bias, running_mean, running_var, momentum, eps,
+                                            static_cast<int64_t>(activation));
+}
+
+torch::Tensor batch_norm_activation(torch::nn::BatchNorm2dImpl& bn, const torch::Tensor& x, NormActivation activation) {
+  const auto& o = bn.options;
+  if (!bn.is_training() || !o.affine() || !o.track_running_stats() || !o.momentum().has_value() ||
+      !onednn_batch_norm_runs(x, o.eps(), activation))
+    return apply_activation(bn.forward(x), activation);
+  {
+    torch::NoGradGuard no_grad;
+    bn.num_batches_tracked += 1;  // as BatchNorm2d's own forward counts them
+  }
+  return onednn_batch_norm_activation(x, bn.weight, bn.bias, bn.running_mean, bn.running_var, *o.momentum(), o.eps(),
+                                      activation);
 }
 
 }  // namespace flatnet

@@ -52,18 +52,29 @@ uint64_t onednn_bmm_flops();
 // dB = A^T dC, summed over a broadcast batch). fp32; what FlatNet's first stage trains with.
 torch::Tensor onednn_matmul_autograd(const torch::Tensor& a, const torch::Tensor& b);
 
-// Training-mode batch norm and the ReLU after it, as one oneDNN primitive forward and one backward
-// (LibTorch 1.13 runs batch norm, ReLU and their backward as four passes over the activations):
-//   y = max(0, weight (x - mean) / sqrt(var + eps) + bias),  mean and (biased) var over {B,H,W},
-// as torch::batch_norm in training mode then torch::relu. running_mean and running_var move by
+// The activation after a training-mode batch norm: ReLU (the U-Net) or swish, z sigmoid(z) (the
+// discriminator).
+enum class NormActivation { relu = 0, swish = 1 };
+
+// Training-mode batch norm and the activation after it by oneDNN, one primitive each way for ReLU
+// (fuse_norm_relu) and two for swish (batch norm, then eltwise_swish); LibTorch 1.13 runs batch norm,
+// the activation and their backward as four to seven passes over the activations:
+//   y = act(weight (x - mean) / sqrt(var + eps) + bias),  mean and (biased) var over {B,H,W},
+// as torch::batch_norm in training mode then the activation. running_mean and running_var move by
 // `momentum` towards the batch's mean and unbiased variance, as LibTorch's do. Gradients reach x,
 // weight and bias. x {B,C,H,W}: channels-last, fp32 or bf16 (weight, bias and the statistics fp32).
-torch::Tensor onednn_batch_norm_relu(const torch::Tensor& x, const torch::Tensor& weight, const torch::Tensor& bias,
-                                     torch::Tensor running_mean, torch::Tensor running_var, double momentum,
-                                     double eps);
-// Whether onednn_batch_norm_relu runs x here: a CPU {B,C,H,W} channels-last fp32 or bf16 tensor,
-// more than one value per channel, and a oneDNN kernel for its type on this CPU (bf16 needs AVX-512).
-// The primitives it makes for (x, eps) are kept for the call that follows.
-bool onednn_batch_norm_relu_runs(const torch::Tensor& x, double eps = 1e-5);
+torch::Tensor onednn_batch_norm_activation(const torch::Tensor& x, const torch::Tensor& weight,
+                                           const torch::Tensor& bias, torch::Tensor running_mean,
+                                           torch::Tensor running_var, double momentum, double eps,
+                                           NormActivation activation);
+// Whether onednn_batch_norm_activation runs x here: a CPU {B,C,H,W} channels-last fp32 or bf16
+// tensor, more than one value per channel, and a oneDNN kernel for its type on this CPU (bf16 needs
+// AVX-512). The primitives it makes for (x, eps, activation) are kept for the call that follows.
+bool onednn_batch_norm_runs(const torch::Tensor& x, double eps = 1e-5,
+                            NormActivation activation = NormActivation::relu);
+// A module's batch norm, then the activation: through onednn_batch_norm_activation in training
+// where it runs (counting num_batches_tracked as BatchNorm2d does), else the module's own forward
+// and LibTorch's activation (eval, no affine weights or running statistics, channels-first input).
+torch::Tensor batch_norm_activation(torch::nn::BatchNorm2dImpl& bn, const torch::Tensor& x, NormActivation activation);
 
 }  // namespace flatnet

@@ -8,6 +8,7 @@
 #include "core/error.hpp"
 #include "core/util.hpp"
 #include "recon/data_consistency.hpp"
+#include "nn/fused_adam.hpp"
 
 namespace flatnet {
 
@@ -89,7 +90,7 @@ AdaptationReport adapt_to_captures(Generator& generator, const std::vector<torch
     shipped_norm2 += p.detach().square().sum().item<double>();
   }
   shipped_norm2 = std::max(shipped_norm2, 1e-30);
-  torch::optim::Adam adam(params, torch::optim::AdamOptions(o.lr));
+  FusedAdam adam(params, torch::optim::AdamOptions(o.lr));
   Progress progress("adapt", o.steps);
   const auto n = static_cast<int64_t>(planes.size());
   for (int64_t step = 0; step < o.steps; ++step) {

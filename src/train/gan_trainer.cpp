@@ -8,6 +8,7 @@
 #include "core/util.hpp"
 #include "eval/metrics.hpp"
 #include "recon/data_consistency.hpp"
+#include "nn/fused_adam.hpp"
 #include "train/distributed.hpp"
 #include "train/loop.hpp"
 #include "train/nonfinite.hpp"
@@ -292,6 +293,7 @@ GanTrainer::GanTrainer(Generator generator, Discriminator discriminator, Vgg16Fe
           "a perceptual weight needs VGG-16 weights");
   g_->prepare_training({false, opt_.channels_last, false, opt_.gemm_upsample});
   if (opt_.channels_last && !vgg_.is_empty()) weights_to_channels_last(*vgg_);
+  if (opt_.channels_last) weights_to_channels_last(*d_);
   // Two parameter groups: the inversion may learn at its own rate.
   std::vector<torch::Tensor> inversion, rest;
   for (const auto& p : g_->named_parameters())
@@ -300,8 +302,8 @@ GanTrainer::GanTrainer(Generator generator, Discriminator discriminator, Vgg16Fe
   groups.emplace_back(rest, std::make_unique<torch::optim::AdamOptions>(opt_.lr));
   if (!inversion.empty())
     groups.emplace_back(inversion, std::make_unique<torch::optim::AdamOptions>(opt_.lr * opt_.lr_inversion_scale));
-  opt_g_ = std::make_unique<torch::optim::Adam>(groups, torch::optim::AdamOptions(opt_.lr));
-  opt_d_ = std::make_unique<torch::optim::Adam>(d_->parameters(), torch::optim::AdamOptions(opt_.lr_discriminator));
+  opt_g_ = std::make_unique<FusedAdam>(groups, torch::optim::AdamOptions(opt_.lr));
+  opt_d_ = std::make_unique<FusedAdam>(d_->parameters(), torch::optim::AdamOptions(opt_.lr_discriminator));
   g_->set_autocast_bf16(opt_.bf16);
   // The one check of the decay for library callers (a config's value is range-checked when it loads).
   require(opt_.ema_decay >= 0 && opt_.ema_decay < 1, train_key(&TrainOptions::ema_decay), "must lie in [0, 1)");
