@@ -29,15 +29,15 @@ struct AdamScalars {
 //   p -= step_size m / (sqrt(v) / sqrt(bias_correction2) + eps)
 // Built for AVX-512, AVX2 with FMA and the baseline, chosen when the program loads (GCC's
 // target_clones). CMakeLists.txt builds this file without math errno, so that sqrt vectorises.
-__attribute__((target_clones("arch=skylake-avx512", "arch=haswell", "default"))) void
-update_range(float* __restrict p, const float* __restrict g, float* __restrict m, float* __restrict v, int64_t begin,
-             int64_t end, AdamScalars s) {
+__attribute__((target_clones("arch=skylake-avx512", "arch=haswell", "default"))) void update_range(
+    float* __restrict p, const float* __restrict g, float* __restrict m, float* __restrict v, int64_t begin,
+    int64_t end, AdamScalars s) {
   for (int64_t i = begin; i < end; ++i) {
-    const float grad = g[i] + s.weight_decay * p[i];              // grad.add(p, weight_decay)
-    m[i] = m[i] * s.beta1 + (1.f - s.beta1) * grad;               // exp_avg.mul_(beta1).add_(grad, 1 - beta1)
-    v[i] = v[i] * s.beta2 + (1.f - s.beta2) * grad * grad;        // exp_avg_sq.mul_(beta2).addcmul_(grad, grad, 1 - beta2)
+    const float grad = g[i] + s.weight_decay * p[i];        // grad.add(p, weight_decay)
+    m[i] = m[i] * s.beta1 + (1.f - s.beta1) * grad;         // exp_avg.mul_(beta1).add_(grad, 1 - beta1)
+    v[i] = v[i] * s.beta2 + (1.f - s.beta2) * grad * grad;  // exp_avg_sq.mul_(beta2).addcmul_(grad, grad, 1 - beta2)
     const float denom = std::sqrt(v[i]) / s.root_bias_correction2 + s.eps;
-    p[i] = p[i] + (-s.step_size) * m[i] / denom;                  // p.addcdiv_(exp_avg, denom, -step_size)
+    p[i] = p[i] + (-s.step_size) * m[i] / denom;  // p.addcdiv_(exp_avg, denom, -step_size)
   }
 }
 
