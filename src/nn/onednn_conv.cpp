@@ -269,15 +269,17 @@ class BatchNormActivationFunction : public torch::autograd::Function<BatchNormAc
     const auto shift = bias.detach().to(torch::kFloat32).contiguous();
     auto normed = torch::empty_like(x, at::MemoryFormat::ChannelsLast);  // ReLU: the output; swish: its input
     auto mean = torch::empty({C}, f32), var = torch::empty({C}, f32);
-    auto workspace = torch::empty({static_cast<int64_t>(plan->forward_pd.workspace_desc().get_size())},
-                                  torch::TensorOptions().dtype(torch::kUInt8));
+    torch::Tensor workspace;  // ReLU's mask; swish keeps its input instead
     auto& stream = cpu_stream();
     std::unordered_map<int, dnnl::memory> args{
         {DNNL_ARG_SRC, wrap(plan->data, x)},        {DNNL_ARG_DST, wrap(plan->data, normed)},
         {DNNL_ARG_SCALE, wrap(plan->stats, scale)}, {DNNL_ARG_SHIFT, wrap(plan->stats, shift)},
         {DNNL_ARG_MEAN, wrap(plan->stats, mean)},   {DNNL_ARG_VARIANCE, wrap(plan->stats, var)}};
-    if (act == NormActivation::relu)
+    if (act == NormActivation::relu) {
+      workspace = torch::empty({static_cast<int64_t>(plan->forward_pd.workspace_desc().get_size())},
+                               torch::TensorOptions().dtype(torch::kUInt8));
       args.emplace(DNNL_ARG_WORKSPACE, wrap(plan->forward_pd.workspace_desc(), workspace));
+    }
     plan->forward.execute(stream, args);
     auto y = normed;
     if (act == NormActivation::swish) {
