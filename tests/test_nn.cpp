@@ -7,6 +7,7 @@
 #include <ATen/autocast_mode.h>
 
 #include "core/error.hpp"
+#include "core/precision.hpp"
 #include "eval/metrics.hpp"
 #include "io/image.hpp"
 #include "helpers.hpp"
@@ -660,6 +661,86 @@ TEST_CASE("a module's batch norm and swish: oneDNN in training counts its batche
   const auto evaluated = batch_norm_activation(*bn, x, NormActivation::swish);  // running statistics
   CHECK(torch::allclose(evaluated, swish(reference->forward(x)), 1e-4, 1e-5));
   CHECK(bn->num_batches_tracked.item<int64_t>() == 1);
+}
+
+TEST_CASE("a training convolution by oneDNN: LibTorch's values and gradients (stride, padding, bias, layouts, types)",
+          "[nn][onednn]") {
+  torch::manual_seed(16);
+  const auto cl = at::MemoryFormat::ChannelsLast;
+  struct Case {
+    int64_t kernel, stride, padding;
+    bool bias, weight_channels_last;
+  };
+  // The U-Net's 3x3 convolutions, the discriminator's stride-2 ones and its 1x1 head with padding 1.
+  for (const auto c :
+       {Case{3, 1, 1, false, true}, Case{3, 2, 1, true, true}, Case{1, 1, 1, true, false}, Case{3, 1, 1, true, false}})
+    for (const auto type : {torch::kFloat32, torch::kBFloat16}) {
+      INFO("kernel " << c.kernel << " stride " << c.stride << " bias " << c.bias << " " << type);
+      const auto x0 = torch::randn({2, 5, 9, 11}).to(type).contiguous(cl);
+      auto w0 = torch::randn({7, 5, c.kernel, c.kernel}) * 0.3;
+      if (c.weight_channels_last) w0 = w0.contiguous(cl);
+      const auto b0 = c.bias ? torch::randn({7}) : torch::Tensor();
+      if (!onednn_conv2d_runs(x0, w0, b0, c.stride, c.padding)) {
+        CHECK(type == torch::kBFloat16);  // fp32 runs on every CPU oneDNN supports
+        continue;
+      }
+      auto x1 = x0.clone().requires_grad_(), x2 = x0.to(torch::kFloat32).requires_grad_();
+      auto w1 = w0.clone().requires_grad_(), w2 = w0.clone().requires_grad_();
+      auto b1 = c.bias ? b0.clone().requires_grad_() : b0, b2 = c.bias ? b0.clone().requires_grad_() : b0;
+      const auto work_before = onednn_flops();
+      const auto mine = onednn_conv2d(x1, w1, b1, c.stride, c.padding);
+      // The reference in fp32 from the same (rounded) input: bf16 differs by its output's rounding.
+      const auto expected = torch::conv2d(x2, w2, b2, c.stride, c.padding);
+      REQUIRE(mine.sizes() == expected.sizes());
+      CHECK(mine.scalar_type() == type);
+      CHECK(mine.is_contiguous(cl));
+      const double tol = type == torch::kFloat32 ? 1e-4 : 3e-2;
+      CHECK(torch::allclose(mine.to(torch::kFloat32), expected, tol, tol));
+      const auto weights = torch::randn(expected.sizes());
+      (mine.to(torch::kFloat32) * weights).sum().backward();
+      (expected * weights).sum().backward();
+      CHECK(torch::allclose(x1.grad().to(torch::kFloat32), x2.grad(), tol, tol));
+      CHECK(torch::allclose(w1.grad(), w2.grad(), tol, 10 * tol));
+      CHECK(w1.grad().scalar_type() == torch::kFloat32);
+      CHECK(w1.grad().is_contiguous(c.weight_channels_last ? cl : at::MemoryFormat::Contiguous));  // the weight's
+      if (c.bias) CHECK(torch::allclose(b1.grad(), b2.grad(), tol, 10 * tol));
+      // Counted: the forward and both gradients, each 2 B O H' W' I k k.
+      const double pass = 2.0 * expected.numel() * 5 * c.kernel * c.kernel;
+      CHECK(static_cast<double>(onednn_flops() - work_before) == Approx(3 * pass));
+    }
+  const auto x = torch::randn({2, 5, 9, 11}).contiguous(cl);
+  CHECK_FALSE(onednn_conv2d_runs(x.contiguous(), torch::randn({7, 5, 3, 3}), {}, 1, 1));  // channels-first
+  CHECK_FALSE(onednn_conv2d_runs(x, torch::randn({7, 4, 3, 3}), {}, 1, 1));               // channels disagree
+  CHECK_FALSE(onednn_conv2d_runs(x, torch::randn({7, 5, 3, 3}).to(torch::kFloat64), {}, 1, 1));
+  CHECK_THROWS_WITH(onednn_conv2d(x.contiguous(), torch::randn({7, 5, 3, 3}), {}, 1, 1),
+                    Catch::Matchers::Contains("channels-last"));
+}
+
+TEST_CASE("a module's convolution: oneDNN's in fp32 where a gradient is wanted, LibTorch's elsewhere (autocast too)",
+          "[nn][onednn]") {
+  torch::manual_seed(17);
+  const auto cl = at::MemoryFormat::ChannelsLast;
+  torch::nn::Conv2d conv(torch::nn::Conv2dOptions(4, 6, 3).stride(2).padding(1));
+  const auto x = torch::randn({2, 4, 10, 10}).contiguous(cl);
+  auto work = onednn_flops();
+  const auto trained = convolve(*conv, x);  // the weight wants a gradient
+  CHECK(onednn_flops() > work);
+  CHECK(torch::allclose(trained, conv->forward(x), 1e-4, 1e-5));
+  trained.sum().backward();  // the weight's gradient only: x wants none
+  REQUIRE(conv->weight.grad().defined());
+  CHECK(onednn_flops() - work == 2 * static_cast<uint64_t>(2 * trained.numel() * 4 * 9));
+  work = onednn_flops();
+  {
+    torch::NoGradGuard no_grad;
+    CHECK(torch::allclose(convolve(*conv, x), conv->forward(x), 1e-4, 1e-5));
+  }
+  convolve(*conv, x.contiguous());  // channels-first: LibTorch's
+  CHECK(onednn_flops() == work);
+  if (resolve_precision("auto") == Precision::bf16) {  // LibTorch's bf16 convolutions need AVX-512
+    AutocastGuard autocast(true);
+    CHECK(convolve(*conv, x).scalar_type() == torch::kBFloat16);  // LibTorch's, in autocast's type
+    CHECK(onednn_flops() == work);
+  }
 }
 
 TEST_CASE("the discriminator with channels-last weights: the same logits and gradients as with plain ones", "[nn]") {

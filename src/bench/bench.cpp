@@ -309,6 +309,50 @@ std::vector<std::string> peak_row_names() {
   return names;
 }
 
+namespace {
+
+// An operator call that does counted work: its FLOPs as the profiler gives them, or (transposed
+// convolutions and convolution gradients, which it does not count) from its shapes.
+struct CountedCall {
+  std::string name;
+  uint64_t thread, begin, end;
+  double flops;
+};
+
+double shape_flops(const std::string& name, c10::ArrayRef<std::vector<int64_t>> shapes) {
+  if (shapes.size() < 2 || shapes[0].size() != 4 || shapes[1].size() != 4) return 0;
+  if (name == "aten::conv_transpose2d") {
+    const auto &in = shapes[0], &w = shapes[1];  // {N,Cin,H,W}, {Cin,Cout/groups,kh,kw}
+    return 2.0 * in[0] * in[1] * in[2] * in[3] * w[1] * w[2] * w[3];
+  }
+  if (name != "aten::convolution_backward" || shapes.size() < 3 || shapes[2].size() != 4) return 0;
+  // The gradients of the input and of the weight, each as much work as the forward. A transposed
+  // convolution's output is larger than its input (FlatNet's 2x2 stride-2 ups).
+  const auto &grad_out = shapes[0], &in = shapes[1], &w = shapes[2];
+  const bool transposed = grad_out[2] > in[2];
+  const double forward = transposed ? 2.0 * in[0] * in[1] * in[2] * in[3] * w[1] * w[2] * w[3]
+                                    : 2.0 * grad_out[0] * grad_out[1] * grad_out[2] * grad_out[3] * w[1] * w[2] * w[3];
+  return 2 * forward;
+}
+
+// Whether a call runs inside another call of the same operator on the same thread. Under autocast,
+// LibTorch's autocast kernel for aten::conv2d (or mm, addmm, ...) casts its inputs and calls the
+// operator again: the profiler records both calls and gives each the whole product's FLOPs, which
+// counted a bf16 step's forward convolutions twice.
+bool nested_in_itself(size_t i, const std::vector<CountedCall>& calls) {
+  const auto& e = calls[i];
+  for (size_t j = 0; j < calls.size(); ++j) {
+    const auto& outer = calls[j];
+    if (j == i || outer.name != e.name || outer.thread != e.thread) continue;
+    const bool inside = e.begin >= outer.begin && e.end <= outer.end;
+    const bool same_span = e.begin == outer.begin && e.end == outer.end;
+    if (inside && (!same_span || j < i)) return true;  // equal spans: the first recorded is the outer
+  }
+  return false;
+}
+
+}  // namespace
+
 double count_gflop(const std::function<void()>& fn) {
   namespace prof = torch::profiler::impl;
   const prof::ProfilerConfig config(prof::ProfilerState::KINETO, /*report_input_shapes=*/true, false, false,
@@ -316,29 +360,18 @@ double count_gflop(const std::function<void()>& fn) {
   const std::set<prof::ActivityType> activities = {prof::ActivityType::CPU};
   torch::autograd::profiler::prepareProfiler(config, activities);
   torch::autograd::profiler::enableProfiler(config, activities);
-  const auto onednn_before = onednn_bmm_flops();
+  const auto onednn_before = onednn_flops();
   fn();
   const auto result = torch::autograd::profiler::disableProfiler();
-  double flops = static_cast<double>(onednn_bmm_flops() - onednn_before);  // FlatNet's first stage
+  // flatnet's own oneDNN calls: the first stage's products, the training convolutions
+  double flops = static_cast<double>(onednn_flops() - onednn_before);
+  std::vector<CountedCall> calls;
   for (const auto& e : result->events()) {
-    flops += static_cast<double>(e.flops());
-    if (!e.hasShapes()) continue;
-    const auto& shapes = e.shapes();
-    if (e.name() == "aten::conv_transpose2d" && shapes.size() >= 2 && shapes[0].size() == 4 && shapes[1].size() == 4) {
-      const auto &in = shapes[0], &w = shapes[1];  // {N,Cin,H,W}, {Cin,Cout/groups,kh,kw}
-      flops += 2.0 * in[0] * in[1] * in[2] * in[3] * w[1] * w[2] * w[3];
-    } else if (e.name() == "aten::convolution_backward" && shapes.size() >= 3 && shapes[0].size() == 4 &&
-               shapes[1].size() == 4 && shapes[2].size() == 4) {
-      // The gradients of the input and of the weight, each as much work as the forward. A
-      // transposed convolution's output is larger than its input (FlatNet's 2x2 stride-2 ups).
-      const auto &grad_out = shapes[0], &in = shapes[1], &w = shapes[2];
-      const bool transposed = grad_out[2] > in[2];
-      const double forward = transposed
-                                 ? 2.0 * in[0] * in[1] * in[2] * in[3] * w[1] * w[2] * w[3]
-                                 : 2.0 * grad_out[0] * grad_out[1] * grad_out[2] * grad_out[3] * w[1] * w[2] * w[3];
-      flops += 2 * forward;
-    }
+    const double work = static_cast<double>(e.flops()) + (e.hasShapes() ? shape_flops(e.name(), e.shapes()) : 0.0);
+    if (work > 0) calls.push_back({e.name(), e.startThreadId(), e.startUs(), e.startUs() + e.durationUs(), work});
   }
+  for (size_t i = 0; i < calls.size(); ++i)
+    if (!nested_in_itself(i, calls)) flops += calls[i].flops;
   return flops / 1e9;
 }
 

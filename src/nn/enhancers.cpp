@@ -62,9 +62,9 @@ struct DoubleConvImpl : nn::Module {
     if (!fused.empty()) return (*fused[1])((*fused[0])(x));  // conv+bias+ReLU twice, in oneDNN
     if (!is_training() || conv->size() != 6) return conv->forward(x);
     // Training: each batch norm and its ReLU as one oneDNN primitive where it runs.
-    auto h = conv[0]->as<nn::Conv2dImpl>()->forward(x);
+    auto h = convolve(*conv[0]->as<nn::Conv2dImpl>(), x);
     h = batch_norm_activation(*conv[1]->as<nn::BatchNorm2dImpl>(), h, NormActivation::relu);
-    h = conv[3]->as<nn::Conv2dImpl>()->forward(h);
+    h = convolve(*conv[3]->as<nn::Conv2dImpl>(), h);
     return batch_norm_activation(*conv[4]->as<nn::BatchNorm2dImpl>(), h, NormActivation::relu);
   }
   void fold_batchnorm() { conv = replace_module("conv", fold_sequential(conv)); }
@@ -220,7 +220,7 @@ struct OutConvImpl : nn::Module {
   OutConvImpl(int64_t in, int64_t out) {
     conv = register_module("conv", nn::Conv2d(nn::Conv2dOptions(in, out, 3).padding(1)));
   }
-  torch::Tensor forward(const torch::Tensor& x) { return fused ? (*fused)(x) : conv->forward(x); }
+  torch::Tensor forward(const torch::Tensor& x) { return fused ? (*fused)(x) : convolve(*conv, x); }
   void use_onednn() {
     OneDnnConvOptions o;
     o.padding = 1;

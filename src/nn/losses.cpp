@@ -38,11 +38,11 @@ std::vector<torch::Tensor> DiscriminatorImpl::features(const torch::Tensor& x) {
   const bool channels_last = first.is_contiguous(at::MemoryFormat::ChannelsLast) && !first.is_contiguous();
   auto h = channels_last ? x.contiguous(at::MemoryFormat::ChannelsLast) : x;
   for (size_t i = 0; i < convs_->size(); ++i) {
-    h = batch_norm_activation(*norms_[i]->as<nn::BatchNorm2dImpl>(), convs_[i]->as<nn::Conv2dImpl>()->forward(h),
+    h = batch_norm_activation(*norms_[i]->as<nn::BatchNorm2dImpl>(), convolve(*convs_[i]->as<nn::Conv2dImpl>(), h),
                               NormActivation::swish);
     out.push_back(h);
   }
-  out.push_back(out_->forward(h).mean({2, 3}));  // {B,1}
+  out.push_back(convolve(*out_, h).mean({2, 3}));  // {B,1}
   return out;
 }
 
@@ -73,7 +73,7 @@ std::pair<torch::Tensor, torch::Tensor> Vgg16FeaturesImpl::forward(const torch::
   }
   torch::Tensor relu2_2;
   for (size_t i = 0; i < features_->size(); ++i) {
-    h = features_[i]->as<nn::Conv2dImpl>() ? features_[i]->as<nn::Conv2dImpl>()->forward(h)
+    h = features_[i]->as<nn::Conv2dImpl>() ? convolve(*features_[i]->as<nn::Conv2dImpl>(), h)
         : features_[i]->as<nn::ReLUImpl>() ? torch::relu_(h)  // in place, as torchvision's VGG
                                            : features_[i]->as<nn::MaxPool2dImpl>()->forward(h);
     if (i == 8) relu2_2 = h;

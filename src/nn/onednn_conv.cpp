@@ -1,5 +1,6 @@
 #include "nn/onednn_conv.hpp"
 
+#include <ATen/autocast_mode.h>
 #include <oneapi/dnnl/dnnl.hpp>
 
 #include <atomic>
@@ -145,11 +146,11 @@ std::pair<torch::Tensor, bool> gemm_operand(const torch::Tensor& x) {
   return {t.contiguous(), false};
 }
 
-std::atomic<uint64_t> bmm_flops{0};
+std::atomic<uint64_t> onednn_work{0};  // FLOPs, onednn_flops()
 
 }  // namespace
 
-uint64_t onednn_bmm_flops() { return bmm_flops.load(); }
+uint64_t onednn_flops() { return onednn_work.load(); }
 
 torch::Tensor onednn_bmm(const torch::Tensor& a_in, const torch::Tensor& b_in) {
   RECORD_FUNCTION("flatnet::onednn_bmm", c10::ArrayRef<c10::IValue>{});
@@ -166,7 +167,7 @@ torch::Tensor onednn_bmm(const torch::Tensor& a_in, const torch::Tensor& b_in) {
   auto& stream = cpu_stream();
   plan.primitive.execute(stream, {{DNNL_ARG_SRC, am}, {DNNL_ARG_WEIGHTS, bm}, {DNNL_ARG_DST, cm}});
   stream.wait();
-  bmm_flops += static_cast<uint64_t>(2 * c.size(0) * m * k * n);
+  onednn_work += static_cast<uint64_t>(2 * c.size(0) * m * k * n);
   return c;
 }
 
@@ -381,6 +382,261 @@ torch::Tensor batch_norm_activation(torch::nn::BatchNorm2dImpl& bn, const torch:
   }
   return onednn_batch_norm_activation(x, bn.weight, bn.bias, bn.running_mean, bn.running_var, *o.momentum(), o.eps(),
                                       activation);
+}
+
+}  // namespace flatnet
+
+namespace flatnet {
+
+namespace {
+
+// The three primitives of one training convolution (shape, stride, padding, type, bias), made once
+// and shared. Activations are read and written channels-last (NHWC) in place; the weights, fp32
+// parameters in their own layout, are reordered into each kernel's blocked layout (and type) per call.
+struct TrainConvPlan {
+  dnnl::convolution_forward::primitive_desc forward_pd;
+  dnnl::convolution_backward_data::primitive_desc data_pd;
+  dnnl::convolution_backward_weights::primitive_desc weights_pd;
+  dnnl::convolution_forward forward;
+  dnnl::convolution_backward_data backward_data;
+  dnnl::convolution_backward_weights backward_weights;
+  dnnl::memory::desc src, dst, bias;  // NHWC activations, fp32 {O}
+  std::array<int64_t, 4> out_shape;
+};
+
+using TrainConvKey = std::array<int64_t, 11>;  // B, I, H, W, O, kh, kw, stride, padding, type, bias
+
+// One pass of the convolution (forward, or either gradient): 2 FLOPs per multiply-add.
+uint64_t pass_flops(const TrainConvKey& k, const TrainConvPlan& plan) {
+  const auto& out = plan.out_shape;
+  return static_cast<uint64_t>(2 * out[0] * out[1] * out[2] * out[3] * k[1] * k[5] * k[6]);
+}
+
+// oneDNN 2.6's AVX2 weight-gradient kernel reads NHWC activations at a third of its speed on its own
+// blocked layout (32->16 channels at 256x256, batch 4: 44-60 ms against 16 ms, plus 2.4 ms of
+// reorders); from AVX-512 on the NHWC kernels are as fast. Below AVX-512 the weight gradient gets
+// the layout it asks for.
+bool weight_gradient_wants_blocked() {
+  const auto isa = dnnl::get_effective_cpu_isa();
+  return isa < dnnl::cpu_isa::avx512_core;
+}
+
+std::unique_ptr<TrainConvPlan> make_train_conv_plan(const TrainConvKey& k) {
+  const int64_t B = k[0], I = k[1], H = k[2], W = k[3], O = k[4], KH = k[5], KW = k[6], s = k[7], p = k[8];
+  const auto type = static_cast<at::ScalarType>(k[9]) == at::kBFloat16 ? dt::bf16 : dt::f32;
+  const bool has_bias = k[10] != 0;
+  auto plan = std::make_unique<TrainConvPlan>();
+  const int64_t OH = (H + 2 * p - KH) / s + 1, OW = (W + 2 * p - KW) / s + 1;
+  plan->out_shape = {B, O, OH, OW};
+  plan->src = dnnl::memory::desc({B, I, H, W}, type, tag::nhwc);
+  plan->dst = dnnl::memory::desc({B, O, OH, OW}, type, tag::nhwc);
+  plan->bias = has_bias ? dnnl::memory::desc({O}, dt::f32, tag::a) : dnnl::memory::desc();
+  const dnnl::memory::desc any_weights({O, I, KH, KW}, type, tag::any), f32_weights({O, I, KH, KW}, dt::f32, tag::any);
+  const dnnl::memory::dims strides{s, s}, pads{p, p};
+  const auto direct = dnnl::algorithm::convolution_direct;
+  plan->forward_pd = dnnl::convolution_forward::primitive_desc(
+      dnnl::convolution_forward::desc(dnnl::prop_kind::forward_training, direct, plan->src, any_weights, plan->bias,
+                                      plan->dst, strides, pads, pads),
+      cpu_engine());
+  plan->data_pd = dnnl::convolution_backward_data::primitive_desc(
+      dnnl::convolution_backward_data::desc(direct, plan->src, any_weights, plan->dst, strides, pads, pads),
+      cpu_engine(), plan->forward_pd);
+  const bool blocked = weight_gradient_wants_blocked();
+  const dnnl::memory::desc w_src = blocked ? dnnl::memory::desc({B, I, H, W}, type, tag::any) : plan->src;
+  const dnnl::memory::desc w_dst = blocked ? dnnl::memory::desc({B, O, OH, OW}, type, tag::any) : plan->dst;
+  plan->weights_pd = dnnl::convolution_backward_weights::primitive_desc(
+      dnnl::convolution_backward_weights::desc(direct, w_src, f32_weights, plan->bias, w_dst, strides, pads, pads),
+      cpu_engine(), plan->forward_pd);
+  for (const char* impl :
+       {plan->forward_pd.impl_info_str(), plan->data_pd.impl_info_str(), plan->weights_pd.impl_info_str()})
+    if (std::string(impl).rfind("ref", 0) == 0) return nullptr;  // a reference loop: LibTorch's path is faster
+  plan->forward = dnnl::convolution_forward(plan->forward_pd);
+  plan->backward_data = dnnl::convolution_backward_data(plan->data_pd);
+  plan->backward_weights = dnnl::convolution_backward_weights(plan->weights_pd);
+  return plan;
+}
+
+// nullptr where oneDNN has no kernel for it here.
+TrainConvPlan* train_conv_plan(const TrainConvKey& key) {
+  static std::mutex mutex;
+  static std::map<TrainConvKey, std::unique_ptr<TrainConvPlan>> plans;
+  std::lock_guard<std::mutex> lock(mutex);
+  const auto found = plans.find(key);
+  if (found != plans.end()) return found->second.get();
+  std::unique_ptr<TrainConvPlan> plan;
+  try {
+    plan = make_train_conv_plan(key);  // nullptr: only reference kernels
+  } catch (const dnnl::error&) {
+    plan.reset();  // LibTorch's convolution runs it
+  }
+  return (plans[key] = std::move(plan)).get();
+}
+
+TrainConvKey train_conv_key(const torch::Tensor& x, const torch::Tensor& weight, bool has_bias, int64_t stride,
+                            int64_t padding) {
+  return {x.size(0),       x.size(1),      x.size(2), x.size(3), weight.size(0),
+          weight.size(2),  weight.size(3), stride,    padding,   static_cast<int64_t>(x.scalar_type()),
+          has_bias ? 1 : 0};
+}
+
+// A weight tensor as oneDNN reads or writes it: {O,I,kh,kw}, fp32, plain or channels-last.
+dnnl::memory user_weights(const torch::Tensor& w) {
+  const bool channels_last = w.is_contiguous(at::MemoryFormat::ChannelsLast) && !w.is_contiguous();
+  return dnnl::memory({{w.size(0), w.size(1), w.size(2), w.size(3)}, dt::f32, channels_last ? tag::ohwi : tag::oihw},
+                      cpu_engine(), w.data_ptr());
+}
+
+// `from` reordered (and converted) into a fresh buffer of layout `desc`; `keep` owns its memory.
+dnnl::memory reordered(dnnl::memory from, const dnnl::memory::desc& desc, torch::Tensor& keep) {
+  if (from.get_desc() == desc) return from;
+  keep = torch::empty({static_cast<int64_t>(desc.get_size())}, torch::TensorOptions().dtype(torch::kUInt8));
+  dnnl::memory to(desc, cpu_engine(), keep.data_ptr());
+  dnnl::reorder(from, to).execute(cpu_stream(), from, to);
+  return to;
+}
+
+class TrainConvFunction : public torch::autograd::Function<TrainConvFunction> {
+ public:
+  // x {B,I,H,W} channels-last fp32 or bf16; weight {O,I,kh,kw} and bias {O} (or {0}: none) fp32.
+  static torch::Tensor forward(torch::autograd::AutogradContext* ctx, const torch::Tensor& x,
+                               const torch::Tensor& weight, const torch::Tensor& bias_or_empty, int64_t stride,
+                               int64_t padding) {
+    const auto bias = bias_or_empty.numel() > 0 ? bias_or_empty : torch::Tensor();
+    RECORD_FUNCTION("flatnet::onednn_conv2d", std::vector<c10::IValue>({x}));
+    const auto key = train_conv_key(x, weight, bias.defined(), stride, padding);
+    auto* plan = train_conv_plan(key);
+    TORCH_CHECK(plan, "onednn_conv2d: no oneDNN kernel for this convolution");
+    const auto w =
+        weight.detach().is_contiguous(at::MemoryFormat::ChannelsLast) ? weight.detach() : weight.detach().contiguous();
+    auto y = torch::empty({plan->out_shape[0], plan->out_shape[1], plan->out_shape[2], plan->out_shape[3]},
+                          x.options().memory_format(at::MemoryFormat::ChannelsLast));  // {B,O,H',W'}
+    torch::Tensor weights_buffer;
+    auto blocked_weights = reordered(user_weights(w), plan->forward_pd.weights_desc(), weights_buffer);
+    std::unordered_map<int, dnnl::memory> args{
+        {DNNL_ARG_SRC, wrap(plan->src, x)}, {DNNL_ARG_WEIGHTS, blocked_weights}, {DNNL_ARG_DST, wrap(plan->dst, y)}};
+    torch::Tensor b;
+    if (bias.defined()) {
+      b = bias.detach().to(torch::kFloat32).contiguous();
+      args.emplace(DNNL_ARG_BIAS, wrap(plan->bias, b));
+    }
+    plan->forward.execute(cpu_stream(), args);
+    cpu_stream().wait();
+    onednn_work += pass_flops(key, *plan);
+    ctx->save_for_backward({x, w});
+    ctx->saved_data["key"] = std::vector<int64_t>(key.begin(), key.end());
+    return y;
+  }
+
+  static torch::autograd::variable_list backward(torch::autograd::AutogradContext* ctx,
+                                                 torch::autograd::variable_list grads) {
+    const auto saved = ctx->get_saved_variables();
+    const auto &x = saved[0], &w = saved[1];
+    const auto key_list = ctx->saved_data["key"].toIntVector();
+    TrainConvKey key;
+    std::copy(key_list.begin(), key_list.end(), key.begin());
+    auto* plan = train_conv_plan(key);
+    const auto grad = grads[0].to(x.scalar_type()).contiguous(at::MemoryFormat::ChannelsLast);  // {B,O,H',W'}
+    torch::Tensor grad_x, grad_w, grad_b;
+    if (ctx->needs_input_grad(0)) {
+      grad_x = input_gradient(*plan, grad, w);
+      onednn_work += pass_flops(key, *plan);
+    }
+    if (ctx->needs_input_grad(1) || ctx->needs_input_grad(2)) {
+      std::tie(grad_w, grad_b) = weight_gradients(*plan, x, grad, w, key[10] != 0);
+      if (!ctx->needs_input_grad(2)) grad_b = torch::Tensor();
+      onednn_work += pass_flops(key, *plan);
+    }
+    return {grad_x, grad_w, grad_b, torch::Tensor(), torch::Tensor()};
+  }
+
+ private:
+  // dL/dx: the convolution's transpose applied to the output's gradient.
+  static torch::Tensor input_gradient(TrainConvPlan& plan, const torch::Tensor& grad, const torch::Tensor& w) {
+    const auto& src = plan.src;
+    auto grad_x = torch::empty({src.dims()[0], src.dims()[1], src.dims()[2], src.dims()[3]},
+                               grad.options().memory_format(at::MemoryFormat::ChannelsLast));
+    torch::Tensor weights_buffer;
+    auto blocked_weights = reordered(user_weights(w), plan.data_pd.weights_desc(), weights_buffer);
+    plan.backward_data.execute(cpu_stream(), {{DNNL_ARG_DIFF_DST, wrap(plan.dst, grad)},
+                                              {DNNL_ARG_WEIGHTS, blocked_weights},
+                                              {DNNL_ARG_DIFF_SRC, wrap(src, grad_x)}});
+    cpu_stream().wait();
+    return grad_x;
+  }
+
+  // dL/dweight (fp32, in the weight's own layout) and dL/dbias (fp32, or undefined without a bias).
+  static std::pair<torch::Tensor, torch::Tensor> weight_gradients(TrainConvPlan& plan, const torch::Tensor& x,
+                                                                  const torch::Tensor& grad, const torch::Tensor& w,
+                                                                  bool has_bias) {
+    torch::Tensor src_buffer, dst_buffer, weights_buffer;
+    auto src = reordered(wrap(plan.src, x), plan.weights_pd.src_desc(), src_buffer);
+    auto diff_dst = reordered(wrap(plan.dst, grad), plan.weights_pd.diff_dst_desc(), dst_buffer);
+    auto grad_w = torch::empty_like(w);  // the weight's layout
+    auto user_grad = user_weights(grad_w);
+    const auto& grad_desc = plan.weights_pd.diff_weights_desc();
+    dnnl::memory blocked_grad = grad_desc == user_grad.get_desc() ? user_grad : dnnl::memory();
+    if (!blocked_grad) {
+      weights_buffer =
+          torch::empty({static_cast<int64_t>(grad_desc.get_size())}, torch::TensorOptions().dtype(torch::kUInt8));
+      blocked_grad = dnnl::memory(grad_desc, cpu_engine(), weights_buffer.data_ptr());
+    }
+    std::unordered_map<int, dnnl::memory> args{
+        {DNNL_ARG_SRC, src}, {DNNL_ARG_DIFF_DST, diff_dst}, {DNNL_ARG_DIFF_WEIGHTS, blocked_grad}};
+    torch::Tensor grad_b;
+    if (has_bias) {
+      grad_b = torch::empty({w.size(0)}, torch::kFloat32);
+      args.emplace(DNNL_ARG_DIFF_BIAS, wrap(plan.bias, grad_b));
+    }
+    auto& stream = cpu_stream();
+    plan.backward_weights.execute(stream, args);
+    if (weights_buffer.defined()) dnnl::reorder(blocked_grad, user_grad).execute(stream, blocked_grad, user_grad);
+    stream.wait();
+    return {grad_w, grad_b};
+  }
+};
+
+}  // namespace
+
+bool onednn_conv2d_runs(const torch::Tensor& x, const torch::Tensor& weight, const torch::Tensor& bias, int64_t stride,
+                        int64_t padding) {
+  if (!x.defined() || !x.is_cpu() || x.dim() != 4 || !weight.defined() || weight.dim() != 4) return false;
+  if (x.suggest_memory_format() != at::MemoryFormat::ChannelsLast || !x.is_contiguous(at::MemoryFormat::ChannelsLast))
+    return false;
+  if (x.scalar_type() != torch::kFloat32 && x.scalar_type() != torch::kBFloat16) return false;
+  if (weight.scalar_type() != torch::kFloat32 || (bias.defined() && bias.scalar_type() != torch::kFloat32))
+    return false;
+  if (weight.size(1) != x.size(1) || stride < 1 || padding < 0) return false;
+  if (x.size(2) + 2 * padding < weight.size(2) || x.size(3) + 2 * padding < weight.size(3)) return false;
+  return train_conv_plan(train_conv_key(x, weight, bias.defined(), stride, padding)) != nullptr;
+}
+
+torch::Tensor onednn_conv2d(const torch::Tensor& x, const torch::Tensor& weight, const torch::Tensor& bias,
+                            int64_t stride, int64_t padding) {
+  TORCH_CHECK(onednn_conv2d_runs(x, weight, bias, stride, padding),
+              "onednn_conv2d: a channels-last fp32 or bf16 {B,I,H,W} input and an fp32 {O,I,kh,kw} weight expected, "
+              "got ",
+              x.sizes(), " ", x.scalar_type(), " and ", weight.sizes(), " ", weight.scalar_type());
+  // LibTorch 1.13's custom functions take no undefined input: no bias travels as an empty tensor.
+  return TrainConvFunction::apply(x, weight, bias.defined() ? bias : torch::empty({0}), stride, padding);
+}
+
+torch::Tensor convolve(torch::nn::Conv2dImpl& conv, const torch::Tensor& x) {
+  const auto& o = conv.options;
+  const auto& pad = o.padding();
+  const bool plain = o.groups() == 1 && (*o.dilation())[0] == 1 && (*o.dilation())[1] == 1 &&
+                     (*o.stride())[0] == (*o.stride())[1] && c10::holds_alternative<torch::ExpandingArray<2>>(pad) &&
+                     c10::holds_alternative<torch::enumtype::kZeros>(o.padding_mode());
+  if (!plain || !torch::GradMode::is_enabled() || !(x.requires_grad() || conv.weight.requires_grad()))
+    return conv.forward(x);
+  const auto& p = c10::get<torch::ExpandingArray<2>>(pad);
+  if ((*p)[0] != (*p)[1]) return conv.forward(x);
+  // fp32 only: under autocast (bf16 on AVX-512) LibTorch's convolutions were as fast (train_cpu_bf16
+  // 202-209 ms against 209-219, Zen 5), while in fp32 its backward is slow (train_cpu under the AVX2
+  // cap 628-700 -> 551-604 ms; on AVX-512 358-361 -> 332-343).
+  if (at::autocast::is_cpu_enabled() || x.scalar_type() != torch::kFloat32) return conv.forward(x);
+  const int64_t stride = (*o.stride())[0], padding = (*p)[0];
+  if (!onednn_conv2d_runs(x, conv.weight, conv.bias, stride, padding)) return conv.forward(x);
+  return onednn_conv2d(x, conv.weight, conv.bias, stride, padding);
 }
 
 }  // namespace flatnet

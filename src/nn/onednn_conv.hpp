@@ -44,10 +44,12 @@ class OneDnnConv {
 // AVX-512 machines oneDNN's fp32 GEMM kernels run about twice as fast as OpenBLAS's at the
 // Tikhonov reconstruction's shapes (`flatnet bench --rows peak,tikhonov`). Inference only: no autograd.
 torch::Tensor onednn_bmm(const torch::Tensor& a, const torch::Tensor& b);
-// The work onednn_bmm has done since the process started, in FLOPs (2 per multiply-add). LibTorch's
-// profiler counts only ATen's operators, so `flatnet bench` adds this counter's rise over a counted
-// run (count_gflop). In the profiler's tables the products show as flatnet::onednn_bmm.
-uint64_t onednn_bmm_flops();
+// The work flatnet's own oneDNN calls have done since the process started, in FLOPs (2 per
+// multiply-add): onednn_bmm's products and onednn_conv2d's passes (its forward, and each gradient
+// it computes). LibTorch's profiler counts only ATen's operators, so `flatnet bench` adds this
+// counter's rise over a counted run (count_gflop). In the profiler's tables they show as
+// flatnet::onednn_bmm and flatnet::onednn_conv2d.
+uint64_t onednn_flops();
 // The same product, differentiable: its backward is two more oneDNN GEMMs (dA = dC B^T and
 // dB = A^T dC, summed over a broadcast batch). fp32; what FlatNet's first stage trains with.
 torch::Tensor onednn_matmul_autograd(const torch::Tensor& a, const torch::Tensor& b);
@@ -76,5 +78,23 @@ bool onednn_batch_norm_runs(const torch::Tensor& x, double eps = 1e-5,
 // where it runs (counting num_batches_tracked as BatchNorm2d does), else the module's own forward
 // and LibTorch's activation (eval, no affine weights or running statistics, channels-first input).
 torch::Tensor batch_norm_activation(torch::nn::BatchNorm2dImpl& bn, const torch::Tensor& x, NormActivation activation);
+
+// A 2-D convolution for training, run by oneDNN directly: y = conv(x, weight) + bias, with the
+// gradients of x, weight and bias. LibTorch 1.13 hands oneDNN's backward NHWC activations with
+// primitives made without the forward's hint; under oneDNN's AVX2 kernels that runs the backward at
+// 3-6x the forward (32->16 channels at 256x256, batch 4: 107 ms against 16.6). Here the three
+// primitives are made once per shape with the forward's hint, and the weight gradient reads the
+// layout its kernel asks for (see weight_gradient_wants_blocked). x {B,I,H,W}: channels-last, fp32 or
+// bf16; weight {O,I,kh,kw} and bias {O} (or undefined): fp32, any layout; the weight's gradient
+// comes back fp32 in its layout. Square stride and padding, no dilation or groups.
+torch::Tensor onednn_conv2d(const torch::Tensor& x, const torch::Tensor& weight, const torch::Tensor& bias,
+                            int64_t stride, int64_t padding);
+// Whether onednn_conv2d takes these: the types and layouts above, and a oneDNN kernel for them on
+// this CPU other than a reference loop (bf16 needs AVX-512). Its primitives are kept for the call.
+bool onednn_conv2d_runs(const torch::Tensor& x, const torch::Tensor& weight, const torch::Tensor& bias, int64_t stride,
+                        int64_t padding);
+// A module's convolution: through onednn_conv2d in fp32 where a gradient is wanted and it runs, else
+// the module's own forward (under autocast, bf16, LibTorch's convolutions train as fast).
+torch::Tensor convolve(torch::nn::Conv2dImpl& conv, const torch::Tensor& x);
 
 }  // namespace flatnet
