@@ -14,6 +14,8 @@
 #include "io/mat.hpp"
 #include "nn/model_file.hpp"
 #include "bench/bench.hpp"
+#include "nn/onednn_conv.hpp"
+#include "core/precision.hpp"
 #include "optics/camera.hpp"
 
 using namespace flatnet;
@@ -805,6 +807,23 @@ TEST_CASE("FLOP counting of a training step: the backward's two gradients, each 
   // forward + 2 x forward, and the sum's and its backward's few elementwise operations
   CHECK(counted >= 3 * forward);
   CHECK(counted < 3 * forward + 4 * 2 * 5 * 10 * 12);
+}
+
+TEST_CASE("FLOP counting under autocast counts a convolution once; flatnet's own oneDNN convolution by its passes",
+          "[bench][flops]") {
+  const auto x = torch::randn({2, 3, 10, 12}), w = torch::randn({5, 3, 3, 3});
+  const std::vector<int64_t> one{1, 1};
+  const double forward = 2.0 * 2 * 5 * 10 * 12 * 3 * 9;
+  if (resolve_precision("auto") == Precision::bf16) {  // LibTorch's bf16 convolutions need AVX-512
+    AutocastGuard autocast(true);  // LibTorch's autocast kernel casts, then calls aten::conv2d again
+    c10::InferenceMode guard;
+    CHECK(count_gflop([&] { torch::conv2d(x, w, torch::Tensor(), one, one, one); }) * 1e9 == Approx(forward));
+  }
+  const auto xl = x.contiguous(at::MemoryFormat::ChannelsLast);
+  const auto wl = w.clone().requires_grad_();
+  const double counted = count_gflop([&] { onednn_conv2d(xl, wl, {}, 1, 1).sum().backward(); }) * 1e9;
+  CHECK(counted >= 2 * forward);  // the forward and the weight's gradient (x wants none)
+  CHECK(counted < 2 * forward + 4 * 2 * 5 * 10 * 12);
 }
 
 TEST_CASE("flatnet bench --rows peak: the practical peak first, then each row's GFLOP/s and share of it",
