@@ -809,7 +809,7 @@ TEST_CASE("FLOP counting of a training step: the backward's two gradients, each 
   CHECK(counted < 3 * forward + 4 * 2 * 5 * 10 * 12);
 }
 
-TEST_CASE("FLOP counting under autocast counts a convolution once; flatnet's own oneDNN convolution by its passes",
+TEST_CASE("FLOP counting under autocast counts a convolution once, flatnet's own oneDNN convolution by its passes",
           "[bench][flops]") {
   const auto x = torch::randn({2, 3, 10, 12}), w = torch::randn({5, 3, 3, 3});
   const std::vector<int64_t> one{1, 1};
