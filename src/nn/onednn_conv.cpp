@@ -30,6 +30,33 @@ dnnl::stream& cpu_stream() {
   return stream;
 }
 
+// Buffers for the reordered operands of one convolution pass, kept per thread and grown as needed.
+// A fresh 16-33 MB buffer per pass page-faulted in each reorder (70 ms of reorders in a 570 ms step
+// under the AVX2 cap, where the copies themselves take about 15).
+enum class Scratch { weights = 0, src = 1, diff_dst = 2, primitive = 3, count = 4 };
+
+void* scratch(Scratch slot, size_t bytes) {
+  thread_local std::array<torch::Tensor, static_cast<size_t>(Scratch::count)> buffers;
+  auto& buffer = buffers[static_cast<size_t>(slot)];
+  if (!buffer.defined() || static_cast<size_t>(buffer.numel()) < bytes)
+    buffer = torch::empty({static_cast<int64_t>(bytes)}, torch::TensorOptions().dtype(torch::kUInt8));
+  return buffer.data_ptr();
+}
+
+// Primitives are made once and shared by every thread that trains (two ranks in one process, in the
+// distributed tests), so each is made with a scratchpad its caller owns: oneDNN's own would be one
+// buffer for concurrent executions. This attribute asks for that; add_scratchpad hands it over.
+dnnl::primitive_attr user_scratchpad() {
+  dnnl::primitive_attr attr;
+  attr.set_scratchpad_mode(dnnl::scratchpad_mode::user);
+  return attr;
+}
+
+void add_scratchpad(std::unordered_map<int, dnnl::memory>& args, const dnnl::memory::desc& desc) {
+  if (desc.get_size() > 0)
+    args[DNNL_ARG_SCRATCHPAD] = dnnl::memory(desc, cpu_engine(), scratch(Scratch::primitive, desc.get_size()));
+}
+
 }  // namespace
 
 struct OneDnnConv::Plan {
@@ -107,7 +134,7 @@ namespace {
 
 struct MatmulPlan {
   dnnl::matmul primitive;
-  dnnl::memory::desc a, b, c;
+  dnnl::memory::desc a, b, c, scratchpad;
 };
 
 // A {batch,rows,cols} operand as oneDNN reads it: row-major, or (transposed) the transpose of a
@@ -131,7 +158,9 @@ MatmulPlan& matmul_plan(int64_t batch_a, int64_t batch_b, int64_t m, int64_t k, 
     plan->b = operand_desc(batch_b, k, n, b_t);
     plan->c = dnnl::memory::desc({batch, m, n}, dt::f32, tag::abc);
     const dnnl::matmul::desc desc(plan->a, plan->b, plan->c);
-    plan->primitive = dnnl::matmul(dnnl::matmul::primitive_desc(desc, cpu_engine()));
+    const dnnl::matmul::primitive_desc pd(desc, user_scratchpad(), cpu_engine());
+    plan->primitive = dnnl::matmul(pd);
+    plan->scratchpad = pd.scratchpad_desc();
     slot = std::move(plan);
   }
   return *slot;
@@ -165,7 +194,9 @@ torch::Tensor onednn_bmm(const torch::Tensor& a_in, const torch::Tensor& b_in) {
   dnnl::memory am(plan.a, cpu_engine(), a.data_ptr()), bm(plan.b, cpu_engine(), b.data_ptr()),
       cm(plan.c, cpu_engine(), c.data_ptr());
   auto& stream = cpu_stream();
-  plan.primitive.execute(stream, {{DNNL_ARG_SRC, am}, {DNNL_ARG_WEIGHTS, bm}, {DNNL_ARG_DST, cm}});
+  std::unordered_map<int, dnnl::memory> args{{DNNL_ARG_SRC, am}, {DNNL_ARG_WEIGHTS, bm}, {DNNL_ARG_DST, cm}};
+  add_scratchpad(args, plan.scratchpad);
+  plan.primitive.execute(stream, args);
   stream.wait();
   onednn_work += static_cast<uint64_t>(2 * c.size(0) * m * k * n);
   return c;
@@ -210,6 +241,7 @@ struct NormPlan {
   dnnl::eltwise_forward swish_forward;    // swish only
   dnnl::eltwise_backward swish_backward;  // swish only
   dnnl::memory::desc data, stats;
+  dnnl::memory::desc forward_scratchpad, backward_scratchpad, swish_forward_scratchpad, swish_backward_scratchpad;
 };
 
 // nullptr where oneDNN has no kernel for this type here (bf16 below AVX-512).
@@ -230,21 +262,29 @@ NormPlan* norm_plan(int64_t B, int64_t C, int64_t H, int64_t W, at::ScalarType t
     auto flags = dnnl::normalization_flags::use_scale | dnnl::normalization_flags::use_shift;
     if (relu) flags = flags | dnnl::normalization_flags::fuse_norm_relu;
     const auto e = static_cast<float>(eps);
+    const auto attr = user_scratchpad();
     plan->forward_pd = dnnl::batch_normalization_forward::primitive_desc(
-        dnnl::batch_normalization_forward::desc(dnnl::prop_kind::forward_training, plan->data, e, flags), cpu_engine());
+        dnnl::batch_normalization_forward::desc(dnnl::prop_kind::forward_training, plan->data, e, flags), attr,
+        cpu_engine());
     plan->forward = dnnl::batch_normalization_forward(plan->forward_pd);
-    plan->backward = dnnl::batch_normalization_backward(dnnl::batch_normalization_backward::primitive_desc(
-        dnnl::batch_normalization_backward::desc(dnnl::prop_kind::backward, plan->data, plan->data, e, flags),
-        cpu_engine(), plan->forward_pd));
+    const dnnl::batch_normalization_backward::primitive_desc backward_pd(
+        dnnl::batch_normalization_backward::desc(dnnl::prop_kind::backward, plan->data, plan->data, e, flags), attr,
+        cpu_engine(), plan->forward_pd);
+    plan->backward = dnnl::batch_normalization_backward(backward_pd);
+    plan->forward_scratchpad = plan->forward_pd.scratchpad_desc();
+    plan->backward_scratchpad = backward_pd.scratchpad_desc();
     if (!relu) {  // swish(z) = z sigmoid(z): oneDNN's eltwise_swish with alpha 1
       const auto swish_pd = dnnl::eltwise_forward::primitive_desc(
           dnnl::eltwise_forward::desc(dnnl::prop_kind::forward_training, dnnl::algorithm::eltwise_swish, plan->data,
                                       1.f, 0.f),
-          cpu_engine());
+          attr, cpu_engine());
       plan->swish_forward = dnnl::eltwise_forward(swish_pd);
-      plan->swish_backward = dnnl::eltwise_backward(dnnl::eltwise_backward::primitive_desc(
-          dnnl::eltwise_backward::desc(dnnl::algorithm::eltwise_swish, plan->data, plan->data, 1.f, 0.f), cpu_engine(),
-          swish_pd));
+      const dnnl::eltwise_backward::primitive_desc swish_backward_pd(
+          dnnl::eltwise_backward::desc(dnnl::algorithm::eltwise_swish, plan->data, plan->data, 1.f, 0.f), attr,
+          cpu_engine(), swish_pd);
+      plan->swish_backward = dnnl::eltwise_backward(swish_backward_pd);
+      plan->swish_forward_scratchpad = swish_pd.scratchpad_desc();
+      plan->swish_backward_scratchpad = swish_backward_pd.scratchpad_desc();
     }
   } catch (const dnnl::error&) {
     plan.reset();  // no kernel: LibTorch's operators run it
@@ -281,12 +321,15 @@ class BatchNormActivationFunction : public torch::autograd::Function<BatchNormAc
                                torch::TensorOptions().dtype(torch::kUInt8));
       args.emplace(DNNL_ARG_WORKSPACE, wrap(plan->forward_pd.workspace_desc(), workspace));
     }
+    add_scratchpad(args, plan->forward_scratchpad);
     plan->forward.execute(stream, args);
     auto y = normed;
     if (act == NormActivation::swish) {
       y = torch::empty_like(normed, at::MemoryFormat::ChannelsLast);
-      plan->swish_forward.execute(stream,
-                                  {{DNNL_ARG_SRC, wrap(plan->data, normed)}, {DNNL_ARG_DST, wrap(plan->data, y)}});
+      std::unordered_map<int, dnnl::memory> swish_args{{DNNL_ARG_SRC, wrap(plan->data, normed)},
+                                                       {DNNL_ARG_DST, wrap(plan->data, y)}};
+      add_scratchpad(swish_args, plan->swish_forward_scratchpad);
+      plan->swish_forward.execute(stream, swish_args);
     }
     stream.wait();
     {  // LibTorch's running statistics: the batch's mean, and its variance made unbiased
@@ -315,9 +358,11 @@ class BatchNormActivationFunction : public torch::autograd::Function<BatchNormAc
     auto& stream = cpu_stream();
     if (act == NormActivation::swish) {  // d/dz of z sigmoid(z), from the saved z
       auto grad_normed = torch::empty_like(x, at::MemoryFormat::ChannelsLast);
-      plan->swish_backward.execute(stream, {{DNNL_ARG_SRC, wrap(plan->data, saved[5])},
-                                            {DNNL_ARG_DIFF_DST, wrap(plan->data, grad)},
-                                            {DNNL_ARG_DIFF_SRC, wrap(plan->data, grad_normed)}});
+      std::unordered_map<int, dnnl::memory> swish_args{{DNNL_ARG_SRC, wrap(plan->data, saved[5])},
+                                                       {DNNL_ARG_DIFF_DST, wrap(plan->data, grad)},
+                                                       {DNNL_ARG_DIFF_SRC, wrap(plan->data, grad_normed)}};
+      add_scratchpad(swish_args, plan->swish_backward_scratchpad);
+      plan->swish_backward.execute(stream, swish_args);
       grad = grad_normed;
     }
     auto grad_x = torch::empty_like(x, at::MemoryFormat::ChannelsLast);
@@ -333,6 +378,7 @@ class BatchNormActivationFunction : public torch::autograd::Function<BatchNormAc
                                                {DNNL_ARG_DIFF_SHIFT, wrap(plan->stats, grad_shift)}};
     if (act == NormActivation::relu)
       args.emplace(DNNL_ARG_WORKSPACE, wrap(plan->forward_pd.workspace_desc(), saved[5]));
+    add_scratchpad(args, plan->backward_scratchpad);
     plan->backward.execute(stream, args);
     stream.wait();
     const auto weight_type = ctx->saved_data["weight_type"].toScalarType();
@@ -434,19 +480,20 @@ std::unique_ptr<TrainConvPlan> make_train_conv_plan(const TrainConvKey& k) {
   const dnnl::memory::desc any_weights({O, I, KH, KW}, type, tag::any), f32_weights({O, I, KH, KW}, dt::f32, tag::any);
   const dnnl::memory::dims strides{s, s}, pads{p, p};
   const auto direct = dnnl::algorithm::convolution_direct;
+  const auto attr = user_scratchpad();
   plan->forward_pd = dnnl::convolution_forward::primitive_desc(
       dnnl::convolution_forward::desc(dnnl::prop_kind::forward_training, direct, plan->src, any_weights, plan->bias,
                                       plan->dst, strides, pads, pads),
-      cpu_engine());
+      attr, cpu_engine());
   plan->data_pd = dnnl::convolution_backward_data::primitive_desc(
-      dnnl::convolution_backward_data::desc(direct, plan->src, any_weights, plan->dst, strides, pads, pads),
+      dnnl::convolution_backward_data::desc(direct, plan->src, any_weights, plan->dst, strides, pads, pads), attr,
       cpu_engine(), plan->forward_pd);
   const bool blocked = weight_gradient_wants_blocked();
   const dnnl::memory::desc w_src = blocked ? dnnl::memory::desc({B, I, H, W}, type, tag::any) : plan->src;
   const dnnl::memory::desc w_dst = blocked ? dnnl::memory::desc({B, O, OH, OW}, type, tag::any) : plan->dst;
   plan->weights_pd = dnnl::convolution_backward_weights::primitive_desc(
       dnnl::convolution_backward_weights::desc(direct, w_src, f32_weights, plan->bias, w_dst, strides, pads, pads),
-      cpu_engine(), plan->forward_pd);
+      attr, cpu_engine(), plan->forward_pd);
   for (const char* impl :
        {plan->forward_pd.impl_info_str(), plan->data_pd.impl_info_str(), plan->weights_pd.impl_info_str()})
     if (std::string(impl).rfind("ref", 0) == 0) return nullptr;  // a reference loop: LibTorch's path is faster
@@ -486,19 +533,6 @@ dnnl::memory user_weights(const torch::Tensor& w) {
                       cpu_engine(), w.data_ptr());
 }
 
-// Buffers for the reordered operands of one convolution pass, kept per thread and grown as needed.
-// A fresh 16-33 MB buffer per pass page-faulted in each reorder (70 ms of reorders in a 570 ms step
-// under the AVX2 cap, where the copies themselves take about 15).
-enum class Scratch { weights = 0, src = 1, diff_dst = 2, count = 3 };
-
-void* scratch(Scratch slot, size_t bytes) {
-  thread_local std::array<torch::Tensor, static_cast<size_t>(Scratch::count)> buffers;
-  auto& buffer = buffers[static_cast<size_t>(slot)];
-  if (!buffer.defined() || static_cast<size_t>(buffer.numel()) < bytes)
-    buffer = torch::empty({static_cast<int64_t>(bytes)}, torch::TensorOptions().dtype(torch::kUInt8));
-  return buffer.data_ptr();
-}
-
 // `from` as layout `desc`: itself where it already is, else reordered (and converted) into the
 // thread's scratch buffer `slot`, valid until that slot's next use.
 dnnl::memory reordered(dnnl::memory from, const dnnl::memory::desc& desc, Scratch slot) {
@@ -532,6 +566,7 @@ class TrainConvFunction : public torch::autograd::Function<TrainConvFunction> {
       b = bias.detach().to(torch::kFloat32).contiguous();
       args.emplace(DNNL_ARG_BIAS, wrap(plan->bias, b));
     }
+    add_scratchpad(args, plan->forward_pd.scratchpad_desc());
     plan->forward.execute(cpu_stream(), args);
     cpu_stream().wait();
     onednn_work += pass_flops(key, *plan);
@@ -569,9 +604,11 @@ class TrainConvFunction : public torch::autograd::Function<TrainConvFunction> {
     auto grad_x = torch::empty({src.dims()[0], src.dims()[1], src.dims()[2], src.dims()[3]},
                                grad.options().memory_format(at::MemoryFormat::ChannelsLast));
     auto blocked_weights = reordered(user_weights(w), plan.data_pd.weights_desc(), Scratch::weights);
-    plan.backward_data.execute(cpu_stream(), {{DNNL_ARG_DIFF_DST, wrap(plan.dst, grad)},
-                                              {DNNL_ARG_WEIGHTS, blocked_weights},
-                                              {DNNL_ARG_DIFF_SRC, wrap(src, grad_x)}});
+    std::unordered_map<int, dnnl::memory> args{{DNNL_ARG_DIFF_DST, wrap(plan.dst, grad)},
+                                               {DNNL_ARG_WEIGHTS, blocked_weights},
+                                               {DNNL_ARG_DIFF_SRC, wrap(src, grad_x)}};
+    add_scratchpad(args, plan.data_pd.scratchpad_desc());
+    plan.backward_data.execute(cpu_stream(), args);
     cpu_stream().wait();
     return grad_x;
   }
@@ -595,6 +632,7 @@ class TrainConvFunction : public torch::autograd::Function<TrainConvFunction> {
       grad_b = torch::empty({w.size(0)}, torch::kFloat32);
       args.emplace(DNNL_ARG_DIFF_BIAS, wrap(plan.bias, grad_b));
     }
+    add_scratchpad(args, plan.weights_pd.scratchpad_desc());
     auto& stream = cpu_stream();
     plan.backward_weights.execute(stream, args);
     if (!in_place) dnnl::reorder(blocked_grad, user_grad).execute(stream, blocked_grad, user_grad);
