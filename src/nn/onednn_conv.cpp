@@ -45,16 +45,39 @@ void* scratch(Scratch slot, size_t bytes) {
 
 // Primitives are made once and shared by every thread that trains (two ranks in one process, in the
 // distributed tests), so each is made with a scratchpad its caller owns: oneDNN's own would be one
-// buffer for concurrent executions. This attribute asks for that; add_scratchpad hands it over.
+// buffer for concurrent executions. This attribute asks for that; run() hands it over.
 dnnl::primitive_attr user_scratchpad() {
   dnnl::primitive_attr attr;
   attr.set_scratchpad_mode(dnnl::scratchpad_mode::user);
   return attr;
 }
 
-void add_scratchpad(std::unordered_map<int, dnnl::memory>& args, const dnnl::memory::desc& desc) {
-  if (desc.get_size() > 0)
-    args[DNNL_ARG_SCRATCHPAD] = dnnl::memory(desc, cpu_engine(), scratch(Scratch::primitive, desc.get_size()));
+// Executes a primitive made with user_scratchpad() on this thread's stream, with the scratchpad its
+// descriptor asks for from this thread's buffer, and waits for it.
+void run(const dnnl::primitive& primitive, std::unordered_map<int, dnnl::memory> args) {
+  const_dnnl_primitive_desc_t pd = nullptr;
+  dnnl::error::wrap_c_api(dnnl_primitive_get_primitive_desc(primitive.get(), &pd), "no primitive descriptor");
+  const dnnl::memory::desc pad(*dnnl_primitive_desc_query_md(pd, dnnl_query_scratchpad_md, 0));
+  if (pad.get_size() > 0)
+    args[DNNL_ARG_SCRATCHPAD] = dnnl::memory(pad, cpu_engine(), scratch(Scratch::primitive, pad.get_size()));
+  primitive.execute(cpu_stream(), args);
+  cpu_stream().wait();
+}
+
+// The plan for `key`, made by `make` on first asking and kept for the process (threads share it);
+// nullptr, kept too, where oneDNN has no kernel for it (`make` throws dnnl::error or returns nullptr).
+template <class Key, class Plan, class Make>
+Plan* kept_plan(std::map<Key, std::unique_ptr<Plan>>& plans, std::mutex& mutex, const Key& key, Make make) {
+  std::lock_guard<std::mutex> lock(mutex);
+  const auto found = plans.find(key);
+  if (found != plans.end()) return found->second.get();
+  std::unique_ptr<Plan> plan;
+  try {
+    plan = make();
+  } catch (const dnnl::error&) {
+    plan.reset();  // LibTorch's operators run it
+  }
+  return (plans[key] = std::move(plan)).get();
 }
 
 }  // namespace
@@ -134,7 +157,7 @@ namespace {
 
 struct MatmulPlan {
   dnnl::matmul primitive;
-  dnnl::memory::desc a, b, c, scratchpad;
+  dnnl::memory::desc a, b, c;
 };
 
 // A {batch,rows,cols} operand as oneDNN reads it: row-major, or (transposed) the transpose of a
@@ -158,9 +181,7 @@ MatmulPlan& matmul_plan(int64_t batch_a, int64_t batch_b, int64_t m, int64_t k, 
     plan->b = operand_desc(batch_b, k, n, b_t);
     plan->c = dnnl::memory::desc({batch, m, n}, dt::f32, tag::abc);
     const dnnl::matmul::desc desc(plan->a, plan->b, plan->c);
-    const dnnl::matmul::primitive_desc pd(desc, user_scratchpad(), cpu_engine());
-    plan->primitive = dnnl::matmul(pd);
-    plan->scratchpad = pd.scratchpad_desc();
+    plan->primitive = dnnl::matmul(dnnl::matmul::primitive_desc(desc, user_scratchpad(), cpu_engine()));
     slot = std::move(plan);
   }
   return *slot;
@@ -193,11 +214,7 @@ torch::Tensor onednn_bmm(const torch::Tensor& a_in, const torch::Tensor& b_in) {
   auto c = torch::empty({std::max(a.size(0), b.size(0)), m, n}, a.options());
   dnnl::memory am(plan.a, cpu_engine(), a.data_ptr()), bm(plan.b, cpu_engine(), b.data_ptr()),
       cm(plan.c, cpu_engine(), c.data_ptr());
-  auto& stream = cpu_stream();
-  std::unordered_map<int, dnnl::memory> args{{DNNL_ARG_SRC, am}, {DNNL_ARG_WEIGHTS, bm}, {DNNL_ARG_DST, cm}};
-  add_scratchpad(args, plan.scratchpad);
-  plan.primitive.execute(stream, args);
-  stream.wait();
+  run(plan.primitive, {{DNNL_ARG_SRC, am}, {DNNL_ARG_WEIGHTS, bm}, {DNNL_ARG_DST, cm}});
   onednn_work += static_cast<uint64_t>(2 * c.size(0) * m * k * n);
   return c;
 }
@@ -241,7 +258,6 @@ struct NormPlan {
   dnnl::eltwise_forward swish_forward;    // swish only
   dnnl::eltwise_backward swish_backward;  // swish only
   dnnl::memory::desc data, stats;
-  dnnl::memory::desc forward_scratchpad, backward_scratchpad, swish_forward_scratchpad, swish_backward_scratchpad;
 };
 
 // nullptr where oneDNN has no kernel for this type here (bf16 below AVX-512).
@@ -249,13 +265,9 @@ NormPlan* norm_plan(int64_t B, int64_t C, int64_t H, int64_t W, at::ScalarType t
                     NormActivation activation) {
   static std::mutex mutex;
   static std::map<std::tuple<int64_t, int64_t, int64_t, int64_t, int, double, int>, std::unique_ptr<NormPlan>> plans;
-  std::lock_guard<std::mutex> lock(mutex);
   const auto key = std::make_tuple(B, C, H, W, static_cast<int>(type), eps, static_cast<int>(activation));
-  const auto found = plans.find(key);
-  if (found != plans.end()) return found->second.get();
-  std::unique_ptr<NormPlan> plan;
-  try {
-    plan = std::make_unique<NormPlan>();
+  return kept_plan(plans, mutex, key, [&] {
+    auto plan = std::make_unique<NormPlan>();
     plan->data = dnnl::memory::desc({B, C, H, W}, type == at::kBFloat16 ? dt::bf16 : dt::f32, tag::nhwc);
     plan->stats = dnnl::memory::desc({C}, dt::f32, tag::a);
     const bool relu = activation == NormActivation::relu;
@@ -267,29 +279,21 @@ NormPlan* norm_plan(int64_t B, int64_t C, int64_t H, int64_t W, at::ScalarType t
         dnnl::batch_normalization_forward::desc(dnnl::prop_kind::forward_training, plan->data, e, flags), attr,
         cpu_engine());
     plan->forward = dnnl::batch_normalization_forward(plan->forward_pd);
-    const dnnl::batch_normalization_backward::primitive_desc backward_pd(
+    plan->backward = dnnl::batch_normalization_backward(dnnl::batch_normalization_backward::primitive_desc(
         dnnl::batch_normalization_backward::desc(dnnl::prop_kind::backward, plan->data, plan->data, e, flags), attr,
-        cpu_engine(), plan->forward_pd);
-    plan->backward = dnnl::batch_normalization_backward(backward_pd);
-    plan->forward_scratchpad = plan->forward_pd.scratchpad_desc();
-    plan->backward_scratchpad = backward_pd.scratchpad_desc();
+        cpu_engine(), plan->forward_pd));
     if (!relu) {  // swish(z) = z sigmoid(z): oneDNN's eltwise_swish with alpha 1
       const auto swish_pd = dnnl::eltwise_forward::primitive_desc(
           dnnl::eltwise_forward::desc(dnnl::prop_kind::forward_training, dnnl::algorithm::eltwise_swish, plan->data,
                                       1.f, 0.f),
           attr, cpu_engine());
       plan->swish_forward = dnnl::eltwise_forward(swish_pd);
-      const dnnl::eltwise_backward::primitive_desc swish_backward_pd(
+      plan->swish_backward = dnnl::eltwise_backward(dnnl::eltwise_backward::primitive_desc(
           dnnl::eltwise_backward::desc(dnnl::algorithm::eltwise_swish, plan->data, plan->data, 1.f, 0.f), attr,
-          cpu_engine(), swish_pd);
-      plan->swish_backward = dnnl::eltwise_backward(swish_backward_pd);
-      plan->swish_forward_scratchpad = swish_pd.scratchpad_desc();
-      plan->swish_backward_scratchpad = swish_backward_pd.scratchpad_desc();
+          cpu_engine(), swish_pd));
     }
-  } catch (const dnnl::error&) {
-    plan.reset();  // no kernel: LibTorch's operators run it
-  }
-  return (plans[key] = std::move(plan)).get();
+    return plan;
+  });
 }
 
 dnnl::memory wrap(const dnnl::memory::desc& desc, const torch::Tensor& t) {
@@ -311,7 +315,6 @@ class BatchNormActivationFunction : public torch::autograd::Function<BatchNormAc
     auto normed = torch::empty_like(x, at::MemoryFormat::ChannelsLast);  // ReLU: the output; swish: its input
     auto mean = torch::empty({C}, f32), var = torch::empty({C}, f32);
     torch::Tensor workspace;  // ReLU's mask; swish keeps its input instead
-    auto& stream = cpu_stream();
     std::unordered_map<int, dnnl::memory> args{
         {DNNL_ARG_SRC, wrap(plan->data, x)},        {DNNL_ARG_DST, wrap(plan->data, normed)},
         {DNNL_ARG_SCALE, wrap(plan->stats, scale)}, {DNNL_ARG_SHIFT, wrap(plan->stats, shift)},
@@ -321,17 +324,12 @@ class BatchNormActivationFunction : public torch::autograd::Function<BatchNormAc
                                torch::TensorOptions().dtype(torch::kUInt8));
       args.emplace(DNNL_ARG_WORKSPACE, wrap(plan->forward_pd.workspace_desc(), workspace));
     }
-    add_scratchpad(args, plan->forward_scratchpad);
-    plan->forward.execute(stream, args);
+    run(plan->forward, args);
     auto y = normed;
     if (act == NormActivation::swish) {
       y = torch::empty_like(normed, at::MemoryFormat::ChannelsLast);
-      std::unordered_map<int, dnnl::memory> swish_args{{DNNL_ARG_SRC, wrap(plan->data, normed)},
-                                                       {DNNL_ARG_DST, wrap(plan->data, y)}};
-      add_scratchpad(swish_args, plan->swish_forward_scratchpad);
-      plan->swish_forward.execute(stream, swish_args);
+      run(plan->swish_forward, {{DNNL_ARG_SRC, wrap(plan->data, normed)}, {DNNL_ARG_DST, wrap(plan->data, y)}});
     }
-    stream.wait();
     {  // LibTorch's running statistics: the batch's mean, and its variance made unbiased
       torch::NoGradGuard no_grad;
       const double n = static_cast<double>(B * H * W);
@@ -355,14 +353,11 @@ class BatchNormActivationFunction : public torch::autograd::Function<BatchNormAc
     const auto act = static_cast<NormActivation>(ctx->saved_data["activation"].toInt());
     auto* plan = norm_plan(B, C, H, W, x.scalar_type(), ctx->saved_data["eps"].toDouble(), act);
     auto grad = grads[0].to(x.scalar_type()).contiguous(at::MemoryFormat::ChannelsLast);
-    auto& stream = cpu_stream();
     if (act == NormActivation::swish) {  // d/dz of z sigmoid(z), from the saved z
       auto grad_normed = torch::empty_like(x, at::MemoryFormat::ChannelsLast);
-      std::unordered_map<int, dnnl::memory> swish_args{{DNNL_ARG_SRC, wrap(plan->data, saved[5])},
-                                                       {DNNL_ARG_DIFF_DST, wrap(plan->data, grad)},
-                                                       {DNNL_ARG_DIFF_SRC, wrap(plan->data, grad_normed)}};
-      add_scratchpad(swish_args, plan->swish_backward_scratchpad);
-      plan->swish_backward.execute(stream, swish_args);
+      run(plan->swish_backward, {{DNNL_ARG_SRC, wrap(plan->data, saved[5])},
+                                 {DNNL_ARG_DIFF_DST, wrap(plan->data, grad)},
+                                 {DNNL_ARG_DIFF_SRC, wrap(plan->data, grad_normed)}});
       grad = grad_normed;
     }
     auto grad_x = torch::empty_like(x, at::MemoryFormat::ChannelsLast);
@@ -378,9 +373,7 @@ class BatchNormActivationFunction : public torch::autograd::Function<BatchNormAc
                                                {DNNL_ARG_DIFF_SHIFT, wrap(plan->stats, grad_shift)}};
     if (act == NormActivation::relu)
       args.emplace(DNNL_ARG_WORKSPACE, wrap(plan->forward_pd.workspace_desc(), saved[5]));
-    add_scratchpad(args, plan->backward_scratchpad);
-    plan->backward.execute(stream, args);
-    stream.wait();
+    run(plan->backward, args);
     const auto weight_type = ctx->saved_data["weight_type"].toScalarType();
     return {grad_x,
             grad_scale.to(weight_type),
@@ -507,16 +500,7 @@ std::unique_ptr<TrainConvPlan> make_train_conv_plan(const TrainConvKey& k) {
 TrainConvPlan* train_conv_plan(const TrainConvKey& key) {
   static std::mutex mutex;
   static std::map<TrainConvKey, std::unique_ptr<TrainConvPlan>> plans;
-  std::lock_guard<std::mutex> lock(mutex);
-  const auto found = plans.find(key);
-  if (found != plans.end()) return found->second.get();
-  std::unique_ptr<TrainConvPlan> plan;
-  try {
-    plan = make_train_conv_plan(key);  // nullptr: only reference kernels
-  } catch (const dnnl::error&) {
-    plan.reset();  // LibTorch's convolution runs it
-  }
-  return (plans[key] = std::move(plan)).get();
+  return kept_plan(plans, mutex, key, [&] { return make_train_conv_plan(key); });  // nullptr: reference kernels only
 }
 
 TrainConvKey train_conv_key(const torch::Tensor& x, const torch::Tensor& weight, bool has_bias, int64_t stride,
@@ -566,9 +550,7 @@ class TrainConvFunction : public torch::autograd::Function<TrainConvFunction> {
       b = bias.detach().to(torch::kFloat32).contiguous();
       args.emplace(DNNL_ARG_BIAS, wrap(plan->bias, b));
     }
-    add_scratchpad(args, plan->forward_pd.scratchpad_desc());
-    plan->forward.execute(cpu_stream(), args);
-    cpu_stream().wait();
+    run(plan->forward, args);
     onednn_work += pass_flops(key, *plan);
     ctx->save_for_backward({x, w});
     ctx->saved_data["key"] = std::vector<int64_t>(key.begin(), key.end());
@@ -604,12 +586,9 @@ class TrainConvFunction : public torch::autograd::Function<TrainConvFunction> {
     auto grad_x = torch::empty({src.dims()[0], src.dims()[1], src.dims()[2], src.dims()[3]},
                                grad.options().memory_format(at::MemoryFormat::ChannelsLast));
     auto blocked_weights = reordered(user_weights(w), plan.data_pd.weights_desc(), Scratch::weights);
-    std::unordered_map<int, dnnl::memory> args{{DNNL_ARG_DIFF_DST, wrap(plan.dst, grad)},
-                                               {DNNL_ARG_WEIGHTS, blocked_weights},
-                                               {DNNL_ARG_DIFF_SRC, wrap(src, grad_x)}};
-    add_scratchpad(args, plan.data_pd.scratchpad_desc());
-    plan.backward_data.execute(cpu_stream(), args);
-    cpu_stream().wait();
+    run(plan.backward_data, {{DNNL_ARG_DIFF_DST, wrap(plan.dst, grad)},
+                             {DNNL_ARG_WEIGHTS, blocked_weights},
+                             {DNNL_ARG_DIFF_SRC, wrap(src, grad_x)}});
     return grad_x;
   }
 
@@ -632,14 +611,19 @@ class TrainConvFunction : public torch::autograd::Function<TrainConvFunction> {
       grad_b = torch::empty({w.size(0)}, torch::kFloat32);
       args.emplace(DNNL_ARG_DIFF_BIAS, wrap(plan.bias, grad_b));
     }
-    add_scratchpad(args, plan.weights_pd.scratchpad_desc());
-    auto& stream = cpu_stream();
-    plan.backward_weights.execute(stream, args);
-    if (!in_place) dnnl::reorder(blocked_grad, user_grad).execute(stream, blocked_grad, user_grad);
-    stream.wait();
+    run(plan.backward_weights, args);
+    if (!in_place) dnnl::reorder(blocked_grad, user_grad).execute(cpu_stream(), blocked_grad, user_grad);
+    cpu_stream().wait();
     return {grad_w, grad_b};
   }
 };
+
+// onednn_conv2d once onednn_conv2d_runs has said yes. LibTorch 1.13's custom functions take no
+// undefined input: no bias travels as an empty tensor.
+torch::Tensor apply_train_conv(const torch::Tensor& x, const torch::Tensor& weight, const torch::Tensor& bias,
+                               int64_t stride, int64_t padding) {
+  return TrainConvFunction::apply(x, weight, bias.defined() ? bias : torch::empty({0}), stride, padding);
+}
 
 }  // namespace
 
@@ -662,8 +646,7 @@ torch::Tensor onednn_conv2d(const torch::Tensor& x, const torch::Tensor& weight,
               "onednn_conv2d: a channels-last fp32 or bf16 {B,I,H,W} input and an fp32 {O,I,kh,kw} weight expected, "
               "got ",
               x.sizes(), " ", x.scalar_type(), " and ", weight.sizes(), " ", weight.scalar_type());
-  // LibTorch 1.13's custom functions take no undefined input: no bias travels as an empty tensor.
-  return TrainConvFunction::apply(x, weight, bias.defined() ? bias : torch::empty({0}), stride, padding);
+  return apply_train_conv(x, weight, bias, stride, padding);
 }
 
 torch::Tensor convolve(torch::nn::Conv2dImpl& conv, const torch::Tensor& x) {
@@ -682,7 +665,7 @@ torch::Tensor convolve(torch::nn::Conv2dImpl& conv, const torch::Tensor& x) {
   if (at::autocast::is_cpu_enabled() || x.scalar_type() != torch::kFloat32) return conv.forward(x);
   const int64_t stride = (*o.stride())[0], padding = (*p)[0];
   if (!onednn_conv2d_runs(x, conv.weight, conv.bias, stride, padding)) return conv.forward(x);
-  return onednn_conv2d(x, conv.weight, conv.bias, stride, padding);
+  return apply_train_conv(x, conv.weight, conv.bias, stride, padding);
 }
 
 }  // namespace flatnet
