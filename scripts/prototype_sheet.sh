@@ -1,12 +1,13 @@
 #!/usr/bin/env bash
 # FlatNet's real prototype, side by side (the README's first picture): FlatNet's own Tikhonov
 # (rec_*.png), flatnet's Tikhonov with the calibration identified from them
-# (configs/cameras/flatnet_prototype/), flatnet's model for the prototype, the same with the capture's
-# data-consistency step (infer --data-consistency 10 --consistency-blur 1), and, on fc_8 alone,
-# FlatNet's own network trained on real captures (flatnet_r_8.png: FlatNet published no other).
+# (configs/cameras/flatnet_prototype/), flatnet's model for the prototype without the capture's
+# data-consistency step (infer --data-consistency off), the model as it runs (the shipped prototype model
+# applies the step, c 10, blur 1, unless told otherwise), and, on fc_8 alone, FlatNet's own network
+# trained on real captures (flatnet_r_8.png: FlatNet published no other).
 #   scripts/prototype_sheet.sh [MODEL] [OUT]
 # MODEL: models/flatnet-prototype-transpose.flatnet; OUT: a folder (default /tmp/prototype_sheet),
-# which gets tikhonov/, model/ and consistent/ (with camera_fit.csv) and sheet.png, and prints
+# which gets tikhonov/, network/ (the step off) and model/ (with camera_fit.csv) and sheet.png, and prints
 # colour and detail per unit of luma on fc_8 against FlatNet-R's (scripts/colour_detail.py). Needs ../shared/data/flatnet
 # (FLATNET_DATA: another folder with fc_6..9.png and rec_6..9.png).
 set -euo pipefail
@@ -22,17 +23,17 @@ done
 mkdir -p "$out/captures"
 for i in 6 7 8 9; do cp "$data/fc_$i.png" "$out/captures/"; done
 "$flatnet" recon --method tikhonov --camera "$camera" --input "$out/captures" --out "$out/tikhonov" --require-fit --force
+"$flatnet" infer --model "$model" --input "$out/captures" --out "$out/network" --require-fit --force \
+  --data-consistency off
 "$flatnet" infer --model "$model" --input "$out/captures" --out "$out/model" --require-fit --force
-"$flatnet" infer --model "$model" --input "$out/captures" --out "$out/consistent" --require-fit --force \
-  --data-consistency 10 --consistency-blur 1
 /usr/bin/python3 - "$data" "$out" <<'PY'
 import sys
 from PIL import Image, ImageDraw
 data, out = sys.argv[1], sys.argv[2]
 columns = [("FlatNet's Tikhonov", lambda i: f"{data}/rec_{i}.png"),
            ("flatnet Tikhonov", lambda i: f"{out}/tikhonov/fc_{i}.png"),
-           ("flatnet model", lambda i: f"{out}/model/fc_{i}.png"),
-           ("+ data consistency", lambda i: f"{out}/consistent/fc_{i}.png"),
+           ("flatnet network alone", lambda i: f"{out}/network/fc_{i}.png"),
+           ("flatnet model (+ capture)", lambda i: f"{out}/model/fc_{i}.png"),
            ("FlatNet-R (fc_8 only)", lambda i: f"{data}/flatnet_r_8.png" if i == 8 else None)]
 size, pad, head = 256, 4, 22
 sheet = Image.new("RGB", (len(columns) * (size + pad) + pad, head + 4 * (size + pad) + pad), "white")
@@ -47,5 +48,5 @@ for c, (label, path) in enumerate(columns):
 sheet.save(f"{out}/sheet.png")
 print(f"wrote {out}/sheet.png")
 PY
-/usr/bin/python3 scripts/colour_detail.py "$data/flatnet_r_8.png" "$out/model/fc_8.png" "$out/consistent/fc_8.png" \
+/usr/bin/python3 scripts/colour_detail.py "$data/flatnet_r_8.png" "$out/network/fc_8.png" "$out/model/fc_8.png" \
   "$data/rec_8.png"

@@ -955,6 +955,45 @@ TEST_CASE("model cards: flatnet info tells what a model file holds, export recor
   for (const auto& p : a.generator->named_parameters())
     CHECK(torch::equal(p.value(), b.generator->named_parameters()[p.key()]));
 
+  // The capture's data-consistency step set at export as the file's default at inference: the same
+  // weights, its provenance says it was not trained with, infer applies it unless told otherwise.
+  const auto stepped = s.dir / "stepped.flatnet";
+  r = test::run_flatnet("export --model " + q(model) + " --data-consistency 3 --consistency-blur 2 --out " +
+                        q(stepped));
+  INFO(r.output);
+  REQUIRE(r.code == 0);
+  CHECK_THAT(r.output, Contains("applies data consistency c 3, blur 2 at inference"));
+  r = test::run_flatnet("info " + q(stepped));
+  CHECK_THAT(r.output, Contains("(data consistency c 3, blur 2 px)") && Contains("set at export, not trained with"));
+  CHECK(load_model_file(stepped).spec.consistency_strength == 3);
+  const auto infer_into = [&](const std::string& model_file, const std::string& name, const std::string& flags) {
+    const auto run = test::run_flatnet("infer --model " + q(model_file) + " --input " + q(s.dir / "ds" / "meas") +
+                                       " --out " + q(s.dir / name) + flags);
+    INFO(run.output);
+    REQUIRE(run.code == 0);
+    std::vector<std::filesystem::path> pictures;
+    for (const auto& e : std::filesystem::directory_iterator(s.dir / name))
+      if (e.path().extension() == ".png") pictures.push_back(e.path());
+    REQUIRE(!pictures.empty());
+    std::sort(pictures.begin(), pictures.end());
+    return read_rgb(pictures.front());
+  };
+  const auto by_default = infer_into(stepped.string(), "dc_default", "");
+  CHECK(torch::equal(by_default, infer_into(model.string(), "dc_given", " --data-consistency 3 --consistency-blur 2")));
+  CHECK_FALSE(torch::equal(by_default, infer_into(stepped.string(), "dc_off", " --data-consistency off")));
+  r = test::run_flatnet("export --model " + q(stepped) + " --data-consistency off --out " + q(s.dir / "plain.flatnet"));
+  CHECK(r.code == 0);
+  CHECK(load_model_file(s.dir / "plain.flatnet").spec.consistency_strength == 0);
+  r = test::run_flatnet("export --model " + q(model) + " --consistency-blur 1 --out " + q(s.dir / "x.flatnet"));
+  CHECK(r.code == 2);
+  CHECK_THAT(r.output, Contains("needs --data-consistency"));
+  r = test::run_flatnet("export --model " + q(model) + " --data-consistency 3 --state-dict --out " + q(s.dir / "x.pt"));
+  CHECK(r.code == 2);
+  CHECK_THAT(r.output, Contains("not in ONNX or state-dict"));
+  r = test::run_flatnet("export --model " + q(model) + " --data-consistency nan --out " + q(s.dir / "x.flatnet"));
+  CHECK(r.code == 2);
+  CHECK_FALSE(std::filesystem::exists(s.dir / "x.flatnet"));
+
   // The mean of a model file and a checkpoint (its moving average), recorded as such; one input
   // kind at a time, and never over one of the inputs.
   r = test::run_flatnet("export --average-of " + q(model) + "," + q(s.dir / "run" / "latest.ckpt") + " --out " +

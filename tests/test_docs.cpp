@@ -213,6 +213,8 @@ TEST_CASE("every shipped model has a card that matches its file: hash, held-out 
     CHECK(text.find("{type: psnr, value: " + psnr.str() + "}") != std::string::npos);
     CHECK(text.find("{type: ssim, value: " + ssim.str() + "}") != std::string::npos);
     CHECK(text.find("| held-out | " + psnr.str() + " | " + ssim.str() + " |") != std::string::npos);
+    // A file that applies the capture's data-consistency step by default says so, and how to turn it off.
+    if (model.spec.consistency_strength > 0) CHECK(text.find("`--data-consistency off`") != std::string::npos);
     ++cards;
   }
   CHECK(cards >= 2);

@@ -120,6 +120,34 @@ int train(int argc, char** argv) {
   return 0;
 }
 
+namespace {
+
+// `export --data-consistency C --consistency-blur B`: the step the model file applies at inference by
+// default (ReconstructorSpec::kModelsOwn). A model trained without the step keeps its weights; its
+// provenance says the step was set at export, not trained with.
+void set_inference_consistency(const cxxopts::ParseResult& r, ModelFile& m) {
+  require(r.count("out") && !(r.count("state-dict") || r.count("flatnet-checkpoint")), "--data-consistency",
+          "is kept in a model file (--out), not in ONNX or state-dict exports");
+  require(r.count("data-consistency") > 0, "--consistency-blur", "needs --data-consistency");
+  const auto text = r["data-consistency"].as<std::string>();
+  const NumberRule rule{"--data-consistency", 0, 1e3, "off, or a strength from 0 (none) to 1000"};
+  require(text == "off" || number_problem(text, rule).empty(), "--data-consistency", rule.meaning);
+  const double strength = text == "off" ? 0.0 : std::stod(text);
+  const double blur = r.count("consistency-blur") ? r["consistency-blur"].as<double>() : 0.0;
+  require(std::isfinite(blur) && blur >= 0 && blur <= 64, "--consistency-blur", "must be 0 (none) to 64 scene pixels");
+  const bool trained_with = m.spec.consistency_strength > 0;
+  m.spec.consistency_strength = strength;
+  m.spec.consistency_blur = strength > 0 ? blur : 0;
+  std::ostringstream step;
+  step << "data consistency c " << strength << ", blur " << m.spec.consistency_blur;
+  if (strength > 0 && !trained_with)
+    m.provenance.source += (m.provenance.source.empty() ? "" : "; ") + step.str() + " set at export, not trained with";
+  std::cerr << "the model applies " << (strength > 0 ? step.str() : std::string("no data consistency"))
+            << " at inference unless `infer --data-consistency` says otherwise\n";
+}
+
+}  // namespace
+
 int export_model(int argc, char** argv) {
   cxxopts::Options o("flatnet export", "Export a trained model: a self-contained model file, or a PyTorch state_dict.");
   o.add_options()("checkpoint", "training checkpoint (RUN/best.ckpt or latest.ckpt)", cxxopts::value<std::string>())(
@@ -140,7 +168,13 @@ int export_model(int argc, char** argv) {
       "scores.json); `flatnet info` prints them",
       cxxopts::value<std::vector<std::string>>())(
       "method", "with --scores: which method of the eval folder is this model (default: its only one)",
-      cxxopts::value<std::string>())("force", "replace an existing --out file");
+      cxxopts::value<std::string>())(
+      "data-consistency",
+      "with --out: the data-consistency step the model applies at inference unless `infer --data-consistency` says "
+      "otherwise (its strength C, 0 or off: none; docs/evaluation.md), kept in the file's model spec",
+      cxxopts::value<std::string>())("consistency-blur",
+                                     "with --data-consistency: the correction's blur (scene pixels)",
+                                     cxxopts::value<double>())("force", "replace an existing --out file");
   add_common(o);
   cxxopts::ParseResult r;
   if (!parse(o, argc, argv, r)) return 0;
@@ -169,6 +203,7 @@ int export_model(int argc, char** argv) {
     m.provenance.scores = recorded_scores(r["scores"].as<std::vector<std::string>>(),
                                           r.count("method") ? r["method"].as<std::string>() : "");
   if (average) std::cerr << "exporting the moving average of the weights (train.ema_decay)\n";
+  if (r.count("data-consistency") || r.count("consistency-blur")) set_inference_consistency(r, m);
   if (m.spec.consistency_strength > 0 && (r.count("onnx") || r.count("state-dict") || r.count("flatnet-checkpoint")))
     std::cerr << "warning: this model was trained with its pictures corrected by their captures (model.consistency); "
                  "the exported network does not hold that step (recon/data_consistency.hpp: apply it after the "
