@@ -12,8 +12,10 @@
 #              stretched to 8 bits as FlatNet's rec_*
 #   white      one capture of a uniform white scene at 0.15 of the display's white (below full scale),
 #              with the same missed light: it sets the calibration's light unit (--white-capture)
-#   recovered  `calibrate --references --white-capture` from the four pairs, the white and the geometry
-#              alone, then the shipped transpose model adapted through that calibration for STEPS steps
+#   recovered  `calibrate --references` from the four pairs and the geometry alone (the light unit from
+#              its prior on the scenes, --scene-light), then the shipped transpose model adapted through
+#              that calibration for STEPS steps
+#   recovered-white  the same with the white capture (`--white-capture`: the light unit measured)
 #   truth path the same adaptation through the true camera file
 # Usage: scripts/twin_check.sh [RUNS_DIR] [PHOTOS_DIR]   (STEPS=800, THREADS=2)
 # Resumable: what exists is reused. Prints both paths' held-out scores.
@@ -64,6 +66,11 @@ fi
     --camera "$repo/configs/cameras/flatnet_prototype_level.yaml" --out calw/calib.mat --compact \
     --white-capture white/meas/white.png --white-light 0.15 > calw.log 2>&1
 }
+[ -f cal/camera.yaml ] || {
+  mkdir -p cal
+  "$flatnet" calibrate --references --meas-list captures.txt --gt-list references.txt --root . \
+    --camera "$repo/configs/cameras/flatnet_prototype_level.yaml" --out cal/calib.mat --compact > cal.log 2>&1
+}
 tail -n +5 heldout/val_meas.txt | sed 's|^|heldout/|' > scored_meas.txt
 
 adapt() {  # NAME CAMERA
@@ -77,4 +84,5 @@ adapt() {  # NAME CAMERA
   echo "$1: $(grep "^rec-$1 " "eval-$1.log")"
 }
 adapt truth "$runs/truth/camera.yaml"
+adapt recovered "$runs/cal/camera.yaml"
 adapt recovered-white "$runs/calw/camera.yaml"

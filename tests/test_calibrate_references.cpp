@@ -204,3 +204,40 @@ TEST_CASE("a white capture sets a reference calibration's light unit: the scene'
   CHECK_THROWS_WITH(fit_white_frame(torch::zeros({4, kRows + 1, kCols}), fit.calib, 3e-4), Contains("window"));
   CHECK_THROWS_WITH(rescale_scene_units(fit, {1, 1, 0, 1}), Contains("positive"));
 }
+
+TEST_CASE("without a white capture, a prior on the scenes sets the light unit: one scale, the colour kept",
+          "[optics][calibrate]") {
+  const StructuredCamera camera;
+  std::vector<ReferencePair> pairs = {camera.pair(0, 0.02), camera.pair(1, 0.02), camera.pair(2, 0.02)};
+  for (auto& p : pairs) p.reference = 2.5 * p.reference;  // stretched: 2.5 x the scenes' light
+  auto fit = calibrate_from_references(pairs, quiet());
+  const auto geometric_mean = [&] {
+    double log_sum = 0;
+    for (const auto& m : fit.scene_means) log_sum += std::log((m[0] + m[1] + m[2] + m[3]) / 4);
+    return std::exp(log_sum / static_cast<double>(fit.scene_means.size()));
+  };
+  std::vector<double> balance;  // each pair's blue against its red, in the references' units
+  for (const auto& m : fit.scene_means) balance.push_back(m[0] / m[3]);
+  const double before = geometric_mean();
+  const double scale = typical_scene_scale(fit, 0.063);
+  CHECK(scale == Approx(0.063 / before).epsilon(1e-12));
+  const Calibration in_references_units{fit.calib.P.clone(), fit.calib.Q.clone()};
+  rescale_scene_units(fit, {scale, scale, scale, scale});
+  CHECK(geometric_mean() == Approx(0.063).epsilon(1e-9));
+  for (size_t i = 0; i < fit.scene_means.size(); ++i)
+    CHECK(fit.scene_means[i][0] / fit.scene_means[i][3] == Approx(balance[i]).epsilon(1e-9));
+  // The same captures: a scene `scale` times brighter in the new unit through factors that carry the
+  // inverse of the scale.
+  const auto X0 = scene(100);
+  const auto coded = [](const Calibration& c, const torch::Tensor& X) {
+    return torch::matmul(torch::matmul(c.P, X), c.Q.transpose(1, 2));
+  };
+  CHECK(torch::allclose(coded(fit.calib, X0 * scale), coded(in_references_units, X0), 1e-9, 1e-12));
+  CHECK_FALSE(torch::allclose(coded(fit.calib, X0), coded(in_references_units, X0), 1e-3, 0));
+  // No prior without scenes of positive light; a light that is not one is refused.
+  auto dark = fit;
+  dark.scene_means[1] = {0, 0, 0, 0};
+  CHECK(typical_scene_scale(dark, 0.063) == 0);
+  CHECK_THROWS_WITH(typical_scene_scale(fit, 0), Contains("positive"));
+  CHECK_THROWS_WITH(typical_scene_scale(fit, std::nan("")), Contains("positive"));
+}

@@ -219,6 +219,10 @@ TEST_CASE("calibrate --references names a white capture that is saturated, forei
       {"--white-capture " + q(s.dir / "no_white.png"), {"no_white.png"}},
       {"--white-capture " + q(s.dir / "white_sat.png") + " --white-light 0", {"--white-light", "(0, 1000]"}},
       {"--white-capture " + q(s.dir / "white_sat.png") + " --white-light nan", {"--white-light"}},
+      // The scenes' prior is the unit without a white capture: with one, or absurd, it is refused at once.
+      {"--white-capture " + q(s.dir / "white_sat.png") + " --scene-light 0.1", {"--scene-light", "--white-capture"}},
+      {"--scene-light -1", {"--scene-light", "1000"}},
+      {"--scene-light inf", {"--scene-light"}},
   };
   for (const auto& [flags, words] : cases) {
     INFO(flags);

@@ -25,6 +25,13 @@ namespace {
 
 // The settings of `flatnet calibrate` that have a default (the rest are files and folders); each
 // default is the library's where one exists.
+// Without a white capture, the light the references' scenes are taken to have (their mean linear light
+// relative to the display's white, geometric mean over the pairs): a typical photograph of the training
+// set (mean linear light 0.220, the geometric mean over 400 of ../shared/data/images/train, sRGB
+// decoded) at 0.287 of the display's light, the centre of the exposures the prototype's recipe trains
+// with (configs/prototype_transpose.yaml: 0.15-0.55, log-uniform). docs/own-camera.md "The light unit".
+constexpr double kTypicalSceneLight = 0.063;
+
 struct CalibrateSettings {
   int average = 4;           // frames averaged per pattern (simulated)
   std::string noise = "on";  // on|off (simulated)
@@ -42,6 +49,7 @@ struct CalibrateSettings {
   double min_shift = ReferenceCalibrationOptions{}.shift.min_shift;
   double max_shift = ReferenceCalibrationOptions{}.shift.max_shift;
   double white_light = 1;
+  double scene_light = kTypicalSceneLight;
 };
 
 // The camera.yaml written beside a calibration made from data: the geometry given, with this
@@ -117,6 +125,8 @@ struct ReferenceChecks {
   double held_mean = -1;    // mean held-out correlation (< 0: not checked)
   double held_leak = 0;     // the largest leak of a held-out capture
   double held_change = -1;  // the jackknife of the held-out fits' coded-light distance (< 0: not measured)
+  double scene_light = 0;   // without a white capture: the light the scenes are taken to hold (0: none)
+  double scene_scale = 1;   // what the references' units were multiplied by for it
 };
 
 // Sensor pixels at full scale a white capture may hold: more, and its level understates the light.
@@ -173,6 +183,25 @@ void set_scene_unit(const WhiteCapture& white, double lambda, ReferenceCalibrati
             << " of its well-measured coded light): the calibration is in the scene's light\n";
 }
 
+// Without a white capture the light unit is not in the data (a capture at twice the exposure of a
+// scene is a capture of a scene twice as bright, and a min-max stretched reference says nothing of
+// either): the prior typical_scene_scale sets it. Returns the scale (1: the references' units kept).
+double set_typical_scene_unit(double light, ReferenceCalibration& fit) {
+  if (light <= 0) return 1;
+  const double scale = typical_scene_scale(fit, light);
+  if (scale <= 0) {
+    std::cout << "light unit: a pair's scene has no positive mean light in the references' units; the "
+                 "calibration stays in them (--white-capture sets the scene's light)\n";
+    return 1;
+  }
+  rescale_scene_units(fit, {scale, scale, scale, scale});
+  std::cout << "light unit: the pairs' scenes are taken to hold " << light
+            << " of the display's white on average (--scene-light; the references' units x " << std::setprecision(4)
+            << scale << "): pictures through it are as bright as such scenes, whatever the references' stretch; "
+            << "--white-capture measures the light instead (docs/own-camera.md, \"The light unit\")\n";
+  return scale;
+}
+
 int write_reference_calibration(const cxxopts::ParseResult& r, const CameraConfig& camera,
                                 const ReferenceCalibration& fit, const std::vector<NoiseSample>& noise_samples,
                                 const ReferenceChecks& checks, const std::optional<WhiteCapture>& white,
@@ -212,6 +241,10 @@ int write_reference_calibration(const cxxopts::ParseResult& r, const CameraConfi
   if (white)
     head << "\n# scene light from the white capture " << printable(white->path.filename().string()) << " (light "
          << white->light << "); without it the references' units";
+  else if (checks.scene_light > 0)
+    head << "\n# scene light not measured: the pairs' scenes taken to hold " << checks.scene_light
+         << " of the display's white on average (--scene-light), the references' units x " << checks.scene_scale
+         << "; a white capture measures it (--white-capture)";
   head << "\n# tikhonov_lambda is " << lambda << " of the largest squared singular value product\n";
   const auto yaml_path = write_camera_beside(out, known, head.str());
   std::cout << "wrote " << out.string() << " and " << yaml_path.string() << "\nshift structure: the shadow moves "
@@ -219,7 +252,7 @@ int write_reference_calibration(const cxxopts::ParseResult& r, const CameraConfi
             << " per scene column\nfit residual ||Y - P (a R + b) Q^T|| / ||Y||:";
   for (int c = 0; c < 4; ++c) std::cout << " " << kChannelNames[c] << " " << std::setprecision(4) << fit.residual[c];
   std::cout << "\n";
-  if (!white)
+  if (!white && checks.scene_light <= 0)
     std::cout << "the calibration is in the references' units: pictures through it are as bright as they are; "
                  "--white-capture sets the scene's light (docs/own-camera.md, \"The light unit\"); if they are "
                  "not linear light (a tone-mapped picture), set the camera file's display_gamma before training "
@@ -295,7 +328,13 @@ int calibrate_from_reference_pairs(const cxxopts::ParseResult& r, const Calibrat
   } else {
     std::cout << "leave-one-out needs 3 pairs or more: the calibration is not checked on held-out pairs\n";
   }
-  if (white) set_scene_unit(*white, lambda, fit);
+  if (white) {
+    set_scene_unit(*white, lambda, fit);
+  } else {
+    checks.scene_light = s.scene_light;
+    checks.scene_scale = set_typical_scene_unit(s.scene_light, fit);
+    if (checks.scene_scale == 1) checks.scene_light = 0;
+  }
   return write_reference_calibration(r, camera, fit, noise_samples, checks, white, out);
 }
 
@@ -543,6 +582,8 @@ int calibrate_from_dataset(const cxxopts::ParseResult& r, const CalibrateSetting
   require(!r.count("white-capture") || r.count("references"), "--white-capture",
           "sets the light unit of a calibration from references (--references); a display-capture calibration "
           "is in the display's light already");
+  require(!(r.count("scene-light") && r.count("white-capture")), "--scene-light",
+          "is the light unit's prior without a white capture; --white-capture measures it (give one)");
   const bool force = r.count("force") > 0;
   auto pairs = dataset_pairs(r, s);
   // A simulated camera's truth, for the error printed at the end: read now, so that a missing rig
@@ -625,6 +666,11 @@ const FlagTable<CS>& calibrate_reference_flags() {
       {"min-shift", &CS::min_shift, "smallest |shadow shift| searched, sensor pixels per scene pixel"},
       {"max-shift", &CS::max_shift, "largest |shadow shift| searched"},
       {"white-light", &CS::white_light, "the white capture's light relative to the display's white"},
+      {"scene-light", &CS::scene_light,
+       "without --white-capture: the mean light the pairs' scenes are taken to hold, relative to the display's "
+       "white (the light unit is not in the data; 0.063: a typical training photograph at 0.29 of the display's "
+       "light); 0: the references' own units",
+       0, 1e3, "0 (the references' units) to 1000"},
   };
   return rows;
 }

@@ -329,6 +329,18 @@ void rescale_scene_units(ReferenceCalibration& fit, const std::array<double, 4>&
   }
 }
 
+double typical_scene_scale(const ReferenceCalibration& fit, double light) {
+  require(std::isfinite(light) && light > 0, "calibrate", "a scene's light must be positive and finite");
+  if (fit.scene_means.empty()) return 0;
+  double log_sum = 0;
+  for (const auto& means : fit.scene_means) {
+    const double mean = (means[0] + means[1] + means[2] + means[3]) / 4;
+    if (!(std::isfinite(mean) && mean > 0)) return 0;
+    log_sum += std::log(mean);
+  }
+  return light / std::exp(log_sum / static_cast<double>(fit.scene_means.size()));
+}
+
 double absolute_tikhonov_lambda(const SeparableInverse& inverse, double relative) {
   const double top = (inverse.sL.select(1, 0) * inverse.sR.select(1, 0)).max().item<double>();
   return relative * top * top;

@@ -89,6 +89,12 @@ WhiteFrameFit fit_white_frame(const torch::Tensor& planes, const Calibration& ca
 // The scene's values scaled per channel, X = scale_c X_cal: factors and profiles / sqrt(scale_c), the
 // pairs' gains, offsets and scene means x scale_c. Pictures through it show the scene's light.
 void rescale_scene_units(ReferenceCalibration& fit, const std::array<double, 4>& scale);
+// ---- The light unit without a white capture: a prior on the scenes ------------------------------
+// Nothing in the pairs fixes the unit, so a prior does: the pairs' scenes (scene_means, the mean over
+// channels) hold, on the geometric mean over pairs, `light` of the display's white. The one scale for
+// every channel that gives them that (the references' colour balance is kept), for rescale_scene_units;
+// 0 when a pair's scene has no positive, finite mean light.
+double typical_scene_scale(const ReferenceCalibration& fit, double light);
 
 // Pearson correlation per channel of a reconstruction {4,N,N} with a reference {4,N,N}, over the
 // reference's pixels above zero.
