@@ -25,13 +25,6 @@ namespace {
 
 // The settings of `flatnet calibrate` that have a default (the rest are files and folders); each
 // default is the library's where one exists.
-// Without a white capture, the light the references' scenes are taken to have (their mean linear light
-// relative to the display's white, geometric mean over the pairs): a typical photograph of the training
-// set (mean linear light 0.220, the geometric mean over 400 of ../shared/data/images/train, sRGB
-// decoded) at 0.287 of the display's light, the centre of the exposures the prototype's recipe trains
-// with (configs/prototype_transpose.yaml: 0.15-0.55, log-uniform). docs/own-camera.md "The light unit".
-constexpr double kTypicalSceneLight = 0.063;
-
 struct CalibrateSettings {
   int average = 4;           // frames averaged per pattern (simulated)
   std::string noise = "on";  // on|off (simulated)
@@ -125,8 +118,8 @@ struct ReferenceChecks {
   double held_mean = -1;    // mean held-out correlation (< 0: not checked)
   double held_leak = 0;     // the largest leak of a held-out capture
   double held_change = -1;  // the jackknife of the held-out fits' coded-light distance (< 0: not measured)
-  double scene_light = 0;   // without a white capture: the light the scenes are taken to hold (0: none)
-  double scene_scale = 1;   // what the references' units were multiplied by for it
+  double scene_light = 0;   // without a white capture: the light the scenes were taken to hold (0: not applied)
+  double scene_scale = 0;   // what the references' units were multiplied by for it
 };
 
 // Sensor pixels at full scale a white capture may hold: more, and its level understates the light.
@@ -185,14 +178,15 @@ void set_scene_unit(const WhiteCapture& white, double lambda, ReferenceCalibrati
 
 // Without a white capture the light unit is not in the data (a capture at twice the exposure of a
 // scene is a capture of a scene twice as bright, and a min-max stretched reference says nothing of
-// either): the prior typical_scene_scale sets it. Returns the scale (1: the references' units kept).
+// either): the prior typical_scene_scale sets it. Returns the scale applied, 0 when the references'
+// units are kept (--scene-light 0, or scenes with no light).
 double set_typical_scene_unit(double light, ReferenceCalibration& fit) {
-  if (light <= 0) return 1;
+  if (light <= 0) return 0;
   const double scale = typical_scene_scale(fit, light);
   if (scale <= 0) {
     std::cout << "light unit: a pair's scene has no positive mean light in the references' units; the "
                  "calibration stays in them (--white-capture sets the scene's light)\n";
-    return 1;
+    return 0;
   }
   rescale_scene_units(fit, {scale, scale, scale, scale});
   std::cout << "light unit: the pairs' scenes are taken to hold " << light
@@ -330,10 +324,9 @@ int calibrate_from_reference_pairs(const cxxopts::ParseResult& r, const Calibrat
   }
   if (white) {
     set_scene_unit(*white, lambda, fit);
-  } else {
+  } else if (const double scale = set_typical_scene_unit(s.scene_light, fit); scale > 0) {
     checks.scene_light = s.scene_light;
-    checks.scene_scale = set_typical_scene_unit(s.scene_light, fit);
-    if (checks.scene_scale == 1) checks.scene_light = 0;
+    checks.scene_scale = scale;
   }
   return write_reference_calibration(r, camera, fit, noise_samples, checks, white, out);
 }
@@ -668,8 +661,8 @@ const FlagTable<CS>& calibrate_reference_flags() {
       {"white-light", &CS::white_light, "the white capture's light relative to the display's white"},
       {"scene-light", &CS::scene_light,
        "without --white-capture: the mean light the pairs' scenes are taken to hold, relative to the display's "
-       "white (the light unit is not in the data; 0.063: a typical training photograph at 0.29 of the display's "
-       "light); 0: the references' own units",
+       "white (the light unit is not in the data; the default is a typical training photograph at 0.29 of the "
+       "display's light); 0: the references' own units",
        0, 1e3, "0 (the references' units) to 1000"},
   };
   return rows;

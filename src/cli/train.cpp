@@ -28,6 +28,32 @@ const FlagTable<DistributedOptions>& distributed_flags() {
   return rows;
 }
 
+// --data-consistency model|off|C and --consistency-blur model|S: the model's own unless given.
+constexpr const char* kModelsOwnText = "model";
+double model_or_number(const std::string& text, const NumberRule& rule) {
+  if (text == kModelsOwnText) return ReconstructorSpec::kModelsOwn;
+  const auto problem = number_problem(text, rule);
+  if (!problem.empty()) throw std::invalid_argument(problem + ": " + rule.meaning);
+  return std::stod(text);
+}
+std::string model_or_number_text(double value) {
+  if (value == ReconstructorSpec::kModelsOwn) return kModelsOwnText;
+  std::ostringstream s;
+  s << value;
+  return s.str();
+}
+void set_consistency_strength(ReconstructorSpec& s, const std::string& text) {
+  s.data_consistency =
+      text == "off" ? 0 : model_or_number(text, {"data-consistency", 0, 1e3, "model, off, or a strength in (0, 1000]"});
+}
+std::string consistency_strength_text(const ReconstructorSpec& s) {
+  return s.data_consistency == 0 ? "off" : model_or_number_text(s.data_consistency);
+}
+void set_consistency_blur(ReconstructorSpec& s, const std::string& text) {
+  s.consistency_blur = model_or_number(text, {"consistency-blur", 0, 64, "model, or 0 (none) to 64 scene pixels"});
+}
+std::string consistency_blur_text(const ReconstructorSpec& s) { return model_or_number_text(s.consistency_blur); }
+
 }  // namespace
 
 int train(int argc, char** argv) {
@@ -129,20 +155,31 @@ void set_inference_consistency(const cxxopts::ParseResult& r, ModelFile& m) {
   require(r.count("out") && !(r.count("state-dict") || r.count("flatnet-checkpoint")), "--data-consistency",
           "is kept in a model file (--out), not in ONNX or state-dict exports");
   require(r.count("data-consistency") > 0, "--consistency-blur", "needs --data-consistency");
-  const auto text = r["data-consistency"].as<std::string>();
-  const NumberRule rule{"--data-consistency", 0, 1e3, "off, or a strength from 0 (none) to 1000"};
-  require(text == "off" || number_problem(text, rule).empty(), "--data-consistency", rule.meaning);
-  const double strength = text == "off" ? 0.0 : std::stod(text);
-  const double blur = r.count("consistency-blur") ? r["consistency-blur"].as<double>() : 0.0;
-  require(std::isfinite(blur) && blur >= 0 && blur <= 64, "--consistency-blur", "must be 0 (none) to 64 scene pixels");
+  // Read as `infer` reads the same flags; "model" (the file's own) has no meaning when writing one.
+  ReconstructorSpec given;
+  given.consistency_blur = 0;
+  const auto read = [&](const char* flag, void (*set)(ReconstructorSpec&, const std::string&)) {
+    if (!r.count(flag)) return;
+    try {
+      set(given, r[flag].as<std::string>());
+    } catch (const std::invalid_argument& e) {
+      require(false, std::string("--") + flag, e.what());
+    }
+  };
+  read("data-consistency", set_consistency_strength);
+  read("consistency-blur", set_consistency_blur);
+  require(given.data_consistency != ReconstructorSpec::kModelsOwn &&
+              given.consistency_blur != ReconstructorSpec::kModelsOwn,
+          "--data-consistency", "takes off or a number when writing a model file, not model");
   const bool trained_with = m.spec.consistency_strength > 0;
-  m.spec.consistency_strength = strength;
-  m.spec.consistency_blur = strength > 0 ? blur : 0;
+  m.spec.consistency_strength = given.data_consistency;
+  m.spec.consistency_blur = given.data_consistency > 0 ? given.consistency_blur : 0;
   std::ostringstream step;
-  step << "data consistency c " << strength << ", blur " << m.spec.consistency_blur;
-  if (strength > 0 && !trained_with)
+  step << "data consistency c " << m.spec.consistency_strength << ", blur " << m.spec.consistency_blur;
+  if (m.spec.consistency_strength > 0 && !trained_with)
     m.provenance.source += (m.provenance.source.empty() ? "" : "; ") + step.str() + " set at export, not trained with";
-  std::cerr << "the model applies " << (strength > 0 ? step.str() : std::string("no data consistency"))
+  std::cerr << "the model applies "
+            << (m.spec.consistency_strength > 0 ? step.str() : std::string("no data consistency"))
             << " at inference unless `infer --data-consistency` says otherwise\n";
 }
 
@@ -174,7 +211,7 @@ int export_model(int argc, char** argv) {
       "otherwise (its strength C, 0 or off: none; docs/evaluation.md), kept in the file's model spec",
       cxxopts::value<std::string>())("consistency-blur",
                                      "with --data-consistency: the correction's blur (scene pixels)",
-                                     cxxopts::value<double>())("force", "replace an existing --out file");
+                                     cxxopts::value<std::string>())("force", "replace an existing --out file");
   add_common(o);
   cxxopts::ParseResult r;
   if (!parse(o, argc, argv, r)) return 0;
@@ -275,32 +312,6 @@ const FlagTable<InferEngine>& infer_engine_flags() {
   };
   return rows;
 }
-
-// --data-consistency model|off|C and --consistency-blur model|S: the model's own unless given.
-constexpr const char* kModelsOwnText = "model";
-double model_or_number(const std::string& text, const NumberRule& rule) {
-  if (text == kModelsOwnText) return ReconstructorSpec::kModelsOwn;
-  const auto problem = number_problem(text, rule);
-  if (!problem.empty()) throw std::invalid_argument(problem + ": " + rule.meaning);
-  return std::stod(text);
-}
-std::string model_or_number_text(double value) {
-  if (value == ReconstructorSpec::kModelsOwn) return kModelsOwnText;
-  std::ostringstream s;
-  s << value;
-  return s.str();
-}
-void set_consistency_strength(ReconstructorSpec& s, const std::string& text) {
-  s.data_consistency =
-      text == "off" ? 0 : model_or_number(text, {"data-consistency", 0, 1e3, "model, off, or a strength in (0, 1000]"});
-}
-std::string consistency_strength_text(const ReconstructorSpec& s) {
-  return s.data_consistency == 0 ? "off" : model_or_number_text(s.data_consistency);
-}
-void set_consistency_blur(ReconstructorSpec& s, const std::string& text) {
-  s.consistency_blur = model_or_number(text, {"consistency-blur", 0, 64, "model, or 0 (none) to 64 scene pixels"});
-}
-std::string consistency_blur_text(const ReconstructorSpec& s) { return model_or_number_text(s.consistency_blur); }
 
 const FlagTable<ReconstructorSpec>& infer_flags() {
   using S = ReconstructorSpec;

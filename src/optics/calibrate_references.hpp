@@ -95,6 +95,11 @@ void rescale_scene_units(ReferenceCalibration& fit, const std::array<double, 4>&
 // every channel that gives them that (the references' colour balance is kept), for rescale_scene_units;
 // 0 when a pair's scene has no positive, finite mean light.
 double typical_scene_scale(const ReferenceCalibration& fit, double light);
+// The prior's default (`calibrate --scene-light`): a typical photograph of the training set (mean linear
+// light 0.220, the geometric mean over 400 of ../shared/data/images/train, sRGB decoded) at 0.287 of the
+// display's light, the centre of the exposures the prototype's recipe trains with
+// (configs/prototype_transpose.yaml: 0.15-0.55, log-uniform). docs/own-camera.md "The light unit".
+constexpr double kTypicalSceneLight = 0.063;
 
 // Pearson correlation per channel of a reconstruction {4,N,N} with a reference {4,N,N}, over the
 // reference's pixels above zero.
