@@ -7,6 +7,9 @@
 #include "core/blas.hpp"
 #include "core/error.hpp"
 #include "core/precision.hpp"
+#include "io/camera_config.hpp"
+#include "io/raw.hpp"
+#include "nn/model_file.hpp"
 #include "nn/generator.hpp"
 #include "nn/onednn_conv.hpp"
 #include "helpers.hpp"
@@ -203,6 +206,62 @@ TEST_CASE("a short bf16 autocast training run tracks the fp32 loss curve", "[pre
   for (size_t i = 0; i < fp32.size(); i += 5) {
     INFO("step " << i << ": fp32 " << fp32[i] << ", bf16 " << bf16[i]);
     CHECK(std::abs(bf16[i] - fp32[i]) <= 0.05 * fp32[i]);
+  }
+}
+
+TEST_CASE("bf16 GEMM operands: products of the rounded operands, fp32 results and gradients, refused without bf16",
+          "[precision][bf16][onednn]") {
+  torch::manual_seed(11);
+  const auto a0 = torch::randn({3, 40, 30}), b0 = torch::randn({1, 30, 20});
+  if (!onednn_bf16_gemm_runs()) {
+    CHECK_THROWS_WITH(onednn_bmm(a0, b0, GemmOperands::bf16), Contains("bf16 operands need"));
+    return;
+  }
+  auto rounded = [](const torch::Tensor& t) { return t.to(torch::kBFloat16).to(torch::kFloat32); };
+  const auto weights = torch::randn({3, 40, 20});  // a loss that weighs every output differently
+  auto a = a0.clone().requires_grad_(), b = b0.clone().requires_grad_();
+  const auto c = onednn_matmul_autograd(a, b, GemmOperands::bf16);
+  CHECK(c.scalar_type() == torch::kFloat32);
+  // The product of the bf16-rounded operands, accumulated in fp32 (not rounded again), and not fp32's.
+  const auto expected = torch::matmul(rounded(a0), rounded(b0));
+  CHECK(torch::allclose(c, expected, 1e-4, 1e-4));
+  CHECK_FALSE(torch::allclose(c, torch::matmul(a0, b0), 1e-4, 1e-4));
+  (c * weights).sum().backward();
+  // Gradients: the incoming gradient and the other operand rounded to bf16, summed in fp32; fp32 out.
+  const auto g = rounded(weights);
+  REQUIRE(a.grad().scalar_type() == torch::kFloat32);
+  REQUIRE(b.grad().scalar_type() == torch::kFloat32);
+  CHECK(torch::allclose(a.grad(), torch::matmul(g, rounded(b0).transpose(1, 2)), 1e-4, 1e-4));
+  CHECK(torch::allclose(b.grad(), torch::matmul(rounded(a0).transpose(1, 2), g).sum(0, true), 1e-4, 1e-4));
+}
+
+TEST_CASE("bf16 training rounds the first stage's operands only, within a fraction of the picture's detail",
+          "[precision][bf16]") {
+  // The shipped simulation model's first stage on a golden capture: fp32 against the bf16 operands
+  // that bf16 training uses where the CPU runs bf16 natively (fp32 accumulation and output).
+  const auto model_path = test::source_dir() / "models" / "flatnet-sim-transpose.flatnet";
+  auto model = load_model_file(model_path);
+  auto& g = model.generator;
+  const auto planes =
+      load_capture(test::data_dir() / "golden" / "inet_n02980441_castle_raw.png", model.camera.raw).planes.unsqueeze(0);
+  torch::NoGradGuard no_grad;
+  const auto fp32 = g->first_stage(planes);  // {1,4,256,256}
+  g->set_autocast_bf16(true);
+  const auto mixed = g->first_stage(planes);
+  g->set_autocast_bf16(false);
+  CHECK(torch::equal(g->first_stage(planes), fp32));  // off again: fp32 exactly
+  if (!onednn_bf16_gemm_runs()) {
+    CHECK(torch::equal(mixed, fp32));  // no native bf16: the first stage stays fp32
+    return;
+  }
+  CHECK(mixed.scalar_type() == torch::kFloat32);
+  CHECK_FALSE(torch::equal(mixed, fp32));
+  // The error against the picture's own variation (its detail and contrast), plane by plane.
+  for (int64_t c = 0; c < 4; ++c) {
+    const auto reference = fp32[0][c], error = mixed[0][c] - reference;
+    const double ratio = error.pow(2).mean().sqrt().item<double>() / reference.std().item<double>();
+    INFO("plane " << c << ": rms error / std " << ratio);
+    CHECK(ratio < 0.01);
   }
 }
 

@@ -23,16 +23,21 @@ FlatInversionImpl::FlatInversionImpl(const InversionOptions& o) : negative_slope
 
 namespace {
 
-// L^T Y R for {k,rows,n} L, {4,rows,cols} Y, {k,cols,m} R (k = 1 or 4): through oneDNN's fp32 GEMM
-// where the tensors allow it (CPU, fp32), which runs these skinny products about twice as fast as
-// OpenBLAS (`flatnet bench --rows train_recipe --profile 20`); torch::matmul otherwise.
-torch::Tensor first_stage_product(const torch::Tensor& L, const torch::Tensor& Y, const torch::Tensor& R) {
+// L^T Y R for {k,rows,n} L, {4,rows,cols} Y, {k,cols,m} R (k = 1 or 4): through oneDNN's GEMM where
+// the tensors allow it (CPU, fp32), which runs these skinny products about twice as fast as OpenBLAS
+// in fp32 (`flatnet bench --rows train_recipe --profile 20`); torch::matmul otherwise. With bf16
+// operands, Y, the weights and Y R are rounded to bf16 as they enter each product; both products
+// accumulate and return fp32, so the first stage's output keeps fp32's resolution.
+torch::Tensor first_stage_product(const torch::Tensor& L, const torch::Tensor& Y, const torch::Tensor& R,
+                                  GemmOperands operands) {
   const bool onednn = Y.is_cpu() && Y.scalar_type() == torch::kFloat32 && L.scalar_type() == torch::kFloat32 &&
                       R.scalar_type() == torch::kFloat32 && Y.dim() == 3;
   if (!onednn) return torch::matmul(L.transpose(1, 2), torch::matmul(Y, R));
-  const auto YR = onednn_matmul_autograd(Y, R);          // {4,rows,m}
-  return onednn_matmul_autograd(L.transpose(1, 2), YR);  // {4,n,m}
+  const auto YR = onednn_matmul_autograd(Y, R, operands);          // {4,rows,m}
+  return onednn_matmul_autograd(L.transpose(1, 2), YR, operands);  // {4,n,m}
 }
+
+GemmOperands product_operands(bool bf16) { return bf16 ? GemmOperands::bf16 : GemmOperands::fp32; }
 
 }  // namespace
 
@@ -43,10 +48,11 @@ torch::Tensor FlatInversionImpl::forward(const torch::Tensor& Y) {
   torch::Tensor X;                         // {B,4,N,N}
   if (Y.dim() == 4) {                      // one sample at a time, so that each product can go through oneDNN
     std::vector<torch::Tensor> samples;
-    for (int64_t b = 0; b < Y.size(0); ++b) samples.push_back(first_stage_product(L, Y[b], R));
+    for (int64_t b = 0; b < Y.size(0); ++b)
+      samples.push_back(first_stage_product(L, Y[b], R, product_operands(bf16_products_)));
     X = torch::stack(samples);
   } else {
-    X = first_stage_product(L, Y, R);
+    X = first_stage_product(L, Y, R, product_operands(bf16_products_));
   }
   return torch::leaky_relu(X, negative_slope_).flip({1});  // (b,gb,gr,r) -> (r,gr,gb,b)
 }
@@ -59,8 +65,8 @@ torch::Tensor FlatInversionImpl::forward_crops(const torch::Tensor& Y,
   for (int64_t b = 0; b < Y.size(0); ++b) {
     const auto [r0, c0] = corners[b];
     // Rows r0..r0+size of X = L^T Y R need only those columns of L (and likewise for R).
-    const auto Lb = L.slice(2, r0, r0 + size), Rb = R.slice(2, c0, c0 + size);  // {k,rows,s}, {k,cols,s}
-    out.push_back(first_stage_product(Lb, Y[b], Rb));                           // {4,s,s}
+    const auto Lb = L.slice(2, r0, r0 + size), Rb = R.slice(2, c0, c0 + size);           // {k,rows,s}, {k,cols,s}
+    out.push_back(first_stage_product(Lb, Y[b], Rb, product_operands(bf16_products_)));  // {4,s,s}
   }
   return torch::leaky_relu(torch::stack(out), negative_slope_).flip({1});
 }
@@ -267,6 +273,7 @@ void GeneratorImpl::prepare_training(const InferenceLevers& levers) {
 void GeneratorImpl::set_autocast_bf16(bool on) {
   autocast_bf16_ = on;
   if (on) use_bf16_kernels_for_process();
+  if (inversion_) inversion_->set_bf16_products(on && onednn_bf16_gemm_runs());
 }
 
 void GeneratorImpl::prepare_inference(const InferenceLevers& levers) {

@@ -32,10 +32,15 @@ class FlatInversionImpl : public torch::nn::Module {
   // as forward(Y) sliced, from the matching columns of PhiL and PhiR (a fraction of the work).
   torch::Tensor forward_crops(const torch::Tensor& Y, const std::vector<std::pair<int64_t, int64_t>>& corners,
                               int64_t size);  // {B,4,rows,cols} -> {B,4,size,size}
+  // Whether the products W1^T Y W2 round their operands to bf16 (fp32 accumulation and result):
+  // bf16 training turns it on where the CPU runs bf16 natively (GeneratorImpl::set_autocast_bf16).
+  void set_bf16_products(bool on) { bf16_products_ = on; }
+  bool bf16_products() const { return bf16_products_; }
   torch::Tensor PhiL, PhiR;
 
  private:
   double negative_slope_;
+  bool bf16_products_ = false;
 };
 TORCH_MODULE(FlatInversion);
 
@@ -162,7 +167,8 @@ class GeneratorImpl : public torch::nn::Module {
   // The levers that keep training exact (channels_last, gemm_upsample); call before making the optimiser.
   void prepare_training(const InferenceLevers& levers);
   // Mixed precision for training: the BN and enhancer run under bf16 autocast (weights, their
-  // gradients and Adam's state stay fp32); the inversion's matmuls and the output sigmoid stay fp32.
+  // gradients and Adam's state stay fp32); the inversion's matmuls round their operands to bf16 where
+  // oneDNN runs bf16 natively, accumulating and returning fp32; the output sigmoid stays fp32.
   // Where oneDNN has no bf16 kernels this also switches LibTorch's oneDNN path off for the process
   // (core/precision: the backward pass runs outside any scope the forward pass holds).
   void set_autocast_bf16(bool on);

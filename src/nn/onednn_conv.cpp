@@ -9,6 +9,7 @@
 #include <unordered_map>
 
 #include "core/error.hpp"
+#include "core/precision.hpp"
 
 namespace flatnet {
 
@@ -162,23 +163,25 @@ struct MatmulPlan {
 
 // A {batch,rows,cols} operand as oneDNN reads it: row-major, or (transposed) the transpose of a
 // row-major {batch,cols,rows} tensor, read in place instead of copied.
-dnnl::memory::desc operand_desc(int64_t batch, int64_t rows, int64_t cols, bool transposed) {
-  if (!transposed) return dnnl::memory::desc({batch, rows, cols}, dt::f32, tag::abc);
-  return dnnl::memory::desc({batch, rows, cols}, dt::f32, dnnl::memory::dims{rows * cols, 1, rows});
+dnnl::memory::desc operand_desc(int64_t batch, int64_t rows, int64_t cols, bool transposed, dt type) {
+  if (!transposed) return dnnl::memory::desc({batch, rows, cols}, type, tag::abc);
+  return dnnl::memory::desc({batch, rows, cols}, type, dnnl::memory::dims{rows * cols, 1, rows});
 }
 
-// Made once per shape (batch of A, of B, M, K, N, which operands are transposed), shared by the
-// threads that ask.
-MatmulPlan& matmul_plan(int64_t batch_a, int64_t batch_b, int64_t m, int64_t k, int64_t n, bool a_t, bool b_t) {
+// Made once per shape (batch of A, of B, M, K, N, which operands are transposed) and operand type,
+// shared by the threads that ask. The result is fp32 either way.
+MatmulPlan& matmul_plan(int64_t batch_a, int64_t batch_b, int64_t m, int64_t k, int64_t n, bool a_t, bool b_t,
+                        GemmOperands operands) {
   static std::mutex mutex;
-  static std::map<std::array<int64_t, 7>, std::unique_ptr<MatmulPlan>> plans;
+  static std::map<std::array<int64_t, 8>, std::unique_ptr<MatmulPlan>> plans;
   std::lock_guard<std::mutex> lock(mutex);
-  auto& slot = plans[{batch_a, batch_b, m, k, n, a_t, b_t}];
+  auto& slot = plans[{batch_a, batch_b, m, k, n, a_t, b_t, static_cast<int64_t>(operands)}];
   if (!slot) {
     auto plan = std::make_unique<MatmulPlan>();
     const int64_t batch = std::max(batch_a, batch_b);
-    plan->a = operand_desc(batch_a, m, k, a_t);
-    plan->b = operand_desc(batch_b, k, n, b_t);
+    const auto type = operands == GemmOperands::bf16 ? dt::bf16 : dt::f32;
+    plan->a = operand_desc(batch_a, m, k, a_t, type);
+    plan->b = operand_desc(batch_b, k, n, b_t, type);
     plan->c = dnnl::memory::desc({batch, m, n}, dt::f32, tag::abc);
     const dnnl::matmul::desc desc(plan->a, plan->b, plan->c);
     plan->primitive = dnnl::matmul(dnnl::matmul::primitive_desc(desc, user_scratchpad(), cpu_engine()));
@@ -187,10 +190,10 @@ MatmulPlan& matmul_plan(int64_t batch_a, int64_t batch_b, int64_t m, int64_t k, 
   return *slot;
 }
 
-// fp32 and row-major, or the transpose of a row-major tensor (a view as x.transpose(1, 2) gives),
-// which oneDNN reads in place; anything else is copied row-major first.
-std::pair<torch::Tensor, bool> gemm_operand(const torch::Tensor& x) {
-  auto t = x.to(torch::kFloat32);
+// In the operands' type and row-major, or the transpose of a row-major tensor (a view as
+// x.transpose(1, 2) gives), which oneDNN reads in place; anything else is copied row-major first.
+std::pair<torch::Tensor, bool> gemm_operand(const torch::Tensor& x, GemmOperands operands) {
+  auto t = x.to(operands == GemmOperands::bf16 ? torch::kBFloat16 : torch::kFloat32);
   if (t.is_contiguous()) return {t, false};
   if (t.transpose(1, 2).is_contiguous()) return {t, true};
   return {t.contiguous(), false};
@@ -202,16 +205,23 @@ std::atomic<uint64_t> onednn_work{0};  // FLOPs, onednn_flops()
 
 uint64_t onednn_flops() { return onednn_work.load(); }
 
-torch::Tensor onednn_bmm(const torch::Tensor& a_in, const torch::Tensor& b_in) {
+bool onednn_bf16_gemm_runs() {
+  const auto& cpu = cpu_features();
+  return cpu.native_bf16() && cpu.onednn_bf16;
+}
+
+torch::Tensor onednn_bmm(const torch::Tensor& a_in, const torch::Tensor& b_in, GemmOperands operands) {
   RECORD_FUNCTION("flatnet::onednn_bmm", c10::ArrayRef<c10::IValue>{});
   TORCH_CHECK(a_in.dim() == 3 && b_in.dim() == 3 && a_in.size(2) == b_in.size(1) &&
                   (a_in.size(0) == b_in.size(0) || a_in.size(0) == 1 || b_in.size(0) == 1),
               "onednn_bmm: {batch,M,K} x {batch,K,N} expected, got ", a_in.sizes(), " and ", b_in.sizes());
-  const auto [a, a_t] = gemm_operand(a_in);
-  const auto [b, b_t] = gemm_operand(b_in);
+  TORCH_CHECK(operands == GemmOperands::fp32 || onednn_bf16_gemm_runs(),
+              "onednn_bmm: bf16 operands need a CPU that runs bf16 natively (AVX512-BF16 or AMX)");
+  const auto [a, a_t] = gemm_operand(a_in, operands);
+  const auto [b, b_t] = gemm_operand(b_in, operands);
   const int64_t m = a.size(1), k = a.size(2), n = b.size(2);
-  const auto& plan = matmul_plan(a.size(0), b.size(0), m, k, n, a_t, b_t);
-  auto c = torch::empty({std::max(a.size(0), b.size(0)), m, n}, a.options());
+  const auto& plan = matmul_plan(a.size(0), b.size(0), m, k, n, a_t, b_t, operands);
+  auto c = torch::empty({std::max(a.size(0), b.size(0)), m, n}, a.options().dtype(torch::kFloat32));
   dnnl::memory am(plan.a, cpu_engine(), a.data_ptr()), bm(plan.b, cpu_engine(), b.data_ptr()),
       cm(plan.c, cpu_engine(), c.data_ptr());
   run(plan.primitive, {{DNNL_ARG_SRC, am}, {DNNL_ARG_WEIGHTS, bm}, {DNNL_ARG_DST, cm}});
@@ -223,27 +233,32 @@ namespace {
 
 class OneDnnMatmulFunction : public torch::autograd::Function<OneDnnMatmulFunction> {
  public:
-  static torch::Tensor forward(torch::autograd::AutogradContext* ctx, const torch::Tensor& a, const torch::Tensor& b) {
+  static torch::Tensor forward(torch::autograd::AutogradContext* ctx, const torch::Tensor& a, const torch::Tensor& b,
+                               GemmOperands operands) {
     ctx->save_for_backward({a, b});
-    return onednn_bmm(a, b);
+    ctx->saved_data["bf16"] = operands == GemmOperands::bf16;
+    return onednn_bmm(a, b, operands);
   }
   static torch::autograd::tensor_list backward(torch::autograd::AutogradContext* ctx,
                                                torch::autograd::tensor_list grads) {
     const auto saved = ctx->get_saved_variables();
     const auto &a = saved[0], &b = saved[1];
-    const auto grad = grads[0].contiguous();  // {batch,M,N}
+    const auto operands = ctx->saved_data["bf16"].toBool() ? GemmOperands::bf16 : GemmOperands::fp32;
+    // {batch,M,N}; rounded to bf16 once here rather than in each product below
+    const auto grad =
+        operands == GemmOperands::bf16 ? grads[0].to(torch::kBFloat16).contiguous() : grads[0].contiguous();
     auto reduce_to = [](torch::Tensor g, int64_t batch) { return batch == 1 && g.size(0) > 1 ? g.sum(0, true) : g; };
     torch::Tensor grad_a, grad_b;
-    if (a.requires_grad()) grad_a = reduce_to(onednn_bmm(grad, b.transpose(1, 2)), a.size(0));
-    if (b.requires_grad()) grad_b = reduce_to(onednn_bmm(a.transpose(1, 2), grad), b.size(0));
-    return {grad_a, grad_b};
+    if (a.requires_grad()) grad_a = reduce_to(onednn_bmm(grad, b.transpose(1, 2), operands), a.size(0));
+    if (b.requires_grad()) grad_b = reduce_to(onednn_bmm(a.transpose(1, 2), grad, operands), b.size(0));
+    return {grad_a, grad_b, torch::Tensor()};
   }
 };
 
 }  // namespace
 
-torch::Tensor onednn_matmul_autograd(const torch::Tensor& a, const torch::Tensor& b) {
-  return OneDnnMatmulFunction::apply(a, b);
+torch::Tensor onednn_matmul_autograd(const torch::Tensor& a, const torch::Tensor& b, GemmOperands operands) {
+  return OneDnnMatmulFunction::apply(a, b, operands);
 }
 
 namespace {

@@ -39,11 +39,18 @@ class OneDnnConv {
   std::map<std::array<int64_t, 3>, std::unique_ptr<Plan>> plans_;  // by input (B, H, W)
 };
 
-// C = A B for fp32 batches of matrices, {batch,M,K} x {batch,K,N} -> {batch,M,N} (either operand
+// What onednn_bmm multiplies: fp32 operands, or the operands rounded to bf16 (8 significant bits)
+// with fp32 accumulation and an fp32 result, about twice as fast where the CPU runs bf16 natively.
+enum class GemmOperands { fp32, bf16 };
+// Whether oneDNN runs bf16 GEMMs natively here (AVX512-BF16 or AMX, oneDNN not capped below them).
+bool onednn_bf16_gemm_runs();
+
+// C = A B for batches of matrices, {batch,M,K} x {batch,K,N} -> {batch,M,N} fp32 (either operand
 // may have batch 1, broadcast), by a oneDNN matmul primitive made once per shape and reused. On
 // AVX-512 machines oneDNN's fp32 GEMM kernels run about twice as fast as OpenBLAS's at the
 // Tikhonov reconstruction's shapes (`flatnet bench --rows peak,tikhonov`). Inference only: no autograd.
-torch::Tensor onednn_bmm(const torch::Tensor& a, const torch::Tensor& b);
+// bf16 operands where onednn_bf16_gemm_runs() only (an error elsewhere).
+torch::Tensor onednn_bmm(const torch::Tensor& a, const torch::Tensor& b, GemmOperands operands = GemmOperands::fp32);
 // The work flatnet's own oneDNN calls have done since the process started, in FLOPs (2 per
 // multiply-add): onednn_bmm's products and onednn_conv2d's passes (its forward, and each gradient
 // it computes). LibTorch's profiler counts only ATen's operators, so `flatnet bench` adds this
@@ -51,8 +58,10 @@ torch::Tensor onednn_bmm(const torch::Tensor& a, const torch::Tensor& b);
 // flatnet::onednn_bmm and flatnet::onednn_conv2d.
 uint64_t onednn_flops();
 // The same product, differentiable: its backward is two more oneDNN GEMMs (dA = dC B^T and
-// dB = A^T dC, summed over a broadcast batch). fp32; what FlatNet's first stage trains with.
-torch::Tensor onednn_matmul_autograd(const torch::Tensor& a, const torch::Tensor& b);
+// dB = A^T dC, summed over a broadcast batch, with the forward's operand type; the gradients are
+// fp32 either way). What FlatNet's first stage trains with.
+torch::Tensor onednn_matmul_autograd(const torch::Tensor& a, const torch::Tensor& b,
+                                     GemmOperands operands = GemmOperands::fp32);
 
 // The activation after a training-mode batch norm: ReLU (the U-Net) or swish, z sigmoid(z) (the
 // discriminator).
