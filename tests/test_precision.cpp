@@ -7,7 +7,6 @@
 #include "core/blas.hpp"
 #include "core/error.hpp"
 #include "core/precision.hpp"
-#include "io/camera_config.hpp"
 #include "io/raw.hpp"
 #include "nn/model_file.hpp"
 #include "nn/generator.hpp"

@@ -37,8 +37,6 @@ torch::Tensor first_stage_product(const torch::Tensor& L, const torch::Tensor& Y
   return onednn_matmul_autograd(L.transpose(1, 2), YR, operands);  // {4,n,m}
 }
 
-GemmOperands product_operands(bool bf16) { return bf16 ? GemmOperands::bf16 : GemmOperands::fp32; }
-
 }  // namespace
 
 torch::Tensor FlatInversionImpl::forward(const torch::Tensor& Y) {
@@ -48,11 +46,10 @@ torch::Tensor FlatInversionImpl::forward(const torch::Tensor& Y) {
   torch::Tensor X;                         // {B,4,N,N}
   if (Y.dim() == 4) {                      // one sample at a time, so that each product can go through oneDNN
     std::vector<torch::Tensor> samples;
-    for (int64_t b = 0; b < Y.size(0); ++b)
-      samples.push_back(first_stage_product(L, Y[b], R, product_operands(bf16_products_)));
+    for (int64_t b = 0; b < Y.size(0); ++b) samples.push_back(first_stage_product(L, Y[b], R, operands_));
     X = torch::stack(samples);
   } else {
-    X = first_stage_product(L, Y, R, product_operands(bf16_products_));
+    X = first_stage_product(L, Y, R, operands_);
   }
   return torch::leaky_relu(X, negative_slope_).flip({1});  // (b,gb,gr,r) -> (r,gr,gb,b)
 }
@@ -65,8 +62,8 @@ torch::Tensor FlatInversionImpl::forward_crops(const torch::Tensor& Y,
   for (int64_t b = 0; b < Y.size(0); ++b) {
     const auto [r0, c0] = corners[b];
     // Rows r0..r0+size of X = L^T Y R need only those columns of L (and likewise for R).
-    const auto Lb = L.slice(2, r0, r0 + size), Rb = R.slice(2, c0, c0 + size);           // {k,rows,s}, {k,cols,s}
-    out.push_back(first_stage_product(Lb, Y[b], Rb, product_operands(bf16_products_)));  // {4,s,s}
+    const auto Lb = L.slice(2, r0, r0 + size), Rb = R.slice(2, c0, c0 + size);  // {k,rows,s}, {k,cols,s}
+    out.push_back(first_stage_product(Lb, Y[b], Rb, operands_));                // {4,s,s}
   }
   return torch::leaky_relu(torch::stack(out), negative_slope_).flip({1});
 }
@@ -273,7 +270,8 @@ void GeneratorImpl::prepare_training(const InferenceLevers& levers) {
 void GeneratorImpl::set_autocast_bf16(bool on) {
   autocast_bf16_ = on;
   if (on) use_bf16_kernels_for_process();
-  if (inversion_) inversion_->set_bf16_products(on && onednn_bf16_gemm_runs());
+  if (inversion_)
+    inversion_->set_product_operands(on && onednn_bf16_gemm_runs() ? GemmOperands::bf16 : GemmOperands::fp32);
 }
 
 void GeneratorImpl::prepare_inference(const InferenceLevers& levers) {

@@ -10,6 +10,7 @@
 
 #include "io/camera_config.hpp"
 #include "nn/enhancers.hpp"
+#include "nn/onednn_conv.hpp"
 
 namespace flatnet {
 
@@ -32,15 +33,14 @@ class FlatInversionImpl : public torch::nn::Module {
   // as forward(Y) sliced, from the matching columns of PhiL and PhiR (a fraction of the work).
   torch::Tensor forward_crops(const torch::Tensor& Y, const std::vector<std::pair<int64_t, int64_t>>& corners,
                               int64_t size);  // {B,4,rows,cols} -> {B,4,size,size}
-  // Whether the products W1^T Y W2 round their operands to bf16 (fp32 accumulation and result):
-  // bf16 training turns it on where the CPU runs bf16 natively (GeneratorImpl::set_autocast_bf16).
-  void set_bf16_products(bool on) { bf16_products_ = on; }
-  bool bf16_products() const { return bf16_products_; }
+  // What the products W1^T Y W2 take: fp32, or operands rounded to bf16 (fp32 accumulation and
+  // result), which bf16 training sets where the CPU runs bf16 natively (GeneratorImpl::set_autocast_bf16).
+  void set_product_operands(GemmOperands operands) { operands_ = operands; }
   torch::Tensor PhiL, PhiR;
 
  private:
   double negative_slope_;
-  bool bf16_products_ = false;
+  GemmOperands operands_ = GemmOperands::fp32;
 };
 TORCH_MODULE(FlatInversion);
 

@@ -235,9 +235,14 @@ class OneDnnMatmulFunction : public torch::autograd::Function<OneDnnMatmulFuncti
  public:
   static torch::Tensor forward(torch::autograd::AutogradContext* ctx, const torch::Tensor& a, const torch::Tensor& b,
                                GemmOperands operands) {
-    ctx->save_for_backward({a, b});
+    // Rounded once, for the product and both gradients (fp32 operands: a and b themselves).
+    const auto type = operands == GemmOperands::bf16 ? torch::kBFloat16 : torch::kFloat32;
+    const auto a_in = a.to(type), b_in = b.to(type);
+    ctx->save_for_backward({a_in, b_in});
     ctx->saved_data["bf16"] = operands == GemmOperands::bf16;
-    return onednn_bmm(a, b, operands);
+    ctx->saved_data["batch_a"] = a.size(0);
+    ctx->saved_data["batch_b"] = b.size(0);
+    return onednn_bmm(a_in, b_in, operands);
   }
   static torch::autograd::tensor_list backward(torch::autograd::AutogradContext* ctx,
                                                torch::autograd::tensor_list grads) {
@@ -249,8 +254,10 @@ class OneDnnMatmulFunction : public torch::autograd::Function<OneDnnMatmulFuncti
         operands == GemmOperands::bf16 ? grads[0].to(torch::kBFloat16).contiguous() : grads[0].contiguous();
     auto reduce_to = [](torch::Tensor g, int64_t batch) { return batch == 1 && g.size(0) > 1 ? g.sum(0, true) : g; };
     torch::Tensor grad_a, grad_b;
-    if (a.requires_grad()) grad_a = reduce_to(onednn_bmm(grad, b.transpose(1, 2), operands), a.size(0));
-    if (b.requires_grad()) grad_b = reduce_to(onednn_bmm(a.transpose(1, 2), grad, operands), b.size(0));
+    if (ctx->needs_input_grad(0))
+      grad_a = reduce_to(onednn_bmm(grad, b.transpose(1, 2), operands), ctx->saved_data["batch_a"].toInt());
+    if (ctx->needs_input_grad(1))
+      grad_b = reduce_to(onednn_bmm(a.transpose(1, 2), grad, operands), ctx->saved_data["batch_b"].toInt());
     return {grad_a, grad_b, torch::Tensor()};
   }
 };
