@@ -12,6 +12,12 @@ export FLATNET_TEST_THREADS=${FLATNET_TEST_THREADS:-1}
 # thread holds a core another process needs (a training step 1.9x slower; passive waiting halves
 # that, docs/results/performance.md). libgomp reads it when it loads, so it is set here.
 export OMP_WAIT_POLICY=${OMP_WAIT_POLICY:-PASSIVE}
+# Every process the tests start (over 250 in the unit label: flatnet commands and test groups) loads
+# LibTorch, 24,600 page faults before main; with glibc's malloc asking for transparent huge pages 8,200,
+# a start 0.7 s instead of 0.9-1.3 s (docs/design.md). glibc reads it when a process starts, so it is
+# set here; a tunable list already set is kept.
+[[ ${GLIBC_TUNABLES:-} == *glibc.malloc.hugetlb* ]] ||
+  export GLIBC_TUNABLES=${GLIBC_TUNABLES:+$GLIBC_TUNABLES:}glibc.malloc.hugetlb=1
 start=$SECONDS
 status=0
 ctest --output-on-failure -j 2 ${1:+-L "$1"} | tee ctest.log || status=$?

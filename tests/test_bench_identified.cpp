@@ -49,6 +49,19 @@ TEST_CASE("a listed hot pixel is replaced by the mean of its same-colour neighbo
   CHECK(torch::allclose(raw_window(bayer_merge(broken), g), repaired));
 }
 
+TEST_CASE("the median of 8 neighbours is sort's middle two averaged, ties and negatives included",
+          "[optics][hot-pixels]") {
+  torch::manual_seed(4);
+  // Few distinct values make ties common; every order of them is hit many times over.
+  const auto x = torch::randint(-3, 4, {3, 8, 20000}).to(torch::kFloat32);
+  const auto sorted = std::get<0>(x.sort(1));
+  CHECK(torch::equal(median_of_eight(x), (sorted.select(1, 3) + sorted.select(1, 4)) / 2));
+  const auto smooth = torch::randn({2, 8, 5000});
+  const auto s2 = std::get<0>(smooth.sort(1));
+  CHECK(torch::equal(median_of_eight(smooth), (s2.select(1, 3) + s2.select(1, 4)) / 2));
+  CHECK_THROWS_WITH(median_of_eight(torch::zeros({2, 7, 3})), Contains("{P,8,N}"));
+}
+
 TEST_CASE("hot pixels are found from captures of varied scenes, and none on a sensor without them",
           "[optics][hot-pixels]") {
   // The simulated bench's 300 stuck pixels (optics/bench.hpp) in 16 noisy captures of random scenes.

@@ -79,7 +79,7 @@ TEST_CASE("train's flags come from its option rows: --iterations, --minutes, --b
   CHECK_THAT(r.output, Contains("train.batch = 0 is out of range"));
 }
 
-TEST_CASE("simulate, recon and eval end to end, and simulate resumes deterministically", "[cli][e2e]") {
+TEST_CASE("simulate, recon and eval end to end, and simulate resumes deterministically", "[cli][e2e][slow]") {
   test::Scratch s("e2e");
   auto photos = make_photos(s.dir / "photos");
   auto r = test::run_flatnet("simulate --images " + q(photos) + " --out " + q(s.dir / "ds") +
@@ -890,7 +890,8 @@ TEST_CASE("flatnet options: every setting with its default, range and documentat
   CHECK_THAT(r.output, Contains("give train, mask, separable, simulate"));
 }
 
-TEST_CASE("model cards: flatnet info tells what a model file holds, export records held-out scores", "[cli][info]") {
+TEST_CASE("model cards: flatnet info tells what a model file holds, export records held-out scores",
+          "[cli][info][slow]") {
   test::Scratch s("info");
   auto photos = make_photos(s.dir / "photos");
   REQUIRE(

@@ -306,7 +306,7 @@ TEST_CASE("the C++ generator equals a Python reference of FlatNet-sep on the sam
   }
 }
 
-TEST_CASE("at paper width, the exported state dict loads into FlatNet-sep with strict=True", "[nn][python][solo]") {
+TEST_CASE("at paper width, the exported state dict loads into FlatNet-sep with strict=True", "[nn][python][slow]") {
   if (!test::python_has_torch()) SKIP_TEST("/usr/bin/python3 has no torch");
   test::Scratch s("paper_sd");
   const auto script = test::source_dir() / "scripts" / "flatnet_reference.py";

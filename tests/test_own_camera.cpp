@@ -191,7 +191,8 @@ std::vector<std::string> walkthrough_commands() {
 
 }  // namespace
 
-TEST_CASE("docs/own-camera.md: the walkthrough's commands run as the page writes them", "[cli][own-camera][docs]") {
+TEST_CASE("docs/own-camera.md: the walkthrough's commands run as the page writes them",
+          "[cli][own-camera][docs][slow]") {
   const auto commands = walkthrough_commands();
   // Steps 2 (the bench), 3 (calibrate), 4 (adapt) and 5 (infer, eval, report).
   REQUIRE(commands.size() == 6);

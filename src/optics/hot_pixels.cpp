@@ -1,6 +1,7 @@
 #include "optics/hot_pixels.hpp"
 
 #include <algorithm>
+#include <array>
 #include <cmath>
 
 #include "core/error.hpp"
@@ -22,12 +23,34 @@ torch::Tensor neighbours_of(const torch::Tensor& planes) {
 
 }  // namespace
 
+// An 8-input sorting network (19 compare-exchanges, Knuth, TAOCP 5.3.4) of elementwise min/max: the
+// same values as sort(1) at a fraction of its cost (a general sort per pixel took 0.8 s a frame).
+torch::Tensor median_of_eight(const torch::Tensor& x) {
+  TORCH_CHECK(x.dim() == 3 && x.size(1) == 8, "median_of_eight expects {P,8,N}");
+  std::array<torch::Tensor, 8> v;
+  for (int64_t i = 0; i < 8; ++i) v[i] = x.select(1, i);
+  // clang-format off
+  static constexpr std::array<std::array<int, 2>, 19> kNetwork = {{  // one layer a line
+      {0, 2}, {1, 3}, {4, 6}, {5, 7},
+      {0, 4}, {1, 5}, {2, 6}, {3, 7},
+      {0, 1}, {2, 3}, {4, 5}, {6, 7},
+      {2, 4}, {3, 5},
+      {1, 4}, {3, 6},
+      {1, 2}, {3, 4}, {5, 6}}};
+  // clang-format on
+  for (const auto& [i, j] : kNetwork) {
+    auto low = torch::minimum(v[i], v[j]);
+    v[j] = torch::maximum(v[i], v[j]);
+    v[i] = std::move(low);
+  }
+  return (v[3] + v[4]) / 2;
+}
+
 void HotPixelFinder::add(const torch::Tensor& raw_unit) {
   TORCH_CHECK(raw_unit.dim() == 2, "HotPixelFinder::add expects a raw frame {H,W}");
   const auto planes = bayer_split(raw_unit.to(torch::kFloat32));  // {4,h,w}
   const auto neighbours = neighbours_of(planes);
-  const auto sorted = std::get<0>(neighbours.sort(1));
-  const auto median = ((sorted.select(1, 3) + sorted.select(1, 4)) / 2).view(planes.sizes());  // of 8: the middle two
+  const auto median = median_of_eight(neighbours).view(planes.sizes());
   // Beside a clipped neighbour the difference says nothing (a bright region's edge): such pixels sit
   // this frame out. A pixel clipped itself is judged (a hot pixel may be stuck at full scale).
   const auto judged = ~at_full_scale(neighbours, options_.adc_bits).any(1).view(planes.sizes());

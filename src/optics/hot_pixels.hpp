@@ -34,4 +34,8 @@ class HotPixelFinder {
   int64_t frames_ = 0;
 };
 
+// The median of 8 values along dim 1 of x {P,8,N}, the mean of the middle two: {P,N}. Equal to
+// sort(1)'s middle two averaged, by a sorting network of elementwise min/max.
+torch::Tensor median_of_eight(const torch::Tensor& x);
+
 }  // namespace flatnet
