@@ -271,7 +271,7 @@ void GeneratorImpl::set_autocast_bf16(bool on) {
   autocast_bf16_ = on;
   if (on) use_bf16_kernels_for_process();
   if (inversion_)
-    inversion_->set_product_operands(on && onednn_bf16_gemm_runs() ? GemmOperands::bf16 : GemmOperands::fp32);
+    inversion_->set_product_operands(on && cpu_features().native_bf16() ? GemmOperands::bf16 : GemmOperands::fp32);
 }
 
 void GeneratorImpl::prepare_inference(const InferenceLevers& levers) {

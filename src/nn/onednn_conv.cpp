@@ -205,17 +205,12 @@ std::atomic<uint64_t> onednn_work{0};  // FLOPs, onednn_flops()
 
 uint64_t onednn_flops() { return onednn_work.load(); }
 
-bool onednn_bf16_gemm_runs() {
-  const auto& cpu = cpu_features();
-  return cpu.native_bf16() && cpu.onednn_bf16;
-}
-
 torch::Tensor onednn_bmm(const torch::Tensor& a_in, const torch::Tensor& b_in, GemmOperands operands) {
   RECORD_FUNCTION("flatnet::onednn_bmm", c10::ArrayRef<c10::IValue>{});
   TORCH_CHECK(a_in.dim() == 3 && b_in.dim() == 3 && a_in.size(2) == b_in.size(1) &&
                   (a_in.size(0) == b_in.size(0) || a_in.size(0) == 1 || b_in.size(0) == 1),
               "onednn_bmm: {batch,M,K} x {batch,K,N} expected, got ", a_in.sizes(), " and ", b_in.sizes());
-  TORCH_CHECK(operands == GemmOperands::fp32 || onednn_bf16_gemm_runs(),
+  TORCH_CHECK(operands == GemmOperands::fp32 || cpu_features().native_bf16(),
               "onednn_bmm: bf16 operands need a CPU that runs bf16 natively (AVX512-BF16 or AMX)");
   const auto [a, a_t] = gemm_operand(a_in, operands);
   const auto [b, b_t] = gemm_operand(b_in, operands);
@@ -238,26 +233,21 @@ class OneDnnMatmulFunction : public torch::autograd::Function<OneDnnMatmulFuncti
     // Rounded once, for the product and both gradients (fp32 operands: a and b themselves).
     const auto type = operands == GemmOperands::bf16 ? torch::kBFloat16 : torch::kFloat32;
     const auto a_in = a.to(type), b_in = b.to(type);
-    ctx->save_for_backward({a_in, b_in});
-    ctx->saved_data["bf16"] = operands == GemmOperands::bf16;
-    ctx->saved_data["batch_a"] = a.size(0);
-    ctx->saved_data["batch_b"] = b.size(0);
+    ctx->save_for_backward({a_in, b_in});  // their type is the operands', their batches a's and b's
     return onednn_bmm(a_in, b_in, operands);
   }
   static torch::autograd::tensor_list backward(torch::autograd::AutogradContext* ctx,
                                                torch::autograd::tensor_list grads) {
     const auto saved = ctx->get_saved_variables();
     const auto &a = saved[0], &b = saved[1];
-    const auto operands = ctx->saved_data["bf16"].toBool() ? GemmOperands::bf16 : GemmOperands::fp32;
+    const auto operands = a.scalar_type() == torch::kBFloat16 ? GemmOperands::bf16 : GemmOperands::fp32;
     // {batch,M,N}; rounded to bf16 once here rather than in each product below
     const auto grad =
         operands == GemmOperands::bf16 ? grads[0].to(torch::kBFloat16).contiguous() : grads[0].contiguous();
     auto reduce_to = [](torch::Tensor g, int64_t batch) { return batch == 1 && g.size(0) > 1 ? g.sum(0, true) : g; };
     torch::Tensor grad_a, grad_b;
-    if (ctx->needs_input_grad(0))
-      grad_a = reduce_to(onednn_bmm(grad, b.transpose(1, 2), operands), ctx->saved_data["batch_a"].toInt());
-    if (ctx->needs_input_grad(1))
-      grad_b = reduce_to(onednn_bmm(a.transpose(1, 2), grad, operands), ctx->saved_data["batch_b"].toInt());
+    if (ctx->needs_input_grad(0)) grad_a = reduce_to(onednn_bmm(grad, b.transpose(1, 2), operands), a.size(0));
+    if (ctx->needs_input_grad(1)) grad_b = reduce_to(onednn_bmm(a.transpose(1, 2), grad, operands), b.size(0));
     return {grad_a, grad_b, torch::Tensor()};
   }
 };

@@ -42,14 +42,13 @@ class OneDnnConv {
 // What onednn_bmm multiplies: fp32 operands, or the operands rounded to bf16 (8 significant bits)
 // with fp32 accumulation and an fp32 result, about twice as fast where the CPU runs bf16 natively.
 enum class GemmOperands { fp32, bf16 };
-// Whether oneDNN runs bf16 GEMMs natively here (AVX512-BF16 or AMX, oneDNN not capped below them).
-bool onednn_bf16_gemm_runs();
 
 // C = A B for batches of matrices, {batch,M,K} x {batch,K,N} -> {batch,M,N} fp32 (either operand
 // may have batch 1, broadcast), by a oneDNN matmul primitive made once per shape and reused. On
 // AVX-512 machines oneDNN's fp32 GEMM kernels run about twice as fast as OpenBLAS's at the
 // Tikhonov reconstruction's shapes (`flatnet bench --rows peak,tikhonov`). Inference only: no autograd.
-// bf16 operands where onednn_bf16_gemm_runs() only (an error elsewhere).
+// bf16 operands only where cpu_features().native_bf16() (AVX512-BF16 or AMX, oneDNN not capped below
+// them: cpu_features folds the cap in); an error elsewhere.
 torch::Tensor onednn_bmm(const torch::Tensor& a, const torch::Tensor& b, GemmOperands operands = GemmOperands::fp32);
 // The work flatnet's own oneDNN calls have done since the process started, in FLOPs (2 per
 // multiply-add): onednn_bmm's products and onednn_conv2d's passes (its forward, and each gradient
