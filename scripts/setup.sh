@@ -23,7 +23,7 @@ packages=(
   libtorch-dev libopenblas0-openmp libgloo-dev
   libopencv-dev libopenimageio-dev openimageio-tools
   libaravis-dev aravis-tools libusb-1.0-0-dev xvfb xauth iproute2
-  libmatio-dev libcxxopts-dev catch2 libyaml-cpp-dev nlohmann-json3-dev
+  libmatio-dev libhdf5-dev libcxxopts-dev catch2 libyaml-cpp-dev nlohmann-json3-dev
   libonnx-dev libprotobuf-dev zlib1g-dev libdnnl-dev libssl-dev
   python3-skimage
 )

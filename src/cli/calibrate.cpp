@@ -47,13 +47,21 @@ struct CalibrateSettings {
 
 // The camera.yaml written beside a calibration made from data: the geometry given, with this
 // calibration and no rig (a camera known only from its data), under a comment saying how it was made.
-std::filesystem::path write_camera_beside(const std::filesystem::path& calibration, CameraConfig known,
-                                          const std::string& comment) {
-  known.rig.clear();
-  const auto yaml_path = calibration.parent_path() / "camera.yaml";
-  write_text_atomically(yaml_path, comment + camera_geometry_yaml(known) +
-                                       "calibration: " + yaml_quoted(calibration.filename().string()) + "\n");
-  return yaml_path;
+struct CameraBeside {
+  std::filesystem::path path;
+  std::string text;
+};
+// Read back as `recon` and `train` will read it, before anything is written: flatnet never writes a
+// camera file it refuses to read (`why` says what set the value refused).
+CameraBeside camera_beside(const std::filesystem::path& calibration, const CameraConfig& known,
+                           const std::string& comment, const std::string& why) {
+  const auto path = calibration.parent_path() / "camera.yaml";
+  try {
+    return {path, camera_file_text(known, calibration.filename().string(), comment, path)};
+  } catch (const Error& e) {
+    throw Error("calibrate", "the camera file this calibration makes would be refused when read (" +
+                                 std::string(e.what()) + ")" + why + "; nothing was written");
+  }
 }
 
 // The references' planes {4,N,N} (b, gb, gr, r) from an 8- or 16-bit RGB reconstruction, in its own
@@ -201,10 +209,6 @@ int write_reference_calibration(const cxxopts::ParseResult& r, const CameraConfi
                                 const ReferenceChecks& checks, const std::optional<WhiteCapture>& white,
                                 const std::filesystem::path& out) {
   const double lambda = checks.lambda, held_mean = checks.held_mean, held_leak = checks.held_leak;
-  if (r.count("compact"))
-    save_shift_calibration(out, fit.profile_rows, fit.profile_cols, fit.shift_rows, fit.shift_cols);
-  else
-    save_calibration(out, fit.calib);
   auto known = camera;
   known.tikhonov_lambda = absolute_tikhonov_lambda(separable_inverse(fit.calib.P, fit.calib.Q, 1.0), lambda);
   const auto noise = fit_noise_model(noise_samples, fit.calib.P, fit.calib.Q);
@@ -240,7 +244,21 @@ int write_reference_calibration(const cxxopts::ParseResult& r, const CameraConfi
          << " of the display's white on average (--scene-light), the references' units x " << checks.scene_scale
          << "; a white capture measures it (--white-capture)";
   head << "\n# tikhonov_lambda is " << lambda << " of the largest squared singular value product\n";
-  const auto yaml_path = write_camera_beside(out, known, head.str());
+  // The light unit scales the calibration, and its absolute regulariser with the square of that.
+  std::ostringstream why;
+  if (white)
+    why << ": the light unit from the white capture (--white-light " << white->light << ") puts tikhonov_lambda at "
+        << known.tikhonov_lambda;
+  else if (checks.scene_light > 0)
+    why << ": the light unit --scene-light " << checks.scene_light << " puts tikhonov_lambda at "
+        << known.tikhonov_lambda << " (a typical photograph holds " << kTypicalSceneLight << " of the display's white)";
+  const auto beside = camera_beside(out, known, head.str(), why.str());
+  if (r.count("compact"))
+    save_shift_calibration(out, fit.profile_rows, fit.profile_cols, fit.shift_rows, fit.shift_cols);
+  else
+    save_calibration(out, fit.calib);
+  write_text_atomically(beside.path, beside.text);
+  const auto& yaml_path = beside.path;
   std::cout << "wrote " << out.string() << " and " << yaml_path.string() << "\nshift structure: the shadow moves "
             << std::setprecision(6) << fit.shift_rows << " sensor pixels per scene row, " << fit.shift_cols
             << " per scene column\nfit residual ||Y - P (a R + b) Q^T|| / ||Y||:";
@@ -386,14 +404,21 @@ CapturePair capture_pair_of(const torch::Tensor& window, const torch::Tensor& sc
 // structured factor against a free one, with the other axis structured), with what to try.
 void say_unfound_axis(const DatasetCalibration& fit) {
   const auto& share = fit.axis_explains;
-  const bool rows = share[0] >= kStructureExplainsAtLeast, cols = share[1] >= kStructureExplainsAtLeast;
+  // An axis is found when its structured factor explains enough and its search found a minimum inside
+  // the range (not at its edge).
+  const bool rows = share[0] >= kStructureExplainsAtLeast && !fit.shift_at_edge[0];
+  const bool cols = share[1] >= kStructureExplainsAtLeast && !fit.shift_at_edge[1];
   if (rows == cols) return;
   const char* found = rows ? "row" : "column";
   const char* lost = rows ? "column" : "row";
+  const int l = rows ? 1 : 0;
   std::cerr << "calibrate: warning: the " << found << " shift (" << std::setprecision(4)
             << fit.searched_shifts[rows ? 0 : 1] << ") is found but not the " << lost << " shift (its search gave "
-            << fit.searched_shifts[rows ? 1 : 0] << ", which explains " << std::setprecision(3) << share[rows ? 1 : 0]
-            << " of what a free factor explains): check the camera file's crop and rotation along the " << lost
+            << fit.searched_shifts[l]
+            << (fit.shift_at_edge[l]
+                    ? ", at the edge of the range searched"
+                    : ", which explains " + std::to_string(share[l]) + " of what a free factor explains")
+            << "): check the camera file's crop and rotation along the " << lost
             << "s, and calibrate from more pairs (all of --limit's; 500 or more)\n";
 }
 
@@ -493,6 +518,13 @@ DatasetCalibrationOptions dataset_calibration_options(const CalibrateSettings& s
   require(structure == "shift" || structure == "free", "calibrate",
           "--structure is shift (a FlatCam's shadow moves with the scene) or free, not '" + structure + "'");
   o.structure = structure == "shift" ? FactorStructure::Shift : FactorStructure::Free;
+  // The shift structure is fitted after the free passes and judged once each axis has searched its
+  // shift twice: fewer steps would keep a structure nothing judged.
+  const int judged_at = o.free_passes + 2;
+  require(o.structure == FactorStructure::Free || o.iterations >= judged_at, "--iterations",
+          std::to_string(o.iterations) + " steps end before the shift structure is judged (" +
+              std::to_string(o.free_passes) + " free steps, then two shift searches per axis): at least " +
+              std::to_string(judged_at) + " with --structure shift, or give --structure free");
   const auto colour_mix = s.colour_mix;
   require(colour_mix == "identify" || colour_mix == "none", "--colour-mix",
           "identify (fit each plane's shares of the primaries) or none, not '" + colour_mix + "'");
@@ -504,7 +536,6 @@ DatasetCalibrationOptions dataset_calibration_options(const CalibrateSettings& s
 void write_dataset_calibration(const DatasetCalibration& fit, const CameraConfig& camera,
                                const DatasetCalibrationOptions& o, size_t pair_count,
                                const std::optional<Calibration>& truth, const std::filesystem::path& out) {
-  save_calibration(out, fit.calib);
   auto known = camera;
   known.noise_gain = fit.noise_gain;
   known.noise_floor = fit.noise_floor;
@@ -520,7 +551,10 @@ void write_dataset_calibration(const DatasetCalibration& fit, const CameraConfig
     fit_text << "\n# the shadow moves " << std::setprecision(6) << fit.shift_rows << " sensor pixels per scene row, "
              << fit.shift_cols << " per scene column";
   fit_text << "\n";
-  const auto yaml_path = write_camera_beside(out, known, fit_text.str());
+  const auto beside = camera_beside(out, known, fit_text.str(), "");
+  save_calibration(out, fit.calib);
+  write_text_atomically(beside.path, beside.text);
+  const auto& yaml_path = beside.path;
   std::cout << "wrote " << out.string() << " and " << yaml_path.string() << " from " << fit.pairs << " pairs ("
             << fit.iterations << " steps)\nfit residual ||Y - P X Q^T - s a b^T|| / ||Y||:";
   for (int c = 0; c < 4; ++c) std::cout << " " << kChannelNames[c] << " " << std::setprecision(4) << fit.residual[c];
@@ -539,9 +573,19 @@ void write_dataset_calibration(const DatasetCalibration& fit, const CameraConfig
     std::cout << "\n";
   }
   if (fit.structure_rejected) {
-    std::cout << "shift structure rejected: it explains " << std::setprecision(3) << fit.structure_explains
-              << " of what free factors explain (a mask that is not one moving shadow?); free factors were fitted, "
-                 "which need thousands of pairs\n";
+    if (fit.shift_at_edge[0] || fit.shift_at_edge[1])
+      std::cout << "shift structure rejected: the shift search ended at the edge of its range (" << o.shift.min_shift
+                << " to " << o.shift.max_shift << " sensor pixels per scene pixel, both ways) on "
+                << (fit.shift_at_edge[0] && fit.shift_at_edge[1] ? "both axes"
+                    : fit.shift_at_edge[0]                       ? "the rows"
+                                                                 : "the columns")
+                << " (searched " << std::setprecision(4) << fit.searched_shifts[0] << " row, " << fit.searched_shifts[1]
+                << " column): no shift inside it explains the pairs; free factors were fitted, which need thousands "
+                   "of pairs\n";
+    else
+      std::cout << "shift structure rejected: it explains " << std::setprecision(3) << fit.structure_explains
+                << " of what free factors explain (a mask that is not one moving shadow?); free factors were fitted, "
+                   "which need thousands of pairs\n";
     // A handful of pairs whose shadow no shift explains are, most often, direct captures and someone's
     // reconstructions of them (FlatNet's fc_*.png and rec_*.png), not display captures of photographs.
     if (static_cast<int64_t>(pair_count) < kFewPairs)
@@ -549,10 +593,15 @@ void write_dataset_calibration(const DatasetCalibration& fit, const CameraConfig
                 << " pairs whose shadow no shift explains look like captures and reconstructions of them, not "
                    "display captures of photographs; for those, run `flatnet calibrate --references` (same lists); "
                    "free factors from so few pairs do not describe the camera\n";
-  } else if (o.structure == FactorStructure::Shift)
+  } else if (o.structure == FactorStructure::Shift) {
     std::cout << "shift structure: the shadow moves " << std::setprecision(6) << fit.shift_rows
               << " sensor pixels per scene row, " << fit.shift_cols << " per scene column; it explains "
               << std::setprecision(3) << fit.structure_explains << " of what free factors explain\n";
+    if (static_cast<int64_t>(pair_count) < kFewPairs)
+      std::cerr << "calibrate: warning: a shift structure from " << pair_count << " pairs (under " << kFewPairs
+                << ") is uncertain; if these are captures and someone's reconstructions of them rather than display "
+                   "captures of photographs, run `flatnet calibrate --references` (same lists)\n";
+  }
   if (o.structure == FactorStructure::Shift) say_unfound_axis(fit);
   if (truth) {  // a simulated camera: how close to its true response
     const auto err = calibration_error(fit.calib, *truth);
@@ -579,6 +628,10 @@ int calibrate_from_dataset(const cxxopts::ParseResult& r, const CalibrateSetting
           "is the light unit's prior without a white capture; --white-capture measures it (give one)");
   const bool force = r.count("force") > 0;
   auto pairs = dataset_pairs(r, s);
+  require(!pairs.empty(), "calibrate", "the lists name no pairs");
+  // The captures' size against the geometry from the first one's header, before anything the
+  // geometry's size sets is allocated (the rest are checked as each is read).
+  check_raw_header(pairs.front().meas, camera.raw);
   // A simulated camera's truth, for the error printed at the end: read now, so that a missing rig
   // is named before the fit runs.
   std::optional<Calibration> truth;
@@ -715,6 +768,23 @@ cxxopts::Options calibrate_options() {
   return o;
 }
 
+// The flags of a calibration from references do nothing in any other: given there, they are refused
+// (a flag that changes nothing without a word is a silent wrong answer). --white-light likewise needs
+// the white capture whose light it states.
+void require_reference_flags_used(const cxxopts::ParseResult& r) {
+  require(!r.count("white-light") || r.count("white-capture"), "--white-light",
+          "is the light of the white capture (--white-capture); without one it does nothing (--scene-light sets the "
+          "light unit's prior instead)");
+  if (r.count("references")) return;
+  // --white-capture keeps its own message (calibrate_from_dataset): it names what a display capture is.
+  std::vector<std::string> flags = {"compact"};
+  for (const auto& row : calibrate_reference_flags()) flags.emplace_back(row.flag);
+  for (const auto& flag : flags)
+    require(!r.count(flag), "--" + flag,
+            "belongs to a calibration from a few captures and reconstructions of them (--references); this "
+            "calibration does not read it");
+}
+
 int calibrate(int argc, char** argv) {
   auto o = calibrate_options();
   cxxopts::ParseResult r;
@@ -742,6 +812,7 @@ int calibrate(int argc, char** argv) {
   require(r.count("rig") + r.count("captures") + (r.count("dataset") || r.count("meas-list")) == 1, "calibrate",
           "give exactly one of --rig, --captures or --dataset (--meas-list)");
   require(s.split == "train" || s.split == "all", "--split", "expected train or all");
+  require_reference_flags_used(r);
   if (r.count("dataset") || r.count("meas-list")) return calibrate_from_dataset(r, s);
   const std::filesystem::path out = r["out"].as<std::string>();
   std::vector<std::filesystem::path> inputs;

@@ -56,6 +56,15 @@ int simulate(int argc, char** argv) {
   std::cout << "simulated " << rep.simulated << " captures (" << rep.skipped << " already done) in " << rep.seconds
             << " s: " << (rep.simulated > 0 ? rep.simulated / rep.seconds : 0.0) << " captures/s\n"
             << "lists: " << rep.train << " train, " << rep.val << " val in " << opt.out.string() << "\n";
+  // Clipped light is lost: a set whose captures mostly clip teaches a network a sensor that saturates.
+  if (rep.clipped > 0)
+    std::cerr << "simulate: warning: " << rep.clipped << " of " << rep.simulated << " captures have over "
+              << 100 * kClippedShare << " % of their pixels at full scale (clipped: that light is lost)"
+              << (2 * rep.clipped > rep.simulated
+                      ? "; the scenes are brighter than this camera's light unit holds: lower --exposure (now " +
+                            std::to_string(opt.exposure) + "; it scales the scenes' light) until this warning goes"
+                      : std::string("; bright scenes clip, as they would on the camera"))
+              << "\n";
   return 0;
 }
 

@@ -14,6 +14,7 @@
 #include "nn/onnx_export.hpp"
 #include "train/options.hpp"
 #include "recon/batch.hpp"
+#include "recon/data_consistency.hpp"
 #include "train/distributed.hpp"
 #include "train/experiment.hpp"
 
@@ -168,14 +169,23 @@ void set_inference_consistency(const cxxopts::ParseResult& r, ModelFile& m) {
   };
   read("data-consistency", set_consistency_strength);
   read("consistency-blur", set_consistency_blur);
-  require(given.data_consistency != ReconstructorSpec::kModelsOwn &&
-              given.consistency_blur != ReconstructorSpec::kModelsOwn,
-          "--data-consistency", "takes off or a number when writing a model file, not model");
-  const bool trained_with = m.spec.consistency_strength > 0;
+  require(given.data_consistency != ReconstructorSpec::kModelsOwn, "--data-consistency",
+          "takes off or a number when writing a model file, not model");
+  require(given.consistency_blur != ReconstructorSpec::kModelsOwn, "--consistency-blur",
+          "takes a number when writing a model file, not model");
+  require(given.consistency_blur == 0 || given.data_consistency > 0, "--consistency-blur",
+          "blurs the data-consistency step's correction, and --data-consistency off writes no step: leave the blur "
+          "out");
+  const auto reach = DataConsistency::blur_reach_problem(given.consistency_blur, m.camera.scene_size);
+  require(reach.empty(), "--consistency-blur", reach);
+  const bool trained_with = m.provenance.consistency == kConsistencyTrained;
   m.spec.consistency_strength = given.data_consistency;
   m.spec.consistency_blur = given.data_consistency > 0 ? given.consistency_blur : 0;
   std::ostringstream step;
   step << "data consistency c " << m.spec.consistency_strength << ", blur " << m.spec.consistency_blur;
+  m.provenance.consistency = m.spec.consistency_strength <= 0 ? ""
+                             : trained_with                   ? kConsistencyTrained
+                                                              : kConsistencySetAtExport;
   if (m.spec.consistency_strength > 0 && !trained_with)
     m.provenance.source += (m.provenance.source.empty() ? "" : "; ") + step.str() + " set at export, not trained with";
   std::cerr << "the model applies "
@@ -225,7 +235,10 @@ int export_model(int argc, char** argv) {
   const std::filesystem::path out = r.count("onnx") ? r["onnx"].as<std::string>() : r["out"].as<std::string>();
   std::vector<std::filesystem::path> inputs;
   if (r.count("average-of"))
-    for (const auto& a : r["average-of"].as<std::vector<std::string>>()) inputs.emplace_back(a);
+    for (const auto& a : r["average-of"].as<std::vector<std::string>>()) {
+      require(!a.empty(), "--average-of", "holds an empty name (two commas together?): list the files as A,B,...");
+      inputs.emplace_back(a);
+    }
   else
     inputs.emplace_back(r.count("checkpoint") ? r["checkpoint"].as<std::string>() : r["model"].as<std::string>());
   require_new_output(out, r.count("force") > 0, inputs);

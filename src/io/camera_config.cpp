@@ -138,6 +138,16 @@ CameraConfig camera_from_yaml_text(const std::string& text, const std::filesyste
   return camera_from_node(parse_yaml_document(text, where), where, {});
 }
 
+std::string camera_file_text(const CameraConfig& camera, const std::string& calibration_name,
+                             const std::string& comment, const std::filesystem::path& where) {
+  auto known = camera;
+  known.rig.clear();
+  validate(known, where);  // values YAML cannot carry back (inf, nan) are named here, not as a parse error
+  const auto text = comment + camera_geometry_yaml(known) + "calibration: " + yaml_quoted(calibration_name) + "\n";
+  camera_from_yaml_text(text, where);
+  return text;
+}
+
 std::string camera_geometry_yaml(const CameraConfig& c) {
   const auto& g = c.raw;
   std::ostringstream os;

@@ -117,6 +117,12 @@ CameraConfig load_camera_config(const std::filesystem::path& path);
 CameraConfig camera_from_yaml_text(const std::string& text, const std::filesystem::path& where);
 // The preprocessing settings (geometry, scene size, lambdas; no file paths) as YAML text.
 std::string camera_geometry_yaml(const CameraConfig& camera);
+// A camera file made from data (`calibrate`): `comment`, then `camera`'s settings without its rig,
+// naming `calibration_name` (a file beside it). Read back as every reader reads it before it is
+// returned, so flatnet never writes a camera file it refuses to read: errors name `where` and the
+// setting refused.
+std::string camera_file_text(const CameraConfig& camera, const std::string& calibration_name,
+                             const std::string& comment, const std::filesystem::path& where);
 
 // The project's reference camera (configs/cameras/sim.yaml) in the source tree.
 std::filesystem::path default_camera_path();

@@ -1,5 +1,8 @@
 #include "io/mat.hpp"
 
+#include <algorithm>
+
+#include <H5Epublic.h>
 #include <matio.h>
 
 #include "core/error.hpp"
@@ -57,10 +60,42 @@ bool is_supported_numeric(matio_classes c) {
          c == MAT_C_INT32 || c == MAT_C_INT64;
 }
 
+uint64_t element_bytes(matio_classes c) {
+  switch (c) {
+    case MAT_C_DOUBLE:
+    case MAT_C_INT64:
+    case MAT_C_UINT64:
+      return 8;
+    case MAT_C_SINGLE:
+    case MAT_C_INT32:
+    case MAT_C_UINT32:
+      return 4;
+    case MAT_C_INT16:
+    case MAT_C_UINT16:
+      return 2;
+    default:
+      return 1;
+  }
+}
+
 }  // namespace
 
-MatReader::MatReader(const std::filesystem::path& path) : path_(path) {
-  check_mat5_sizes(read_file_text(path), path);  // regular file, sizes and counts checked before matio allocates
+// HDF5 prints its error stack to stderr on a damaged v7.3 file; flatnet names the file itself.
+void silence_hdf5_errors() {
+  static const bool silenced = H5Eset_auto2(H5E_DEFAULT, nullptr, nullptr) >= 0;
+  (void)silenced;
+}
+
+MatReader::MatReader(const std::filesystem::path& path, uint64_t max_variable_bytes)
+    : path_(path), max_variable_bytes_(max_variable_bytes) {
+  silence_hdf5_errors();
+  // Regular file, sizes and counts checked before matio allocates.
+  const auto bytes = read_file_text(path);
+  check_mat5_sizes(bytes, path, max_variable_bytes);
+  // A v7.3 (HDF5) variable's data is not checked against the bytes present, and HDF5 fills chunks a
+  // file never stored: no variable may claim more than deflate could have packed into the whole file
+  // (at most ~1032:1), as check_mat5_sizes bounds a v5 file's compressed variables.
+  max_variable_bytes_ = std::min<uint64_t>(max_variable_bytes, 1100 * static_cast<uint64_t>(bytes.size()) + (64 << 10));
   mat_ = Mat_Open(path.c_str(), MAT_ACC_RDONLY);
   require(mat_ != nullptr, path, "not a readable MATLAB .mat file");
 }
@@ -96,11 +131,25 @@ torch::Tensor MatReader::read(const std::string& name) const {
   if (!info) {
     std::string present;
     for (const auto& n : names()) present += (present.empty() ? "" : " ") + n;
+    // A v7.3 header before a damaged HDF5 body opens, and lists nothing.
+    require(!present.empty(), path_,
+            "holds no variable that can be read (a damaged file, or an empty one); missing '" + name + "'");
     throw Error(path_, "missing variable '" + name + "' (file has: " + present + ")");
   }
   const bool numeric = info->isComplex == 0 && is_supported_numeric(info->class_type);
+  // The size it claims, before matio allocates it (v7.3 files are HDF5's: check_mat5_sizes reads v5 only).
+  uint64_t bytes = element_bytes(info->class_type);
+  bool overflow = false;
+  for (int i = 0; i < info->rank; ++i)
+    overflow |= __builtin_mul_overflow(bytes, static_cast<uint64_t>(info->dims[i]), &bytes);
+  std::string claimed;
+  for (int i = 0; i < info->rank; ++i) claimed += (i ? "x" : "") + std::to_string(info->dims[i]);
   Mat_VarFree(info);
   require(numeric, path_, "variable '" + name + "' is not a real numeric array");
+  require(!overflow && bytes <= max_variable_bytes_, path_,
+          "variable '" + name + "' claims " + claimed + " values (" + (overflow ? "over 2^64" : std::to_string(bytes)) +
+              " bytes), more than the " + std::to_string(max_variable_bytes_) +
+              " bytes its reader allows (a damaged or hostile file, or not the file expected here)");
   matvar_t* v = Mat_VarRead(static_cast<mat_t*>(mat_), name.c_str());
   require(v != nullptr, path_, "variable '" + name + "' cannot be read (a damaged file?)");
   std::unique_ptr<matvar_t, void (*)(matvar_t*)> guard(v, Mat_VarFree);

@@ -9,6 +9,8 @@
 
 #include <torch/torch.h>
 
+#include "io/mat_check.hpp"
+
 namespace flatnet {
 
 enum class MatVersion { v5, v73 };
@@ -16,7 +18,9 @@ enum class MatVersion { v5, v73 };
 // Reads numeric variables (double, single or integer classes) as float64 tensors.
 class MatReader {
  public:
-  explicit MatReader(const std::filesystem::path& path);
+  // No variable may hold more than `max_variable_bytes` (its claim checked before it is read or
+  // inflated, v5 and v7.3 alike): a reader that knows its sizes (a calibration for a camera) says so.
+  explicit MatReader(const std::filesystem::path& path, uint64_t max_variable_bytes = kMaxMatVariableBytes);
   ~MatReader();
   MatReader(const MatReader&) = delete;
   MatReader& operator=(const MatReader&) = delete;
@@ -31,6 +35,7 @@ class MatReader {
 
  private:
   std::filesystem::path path_;
+  uint64_t max_variable_bytes_;
   void* mat_ = nullptr;
 };
 

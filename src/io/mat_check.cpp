@@ -13,7 +13,6 @@ namespace flatnet {
 namespace {
 
 constexpr uint32_t kMiMatrix = 14, kMiCompressed = 15;
-constexpr uint64_t kMaxVariableBytes = 8ull << 30;
 
 uint32_t u32(const unsigned char* p) { return p[0] | p[1] << 8 | p[2] << 16 | static_cast<uint32_t>(p[3]) << 24; }
 
@@ -55,14 +54,15 @@ uint64_t padded(uint64_t n) { return (n + 7) / 8 * 8; }
 // The bytes a data element takes in the file, its tag included (a small element: its 8-byte tag).
 uint64_t stored_size(const Tag& tag) { return tag.header == 4 ? 8 : 8 + padded(tag.bytes); }
 
-void check_matrix(const unsigned char* m, uint64_t size, const std::filesystem::path& path, int depth = 0);
+void check_matrix(const unsigned char* m, uint64_t size, const std::filesystem::path& path, uint64_t max_bytes,
+                  int depth = 0);
 
 // The children of a cell or struct (`elements` miMATRIX elements from m[at]): matio makes one pointer
 // per child when it lists the variable, before reading any of them, so a child needs its 8-byte tag
 // in the file (found by scripts/fuzz.sh: a 384-byte struct claiming 2^28 elements made matio
 // allocate 2 GB), and each child is checked as a variable is.
 void check_children(const unsigned char* m, uint64_t size, uint64_t at, uint64_t elements, const std::string& where,
-                    const std::filesystem::path& path, int depth) {
+                    const std::filesystem::path& path, uint64_t max_bytes, int depth) {
   if (elements > (size - std::min(at, size)) / 8)
     throw Error(path, where + " declares " + std::to_string(elements) + " elements in " + std::to_string(size) +
                           " bytes (hostile or damaged file?)");
@@ -71,7 +71,7 @@ void check_children(const unsigned char* m, uint64_t size, uint64_t at, uint64_t
     const auto child = read_tag(m + at);
     require(child.header == 8 && child.type == kMiMatrix && child.bytes <= size - at - 8, path,
             "damaged .mat file: " + where + " holds an element that is not an array");
-    if (child.bytes > 0) check_matrix(m + at + 8, child.bytes, path, depth + 1);
+    if (child.bytes > 0) check_matrix(m + at + 8, child.bytes, path, max_bytes, depth + 1);
     at += stored_size(child);
   }
 }
@@ -79,7 +79,8 @@ void check_children(const unsigned char* m, uint64_t size, uint64_t at, uint64_t
 // Checks one miMATRIX element's contents `m` (size `size`, the bytes after its tag): flags,
 // dimensions, name, then for numeric classes the real (and imaginary) data's byte counts, and for
 // cells and structs their elements (nested at most 16 deep).
-void check_matrix(const unsigned char* m, uint64_t size, const std::filesystem::path& path, int depth) {
+void check_matrix(const unsigned char* m, uint64_t size, const std::filesystem::path& path, uint64_t max_bytes,
+                  int depth) {
   require(depth <= 16, path, "damaged .mat file: cells or structs nested more than 16 deep");
   auto need = [&](uint64_t at, uint64_t n, const char* what) {
     if (at + n > size) throw Error(path, std::string("damaged .mat file: a variable's ") + what + " runs past its end");
@@ -119,7 +120,7 @@ void check_matrix(const unsigned char* m, uint64_t size, const std::filesystem::
   at += stored_size(name_tag);
   const auto where = "variable '" + printable(name) + "'";  // a name from the file: escaped
   if (overflow && cls <= 4) throw Error(path, where + " declares more than 2^64 elements (hostile or damaged file?)");
-  if (cls == 1) return check_children(m, size, at, count, where, path, depth);  // cell
+  if (cls == 1) return check_children(m, size, at, count, where, path, max_bytes, depth);  // cell
   if (cls == 2 || cls == 3) {  // struct, object: (an object's class name), field name length, names
     if (cls == 3) {
       need(at, 8, "class name");
@@ -143,13 +144,13 @@ void check_matrix(const unsigned char* m, uint64_t size, const std::filesystem::
     uint64_t elements = 0;
     if (__builtin_mul_overflow(count, fields, &elements))
       throw Error(path, where + " declares more than 2^64 fields (hostile or damaged file?)");
-    return check_children(m, size, at, elements, where, path, depth);
+    return check_children(m, size, at, elements, where, path, max_bytes, depth);
   }
   if (cls == 4 && count > size)
     throw Error(path, where + " declares " + std::to_string(count) + " characters in " + std::to_string(size) +
                           " bytes (hostile or damaged file?)");
   if (cls < 6) return;  // chars, sparse: not read by flatnet
-  if (overflow || count > kMaxVariableBytes)
+  if (overflow || count > max_bytes)
     throw Error(path, where + " declares " + (overflow ? std::string("more than 2^64") : std::to_string(count)) +
                           " values (hostile or damaged file?)");
   for (int part = 0; part < (complex ? 2 : 1); ++part) {
@@ -160,6 +161,9 @@ void check_matrix(const unsigned char* m, uint64_t size, const std::filesystem::
     if (data.bytes != count * per)
       throw Error(path, where + "'s dimensions say " + std::to_string(count) + " values, its data holds " +
                             std::to_string(data.bytes / per) + " (damaged or hostile file)");
+    if (data.bytes > max_bytes)
+      throw Error(path, where + " holds " + std::to_string(data.bytes) + " bytes, more than the " +
+                            std::to_string(max_bytes) + " its reader allows (not the file it expects?)");
     if (data.header + data.bytes > size - at)
       throw Error(path, "truncated: " + where + "'s data runs past the end of its element");
     at += stored_size(data);
@@ -187,7 +191,8 @@ std::string inflate_element(const unsigned char* p, uint64_t n, uint64_t limit, 
     out.append(reinterpret_cast<char*>(chunk.data()), chunk.size() - z.avail_out);
     if (out.size() > limit) {
       inflateEnd(&z);
-      throw Error(path, "a compressed variable inflates past " + std::to_string(limit) + " bytes (a zip bomb?)");
+      throw Error(path, "a compressed variable inflates past " + std::to_string(limit) +
+                            " bytes, more than its reader allows (a zip bomb, or not the file expected here?)");
     }
     if (rc == Z_OK && z.avail_in == 0 && z.avail_out != 0) {
       inflateEnd(&z);
@@ -199,7 +204,7 @@ std::string inflate_element(const unsigned char* p, uint64_t n, uint64_t limit, 
 }
 
 void check_element(const unsigned char* p, uint64_t left, const std::filesystem::path& path, bool inside_compressed,
-                   uint64_t& used) {
+                   uint64_t max_bytes, uint64_t& used) {
   require(left >= 8, path, "truncated .mat file: an element's tag is cut short");
   const auto tag = read_tag(p);
   require(tag.header == 8, path, "damaged .mat file: a top-level element in the small format");
@@ -208,19 +213,23 @@ void check_element(const unsigned char* p, uint64_t left, const std::filesystem:
                           std::to_string(left - 8) + " remain");
   used = 8 + (tag.type == kMiCompressed ? tag.bytes : padded(tag.bytes));
   used = std::min(used, left);
-  if (tag.type == kMiMatrix) check_matrix(p + 8, tag.bytes, path);
+  if (tag.type == kMiMatrix) check_matrix(p + 8, tag.bytes, path, max_bytes);
   if (tag.type == kMiCompressed && !inside_compressed) {
-    // zlib's deflate shrinks at most ~1032:1, so more than that out of these bytes is a bomb.
-    const uint64_t limit = std::min<uint64_t>(kMaxVariableBytes, 1100 * tag.bytes + (64 << 10));
+    // zlib's deflate shrinks at most ~1032:1, so more than that out of these bytes is a bomb; and no
+    // variable inflates past what its reader allows, with room for its headers (name, dimensions).
+    constexpr uint64_t kHeaders = 64 << 10;
+    const uint64_t limit =
+        std::min<uint64_t>(std::min(kMaxMatVariableBytes, max_bytes) + kHeaders, 1100 * tag.bytes + kHeaders);
     const auto inner = inflate_element(p + 8, tag.bytes, limit, path);
     uint64_t inner_used = 0;
-    check_element(reinterpret_cast<const unsigned char*>(inner.data()), inner.size(), path, true, inner_used);
+    check_element(reinterpret_cast<const unsigned char*>(inner.data()), inner.size(), path, true, max_bytes,
+                  inner_used);
   }
 }
 
 }  // namespace
 
-void check_mat5_sizes(const std::string& bytes, const std::filesystem::path& path) {
+void check_mat5_sizes(const std::string& bytes, const std::filesystem::path& path, uint64_t max_variable_bytes) {
   require(bytes.size() >= 128, path, "not a readable MATLAB .mat file (shorter than its 128-byte header)");
   const auto* p = reinterpret_cast<const unsigned char*>(bytes.data());
   // Both versions open with the text "MATLAB": matio reads a file whose header it does not take as
@@ -239,7 +248,7 @@ void check_mat5_sizes(const std::string& bytes, const std::filesystem::path& pat
       "not a little-endian MATLAB v5 .mat file (flatnet reads v5 and v7.3 files written on little-endian machines)");
   for (uint64_t at = 128; at < bytes.size();) {
     uint64_t used = 0;
-    check_element(p + at, bytes.size() - at, path, false, used);
+    check_element(p + at, bytes.size() - at, path, false, max_variable_bytes, used);
     at += used;
   }
 }

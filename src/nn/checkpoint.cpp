@@ -278,6 +278,12 @@ std::string first_difference(const std::string& ours, const std::string& theirs)
   }
 }
 
+std::string origin_text(const std::string& origin) {
+  return origin == kConsistencySetAtExport ? "set at export (its weights trained without it)"
+         : origin.empty()                  ? "not at all"
+                                           : "its weights were trained with";
+}
+
 void require_same_model(const ModelFile& first, const ModelFile& other, const std::filesystem::path& first_path,
                         const std::filesystem::path& path) {
   const auto difference = first_difference(model_spec_yaml(first.spec), model_spec_yaml(other.spec));
@@ -289,6 +295,12 @@ void require_same_model(const ModelFile& first, const ModelFile& other, const st
           path,
           "is for another camera than " + first_path.string() + " (camera '" + other.camera.name + "' against '" +
               first.camera.name + "', or another geometry); average models of one camera");
+  // The same step in both specs is not the same model when one's weights learned with it and the
+  // other's had it added at export: their weights solve different tasks.
+  require(other.provenance.consistency == first.provenance.consistency, path,
+          "applies the data-consistency step " + origin_text(other.provenance.consistency) + ", " +
+              first_path.string() + " " + origin_text(first.provenance.consistency) +
+              "; average models whose weights were trained alike");
 }
 
 }  // namespace
@@ -325,6 +337,12 @@ ModelFile average_models(const std::vector<std::filesystem::path>& paths) {
   for (size_t k = 0; k < target.size(); ++k)
     if (sums[k].defined()) target[k].second.copy_(sums[k] / static_cast<double>(paths.size()));
   result.provenance.source = "mean of " + std::to_string(paths.size()) + " models: " + sources;
+  if (result.provenance.consistency == kConsistencySetAtExport) {  // every file's, as checked above
+    std::ostringstream step;
+    step << "; data consistency c " << result.spec.consistency_strength << ", blur " << result.spec.consistency_blur
+         << " set at export, not trained with";
+    result.provenance.source += step.str();
+  }
   result.provenance.scores.clear();
   result.generator->eval();
   return result;

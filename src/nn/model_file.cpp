@@ -38,7 +38,15 @@ std::vector<std::pair<std::string, std::string Provenance::*>> provenance_fields
           {"written_at", &Provenance::written_at},
           {"written_on", &Provenance::written_on},
           {"source", &Provenance::source},
-          {"scores", &Provenance::scores}};
+          {"scores", &Provenance::scores},
+          {"consistency", &Provenance::consistency}};
+}
+
+std::string consistency_origin(const ModelSpec& spec, const Provenance& provenance) {
+  if (spec.consistency_strength <= 0) return "";
+  if (!provenance.consistency.empty()) return provenance.consistency;
+  const bool legacy_export = provenance.source.find("set at export, not trained with") != std::string::npos;
+  return legacy_export ? kConsistencySetAtExport : kConsistencyTrained;
 }
 
 void save_model_file(const std::filesystem::path& path, Generator& generator, const Config& config,

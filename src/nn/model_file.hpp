@@ -31,7 +31,16 @@ struct Provenance {
   std::string written_on;     // the CPU that wrote it ("AMD EPYC ...; avx512f avx512_bf16")
   std::string source;         // what it was made from: "checkpoint latest.ckpt (moving average)"
   std::string scores;         // held-out scores, JSON {"SET": {"images": N, "psnr": ..., ...}}
+  // The spec's data-consistency step (model.consistency): kConsistencyTrained when the weights learned
+  // with it, kConsistencySetAtExport when `export --data-consistency` added it to weights trained
+  // without it; "" when the spec has none.
+  std::string consistency;
 };
+inline constexpr const char* kConsistencyTrained = "trained";
+inline constexpr const char* kConsistencySetAtExport = "set at export";
+// Provenance::consistency for a model of this spec: the recorded origin, or for a file from before it
+// was recorded (2026-12), what its source text says ("... set at export, not trained with").
+std::string consistency_origin(const ModelSpec& spec, const Provenance& provenance);
 // Provenance's fields with their metadata keys, in the order `flatnet info` prints them.
 std::vector<std::pair<std::string, std::string Provenance::*>> provenance_fields();
 

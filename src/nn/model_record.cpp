@@ -32,6 +32,7 @@ std::map<std::string, std::string> header(const std::string& format, const Model
   auto provenance = identity.provenance;
   provenance.written_at = utc_now_iso8601();
   provenance.written_on = cpu_features().summary();
+  provenance.consistency = consistency_origin(identity.spec, provenance);
   for (const auto& [key, field] : provenance_fields())
     if (!(provenance.*field).empty()) meta[key] = provenance.*field;
   return meta;
@@ -114,6 +115,11 @@ ModelFile read_generator(const Stored& s, const std::filesystem::path& path, boo
   m.recipe_values = flat_yaml(m.recipe, path);
   m.format_version = s.version;
   m.provenance = provenance_of(s);
+  const auto& origin = m.provenance.consistency;
+  require(origin.empty() || origin == kConsistencyTrained || origin == kConsistencySetAtExport, path,
+          "its record's consistency is '" + printable(origin) + "'; flatnet writes '" + kConsistencyTrained + "' or '" +
+              kConsistencySetAtExport + "' (not a file flatnet wrote, or one edited by hand)");
+  m.provenance.consistency = consistency_origin(spec, m.provenance);
   const bool checkpoint = s.text("format", path) == kCheckpointFormat;
   const bool average = checkpoint && !s.under("generator_ema").empty();
   if (checkpoint) {  // what a model exported from it will say

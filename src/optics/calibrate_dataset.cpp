@@ -206,6 +206,15 @@ torch::Tensor uniform_only_energy(const Sums& t) {
   return (t.norm - t.Sy.square().sum({1, 2}) / t.S2.clamp_min(1e-30)).clamp_min(0);
 }
 
+// A searched shift in the outermost step of the coarse grid, at either end of the range: the cost
+// still fell toward the range's edge, so no minimum was found inside it. From a few pairs of a camera
+// whose shadow does not move that axis's way, the search drifts to the largest shift (whose longer
+// profile fits more noise) and its share passed the verdict (issue 113): such a shift is no finding.
+bool at_search_edge(double shift, const ShiftFitOptions& o) {
+  const double a = std::abs(shift);
+  return a * (1 + o.grid_step) > o.max_shift || a < o.min_shift * (1 + o.grid_step);
+}
+
 // The free model the structure is judged against (the header's verdict), kept to return to.
 struct FreeModel {
   torch::Tensor P, Q, M, mix;
@@ -312,6 +321,9 @@ DatasetCalibration calibrate_from_pairs(int64_t count, const std::function<Captu
   require_option(count >= 1, "calibrate.dataset", "no pairs to calibrate from");
   require_option(o.iterations >= 1 && o.ridge >= 0 && o.tolerance >= 0, "calibrate.dataset",
                  "iterations >= 1, ridge >= 0 and tolerance >= 0 are needed");
+  require_option(o.structure == FactorStructure::Free || o.iterations >= o.free_passes + 2, "calibrate.dataset",
+                 "the shift structure is judged after the free passes and two shift searches per axis: iterations >= "
+                 "free_passes + 2 are needed");
   PairStream pairs(count, load, rows, cols, scene, o.cache_bytes);
   auto gen = at::detail::createCPUGenerator(o.seed);
   auto Q = at::randn({4, cols, scene}, gen) / std::sqrt(static_cast<double>(cols));  // a random start
@@ -355,7 +367,9 @@ DatasetCalibration calibrate_from_pairs(int64_t count, const std::function<Captu
         judged = true;
         const double samples = static_cast<double>(p_shape.profile.size(1) + q_shape.profile.size(1));
         result.structure_explains = structure_share(free, uniform_only_energy(sums), energy, samples, pixels);
-        if (o.judge_structure && result.structure_explains < kStructureExplainsAtLeast) {
+        result.shift_at_edge = {at_search_edge(p_shape.shift, o.shift), at_search_edge(q_shape.shift, o.shift)};
+        const bool edge = result.shift_at_edge[0] || result.shift_at_edge[1];
+        if (o.judge_structure && (result.structure_explains < kStructureExplainsAtLeast || edge)) {
           result.structure_rejected = true;  // back to the free model, and free steps from here on
           P = free.P, Q = free.Q, M = free.M, mix = free.mix;
           if (identify_mix) pairs.set_mix(mix);

@@ -26,7 +26,8 @@
 // sharper once the other factor is structured), the structured model's residual over the pairs is
 // set against the free model's before it, each as the coded energy it explains beyond M alone, less
 // sigma^2 per parameter (what fitting the noise alone explains). Below 0.3 the structure is rejected
-// and the free model is taken up again. (Judged at the first structured step instead, with Q still
+// and the free model is taken up again; so is a structure whose shift search ended at an edge of its
+// range (no minimum found inside it). (Judged at the first structured step instead, with Q still
 // free, a bench camera's moving shadow was rejected: the free Q's errors, which only a free P
 // follows, left the structured P 0.2-0.28 of the free one's share from 150 pairs, issue 94.)
 // Colour cross-talk: a Bayer plane sees a mix of the display's primaries, X_c = sum_k m_ck X_k
@@ -104,6 +105,9 @@ struct DatasetCalibration {
   // P with Q structured; columns: Q with P structured): which axis's shift the data do not bear out.
   std::array<double, 2> axis_explains{};
   std::array<double, 2> searched_shifts{};  // rows, columns: what the searches found, kept or not
+  // rows, columns: the search ended in the outermost grid step of its range (no minimum inside it);
+  // either rejects the structure.
+  std::array<bool, 2> shift_at_edge{};
 };
 
 // Scene planes {4,N,N} (b, gb, gr, r) as each Bayer plane sees them through a colour mix {4,3}.

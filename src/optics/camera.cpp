@@ -274,9 +274,17 @@ Calibration with_plausible_scale(Calibration calib, const std::filesystem::path&
   return calib;
 }
 
+// The most bytes a calibration variable for this geometry holds: a factor {m,n}, or a compact file's
+// profiles {4, m + |shift| n + 1} with |shift| <= 64. A file claiming more is not this camera's (a
+// compressed variable is refused as it inflates past this, before the rest of it is inflated).
+uint64_t calibration_bytes_at_most(int64_t h, int64_t w, int64_t n) {
+  const auto m = static_cast<uint64_t>(std::max(h, w)), scene = static_cast<uint64_t>(n);
+  return sizeof(double) * std::max(m * scene, 4 * (m + 64 * scene + 2));
+}
+
 Calibration read_calibration(const std::filesystem::path& path, const CameraConfig& camera) {
-  MatReader mat(path);
   const auto h = camera.raw.crop[2], w = camera.raw.crop[3], n = camera.scene_size;
+  MatReader mat(path, calibration_bytes_at_most(h, w, n));
   if (mat.has("shift_rows")) return load_shift_calibration(mat, path, h, w, n);
   std::vector<torch::Tensor> P, Q;
   for (const char* c : kChannelNames) {

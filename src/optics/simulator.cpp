@@ -276,7 +276,8 @@ SimulateReport simulate_dataset(const Rig& rig, const SimulateOptions& opt) {
   report.total = static_cast<int64_t>(images.size());
 
   const int workers = opt.workers > 0 ? opt.workers : all_cores();
-  std::atomic<int64_t> simulated{0}, skipped{0};
+  std::atomic<int64_t> simulated{0}, skipped{0}, clipped{0};
+  const int64_t full_scale = ((int64_t{1} << rig.adc_bits) - 1) << (16 - rig.adc_bits);  // a stored code
   Progress progress("simulate", report.total, opt.progress);
   const auto start = std::chrono::steady_clock::now();
   // One photograph per call; the first error stops the others from starting (parallel_for_index).
@@ -309,6 +310,7 @@ SimulateReport simulate_dataset(const Rig& rig, const SimulateOptions& opt) {
       raw = simulate_raw_linear(rig, linear, opt.noise, gen);
       scene = visible_scene(linear, rig.display_gamma);
     }
+    if ((raw >= full_scale).to(torch::kFloat32).mean().item<double>() > kClippedShare) ++clipped;
     write_rgb8(gt_path, scene);
     write_gray16(meas_path, raw);
     write_text_atomically(record, fingerprint + "\n");
@@ -325,6 +327,7 @@ SimulateReport simulate_dataset(const Rig& rig, const SimulateOptions& opt) {
   report.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
   report.simulated = simulated;
   report.skipped = skipped;
+  report.clipped = clipped;
 
   std::tie(report.train, report.val) = write_dataset_lists(opt.out, all_names, names, opt.val_fraction, opt.seed);
   return report;

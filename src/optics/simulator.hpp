@@ -53,8 +53,14 @@ struct SimulateOptions {
   bool force = false;  // settings differ from the folder's record: rebuild (deletes its captures)
 };
 
+// A capture with more than this share of its pixels at full scale is counted as clipped.
+inline constexpr double kClippedShare = 0.01;
+
 struct SimulateReport {
   int64_t total = 0, simulated = 0, skipped = 0, train = 0, val = 0;
+  // Of the captures simulated, those with more than kClippedShare of their pixels at the ADC's full
+  // scale: light the sensor lost (scenes brighter than the camera's light unit holds).
+  int64_t clipped = 0;
   double seconds = 0;  // wall time of the simulation loop
 };
 

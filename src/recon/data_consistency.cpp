@@ -31,13 +31,30 @@ DataConsistency::DataConsistency(const Calibration& calib, const CameraConfig& c
   gain_pairs_ = well_measured_pairs(svd_.sL, svd_.sR, lambda).to(torch::kFloat32);
   filter_ = (s / (s.square() + o.strength * o.strength * lambda)).to(torch::kFloat32);
   measured_share_ = (s >= o.strength * std::sqrt(lambda)).to(torch::kFloat64).mean().item<double>();
-  if (o.blur > 0) {
-    const auto radius = static_cast<int64_t>(std::ceil(3 * o.blur));
-    const auto x = torch::arange(-radius, radius + 1, torch::kFloat32);
-    auto g = torch::exp(-x.square() / (2 * o.blur * o.blur));
-    g = g / g.sum();
-    blur_ = torch::outer(g, g).expand({4, 1, 2 * radius + 1, 2 * radius + 1}).contiguous();
-  }
+  if (o.blur > 0) blur_ = correction_blur(o.blur, P_.size(2));
+}
+
+double DataConsistency::largest_blur(int64_t scene) { return static_cast<double>(scene - 1) / 3; }
+
+std::string DataConsistency::blur_reach_problem(double sigma, int64_t scene) {
+  if (sigma <= largest_blur(scene)) return "";
+  std::ostringstream s;
+  s << "a blur of " << sigma << " scene pixels reaches " << std::ceil(3 * sigma) << " pixels (3 sigma), more than "
+    << scene << "-pixel scenes hold: at most " << std::setprecision(4) << largest_blur(scene) << " for this camera";
+  return s.str();
+}
+
+torch::Tensor DataConsistency::correction_blur(double sigma, int64_t scene) {
+  // Reflection padding needs the kernel's radius (3 sigma) inside the scene.
+  const auto problem = blur_reach_problem(sigma, scene);
+  require_option(problem.empty(), "infer.consistency_blur", problem);
+  const auto radius = static_cast<int64_t>(std::ceil(3 * sigma));
+  // exp(-(x / sigma)^2 / 2) in float64: a sigma far below a pixel gives the identity (1 at x = 0, 0
+  // elsewhere), where 2 sigma^2 would underflow to 0 and 0 / 0 make the kernel NaN.
+  const auto x = torch::arange(-radius, radius + 1, torch::kFloat64) / sigma;
+  auto g = torch::exp(-x.square() / 2);
+  g = (g / g.sum()).to(torch::kFloat32);
+  return torch::outer(g, g).expand({4, 1, 2 * radius + 1, 2 * radius + 1}).contiguous();
 }
 
 torch::Tensor DataConsistency::to_planes(const torch::Tensor& srgb) const {

@@ -16,6 +16,7 @@
 // the picture's own. An optional Gaussian on the correction keeps its coarse part alone (colour and
 // shading), where noise through (1) would otherwise show as grain.
 #include <memory>
+#include <string>
 
 #include <torch/torch.h>
 
@@ -41,6 +42,10 @@ class DataConsistency {
   // The share of singular pairs the capture dominates in (1), s_ij >= c sqrt(lambda) (mean over channels).
   double measured_share() const { return measured_share_; }
   double strength() const { return strength_; }
+  // The largest blur sigma a `scene`-pixel picture holds (its 3 sigma reach inside the scene), and
+  // the reason a larger one is refused ("" when it fits).
+  static double largest_blur(int64_t scene);
+  static std::string blur_reach_problem(double sigma, int64_t scene);
   // How far a picture is from its capture on the pairs the camera measures above its noise
   // (s_ij >= sqrt(lambda)): sum (U_L^T Y U_R - a U_L^T A X^ U_R)^2 over those pairs, relative to the
   // capture's own energy there, one number per capture {B}, with a fitted as in (1) and held fixed.
@@ -54,6 +59,9 @@ class DataConsistency {
     torch::Tensor capture, picture, gain, usable;  // {B,4,N,N}, {B,4,N,N}, {B,1,1,1}, {B}
   };
   Coefficients coefficients(const torch::Tensor& planes, const torch::Tensor& X) const;
+  // The Gaussian {4,1,k,k} (k = 2 ceil(3 sigma) + 1) on the correction; refused when its reach does
+  // not fit in a `scene`-pixel picture.
+  static torch::Tensor correction_blur(double sigma, int64_t scene);
   torch::Tensor to_planes(const torch::Tensor& srgb) const;      // {B,3,N,N} sRGB -> {B,4,N,N} linear
   torch::Tensor from_planes(const torch::Tensor& planes) const;  // {B,4,N,N} linear -> {B,3,N,N} sRGB
 

@@ -252,6 +252,13 @@ DataConsistencyOptions consistency_of(const ReconstructorSpec& spec, const Model
   o.blur = spec.consistency_blur != ReconstructorSpec::kModelsOwn ? spec.consistency_blur
            : model.consistency_strength > 0                       ? model.consistency_blur
                                                                   : 0;
+  // One rule with export and train: a blur where no step runs would change nothing, so it is refused.
+  require_option(spec.consistency_blur == ReconstructorSpec::kModelsOwn || spec.consistency_blur == 0 || o.strength > 0,
+                 "infer.consistency_blur",
+                 "blurs the data-consistency step's correction, and no step runs here (the model applies none "
+                 "and " +
+                     option_key("infer.data_consistency") +
+                     " is off or not given): give a strength too, or leave the blur out");
   return o;
 }
 

@@ -60,8 +60,15 @@ std::string enhancer_width_key(const ModelSpec& spec) {
 // model.consistency's layer through the training camera's calibration (none when it is 0).
 std::shared_ptr<const DataConsistency> consistency_layer(const Config& config, const ModelSpec& spec,
                                                          const CameraConfig& camera, const TrainOptions& opts) {
-  if (spec.consistency_strength <= 0) return nullptr;
   const auto key = model_key(&ModelSpec::consistency_strength);
+  const auto blur_key = model_key(&ModelSpec::consistency_blur);
+  // One rule with infer and export: a blur where no step runs would do nothing, so it is refused.
+  require(spec.consistency_blur == 0 || spec.consistency_strength > 0, blur_key,
+          "blurs the data-consistency step's correction, and " + key +
+              " is 0 (no step): set the strength too, or leave the blur at 0");
+  if (spec.consistency_strength <= 0) return nullptr;
+  const auto reach = DataConsistency::blur_reach_problem(spec.consistency_blur, camera.scene_size);
+  require(reach.empty(), blur_key, reach);
   require(!config.flag(codes_key(&CodesignOptions::learn)), key,
           "is not available with " + codes_key(&CodesignOptions::learn) + " (the calibration changes as it learns)");
   require(opts.crop == 0, train_key(&TrainOptions::crop),
@@ -261,10 +268,17 @@ void initialise_from_model(const ExperimentOptions& o, const Config& config, con
     log << "initialised from " << o.init_from.string() << " (fresh optimisers)\n";
   // The step after the network is the config's to say: a model trained with it, fine-tuned without
   // it, learns to make pictures without the capture's help (and the reverse), so say which.
-  const auto from = source_model.spec.consistency_strength;
-  if (from != spec.consistency_strength)
+  const bool set_at_export = source_model.provenance.consistency == kConsistencySetAtExport;
+  const auto from = set_at_export ? 0.0 : source_model.spec.consistency_strength;  // what its weights learned with
+  if (set_at_export)
+    log << "note: " << o.init_from.string() << " applies the data-consistency step c "
+        << source_model.spec.consistency_strength << " set at export; its weights were trained without it ("
+        << model_key(&ModelSpec::consistency_strength) << " 0)";
+  else if (from != spec.consistency_strength)
     log << "note: " << o.init_from.string() << " was trained with " << model_key(&ModelSpec::consistency_strength)
-        << " " << from << "; this run trains with " << spec.consistency_strength << " (its config's)\n";
+        << " " << from;
+  if (set_at_export || from != spec.consistency_strength)
+    log << "; this run trains with " << spec.consistency_strength << " (its config's)\n";
   if (o.reinit_inversion && transfer) {
     auto source_camera = o.source_camera;
     if (source_camera.empty()) source_camera = source_model.recorded_camera();
@@ -381,6 +395,16 @@ Config settle_config(const ExperimentOptions& o, bool writer, std::optional<doub
     throw Error(out, "holds the files of another run that never reached its first checkpoint (" +
                          old.front().filename().string() + " ...); set " + option_key("experiment.force") +
                          " to start afresh (deleting them) or choose another " + option_key("experiment.out"));
+  // What --force removes is checked whole before any of it goes: a folder where a run keeps a file is
+  // not the run's (a remove would fail halfway, the old run half gone).
+  if (writer)
+    for (const auto& f : old) {
+      const auto status = std::filesystem::symlink_status(f);
+      require(std::filesystem::is_regular_file(status) || std::filesystem::is_symlink(status), f,
+              "is a folder (or not a plain file) where a run keeps a file; a new run neither removes nor replaces "
+              "it: move it away, or choose another " +
+                  option_key("experiment.out"));
+    }
   return Config::load(o.config, sets);
 }
 

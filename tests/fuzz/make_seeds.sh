@@ -2,7 +2,8 @@
 # Writes the fuzz harnesses' seed corpora (tests/fuzz/corpus/HARNESS/), small files of every kind
 # the readers take, from a tiny camera (32-pixel scenes): what flatnet writes (a model file, a
 # checkpoint, ONNX, a torch.save state dict, config.yaml, camera files, log.csv and val.csv) and what
-# other tools write (.mat by SciPy, PNG and TIFF by Pillow, torch.save by PyTorch: tests/data).
+# other tools write (.mat by SciPy and by matio as v7.3, PNG and TIFF by Pillow, torch.save by
+# PyTorch: tests/data).
 # Usage: tests/fuzz/make_seeds.sh [FLATNET_BINARY]   (needs /usr/bin/python3 with SciPy and Pillow)
 set -euo pipefail
 cd "$(dirname "$0")/../.."
@@ -61,6 +62,10 @@ save("raw16.png", 0, Image.fromarray(raw))
 save("raw16.tif", 1, Image.fromarray(raw))
 save("photo8.png", 0, Image.fromarray((rng.random((8, 8, 3)) * 255).astype(np.uint8)))
 PY
+# v7.3 (HDF5) calibrations as matio writes MATLAB's -v7.3 layout (tests/fuzz/make_v73_seed.c).
+cc -O1 tests/fuzz/make_v73_seed.c -o "$tmp/make_v73_seed" $(pkg-config --cflags --libs matio)
+"$tmp/make_v73_seed" "$corpus/fuzz_calibration/full73.mat"
+cp "$corpus/fuzz_calibration/full73.mat" "$corpus/fuzz_mat/v73.mat"
 
 cp tests/data/torch_save/*.pt "$corpus/fuzz_torch_file/"
 cp tests/data/cameras/tiny.yaml "$tmp/camera.yaml"
