@@ -80,6 +80,9 @@ TEST_CASE("flag rows: the struct's defaults, every member set by its flag, error
   CHECK_THROWS_WITH(parsed({"--seed", "-1"}), Contains("--seed: '-1' is negative"));
   CHECK_THROWS_WITH(parsed({"--seed", "1e30"}), Contains("--seed: '1e30' is out of range for this setting"));
   CHECK_THROWS_WITH(parsed({"--loud", "maybe"}), Contains("--loud: 'maybe': must be on or off"));
+  // A subnormal inside the range is a number (std::stod threw "stod" on it, issue 113).
+  CHECK(parsed({"--rate", "1e-320"}).rate == std::strtod("1e-320", nullptr));
+  CHECK_THROWS_WITH(parsed({"--count", "1e-320"}), Contains("--count: '1e-320' is out of range: 1 to 100"));
 
   // --help and `flatnet options --for` show the struct's defaults and the ranges.
   cxxopts::Options o("test");

@@ -126,11 +126,15 @@ TEST_CASE("a data-consistency blur where no step runs is refused by infer, expor
     for (const auto& w : words) CHECK_THAT(r.output, Contains(w));
     CHECK_FALSE(std::filesystem::exists(out));
   }
-  // A blur far below a pixel is the identity, and writes a model infer can run.
-  const auto r = ::test::run_flatnet("export --model " + q(model) + " --out " + q(out) +
-                                   " --data-consistency 10 --consistency-blur 1e-30");
-  INFO(r.output);
-  CHECK(r.code == 0);
+  // A blur far below a pixel is the identity, and writes a model infer can run; a subnormal one
+  // (1e-320) is a number too (std::stod threw "stod" on it).
+  for (const char* blur : {"1e-30", "1e-320"}) {
+    std::filesystem::remove(out);
+    const auto r = ::test::run_flatnet("export --model " + q(model) + " --out " + q(out) +
+                                     " --data-consistency 10 --consistency-blur " + blur);
+    INFO(r.output);
+    CHECK(r.code == 0);
+  }
 
   // train: a blur at strength 0, and a blur past the camera's 32-pixel scenes, before anything is written.
   const std::vector<std::pair<std::string, std::string>> runs = {

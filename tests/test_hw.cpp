@@ -132,6 +132,8 @@ TEST_CASE("pixel formats: what flatnet can store, and why not", "[hw][unit]") {
   CHECK_THROWS_WITH(describe_pixel_format("YUV422_8"), Contains("not a raw mosaic"));
   CHECK_THROWS_WITH(describe_pixel_format("Mono32"), Contains("do not fit a 16-bit PNG"));
   CHECK_THROWS_WITH(describe_pixel_format("Mono12Foo"), Contains("unsupported packing"));
+  // Digits past an int's range are no bit depth (std::stoi threw "stoi", issue 113).
+  CHECK_THROWS_WITH(describe_pixel_format("Mono99999999999"), Contains("Mono99999999999") && Contains("unrecognised"));
 }
 
 TEST_CASE("packed pixels unpack to the codes the specifications define", "[hw][unit]") {

@@ -106,7 +106,7 @@ void assign_number(const std::string& flag, const std::string& text, double lo, 
   const NumberRule rule{flag.c_str(), lo, hi, *range ? range : std::is_integral_v<T> ? "a whole number" : "a number"};
   const auto problem = number_problem(text, rule);
   if (!problem.empty()) throw Error("--" + flag, "'" + printable(text) + "' " + problem + ": " + rule.meaning);
-  const double value = std::stod(text);
+  const double value = std::strtod(text.c_str(), nullptr);  // std::stod throws on a subnormal (1e-320)
   if constexpr (std::is_integral_v<T>) {
     if constexpr (std::is_unsigned_v<T>) {
       if (value < 0) throw Error("--" + flag, "'" + printable(text) + "' is negative");

@@ -35,7 +35,7 @@ double model_or_number(const std::string& text, const NumberRule& rule) {
   if (text == kModelsOwnText) return ReconstructorSpec::kModelsOwn;
   const auto problem = number_problem(text, rule);
   if (!problem.empty()) throw std::invalid_argument(problem + ": " + rule.meaning);
-  return std::stod(text);
+  return std::strtod(text.c_str(), nullptr);  // std::stod throws on a subnormal (1e-320)
 }
 std::string model_or_number_text(double value) {
   if (value == ReconstructorSpec::kModelsOwn) return kModelsOwnText;

@@ -2,6 +2,7 @@
 
 #include <ctime>
 #include <iomanip>
+#include <limits>
 
 #include "core/error.hpp"
 #include "core/util.hpp"
@@ -28,7 +29,8 @@ int64_t next_index(const std::filesystem::path& dir, const std::string& prefix) 
     const auto stem = e.path().stem().string();
     if (e.path().extension() != ".png" || stem.rfind(prefix + "_", 0) != 0) continue;
     try {
-      next = std::max<int64_t>(next, std::stoll(stem.substr(prefix.size() + 1)) + 1);
+      const int64_t index = std::stoll(stem.substr(prefix.size() + 1));
+      if (index < std::numeric_limits<int64_t>::max()) next = std::max<int64_t>(next, index + 1);
     } catch (const std::exception&) {
     }
   }

@@ -50,7 +50,7 @@ PixelFormatInfo describe_pixel_format(const std::string& name) {
   // rest: "8", "10", "12", "14", "16", "10p", "12p", "10Packed", "12Packed"
   size_t digits = 0;
   while (digits < rest.size() && std::isdigit(static_cast<unsigned char>(rest[digits]))) ++digits;
-  require(digits > 0, name, std::string("unrecognised pixel format; ") + kStorableHint);
+  require(digits > 0 && digits <= 2, name, std::string("unrecognised pixel format; ") + kStorableHint);
   f.bits = std::stoi(rest.substr(0, digits));
   const std::string suffix = rest.substr(digits);
   require(f.bits >= 8 && f.bits <= 16, name,

@@ -66,6 +66,9 @@ PY
 cc -O1 tests/fuzz/make_v73_seed.c -o "$tmp/make_v73_seed" $(pkg-config --cflags --libs matio)
 "$tmp/make_v73_seed" "$corpus/fuzz_calibration/full73.mat"
 cp "$corpus/fuzz_calibration/full73.mat" "$corpus/fuzz_mat/v73.mat"
+# A compressed variable that inflates 500-fold (tests/data/hostile/make_zip_bomb.py, issue 113).
+python3 tests/data/hostile/make_zip_bomb.py "$corpus/fuzz_mat/bomb.mat" 256
+cp "$corpus/fuzz_mat/bomb.mat" "$corpus/fuzz_calibration/bomb.mat"
 
 cp tests/data/torch_save/*.pt "$corpus/fuzz_torch_file/"
 cp tests/data/cameras/tiny.yaml "$tmp/camera.yaml"
