@@ -5,13 +5,19 @@
 #include <fstream>
 #include <functional>
 
+#include <fcntl.h>
+#include <signal.h>
+#include <unistd.h>
+
 #include "core/error.hpp"
 #include "helpers.hpp"
 #include "io/camera_config.hpp"
 #include "io/config.hpp"
 #include "io/dataset.hpp"
 #include "io/image.hpp"
+#include "io/isolated_reader.hpp"
 #include "io/mat.hpp"
+#include "optics/camera.hpp"
 #include "catch_torch.hpp"
 
 using namespace flatnet;
@@ -151,4 +157,73 @@ TEST_CASE("fuzz finding: a TIFF claiming 18.6 M rows per strip is refused before
   // A TIFF as libtiff writes it (strips of a few rows) still reads.
   write_gray16(s.dir / "strips.tif", torch::full({300, 200}, 500, torch::kInt32));
   CHECK(read_gray16(s.dir / "strips.tif").size(0) == 300);
+}
+
+TEST_CASE(
+    "fuzz finding: HDF5 overruns a heap buffer and reads a wild address in damaged v7.3 files; the child that "
+    "parses them ends, flatnet does not",
+    "[safe][fuzz]") {
+  // Both were seeded from a v7.3 calibration matio wrote (tests/fuzz/corpus/fuzz_calibration/full73.mat):
+  // libhdf5 1.10.8 (Debian 12) copied 64 bytes past a 92-byte buffer, and read from a wild address,
+  // inside the flatnet process. Now HDF5 runs in an isolated child (io/isolated_reader.hpp): a crash
+  // there is an Error naming the file, and what the child hands back is a value like any other.
+  CameraConfig camera;  // the harness's tiny camera: 12x14 planes, 8-pixel scenes
+  camera.raw.raw_height = 32, camera.raw.raw_width = 32;
+  camera.raw.crop = {0, 0, 12, 14};
+  camera.scene_size = 8;
+  for (const char* name : {"fuzz_calibration-v73-hdf5-wild-read.bin", "fuzz_mat-v73-hdf5-heap-overflow.bin"}) {
+    INFO(name);
+    try {
+      (void)load_calibration(finding(name), camera);
+    } catch (const Error& e) {
+      CHECK_THAT(std::string(e.what()), Contains(name));
+    }
+  }
+}
+
+TEST_CASE("an isolated reader: a crash, a throw, a file it may not open, a hog and a flood each end as an Error",
+          "[safe][fuzz]") {
+  const std::filesystem::path file = "parsed.bin";
+  // What the parse returns comes back; what it throws comes back as the Error's text.
+  CHECK(read_isolated(file, [](const std::function<void()>& lock_down) {
+          lock_down();
+          return std::string("values");
+        }) == "values");
+  CHECK_THROWS_WITH(read_isolated(file,
+                                  [](const std::function<void()>&) -> std::string {
+                                    throw Error(std::filesystem::path("parsed.bin"), "variable 'x' is damaged");
+                                  }),
+                    Contains("parsed.bin: variable 'x' is damaged"));
+  // A crash ends the child only.
+  CHECK_THROWS_WITH(read_isolated(file,
+                                  [](const std::function<void()>&) -> std::string {
+                                    raise(SIGSEGV);
+                                    return "";
+                                  }),
+                    Contains("parsed.bin") && Contains("signal 11"));
+  // Once locked down, the parser can open nothing (an HDF5 external link, an exploit's payload).
+  const auto opened = read_isolated(file, [](const std::function<void()>& lock_down) {
+    lock_down();
+    const int fd = open("/etc/hostname", O_RDONLY);
+    return std::string(fd < 0 && errno == EPERM ? "refused" : "opened");
+  });
+#if defined(__x86_64__)
+  CHECK(opened == "refused");
+#endif
+  // A parser that spins is stopped by its CPU time; one that floods by the output bound.
+  IsolatedReadOptions o;
+  o.cpu_seconds = 1;
+  CHECK_THROWS_WITH(read_isolated(
+                        file,
+                        [](const std::function<void()>& lock_down) -> std::string {
+                          lock_down();
+                          for (volatile uint64_t i = 0;; i = i + 1) {
+                          }
+                        },
+                        o),
+                    Contains("parsed.bin") && Contains("CPU time"));
+  o.max_output_bytes = 1000;
+  CHECK_THROWS_WITH(read_isolated(
+                        file, [](const std::function<void()>&) { return std::string(5000, 'x'); }, o),
+                    Contains("parsed.bin") && Contains("more than 1000 bytes"));
 }

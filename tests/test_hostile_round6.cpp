@@ -84,7 +84,7 @@ TEST_CASE("the data-consistency blur: far below a pixel it is the identity, past
     CHECK(torch::allclose(out, unblurred, 1e-5, 1e-6));
   }
   // 16-pixel scenes hold a 3-sigma reach of 15 pixels: sigma 5 at most.
-  CHECK(DataConsistency::largest_blur(flatnet::test::kBenchScene) == Approx(5.0));
+  CHECK(largest_consistency_blur(flatnet::test::kBenchScene) == Approx(5.0));
   CHECK_NOTHROW(DataConsistency(b.calib, b.camera, {10.0, 5.0}));
   CHECK_THROWS_WITH(DataConsistency(b.calib, b.camera, {10.0, 5.01}),
                     Contains("consistency_blur") && Contains("16-pixel scenes"));
@@ -131,7 +131,7 @@ TEST_CASE("a data-consistency blur where no step runs is refused by infer, expor
   for (const char* blur : {"1e-30", "1e-320"}) {
     std::filesystem::remove(out);
     const auto r = ::test::run_flatnet("export --model " + q(model) + " --out " + q(out) +
-                                     " --data-consistency 10 --consistency-blur " + blur);
+                                       " --data-consistency 10 --consistency-blur " + blur);
     INFO(r.output);
     CHECK(r.code == 0);
   }
@@ -161,14 +161,15 @@ TEST_CASE("the data-consistency step's origin survives averaging, refuses a mixe
   CHECK(load_model_file(trained).provenance.consistency == kConsistencyTrained);
   CHECK(load_model_file(plain).provenance.consistency.empty());
   for (const char* name : {"a.flatnet", "b.flatnet"}) {
-    const auto r = ::test::run_flatnet("export --model " + q(plain) + " --data-consistency 10 --out " + q(s.dir / name));
+    const auto r =
+        ::test::run_flatnet("export --model " + q(plain) + " --data-consistency 10 --out " + q(s.dir / name));
     INFO(r.output);
     REQUIRE(r.code == 0);
     CHECK(load_model_file(s.dir / name).provenance.consistency == kConsistencySetAtExport);
   }
   // Two models whose step was set at export: their mean says so.
   auto r = ::test::run_flatnet("export --average-of " + q(s.dir / "a.flatnet") + "," + q(s.dir / "b.flatnet") +
-                             " --out " + q(s.dir / "mean.flatnet"));
+                               " --out " + q(s.dir / "mean.flatnet"));
   INFO(r.output);
   REQUIRE(r.code == 0);
   const auto mean = load_model_file(s.dir / "mean.flatnet");
@@ -178,13 +179,13 @@ TEST_CASE("the data-consistency step's origin survives averaging, refuses a mixe
   CHECK_THAT(r.output, Contains("set at export"));
   // One trained with the step, one whose step was set at export: the same spec, not the same model.
   r = ::test::run_flatnet("export --average-of " + q(trained) + "," + q(s.dir / "a.flatnet") + " --out " +
-                        q(s.dir / "mixed.flatnet"));
+                          q(s.dir / "mixed.flatnet"));
   CHECK(r.code == 2);
   CHECK_THAT(r.output, Contains("a.flatnet") && Contains("set at export") && Contains("trained with"));
   CHECK_FALSE(std::filesystem::exists(s.dir / "mixed.flatnet"));
   // An empty name in the list is named as such.
   r = ::test::run_flatnet("export --average-of " + q(s.dir / "a.flatnet") + ",," + q(s.dir / "b.flatnet") + " --out " +
-                        q(s.dir / "x.flatnet"));
+                          q(s.dir / "x.flatnet"));
   CHECK(r.code == 2);
   CHECK_THAT(r.output, Contains("--average-of") && Contains("empty name"));
   // A file from before the origin was recorded: its source text says it.
@@ -196,6 +197,15 @@ TEST_CASE("the data-consistency step's origin survives averaging, refuses a mixe
   file.metadata["consistency"] = "learned\nsomewhere";
   write_safetensors(s.dir / "forged.flatnet", file.tensors, file.metadata);
   CHECK_THROWS_WITH(load_model_file(s.dir / "forged.flatnet"), Contains("forged.flatnet") && Contains("consistency"));
+  // A step whose blur reaches past the file's own 16-pixel scenes (inside model_spec's 0-64): refused
+  // as the file is read, naming it, not later as an internal error.
+  auto stepped = read_safetensors(trained);
+  auto& spec_text = stepped.metadata["model_spec"];
+  const auto at = spec_text.find("blur: 0");
+  REQUIRE(at != std::string::npos);
+  spec_text.replace(at, 7, "blur: 64");
+  write_safetensors(s.dir / "reach.flatnet", stepped.tensors, stepped.metadata);
+  CHECK_THROWS_WITH(load_model_file(s.dir / "reach.flatnet"), Contains("reach.flatnet") && Contains("16-pixel scenes"));
 }
 
 TEST_CASE("train --force checks everything it would remove before it removes anything", "[safe][hostile][train]") {
@@ -299,11 +309,12 @@ TEST_CASE("simulate says when most captures clip, and names the setting that fix
   ::test::Scratch s("round6_clipped");
   const auto photos = ::test::make_photos(s.dir / "photos");
   auto r = ::test::run_flatnet("simulate --images " + q(photos) + " --out " + q(s.dir / "bright") +
-                             " --exposure 60 --noise off --workers 1");
+                               " --exposure 60 --noise off --workers 1");
   INFO(r.output);
   REQUIRE(r.code == 0);
   CHECK_THAT(r.output, Contains("2 of 2 captures") && Contains("full scale") && Contains("--exposure"));
-  r = ::test::run_flatnet("simulate --images " + q(photos) + " --out " + q(s.dir / "plain") + " --noise off --workers 1");
+  r = ::test::run_flatnet("simulate --images " + q(photos) + " --out " + q(s.dir / "plain") +
+                          " --noise off --workers 1");
   REQUIRE(r.code == 0);
   CHECK_THAT(r.output, !Contains("full scale"));
 }
@@ -330,8 +341,8 @@ TEST_CASE("a shift search that ends at its range's edge is no finding: the struc
   o.progress = false;
   o.iterations = 12;
   const auto fit = calibrate_from_pairs(12, load, rows, cols, n, o);
-  INFO("searched " << fit.searched_shifts[0] << " " << fit.searched_shifts[1] << ", explains "
-                   << fit.structure_explains << ", edge " << fit.shift_at_edge[0] << fit.shift_at_edge[1]);
+  INFO("searched " << fit.searched_shifts[0] << " " << fit.searched_shifts[1] << ", explains " << fit.structure_explains
+                   << ", edge " << fit.shift_at_edge[0] << fit.shift_at_edge[1]);
   CHECK(fit.searched_shifts[0] == Approx(-1.7).margin(0.02));  // the rows' shadow is found
   CHECK_FALSE(fit.shift_at_edge[0]);
   // The columns' search drifted to the top of its range (7.7 of 8), and the share alone would have kept it.

@@ -62,7 +62,8 @@ std::string training_text(const Provenance& p) {
   if (!p.train_seconds.empty() && is_decimal_number(p.train_seconds))
     os << ", " << format_duration(std::strtod(p.train_seconds.c_str(), nullptr)) << " of training";
   if (!p.best_val_psnr.empty() && is_decimal_number(p.best_val_psnr))
-    os << ", best validation PSNR " << std::fixed << std::setprecision(2) << std::strtod(p.best_val_psnr.c_str(), nullptr) << " dB";
+    os << ", best validation PSNR " << std::fixed << std::setprecision(2)
+       << std::strtod(p.best_val_psnr.c_str(), nullptr) << " dB";
   return os.str();
 }
 

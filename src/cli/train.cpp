@@ -176,7 +176,7 @@ void set_inference_consistency(const cxxopts::ParseResult& r, ModelFile& m) {
   require(given.consistency_blur == 0 || given.data_consistency > 0, "--consistency-blur",
           "blurs the data-consistency step's correction, and --data-consistency off writes no step: leave the blur "
           "out");
-  const auto reach = DataConsistency::blur_reach_problem(given.consistency_blur, m.camera.scene_size);
+  const auto reach = consistency_blur_reach_problem(given.consistency_blur, m.camera.scene_size);
   require(reach.empty(), "--consistency-blur", reach);
   const bool trained_with = m.provenance.consistency == kConsistencyTrained;
   m.spec.consistency_strength = given.data_consistency;

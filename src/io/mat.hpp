@@ -1,9 +1,12 @@
 #pragma once
-// MATLAB .mat files (v5; v7.3 when matio was built with HDF5) through matio.
+// MATLAB .mat files (v5; v7.3 when matio was built with HDF5) through matio. A v7.3 file is HDF5,
+// whose parser is not safe on damaged files: it is read whole in an isolated child process
+// (io/isolated_reader.hpp), every variable checked against the reader's bound there.
 // MATLAB stores arrays column-major; these functions return and take row-major torch tensors
 // with MATLAB's shape (a 500x256 variable becomes a {500,256} tensor, a 500x256x4 one {500,256,4}).
 #include <filesystem>
 #include <map>
+#include <memory>
 #include <string>
 #include <vector>
 
@@ -33,10 +36,14 @@ class MatReader {
   double read_scalar(const std::string& name) const;
   const std::filesystem::path& path() const { return path_; }
 
+  struct Variables;  // a v7.3 file's variables, as its isolated reader handed them back (mat.cpp)
+
  private:
   std::filesystem::path path_;
   uint64_t max_variable_bytes_;
-  void* mat_ = nullptr;
+  void* mat_ = nullptr;  // a v5 file, open in matio
+  std::unique_ptr<const Variables> v73_;
+  [[noreturn]] void missing(const std::string& name) const;
 };
 
 // Writes float64 variables. The file appears atomically when write() returns.

@@ -102,6 +102,12 @@ std::pair<ModelSpec, CameraConfig> stored_model(const Stored& s, const std::file
           "its camera carries a bench: section (simulated bench errors); a model file never does: not a file "
           "flatnet wrote, or one edited by hand");
   check_sizes_against_weights(spec, camera, s, path);
+  // A step the model applies must fit its own scenes (model_spec's 0-64 allows more than a small
+  // camera holds): refused here, naming the file, rather than at inference naming a setting.
+  if (spec.consistency_strength > 0) {
+    const auto reach = consistency_blur_reach_problem(spec.consistency_blur, camera.scene_size);
+    require(reach.empty(), path, "its data-consistency step (model.consistency.blur): " + reach);
+  }
   return {spec, camera};
 }
 

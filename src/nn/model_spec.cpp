@@ -1,6 +1,7 @@
 #include "nn/model_spec.hpp"
 
 #include <cmath>
+#include <iomanip>
 #include <regex>
 #include <sstream>
 
@@ -236,6 +237,17 @@ std::string consistency_text(const ModelSpec& spec) {
   std::ostringstream s;
   s << ", pictures corrected by their captures (data consistency c " << spec.consistency_strength << ", blur "
     << spec.consistency_blur << " px)";
+  return s.str();
+}
+
+double largest_consistency_blur(int64_t scene) { return static_cast<double>(scene - 1) / 3; }
+
+std::string consistency_blur_reach_problem(double sigma, int64_t scene) {
+  if (sigma <= largest_consistency_blur(scene)) return "";
+  std::ostringstream s;
+  s << "a blur of " << sigma << " scene pixels reaches " << std::ceil(3 * sigma) << " pixels (3 sigma), more than "
+    << scene << "-pixel scenes hold: at most " << std::setprecision(4) << largest_consistency_blur(scene)
+    << " for this camera";
   return s.str();
 }
 

@@ -94,5 +94,10 @@ std::string first_stage_text(const ModelSpec& spec);
 std::string enhancer_text(const ModelSpec& spec);
 // ", pictures corrected by their captures (data consistency c 10, blur 1 px)", or "" for a model without.
 std::string consistency_text(const ModelSpec& spec);
+// The largest data-consistency blur sigma a `scene`-pixel picture holds (its 3 sigma reach inside the
+// scene, which reflection padding needs), and the reason a larger one is refused ("" when it fits):
+// one rule for the step at inference, at export, in training and in a model file as it is read.
+double largest_consistency_blur(int64_t scene);
+std::string consistency_blur_reach_problem(double sigma, int64_t scene);
 
 }  // namespace flatnet

@@ -7,6 +7,7 @@
 #include "core/error.hpp"
 #include "io/image.hpp"
 #include "io/raw.hpp"
+#include "nn/model_spec.hpp"
 
 namespace flatnet {
 
@@ -34,19 +35,9 @@ DataConsistency::DataConsistency(const Calibration& calib, const CameraConfig& c
   if (o.blur > 0) blur_ = correction_blur(o.blur, P_.size(2));
 }
 
-double DataConsistency::largest_blur(int64_t scene) { return static_cast<double>(scene - 1) / 3; }
-
-std::string DataConsistency::blur_reach_problem(double sigma, int64_t scene) {
-  if (sigma <= largest_blur(scene)) return "";
-  std::ostringstream s;
-  s << "a blur of " << sigma << " scene pixels reaches " << std::ceil(3 * sigma) << " pixels (3 sigma), more than "
-    << scene << "-pixel scenes hold: at most " << std::setprecision(4) << largest_blur(scene) << " for this camera";
-  return s.str();
-}
-
 torch::Tensor DataConsistency::correction_blur(double sigma, int64_t scene) {
   // Reflection padding needs the kernel's radius (3 sigma) inside the scene.
-  const auto problem = blur_reach_problem(sigma, scene);
+  const auto problem = consistency_blur_reach_problem(sigma, scene);  // nn/model_spec.hpp
   require_option(problem.empty(), "infer.consistency_blur", problem);
   const auto radius = static_cast<int64_t>(std::ceil(3 * sigma));
   // exp(-(x / sigma)^2 / 2) in float64: a sigma far below a pixel gives the identity (1 at x = 0, 0

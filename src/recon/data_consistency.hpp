@@ -42,10 +42,6 @@ class DataConsistency {
   // The share of singular pairs the capture dominates in (1), s_ij >= c sqrt(lambda) (mean over channels).
   double measured_share() const { return measured_share_; }
   double strength() const { return strength_; }
-  // The largest blur sigma a `scene`-pixel picture holds (its 3 sigma reach inside the scene), and
-  // the reason a larger one is refused ("" when it fits).
-  static double largest_blur(int64_t scene);
-  static std::string blur_reach_problem(double sigma, int64_t scene);
   // How far a picture is from its capture on the pairs the camera measures above its noise
   // (s_ij >= sqrt(lambda)): sum (U_L^T Y U_R - a U_L^T A X^ U_R)^2 over those pairs, relative to the
   // capture's own energy there, one number per capture {B}, with a fitted as in (1) and held fixed.

@@ -67,7 +67,7 @@ std::shared_ptr<const DataConsistency> consistency_layer(const Config& config, c
           "blurs the data-consistency step's correction, and " + key +
               " is 0 (no step): set the strength too, or leave the blur at 0");
   if (spec.consistency_strength <= 0) return nullptr;
-  const auto reach = DataConsistency::blur_reach_problem(spec.consistency_blur, camera.scene_size);
+  const auto reach = consistency_blur_reach_problem(spec.consistency_blur, camera.scene_size);
   require(reach.empty(), blur_key, reach);
   require(!config.flag(codes_key(&CodesignOptions::learn)), key,
           "is not available with " + codes_key(&CodesignOptions::learn) + " (the calibration changes as it learns)");
