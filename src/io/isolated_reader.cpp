@@ -43,12 +43,12 @@ constexpr int kOutFd = 3;  // the pipe's write end in the child
 // and ending (abort included). Every other call fails with EPERM: no open, no exec, no socket.
 void allow_only_parsing_calls() {
 #if defined(__x86_64__)
-  static const int allowed[] = {SYS_read,        SYS_write,        SYS_pread64,   SYS_lseek,        SYS_fstat,
-                                SYS_newfstatat,  SYS_close,        SYS_mmap,      SYS_munmap,       SYS_mremap,
-                                SYS_brk,         SYS_madvise,      SYS_mprotect,  SYS_futex,        SYS_exit,
-                                SYS_exit_group,  SYS_rt_sigreturn, SYS_rt_sigprocmask, SYS_rt_sigaction, SYS_tgkill,
-                                SYS_gettid,      SYS_getpid,       SYS_clock_gettime, SYS_sigaltstack, SYS_sched_yield,
-                                SYS_getrandom,   SYS_readv,        SYS_writev};
+  static const int allowed[] = {SYS_read,       SYS_write,        SYS_pread64,        SYS_lseek,        SYS_fstat,
+                                SYS_newfstatat, SYS_close,        SYS_mmap,           SYS_munmap,       SYS_mremap,
+                                SYS_brk,        SYS_madvise,      SYS_mprotect,       SYS_futex,        SYS_exit,
+                                SYS_exit_group, SYS_rt_sigreturn, SYS_rt_sigprocmask, SYS_rt_sigaction, SYS_tgkill,
+                                SYS_gettid,     SYS_getpid,       SYS_clock_gettime,  SYS_sigaltstack,  SYS_sched_yield,
+                                SYS_getrandom,  SYS_readv,        SYS_writev};
   std::vector<sock_filter> f;
   f.push_back(BPF_STMT(BPF_LD | BPF_W | BPF_ABS, offsetof(seccomp_data, arch)));
   f.push_back(BPF_JUMP(BPF_JMP | BPF_JEQ | BPF_K, AUDIT_ARCH_X86_64, 1, 0));
@@ -119,7 +119,8 @@ std::string collect(int in, pid_t child, const std::filesystem::path& path, cons
   const auto deadline = std::chrono::steady_clock::now() + std::chrono::seconds(o.wall_seconds);
   std::vector<char> buffer(1 << 16);
   for (;;) {
-    const auto left = std::chrono::duration_cast<std::chrono::milliseconds>(deadline - std::chrono::steady_clock::now());
+    const auto left =
+        std::chrono::duration_cast<std::chrono::milliseconds>(deadline - std::chrono::steady_clock::now());
     pollfd p{in, POLLIN, 0};
     const int ready = left.count() > 0 ? poll(&p, 1, static_cast<int>(left.count())) : 0;
     if (ready < 0 && errno == EINTR) continue;
