@@ -276,6 +276,17 @@ TEST_CASE("simulate makes dim, lamp and held-out-only sets, and train --init-fro
     INFO(k);
     CHECK(torch::equal(t, b.at(k)));  // lr 0: the weights are the model's
   }
+  // A model whose data-consistency step was set at export: its weights learned without it, and the
+  // log says so (it said "was trained with model.consistency.strength 10", issue 113).
+  r = test::run_flatnet("export --model " + q(s.dir / "first" / "model.flatnet") + " --data-consistency 10 --out " +
+                        q(s.dir / "stepped.flatnet"));
+  REQUIRE(r.code == 0);
+  r = test::run_flatnet(base +
+                        " --set train.iterations=1 --set train.lr=0 --set train.lr_discriminator=0 --init-from " +
+                        q(s.dir / "stepped.flatnet") + " --out " + q(s.dir / "from_stepped"));
+  INFO(r.output);
+  REQUIRE(r.code == 0);
+  CHECK_THAT(r.output, Contains("set at export; its weights were trained without it") && !Contains("was trained with"));
   bad = test::run_flatnet(base + " --set model.unet.width=4 --init-from " + q(s.dir / "first" / "model.flatnet") +
                           " --out " + q(s.dir / "third"));
   CHECK(bad.code == 2);
