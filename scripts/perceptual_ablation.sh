@@ -8,8 +8,10 @@
 # Each is scored on the 250 held-out display captures (data/eval/heldout, scripts/make_eval_sets.sh):
 # PSNR, SSIM, NIQE, colourfulness and detail kept (`flatnet eval`).
 # Usage: scripts/perceptual_ablation.sh [MINUTES] [OUT] [VARIANT ...]   (defaults: 15, ~/flatnet-runs/q26/ablation, all)
+# Environment: CONFIG (the recipe; default configs/sim_transpose.yaml), SHIPPED (the starting model),
+# LR (the constant learning rate, default 1.0e-4), HELDOUT, FLATNET.
 # Resumable: a variant with eval.txt is kept; a run stopped early is resumed within its budget.
-# Writes OUT/ablation.csv: variant,steps,psnr,ssim,niqe,colour_kept,detail_kept.
+# Writes OUT/ablation.csv: variant,steps,psnr,ssim,niqe,colour_kept,detail_kept,stripes.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 minutes=${1:-15}
@@ -20,7 +22,8 @@ heldout=${HELDOUT:-data/eval/heldout}
 shipped=${SHIPPED:-models/flatnet-sim-transpose.flatnet}
 config=${CONFIG:-configs/sim_transpose.yaml}
 [ -f "$heldout/val_meas.txt" ] || { echo "perceptual_ablation: $heldout missing (run scripts/make_eval_sets.sh)" >&2; exit 2; }
-constant=(--set train.schedule=halving --set train.lr_halve_every=1000000000 --set train.lr=1.0e-4
+lr=${LR:-1.0e-4}
+constant=(--set train.schedule=halving --set train.lr_halve_every=1000000000 --set "train.lr=$lr"
           --set train.iterations=1000000 --set train.val_every=250 --set train.val_count=16)
 declare -A variants=(
   [recipe]=""
@@ -29,6 +32,12 @@ declare -A variants=(
   [frequency]="--set loss.frequency=5"
   [chroma]="--set loss.chroma=0.5"
   [gradient]="--set loss.gradient=0.5"
+  # issue 112 (run with CONFIG=configs/gan_transpose.yaml: each is the GAN recipe plus the term)
+  [detail]="--set loss.detail=1"
+  [random-features]="--set loss.random_features=0.1"
+  [detail-3]="--set loss.detail=3"
+  [detail+random-features]="--set loss.detail=1 --set loss.random_features=0.1"
+  [adversarial-0.03]="--set loss.adversarial=0.03"
 )
 order=(recipe adversarial feature-matching frequency chroma gradient)
 [ $# -gt 0 ] && order=("$@")
@@ -60,10 +69,10 @@ for ((i = 0; i < ${#order[@]}; i += 2)); do
   wait "${pids[@]}"
 done
 
-# metrics.csv mean row: mean,method,psnr,ssim,mean_output,mean_truth,niqe,colour_kept,detail_kept
-echo "variant,steps,psnr,ssim,niqe,colour_kept,detail_kept" > "$out/ablation.csv"
+# metrics.csv mean row: mean,method,psnr,ssim,mean_output,mean_truth,niqe,colour_kept,detail_kept,stripes
+echo "variant,steps,psnr,ssim,niqe,colour_kept,detail_kept,stripes" > "$out/ablation.csv"
 for name in "${order[@]}"; do
   steps=$(tail -n 1 "$out/$name/log.csv" | cut -d, -f1)
-  scores=$(grep "^mean,$name," "$out/$name/eval/$name/metrics.csv" | cut -d, -f3,4,7,8,9)
+  scores=$(grep "^mean,$name," "$out/$name/eval/$name/metrics.csv" | cut -d, -f3,4,7,8,9,10)
   echo "$name,$steps,$scores" | tee -a "$out/ablation.csv"
 done

@@ -465,7 +465,9 @@ TEST_CASE("the weight-free perceptual terms: 0 on the truth, positive otherwise,
       {"feature matching", [&](const torch::Tensor& x) { return feature_matching_loss(d, x, y); }},
       {"focal frequency", [&](const torch::Tensor& x) { return focal_frequency_loss(x, y); }},
       {"chroma", [&](const torch::Tensor& x) { return chroma_loss(x, y); }},
-      {"gradient", [&](const torch::Tensor& x) { return gradient_loss(x, y); }}};
+      {"gradient", [&](const torch::Tensor& x) { return gradient_loss(x, y); }},
+      {"detail energy", [&](const torch::Tensor& x) { return detail_energy_loss(x, y); }},
+      {"random features", [&](const torch::Tensor& x) { return random_feature_loss(x, y); }}};
   d->eval();  // batch norm on running statistics: features of y are the same whichever batch holds it
   for (const auto& [name, term] : terms) {
     INFO(name);
@@ -500,6 +502,39 @@ TEST_CASE(
   const auto blur5 = F::avg_pool2d(y, F::AvgPool2dFuncOptions(5).stride(1).padding(2).count_include_pad(false));
   CHECK(focal_frequency_loss(blur5, y).item<double>() > focal_frequency_loss(blur3, y).item<double>());
   CHECK(gradient_loss(blur5, y).item<double>() > gradient_loss(blur3, y).item<double>());
+}
+
+TEST_CASE("the detail term wants the truth's texture, not its phase; the random features are fixed and see blur",
+          "[nn][loss]") {
+  const auto y = read_rgb(test::data_dir() / "golden" / "inet_n02980441_castle_scene.png").unsqueeze(0);
+  namespace F = torch::nn::functional;
+  auto box = [&](int k) {
+    return F::avg_pool2d(y, F::AvgPool2dFuncOptions(k).stride(1).padding(k / 2).count_include_pad(false));
+  };
+  const auto blur3 = box(3), blur5 = box(5);
+  // The same texture two pixels over: a large pixel error, but each 8x8 window holds as much detail.
+  const auto shifted = torch::roll(y, {2, 2}, {2, 3});
+  const double mse_shift = torch::mse_loss(shifted, y).item<double>(),
+               mse_blur = torch::mse_loss(blur3, y).item<double>();
+  REQUIRE(mse_shift > mse_blur);
+  CHECK(detail_energy_loss(shifted, y).item<double>() < 0.5 * detail_energy_loss(blur3, y).item<double>());
+  CHECK(detail_energy_loss(blur5, y).item<double>() > detail_energy_loss(blur3, y).item<double>());
+  // A step down its gradient sharpens a blurred picture: eval's detail measure rises.
+  const auto x = blur5.clone().requires_grad_(true);
+  detail_energy_loss(x, y).backward();
+  const auto stepped = (blur5 - 0.05 * x.grad() / x.grad().abs().max()).clamp(0, 1);  // at most 0.05 a pixel
+  CHECK(luma_detail(stepped[0]) > luma_detail(blur5[0]) * 1.02);
+  CHECK(detail_energy_loss(stepped, y).item<double>() < detail_energy_loss(blur5, y).item<double>());
+  // The random network: fixed weights (one seed), VGG-like stage shapes, and a blur costs more the larger it is.
+  const auto small = y.slice(2, 0, 64).slice(3, 0, 64);
+  const auto f1 = random_features(small), f2 = random_features(small);
+  REQUIRE(f1.size() == 3);
+  CHECK(f1[0].sizes() == torch::IntArrayRef({1, 16, 64, 64}));
+  CHECK(f1[1].sizes() == torch::IntArrayRef({1, 32, 32, 32}));
+  CHECK(f1[2].sizes() == torch::IntArrayRef({1, 64, 16, 16}));
+  for (size_t i = 0; i < f1.size(); ++i) CHECK(torch::equal(f1[i], f2[i]));
+  CHECK(random_feature_loss(blur5, y).item<double>() > random_feature_loss(blur3, y).item<double>());
+  CHECK_THROWS(detail_energy_loss(y.slice(2, 0, 16), y.slice(2, 0, 16)));  // too small for three bands
 }
 
 TEST_CASE("the stripe term is eval's stripe energy (squared, over 255^2), ignores an offset, and has a gradient",

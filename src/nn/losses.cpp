@@ -238,4 +238,96 @@ torch::Tensor ssim_loss(const torch::Tensor& x_in, const torch::Tensor& y_in) {
   return 1 - s.mean();
 }
 
+namespace {
+
+// The luma (Rec. 601, as eval's detail measure) of {B,3,H,W} as {B,1,H,W}.
+torch::Tensor luma_of(const torch::Tensor& rgb) {
+  return (0.299 * rgb.select(1, 0) + 0.587 * rgb.select(1, 1) + 0.114 * rgb.select(1, 2)).unsqueeze(1);
+}
+
+// {B,1,H,W} less its 3x3 binomial blur (edges replicated): the band of one pyramid level.
+torch::Tensor band_of(const torch::Tensor& luma) {
+  namespace F = torch::nn::functional;
+  const auto k1 = torch::tensor({0.25f, 0.5f, 0.25f});
+  const auto k = (k1.view({3, 1}) * k1.view({1, 3})).view({1, 1, 3, 3});
+  const auto padded = F::pad(luma, F::PadFuncOptions({1, 1, 1, 1}).mode(torch::kReplicate));
+  return luma - F::conv2d(padded, k);
+}
+
+// Mean |band| over 8x8 windows, stride 4: {B,1,H,W} -> {B,1,(H-8)/4+1,(W-8)/4+1}.
+torch::Tensor local_energy(const torch::Tensor& band) { return torch::avg_pool2d(band.abs(), {8, 8}, {4, 4}); }
+
+}  // namespace
+
+torch::Tensor detail_energy_loss(const torch::Tensor& x_in, const torch::Tensor& y_in) {
+  TORCH_CHECK(
+      x_in.sizes() == y_in.sizes() && x_in.dim() == 4 && x_in.size(1) == 3 && x_in.size(2) >= 32 && x_in.size(3) >= 32,
+      "detail_energy_loss: equal {B,3,H,W} inputs with H, W >= 32 expected, got ", x_in.sizes(), " and ", y_in.sizes());
+  AutocastOffGuard fp32;
+  auto lx = luma_of(x_in.to(torch::kFloat32)), ly = luma_of(y_in.detach().to(torch::kFloat32));
+  torch::Tensor total = torch::zeros({}, torch::kFloat32);
+  const int levels = 3;
+  for (int l = 0; l < levels; ++l) {
+    if (l > 0) lx = torch::avg_pool2d(lx, 2), ly = torch::avg_pool2d(ly, 2);
+    if (lx.size(2) < 8 || lx.size(3) < 8) break;
+    total = total + torch::l1_loss(local_energy(band_of(lx)), local_energy(band_of(ly)));
+  }
+  return total / levels;
+}
+
+namespace {
+
+// The fixed random network of random_feature_loss: {out channels} per stage, two convolutions each.
+struct RandomFeatureNet {
+  std::vector<torch::Tensor> weights;  // {out,in,3,3}, He-normal (std sqrt(2 / (9 in)))
+  std::vector<int> stage_end;          // index of each stage's last convolution
+};
+
+const RandomFeatureNet& random_feature_net() {
+  static const RandomFeatureNet net = [] {
+    RandomFeatureNet n;
+    auto gen = at::detail::createCPUGenerator(kRandomFeatureSeed);
+    int64_t in = 3;
+    for (const int64_t c : {16, 32, 64}) {
+      for (int i = 0; i < 2; ++i, in = c)
+        n.weights.push_back(torch::randn({c, in, 3, 3}, gen, torch::kFloat32) * std::sqrt(2.0 / (9.0 * in)));
+      n.stage_end.push_back(static_cast<int>(n.weights.size()) - 1);
+    }
+    return n;
+  }();
+  return net;
+}
+
+}  // namespace
+
+std::vector<torch::Tensor> random_features(const torch::Tensor& x_in) {
+  AutocastOffGuard fp32;
+  const auto& net = random_feature_net();
+  std::vector<torch::Tensor> out;
+  auto h = (x_in.to(torch::kFloat32) - 0.5) * 2.0;  // centred: [0,1] -> [-1,1]
+  size_t stage = 0;
+  for (size_t i = 0; i < net.weights.size(); ++i) {
+    h = torch::relu(torch::conv2d(h, net.weights[i], {}, 1, 1));
+    if (static_cast<int>(i) == net.stage_end[stage]) {
+      out.push_back(h);
+      if (++stage < net.stage_end.size()) h = torch::max_pool2d(h, 2);
+    }
+  }
+  return out;
+}
+
+torch::Tensor random_feature_loss(const torch::Tensor& x, const torch::Tensor& y) {
+  TORCH_CHECK(x.sizes() == y.sizes() && x.dim() == 4 && x.size(1) == 3,
+              "random_feature_loss: equal {B,3,H,W} inputs expected, got ", x.sizes(), " and ", y.sizes());
+  const auto fx = random_features(x);
+  std::vector<torch::Tensor> fy;
+  {
+    torch::NoGradGuard no_grad;
+    fy = random_features(y);
+  }
+  torch::Tensor total = torch::zeros({}, torch::kFloat32);
+  for (size_t i = 0; i < fx.size(); ++i) total = total + torch::l1_loss(fx[i], fy[i]);
+  return total / static_cast<double>(fx.size());
+}
+
 }  // namespace flatnet

@@ -92,6 +92,26 @@ torch::Tensor gradient_loss(const torch::Tensor& x, const torch::Tensor& y);
 // along a row, and a slowly varying error, do not.
 torch::Tensor stripe_loss(const torch::Tensor& x, const torch::Tensor& y);
 
+// Detail term (issue 112): the local energy of three bands of the luma, matched, not the bands
+// themselves. Band l of a pyramid (l = 0, 1, 2: the luma at full, half and quarter size) is the luma
+// less its 3x3 binomial blur; its energy is the mean |band| over 8x8 windows (stride 4). The loss
+// is the mean L1 distance of x's and y's energies over the bands. It does not care where inside a
+// window the fur's hairs are, only that the window has as much fine structure as the truth's: the
+// mean a regressor predicts under uncertainty (smooth) costs here, while MSE rewards it.
+// {B,3,H,W}, H and W >= 32; fp32.
+torch::Tensor detail_energy_loss(const torch::Tensor& x, const torch::Tensor& y);
+
+// Random-feature perceptual term (issue 112; the "generic perceptual loss" of Liu et al., CVPR 2021:
+// an untrained deep network's features already capture structure). A VGG-like network of three
+// stages of two 3x3 convolutions and ReLU (16, 32, 64 channels; 2x2 max pooling between), He-normal
+// weights drawn from a fixed seed (kRandomFeatureSeed), zero biases, never trained: nothing to
+// download or ship. The loss is the mean over the stages of the L1 distance of x's and y's
+// features. {B,3,H,W} in [0,1]; fp32.
+constexpr uint64_t kRandomFeatureSeed = 112;
+torch::Tensor random_feature_loss(const torch::Tensor& x, const torch::Tensor& y);
+// The network's features ({B,16,H,W}, {B,32,H/2,W/2}, {B,64,H/4,W/4}), for tests.
+std::vector<torch::Tensor> random_features(const torch::Tensor& x);
+
 // PSNR term: minus the batch's mean PSNR in dB (peak 1), -mean_i 10 log10(MSE_i), each image's MSE
 // over its own pixels. It is the evaluation's score, so every image counts in decibels: a dim
 // scene's small absolute errors weigh as much as a bright scene's large ones, where the pooled MSE

@@ -88,7 +88,7 @@ TrainOptions train_options(const Config& c, const std::filesystem::path& out) {
           "must be 0 or a multiple of 16 (the U-Net halves it 4 times)");
   t.bf16 = resolve_precision(t.precision, option_key(train_key(&TrainOptions::precision))) == Precision::bf16;
   require(t.w_mse + t.w_perceptual + t.w_adversarial + t.w_ssim + t.w_feature_matching + t.w_frequency + t.w_chroma +
-                  t.w_gradient + t.w_stripe + t.w_psnr >
+                  t.w_gradient + t.w_stripe + t.w_psnr + t.w_detail + t.w_random_features >
               0,
           "loss", "every weight is 0: nothing to train on");
   t.out = out;

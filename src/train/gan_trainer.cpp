@@ -20,7 +20,7 @@ namespace {
 
 const char* const kGanLogHeader =
     "step,loss,mse,ssim_loss,perceptual,adversarial,discriminator,lr,steps_per_s,feature_matching,frequency,chroma,"
-    "gradient,stripe,psnr";
+    "gradient,stripe,psnr,detail,random_features";
 // psnr and ssim: the mean over the conditions validated (data.val_light); the last three columns,
 // each condition's own PSNR (dim and lamp empty unless the validation is judged).
 const char* const kValHeader = "step,psnr,ssim,seconds,psnr_display,psnr_dim,psnr_lamp";
@@ -65,13 +65,14 @@ StepLosses& StepLosses::operator+=(const StepLosses& o) {
   loss += o.loss, mse += o.mse, ssim += o.ssim, perceptual += o.perceptual, adversarial += o.adversarial;
   discriminator += o.discriminator, feature_matching += o.feature_matching, frequency += o.frequency;
   chroma += o.chroma, gradient += o.gradient, stripe += o.stripe, psnr += o.psnr;
+  detail += o.detail, random_features += o.random_features;
   return *this;
 }
 
 StepLosses StepLosses::operator/(double n) const {
   StepLosses m = *this;
   for (double* v : {&m.loss, &m.mse, &m.ssim, &m.perceptual, &m.adversarial, &m.discriminator, &m.feature_matching,
-                    &m.frequency, &m.chroma, &m.gradient, &m.stripe, &m.psnr})
+                    &m.frequency, &m.chroma, &m.gradient, &m.stripe, &m.psnr, &m.detail, &m.random_features})
     *v /= n;
   return m;
 }
@@ -222,6 +223,8 @@ StepLosses gan_step(Generator& g, Discriminator& d, Vgg16Features& vgg, torch::o
     add_term(opt.w_gradient, out.gradient, [&] { return gradient_loss(fake, gt); });
     add_term(opt.w_stripe, out.stripe, [&] { return stripe_loss(fake, gt); });
     add_term(opt.w_psnr, out.psnr, [&] { return psnr_loss(fake, gt); });
+    add_term(opt.w_detail, out.detail, [&] { return detail_energy_loss(fake, gt); });
+    add_term(opt.w_random_features, out.random_features, [&] { return random_feature_loss(fake, gt); });
     const double value = loss.item<double>();
     if (!std::isfinite(value))
       throw NonFiniteStep("generator loss (mse " + std::to_string(mse.item<double>()) + ")", value, step);
@@ -508,7 +511,8 @@ std::string GanTrainer::log_row(int64_t done, int64_t first_step, StepTally& tal
   const auto m = tally.sums / static_cast<double>(std::max<int64_t>(1, tally.steps));
   const double lr = static_cast<torch::optim::AdamOptions&>(opt_g_->param_groups()[0].options()).lr();
   log_->add(done, m.loss, m.mse, m.ssim, m.perceptual, m.adversarial, m.discriminator, lr,
-            (done - first_step) / elapsed, m.feature_matching, m.frequency, m.chroma, m.gradient, m.stripe, m.psnr);
+            (done - first_step) / elapsed, m.feature_matching, m.frequency, m.chroma, m.gradient, m.stripe, m.psnr,
+            m.detail, m.random_features);
   log_->flush();
   std::ostringstream status;
   status << "step " << done << " loss " << std::setprecision(4) << m.loss << " mse " << m.mse;

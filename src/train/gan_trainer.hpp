@@ -49,6 +49,9 @@ struct TrainOptions : Schedule {
   // layers (trains the discriminator even when w_adversarial is 0), focal frequency, CIELAB chroma, gradient,
   // row and column stripes (nn/losses.hpp stripe_loss), minus the mean PSNR (psnr_loss).
   double w_feature_matching = 0.0, w_frequency = 0.0, w_chroma = 0.0, w_gradient = 0.0, w_stripe = 0.0, w_psnr = 0.0;
+  // Issue 112: local detail energy (detail_energy_loss) and a fixed random network's features
+  // (random_feature_loss).
+  double w_detail = 0.0, w_random_features = 0.0;
   // The discriminator is trained (one step per generator step) when a term needs it.
   bool trains_discriminator() const { return w_adversarial > 0 || w_feature_matching > 0; }
   double ema_decay =
@@ -93,6 +96,7 @@ ValidationResult validate(Generator& generator, const std::vector<Sample>& sampl
 struct StepLosses {
   double loss = 0, mse = 0, ssim = 0, perceptual = 0, adversarial = 0, discriminator = 0;
   double feature_matching = 0, frequency = 0, chroma = 0, gradient = 0, stripe = 0, psnr = 0;
+  double detail = 0, random_features = 0;
   StepLosses& operator+=(const StepLosses& o);
   StepLosses operator/(double n) const;
 };

@@ -99,6 +99,8 @@ const std::vector<OptionField<TrainOptions>>& train_fields() {
           {"loss.gradient", &O::w_gradient, WEIGHT},
           {"loss.stripe", &O::w_stripe, WEIGHT},
           {"loss.psnr", &O::w_psnr, WEIGHT},
+          {"loss.detail", &O::w_detail, WEIGHT},
+          {"loss.random_features", &O::w_random_features, WEIGHT},
           {"discriminator.real_label_min", &O::real_label_min, SHARE},
           {"discriminator.fake_label_max", &O::fake_label_max, SHARE},
       });
