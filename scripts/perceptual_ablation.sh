@@ -32,12 +32,13 @@ declare -A variants=(
   [frequency]="--set loss.frequency=5"
   [chroma]="--set loss.chroma=0.5"
   [gradient]="--set loss.gradient=0.5"
-  # issue 112 (run with CONFIG=configs/gan_transpose.yaml: each is the GAN recipe plus the term)
-  [detail]="--set loss.detail=1"
-  [random-features]="--set loss.random_features=0.1"
+  # issue 112 (run with CONFIG=configs/gan_transpose.yaml: the GAN recipe plus or minus the term)
+  [no-detail]="--set loss.detail=0"
+  [detail-1]="--set loss.detail=1"
   [detail-3]="--set loss.detail=3"
-  [detail+random-features]="--set loss.detail=1 --set loss.random_features=0.1"
-  [adversarial-0.03]="--set loss.adversarial=0.03"
+  [random-features]="--set loss.detail=0 --set loss.random_features=0.1"
+  [detail+random-features]="--set loss.detail=3 --set loss.random_features=0.1"
+  [adversarial-0.03]="--set loss.detail=0 --set loss.adversarial=0.03"
 )
 order=(recipe adversarial feature-matching frequency chroma gradient)
 [ $# -gt 0 ] && order=("$@")
