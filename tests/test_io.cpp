@@ -1,5 +1,8 @@
 // io/: .mat files, raw captures, images, dataset lists.
 #include "catch_torch.hpp"
+
+#include <matio.h>
+#include <tuple>
 #include <fstream>
 
 #include "core/error.hpp"
@@ -39,6 +42,47 @@ TEST_CASE(".mat v7.3 round trip when matio supports HDF5", "[io][mat][solo]") {
     SKIP_TEST(std::string("v7.3 unsupported by this matio: ") + e.what());
   }
   CHECK(torch::equal(MatReader(s.dir / "x.mat").read("a"), a));
+}
+
+TEST_CASE(".mat: every numeric class reads as its values, v5 and v7.3 (the isolated reader)", "[io][mat][solo]") {
+  test::Scratch s("mat_classes");
+  double d[2] = {0.1, 9};
+  float f[2] = {1.5f, -2.25f};
+  int8_t i8[2] = {-3, 4};
+  uint8_t u8[2] = {200, 5};
+  int16_t i16[2] = {-300, 7};
+  int32_t i32[2] = {70000, -1};
+  int64_t i64[2] = {int64_t{1} << 40, 3};
+  const std::vector<std::tuple<const char*, matio_classes, matio_types, void*, std::vector<double>>> vars = {
+      {"d", MAT_C_DOUBLE, MAT_T_DOUBLE, d, {0.1, 9}},
+      {"f", MAT_C_SINGLE, MAT_T_SINGLE, f, {1.5, -2.25}},
+      {"i8", MAT_C_INT8, MAT_T_INT8, i8, {-3, 4}},
+      {"u8", MAT_C_UINT8, MAT_T_UINT8, u8, {200, 5}},
+      {"i16", MAT_C_INT16, MAT_T_INT16, i16, {-300, 7}},
+      {"i32", MAT_C_INT32, MAT_T_INT32, i32, {70000, -1}},
+      {"i64", MAT_C_INT64, MAT_T_INT64, i64, {1099511627776.0, 3}}};
+  for (const auto version : {MAT_FT_MAT5, MAT_FT_MAT73}) {
+    const auto path = s.dir / (version == MAT_FT_MAT5 ? "v5.mat" : "v73.mat");
+    mat_t* m = Mat_CreateVer(path.c_str(), nullptr, version);
+    if (m == nullptr && version == MAT_FT_MAT73) SKIP_TEST("v7.3 unsupported by this matio");
+    REQUIRE(m != nullptr);
+    for (const auto& [name, cls, type, data, values] : vars) {
+      size_t dims[2] = {1, 2};
+      matvar_t* v = Mat_VarCreate(name, cls, type, 2, dims, data, 0);
+      REQUIRE(Mat_VarWrite(m, v, MAT_COMPRESSION_NONE) == 0);
+      Mat_VarFree(v);
+    }
+    Mat_Close(m);
+    MatReader r(path);
+    for (const auto& [name, cls, type, data, values] : vars) {
+      INFO(path.filename().string() << " " << name);
+      const auto t = r.read(name);
+      CHECK(t.sizes() == torch::IntArrayRef({1, 2}));
+      CHECK(t.scalar_type() == torch::kFloat64);
+      CHECK(t[0][0].item<double>() == Approx(values[0]));
+      CHECK(t[0][1].item<double>() == Approx(values[1]));
+    }
+  }
 }
 
 TEST_CASE("reading the reference calibration matches its known layout", "[io][mat]") {

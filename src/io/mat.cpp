@@ -4,6 +4,7 @@
 #include <cstring>
 #include <functional>
 #include <memory>
+#include <stdexcept>
 
 #include <H5Epublic.h>
 #include <matio.h>
@@ -38,48 +39,41 @@ torch::Tensor to_column_major(const torch::Tensor& t) {
   return t.permute(perm).contiguous();
 }
 
-torch::ScalarType torch_type(matio_classes c) {
-  switch (c) {
-    case MAT_C_DOUBLE:
-      return torch::kFloat64;
-    case MAT_C_SINGLE:
-      return torch::kFloat32;
-    case MAT_C_INT8:
-      return torch::kInt8;
-    case MAT_C_UINT8:
-      return torch::kUInt8;
-    case MAT_C_INT16:
-      return torch::kInt16;
-    case MAT_C_INT32:
-      return torch::kInt32;
-    case MAT_C_INT64:
-      return torch::kInt64;
-    default:
-      return torch::kUInt8;  // unreachable for numeric classes checked below
-  }
-}
-
 bool is_supported_numeric(matio_classes c) {
   return c == MAT_C_DOUBLE || c == MAT_C_SINGLE || c == MAT_C_INT8 || c == MAT_C_UINT8 || c == MAT_C_INT16 ||
          c == MAT_C_INT32 || c == MAT_C_INT64;
 }
 
-uint64_t element_bytes(matio_classes c) {
+// The one table of the numeric classes read: f(T{}) with the class's C++ element type T. Callers
+// check is_supported_numeric first.
+template <class F>
+auto with_element_type(matio_classes c, F&& f) {
   switch (c) {
     case MAT_C_DOUBLE:
-    case MAT_C_INT64:
-    case MAT_C_UINT64:
-      return 8;
+      return f(double{});
     case MAT_C_SINGLE:
-    case MAT_C_INT32:
-    case MAT_C_UINT32:
-      return 4;
+      return f(float{});
+    case MAT_C_INT8:
+      return f(int8_t{});
+    case MAT_C_UINT8:
+      return f(uint8_t{});
     case MAT_C_INT16:
-    case MAT_C_UINT16:
-      return 2;
+      return f(int16_t{});
+    case MAT_C_INT32:
+      return f(int32_t{});
+    case MAT_C_INT64:
+      return f(int64_t{});
     default:
-      return 1;
+      throw std::invalid_argument("mat: a class that is_supported_numeric refuses");
   }
+}
+
+torch::ScalarType torch_type(matio_classes c) {
+  return with_element_type(c, [](auto t) { return c10::CppTypeToScalarType<decltype(t)>::value; });
+}
+
+uint64_t element_bytes(matio_classes c) {
+  return with_element_type(c, [](auto t) { return uint64_t{sizeof t}; });
 }
 
 // HDF5 prints its error stack to stderr on a damaged v7.3 file; flatnet names the file itself.
@@ -118,22 +112,7 @@ void append_as_doubles(const void* data, uint64_t count, std::string& out) {
 }
 
 void append_values(const matvar_t* v, uint64_t count, std::string& out) {
-  switch (v->class_type) {
-    case MAT_C_DOUBLE:
-      return append_as_doubles<double>(v->data, count, out);
-    case MAT_C_SINGLE:
-      return append_as_doubles<float>(v->data, count, out);
-    case MAT_C_INT8:
-      return append_as_doubles<int8_t>(v->data, count, out);
-    case MAT_C_UINT8:
-      return append_as_doubles<uint8_t>(v->data, count, out);
-    case MAT_C_INT16:
-      return append_as_doubles<int16_t>(v->data, count, out);
-    case MAT_C_INT32:
-      return append_as_doubles<int32_t>(v->data, count, out);
-    default:
-      return append_as_doubles<int64_t>(v->data, count, out);
-  }
+  with_element_type(v->class_type, [&](auto t) { append_as_doubles<decltype(t)>(v->data, count, out); });
 }
 
 template <class T>
