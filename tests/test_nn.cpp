@@ -504,7 +504,7 @@ TEST_CASE(
   CHECK(gradient_loss(blur5, y).item<double>() > gradient_loss(blur3, y).item<double>());
 }
 
-TEST_CASE("the detail term wants the truth's texture, not its phase; the random features are fixed and see blur",
+TEST_CASE("the detail term wants the truth's texture, not its phase, and the random features are fixed and see blur",
           "[nn][loss]") {
   const auto y = read_rgb(test::data_dir() / "golden" / "inet_n02980441_castle_scene.png").unsqueeze(0);
   namespace F = torch::nn::functional;
