@@ -41,16 +41,7 @@ if [ ! -f references.txt ]; then
   head -4 heldout/val_meas.txt | while read -r f; do cp "heldout/$f" refs/; done
   (cat truth/camera.yaml; echo "display_gamma: 1") > truth/linear.yaml
   "$flatnet" recon --method tikhonov --camera truth/linear.yaml --input refs --out refs-tik > /dev/null 2>&1
-  /usr/bin/python3 - << 'EOF'
-import os
-import numpy as np
-from PIL import Image
-os.makedirs("refs-ref", exist_ok=True)
-for name in sorted(f for f in os.listdir("refs-tik") if f.endswith(".png")):
-    a = np.asarray(Image.open("refs-tik/" + name).convert("RGB"), dtype=np.float64)
-    a = (a - a.min()) / (a.max() - a.min()) * 255
-    Image.fromarray(np.round(a).astype(np.uint8)).save("refs-ref/" + name)
-EOF
+  /usr/bin/python3 "$repo/scripts/camera_twin.py" stretch refs-tik refs-ref
   ls refs | sed 's|^|refs/|' > captures.txt
   ls refs-ref/*.png > references.txt
 fi

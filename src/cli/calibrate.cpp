@@ -43,6 +43,7 @@ struct CalibrateSettings {
   double max_shift = ReferenceCalibrationOptions{}.shift.max_shift;
   double white_light = 1;
   double scene_light = kTypicalSceneLight;
+  std::string fixed_light = "off";
 };
 
 // The camera.yaml written beside a calibration made from data: the geometry given, with this
@@ -211,7 +212,11 @@ int write_reference_calibration(const cxxopts::ParseResult& r, const CameraConfi
   const double lambda = checks.lambda, held_mean = checks.held_mean, held_leak = checks.held_leak;
   auto known = camera;
   known.tikhonov_lambda = absolute_tikhonov_lambda(separable_inverse(fit.calib.P, fit.calib.Q, 1.0), lambda);
-  const auto noise = fit_noise_model(noise_samples, fit.calib.P, fit.calib.Q);
+  // The noise model from what the captures hold beyond the calibration: less its fixed light too.
+  auto samples = noise_samples;
+  if (fit.calib.fixed_light.defined())
+    for (auto& sample : samples) sample.meas = sample.meas - fit.calib.fixed_light.to(sample.meas.scalar_type());
+  const auto noise = fit_noise_model(samples, fit.calib.P, fit.calib.Q);
   if (noise.found) {
     known.noise_gain = noise.noise_gain;
     known.noise_floor = noise.noise_floor;
@@ -231,6 +236,14 @@ int write_reference_calibration(const cxxopts::ParseResult& r, const CameraConfi
        << " captures and reconstructions of them; the shadow moves " << std::setprecision(6) << fit.shift_rows
        << " sensor pixels per scene row, " << fit.shift_cols << " per scene column; residual per channel:";
   for (const double v : fit.residual) head << " " << std::setprecision(4) << v;
+  if (fit.calib.fixed_light.defined()) {
+    double captures = 0;
+    for (const auto& sample : noise_samples) captures += sample.meas.to(torch::kFloat64).norm().item<double>();
+    captures /= static_cast<double>(noise_samples.size());
+    head << "\n# a fixed light every capture holds whatever the scene (flare, stray light) was fitted as its own term, "
+         << std::setprecision(3) << fit.calib.fixed_light.norm().item<double>() / std::max(1e-300, captures)
+         << " of a capture's norm: calib.mat's fixed_light_*, subtracted before inversion (--fixed-light)";
+  }
   if (held_mean >= 0) head << "\n# leave-one-out: mean held-out correlation " << std::setprecision(4) << held_mean;
   if (checks.held_change >= 0)
     head << "; its coded light is uncertain by " << std::setprecision(3) << checks.held_change
@@ -254,7 +267,8 @@ int write_reference_calibration(const cxxopts::ParseResult& r, const CameraConfi
         << known.tikhonov_lambda << " (a typical photograph holds " << kTypicalSceneLight << " of the display's white)";
   const auto beside = camera_beside(out, known, head.str(), why.str());
   if (r.count("compact"))
-    save_shift_calibration(out, fit.profile_rows, fit.profile_cols, fit.shift_rows, fit.shift_cols);
+    save_shift_calibration(out, fit.profile_rows, fit.profile_cols, fit.shift_rows, fit.shift_cols,
+                           fit.calib.fixed_light);
   else
     save_calibration(out, fit.calib);
   write_text_atomically(beside.path, beside.text);
@@ -303,6 +317,9 @@ int calibrate_from_reference_pairs(const cxxopts::ParseResult& r, const Calibrat
   require_distinct_pairs(pairs, refs);
   const auto white = white_capture_of(r, s, camera);
   ReferenceCalibrationOptions o;
+  require(s.fixed_light == "on" || s.fixed_light == "off", "--fixed-light",
+          "on or off, not '" + printable(s.fixed_light) + "'");
+  o.fixed_light = s.fixed_light == "on";
   o.seed = s.seed;
   o.shift.min_shift = s.min_shift;
   o.shift.max_shift = s.max_shift;
@@ -709,6 +726,10 @@ const FlagTable<CS>& calibrate_reference_flags() {
       {"reference-lambda", &CS::reference_lambda,
        "Tikhonov regulariser of the held-out check and the camera file, relative to the largest squared "
        "singular value product"},
+      {"fixed-light", &CS::fixed_light,
+       "on: a light every capture holds whatever the scene (flare, stray light) is fitted as its own term, "
+       "written with the calibration and subtracted before inversion; off: the captures hold the scene's light "
+       "alone"},
       {"min-shift", &CS::min_shift, "smallest |shadow shift| searched, sensor pixels per scene pixel"},
       {"max-shift", &CS::max_shift, "largest |shadow shift| searched"},
       {"white-light", &CS::white_light, "the white capture's light relative to the display's white"},

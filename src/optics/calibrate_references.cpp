@@ -91,12 +91,73 @@ torch::Tensor fit_gains(const Tensors& Y, const Tensors& R, const torch::Tensor&
   return mean_gain;
 }
 
+// The tensors less their mean over the pairs, and that mean: what eliminates the fixed light of (1').
+std::pair<Tensors, torch::Tensor> centre_over_pairs(const Tensors& T) {
+  auto mean = T.front().clone();
+  for (size_t i = 1; i < T.size(); ++i) mean += T[i];
+  mean /= static_cast<double>(T.size());
+  Tensors centred;
+  for (const auto& t : T) centred.push_back(t - mean);
+  return {centred, mean};
+}
+
+// The gains and offsets of (1') with the fixed light eliminated: per channel, the least squares of
+//   sum_i || (Y_i - Ybar) - sum_j (delta_ij - 1/n) (a_j D_j + b_j U) ||^2,
+// D_j = (P R_j Q^T) and U = (P 1)(Q 1)^T. With K the inner products of the 2n patterns, the normal
+// matrix is K (delta_jk - 1/n) and the right side <Y_j - Ybar, D_j>. The b_j's common part is not
+// identified (the fixed light absorbs it): the least-norm solution, then the gauge F _|_ U. The mean
+// gain is then held at 1, as in fit_gains.
+torch::Tensor fit_gains_fixed_light(const Tensors& Y, const Tensors& R, const torch::Tensor& P, const torch::Tensor& Q,
+                                    Tensors& gain, Tensors& offset) {
+  const auto n = static_cast<int64_t>(Y.size());
+  const auto uniform = torch::matmul(P.sum(2, true), Q.sum(2, true).transpose(1, 2)).flatten(1);  // {4,mn}
+  const auto [Yc, Ybar] = centre_over_pairs(Y);
+  Tensors patterns;
+  std::vector<torch::Tensor> rhs;
+  for (int64_t j = 0; j < n; ++j) {
+    const auto coded = torch::matmul(torch::matmul(P, R[static_cast<size_t>(j)]), Q.transpose(1, 2)).flatten(1);
+    patterns.push_back(coded);
+    patterns.push_back(uniform);
+    const auto y = Yc[static_cast<size_t>(j)].flatten(1);
+    rhs.push_back((y * coded).sum(1));
+    rhs.push_back((y * uniform).sum(1));
+  }
+  const auto D = torch::stack(patterns, 2);                                        // {4,mn,2n}
+  const auto K = torch::matmul(D.transpose(1, 2), D);                              // {4,2n,2n}
+  const auto pair_of = torch::arange(2 * n, torch::kLong).div(2, "floor");         // {2n}
+  const auto same = (pair_of.unsqueeze(1) == pair_of.unsqueeze(0)).to(K.dtype());  // delta_jk
+  const auto normal = K * (same - 1.0 / static_cast<double>(n));
+  const auto sol = torch::matmul(torch::linalg_pinv(normal, 1e-10, true), torch::stack(rhs, 1).unsqueeze(2)).squeeze(2);
+  // The gauge: F = Ybar - mean_j (a_j D_j + b_j U) holds nothing along U; a common offset t moves it.
+  auto mean_model = torch::zeros_like(uniform);
+  for (int64_t j = 0; j < n; ++j)
+    mean_model += sol.select(1, 2 * j).unsqueeze(1) * patterns[static_cast<size_t>(2 * j)] +
+                  sol.select(1, 2 * j + 1).unsqueeze(1) * uniform;
+  const auto F = Ybar.flatten(1) - mean_model / static_cast<double>(n);
+  const auto t = (F * uniform).sum(1) / uniform.square().sum(1).clamp_min(1e-300);  // {4}
+  torch::Tensor mean_gain;
+  for (int64_t j = 0; j < n; ++j) {
+    const auto i = static_cast<size_t>(j);
+    gain[i] = sol.select(1, 2 * j).view({4, 1, 1});
+    offset[i] = (sol.select(1, 2 * j + 1) + t).view({4, 1, 1});
+    mean_gain = j == 0 ? gain[i].clone() : mean_gain + gain[i];
+  }
+  mean_gain /= static_cast<double>(n);
+  require(
+      mean_gain.abs().min().item<double>() > 1e-12, "calibrate",
+      "the references do not explain the captures at all in some channel (wrong colour order, or unrelated pairs?)");
+  for (size_t i = 0; i < Y.size(); ++i) gain[i] /= mean_gain, offset[i] /= mean_gain;
+  return mean_gain;
+}
+
+// ||Y - P X Q^T|| / ||captures|| per channel, summed over the pairs (Y and X centred over the pairs
+// when the fixed light is fitted: the residual of (1') with F at its least-squares value).
 std::array<double, 4> relative_residual(const Tensors& Y, const Tensors& X, const torch::Tensor& P,
-                                        const torch::Tensor& Q) {
+                                        const torch::Tensor& Q, const Tensors& captures) {
   torch::Tensor err, norm;
   for (size_t i = 0; i < Y.size(); ++i) {
     const auto e = (Y[i] - torch::matmul(torch::matmul(P, X[i]), Q.transpose(1, 2))).square().sum({1, 2});
-    const auto n = Y[i].square().sum({1, 2});
+    const auto n = captures[i].square().sum({1, 2});
     err = i == 0 ? e : err + e;
     norm = i == 0 ? n : norm + n;
   }
@@ -206,9 +267,13 @@ ReferenceCalibration calibrate_from_references(const std::vector<ReferencePair>&
   }
   const int64_t cols = Y.front().size(2), N = R.front().size(1);
   const size_t count = pairs.size();
+  require_option(!o.fixed_light || count >= 2, "calibrate.references", "a fixed light needs at least 2 pairs");
   Tensors gain(count), offset(count), X = R;  // X_i = a_i R_i + b_i, eq. (1)
+  // With the fixed light, the factors see the pairs' differences from their mean (eq. 1').
+  const auto for_factors = [&](const Tensors& T) { return o.fixed_light ? centre_over_pairs(T).first : T; };
+  const auto Yf = for_factors(Y);
   ReferenceCalibration result;
-  const auto [shift_rows, shift_cols] = search_shifts(Y, R, o);
+  const auto [shift_rows, shift_cols] = search_shifts(Yf, for_factors(R), o);
   result.shift_rows = shift_rows;
   result.shift_cols = shift_cols;
   auto Q = random_structured(4, cols, N, result.shift_cols, o.seed);
@@ -218,11 +283,12 @@ ReferenceCalibration calibrate_from_references(const std::vector<ReferencePair>&
     // After the first pass (from a random Q), the next ones refine each shift within a few per cent of
     // the search's, at full resolution.
     const bool refine = pass >= 1 && pass <= o.search_passes;
-    const auto pn = p_normal(Y, X, Q);
+    const auto Xf = for_factors(X);
+    const auto pn = p_normal(Yf, Xf, Q);
     if (refine) result.shift_rows = refine_shift(pn, result.shift_rows, o.shift.shift_tolerance);
     auto p_fit = solve_shift_factor(pn.first, pn.second, result.shift_rows);
     P = p_fit.factor;
-    const auto qn = q_normal(Y, X, P);
+    const auto qn = q_normal(Yf, Xf, P);
     if (refine) result.shift_cols = refine_shift(qn, result.shift_cols, o.shift.shift_tolerance);
     auto q_fit = solve_shift_factor(qn.first, qn.second, result.shift_cols);
     Q = q_fit.factor;
@@ -231,12 +297,13 @@ ReferenceCalibration calibrate_from_references(const std::vector<ReferencePair>&
     const auto balance = (Q.norm(2, {1, 2}, true) / P.norm(2, {1, 2}, true).clamp_min(1e-300)).sqrt();  // {4,1,1}
     P = P * balance;
     Q = Q / balance;
-    const auto mean_gain = fit_gains(Y, R, P, Q, gain, offset);
+    const auto mean_gain =
+        o.fixed_light ? fit_gains_fixed_light(Y, R, P, Q, gain, offset) : fit_gains(Y, R, P, Q, gain, offset);
     P = P * mean_gain;
     result.profile_rows = p_fit.profile * (balance * mean_gain).view({4, 1});
     result.profile_cols = q_fit.profile / balance.view({4, 1});
     for (size_t i = 0; i < count; ++i) X[i] = gain[i] * R[i] + offset[i];
-    result.residual = relative_residual(Y, X, P, Q);
+    result.residual = relative_residual(Yf, for_factors(X), P, Q, Y);
     std::ostringstream status;
     status << "shifts " << std::setprecision(4) << result.shift_rows << " " << result.shift_cols << ", residual "
            << std::setprecision(3)
@@ -247,6 +314,10 @@ ReferenceCalibration calibrate_from_references(const std::vector<ReferencePair>&
   progress.finish();
   result.calib.P = P;
   result.calib.Q = Q;
+  if (o.fixed_light) {  // F = mean_i (Y_i - P X_i Q^T), eq. (1')
+    const auto Xbar = centre_over_pairs(X).second;
+    result.calib.fixed_light = centre_over_pairs(Y).second - torch::matmul(torch::matmul(P, Xbar), Q.transpose(1, 2));
+  }
   for (size_t i = 0; i < count; ++i) {
     std::array<double, 8> g{};
     for (int c = 0; c < 4; ++c) {
@@ -304,7 +375,10 @@ WhiteFrameFit fit_white_frame(const torch::Tensor& planes, const Calibration& ca
   // Eq. (2)'s pattern: a uniform scene's shadow, double-centred as the capture is.
   auto U = torch::einsum("ci,cj->cij", {calib.P.to(torch::kFloat64).sum(2), calib.Q.to(torch::kFloat64).sum(2)});
   U = U - U.mean(1, true) - U.mean(2, true) + U.mean({1, 2}, true);
-  const auto CU = coefficients(U), CY = coefficients(planes.to(torch::kFloat64));
+  // The white capture holds the fixed light as every capture does (eq. 1'): it is not the white's.
+  auto Y = planes.to(torch::kFloat64);
+  if (calib.fixed_light.defined()) Y = Y - calib.fixed_light;
+  const auto CU = coefficients(U), CY = coefficients(Y);
   WhiteFrameFit out;
   for (int c = 0; c < 4; ++c) {
     const double uu = CU[c].square().sum().item<double>(), yy = CY[c].square().sum().item<double>();
@@ -362,14 +436,17 @@ std::vector<HeldOutPair> leave_one_out(const std::vector<ReferencePair>& pairs, 
     const auto fit = calibrate_from_references(others, o);
     const auto inverse = separable_inverse(fit.calib.P, fit.calib.Q, 1.0);
     const auto filter = tikhonov_filter(inverse.sL, inverse.sR, absolute_tikhonov_lambda(inverse, lambda));
+    // The held-out capture less the light the others' fit found on every capture (eq. 1').
+    auto meas = pairs[held].meas.to(torch::kFloat64);
+    if (fit.calib.fixed_light.defined()) meas = meas - fit.calib.fixed_light;
     const auto rec = apply_separable_inverse(inverse.ULt, inverse.UR, inverse.VL, inverse.VRt, filter,
-                                             pairs[held].meas.to(torch::kFloat32).unsqueeze(0))[0];
+                                             meas.to(torch::kFloat32).unsqueeze(0))[0];
     HeldOutPair h{pairs[held].name, reference_correlation(rec, pairs[held].reference), fit.shift_rows, fit.shift_cols};
     // The camera fit's near-twin statistic of a capture this calibration did not see: what a new
     // capture of the camera shows (optics/camera_fit.hpp), where the pairs' own understate it.
     const auto U = std::get<0>(torch::linalg_qr(fit.calib.P)).to(torch::kFloat32);
     const auto V = std::get<0>(torch::linalg_qr(fit.calib.Q)).to(torch::kFloat32);
-    const double leak = coded_leak(pairs[held].meas.to(torch::kFloat32), U, V);  // nan where not measurable
+    const double leak = coded_leak(meas.to(torch::kFloat32), U, V);  // nan where not measurable
     if (std::isfinite(leak)) h.leak = leak;
     if (whole) {
       const auto change = calibration_error(fit.calib, *whole, pairs[held].reference);

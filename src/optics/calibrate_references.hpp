@@ -40,6 +40,15 @@ struct ReferencePair {
 };
 
 struct ReferenceCalibrationOptions {
+  // Fit (1) with a fixed light F, the same on every capture whatever the scene (flare, stray light
+  // from outside the display, a sensor's fixed offsets):
+  //   Y_i = F + C P (a_i R_i + b_i 1 1^T) Q^T C + E_i.                                      (1')
+  // F is free per plane, so the factors are fitted on the pairs' differences from their mean (F
+  // eliminated exactly: F = mean_i (Y_i - model_i)); F holds none of a uniform scene's shadow (the
+  // gauge that splits F from the offsets b_i, which it would otherwise absorb). Needs 2 pairs at least.
+  // Off by default: F estimated from n captures holds 1/n of their noise and of what else they share,
+  // and a new capture less F carries it (docs/results/own-camera.md, "Twins that are cameras").
+  bool fixed_light = false;
   int passes = 6;               // alternating passes (P, Q, gains)
   int search_passes = 2;        // passes 2 and 3 refine each axis's shift (within 3 %); the others keep it
   uint64_t seed = 0;            // the random profiles that start each trial fit
@@ -53,7 +62,7 @@ struct ReferenceCalibrationOptions {
 };
 
 struct ReferenceCalibration {
-  Calibration calib;                               // P {4,rows,N}, Q {4,cols,N} (centred), float64
+  Calibration calib;  // P {4,rows,N}, Q {4,cols,N} (centred), float64; fixed_light F of (1') when fitted
   double shift_rows = 0, shift_cols = 0;           // sensor pixels per scene row / column, signed
   torch::Tensor profile_rows, profile_cols;        // {4,L}: P and Q as profiles (save_shift_calibration)
   std::array<double, 4> residual{};                // ||Y - model (1)|| / ||Y|| per channel over the pairs

@@ -93,6 +93,10 @@ Rig calibration_rig(const Calibration& calib, const CameraConfig& camera) {
   rig.phir = torch::zeros({4, g.plane_width(), n});
   rig.phil.narrow(1, g.crop[0], h).copy_(calib.P);
   rig.phir.narrow(1, g.crop[1], w).copy_(calib.Q);
+  if (calib.fixed_light.defined()) {
+    rig.fixed_light = torch::zeros({4, g.plane_height(), g.plane_width()});
+    rig.fixed_light.narrow(1, g.crop[0], h).narrow(2, g.crop[1], w).copy_(calib.fixed_light);
+  }
   rig.gain = torch::ones({4});
   // expected_signal's open term is vig_rows vig_cols^T sum(X) = open_light * mean(X).
   const double vig = std::sqrt(camera.open_light) / static_cast<double>(n);
@@ -148,7 +152,8 @@ torch::Tensor expected_signal(const Rig& rig, const torch::Tensor& scene_planes)
   auto X = scene_planes.to(torch::kFloat32);
   auto coded = torch::matmul(torch::matmul(rig.phil, X), rig.phir.transpose(1, 2));  // {B,4,h,w}
   auto open = torch::outer(rig.vig_rows, rig.vig_cols) * X.sum({-2, -1}).unsqueeze(-1).unsqueeze(-1);
-  return rig.gain.view({1, 4, 1, 1}) * (coded + open);
+  const auto signal = rig.gain.view({1, 4, 1, 1}) * (coded + open);
+  return rig.fixed_light.defined() ? signal + rig.fixed_light : signal;
 }
 
 torch::Tensor photon_electrons(const torch::Tensor& mean, c10::optional<at::Generator> gen) {
@@ -216,6 +221,9 @@ torch::Tensor capture_planes(const Rig& rig, const torch::Tensor& scene_linear, 
   window_rig.phir = rig.phir.slice(1, g.crop[1], g.crop[1] + g.crop[3]);
   window_rig.vig_rows = rig.vig_rows.slice(0, g.crop[0], g.crop[0] + g.crop[2]);
   window_rig.vig_cols = rig.vig_cols.slice(0, g.crop[1], g.crop[1] + g.crop[3]);
+  if (rig.fixed_light.defined())
+    window_rig.fixed_light =
+        rig.fixed_light.slice(1, g.crop[0], g.crop[0] + g.crop[2]).slice(2, g.crop[1], g.crop[1] + g.crop[3]);
   auto S = expected_signal(window_rig, rgb_to_bayer_planes(scene_linear));  // {B,4,crop_h,crop_w}, full-scale units
   if (noise) {  // electrons ~ N(S fw, S fw) + N(0, read_noise^2): one Gaussian of the summed variance, full-scale units
     const double read_variance = std::pow(rig.read_noise / rig.full_well, 2);
@@ -279,13 +287,37 @@ Calibration with_plausible_scale(Calibration calib, const std::filesystem::path&
 // compressed variable is refused as it inflates past this, before the rest of it is inflated).
 uint64_t calibration_bytes_at_most(int64_t h, int64_t w, int64_t n) {
   const auto m = static_cast<uint64_t>(std::max(h, w)), scene = static_cast<uint64_t>(n);
-  return sizeof(double) * std::max(m * scene, 4 * (m + 64 * scene + 2));
+  const auto plane = static_cast<uint64_t>(h) * static_cast<uint64_t>(w);  // a fixed light's plane
+  return sizeof(double) * std::max({m * scene, 4 * (m + 64 * scene + 2), plane});
 }
+
+std::string fixed_light_name(int channel) { return std::string("fixed_light_") + kChannelNames[channel]; }
+
+// The optional fixed light {4,h,w}: all four planes or none, each the window's size and finite.
+torch::Tensor read_fixed_light(const MatReader& mat, const std::filesystem::path& path, int64_t h, int64_t w) {
+  int present = 0;
+  for (int c = 0; c < 4; ++c) present += mat.has(fixed_light_name(c)) ? 1 : 0;
+  if (present == 0) return {};
+  require(present == 4, path,
+          "holds a fixed light for some Bayer planes but not all four (fixed_light_b, _gb, _gr, _r)");
+  std::vector<torch::Tensor> planes;
+  for (int c = 0; c < 4; ++c) planes.push_back(mat.read(fixed_light_name(c), {h, w}).to(torch::kFloat64));
+  auto F = torch::stack(planes);
+  require(torch::isfinite(F).all().item<bool>(), path, "its fixed light holds NaN or Inf");
+  return F;
+}
+
+Calibration read_factors(const MatReader& mat, const std::filesystem::path& path, int64_t h, int64_t w, int64_t n);
 
 Calibration read_calibration(const std::filesystem::path& path, const CameraConfig& camera) {
   const auto h = camera.raw.crop[2], w = camera.raw.crop[3], n = camera.scene_size;
   MatReader mat(path, calibration_bytes_at_most(h, w, n));
-  if (mat.has("shift_rows")) return load_shift_calibration(mat, path, h, w, n);
+  auto calib = mat.has("shift_rows") ? load_shift_calibration(mat, path, h, w, n) : read_factors(mat, path, h, w, n);
+  calib.fixed_light = read_fixed_light(mat, path, h, w);
+  return calib;
+}
+
+Calibration read_factors(const MatReader& mat, const std::filesystem::path& path, int64_t h, int64_t w, int64_t n) {
   std::vector<torch::Tensor> P, Q;
   for (const char* c : kChannelNames) {
     const auto pname = std::string("P1") + c, qname = std::string("Q1") + c;
@@ -313,12 +345,27 @@ Calibration load_calibration(const std::filesystem::path& path, const CameraConf
   return with_plausible_scale(read_calibration(path, camera), path);
 }
 
+namespace {
+void add_fixed_light(std::map<std::string, torch::Tensor>& vars, const torch::Tensor& fixed_light) {
+  if (!fixed_light.defined()) return;
+  for (int c = 0; c < 4; ++c) vars[fixed_light_name(c)] = fixed_light[c].to(torch::kFloat64);
+}
+}  // namespace
+
+torch::Tensor without_fixed_light(const torch::Tensor& planes, const Calibration& calib) {
+  if (!calib.fixed_light.defined()) return planes;
+  return planes - calib.fixed_light.to(planes.scalar_type());  // {B,4,h,w} - {4,h,w}
+}
+
 void save_shift_calibration(const std::filesystem::path& path, const torch::Tensor& profile_rows,
-                            const torch::Tensor& profile_cols, double shift_rows, double shift_cols) {
-  write_mat(path, {{"profile_rows", profile_rows.to(torch::kFloat64)},
-                   {"profile_cols", profile_cols.to(torch::kFloat64)},
-                   {"shift_rows", torch::tensor(shift_rows, torch::kFloat64)},
-                   {"shift_cols", torch::tensor(shift_cols, torch::kFloat64)}});
+                            const torch::Tensor& profile_cols, double shift_rows, double shift_cols,
+                            const torch::Tensor& fixed_light) {
+  std::map<std::string, torch::Tensor> vars = {{"profile_rows", profile_rows.to(torch::kFloat64)},
+                                               {"profile_cols", profile_cols.to(torch::kFloat64)},
+                                               {"shift_rows", torch::tensor(shift_rows, torch::kFloat64)},
+                                               {"shift_cols", torch::tensor(shift_cols, torch::kFloat64)}};
+  add_fixed_light(vars, fixed_light);
+  write_mat(path, vars);
 }
 
 void save_calibration(const std::filesystem::path& path, const Calibration& calib) {
@@ -327,6 +374,7 @@ void save_calibration(const std::filesystem::path& path, const Calibration& cali
     vars[std::string("P1") + kChannelNames[i]] = calib.P[i];
     vars[std::string("Q1") + kChannelNames[i]] = calib.Q[i];
   }
+  add_fixed_light(vars, calib.fixed_light);
   write_mat(path, vars);
 }
 

@@ -26,7 +26,10 @@ struct Rig {
   double read_noise = 4;     // electrons, standard deviation
   double dark = 0.02;        // full-scale units
   int adc_bits = 10;
-  BenchErrors bench;         // a simulated bench's errors (optics/bench.hpp; none by default)
+  BenchErrors bench;  // a simulated bench's errors (optics/bench.hpp; none by default)
+  // Light on the sensor whatever the scene (a calibration's fixed light, calibration_rig), added to
+  // every capture's signal: {4, plane_h, plane_w} float32, or undefined: none.
+  torch::Tensor fixed_light{};
   double display_gamma = 0;  // how a displayed photograph becomes light (CameraConfig::display_gamma)
   int64_t scene_size() const { return phil.size(2); }
 };
@@ -46,12 +49,12 @@ std::filesystem::path simulation_source(const CameraConfig& camera);
 // camera file's measurements: the coded light P X Q^T in the crop's rows and columns, the open
 // part's uniform light open_light * mean(X) over the whole plane, and a sensor whose photon and read
 // noise give the camera's noise model (full well = 1 / noise_gain; read noise from noise_floor less
-// the ADC's rounding). Simulated captures are then what the calibration and the noise model
-// predict: what the calibration misses (its error, non-separable light) is not in them. The mask's
-// rotation is not undone: preprocessing rotates the simulated planes by the camera's small angle
-// too (0.5 pixel at the window's edge for FlatNet's prototype); its interpolation averages noise
-// away, which the sensor's noise here makes up for, so that the preprocessed planes carry the
-// noise model's variance.
+// the ADC's rounding), and the calibration's fixed light, if it has one, on every capture (in the
+// window; it is double-centred, so the planes' level is unchanged). Simulated captures are then what
+// the calibration and the noise model predict: what the calibration misses (its error, non-separable light) is not in
+// them. The mask's rotation is not undone: preprocessing rotates the simulated planes by the camera's small angle too
+// (0.5 pixel at the window's edge for FlatNet's prototype); its interpolation averages noise away, which the sensor's
+// noise here makes up for, so that the preprocessed planes carry the noise model's variance.
 Rig calibration_rig(const Calibration& calib, const CameraConfig& camera);
 
 // Noise-free expected signal for linear-light scene planes. {B,4,N,N} -> {B,4,plane_h,plane_w}.
@@ -86,7 +89,15 @@ torch::Tensor capture_planes(const Rig& rig, const torch::Tensor& scene_linear, 
 struct Calibration {
   torch::Tensor P;  // {4, crop_h, N} float64 (P1b, P1gb, P1gr, P1r)
   torch::Tensor Q;  // {4, crop_w, N} float64 (Q1b, ...)
+  // The light every capture holds whatever the scene (flare, stray light: `calibrate --references`
+  // fits it, optics/calibrate_references.hpp eq. 1'), double-centred as the planes are:
+  // Y_c = F_c + P_c X_c Q_c^T. {4, crop_h, crop_w} float64 (fixed_light_b, ...), or undefined: none.
+  // Classical reconstruction subtracts it before inverting (without_fixed_light).
+  torch::Tensor fixed_light{};
 };
+
+// Planes {B,4,h,w} (their level removed) less the calibration's fixed light; unchanged without one.
+torch::Tensor without_fixed_light(const torch::Tensor& planes, const Calibration& calib);
 
 extern const std::array<const char*, 4> kChannelNames;  // b, gb, gr, r
 // The index of a channel name in kChannelNames (model.inversion.channel); an error names the key.
@@ -97,8 +108,10 @@ Calibration load_calibration(const std::filesystem::path& path, const CameraConf
 void save_calibration(const std::filesystem::path& path, const Calibration& calib);
 // A shift-structured calibration as its profiles {4,L} and shifts (kilobytes instead of megabytes);
 // load_calibration expands it. Variables: profile_rows, profile_cols, shift_rows, shift_cols.
+// With `fixed_light` {4,h,w} defined, it is written too (fixed_light_b, ...).
 void save_shift_calibration(const std::filesystem::path& path, const torch::Tensor& profile_rows,
-                            const torch::Tensor& profile_cols, double shift_rows, double shift_cols);
+                            const torch::Tensor& profile_cols, double shift_rows, double shift_cols,
+                            const torch::Tensor& fixed_light = {});
 
 // The calibration a perfect procedure would find from this rig: the cropped, double-centred
 // response (P = gain * C PhiL_window, Q = C PhiR_window). Used as ground truth in tests.

@@ -160,6 +160,7 @@ CameraFit::CameraFit(const Calibration& calib, const CameraConfig& camera) : cam
   // Orthonormal bases of P's and Q's column spaces (reduced QR, in float64 for the small columns).
   U_ = std::get<0>(torch::linalg_qr(calib.P.to(torch::kFloat64))).to(torch::kFloat32).contiguous();
   V_ = std::get<0>(torch::linalg_qr(calib.Q.to(torch::kFloat64))).to(torch::kFloat32).contiguous();
+  if (calib.fixed_light.defined()) fixed_light_ = calib.fixed_light.to(torch::kFloat32).contiguous();
   const double h = static_cast<double>(U_.size(1)), w = static_cast<double>(V_.size(1));
   const double n = static_cast<double>(U_.size(2));
   const double dof = (h - 1) * (w - 1) - n * n;
@@ -195,8 +196,10 @@ std::string CameraFit::verdict(const CameraFitResult& r) const {
 CameraFitResult CameraFit::measure(const torch::Tensor& raw_unit) const {
   torch::NoGradGuard no_grad;
   const auto& g = camera_.raw;
-  const auto window = raw_window(raw_unit, g);                                  // {4,h,w}: the light each pixel read
-  const auto Y = without_level(double_centre(window, g.centring), g.centring);  // the separable model's planes
+  const auto window = raw_window(raw_unit, g);  // {4,h,w}: the light each pixel read
+  // The separable model's planes, less the light the calibration says every capture holds.
+  auto Y = without_level(double_centre(window, g.centring), g.centring);
+  if (fixed_light_.defined()) Y = Y - fixed_light_;
   const auto unexplained = unexplained_energy(Y, U_, V_).sum();
   // The noise model, pixel by pixel: clipped pixels carry no noise.
   const int bits = g.adc_bits;

@@ -117,7 +117,8 @@ class CameraFit {
   const std::string& camera_name() const { return camera_.name; }
 
  private:
-  torch::Tensor U_, V_;  // {4,h,N}, {4,w,N} orthonormal, float32
+  torch::Tensor U_, V_;        // {4,h,N}, {4,w,N} orthonormal, float32
+  torch::Tensor fixed_light_;  // {4,h,w} float32: the calibration's fixed light, subtracted first; or undefined
   CameraConfig camera_;
   double threshold_ = 0;
   double leak_threshold_ = 0;  // noise_leak x 1.1, or the camera file's when larger (an estimated calibration)

@@ -31,15 +31,19 @@ std::string short_number(double x) {
 class ClassicalReconstructor final : public Reconstructor {
  public:
   using Solve = std::function<torch::Tensor(const torch::Tensor&)>;  // {B,4,h,w} -> {B,4,N,N}
-  ClassicalReconstructor(Solve solve, std::string description, const CameraConfig& camera)
+  ClassicalReconstructor(Solve solve, std::string description, const CameraConfig& camera, const Calibration& calib)
       : solve_(std::move(solve)),
         description_(std::move(description)),
+        fixed_light_(calib.fixed_light.defined() ? calib.fixed_light.to(torch::kFloat32) : torch::Tensor()),
         centring_(camera.raw.centring),
         display_gamma_(camera.display_gamma),
         mix_(camera.colour_mix.empty() ? torch::Tensor() : colour_mix_matrix(camera.colour_mix)) {}
   std::string describe() const override { return description_; }
   torch::Tensor reconstruct(const torch::Tensor& planes) override {
-    const auto X = solve_(without_level(planes, centring_));  // {B,4,N,N}
+    // The capture less its level and the light it holds whatever the scene: Y = F + P X Q^T.
+    auto Y = without_level(planes, centring_);
+    if (fixed_light_.defined()) Y = Y - fixed_light_.to(Y.scalar_type());
+    const auto X = solve_(Y);  // {B,4,N,N}
     const auto rgb = mix_.defined() ? unmix_primaries(X, mix_) : bayer_planes_to_rgb(X);
     return light_to_display(rgb, display_gamma_);  // {B,3,N,N}
   }
@@ -47,6 +51,7 @@ class ClassicalReconstructor final : public Reconstructor {
  private:
   Solve solve_;
   std::string description_;
+  torch::Tensor fixed_light_;  // {4,h,w} or undefined
   Centring centring_;
   double display_gamma_;
   torch::Tensor mix_;  // {4,3} or undefined
@@ -101,14 +106,15 @@ std::unique_ptr<Reconstructor> make_classical(const Calibration& calib, const Ca
   if (o.method == ClassicalMethod::tikhonov) {
     auto tik = std::make_shared<const Tikhonov>(calib, o.lambda > 0 ? o.lambda : camera.tikhonov_lambda);
     return std::make_unique<ClassicalReconstructor>([tik](const torch::Tensor& y) { return (*tik)(y); },
-                                                    "Tikhonov (lambda " + short_number(tik->lambda()) + ")", camera);
+                                                    "Tikhonov (lambda " + short_number(tik->lambda()) + ")", camera,
+                                                    calib);
   }
   TVOptions tv;
   tv.lambda = o.lambda > 0 ? o.lambda : camera.tv_lambda;
   tv.tikhonov_lambda = camera.tikhonov_lambda;
   auto solver = std::make_shared<const TVSolver>(calib, tv);
   return std::make_unique<ClassicalReconstructor>([solver](const torch::Tensor& y) { return (*solver)(y); },
-                                                  "TV (lambda " + short_number(tv.lambda) + ")", camera);
+                                                  "TV (lambda " + short_number(tv.lambda) + ")", camera, calib);
 }
 
 std::unique_ptr<Reconstructor> make_flatnet(Generator generator, const CameraConfig& camera,
