@@ -176,7 +176,8 @@ def compare(a):
 def luma_detail(img):
     """Mean |G1 - G3| of the luma (Gaussian blurs of 1 and 3 pixels): mid-band detail."""
     from scipy.ndimage import gaussian_filter
-    y = img @ np.array([0.299, 0.587, 0.114])
+    from colour_detail import luma_of  # scripts/ is this script's folder
+    y = luma_of(img)
     return np.abs(gaussian_filter(y, 1) - gaussian_filter(y, 3)).mean()
 
 

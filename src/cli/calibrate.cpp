@@ -43,7 +43,7 @@ struct CalibrateSettings {
   double max_shift = ReferenceCalibrationOptions{}.shift.max_shift;
   double white_light = 1;
   double scene_light = kTypicalSceneLight;
-  std::string fixed_light = "off";
+  std::string fixed_light = ReferenceCalibrationOptions{}.fixed_light ? "on" : "off";
 };
 
 // The camera.yaml written beside a calibration made from data: the geometry given, with this
@@ -214,8 +214,7 @@ int write_reference_calibration(const cxxopts::ParseResult& r, const CameraConfi
   known.tikhonov_lambda = absolute_tikhonov_lambda(separable_inverse(fit.calib.P, fit.calib.Q, 1.0), lambda);
   // The noise model from what the captures hold beyond the calibration: less its fixed light too.
   auto samples = noise_samples;
-  if (fit.calib.fixed_light.defined())
-    for (auto& sample : samples) sample.meas = sample.meas - fit.calib.fixed_light.to(sample.meas.scalar_type());
+  for (auto& sample : samples) sample.meas = without_fixed_light(sample.meas, fit.calib.fixed_light);
   const auto noise = fit_noise_model(samples, fit.calib.P, fit.calib.Q);
   if (noise.found) {
     known.noise_gain = noise.noise_gain;

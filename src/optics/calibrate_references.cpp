@@ -66,13 +66,25 @@ std::pair<torch::Tensor, torch::Tensor> q_normal(const Tensors& Y, const Tensors
   return normal(Yt, Z);
 }
 
+// The pairs' gains and offsets divided by their mean gain per channel, which is returned (P takes it):
+// the scale between P and the scenes is held at the references' units.
+torch::Tensor hold_mean_gain_at_one(Tensors& gain, Tensors& offset) {
+  auto mean_gain = gain.front().clone();
+  for (size_t i = 1; i < gain.size(); ++i) mean_gain += gain[i];
+  mean_gain /= static_cast<double>(gain.size());
+  require(
+      mean_gain.abs().min().item<double>() > 1e-12, "calibrate",
+      "the references do not explain the captures at all in some channel (wrong colour order, or unrelated pairs?)");
+  for (size_t i = 0; i < gain.size(); ++i) gain[i] /= mean_gain, offset[i] /= mean_gain;
+  return mean_gain;
+}
+
 // Each pair's gain and offset per channel, eq. (1), by least squares on the capture; the mean gain is
 // then held at 1 (returned as its factor, for P).
 torch::Tensor fit_gains(const Tensors& Y, const Tensors& R, const torch::Tensor& P, const torch::Tensor& Q,
                         Tensors& gain, Tensors& offset) {
   // The response to a uniform unit scene: (P 1)(Q 1)^T, {4,m,n}.
   const auto uniform = torch::matmul(P.sum(2, true), Q.sum(2, true).transpose(1, 2)).flatten(1);
-  torch::Tensor mean_gain;
   for (size_t i = 0; i < Y.size(); ++i) {
     const auto coded = torch::matmul(torch::matmul(P, R[i]), Q.transpose(1, 2)).flatten(1);              // {4,mn}
     const auto design = torch::stack({coded, uniform}, 2);                                               // {4,mn,2}
@@ -81,14 +93,8 @@ torch::Tensor fit_gains(const Tensors& Y, const Tensors& R, const torch::Tensor&
     const auto sol = torch::linalg_solve(gram + 1e-12 * torch::eye(2, gram.options()), rhs).squeeze(2);  // {4,2}
     gain[i] = sol.select(1, 0).view({4, 1, 1});
     offset[i] = sol.select(1, 1).view({4, 1, 1});
-    mean_gain = i == 0 ? gain[i].clone() : mean_gain + gain[i];
   }
-  mean_gain /= static_cast<double>(Y.size());
-  require(
-      mean_gain.abs().min().item<double>() > 1e-12, "calibrate",
-      "the references do not explain the captures at all in some channel (wrong colour order, or unrelated pairs?)");
-  for (size_t i = 0; i < Y.size(); ++i) gain[i] /= mean_gain, offset[i] /= mean_gain;
-  return mean_gain;
+  return hold_mean_gain_at_one(gain, offset);
 }
 
 // The tensors less their mean over the pairs, and that mean: what eliminates the fixed light of (1').
@@ -107,11 +113,11 @@ std::pair<Tensors, torch::Tensor> centre_over_pairs(const Tensors& T) {
 // matrix is K (delta_jk - 1/n) and the right side <Y_j - Ybar, D_j>. The b_j's common part is not
 // identified (the fixed light absorbs it): the least-norm solution, then the gauge F _|_ U. The mean
 // gain is then held at 1, as in fit_gains.
-torch::Tensor fit_gains_fixed_light(const Tensors& Y, const Tensors& R, const torch::Tensor& P, const torch::Tensor& Q,
-                                    Tensors& gain, Tensors& offset) {
-  const auto n = static_cast<int64_t>(Y.size());
+// Yc, Ybar: the captures less their mean over the pairs, and that mean (centre_over_pairs).
+torch::Tensor fit_gains_fixed_light(const Tensors& Yc, const torch::Tensor& Ybar, const Tensors& R,
+                                    const torch::Tensor& P, const torch::Tensor& Q, Tensors& gain, Tensors& offset) {
+  const auto n = static_cast<int64_t>(Yc.size());
   const auto uniform = torch::matmul(P.sum(2, true), Q.sum(2, true).transpose(1, 2)).flatten(1);  // {4,mn}
-  const auto [Yc, Ybar] = centre_over_pairs(Y);
   Tensors patterns;
   std::vector<torch::Tensor> rhs;
   for (int64_t j = 0; j < n; ++j) {
@@ -135,19 +141,12 @@ torch::Tensor fit_gains_fixed_light(const Tensors& Y, const Tensors& R, const to
                   sol.select(1, 2 * j + 1).unsqueeze(1) * uniform;
   const auto F = Ybar.flatten(1) - mean_model / static_cast<double>(n);
   const auto t = (F * uniform).sum(1) / uniform.square().sum(1).clamp_min(1e-300);  // {4}
-  torch::Tensor mean_gain;
   for (int64_t j = 0; j < n; ++j) {
     const auto i = static_cast<size_t>(j);
     gain[i] = sol.select(1, 2 * j).view({4, 1, 1});
     offset[i] = (sol.select(1, 2 * j + 1) + t).view({4, 1, 1});
-    mean_gain = j == 0 ? gain[i].clone() : mean_gain + gain[i];
   }
-  mean_gain /= static_cast<double>(n);
-  require(
-      mean_gain.abs().min().item<double>() > 1e-12, "calibrate",
-      "the references do not explain the captures at all in some channel (wrong colour order, or unrelated pairs?)");
-  for (size_t i = 0; i < Y.size(); ++i) gain[i] /= mean_gain, offset[i] /= mean_gain;
-  return mean_gain;
+  return hold_mean_gain_at_one(gain, offset);
 }
 
 // ||Y - P X Q^T|| / ||captures|| per channel, summed over the pairs (Y and X centred over the pairs
@@ -271,7 +270,8 @@ ReferenceCalibration calibrate_from_references(const std::vector<ReferencePair>&
   Tensors gain(count), offset(count), X = R;  // X_i = a_i R_i + b_i, eq. (1)
   // With the fixed light, the factors see the pairs' differences from their mean (eq. 1').
   const auto for_factors = [&](const Tensors& T) { return o.fixed_light ? centre_over_pairs(T).first : T; };
-  const auto Yf = for_factors(Y);
+  const auto [Yc, Ybar] = centre_over_pairs(Y);
+  const auto& Yf = o.fixed_light ? Yc : Y;
   ReferenceCalibration result;
   const auto [shift_rows, shift_cols] = search_shifts(Yf, for_factors(R), o);
   result.shift_rows = shift_rows;
@@ -298,7 +298,7 @@ ReferenceCalibration calibrate_from_references(const std::vector<ReferencePair>&
     P = P * balance;
     Q = Q / balance;
     const auto mean_gain =
-        o.fixed_light ? fit_gains_fixed_light(Y, R, P, Q, gain, offset) : fit_gains(Y, R, P, Q, gain, offset);
+        o.fixed_light ? fit_gains_fixed_light(Yc, Ybar, R, P, Q, gain, offset) : fit_gains(Y, R, P, Q, gain, offset);
     P = P * mean_gain;
     result.profile_rows = p_fit.profile * (balance * mean_gain).view({4, 1});
     result.profile_cols = q_fit.profile / balance.view({4, 1});
@@ -316,7 +316,7 @@ ReferenceCalibration calibrate_from_references(const std::vector<ReferencePair>&
   result.calib.Q = Q;
   if (o.fixed_light) {  // F = mean_i (Y_i - P X_i Q^T), eq. (1')
     const auto Xbar = centre_over_pairs(X).second;
-    result.calib.fixed_light = centre_over_pairs(Y).second - torch::matmul(torch::matmul(P, Xbar), Q.transpose(1, 2));
+    result.calib.fixed_light = Ybar - torch::matmul(torch::matmul(P, Xbar), Q.transpose(1, 2));
   }
   for (size_t i = 0; i < count; ++i) {
     std::array<double, 8> g{};
@@ -376,9 +376,8 @@ WhiteFrameFit fit_white_frame(const torch::Tensor& planes, const Calibration& ca
   auto U = torch::einsum("ci,cj->cij", {calib.P.to(torch::kFloat64).sum(2), calib.Q.to(torch::kFloat64).sum(2)});
   U = U - U.mean(1, true) - U.mean(2, true) + U.mean({1, 2}, true);
   // The white capture holds the fixed light as every capture does (eq. 1'): it is not the white's.
-  auto Y = planes.to(torch::kFloat64);
-  if (calib.fixed_light.defined()) Y = Y - calib.fixed_light;
-  const auto CU = coefficients(U), CY = coefficients(Y);
+  const auto CU = coefficients(U),
+             CY = coefficients(without_fixed_light(planes.to(torch::kFloat64), calib.fixed_light));
   WhiteFrameFit out;
   for (int c = 0; c < 4; ++c) {
     const double uu = CU[c].square().sum().item<double>(), yy = CY[c].square().sum().item<double>();
@@ -437,8 +436,7 @@ std::vector<HeldOutPair> leave_one_out(const std::vector<ReferencePair>& pairs, 
     const auto inverse = separable_inverse(fit.calib.P, fit.calib.Q, 1.0);
     const auto filter = tikhonov_filter(inverse.sL, inverse.sR, absolute_tikhonov_lambda(inverse, lambda));
     // The held-out capture less the light the others' fit found on every capture (eq. 1').
-    auto meas = pairs[held].meas.to(torch::kFloat64);
-    if (fit.calib.fixed_light.defined()) meas = meas - fit.calib.fixed_light;
+    const auto meas = without_fixed_light(pairs[held].meas.to(torch::kFloat64), fit.calib.fixed_light);
     const auto rec = apply_separable_inverse(inverse.ULt, inverse.UR, inverse.VL, inverse.VRt, filter,
                                              meas.to(torch::kFloat32).unsqueeze(0))[0];
     HeldOutPair h{pairs[held].name, reference_correlation(rec, pairs[held].reference), fit.shift_rows, fit.shift_cols};

@@ -307,16 +307,6 @@ torch::Tensor read_fixed_light(const MatReader& mat, const std::filesystem::path
   return F;
 }
 
-Calibration read_factors(const MatReader& mat, const std::filesystem::path& path, int64_t h, int64_t w, int64_t n);
-
-Calibration read_calibration(const std::filesystem::path& path, const CameraConfig& camera) {
-  const auto h = camera.raw.crop[2], w = camera.raw.crop[3], n = camera.scene_size;
-  MatReader mat(path, calibration_bytes_at_most(h, w, n));
-  auto calib = mat.has("shift_rows") ? load_shift_calibration(mat, path, h, w, n) : read_factors(mat, path, h, w, n);
-  calib.fixed_light = read_fixed_light(mat, path, h, w);
-  return calib;
-}
-
 Calibration read_factors(const MatReader& mat, const std::filesystem::path& path, int64_t h, int64_t w, int64_t n) {
   std::vector<torch::Tensor> P, Q;
   for (const char* c : kChannelNames) {
@@ -339,6 +329,14 @@ Calibration read_factors(const MatReader& mat, const std::filesystem::path& path
   return {torch::stack(P), torch::stack(Q)};
 }
 
+Calibration read_calibration(const std::filesystem::path& path, const CameraConfig& camera) {
+  const auto h = camera.raw.crop[2], w = camera.raw.crop[3], n = camera.scene_size;
+  MatReader mat(path, calibration_bytes_at_most(h, w, n));
+  auto calib = mat.has("shift_rows") ? load_shift_calibration(mat, path, h, w, n) : read_factors(mat, path, h, w, n);
+  calib.fixed_light = read_fixed_light(mat, path, h, w);
+  return calib;
+}
+
 }  // namespace
 
 Calibration load_calibration(const std::filesystem::path& path, const CameraConfig& camera) {
@@ -352,9 +350,9 @@ void add_fixed_light(std::map<std::string, torch::Tensor>& vars, const torch::Te
 }
 }  // namespace
 
-torch::Tensor without_fixed_light(const torch::Tensor& planes, const Calibration& calib) {
-  if (!calib.fixed_light.defined()) return planes;
-  return planes - calib.fixed_light.to(planes.scalar_type());  // {B,4,h,w} - {4,h,w}
+torch::Tensor without_fixed_light(const torch::Tensor& planes, const torch::Tensor& fixed_light) {
+  if (!fixed_light.defined()) return planes;
+  return planes - fixed_light.to(planes.scalar_type());  // {...,4,h,w} - {4,h,w}
 }
 
 void save_shift_calibration(const std::filesystem::path& path, const torch::Tensor& profile_rows,

@@ -96,8 +96,9 @@ struct Calibration {
   torch::Tensor fixed_light{};
 };
 
-// Planes {B,4,h,w} (their level removed) less the calibration's fixed light; unchanged without one.
-torch::Tensor without_fixed_light(const torch::Tensor& planes, const Calibration& calib);
+// Planes {...,4,h,w} (their level removed) less a fixed light {4,h,w} (Calibration::fixed_light), in
+// the planes' type; unchanged when the fixed light is undefined.
+torch::Tensor without_fixed_light(const torch::Tensor& planes, const torch::Tensor& fixed_light);
 
 extern const std::array<const char*, 4> kChannelNames;  // b, gb, gr, r
 // The index of a channel name in kChannelNames (model.inversion.channel); an error names the key.

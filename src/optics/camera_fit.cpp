@@ -198,8 +198,7 @@ CameraFitResult CameraFit::measure(const torch::Tensor& raw_unit) const {
   const auto& g = camera_.raw;
   const auto window = raw_window(raw_unit, g);  // {4,h,w}: the light each pixel read
   // The separable model's planes, less the light the calibration says every capture holds.
-  auto Y = without_level(double_centre(window, g.centring), g.centring);
-  if (fixed_light_.defined()) Y = Y - fixed_light_;
+  const auto Y = without_fixed_light(without_level(double_centre(window, g.centring), g.centring), fixed_light_);
   const auto unexplained = unexplained_energy(Y, U_, V_).sum();
   // The noise model, pixel by pixel: clipped pixels carry no noise.
   const int bits = g.adc_bits;

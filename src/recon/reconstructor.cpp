@@ -41,9 +41,7 @@ class ClassicalReconstructor final : public Reconstructor {
   std::string describe() const override { return description_; }
   torch::Tensor reconstruct(const torch::Tensor& planes) override {
     // The capture less its level and the light it holds whatever the scene: Y = F + P X Q^T.
-    auto Y = without_level(planes, centring_);
-    if (fixed_light_.defined()) Y = Y - fixed_light_.to(Y.scalar_type());
-    const auto X = solve_(Y);  // {B,4,N,N}
+    const auto X = solve_(without_fixed_light(without_level(planes, centring_), fixed_light_));  // {B,4,N,N}
     const auto rgb = mix_.defined() ? unmix_primaries(X, mix_) : bayer_planes_to_rgb(X);
     return light_to_display(rgb, display_gamma_);  // {B,3,N,N}
   }
