@@ -370,3 +370,134 @@ TEST_CASE("a calibration's fixed light is written with it and read back, and a p
   CHECK_THROWS_WITH(load_calibration(dir / "wrong.mat", cam), Contains("wrong.mat") && Contains("fixed_light_r"));
   std::filesystem::remove_all(dir);
 }
+
+namespace {
+
+// A camera whose four planes see one mask per axis (shift_structure.hpp eq. 3): each plane's profile
+// is the mask's through a kernel of its own. b: the mask itself; gb: half a pixel on; gr: blurred;
+// r: half a pixel back, at 1.2 times the gain.
+struct OneMaskCamera {
+  torch::Tensor P, Q;                                 // centred, {4,m,N} and {4,n,N}
+  torch::Tensor mask_rows, mask_cols;                 // {L}
+  static torch::Tensor kernels() {                    // {4,5}, taps at -2..2
+    return torch::tensor({0.0, 0.0,  1.0, 0.0,  0.0,  //
+                          0.0, 0.0,  0.5, 0.5,  0.0,  //
+                          0.0, 0.25, 0.5, 0.25, 0.0,  //
+                          0.0, 0.6,  0.6, 0.0,  0.0},
+                         torch::kFloat64)
+        .view({4, 5});
+  }
+  // f_c[t] = sum_a k_c[a] m[t - (a - 2)], zero beyond the ends.
+  static torch::Tensor through_kernels(const torch::Tensor& mask) {
+    const auto k = kernels();
+    const int64_t L = mask.size(0);
+    const auto padded = torch::constant_pad_nd(mask, {2, 2});
+    auto f = torch::zeros({4, L}, torch::kFloat64);
+    for (int64_t a = 0; a < 5; ++a) f += k.select(1, a).view({4, 1}) * padded.narrow(0, 4 - a, L).view({1, L});
+    return f;
+  }
+  OneMaskCamera() {
+    auto gen = at::detail::createCPUGenerator(5);
+    const auto length = [](int64_t m, double s) {
+      return m + static_cast<int64_t>(std::ceil(std::abs(s) * static_cast<double>(kScene - 1))) + 2;
+    };
+    const auto code = [&](int64_t L) { return 0.2 + 0.8 * (at::rand({L}, gen) > 0.5).to(torch::kFloat64); };
+    mask_rows = code(length(kRows, kShiftRows));
+    mask_cols = code(length(kCols, kShiftCols));
+    P = shift_factor(through_kernels(mask_rows), kRows, kScene, kShiftRows, 1.0);
+    Q = shift_factor(through_kernels(mask_cols), kCols, kScene, kShiftCols, 1.0);
+  }
+  ReferencePair pair(int i, double noise) const {
+    StructuredCamera as;  // the same captures and references, through this camera's factors
+    as.P = P;
+    as.Q = Q;
+    return as.pair(i, noise);
+  }
+};
+
+double cosine(const torch::Tensor& a, const torch::Tensor& b) {
+  return ((a * b).sum() / (a.norm() * b.norm())).abs().item<double>();
+}
+
+}  // namespace
+
+TEST_CASE("one mask through a kernel per plane: the exact solve recovers the mask, the planes' kernels and P",
+          "[optics][calibrate]") {
+  const OneMaskCamera camera;
+  torch::Tensor G, H;
+  for (int i = 0; i < 3; ++i) {
+    const auto p = camera.pair(i, 0.0);
+    const auto Z = torch::matmul(scene(100 + static_cast<uint64_t>(i)), camera.Q.transpose(1, 2));
+    const auto g = torch::matmul(Z, Z.transpose(1, 2)),
+               h = torch::matmul(p.meas.to(torch::kFloat64), Z.transpose(1, 2));
+    G = i == 0 ? g : G + g;
+    H = i == 0 ? h : H + h;
+  }
+  auto impulse = torch::zeros({4, 5}, torch::kFloat64);
+  impulse.select(1, 2).fill_(1.0);
+  const auto shared = solve_shared_shift_factor(G, H, kShiftRows, impulse, 20);
+  REQUIRE(shared.kernels.sizes() == torch::IntArrayRef({4, 5}));
+  REQUIRE(shared.mask.size(0) == shift_profile_length(kRows, kScene, kShiftRows, 1.0));
+  // The least objective free profiles reach is reached with one mask (the camera is one).
+  const auto free = solve_shift_factor(G, H, kShiftRows);
+  CHECK((shared.fit.objective <= free.objective + 1e-3 * free.objective.abs()).all().item<bool>());
+  for (int64_t c = 0; c < 4; ++c) {
+    INFO("channel " << c);
+    CHECK(cosine(shared.fit.factor[c], camera.P[c]) > 0.999);
+  }
+  // The kernels come back up to the gauge (a common scale and sub-pixel shift): the offsets between
+  // the planes' centroids and the blur of gr against b.
+  const auto centroid = [&](int64_t c) {
+    const auto k = shared.kernels[c];
+    return ((torch::arange(5, torch::kFloat64) - 2) * k).sum().item<double>() / k.sum().item<double>();
+  };
+  CHECK(std::abs((centroid(1) - centroid(0)) - 0.5) < 0.05);
+  CHECK(std::abs((centroid(3) - centroid(0)) + 0.5) < 0.05);
+  CHECK(std::abs(shared.kernels[3].sum().item<double>() / shared.kernels[0].sum().item<double>() - 1.2) < 0.02);
+  // A channel's sign is its own (P_c and Q_c may both change sign): a kernel of one sign, the other's.
+  auto flipped = H.clone();
+  flipped[2] *= -1;
+  const auto signed_fit = solve_shared_shift_factor(G, flipped, kShiftRows, impulse, 20);
+  CHECK(signed_fit.kernels[2].sum().item<double>() < 0);
+  CHECK(signed_fit.kernels[0].sum().item<double>() > 0);
+  for (int64_t c = 0; c < 4; ++c) CHECK(cosine(signed_fit.fit.factor[c], camera.P[c]) > 0.999);
+  // Kernels of an even width have no centre: refused.
+  CHECK_THROWS_WITH(solve_shared_shift_factor(G, H, kShiftRows, torch::ones({4, 4}, torch::kFloat64), 1),
+                    Contains("odd kernel"));
+}
+
+TEST_CASE("a shared mask fits noisy captures closer to the true factors than a profile per plane",
+          "[optics][calibrate]") {
+  const OneMaskCamera camera;
+  std::vector<ReferencePair> pairs;
+  // Noisy: each plane's own profile would fit its own noise.
+  for (int i = 0; i < 4; ++i) pairs.push_back(camera.pair(i, 0.3));
+  auto shared_options = quiet();
+  shared_options.shared_mask = true;
+  const auto per_plane = calibrate_from_references(pairs, quiet());
+  const auto shared = calibrate_from_references(pairs, shared_options);
+  REQUIRE(shared.kernels_rows.defined());
+  CHECK_FALSE(per_plane.kernels_rows.defined());
+  CHECK(std::abs(shared.shift_rows - kShiftRows) < 0.01);
+  CHECK(std::abs(shared.shift_cols - kShiftCols) < 0.01);
+  double gain_p = 0, gain_q = 0;
+  for (int64_t c = 0; c < 4; ++c) {
+    INFO("channel " << c);
+    const double shared_p = cosine(shared.calib.P[c], camera.P[c]), free_p = cosine(per_plane.calib.P[c], camera.P[c]);
+    const double shared_q = cosine(shared.calib.Q[c], camera.Q[c]), free_q = cosine(per_plane.calib.Q[c], camera.Q[c]);
+    CHECK(shared_p > 0.95);
+    CHECK(shared_q > 0.95);
+    gain_p += shared_p - free_p;
+    gain_q += shared_q - free_q;
+  }
+  CHECK(gain_p > 0);
+  CHECK(gain_q > 0);
+  // The camera file's line names each plane's offset.
+  const auto line = describe_shared_mask(shared);
+  CHECK_THAT(line, Contains("one mask per axis"));
+  CHECK_THAT(line, Contains("rows:"));
+  CHECK(describe_shared_mask(per_plane).empty());
+  auto bad = shared_options;
+  bad.mask_taps = 4;
+  CHECK_THROWS_WITH(calibrate_from_references(pairs, bad), Contains("odd number of taps"));
+}

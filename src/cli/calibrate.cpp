@@ -44,6 +44,8 @@ struct CalibrateSettings {
   double white_light = 1;
   double scene_light = kTypicalSceneLight;
   std::string fixed_light = ReferenceCalibrationOptions{}.fixed_light ? "on" : "off";
+  std::string shared_mask = ReferenceCalibrationOptions{}.shared_mask ? "on" : "off";
+  int mask_taps = ReferenceCalibrationOptions{}.mask_taps;
 };
 
 // The camera.yaml written beside a calibration made from data: the geometry given, with this
@@ -243,6 +245,7 @@ int write_reference_calibration(const cxxopts::ParseResult& r, const CameraConfi
          << std::setprecision(3) << fit.calib.fixed_light.norm().item<double>() / std::max(1e-300, captures)
          << " of a capture's norm: calib.mat's fixed_light_*, subtracted before inversion (--fixed-light)";
   }
+  if (fit.kernels_rows.defined()) head << "\n# " << describe_shared_mask(fit);
   if (held_mean >= 0) head << "\n# leave-one-out: mean held-out correlation " << std::setprecision(4) << held_mean;
   if (checks.held_change >= 0)
     head << "; its coded light is uncertain by " << std::setprecision(3) << checks.held_change
@@ -319,6 +322,10 @@ int calibrate_from_reference_pairs(const cxxopts::ParseResult& r, const Calibrat
   require(s.fixed_light == "on" || s.fixed_light == "off", "--fixed-light",
           "on or off, not '" + printable(s.fixed_light) + "'");
   o.fixed_light = s.fixed_light == "on";
+  require(s.shared_mask == "on" || s.shared_mask == "off", "--shared-mask",
+          "on or off, not '" + printable(s.shared_mask) + "'");
+  o.shared_mask = s.shared_mask == "on";
+  o.mask_taps = s.mask_taps;
   o.seed = s.seed;
   o.shift.min_shift = s.min_shift;
   o.shift.max_shift = s.max_shift;
@@ -729,6 +736,12 @@ const FlagTable<CS>& calibrate_reference_flags() {
        "on: a light every capture holds whatever the scene (flare, stray light) is fitted as its own term, "
        "written with the calibration and subtracted before inversion; off: the captures hold the scene's light "
        "alone"},
+      {"shared-mask", &CS::shared_mask,
+       "on: the four Bayer planes' profiles fitted as one mask per axis, each plane seeing it through a short "
+       "kernel of its own (its sub-pixel offset, blur and gain); off: a profile per plane"},
+      {"mask-taps", &CS::mask_taps,
+       "with --shared-mask on: samples in each plane's kernel (odd, 3 to 15; 3 holds a sub-pixel offset and a "
+       "little blur)"},
       {"min-shift", &CS::min_shift, "smallest |shadow shift| searched, sensor pixels per scene pixel"},
       {"max-shift", &CS::max_shift, "largest |shadow shift| searched"},
       {"white-light", &CS::white_light, "the white capture's light relative to the display's white"},

@@ -240,6 +240,10 @@ std::pair<double, double> search_shifts(const Tensors& Y, const Tensors& R, cons
   return {rows, cols};
 }
 
+// The alternations between the mask and the kernels inside each factor's step (the outer passes
+// alternate again, so a few suffice).
+constexpr int kSharedMaskAlternations = 4;
+
 // One factor's shift refined within 3 % on a step's normal equations (the other factor fixed).
 double refine_shift(const std::pair<torch::Tensor, torch::Tensor>& normal_equations, double shift, double tolerance) {
   // Named, not a structured binding: a C++17 lambda may not capture one (clang refuses it).
@@ -278,6 +282,18 @@ ReferenceCalibration calibrate_from_references(const std::vector<ReferencePair>&
   result.shift_cols = shift_cols;
   auto Q = random_structured(4, cols, N, result.shift_cols, o.seed);
   torch::Tensor P;
+  require_option(!o.shared_mask || (o.mask_taps >= 3 && o.mask_taps <= 15 && o.mask_taps % 2 == 1),
+                 "calibrate.references", "a shared mask's kernels need an odd number of taps from 3 to 15");
+  // Each plane's kernels of a shared mask (eq. 3 of shift_structure.hpp), from a unit impulse.
+  auto impulse = torch::zeros({4, o.mask_taps}, torch::kFloat64);
+  impulse.select(1, o.mask_taps / 2).fill_(1.0);
+  auto kernels_rows = impulse.clone(), kernels_cols = impulse.clone();
+  const auto solve = [&](const std::pair<torch::Tensor, torch::Tensor>& normal, double shift, torch::Tensor& kernels) {
+    if (!o.shared_mask) return solve_shift_factor(normal.first, normal.second, shift);
+    auto shared = solve_shared_shift_factor(normal.first, normal.second, shift, kernels, kSharedMaskAlternations);
+    kernels = shared.kernels;
+    return shared.fit;
+  };
   Progress progress("calibrate", o.passes, o.progress);
   for (int pass = 0; pass < o.passes; ++pass) {
     // After the first pass (from a random Q), the next ones refine each shift within a few per cent of
@@ -286,11 +302,11 @@ ReferenceCalibration calibrate_from_references(const std::vector<ReferencePair>&
     const auto Xf = for_factors(X);
     const auto pn = p_normal(Yf, Xf, Q);
     if (refine) result.shift_rows = refine_shift(pn, result.shift_rows, o.shift.shift_tolerance);
-    auto p_fit = solve_shift_factor(pn.first, pn.second, result.shift_rows);
+    auto p_fit = solve(pn, result.shift_rows, kernels_rows);
     P = p_fit.factor;
     const auto qn = q_normal(Yf, Xf, P);
     if (refine) result.shift_cols = refine_shift(qn, result.shift_cols, o.shift.shift_tolerance);
-    auto q_fit = solve_shift_factor(qn.first, qn.second, result.shift_cols);
+    auto q_fit = solve(qn, result.shift_cols, kernels_cols);
     Q = q_fit.factor;
     // The scale split P k, Q / k is invisible; balance it, then hold the mean gain at 1. The profiles
     // follow their factors (linear in them).
@@ -314,6 +330,10 @@ ReferenceCalibration calibrate_from_references(const std::vector<ReferencePair>&
   progress.finish();
   result.calib.P = P;
   result.calib.Q = Q;
+  if (o.shared_mask) {
+    result.kernels_rows = kernels_rows;
+    result.kernels_cols = kernels_cols;
+  }
   if (o.fixed_light) {  // F = mean_i (Y_i - P X_i Q^T), eq. (1')
     const auto Xbar = centre_over_pairs(X).second;
     result.calib.fixed_light = Ybar - torch::matmul(torch::matmul(P, Xbar), Q.transpose(1, 2));
@@ -330,6 +350,28 @@ ReferenceCalibration calibrate_from_references(const std::vector<ReferencePair>&
         {means[0].item<double>(), means[1].item<double>(), means[2].item<double>(), means[3].item<double>()});
   }
   return result;
+}
+
+std::string describe_shared_mask(const ReferenceCalibration& fit) {
+  if (!fit.kernels_rows.defined()) return "";
+  std::ostringstream os;
+  os << std::fixed << std::setprecision(2)
+     << "one mask per axis for the four planes (--shared-mask), each plane's kernel (offset, blur in sensor pixels)";
+  const char* names[4] = {"b", "gb", "gr", "r"};
+  for (const auto& [axis, k] :
+       {std::pair<const char*, torch::Tensor>{"rows", fit.kernels_rows}, {"cols", fit.kernels_cols}}) {
+    os << "; " << axis << ":";
+    const auto taps = k.size(1);
+    const auto tau = torch::arange(taps, torch::kFloat64) - static_cast<double>(taps / 2);
+    for (int64_t c = 0; c < k.size(0); ++c) {
+      const auto w = k[c].abs();
+      const double total = std::max(1e-300, w.sum().item<double>());
+      const double centre = (w * tau).sum().item<double>() / total;
+      const double width = std::sqrt((w * (tau - centre).square()).sum().item<double>() / total);
+      os << " " << names[c] << " " << centre << " " << width;
+    }
+  }
+  return os.str();
 }
 
 std::array<double, 4> reference_correlation(const torch::Tensor& reconstruction, const torch::Tensor& reference) {

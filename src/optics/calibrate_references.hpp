@@ -49,6 +49,11 @@ struct ReferenceCalibrationOptions {
   // Off by default: F estimated from n captures holds 1/n of their noise and of what else they share,
   // and a new capture less F carries it (docs/results/own-camera.md, "Twins that are cameras").
   bool fixed_light = false;
+  // Fit the four Bayer planes' profiles as one mask per axis seen through a short kernel per plane
+  // (optics/shift_structure.hpp eq. 3: each plane's sub-pixel offset, blur and gain), instead of a
+  // profile per plane. `mask_taps` samples per kernel (odd, 3 to 15).
+  bool shared_mask = false;
+  int mask_taps = 5;
   int passes = 6;               // alternating passes (P, Q, gains)
   int search_passes = 2;        // passes 2 and 3 refine each axis's shift (within 3 %); the others keep it
   uint64_t seed = 0;            // the random profiles that start each trial fit
@@ -65,10 +70,15 @@ struct ReferenceCalibration {
   Calibration calib;  // P {4,rows,N}, Q {4,cols,N} (centred), float64; fixed_light F of (1') when fitted
   double shift_rows = 0, shift_cols = 0;           // sensor pixels per scene row / column, signed
   torch::Tensor profile_rows, profile_cols;        // {4,L}: P and Q as profiles (save_shift_calibration)
+  torch::Tensor kernels_rows, kernels_cols;        // {4,taps} with shared_mask: each plane's kernel of eq. 3
   std::array<double, 4> residual{};                // ||Y - model (1)|| / ||Y|| per channel over the pairs
   std::vector<std::array<double, 8>> gain_offset;  // per pair: a_b, a_gb, a_gr, a_r, b_b, ..., b_r
   std::vector<std::array<double, 4>> scene_means;  // per pair and channel: the mean of a R + b, P's units
 };
+
+// One line for the camera file: with shared_mask, each plane's kernel as the offset (its centroid) and
+// blur (its rms width) it gives the mask's shadow, per axis, in sensor pixels.
+std::string describe_shared_mask(const ReferenceCalibration& fit);
 
 // Fits (1). Errors name the pair when its planes have the wrong size, hold NaN, or carry no signal.
 ReferenceCalibration calibrate_from_references(const std::vector<ReferencePair>& pairs,

@@ -102,7 +102,7 @@ ShiftFactor fit_shift_factor(const torch::Tensor& G, const torch::Tensor& H, dou
   return out;
 }
 
-ShiftFactor solve_shift_factor(const torch::Tensor& G, const torch::Tensor& H, double shift) {
+ShiftNormalEquations shift_normal_equations(const torch::Tensor& G, const torch::Tensor& H, double shift) {
   require_option(std::isfinite(shift) && shift != 0, "calibrate.dataset", "a shift structure needs a non-zero shift");
   const auto g = G.to(torch::kFloat64), h = H.to(torch::kFloat64);  // {C,N,N}, {C,m,N}
   const int64_t channels = h.size(0), rows = h.size(1), scene = h.size(2);
@@ -151,12 +151,137 @@ ShiftFactor solve_shift_factor(const torch::Tensor& G, const torch::Tensor& H, d
   // The profile's constant is invisible in centred captures: a whisper of ridge keeps it at zero.
   const auto ridge = 1e-8 * static_cast<double>(rows * scene) / static_cast<double>(length) *
                      g.diagonal(0, 1, 2).mean(1).clamp_min(1e-300).view({channels, 1, 1});
-  const auto f = torch::linalg_solve(A + ridge * torch::eye(length, f64), rhs.unsqueeze(2)).squeeze(2);
+  ShiftNormalEquations out;
+  out.A = A + ridge * torch::eye(length, f64);
+  out.rhs = rhs;
+  return out;
+}
+
+ShiftFactor solve_shift_factor(const torch::Tensor& G, const torch::Tensor& H, double shift) {
+  const auto eq = shift_normal_equations(G, H, shift);
+  const auto f = torch::linalg_solve(eq.A, eq.rhs.unsqueeze(2)).squeeze(2);
   ShiftFactor out;
   out.shift = shift;
   out.profile = f;
-  out.factor = shift_factor(f, rows, scene, shift, 1.0);
-  out.objective = objective(out.factor, g, h);
+  out.factor = shift_factor(f, H.size(1), H.size(2), shift, 1.0);
+  out.objective = objective(out.factor, G.to(torch::kFloat64), H.to(torch::kFloat64));
+  return out;
+}
+
+namespace {
+
+// K^T A K for the convolution (K p)[t] = sum_tau k[tau] p[t - tau], tau = -h..h, zero beyond the
+// ends: (K^T A K)[u,v] = sum_{tau,tau'} k[tau] k[tau'] A[u + tau, v + tau'].
+torch::Tensor convolved_normal(const torch::Tensor& A, const torch::Tensor& k) {  // A {L,L}, k {K}
+  const int64_t L = A.size(0), K = k.size(0), h = K / 2;
+  const auto padded = torch::constant_pad_nd(A, {h, h, h, h});
+  auto out = torch::zeros_like(A);
+  for (int64_t a = 0; a < K; ++a)
+    for (int64_t b = 0; b < K; ++b) out += k[a] * k[b] * padded.narrow(0, a, L).narrow(1, b, L);
+  return out;
+}
+
+// K^T r: (K^T r)[u] = sum_tau k[tau] r[u + tau].
+torch::Tensor convolved_rhs(const torch::Tensor& r, const torch::Tensor& k) {  // r {L}, k {K}
+  const int64_t L = r.size(0), K = k.size(0), h = K / 2;
+  const auto padded = torch::constant_pad_nd(r, {h, h});
+  auto out = torch::zeros_like(r);
+  for (int64_t a = 0; a < K; ++a) out += k[a] * padded.narrow(0, a, L);
+  return out;
+}
+
+// The profile's copies that a kernel weighs: M[t, a] = p[t - (a - h)], so K p = M k.  {L,K}
+torch::Tensor shifted_copies(const torch::Tensor& p, int64_t taps) {
+  const int64_t L = p.size(0), h = taps / 2;
+  const auto padded = torch::constant_pad_nd(p, {h, h});
+  std::vector<torch::Tensor> columns;
+  for (int64_t a = 0; a < taps; ++a) columns.push_back(padded.narrow(0, 2 * h - a, L));
+  return torch::stack(columns, 1);
+}
+
+// min k^T A k - 2 r^T k over k >= 0 (A {K,K} positive definite, K small), by cyclic coordinate
+// descent from `start` (clamped): each coordinate exactly minimised in turn, which converges for a
+// convex quadratic under bounds. A kernel is a blur moved by a sub-pixel offset: light is spread,
+// never subtracted, so its taps are not negative (what a mask is, not what the references blur away).
+torch::Tensor nonnegative_least_squares(const torch::Tensor& A, const torch::Tensor& r, const torch::Tensor& start) {
+  const int64_t K = r.size(0);
+  auto a = A.contiguous(), b = r.contiguous();
+  const double* Ap = a.data_ptr<double>();
+  const double* rp = b.data_ptr<double>();
+  std::vector<double> k(static_cast<size_t>(K));
+  for (int64_t i = 0; i < K; ++i) k[static_cast<size_t>(i)] = std::max(0.0, start[i].item<double>());
+  for (int sweep = 0; sweep < 500; ++sweep) {
+    double moved = 0, size = 0;
+    for (int64_t i = 0; i < K; ++i) {
+      double rest = rp[i];
+      for (int64_t j = 0; j < K; ++j)
+        if (j != i) rest -= Ap[i * K + j] * k[static_cast<size_t>(j)];
+      const double next = Ap[i * K + i] > 0 ? std::max(0.0, rest / Ap[i * K + i]) : 0.0;
+      moved += std::abs(next - k[static_cast<size_t>(i)]);
+      size += std::abs(next);
+      k[static_cast<size_t>(i)] = next;
+    }
+    if (moved <= 1e-12 * std::max(size, 1e-300)) break;
+  }
+  return torch::tensor(k, torch::kFloat64);
+}
+
+// The kernel's sign is a channel's own (P_c and Q_c may both change sign: their product is what the
+// captures see), so the kernel is the better of a non-negative and a non-positive one.
+torch::Tensor signed_nonnegative_least_squares(const torch::Tensor& A, const torch::Tensor& r,
+                                               const torch::Tensor& start) {
+  const auto positive = nonnegative_least_squares(A, r, start);
+  const auto negative = -nonnegative_least_squares(A, -r, -start);
+  const auto J = [&](const torch::Tensor& k) {
+    return (torch::dot(k, torch::mv(A, k)) - 2 * torch::dot(r, k)).item<double>();
+  };
+  return J(positive) <= J(negative) ? positive : negative;
+}
+
+}  // namespace
+
+SharedShiftFactor solve_shared_shift_factor(const torch::Tensor& G, const torch::Tensor& H, double shift,
+                                            const torch::Tensor& kernels, int alternations) {
+  const auto eq = shift_normal_equations(G, H, shift);  // A {C,L,L}, rhs {C,L}
+  const int64_t channels = eq.rhs.size(0), length = eq.rhs.size(1);
+  require_option(
+      kernels.dim() == 2 && kernels.size(0) == channels && kernels.size(1) % 2 == 1 && kernels.size(1) < length,
+      "calibrate.references", "a shared mask needs one odd kernel per channel");
+  auto k = kernels.to(torch::kFloat64).clone();  // {C,K}
+  const int64_t taps = k.size(1);
+  torch::Tensor mask;
+  for (int it = 0; it < std::max(1, alternations); ++it) {
+    // The mask for fixed kernels: sum_c K_c^T A_c K_c m = sum_c K_c^T rhs_c (eq. 3).
+    auto A = torch::zeros({length, length}, eq.A.options());
+    auto r = torch::zeros({length}, eq.A.options());
+    for (int64_t c = 0; c < channels; ++c) {
+      A += convolved_normal(eq.A[c], k[c]);
+      r += convolved_rhs(eq.rhs[c], k[c]);
+    }
+    mask = torch::linalg_solve(A, r.unsqueeze(1)).squeeze(1);
+    // Each channel's kernel for the fixed mask: a K x K least squares (eq. 4).
+    const auto M = shifted_copies(mask, taps);  // {L,K}
+    for (int64_t c = 0; c < channels; ++c) {
+      const auto Ak = torch::matmul(torch::matmul(M.t(), eq.A[c]), M);
+      const auto rk = torch::matmul(M.t(), eq.rhs[c]);
+      k[c] = signed_nonnegative_least_squares(Ak, rk, k[c]);
+    }
+    // The gauge: the kernels' mean |sum| is 1 (the mask carries the scale).
+    const auto scale = k.sum(1).abs().mean();
+    if (std::abs(scale.item<double>()) > 1e-300) {
+      k /= scale;
+      mask = mask * scale;
+    }
+  }
+  SharedShiftFactor out;
+  out.mask = mask;
+  out.kernels = k;
+  auto profile = torch::zeros({channels, length}, eq.A.options());
+  for (int64_t c = 0; c < channels; ++c) profile[c] = torch::matmul(shifted_copies(mask, taps), k[c]);
+  out.fit.shift = shift;
+  out.fit.profile = profile;
+  out.fit.factor = shift_factor(profile, H.size(1), H.size(2), shift, 1.0);
+  out.fit.objective = objective(out.fit.factor, G.to(torch::kFloat64), H.to(torch::kFloat64));
   return out;
 }
 

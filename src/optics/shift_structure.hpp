@@ -66,6 +66,32 @@ ShiftFactor fit_shift_factor(const torch::Tensor& G, const torch::Tensor& H, dou
 // over both axes affordable when each evaluation must be converged.
 ShiftFactor solve_shift_factor(const torch::Tensor& G, const torch::Tensor& H, double shift);
 
+// The normal equations solve_shift_factor solves, A f = rhs per channel (A {C,L,L} with the ridge,
+// rhs {C,L}): for fits that tie the channels' profiles together.
+struct ShiftNormalEquations {
+  torch::Tensor A, rhs;
+};
+ShiftNormalEquations shift_normal_equations(const torch::Tensor& G, const torch::Tensor& H, double shift);
+
+// One mask for every channel. The four Bayer planes sit behind one mask: each sees its shadow from
+// half a pixel away, through its own colour's diffraction, at its own gain. So each channel's profile
+// is one mask profile m convolved with a short kernel of its own (a sub-pixel offset, a blur and a
+// gain in one linear filter, `taps` samples wide):
+//   f_c[t] = sum_tau k_c[tau] m[t - tau],   tau = -h..h,                                  (3)
+// and J of (2) summed over the channels is minimised by alternation: m for fixed kernels (one L x L
+// solve of sum_c K_c^T A_c K_c), then each kernel for fixed m (a taps x taps solve). The scale is split
+// by holding the kernels' mean |sum| at 1; each kernel's taps are held to one sign (a blur moved by a
+// sub-pixel offset spreads light, it never subtracts it), which keeps a kernel from fitting noise. A channel then
+// cannot fit its own noise as a profile of its own: the planes' profiles agree up to their kernels by construction.
+struct SharedShiftFactor {
+  ShiftFactor fit;        // the channels' profiles f_c of (3) and their factors
+  torch::Tensor mask;     // {L} m
+  torch::Tensor kernels;  // {C,taps} k_c
+};
+// kernels {C,taps} (odd) start the alternation (a unit impulse at the centre for a first fit).
+SharedShiftFactor solve_shared_shift_factor(const torch::Tensor& G, const torch::Tensor& H, double shift,
+                                            const torch::Tensor& kernels, int alternations);
+
 // Golden-section search for the least f on [lo, hi] (a single well inside), to a relative bracket
 // `tolerance`; the shift searches' last stage.
 double golden_section_minimum(const std::function<double(double)>& f, double lo, double hi, double tolerance);
