@@ -207,22 +207,27 @@ def score(a):
 def agree(a):
     """How well the four planes' identified profiles agree: the largest |correlation| of each pair of
     planes' row (and column) profiles over sub-pixel moves within +-2 samples (the Bayer planes sit
-    half a pixel apart). A compact calibration (profile_rows, profile_cols)."""
+    half a pixel apart). A compact calibration (profile_rows, profile_cols), or a full one, whose
+    factors' columns are the profile sampled (each column moved along the sensor axis)."""
     fit = scipy.io.loadmat(a.calib)
-    if "profile_rows" not in fit:
-        sys.exit(f"camera_twin: {a.calib}: not a compact calibration (write it with --compact)")
-    for key in ("profile_rows", "profile_cols"):
-        prof = fit[key]
+    if "profile_rows" in fit:
+        planes = {"profile_rows": fit["profile_rows"][:, :, None], "profile_cols": fit["profile_cols"][:, :, None]}
+    elif all(f"{axis}1{c}" in fit for axis in "PQ" for c in CHANNELS):
+        planes = {f"factor {axis}": np.stack([np.asarray(fit[f"{axis}1{c}"], np.float64) for c in CHANNELS])
+                  for axis in "PQ"}
+    else:
+        sys.exit(f"camera_twin: {a.calib}: neither a compact calibration nor P1b..Q1r")
+    for key, prof in planes.items():  # {4, samples, columns}
         x = np.arange(prof.shape[1], dtype=np.float64)
         line = []
         for i in range(4):
             for j in range(i + 1, 4):
                 best = 0.0
                 for lag in np.arange(-2, 2.001, 0.05):
-                    moved = np.interp(x + lag, x, prof[j])
+                    moved = np.stack([np.interp(x + lag, x, prof[j][:, k]) for k in range(prof.shape[2])], 1)
                     keep = slice(3, -3)
-                    u, v = prof[i][keep] - prof[i][keep].mean(), moved[keep] - moved[keep].mean()
-                    best = max(best, abs(u @ v) / (np.linalg.norm(u) * np.linalg.norm(v)))
+                    u, v = prof[i][keep] - prof[i][keep].mean(0), moved[keep] - moved[keep].mean(0)
+                    best = max(best, abs((u * v).sum()) / (np.linalg.norm(u) * np.linalg.norm(v)))
                 line.append(f"{CHANNELS[i]}-{CHANNELS[j]} {best:.3f}")
         print(f"{key}: " + ", ".join(line))
 
