@@ -260,6 +260,8 @@ ReferenceCalibration calibrate_from_references(const std::vector<ReferencePair>&
   check_pairs(pairs);
   require_option(o.passes >= 1 && o.search_passes >= 0, "calibrate.references",
                  "passes at least 1 and search passes at least 0");
+  require_option(!o.shared_mask || (o.mask_taps >= 3 && o.mask_taps <= 15 && o.mask_taps % 2 == 1),
+                 "calibrate.references", "a shared mask's kernels need an odd number of taps from 3 to 15");
   Tensors Y, R;
   for (const auto& p : pairs) {
     // Model (1) is centred: a plane's constant (FlatNet's centring adds the all-plane mean back) is
@@ -282,8 +284,6 @@ ReferenceCalibration calibrate_from_references(const std::vector<ReferencePair>&
   result.shift_cols = shift_cols;
   auto Q = random_structured(4, cols, N, result.shift_cols, o.seed);
   torch::Tensor P;
-  require_option(!o.shared_mask || (o.mask_taps >= 3 && o.mask_taps <= 15 && o.mask_taps % 2 == 1),
-                 "calibrate.references", "a shared mask's kernels need an odd number of taps from 3 to 15");
   // Each plane's kernels of a shared mask (eq. 3 of shift_structure.hpp), from a unit impulse.
   auto impulse = torch::zeros({4, o.mask_taps}, torch::kFloat64);
   impulse.select(1, o.mask_taps / 2).fill_(1.0);
