@@ -64,6 +64,22 @@ struct StructuredCamera {
   }
 };
 
+// The P-step's normal equations (G = sum Z Z^T, H = sum Y Z^T, Z = X Q^T) over three noise-free pairs
+// of a camera with the true Q.
+template <typename Camera>
+std::pair<torch::Tensor, torch::Tensor> p_step_normal_equations(const Camera& camera) {
+  torch::Tensor G, H;
+  for (int i = 0; i < 3; ++i) {
+    const auto p = camera.pair(i, 0.0);
+    const auto Z = torch::matmul(scene(100 + static_cast<uint64_t>(i)), camera.Q.transpose(1, 2));
+    const auto g = torch::matmul(Z, Z.transpose(1, 2)),
+               h = torch::matmul(p.meas.to(torch::kFloat64), Z.transpose(1, 2));
+    G = i == 0 ? g : G + g;
+    H = i == 0 ? h : H + h;
+  }
+  return {G, H};
+}
+
 ReferenceCalibrationOptions quiet() {
   ReferenceCalibrationOptions o;
   o.progress = false;
@@ -75,16 +91,7 @@ ReferenceCalibrationOptions quiet() {
 TEST_CASE("the exact shift-profile solve reaches the least objective conjugate gradients approach",
           "[optics][calibrate]") {
   const StructuredCamera camera;
-  std::vector<torch::Tensor> X;
-  torch::Tensor G, H;
-  for (int i = 0; i < 3; ++i) {
-    const auto p = camera.pair(i, 0.0);
-    const auto Z = torch::matmul(scene(100 + static_cast<uint64_t>(i)), camera.Q.transpose(1, 2));
-    const auto g = torch::matmul(Z, Z.transpose(1, 2)),
-               h = torch::matmul(p.meas.to(torch::kFloat64), Z.transpose(1, 2));
-    G = i == 0 ? g : G + g;
-    H = i == 0 ? h : H + h;
-  }
+  const auto [G, H] = p_step_normal_equations(camera);
   ShiftFitOptions o;
   o.cg_tolerance = 1e-12;
   for (const double shift : {kShiftRows, 1.7}) {
@@ -424,15 +431,7 @@ double cosine(const torch::Tensor& a, const torch::Tensor& b) {
 TEST_CASE("one mask through a kernel per plane: the exact solve recovers the mask, the planes' kernels and P",
           "[optics][calibrate]") {
   const OneMaskCamera camera;
-  torch::Tensor G, H;
-  for (int i = 0; i < 3; ++i) {
-    const auto p = camera.pair(i, 0.0);
-    const auto Z = torch::matmul(scene(100 + static_cast<uint64_t>(i)), camera.Q.transpose(1, 2));
-    const auto g = torch::matmul(Z, Z.transpose(1, 2)),
-               h = torch::matmul(p.meas.to(torch::kFloat64), Z.transpose(1, 2));
-    G = i == 0 ? g : G + g;
-    H = i == 0 ? h : H + h;
-  }
+  const auto [G, H] = p_step_normal_equations(camera);
   auto impulse = torch::zeros({4, 5}, torch::kFloat64);
   impulse.select(1, 2).fill_(1.0);
   const auto shared = solve_shared_shift_factor(G, H, kShiftRows, impulse, 20);

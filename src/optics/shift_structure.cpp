@@ -259,7 +259,7 @@ SharedShiftFactor solve_shared_shift_factor(const torch::Tensor& G, const torch:
       r += convolved_rhs(eq.rhs[c], k[c]);
     }
     mask = torch::linalg_solve(A, r.unsqueeze(1)).squeeze(1);
-    // Each channel's kernel for the fixed mask: a K x K least squares (eq. 4).
+    // Each channel's kernel for the fixed mask: eq. 3's J as a K x K least squares in k_c.
     const auto M = shifted_copies(mask, taps);  // {L,K}
     for (int64_t c = 0; c < channels; ++c) {
       const auto Ak = torch::matmul(torch::matmul(M.t(), eq.A[c]), M);
@@ -276,8 +276,7 @@ SharedShiftFactor solve_shared_shift_factor(const torch::Tensor& G, const torch:
   SharedShiftFactor out;
   out.mask = mask;
   out.kernels = k;
-  auto profile = torch::zeros({channels, length}, eq.A.options());
-  for (int64_t c = 0; c < channels; ++c) profile[c] = torch::matmul(shifted_copies(mask, taps), k[c]);
+  const auto profile = torch::matmul(k, shifted_copies(mask, taps).t());  // {C,L}: f_c = M k_c
   out.fit.shift = shift;
   out.fit.profile = profile;
   out.fit.factor = shift_factor(profile, H.size(1), H.size(2), shift, 1.0);
