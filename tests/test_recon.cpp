@@ -10,6 +10,7 @@
 #include "eval/inversion_report.hpp"
 #include "eval/metrics.hpp"
 #include "eval/report.hpp"
+#include "eval/thesis_report.hpp"
 #include "helpers.hpp"
 #include "nn/onednn_conv.hpp"
 #include "optics/camera.hpp"
@@ -18,6 +19,7 @@
 #include "io/raw.hpp"
 #include "nn/model_file.hpp"
 #include "recon/data_consistency.hpp"
+#include "recon/methods.hpp"
 #include "recon/reconstructor.hpp"
 #include "recon/tikhonov.hpp"
 #include "recon/batch.hpp"
@@ -238,6 +240,82 @@ TEST_CASE("Reconstructor factory: every method by name, and clear errors", "[rec
   spec.method = "opencv";
   spec.model = s.dir / "missing.onnx";
   CHECK_THROWS_WITH(make_reconstructor(spec), Contains("missing.onnx"));
+}
+
+namespace {
+
+// A method that exists only in the tests: the capture's mean light, grey, at the camera's scene size.
+// Adding it is its factory and one register_method call; nothing in src/ names it.
+class MeanGrey final : public Reconstructor {
+ public:
+  explicit MeanGrey(int64_t size) : size_(size) {}
+  std::string describe() const override { return "mean grey"; }
+  torch::Tensor reconstruct(const torch::Tensor& planes) override {  // {B,4,h,w} -> {B,3,N,N}
+    const auto mean = planes.mean({1, 2, 3}).clamp(0, 1).view({-1, 1, 1, 1});
+    return mean.expand({planes.size(0), 3, size_, size_}).contiguous();
+  }
+
+ private:
+  int64_t size_;
+};
+
+BuiltReconstructor build_mean_grey(const ReconstructorSpec& spec) {
+  return {std::make_unique<MeanGrey>(spec.camera.scene_size), spec.camera, nullptr, "a test method judges nothing"};
+}
+
+// Registers the test's method for the length of one test.
+struct ScopedMethod {
+  explicit ScopedMethod(ReconstructionMethod m) : name(m.name) { register_method(std::move(m)); }
+  ~ScopedMethod() { unregister_method(name); }
+  std::string name;
+};
+
+}  // namespace
+
+TEST_CASE("a reconstruction method registered in a test is offered by the factory, recon and the report",
+          "[recon][interface]") {
+  const auto builtin = reconstruction_methods().size();
+  CHECK(method_names(MethodInput::calibration) == "tikhonov | tv");
+  CHECK(method_names(MethodInput::model_file) == "flatnet | opencv");
+  {
+    const ScopedMethod grey(
+        {"mean-grey", "Mean grey", "the capture's mean light", MethodInput::calibration, {}, false, build_mean_grey});
+    CHECK(reconstruction_methods().size() == builtin + 1);
+    CHECK(method_names(MethodInput::calibration) == "tikhonov | tv | mean-grey");
+    // The factory by name, with nothing else changed.
+    ReconstructorSpec spec;
+    spec.camera = load_camera_config(default_camera_path());
+    spec.method = "mean-grey";
+    auto built = make_reconstructor(spec);
+    CHECK(built.engine->describe() == "mean grey");
+    const auto planes = torch::full({2, 4, 8, 8}, 0.25);
+    const auto image = built.engine->reconstruct(planes);
+    CHECK(image.sizes() == torch::IntArrayRef({2, 3, spec.camera.scene_size, spec.camera.scene_size}));
+    CHECK(image.max().item<double>() == Approx(0.25));
+    // recon's check and the report's column parser know it; its errors list it.
+    CHECK(require_method("mean-grey", MethodInput::calibration, "recon.method").label == "Mean grey");
+    CHECK_THROWS_WITH(require_method("mean-grey", MethodInput::model_file, "infer.method"),
+                      Contains("must be flatnet or opencv") && Contains("'mean-grey'"));
+    CHECK_THROWS_WITH(require_method("wiener", MethodInput::calibration, "recon.method"),
+                      Contains("must be tikhonov, tv or mean-grey, got 'wiener'"));
+    const auto column = parse_report_method("mean-grey");
+    CHECK(column.kind == "mean-grey");
+    CHECK(column.name == "mean-grey");
+    // A second method of that name, a name that is a path, the report's kind and a method without a
+    // factory are refused.
+    CHECK_THROWS_WITH(register_method({"mean-grey", "", "", MethodInput::calibration, {}, false, build_mean_grey}),
+                      Contains("exists"));
+    CHECK_THROWS_WITH(register_method({"../x", "", "", MethodInput::calibration, {}, false, build_mean_grey}),
+                      Contains("method's name"));
+    CHECK_THROWS_WITH(register_method({"model", "", "", MethodInput::model_file, {}, false, build_mean_grey}),
+                      Contains("'model'"));
+    CHECK_THROWS_WITH(register_method({"no-factory", "", "", MethodInput::calibration, {}, false, {}}),
+                      Contains("no factory"));
+  }
+  // Gone with its scope: the registry is as it was, and the name is unknown again.
+  CHECK(reconstruction_methods().size() == builtin);
+  CHECK(find_method("mean-grey") == nullptr);
+  CHECK_THROWS_WITH(parse_report_method("mean-grey"), Contains("expected tikhonov, tv or NAME=MODEL.flatnet"));
 }
 
 TEST_CASE("reconstruct_files: one batch loop writes a PNG per capture for any engine", "[recon][interface]") {

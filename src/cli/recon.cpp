@@ -10,13 +10,15 @@
 #include "eval/thesis_report.hpp"
 #include "optics/simulator.hpp"
 #include "recon/batch.hpp"
+#include "recon/methods.hpp"
 
 namespace flatnet::cli {
 
 const FlagTable<ReconstructorSpec>& recon_method_flags() {
   using S = ReconstructorSpec;
+  static const std::string methods = method_names(MethodInput::calibration);  // the registry's (recon/methods.hpp)
   static const FlagTable<S> rows = {
-      {"method", &S::method, "tikhonov | tv"},
+      {"method", &S::method, methods.c_str()},
       {"lambda", &S::lambda, "regularisation weight (0: the camera file's)", 1e-12, 1e6,
        "a positive regulariser (leave it out for the camera file's)"},
   };
@@ -49,7 +51,8 @@ int recon(int argc, char** argv) {
   require(r.count("input") && r.count("out"), "recon", "--input DIR|FILE and --out DIR are required");
   ReconstructorSpec spec;
   read_flags(r, recon_method_flags(), spec);
-  parse_classical_method(spec.method);  // recon is the classical command: flatnet models go through infer
+  // recon is the classical command: flatnet models go through infer
+  require_method(spec.method, MethodInput::calibration, "recon.method");
   spec.camera = camera_from(r);
   if (r.count("calib")) spec.calibration = r["calib"].as<std::string>();
   BatchOptions opt;
@@ -225,9 +228,11 @@ int report(int argc, char** argv) {
   o.add_options()(
       "sets",
       "evaluation sets, NAME=DIR or DIR (folders from `flatnet simulate --only val`; scripts/make_eval_sets.sh)",
-      cxxopts::value<std::vector<std::string>>())(
-      "methods", "tikhonov, tv, and NAME=MODEL.flatnet (default: tikhonov, tv and the two shipped models)",
-      cxxopts::value<std::vector<std::string>>())(
+      cxxopts::value<std::vector<std::string>>())("methods",
+                                                  method_names(MethodInput::calibration, ", ") +
+                                                      ", and NAME=MODEL.flatnet (default: tikhonov, tv and the two "
+                                                      "shipped models)",
+                                                  cxxopts::value<std::vector<std::string>>())(
       "camera", "camera .yaml for Tikhonov and TV (default: the reference camera)", cxxopts::value<std::string>())(
       "out", "report folder (report.md, figures, reconstructions)", cxxopts::value<std::string>())(
       "niqe", "NIQE model, or none (default: models/niqe.mat)", cxxopts::value<std::string>());

@@ -13,6 +13,7 @@
 #include "io/image.hpp"
 #include "optics/camera.hpp"
 #include "recon/batch.hpp"
+#include "recon/methods.hpp"
 #include "nn/model_file.hpp"
 
 namespace flatnet {
@@ -84,7 +85,7 @@ void reuse_only_same_method(const fs::path& dir, const std::string& key, const s
 
 // Makes the method's reconstructions of `captures` that are not on disk yet.
 void reconstruct_missing(const ReportOptions& o, const ReportMethod& m, const std::vector<fs::path>& captures,
-                         const fs::path& dir, const Calibration* calib) {
+                         const fs::path& dir) {
   std::vector<fs::path> missing;
   for (const auto& c : captures)
     if (!fs::exists(output_of(dir, c))) missing.push_back(c);
@@ -106,8 +107,11 @@ void reconstruct_missing(const ReportOptions& o, const ReportMethod& m, const st
       std::cerr << "  " << printable(m.name) << ": warning: " << camera_fit_warning(rep, *fit) << "\n";
   } else {
     bo.batch = 8;
-    auto engine = make_classical(*calib, o.camera, {parse_classical_method(m.kind), 0.0});
-    const auto rep = reconstruct_files(*engine, o.camera, missing, bo);
+    ReconstructorSpec spec;
+    spec.method = m.kind;
+    spec.camera = o.camera;
+    const auto built = require_method(m.kind, MethodInput::calibration, "report.methods").build(spec);
+    const auto rep = reconstruct_files(*built.engine, built.camera, missing, bo);
     record_timing(dir, rep.ms_per_capture, rep.count);
   }
 }
@@ -139,10 +143,11 @@ void write_figure(const fs::path& path, const ReportSet& set, const std::vector<
 }  // namespace
 
 ReportMethod parse_report_method(const std::string& spec) {
-  if (spec == "tikhonov" || spec == "tv") return {spec, spec, {}};
+  const auto* method = find_method(spec);
+  if (method != nullptr && method->input == MethodInput::calibration) return {spec, spec, {}};
   const auto eq = spec.find('=');
   require_option(eq != std::string::npos && eq > 0 && eq + 1 < spec.size(), "report.methods",
-                 "'" + spec + "': expected tikhonov, tv or NAME=MODEL.flatnet");
+                 "'" + spec + "': expected " + method_names(MethodInput::calibration, ", ") + " or NAME=MODEL.flatnet");
   ReportMethod m{spec.substr(0, eq), "model", spec.substr(eq + 1)};
   require_plain_name(m.name, option_key("report.methods"));
   require(fs::exists(m.model), m.model, "no such model file");
@@ -175,12 +180,14 @@ std::string make_report(const ReportOptions& o) {
       require_option(o.sets[i].name != o.sets[j].name, "report.sets",
                      "two sets are named '" + printable(o.sets[i].name) + "'");
   fs::create_directories(o.out);
-  std::unique_ptr<Calibration> calib;
+  // The calibration the classical columns solve with, read once now, so that a bad file stops the
+  // report before any column runs (each column's factory reads it again).
   for (const auto& m : o.methods)
-    if (m.kind != "model" && !calib) {
+    if (m.kind != "model") {
       require(!o.camera.calibration.empty(), o.camera.name,
-              "this camera names no calibration (needed for Tikhonov and TV)");
-      calib = std::make_unique<Calibration>(load_calibration(o.camera.calibration, o.camera));
+              "this camera names no calibration (needed for " + m.name + ")");
+      (void)load_calibration(o.camera.calibration, o.camera);
+      break;
     }
 
   std::ostringstream md;
@@ -203,10 +210,11 @@ std::string make_report(const ReportOptions& o) {
     std::vector<std::string> names;
     for (const auto& m : o.methods) {
       auto subset = captures;
-      if (m.kind == "tv" && o.tv_count > 0 && static_cast<int64_t>(subset.size()) > o.tv_count)
+      if (m.kind != "model" && find_method(m.kind)->slow && o.tv_count > 0 &&
+          static_cast<int64_t>(subset.size()) > o.tv_count)
         subset.resize(o.tv_count);
       reuse_only_same_method(set_out / m.name, method_key(o, m, set), m.name);
-      reconstruct_missing(o, m, subset, set_out / m.name, calib.get());
+      reconstruct_missing(o, m, subset, set_out / m.name);
       names.push_back(m.name);
     }
     EvalOptions eo;

@@ -15,7 +15,7 @@ namespace flatnet {
 
 struct ReportMethod {
   std::string name;             // column and folder name
-  std::string kind;             // tikhonov | tv | model
+  std::string kind;             // a calibration method's name (recon/methods.hpp), or "model"
   std::filesystem::path model;  // kind == model: a .flatnet file
 };
 
@@ -40,7 +40,8 @@ struct ReportOptions {
   bool progress = true;
 };
 
-// "NAME=FILE.flatnet" -> a model method; "tikhonov" and "tv" -> those.
+// "NAME=FILE.flatnet" -> a model method; a calibration method's name ("tikhonov", "tv", any other the
+// registry holds, recon/methods.hpp) -> that method.
 ReportMethod parse_report_method(const std::string& spec);
 // "NAME=DIR" -> a set named NAME; "DIR" -> a set named after the folder.
 ReportSet parse_report_set(const std::string& spec);

@@ -6,7 +6,7 @@
 #include <string>
 #include <utility>
 
-#include "nn/model_file.hpp"
+#include "nn/model_identity.hpp"
 #include "nn/stored_file.hpp"
 
 namespace flatnet::detail {

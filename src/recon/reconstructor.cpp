@@ -89,12 +89,6 @@ class OpenCvReconstructor final : public Reconstructor {
 
 }  // namespace
 
-ClassicalMethod parse_classical_method(const std::string& name) {
-  if (name == "tikhonov") return ClassicalMethod::tikhonov;
-  if (name == "tv") return ClassicalMethod::tv;
-  throw Error(option_key("recon.method"), "must be tikhonov or tv, got '" + name + "'");
-}
-
 std::string classical_method_name(ClassicalMethod method) {
   return method == ClassicalMethod::tikhonov ? "tikhonov" : "tv";
 }
@@ -291,6 +285,8 @@ std::string adapt_model(const ReconstructorSpec& spec, ModelFile& m, const Camer
   return adapt_to_captures(m.generator, planes, measure, spec.adapt).summary();
 }
 
+}  // namespace
+
 BuiltReconstructor build_flatnet(const ReconstructorSpec& spec) {
   auto m = load_model_file(spec.model);
   const auto camera = spec.use_camera ? spec.camera : m.camera;
@@ -313,32 +309,24 @@ BuiltReconstructor build_flatnet(const ReconstructorSpec& spec) {
   return built;
 }
 
-}  // namespace
+BuiltReconstructor build_classical(const ReconstructorSpec& spec, ClassicalMethod method) {
+  check_capture_headers(spec, spec.camera);
+  const auto calib_path = spec.calibration.empty() ? spec.camera.calibration : spec.calibration;
+  require_option(!calib_path.empty(), "recon.calib", "no calibration: pass one, or use a camera file that names one");
+  const auto calib = load_calibration(calib_path, spec.camera);
+  BuiltReconstructor built{make_classical(calib, spec.camera, {method, spec.lambda}), spec.camera, nullptr, ""};
+  built.fit = fit_of_calibration(calib, spec.camera, built.no_fit);
+  return built;
+}
 
-BuiltReconstructor make_reconstructor(const ReconstructorSpec& spec) {
-  if (spec.method == "tikhonov" || spec.method == "tv") {
-    check_capture_headers(spec, spec.camera);
-    const auto calib_path = spec.calibration.empty() ? spec.camera.calibration : spec.calibration;
-    require_option(!calib_path.empty(), "recon.calib", "no calibration: pass one, or use a camera file that names one");
-    ClassicalOptions o;
-    o.method = parse_classical_method(spec.method);
-    o.lambda = spec.lambda;
-    const auto calib = load_calibration(calib_path, spec.camera);
-    BuiltReconstructor built{make_classical(calib, spec.camera, o), spec.camera, nullptr, ""};
-    built.fit = fit_of_calibration(calib, spec.camera, built.no_fit);
-    return built;
-  }
-  if (spec.method == "flatnet") return build_flatnet(spec);
-  if (spec.method == "opencv") {
-    auto r = std::make_unique<OpenCvReconstructor>(spec.model);
-    const auto camera = spec.use_camera ? spec.camera : r->engine().camera();
-    r->engine().check_camera(camera);
-    check_capture_headers(spec, camera);
-    BuiltReconstructor built{std::move(r), camera, nullptr, "an ONNX file carries no calibration to judge by"};
-    built.fit = camera_fit_of(camera, built.no_fit);  // the camera given, or the ONNX file's own
-    return built;
-  }
-  throw Error(option_key("recon.method"), "must be tikhonov, tv, flatnet or opencv, got '" + spec.method + "'");
+BuiltReconstructor build_opencv(const ReconstructorSpec& spec) {
+  auto r = std::make_unique<OpenCvReconstructor>(spec.model);
+  const auto camera = spec.use_camera ? spec.camera : r->engine().camera();
+  r->engine().check_camera(camera);
+  check_capture_headers(spec, camera);
+  BuiltReconstructor built{std::move(r), camera, nullptr, "an ONNX file carries no calibration to judge by"};
+  built.fit = camera_fit_of(camera, built.no_fit);  // the camera given, or the ONNX file's own
+  return built;
 }
 
 }  // namespace flatnet

@@ -32,8 +32,7 @@ class Reconstructor {
 // Tikhonov (thesis eq. 2.6) or TV (FISTA) on the calibration: the camera's light level is removed
 // first (its centring), the linear-light planes become sRGB.
 enum class ClassicalMethod { tikhonov, tv };
-ClassicalMethod parse_classical_method(const std::string& name);  // "tikhonov" | "tv", else an error
-std::string classical_method_name(ClassicalMethod method);
+std::string classical_method_name(ClassicalMethod method);  // "tikhonov" | "tv"
 
 struct ClassicalOptions {
   ClassicalMethod method = ClassicalMethod::tikhonov;
@@ -53,7 +52,7 @@ std::unique_ptr<Reconstructor> make_opencv(const std::filesystem::path& onnx_fil
 
 // Everything a reconstruction engine can be built from, for the factory by name.
 struct ReconstructorSpec {
-  std::string method = "tikhonov";    // tikhonov | tv | flatnet | opencv
+  std::string method = "tikhonov";    // a method's name in recon/methods.hpp's registry
   CameraConfig camera;                // preprocessing; for flatnet and opencv only when use_camera
   bool use_camera = true;             // false: flatnet/opencv use the model file's own camera
   std::filesystem::path calibration;  // tikhonov, tv (empty: the camera's)
@@ -95,9 +94,15 @@ struct BuiltReconstructor {
 // (model.consistency) where the spec says kModelsOwn, else the spec's; strength 0: none.
 struct DataConsistencyOptions;  // recon/data_consistency.hpp
 DataConsistencyOptions consistency_of(const ReconstructorSpec& spec, const ModelSpec& model);
+// The engine of spec.method, built by that method's factory in the registry (recon/methods.hpp).
 // Errors name what is missing or wrong (an unknown method, no calibration, a model file that is
 // not one, a camera that does not match the model).
 BuiltReconstructor make_reconstructor(const ReconstructorSpec& spec);
+// The built-in methods' factories (the registry's entries): Tikhonov or TV on the spec's calibration
+// (the camera's when none is given), a FlatNet model file, an ONNX file through OpenCV.
+BuiltReconstructor build_classical(const ReconstructorSpec& spec, ClassicalMethod method);
+BuiltReconstructor build_flatnet(const ReconstructorSpec& spec);
+BuiltReconstructor build_opencv(const ReconstructorSpec& spec);
 // The camera fit for `camera` (its calibration and noise model), or null with the reason in `why`.
 std::shared_ptr<const CameraFit> camera_fit_of(const CameraConfig& camera, std::string& why);
 // The same for the camera a model was trained with: its file's camera when that names a calibration,
