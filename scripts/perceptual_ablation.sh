@@ -39,6 +39,8 @@ declare -A variants=(
   [random-features]="--set loss.detail=0 --set loss.random_features=0.1"
   [detail+random-features]="--set loss.detail=3 --set loss.random_features=0.1"
   [adversarial-0.03]="--set loss.detail=0 --set loss.adversarial=0.03"
+  [detail-10]="--set loss.detail=10"
+  [detail-30]="--set loss.detail=30"
 )
 order=(recipe adversarial feature-matching frequency chroma gradient)
 [ $# -gt 0 ] && order=("$@")
