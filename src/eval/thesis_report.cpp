@@ -85,7 +85,7 @@ void reuse_only_same_method(const fs::path& dir, const std::string& key, const s
 
 // Makes the method's reconstructions of `captures` that are not on disk yet.
 void reconstruct_missing(const ReportOptions& o, const ReportMethod& m, const std::vector<fs::path>& captures,
-                         const fs::path& dir) {
+                         const fs::path& dir, const std::shared_ptr<const Calibration>& calib) {
   std::vector<fs::path> missing;
   for (const auto& c : captures)
     if (!fs::exists(output_of(dir, c))) missing.push_back(c);
@@ -110,6 +110,7 @@ void reconstruct_missing(const ReportOptions& o, const ReportMethod& m, const st
     ReconstructorSpec spec;
     spec.method = m.kind;
     spec.camera = o.camera;
+    spec.loaded_calibration = calib;
     const auto built = require_method(m.kind, MethodInput::calibration, "report.methods").build(spec);
     const auto rep = reconstruct_files(*built.engine, built.camera, missing, bo);
     record_timing(dir, rep.ms_per_capture, rep.count);
@@ -180,14 +181,14 @@ std::string make_report(const ReportOptions& o) {
       require_option(o.sets[i].name != o.sets[j].name, "report.sets",
                      "two sets are named '" + printable(o.sets[i].name) + "'");
   fs::create_directories(o.out);
-  // The calibration the classical columns solve with, read once now, so that a bad file stops the
-  // report before any column runs (each column's factory reads it again).
+  // The calibration the classical columns solve with, read once for all of them and before any
+  // column runs, so that a bad file stops the report first.
+  std::shared_ptr<const Calibration> calib;
   for (const auto& m : o.methods)
-    if (m.kind != "model") {
+    if (m.kind != "model" && !calib) {
       require(!o.camera.calibration.empty(), o.camera.name,
               "this camera names no calibration (needed for " + m.name + ")");
-      (void)load_calibration(o.camera.calibration, o.camera);
-      break;
+      calib = std::make_shared<const Calibration>(load_calibration(o.camera.calibration, o.camera));
     }
 
   std::ostringstream md;
@@ -214,7 +215,7 @@ std::string make_report(const ReportOptions& o) {
           static_cast<int64_t>(subset.size()) > o.tv_count)
         subset.resize(o.tv_count);
       reuse_only_same_method(set_out / m.name, method_key(o, m, set), m.name);
-      reconstruct_missing(o, m, subset, set_out / m.name);
+      reconstruct_missing(o, m, subset, set_out / m.name, calib);
       names.push_back(m.name);
     }
     EvalOptions eo;

@@ -59,6 +59,13 @@ std::deque<ReconstructionMethod>& registry() {
   return methods;
 }
 
+// The method of that name in `methods`, else nullptr (the caller holds the lock).
+const ReconstructionMethod* find_in(const std::deque<ReconstructionMethod>& methods, const std::string& name) {
+  for (const auto& m : methods)
+    if (m.name == name) return &m;
+  return nullptr;
+}
+
 std::string or_list(const std::vector<std::string>& names) {
   std::string out;
   for (size_t i = 0; i < names.size(); ++i) out += (i == 0 ? "" : i + 1 == names.size() ? " or " : ", ") + names[i];
@@ -83,8 +90,9 @@ void register_method(ReconstructionMethod method) {
   require_plain_name(method.name, "a reconstruction method's name");
   require(method.name != "model", "register_method", "'model' is the report's kind for model files");
   require(static_cast<bool>(method.build), "register_method", "method '" + method.name + "' has no factory");
-  require(find_method(method.name) == nullptr, "register_method", "a method named '" + method.name + "' exists");
   std::lock_guard<std::mutex> lock(registry_mutex);
+  require(find_in(registry(), method.name) == nullptr, "register_method",
+          "a method named '" + method.name + "' exists");
   registry().push_back(std::move(method));
 }
 
@@ -98,9 +106,8 @@ void unregister_method(const std::string& name) {
 }
 
 const ReconstructionMethod* find_method(const std::string& name) {
-  for (const auto& m : reconstruction_methods())
-    if (m.name == name) return &m;
-  return nullptr;
+  std::lock_guard<std::mutex> lock(registry_mutex);
+  return find_in(registry(), name);
 }
 
 const ReconstructionMethod& require_method(const std::string& name, MethodInput input, const std::string& option) {

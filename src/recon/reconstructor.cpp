@@ -311,11 +311,14 @@ BuiltReconstructor build_flatnet(const ReconstructorSpec& spec) {
 
 BuiltReconstructor build_classical(const ReconstructorSpec& spec, ClassicalMethod method) {
   check_capture_headers(spec, spec.camera);
-  const auto calib_path = spec.calibration.empty() ? spec.camera.calibration : spec.calibration;
-  require_option(!calib_path.empty(), "recon.calib", "no calibration: pass one, or use a camera file that names one");
-  const auto calib = load_calibration(calib_path, spec.camera);
-  BuiltReconstructor built{make_classical(calib, spec.camera, {method, spec.lambda}), spec.camera, nullptr, ""};
-  built.fit = fit_of_calibration(calib, spec.camera, built.no_fit);
+  std::shared_ptr<const Calibration> calib = spec.loaded_calibration;
+  if (!calib) {
+    const auto calib_path = spec.calibration.empty() ? spec.camera.calibration : spec.calibration;
+    require_option(!calib_path.empty(), "recon.calib", "no calibration: pass one, or use a camera file that names one");
+    calib = std::make_shared<const Calibration>(load_calibration(calib_path, spec.camera));
+  }
+  BuiltReconstructor built{make_classical(*calib, spec.camera, {method, spec.lambda}), spec.camera, nullptr, ""};
+  built.fit = fit_of_calibration(*calib, spec.camera, built.no_fit);
   return built;
 }
 

@@ -56,9 +56,12 @@ struct ReconstructorSpec {
   CameraConfig camera;                // preprocessing; for flatnet and opencv only when use_camera
   bool use_camera = true;             // false: flatnet/opencv use the model file's own camera
   std::filesystem::path calibration;  // tikhonov, tv (empty: the camera's)
-  double lambda = 0;                  // tikhonov, tv (<= 0: the camera's)
-  std::filesystem::path model;        // flatnet (.flatnet), opencv (.onnx)
-  InferenceLevers levers;             // flatnet
+  // tikhonov, tv: that calibration already read (a report reads it once for all its columns); null:
+  // the factory reads it.
+  std::shared_ptr<const Calibration> loaded_calibration;
+  double lambda = 0;            // tikhonov, tv (<= 0: the camera's)
+  std::filesystem::path model;  // flatnet (.flatnet), opencv (.onnx)
+  InferenceLevers levers;       // flatnet
   // flatnet: > 0 corrects each picture by its capture where the calibration resolves it well
   // (recon/data_consistency.hpp, strength c); 0: off; kModelsOwn: the model's own
   // (model.consistency: off for a model trained without it). The calibration is the given camera's,
