@@ -55,6 +55,34 @@ TEST_CASE("training loop: steps from the resumed step, a checkpoint before its l
   CHECK(rec.events == std::vector<std::string>{"s2", "c3", "s3", "l4", "s4", "s5", "c6", "l6", "s6", "c7", "l7"});
 }
 
+TEST_CASE("training loop: saves on the wall clock between rare checkpoints, and none when save_minutes is 0",
+          "[train][loop]") {
+  for (const double minutes : {0.0, 0.05 / 60}) {  // off, then 50 ms
+    Recorder rec;
+    auto o = quiet(12, 1000, 6);
+    o.save_minutes = minutes;
+    auto hooks = rec.hooks();
+    hooks.step = [&](int64_t step) {
+      rec.events.push_back("s" + std::to_string(step));
+      std::this_thread::sleep_for(std::chrono::milliseconds(30));
+    };
+    hooks.save = [&](int64_t done) { rec.events.push_back("v" + std::to_string(done)); };
+    TrainingLoop(o, hooks).run();
+    CHECK(rec.count('c') == 2);  // at 6 and 12: a checkpoint is never replaced by a save
+    if (minutes == 0) {
+      CHECK(rec.count('v') == 0);
+    } else {
+      // 30 ms steps, a save once 50 ms have passed since the last save or checkpoint: at least one in
+      // each checkpoint's interval (every other step; every step on a loaded machine), never at a
+      // checkpoint's step.
+      CHECK(rec.count('v') >= 2);
+      CHECK(rec.count('v') <= 10);
+      CHECK(std::find(rec.events.begin(), rec.events.end(), "v6") == rec.events.end());
+      CHECK(std::find(rec.events.begin(), rec.events.end(), "v12") == rec.events.end());
+    }
+  }
+}
+
 TEST_CASE("training loop: a process that does not write (data-parallel rank > 0) logs and checkpoints nothing",
           "[train][loop]") {
   Recorder rec;

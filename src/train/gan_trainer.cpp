@@ -447,6 +447,13 @@ void GanTrainer::checkpoint_and_validate(TrainSummary& summary) {
   if (opt_.keep_every > 0 && state_.step % opt_.keep_every == 0) keep_model();
 }
 
+void GanTrainer::save_resumable() {
+  state_.rng_state = at::detail::getDefaultCPUGenerator().get_state();
+  state_.train_seconds = trained_seconds();
+  save_checkpoint(opt_.out / "latest.ckpt", g_, d_, *opt_g_, *opt_d_, state_, identity_,
+                  ema_ ? &ema_->average() : nullptr, checkpoint_camera());
+}
+
 // A copy of the exported model that later validations do not replace: RUN/kept/step<N>.flatnet
 // (the mean of a run's last ones, `flatnet export --average-of`, often beats its last alone).
 void GanTrainer::keep_model() {
@@ -553,6 +560,7 @@ TrainSummary GanTrainer::run() {
   options.first_step = state_.step;
   options.seconds_before = state_.train_seconds;
   options.writer = writer;
+  options.save_minutes = opt_.save_minutes;
   // Data-parallel ranks must take the same steps: a skip on one rank alone would pair its next
   // collective with another rank's current one, so there the first non-finite step stops.
   options.skip_nonfinite = !(sync_ && sync_->world_size() > 1);
@@ -561,6 +569,7 @@ TrainSummary GanTrainer::run() {
   hooks.advanced = [&](int64_t done) { state_.step = done; };
   hooks.log = [&](int64_t done) { return log_row(done, summary.first_step, tally); };
   hooks.checkpoint = [&](int64_t) { checkpoint_and_validate(summary); };
+  hooks.save = [&](int64_t) { save_resumable(); };
   if (sync_) hooks.any_rank = [&](bool local) { return sync_->any(local); };
 
   TrainingLoop loop(options, hooks);

@@ -62,6 +62,9 @@ struct TrainOptions : Schedule {
   // Batches over which the validated and exported weights' batch-norm statistics are re-estimated
   // before each validation (0: off; refresh_batch_norm below).
   int64_t bn_refresh = 0;
+  // Wall-clock minutes between saves of latest.ckpt alone, between validations (0: off): a run killed
+  // without warning loses at most this much however large val_every is (TrainingLoop's save hook).
+  double save_minutes = 10;
   int64_t crop = 0;  // the enhancer trains on random crop x crop windows of the first stage (0: whole scenes)
   std::string precision = "auto";  // auto | fp32 | bf16, as configured; resolved into bf16 for this CPU
   bool bf16 = false;  // bf16 autocast for the enhancer and discriminator (fp32 master weights and Adam state)
@@ -206,6 +209,9 @@ class GanTrainer {
   CheckpointCamera checkpoint_camera();
   void set_learning_rates(int64_t step);
   void checkpoint_and_validate(TrainSummary& summary);
+  // latest.ckpt alone (train.save_minutes): the state a resume continues from, not validated; best.ckpt
+  // and model.flatnet stay the last validation's (a resume rewrites model.flatnet from it).
+  void save_resumable();
   // train.bn_refresh: the exported weights' batch-norm statistics re-estimated before validation.
   void refresh_exported_statistics();
   static constexpr uint64_t kRefreshSeedOffset = 0x5EED;  // its batches' seed, beside the training's

@@ -19,6 +19,7 @@ double now_seconds() {
 TrainingLoop::TrainingLoop(LoopOptions options, LoopHooks hooks) : opt_(std::move(options)), hooks_(std::move(hooks)) {
   require(static_cast<bool>(hooks_.step), "training loop", "needs a step");
   require(opt_.log_every >= 1 && opt_.val_every >= 1, "training loop", "log_every and val_every must be 1 or more");
+  require(opt_.save_minutes >= 0, "training loop", "save_minutes must be 0 (off) or more");
   start_seconds_ = now_seconds();
 }
 
@@ -34,7 +35,7 @@ bool TrainingLoop::should_stop() {
 
 LoopResult TrainingLoop::run() {
   const FinishItemOnInterrupt finish_step;  // Ctrl-C ends the step, then the checkpoint below
-  start_seconds_ = now_seconds();
+  start_seconds_ = last_save_seconds_ = now_seconds();
   LoopResult r;
   r.first_step = r.last_step = opt_.first_step;
   const bool by_steps = opt_.minutes <= 0;  // else the budget alone ends the run
@@ -64,6 +65,11 @@ LoopResult TrainingLoop::run() {
     if (opt_.writer && hooks_.checkpoint && (done % opt_.val_every == 0 || last)) {
       hooks_.checkpoint(done);
       checkpointed = done;
+      last_save_seconds_ = now_seconds();
+    } else if (opt_.writer && hooks_.save && opt_.save_minutes > 0 &&
+               now_seconds() - last_save_seconds_ >= 60.0 * opt_.save_minutes) {
+      hooks_.save(done);
+      last_save_seconds_ = now_seconds();
     }
     if (opt_.writer && hooks_.log && (done % opt_.log_every == 0 || last))
       progress.set_status(hooks_.log(done) + budget_status());

@@ -40,6 +40,10 @@ struct LoopOptions : Schedule {
   std::string remedy = "a lower train.lr";
   // false: the first non-finite step stops the run (data-parallel ranks must take the same steps).
   bool skip_nonfinite = true;
+  // Wall-clock minutes between saves (the `save` hook) when no checkpoint came sooner (0: off): a run
+  // killed without warning (a session's end, SIGKILL) loses at most this much, however rare its
+  // validations are.
+  double save_minutes = 0;
 };
 
 // The loop's options from a trainer's schedule, with the progress bar's label and where the last
@@ -65,6 +69,9 @@ struct LoopHooks {
   // writer only): validate and write the checkpoint. Runs before that step's log row, which may
   // report the validation.
   std::function<void(int64_t done)> checkpoint;
+  // Every save_minutes of wall-clock time since the last checkpoint or save (optional; writer only):
+  // write the resumable state alone, without validating (a checkpoint resets its clock too).
+  std::function<void(int64_t done)> save;
   // Data-parallel runs (optional): whether any rank wants to stop, so that all stop together.
   std::function<bool(bool)> any_rank;
 };
@@ -94,6 +101,7 @@ class TrainingLoop {
   LoopHooks hooks_;
   double start_seconds_ = 0;  // steady clock at run()
   bool over_budget_ = false;
+  double last_save_seconds_ = 0;  // steady clock at the last checkpoint or save (or run())
 };
 
 // The loop of a one-process trainer whose state is one checkpoint file (the mask and code-pair

@@ -81,6 +81,7 @@ const std::vector<OptionField<TrainOptions>>& train_fields() {
           {"train.ema_decay", &O::ema_decay, 0, 0.999999, "0 (off) or a decay below 1"},
           {"train.keep_every", &O::keep_every, 0, kBig, "0 (off) or a number of steps"},
           {"train.bn_refresh", &O::bn_refresh, 0, 100000, "0 (off) to 100000 batches"},
+          {"train.save_minutes", &O::save_minutes, 0, 1e6, "0 (off) or minutes between saves of latest.ckpt"},
           {"train.crop", &O::crop, 0, 65536, "0 (whole scenes) or a crop size"},
           {"train.discriminator_warmup", &O::discriminator_warmup, 0, kBig, "0 or more steps"},
           {"train.noise_augment", &O::noise_augment, 0, 10, "0 to 10 (a standard deviation)"},
