@@ -15,6 +15,8 @@
 
 #include "core/error.hpp"
 #include "optics/calibrate_references.hpp"
+#include "optics/reference_camera.hpp"
+#include "optics/separable_inverse.hpp"
 #include "optics/shift_structure.hpp"
 #include "io/mat.hpp"
 #include "optics/camera.hpp"
@@ -499,4 +501,93 @@ TEST_CASE("a shared mask fits noisy captures closer to the true factors than a p
   auto bad = shared_options;
   bad.mask_taps = 4;
   CHECK_THROWS_WITH(calibrate_from_references(pairs, bad), Contains("odd number of taps"));
+}
+
+namespace {
+
+// Pair i's capture as calibrate's noise model samples it: the planes, a level, nothing saturated.
+std::vector<NoiseSample> samples_of(const std::vector<ReferencePair>& pairs) {
+  std::vector<NoiseSample> samples;
+  for (const auto& p : pairs) samples.push_back({p.meas, torch::full({4}, 0.2, torch::kFloat64), 0.0});
+  return samples;
+}
+
+CameraConfig small_geometry() {
+  CameraConfig geometry;
+  geometry.scene_size = kScene;
+  return geometry;
+}
+
+}  // namespace
+
+TEST_CASE("the reference calibration procedure: held-out check, light unit and camera keys without the CLI",
+          "[optics][calibrate]") {
+  const StructuredCamera camera;
+  std::vector<ReferencePair> pairs;
+  for (int i = 0; i < 4; ++i) pairs.push_back(camera.pair(i, 0.02));
+  ReferenceCameraOptions o;
+  o.fit = quiet();
+
+  SECTION("four pairs, no white capture: checked on held-out pairs, the scenes' prior sets the unit") {
+    const auto cam = identify_reference_camera(pairs, samples_of(pairs), std::nullopt, small_geometry(), o);
+    REQUIRE(cam.held.size() == 4);
+    CHECK(cam.held_mean > 0.95);
+    CHECK(cam.held_change > 0);
+    CHECK(cam.held_change < 0.5);
+    CHECK(cam.light.source == LightUnitSource::scene_prior);
+    CHECK(cam.light.light == kTypicalSceneLight);
+    // After the unit: the pairs' scenes hold the prior's light on average (geometric mean over pairs).
+    double log_sum = 0;
+    for (const auto& m : cam.fit.scene_means) log_sum += std::log((m[0] + m[1] + m[2] + m[3]) / 4);
+    CHECK(std::exp(log_sum / 4) == Approx(kTypicalSceneLight).epsilon(1e-9));
+    // The camera's regulariser is the relative one made absolute through the final calibration.
+    CHECK(cam.camera.tikhonov_lambda ==
+          Approx(absolute_tikhonov_lambda(separable_inverse(cam.fit.calib.P, cam.fit.calib.Q, 1.0), o.lambda)));
+    CHECK(cam.camera.scene_size == kScene);
+    const auto header = reference_camera_header(cam);
+    CHECK_THAT(header, Contains("from 4 captures") && Contains("mean held-out correlation") &&
+                           Contains("taken to hold 0.063") && Contains("tikhonov_lambda is 0.0003"));
+    CHECK(cam.fixed_light_share < 0);
+  }
+
+  SECTION("two pairs and --scene-light 0: no held-out check, the references' units kept") {
+    o.scene_light = 0;
+    const std::vector<ReferencePair> two(pairs.begin(), pairs.begin() + 2);
+    const auto cam = identify_reference_camera(two, samples_of(two), std::nullopt, small_geometry(), o);
+    CHECK(cam.held.empty());
+    CHECK(cam.held_mean < 0);
+    CHECK(cam.light.source == LightUnitSource::references);
+    const auto header = reference_camera_header(cam);
+    CHECK_THAT(header, !Contains("leave-one-out") && !Contains("scene light"));
+  }
+
+  SECTION("a white capture measures the unit: the scenes come back in their true light") {
+    const std::vector<ReferencePair> three(pairs.begin(), pairs.begin() + 3);
+    const double light = 0.7;
+    const auto white = double_centred(torch::matmul(
+        torch::matmul(camera.P, torch::full({4, kScene, kScene}, light, torch::kFloat64)), camera.Q.transpose(1, 2)));
+    const WhiteCaptureInput input{"/captures/white.png", light, {white.to(torch::kFloat32), torch::full({4}, 0.5), 0}};
+    const auto cam = identify_reference_camera(three, samples_of(three), input, small_geometry(), o);
+    CHECK(cam.light.source == LightUnitSource::white_capture);
+    CHECK(cam.light.white_residual < 0.1);
+    const double truth = scene(100)[0].mean().item<double>();
+    CHECK(std::abs(cam.fit.scene_means[0][0] / truth - 1) < 0.1);
+    CHECK_THAT(reference_camera_header(cam), Contains("from the white capture white.png (light 0.7)"));
+  }
+
+  SECTION("ranges and a saturated white are refused before any fit, naming the flag or the file") {
+    auto bad = o;
+    bad.lambda = 1.5;
+    CHECK_THROWS_WITH(identify_reference_camera(pairs, samples_of(pairs), std::nullopt, small_geometry(), bad),
+                      Contains("--reference-lambda"));
+    bad = o;
+    bad.fit.shift.max_shift = 40;
+    CHECK_THROWS_WITH(identify_reference_camera(pairs, samples_of(pairs), std::nullopt, small_geometry(), bad),
+                      Contains("--min-shift"));
+    const WhiteCaptureInput saturated{"white.png", 1, {pairs[0].meas, torch::full({4}, 0.9), 0.02}};
+    CHECK_THROWS_WITH(identify_reference_camera(pairs, samples_of(pairs), saturated, small_geometry(), o),
+                      Contains("white.png") && Contains("is saturated (2"));
+    CHECK_THROWS_WITH(identify_reference_camera(pairs, samples_of({pairs[0]}), std::nullopt, small_geometry(), o),
+                      Contains("one capture sample per pair"));
+  }
 }

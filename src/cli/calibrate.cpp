@@ -17,6 +17,7 @@
 #include "optics/separable_inverse.hpp"
 #include "optics/camera_fit.hpp"
 #include "optics/hot_pixels.hpp"
+#include "optics/reference_camera.hpp"
 #include "optics/rotation_estimate.hpp"
 
 namespace flatnet::cli {
@@ -123,253 +124,121 @@ NoiseSample capture_sample(const std::filesystem::path& path, const CameraConfig
           at_full_scale(window, camera.raw.adc_bits).to(torch::kFloat32).mean().item<double>()};
 }
 
-// What the leave-one-out check found, for the camera file's header and the leak threshold.
-struct ReferenceChecks {
-  double lambda = 0;        // --reference-lambda
-  double held_mean = -1;    // mean held-out correlation (< 0: not checked)
-  double held_leak = 0;     // the largest leak of a held-out capture
-  double held_change = -1;  // the jackknife of the held-out fits' coded-light distance (< 0: not measured)
-  double scene_light = 0;   // without a white capture: the light the scenes were taken to hold (0: not applied)
-  double scene_scale = 0;   // what the references' units were multiplied by for it
-};
-
-// Sensor pixels at full scale a white capture may hold: more, and its level understates the light.
-constexpr double kWhiteSaturatedAtMost = 1e-3;
-// What a uniform scene may leave of a white capture's well-measured coded light (eq. 2's residual,
-// the mean over channels): the prototype's twin's white, with light the separable model misses,
-// leaves 0.31; captures of 40 photographs through it 0.56-0.85.
-constexpr double kWhiteResidualAtMost = 0.45;
-
-// --white-capture FILE [--white-light E]: a capture of a uniform white scene, read and checked before
-// any fit (a saturated or foreign frame is named at once, not after the calibration's minutes).
-struct WhiteCapture {
-  std::filesystem::path path;
-  double light = 0;      // relative to the display's white (--white-light)
-  torch::Tensor planes;  // {4,rows,cols} preprocessed as the pairs are
-};
-std::optional<WhiteCapture> white_capture_of(const cxxopts::ParseResult& r, const CalibrateSettings& s,
-                                             const CameraConfig& camera) {
+// --white-capture FILE [--white-light E]: a capture of a uniform white scene, read before any fit (a
+// saturated or foreign frame is named at once, not after the calibration's minutes).
+std::optional<WhiteCaptureInput> white_capture_of(const cxxopts::ParseResult& r, const CalibrateSettings& s,
+                                                  const CameraConfig& camera) {
   if (!r.count("white-capture")) return std::nullopt;
-  WhiteCapture white{r["white-capture"].as<std::string>(), s.white_light, {}};
-  require(std::isfinite(white.light) && white.light > 0 && white.light <= 1e3, "--white-light",
-          "the white capture's light, relative to the display's white (1), within (0, 1000]");
-  const auto sample = capture_sample(white.path, camera);
-  require(sample.saturated <= kWhiteSaturatedAtMost, white.path,
-          "is saturated (" + std::to_string(100 * sample.saturated) +
-              " % of its window at full scale): take it at a shorter exposure or a dimmer white, and give its "
-              "light with --white-light");
-  white.planes = sample.meas;
-  return white;
+  const std::filesystem::path path = r["white-capture"].as<std::string>();
+  return WhiteCaptureInput{path.string(), s.white_light, capture_sample(path, camera)};
 }
 
-// The calibration's light unit from the white capture (optics/calibrate_references.hpp eq. 2), so
-// pictures through it show the scene's light rather than the references' stretch. Refused, naming
-// the file, when it shows no uniform scene through this calibration.
-void set_scene_unit(const WhiteCapture& white, double lambda, ReferenceCalibration& fit) {
-  const auto frame = fit_white_frame(white.planes, fit.calib, lambda);
-  const double residual = (frame.residual[0] + frame.residual[1] + frame.residual[2] + frame.residual[3]) / 4;
-  require(residual <= kWhiteResidualAtMost, white.path,
-          "is not a uniform scene: a uniform scene leaves " + std::to_string(residual) +
-              " of its well-measured coded light unexplained (at most " + std::to_string(kWhiteResidualAtMost) +
-              "); the white must fill the camera's view");
-  std::array<double, 4> scale{};
-  for (size_t c = 0; c < 4; ++c) {
-    const std::string channel = kChannelNames[c];
-    require(std::isfinite(frame.level[c]) && frame.level[c] > 0, white.path,
-            "shows no white scene's shadow in channel " + channel + " (a dark frame, or another camera's?)");
-    scale[c] = white.light / frame.level[c];
-  }
-  rescale_scene_units(fit, scale);
-  std::cout << "light unit: " << printable(white.path.filename().string()) << " (light " << white.light
-            << ") reads, in the references' units,";
-  for (size_t c = 0; c < 4; ++c) std::cout << " " << kChannelNames[c] << " " << std::setprecision(4) << frame.level[c];
-  std::cout << " (a uniform scene leaves " << std::setprecision(3) << residual
-            << " of its well-measured coded light): the calibration is in the scene's light\n";
-}
-
-// Without a white capture the light unit is not in the data (a capture at twice the exposure of a
-// scene is a capture of a scene twice as bright, and a min-max stretched reference says nothing of
-// either): the prior typical_scene_scale sets it. Returns the scale applied, 0 when the references'
-// units are kept (--scene-light 0, or scenes with no light).
-double set_typical_scene_unit(double light, ReferenceCalibration& fit) {
-  if (light <= 0) return 0;
-  const double scale = typical_scene_scale(fit, light);
-  if (scale <= 0) {
+void print_light_unit(const LightUnit& unit) {
+  if (unit.source == LightUnitSource::white_capture) {
+    std::cout << "light unit: " << printable(std::filesystem::path(unit.white_name).filename().string()) << " (light "
+              << unit.light << ") reads, in the references' units,";
+    for (size_t c = 0; c < 4; ++c) std::cout << " " << kChannelNames[c] << " " << std::setprecision(4) << unit.level[c];
+    std::cout << " (a uniform scene leaves " << std::setprecision(3) << unit.white_residual
+              << " of its well-measured coded light): the calibration is in the scene's light\n";
+  } else if (unit.source == LightUnitSource::scene_prior) {
+    std::cout << "light unit: the pairs' scenes are taken to hold " << unit.light
+              << " of the display's white on average (--scene-light; the references' units x " << std::setprecision(4)
+              << unit.scale[0] << "): pictures through it are as bright as such scenes, whatever the references' "
+              << "stretch; --white-capture measures the light instead (docs/own-camera.md, \"The light unit\")\n";
+  } else if (unit.no_scene_light) {
     std::cout << "light unit: a pair's scene has no positive mean light in the references' units; the "
                  "calibration stays in them (--white-capture sets the scene's light)\n";
-    return 0;
   }
-  rescale_scene_units(fit, {scale, scale, scale, scale});
-  std::cout << "light unit: the pairs' scenes are taken to hold " << light
-            << " of the display's white on average (--scene-light; the references' units x " << std::setprecision(4)
-            << scale << "): pictures through it are as bright as such scenes, whatever the references' stretch; "
-            << "--white-capture measures the light instead (docs/own-camera.md, \"The light unit\")\n";
-  return scale;
 }
 
-int write_reference_calibration(const cxxopts::ParseResult& r, const CameraConfig& camera,
-                                const ReferenceCalibration& fit, const std::vector<NoiseSample>& noise_samples,
-                                const ReferenceChecks& checks, const std::optional<WhiteCapture>& white,
-                                const std::filesystem::path& out) {
-  const double lambda = checks.lambda, held_mean = checks.held_mean, held_leak = checks.held_leak;
-  auto known = camera;
-  known.tikhonov_lambda = absolute_tikhonov_lambda(separable_inverse(fit.calib.P, fit.calib.Q, 1.0), lambda);
-  // The noise model from what the captures hold beyond the calibration: less its fixed light too.
-  auto samples = noise_samples;
-  for (auto& sample : samples) sample.meas = without_fixed_light(sample.meas, fit.calib.fixed_light);
-  const auto noise = fit_noise_model(samples, fit.calib.P, fit.calib.Q);
-  if (noise.found) {
-    known.noise_gain = noise.noise_gain;
-    known.noise_floor = noise.noise_floor;
-    known.dark = noise.dark;
-    known.fit_threshold = noise.fit_threshold;
-    known.leak_threshold = noise.leak_threshold;
-    // A few captures' calibration misses structured light, and a capture it did not see leaks more
-    // than the captures it was fitted to: the held-out captures' leaks set the threshold too.
-    if (held_leak > 0 && noise.leak_threshold > 0)
-      known.leak_threshold = std::max(noise.leak_threshold, std::min(1e3, 1.1 * held_leak));
-    std::vector<torch::Tensor> levels;
-    for (const auto& sample : noise_samples) levels.push_back(sample.level);
-    known.open_light = open_light_of(levels, fit, noise.dark);
-  }
-  std::ostringstream head;
-  head << "# identified by `flatnet calibrate --references` from " << noise_samples.size()
-       << " captures and reconstructions of them; the shadow moves " << std::setprecision(6) << fit.shift_rows
-       << " sensor pixels per scene row, " << fit.shift_cols << " per scene column; residual per channel:";
-  for (const double v : fit.residual) head << " " << std::setprecision(4) << v;
-  if (fit.calib.fixed_light.defined()) {
-    double captures = 0;
-    for (const auto& sample : noise_samples) captures += sample.meas.to(torch::kFloat64).norm().item<double>();
-    captures /= static_cast<double>(noise_samples.size());
-    head << "\n# a fixed light every capture holds whatever the scene (flare, stray light) was fitted as its own term, "
-         << std::setprecision(3) << fit.calib.fixed_light.norm().item<double>() / std::max(1e-300, captures)
-         << " of a capture's norm: calib.mat's fixed_light_*, subtracted before inversion (--fixed-light)";
-  }
-  if (fit.kernels_rows.defined()) head << "\n# " << describe_shared_mask(fit);
-  if (held_mean >= 0) head << "\n# leave-one-out: mean held-out correlation " << std::setprecision(4) << held_mean;
-  if (checks.held_change >= 0)
-    head << "; its coded light is uncertain by " << std::setprecision(3) << checks.held_change
-         << " of itself (the jackknife of the pairs' coded light: sqrt(n - 1) x the rms distance of a calibration "
-            "without one pair from this one, on that pair's scene): train with data.calibration_error of that size";
-  if (white)
-    head << "\n# scene light from the white capture " << printable(white->path.filename().string()) << " (light "
-         << white->light << "); without it the references' units";
-  else if (checks.scene_light > 0)
-    head << "\n# scene light not measured: the pairs' scenes taken to hold " << checks.scene_light
-         << " of the display's white on average (--scene-light), the references' units x " << checks.scene_scale
-         << "; a white capture measures it (--white-capture)";
-  head << "\n# tikhonov_lambda is " << lambda << " of the largest squared singular value product\n";
-  // The light unit scales the calibration, and its absolute regulariser with the square of that.
+// Why a camera file this calibration makes would be refused: the light unit scales the calibration,
+// and its absolute regulariser with the square of that.
+std::string light_unit_why(const ReferenceCamera& cam) {
   std::ostringstream why;
-  if (white)
-    why << ": the light unit from the white capture (--white-light " << white->light << ") puts tikhonov_lambda at "
-        << known.tikhonov_lambda;
-  else if (checks.scene_light > 0)
-    why << ": the light unit --scene-light " << checks.scene_light << " puts tikhonov_lambda at "
-        << known.tikhonov_lambda << " (a typical photograph holds " << kTypicalSceneLight << " of the display's white)";
-  const auto beside = camera_beside(out, known, head.str(), why.str());
-  if (r.count("compact"))
-    save_shift_calibration(out, fit.profile_rows, fit.profile_cols, fit.shift_rows, fit.shift_cols,
-                           fit.calib.fixed_light);
-  else
-    save_calibration(out, fit.calib);
-  write_text_atomically(beside.path, beside.text);
-  const auto& yaml_path = beside.path;
-  std::cout << "wrote " << out.string() << " and " << yaml_path.string() << "\nshift structure: the shadow moves "
+  if (cam.light.source == LightUnitSource::white_capture)
+    why << ": the light unit from the white capture (--white-light " << cam.light.light << ") puts tikhonov_lambda at "
+        << cam.camera.tikhonov_lambda;
+  else if (cam.light.source == LightUnitSource::scene_prior)
+    why << ": the light unit --scene-light " << cam.light.light << " puts tikhonov_lambda at "
+        << cam.camera.tikhonov_lambda << " (a typical photograph holds " << kTypicalSceneLight
+        << " of the display's white)";
+  return why.str();
+}
+
+void print_reference_camera(const ReferenceCamera& cam, const std::filesystem::path& out,
+                            const std::filesystem::path& yaml) {
+  const auto& fit = cam.fit;
+  std::cout << "wrote " << out.string() << " and " << yaml.string() << "\nshift structure: the shadow moves "
             << std::setprecision(6) << fit.shift_rows << " sensor pixels per scene row, " << fit.shift_cols
             << " per scene column\nfit residual ||Y - P (a R + b) Q^T|| / ||Y||:";
   for (int c = 0; c < 4; ++c) std::cout << " " << kChannelNames[c] << " " << std::setprecision(4) << fit.residual[c];
   std::cout << "\n";
-  if (!white && checks.scene_light <= 0)
+  if (cam.light.source == LightUnitSource::references)
     std::cout << "the calibration is in the references' units: pictures through it are as bright as they are; "
                  "--white-capture sets the scene's light (docs/own-camera.md, \"The light unit\"); if they are "
                  "not linear light (a tone-mapped picture), set the camera file's display_gamma before training "
                  "through it (\"The references' tone\")\n";
-  if (noise.found) {
-    std::cout << "sensor noise: variance " << noise.noise_gain << " x (level - " << noise.dark << ") + "
-              << noise.noise_floor << "; open light " << known.open_light
-              << " x the scene's mean\ncamera fit: the captures' own fits";
-    for (const double f : noise.fits) std::cout << " " << std::setprecision(3) << f;
-    std::cout << ", threshold " << noise.fit_threshold;
-    if (known.leak_threshold > 0)
-      std::cout << ", leak up to " << known.leak_threshold << " (held-out captures leak up to " << held_leak << ")";
-    std::cout << " (written to the camera file)\n";
-  } else {
+  const auto& noise = cam.noise;
+  if (!noise.found) {
     std::cout << "no noise model: it needs 2 captures or more whose noise grows with their light; the camera fit "
                  "cannot judge this camera's captures until noise_gain, noise_floor and dark are in its file\n";
+    return;
   }
-  return 0;
+  std::cout << "sensor noise: variance " << noise.noise_gain << " x (level - " << noise.dark << ") + "
+            << noise.noise_floor << "; open light " << cam.camera.open_light
+            << " x the scene's mean\ncamera fit: the captures' own fits";
+  for (const double f : noise.fits) std::cout << " " << std::setprecision(3) << f;
+  std::cout << ", threshold " << noise.fit_threshold;
+  if (cam.camera.leak_threshold > 0)
+    std::cout << ", leak up to " << cam.camera.leak_threshold << " (held-out captures leak up to " << cam.held_leak
+              << ")";
+  std::cout << " (written to the camera file)\n";
 }
 
+// Parses and reads; optics/reference_camera.hpp decides.
 int calibrate_from_reference_pairs(const cxxopts::ParseResult& r, const CalibrateSettings& s,
                                    const CameraConfig& camera, const std::vector<Pair>& pairs,
                                    const std::filesystem::path& out) {
   const auto order = s.reference_order;
   require(order == "rgb" || order == "bgr", "--reference-order", "rgb or bgr, not '" + printable(order) + "'");
-  const double lambda = s.reference_lambda;
-  require(std::isfinite(lambda) && lambda > 0 && lambda < 1, "--reference-lambda",
-          "a relative regulariser in (0, 1), such as 3e-4");
+  ReferenceCameraOptions o;
+  o.lambda = s.reference_lambda;
+  o.scene_light = s.scene_light;
+  require(s.fixed_light == "on" || s.fixed_light == "off", "--fixed-light",
+          "on or off, not '" + printable(s.fixed_light) + "'");
+  o.fit.fixed_light = s.fixed_light == "on";
+  require(s.shared_mask == "on" || s.shared_mask == "off", "--shared-mask",
+          "on or off, not '" + printable(s.shared_mask) + "'");
+  o.fit.shared_mask = s.shared_mask == "on";
+  o.fit.mask_taps = s.mask_taps;
+  o.fit.seed = s.seed;
+  o.fit.shift.min_shift = s.min_shift;
+  o.fit.shift.max_shift = s.max_shift;
   std::vector<ReferencePair> refs;
-  std::vector<NoiseSample> noise_samples;
+  std::vector<NoiseSample> samples;
   for (const auto& p : pairs) {
-    noise_samples.push_back(capture_sample(p.meas, camera));
-    refs.push_back(
-        {p.meas.filename().string(), noise_samples.back().meas, reference_planes(p.gt, camera.scene_size, order)});
+    samples.push_back(capture_sample(p.meas, camera));
+    refs.push_back({p.meas.filename().string(), samples.back().meas, reference_planes(p.gt, camera.scene_size, order)});
   }
   require_distinct_pairs(pairs, refs);
   const auto white = white_capture_of(r, s, camera);
-  ReferenceCalibrationOptions o;
-  require(s.fixed_light == "on" || s.fixed_light == "off", "--fixed-light",
-          "on or off, not '" + printable(s.fixed_light) + "'");
-  o.fixed_light = s.fixed_light == "on";
-  require(s.shared_mask == "on" || s.shared_mask == "off", "--shared-mask",
-          "on or off, not '" + printable(s.shared_mask) + "'");
-  o.shared_mask = s.shared_mask == "on";
-  o.mask_taps = s.mask_taps;
-  o.seed = s.seed;
-  o.shift.min_shift = s.min_shift;
-  o.shift.max_shift = s.max_shift;
-  require(o.shift.min_shift >= kSmallestShiftSearched && o.shift.max_shift > o.shift.min_shift &&
-              o.shift.max_shift <= kLargestShiftSearched,
-          "--min-shift",
-          "0.05 <= --min-shift < --max-shift <= 16 sensor pixels per scene pixel (a smaller shift is not a "
-          "FlatCam's shadow, and the search's cost grows with the range's ratio)");
   std::cerr << "calibrate: " << refs.size() << " captures with reference reconstructions (" << order
-            << "), shifts searched from " << o.shift.min_shift << " to " << o.shift.max_shift << " both ways\n";
-  // The whole calibration first: the held-out fits are measured against it as well.
-  auto fit = calibrate_from_references(refs, o);
-  ReferenceChecks checks{lambda};
-  if (refs.size() >= 3) {
-    const auto held = leave_one_out(refs, lambda, o, &fit.calib);
-    print_held_out(held);
-    double sum = 0, squared_change = 0;
-    for (const auto& h : held) {
-      checks.held_leak = std::max(checks.held_leak, h.leak);
-      sum += (h.correlation[0] + h.correlation[1] + h.correlation[2] + h.correlation[3]) / 4;
-      squared_change += h.change_coded * h.change_coded;
-    }
-    const auto n = static_cast<double>(held.size());
-    checks.held_mean = sum / n;
-    // The jackknife's spread: a fit from n - 1 pairs moves by 1 / (n (n - 1)) of a pair's variance from
-    // the whole fit, the whole fit by 1 / n from the truth, so its uncertainty is sqrt(n - 1) times the
-    // rms move (Efron and Stein, 1981).
-    checks.held_change = std::sqrt((n - 1) * squared_change / n);
-    // The structure is judged on the held-out pairs: a calibration that cannot reconstruct a pair it
-    // did not see has fitted the pairs, not the camera.
-    require(checks.held_mean >= 0.5, "calibrate",
-            "held-out pairs are not reconstructed (mean correlation " + std::to_string(checks.held_mean) +
-                "): the references are not reconstructions of these captures, the colour order is wrong "
-                "(--reference-order), or the shifts lie outside --min-shift..--max-shift");
-  } else {
+            << "), shifts searched from " << o.fit.shift.min_shift << " to " << o.fit.shift.max_shift << " both ways\n";
+  const auto cam = identify_reference_camera(refs, samples, white, camera, o);
+  if (cam.held.empty())
     std::cout << "leave-one-out needs 3 pairs or more: the calibration is not checked on held-out pairs\n";
-  }
-  if (white) {
-    set_scene_unit(*white, lambda, fit);
-  } else if (const double scale = set_typical_scene_unit(s.scene_light, fit); scale > 0) {
-    checks.scene_light = s.scene_light;
-    checks.scene_scale = scale;
-  }
-  return write_reference_calibration(r, camera, fit, noise_samples, checks, white, out);
+  else
+    print_held_out(cam.held);
+  print_light_unit(cam.light);
+  const auto beside = camera_beside(out, cam.camera, reference_camera_header(cam), light_unit_why(cam));
+  if (r.count("compact"))
+    save_shift_calibration(out, cam.fit.profile_rows, cam.fit.profile_cols, cam.fit.shift_rows, cam.fit.shift_cols,
+                           cam.fit.calib.fixed_light);
+  else
+    save_calibration(out, cam.fit.calib);
+  write_text_atomically(beside.path, beside.text);
+  print_reference_camera(cam, out, beside.path);
+  return 0;
 }
 
 // The camera's hot pixels found from the first pairs' raw frames (optics/hot_pixels.hpp), with those
