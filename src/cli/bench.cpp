@@ -79,12 +79,31 @@ nlohmann::json row_json(const BenchRow& row, double gflops, double share) {
 
 namespace {
 
-const FlagTable<BenchOptions>& bench_flags() {
-  using S = BenchOptions;
+// bench's settings: the library's options with which rows to run and where the results go.
+struct BenchSettings : BenchOptions {
+  std::string rows;
+  std::filesystem::path json;
+  int profile_top = 0;
+};
+
+const FlagTable<BenchSettings>& bench_flags() {
+  using S = BenchSettings;
   static const FlagTable<S> rows = {
-      {"repeats", &S::repeats, "timed runs per row", 1, 1e6, "at least 1"},
-      {"warmup", &S::warmup, "untimed runs before them", 0, 1e6, "0 or more"},
-      {"levers", FlagText<S>{set_levers_of<S, &S::levers>, levers_text_of<S, &S::levers>},
+      {"rows", &S::rows,
+       "comma list of rows (default: all; peak: the machine's practical peak rows, which then give every row its "
+       "share of the peak)"},
+      {"json", &S::json, "also write the results to this JSON file"},
+      {"profile", &S::profile_top,
+       "after each row, one more run under LibTorch's profiler (after one that warms it up); print its N costliest "
+       "operators by self time (and all of them into --json)",
+       0, 1e6, "0 (no profile) or more operators"},
+      {"profile-shapes", static_cast<bool S::*>(&BenchOptions::profile_shapes),
+       "with --profile: tell operators apart by input shapes and types"},
+      {"repeats", static_cast<int S::*>(&BenchOptions::repeats), "timed runs per row", 1, 1e6, "at least 1"},
+      {"warmup", static_cast<int S::*>(&BenchOptions::warmup), "untimed runs before them", 0, 1e6, "0 or more"},
+      {"levers",
+       FlagText<S>{[](S& s, const std::string& text) { set_levers_of<BenchOptions, &BenchOptions::levers>(s, text); },
+                   [](const S& s) { return levers_text_of<BenchOptions, &BenchOptions::levers>(s); }},
        "inference levers for infer_*: none, or a list of fold, channels-last, gemm-up, bf16, onednn (onednn: with "
        "bf16)"},
   };
@@ -108,33 +127,22 @@ int bench(int argc, char** argv) {
   cxxopts::Options o("flatnet bench",
                      "Time the hot paths (median and min of N runs after warm-up, peak memory per row).\n"
                      "scripts/bench_compare.sh runs these rows beside their Python PyTorch twins.");
-  o.add_options()("rows",
-                  "comma list of rows (default: all; peak: the machine's practical peak rows, which then give "
-                  "every row its share of the peak)",
-                  cxxopts::value<std::string>())("json", "also write the results to this JSON file",
-                                                 cxxopts::value<std::string>())(
-      "profile",
-      "after each row, one more run under LibTorch's profiler (after one that warms it up); print its N costliest "
-      "operators by self time "
-      "(and all of them into --json)",
-      cxxopts::value<int>())("profile-shapes", "with --profile: tell operators apart by input shapes and types");
   add_flags(o, bench_flags());
   add_flags(o, bench_precision_flags());
   add_common(o);
   cxxopts::ParseResult r;
   if (!parse(o, argc, argv, r)) return 0;
-  BenchOptions opt;
-  read_flags(r, bench_flags(), opt);
+  BenchSettings settings;
+  read_flags(r, bench_flags(), settings);
+  BenchOptions opt = settings;
   PrecisionChoice chosen;
   read_flags(r, bench_precision_flags(), chosen);
-  const int profile_top = r.count("profile") ? r["profile"].as<int>() : 0;
-  require(profile_top >= 0, "bench", "--profile takes a count of operators to print (>= 0)");
+  const int profile_top = settings.profile_top;
   opt.profile = r.count("profile") > 0;
-  opt.profile_shapes = r.count("profile-shapes") > 0;
   if (r.count("json"))  // its folder made (as the writer would) before the rows run, not after minutes of them
-    std::filesystem::create_directories(std::filesystem::absolute(r["json"].as<std::string>()).parent_path());
+    std::filesystem::create_directories(std::filesystem::absolute(settings.json).parent_path());
   require(!opt.profile_shapes || opt.profile, "bench", "--profile-shapes goes with --profile N");
-  const auto rows = rows_to_run(r.count("rows") ? r["rows"].as<std::string>() : std::string());
+  const auto rows = rows_to_run(settings.rows);
   const auto choice = chosen.precision;
   std::vector<bool> precisions;  // bf16 or not, per pass over a precision-dependent row
   if (choice == "both")
@@ -177,7 +185,7 @@ int bench(int argc, char** argv) {
     for (const auto& op : row.ops)
       ops.push_back({{"op", op.name}, {"calls", op.calls}, {"self_ms", op.self_ms}, {"total_ms", op.total_ms}});
   }
-  if (r.count("json")) write_text_atomically(r["json"].as<std::string>(), out.dump(2) + "\n");
+  if (r.count("json")) write_text_atomically(settings.json, out.dump(2) + "\n");
   return 0;
 }
 

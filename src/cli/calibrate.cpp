@@ -47,6 +47,12 @@ struct CalibrateSettings {
   std::string fixed_light = ReferenceCalibrationOptions{}.fixed_light ? "on" : "off";
   std::string shared_mask = ReferenceCalibrationOptions{}.shared_mask ? "on" : "off";
   int mask_taps = ReferenceCalibrationOptions{}.mask_taps;
+  // Files and switches (no default): what to calibrate from, and where the calibration goes.
+  std::filesystem::path rig, captures, write_patterns, camera, out;
+  bool force = false;
+  std::filesystem::path dataset, meas_list, gt_list, root;  // display-capture pairs
+  bool references = false, compact = false;                 // from a few captures and reconstructions
+  std::filesystem::path white_capture;
 };
 
 // The camera.yaml written beside a calibration made from data: the geometry given, with this
@@ -129,7 +135,7 @@ NoiseSample capture_sample(const std::filesystem::path& path, const CameraConfig
 std::optional<WhiteCaptureInput> white_capture_of(const cxxopts::ParseResult& r, const CalibrateSettings& s,
                                                   const CameraConfig& camera) {
   if (!r.count("white-capture")) return std::nullopt;
-  const std::filesystem::path path = r["white-capture"].as<std::string>();
+  const std::filesystem::path path = s.white_capture;
   return WhiteCaptureInput{path.string(), s.white_light, capture_sample(path, camera)};
 }
 
@@ -231,7 +237,7 @@ int calibrate_from_reference_pairs(const cxxopts::ParseResult& r, const Calibrat
     print_held_out(cam.held);
   print_light_unit(cam.light);
   const auto beside = camera_beside(out, cam.camera, reference_camera_header(cam), light_unit_why(cam));
-  if (r.count("compact"))
+  if (s.compact)
     save_shift_calibration(out, cam.fit.profile_rows, cam.fit.profile_cols, cam.fit.shift_rows, cam.fit.shift_cols,
                            cam.fit.calib.fixed_light);
   else
@@ -379,11 +385,11 @@ std::vector<Pair> dataset_pairs(const cxxopts::ParseResult& r, const CalibrateSe
   std::vector<Pair> pairs;
   if (r.count("meas-list") || r.count("gt-list")) {  // FlatNet's own list files
     require(r.count("meas-list") && r.count("gt-list"), "--meas-list", "give both --meas-list and --gt-list");
-    DatasetLists lists{r["meas-list"].as<std::string>(), r["gt-list"].as<std::string>(), {}};
-    if (r.count("root")) lists.root = r["root"].as<std::string>();
+    DatasetLists lists{s.meas_list, s.gt_list, {}};
+    if (r.count("root")) lists.root = s.root;
     pairs = read_pairs(lists);
   } else {
-    const std::filesystem::path dir = r["dataset"].as<std::string>();
+    const std::filesystem::path dir = s.dataset;
     for (const auto& split : {"train", "val"}) {
       const auto lists = split_lists(dir, split);
       if (!std::filesystem::exists(lists.meas_list)) continue;
@@ -504,21 +510,21 @@ void write_dataset_calibration(const DatasetCalibration& fit, const CameraConfig
 
 int calibrate_from_dataset(const cxxopts::ParseResult& r, const CalibrateSettings& s) {
   auto camera = camera_from(r);
-  const std::filesystem::path out = r["out"].as<std::string>();
+  const std::filesystem::path out = s.out;
   require(out.extension() == ".mat", "--out",
           "the calibration is a .mat file (FlatNet's layout), got '" + out.string() + "'");
   // Every file this command reads is an input that no output may land on, even with --force: the
   // camera file given, the rig and calibration it names, and the lists.
   std::vector<std::filesystem::path> inputs = {camera.rig, camera.calibration};
-  if (r.count("camera")) inputs.push_back(r["camera"].as<std::string>());
+  if (r.count("camera")) inputs.push_back(s.camera);
   for (const auto* flag : {"meas-list", "gt-list", "white-capture"})
     if (r.count(flag)) inputs.push_back(r[flag].as<std::string>());
-  require(!r.count("white-capture") || r.count("references"), "--white-capture",
+  require(!r.count("white-capture") || s.references, "--white-capture",
           "sets the light unit of a calibration from references (--references); a display-capture calibration "
           "is in the display's light already");
   require(!(r.count("scene-light") && r.count("white-capture")), "--scene-light",
           "is the light unit's prior without a white capture; --white-capture measures it (give one)");
-  const bool force = r.count("force") > 0;
+  const bool force = s.force;
   auto pairs = dataset_pairs(r, s);
   require(!pairs.empty(), "calibrate", "the lists name no pairs");
   // The captures' size against the geometry from the first one's header, before anything the
@@ -534,7 +540,7 @@ int calibrate_from_dataset(const cxxopts::ParseResult& r, const CalibrateSetting
   for (const auto& p : pairs) inputs.insert(inputs.end(), {p.meas, p.gt});
   require_new_output(out, force, inputs);
   require_new_output(out.parent_path() / "camera.yaml", force, inputs);
-  if (r.count("references")) return calibrate_from_reference_pairs(r, s, camera, pairs, out);
+  if (s.references) return calibrate_from_reference_pairs(r, s, camera, pairs, out);
   camera.raw.hot_pixels = hot_pixels_of(pairs, camera);
   const auto N = camera.scene_size;
   auto load = [&](int64_t i) {
@@ -564,6 +570,44 @@ int calibrate_from_dataset(const cxxopts::ParseResult& r, const CalibrateSetting
 }
 
 using CS = CalibrateSettings;
+
+const FlagTable<CS>& calibrate_file_flags() {
+  static const FlagTable<CS> rows = {
+      {"rig", &CS::rig, "simulate the captures with this rig (.mat) or camera (.yaml)"},
+      {"captures", &CS::captures, "folder of real captures, one PNG per pattern name"},
+      {"write-patterns", &CS::write_patterns, "write the pattern images for display into this folder and stop"},
+      {"camera", &CS::camera, "camera .yaml for --captures (geometry, preprocessing)"},
+      {"out", &CS::out, "calibration .mat to write (FlatNet layout)"},
+      {"force", &CS::force, "replace an existing --out file"},
+  };
+  return rows;
+}
+
+const FlagTable<CS>& calibrate_pair_files() {
+  static const FlagTable<CS> rows = {
+      {"dataset", &CS::dataset, "dataset folder in FlatNet's layout (train_meas.txt, train_gt.txt, ...)"},
+      {"meas-list", &CS::meas_list, "FlatNet's own capture list (with --gt-list)"},
+      {"gt-list", &CS::gt_list, "FlatNet's own photograph list"},
+      {"root", &CS::root, "folder the lists' lines are relative to (default: the lists' folder)"},
+  };
+  return rows;
+}
+
+// --references and the files of a calibration from references (its numbers: calibrate_reference_flags).
+const FlagTable<CS>& calibrate_reference_inputs() {
+  static const FlagTable<CS> rows = {
+      {"references", &CS::references,
+       "the photographs are someone else's reconstructions of the captures (a lost calibration): a gain and "
+       "offset per pair and channel, pixels clipped at zero left out, judged by leave-one-out"},
+      {"white-capture", &CS::white_capture,
+       "a raw capture of a uniform white scene (the display's white filling the view), taken as the captures "
+       "were: sets the calibration's light unit, so pictures show the scene's light, not the references' stretch"},
+      {"compact", &CS::compact,
+       "write the calibration as its profiles and shifts (kilobytes; flatnet expands it) instead of FlatNet's "
+       "P1b..Q1r matrices"},
+  };
+  return rows;
+}
 
 const FlagTable<CS>& calibrate_pattern_flags() {
   static const FlagTable<CS> rows = {
@@ -626,7 +670,8 @@ const FlagTable<CS>& calibrate_reference_flags() {
 }  // namespace
 
 CommandFlags calibrate_command_flags() {
-  return command_flags("calibrate", calibrate_pattern_flags(), calibrate_dataset_flags(), calibrate_reference_flags());
+  return command_flags("calibrate", calibrate_file_flags(), calibrate_pattern_flags(), calibrate_pair_files(),
+                       calibrate_dataset_flags(), calibrate_reference_inputs(), calibrate_reference_flags());
 }
 
 // Every flag of `flatnet calibrate`, by group.
@@ -638,33 +683,13 @@ cxxopts::Options calibrate_options() {
                      "              flatnet calibrate --captures DIR2 --camera CAMERA.yaml --out calib.mat\n"
                      "  from data:  flatnet calibrate --dataset DIR --camera GEOMETRY.yaml --out calib.mat\n"
                      "              (display-capture pairs in FlatNet's layout, or --meas-list/--gt-list [--root])");
-  o.add_options()("rig", "simulate the captures with this rig (.mat) or camera (.yaml)", cxxopts::value<std::string>())(
-      "captures", "folder of real captures, one PNG per pattern name", cxxopts::value<std::string>())(
-      "write-patterns", "write the pattern images for display into this folder and stop",
-      cxxopts::value<std::string>())("camera", "camera .yaml for --captures (geometry, preprocessing)",
-                                     cxxopts::value<std::string>())("out", "calibration .mat to write (FlatNet layout)",
-                                                                    cxxopts::value<std::string>())(
-      "force", "replace an existing --out file");
+  add_flags(o, calibrate_file_flags());
   add_flags(o, calibrate_pattern_flags());
   const std::string pairs_group = "from display-capture pairs";
-  o.add_options(pairs_group)("dataset", "dataset folder in FlatNet's layout (train_meas.txt, train_gt.txt, ...)",
-                             cxxopts::value<std::string>())("meas-list", "FlatNet's own capture list (with --gt-list)",
-                                                            cxxopts::value<std::string>())(
-      "gt-list", "FlatNet's own photograph list", cxxopts::value<std::string>())(
-      "root", "folder the lists' lines are relative to (default: the lists' folder)", cxxopts::value<std::string>());
+  add_flags(o, calibrate_pair_files(), pairs_group);
   add_flags(o, calibrate_dataset_flags(), pairs_group);
   const std::string references_group = "from a few captures and reconstructions of them (with --meas-list/--gt-list)";
-  o.add_options(references_group)(
-      "references",
-      "the photographs are someone else's reconstructions of the captures (a lost calibration): "
-      "a gain and offset per pair and channel, pixels clipped at zero left out, judged by leave-one-out")(
-      "white-capture",
-      "a raw capture of a uniform white scene (the display's white filling the view), taken as the captures "
-      "were: sets the calibration's light unit, so pictures show the scene's light, not the references' stretch",
-      cxxopts::value<std::string>())(
-      "compact",
-      "write the calibration as its profiles and shifts (kilobytes; flatnet expands it) instead of "
-      "FlatNet's P1b..Q1r matrices");
+  add_flags(o, calibrate_reference_inputs(), references_group);
   add_flags(o, calibrate_reference_flags(), references_group);
   add_common(o);
   return o;
@@ -692,13 +717,14 @@ int calibrate(int argc, char** argv) {
   cxxopts::ParseResult r;
   if (!parse(o, argc, argv, r)) return 0;
   CalibrateSettings s;
-  for (const auto* table : {&calibrate_pattern_flags(), &calibrate_dataset_flags(), &calibrate_reference_flags()})
+  for (const auto* table : {&calibrate_file_flags(), &calibrate_pattern_flags(), &calibrate_pair_files(),
+                            &calibrate_dataset_flags(), &calibrate_reference_inputs(), &calibrate_reference_flags()})
     read_flags(r, *table, s);
   const int level = s.level;
 
   if (r.count("write-patterns")) {
     const auto camera = camera_from(r);
-    const std::filesystem::path dir = r["write-patterns"].as<std::string>();
+    const std::filesystem::path dir = s.write_patterns;
     const auto claim = claim_out(r, dir, "calibrate --write-patterns");
     std::string list;
     for (const auto& p : calibration_patterns(camera.scene_size, level)) {
@@ -716,22 +742,22 @@ int calibrate(int argc, char** argv) {
   require(s.split == "train" || s.split == "all", "--split", "expected train or all");
   require_reference_flags_used(r);
   if (r.count("dataset") || r.count("meas-list")) return calibrate_from_dataset(r, s);
-  const std::filesystem::path out = r["out"].as<std::string>();
+  const std::filesystem::path out = s.out;
   std::vector<std::filesystem::path> inputs;
   for (const auto* flag : {"rig", "camera"})
     if (r.count(flag)) inputs.push_back(r[flag].as<std::string>());
   std::optional<CameraConfig> rig_camera;
   if (r.count("rig")) {
-    rig_camera = load_camera_config(r["rig"].as<std::string>());
+    rig_camera = load_camera_config(s.rig);
     inputs.insert(inputs.end(), {rig_camera->rig, rig_camera->calibration});
   }
-  require_new_output(out, r.count("force") > 0, inputs);
+  require_new_output(out, s.force, inputs);
 
   Calibration est;
   std::optional<Calibration> truth;
   if (rig_camera) {
     const auto& camera = *rig_camera;
-    require(!camera.rig.empty(), r["rig"].as<std::string>(), "names no rig to simulate with");
+    require(!camera.rig.empty(), s.rig, "names no rig to simulate with");
     const auto rig = load_camera_rig(camera);
     const bool noise = s.noise == "on";
     const int average = std::max(1, s.average);
@@ -740,7 +766,7 @@ int calibrate(int argc, char** argv) {
     truth = ideal_calibration(rig, camera.raw);
   } else {
     const auto camera = camera_from(r);
-    const std::filesystem::path dir = r["captures"].as<std::string>();
+    const std::filesystem::path dir = s.captures;
     require(std::filesystem::is_directory(dir), dir, "captures folder not found");
     auto capture = [&](const std::string& name) { return load_centred_planes(dir / (name + ".png"), camera.raw); };
     est = estimate_calibration(camera.scene_size, capture, level);

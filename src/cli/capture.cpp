@@ -15,13 +15,55 @@ namespace flatnet::cli {
 
 namespace {
 
-const FlagTable<DeviceSettings>& device_flags() {
-  using S = DeviceSettings;
+// The camera's flags: its settings (hw/camera_device.hpp) with what picks the camera and its frame.
+struct DeviceFlags : DeviceSettings {
+  std::string device;            // an id from `flatnet cameras`, or fake
+  std::filesystem::path camera;  // the camera file (camera_from reads the flag)
+  std::string region_text;       // --region: WxH+X+Y, keep, or empty: the camera file's raw size at +0+0
+};
+
+// A setting the camera keeps unless given (std::optional): a finite number within [lo, hi].
+template <std::optional<double> DeviceSettings::*member, int lo, int hi>
+void set_optional(DeviceFlags& s, const std::string& text) {
+  char* end = nullptr;
+  const double value = std::strtod(text.c_str(), &end);
+  if (text.empty() || *end != 0 || !std::isfinite(value) || value < lo || value > hi || (lo == 0 && value == 0))
+    throw std::invalid_argument("expected a number in " + std::string(lo == 0 ? "(" : "[") + std::to_string(lo) + ", " +
+                                std::to_string(hi) + "]");
+  s.*member = value;
+}
+template <std::optional<double> DeviceSettings::*member>
+std::string optional_text(const DeviceFlags& s) {
+  if (!(s.*member)) return "";
+  std::ostringstream os;
+  os << *(s.*member);
+  return os.str();
+}
+
+const FlagTable<DeviceFlags>& device_flags() {
+  using S = DeviceFlags;
   static const FlagTable<S> rows = {
-      {"packet-size", &S::packet_size, "GigE Vision packet size, bytes (0: negotiated)", 0, 65536, "0 to 65536"},
-      {"timeout-ms", &S::timeout_ms, "wait per frame before it counts as failed", 1, 1e7, "a positive wait"},
-      {"retries", &S::retries, "failed frames (timeout, incomplete, disconnect) retried before giving up", 0, 1e6,
-       "0 or more"},
+      {"device", &S::device, "camera id from 'flatnet cameras' ('fake': Aravis's built-in fake camera)"},
+      {"camera", &S::camera,
+       "camera .yaml: raw frame size (the default region) and preprocessing (default: the reference camera)"},
+      {"pixel-format", static_cast<std::string S::*>(&DeviceSettings::pixel_format),
+       "e.g. Mono16, BayerRG12p (default: the camera's current one)"},
+      {"exposure",
+       FlagText<S>{set_optional<&DeviceSettings::exposure_us, 0, 100000000>,
+                   optional_text<&DeviceSettings::exposure_us>},
+       "exposure time, microseconds, in (0, 1e8] (auto exposure is switched off; default: the camera's)"},
+      {"gain", FlagText<S>{set_optional<&DeviceSettings::gain_db, -100, 100>, optional_text<&DeviceSettings::gain_db>},
+       "gain, dB, in [-100, 100] (auto gain is switched off; default: the camera's)"},
+      {"frame-rate",
+       FlagText<S>{set_optional<&DeviceSettings::frame_rate, 0, 1000000>, optional_text<&DeviceSettings::frame_rate>},
+       "acquisition frame rate, Hz, in (0, 1e6] (default: the camera's)"},
+      {"region", &S::region_text, "sensor region WxH+X+Y, or 'keep' (default: the camera file's raw size at +0+0)"},
+      {"packet-size", static_cast<int64_t S::*>(&DeviceSettings::packet_size),
+       "GigE Vision packet size, bytes (0: negotiated)", 0, 65536, "0 to 65536"},
+      {"timeout-ms", static_cast<int S::*>(&DeviceSettings::timeout_ms), "wait per frame before it counts as failed", 1,
+       1e7, "a positive wait"},
+      {"retries", static_cast<int S::*>(&DeviceSettings::retries),
+       "failed frames (timeout, incomplete, disconnect) retried before giving up", 0, 1e6, "0 or more"},
   };
   return rows;
 }
@@ -67,19 +109,7 @@ const FlagTable<S>& collect_flags() {
 using PhotoCollect = CollectSettings<1>;
 using PatternCollect = CollectSettings<4>;
 
-void add_camera_flags(cxxopts::Options& o) {
-  o.add_options("camera")("device", "camera id from 'flatnet cameras' ('fake': Aravis's built-in fake camera)",
-                          cxxopts::value<std::string>())(
-      "camera", "camera .yaml: raw frame size (the default region) and preprocessing (default: the reference camera)",
-      cxxopts::value<std::string>())("pixel-format", "e.g. Mono16, BayerRG12p (default: the camera's current one)",
-                                     cxxopts::value<std::string>())(
-      "exposure", "exposure time, microseconds (auto exposure is switched off)", cxxopts::value<double>())(
-      "gain", "gain, dB (auto gain is switched off)", cxxopts::value<double>())(
-      "frame-rate", "acquisition frame rate, Hz", cxxopts::value<double>())(
-      "region", "sensor region WxH+X+Y, or 'keep' (default: the camera file's raw size at +0+0)",
-      cxxopts::value<std::string>());
-  add_flags(o, device_flags(), "camera");
-}
+void add_camera_flags(cxxopts::Options& o) { add_flags(o, device_flags(), "camera"); }
 
 std::array<int64_t, 4> parse_region(const std::string& s) {
   int64_t w = 0, h = 0, x = 0, y = 0;
@@ -96,25 +126,16 @@ std::array<int64_t, 4> parse_region(const std::string& s) {
   return {x, y, w, h};
 }
 
-DeviceSettings device_settings(const cxxopts::ParseResult& r, const CameraConfig& camera) {
-  DeviceSettings s;
-  read_flags(r, device_flags(), s);
-  if (r.count("pixel-format")) s.pixel_format = r["pixel-format"].as<std::string>();
-  if (r.count("exposure")) s.exposure_us = r["exposure"].as<double>();
-  if (r.count("gain")) s.gain_db = r["gain"].as<double>();
-  if (r.count("frame-rate")) s.frame_rate = r["frame-rate"].as<double>();
-  const std::string region = r.count("region") ? r["region"].as<std::string>() : "";
-  if (region.empty())
-    s.region = std::array<int64_t, 4>{0, 0, camera.raw.raw_width, camera.raw.raw_height};
-  else if (region != "keep")
-    s.region = parse_region(region);
-  return s;
-}
-
 std::unique_ptr<FrameSource> open_from_flags(const cxxopts::ParseResult& r, const CameraConfig& camera) {
-  require(r.count("device"), "--device",
+  DeviceFlags s;
+  read_flags(r, device_flags(), s);
+  require(!s.device.empty(), "--device",
           "required ('flatnet cameras' lists the connected cameras; 'fake' is Aravis's simulator)");
-  return open_camera(r["device"].as<std::string>(), device_settings(r, camera));
+  if (s.region_text.empty())
+    s.region = std::array<int64_t, 4>{0, 0, camera.raw.raw_width, camera.raw.raw_height};
+  else if (s.region_text != "keep")
+    s.region = parse_region(s.region_text);
+  return open_camera(s.device, s);
 }
 
 DisplayOptions display_options(const cxxopts::ParseResult& r) {
@@ -155,6 +176,7 @@ CollectOptions collect_options(const cxxopts::ParseResult& r) {
 const FlagTable<CaptureOptions>& capture_flags() {
   using S = CaptureOptions;
   static const FlagTable<S> rows = {
+      {"out", &S::out, "output folder"},
       {"frames", &S::frames, "captures to write", 1, 1e9, "at least 1"},
       {"average", &S::average, "frames averaged into each capture", 1, 100000, "at least 1 frame"},
       {"prefix", &S::prefix, "file name prefix (PREFIX_0000.png, after any already there)"},
@@ -162,28 +184,54 @@ const FlagTable<CaptureOptions>& capture_flags() {
   return rows;
 }
 
-const FlagTable<DatasetCollectOptions>& capture_dataset_flags() {
-  using S = DatasetCollectOptions;
+// capture-dataset's settings: the photographs and the collection's options.
+struct PhotoDatasetSettings : DatasetCollectOptions {
+  std::filesystem::path images;
+};
+
+const FlagTable<PhotoDatasetSettings>& capture_dataset_flags() {
+  using S = PhotoDatasetSettings;
   static const FlagTable<S> rows = {
-      {"val-fraction", &S::val_fraction, "share of photographs in the validation lists", 0, 1, "0 to 1"},
-      {"seed", &S::seed, "split seed"},
+      {"images", &S::images, "folder of photographs"},
+      {"out", static_cast<std::filesystem::path S::*>(&DatasetCollectOptions::out),
+       "dataset folder (meas/, gt/, train_*.txt, val_*.txt)"},
+      {"val-fraction", static_cast<double S::*>(&DatasetCollectOptions::val_fraction),
+       "share of photographs in the validation lists", 0, 1, "0 to 1"},
+      {"seed", static_cast<uint64_t S::*>(&DatasetCollectOptions::seed), "split seed"},
   };
   return rows;
 }
 
 struct PatternSettings {
+  std::filesystem::path out, calib_out;
   int level = kDefaultPatternLevel;
 };
 
 const FlagTable<PatternSettings>& pattern_flags() {
   static const FlagTable<PatternSettings> rows = {
+      {"out", &PatternSettings::out, "folder for the pattern captures (NAME.png + NAME.json)"},
+      {"calib-out", &PatternSettings::calib_out,
+       "calibration .mat to write once every pattern is captured (default: OUT/calib.mat)"},
       {"level", &PatternSettings::level, "display code (sRGB) of the patterns' bright parts", 1, 255, "1 to 255"},
+  };
+  return rows;
+}
+
+struct CamerasSettings {
+  bool fake = false;
+};
+
+const FlagTable<CamerasSettings>& cameras_flags() {
+  static const FlagTable<CamerasSettings> rows = {
+      {"fake", &CamerasSettings::fake, "also list Aravis's built-in fake camera"},
   };
   return rows;
 }
 
 // `flatnet live`'s window and run length.
 struct LiveSettings {
+  std::filesystem::path model, calib;
+  bool no_window = false, require_fit = false;
   double lambda = ReconstructorSpec{}.lambda;
   int scale = 2;
   int64_t frames = LiveOptions{}.frames;
@@ -193,6 +241,10 @@ struct LiveSettings {
 const FlagTable<LiveSettings>& live_flags() {
   using S = LiveSettings;
   static const FlagTable<S> rows = {
+      {"model", &S::model, "FlatNet model file (its camera preprocessing is used)"},
+      {"calib", &S::calib, "calibration .mat for Tikhonov (default: the camera file's)"},
+      {"no-window", &S::no_window, "print the frame rate instead of showing the reconstruction"},
+      {"require-fit", &S::require_fit, "stop (exit 2) when a frame does not fit the camera the reconstruction is for"},
       {"lambda", &S::lambda, "Tikhonov regulariser (0: the camera file's)", 1e-12, 1e6,
        "a positive regulariser (leave it out for the camera file's)"},
       {"frames", &S::frames, "stop after this many frames (0: until Esc, q or Ctrl-C)", 0, 1e12,
@@ -212,11 +264,13 @@ void print_report(const CollectReport& rep, const std::string& what) {
 
 int cameras(int argc, char** argv) {
   cxxopts::Options o("flatnet cameras", "List the cameras Aravis can reach (USB3 Vision, GigE Vision).");
-  o.add_options()("fake", "also list Aravis's built-in fake camera");
+  add_flags(o, cameras_flags());
   add_common(o);
   cxxopts::ParseResult r;
   if (!parse(o, argc, argv, r)) return 0;
-  const auto list = list_cameras(r.count("fake") > 0);
+  CamerasSettings settings;
+  read_flags(r, cameras_flags(), settings);
+  const auto list = list_cameras(settings.fake);
   if (list.empty()) {
     std::cout
         << "no cameras found (USB: check the udev rules and permissions; GigE: same subnet, firewall; see README)\n";
@@ -230,7 +284,6 @@ int cameras(int argc, char** argv) {
 
 int capture(int argc, char** argv) {
   cxxopts::Options o("flatnet capture", "Capture raw frames (16-bit PNG + JSON sidecar) from a camera.");
-  o.add_options()("out", "output folder", cxxopts::value<std::string>());
   add_flags(o, capture_flags());
   add_camera_flags(o);
   add_common(o);
@@ -240,7 +293,6 @@ int capture(int argc, char** argv) {
   const auto camera = camera_from(r);
   CaptureOptions opt;
   read_flags(r, capture_flags(), opt);
-  opt.out = r["out"].as<std::string>();
   auto source = open_from_flags(r, camera);
   watch_interrupts();
   const auto rep = capture_frames(*source, opt);
@@ -258,8 +310,6 @@ int capture_dataset(int argc, char** argv) {
       "flatnet capture-dataset",
       "Display-capture dataset: show each photograph full screen, capture, write a FlatNet-layout pair.\n"
       "Resumable: run the same command again after an interruption.");
-  o.add_options()("images", "folder of photographs", cxxopts::value<std::string>())(
-      "out", "dataset folder (meas/, gt/, train_*.txt, val_*.txt)", cxxopts::value<std::string>());
   add_flags(o, capture_dataset_flags());
   add_collect_flags<PhotoCollect>(o);
   add_force_folder(o);
@@ -267,14 +317,13 @@ int capture_dataset(int argc, char** argv) {
   if (!parse(o, argc, argv, r)) return 0;
   require(r.count("images") && r.count("out"), "capture-dataset", "--images DIR and --out DIR are required");
   const auto camera = camera_from(r);
-  DatasetCollectOptions opt;
+  PhotoDatasetSettings opt;
   read_flags(r, capture_dataset_flags(), opt);
-  opt.out = r["out"].as<std::string>();
   const auto claim = claim_out(r, opt.out, "capture-dataset");
   opt.scene_size = camera.scene_size;
   opt.collect = collect_options<PhotoCollect>(r);
-  const auto images = list_images(r["images"].as<std::string>(), kImageExtensions);
-  require(!images.empty(), r["images"].as<std::string>(), "no photographs (.png .jpg .tif .bmp) in this folder");
+  const auto images = list_images(opt.images, kImageExtensions);
+  require(!images.empty(), opt.images, "no photographs (.png .jpg .tif .bmp) in this folder");
   auto session = open_collection(r, camera);
   const auto rep = collect_dataset(images, *session.source, *session.display, opt);
   print_report(rep, "capture-dataset " + opt.out.string());
@@ -287,9 +336,6 @@ int capture_calibration(int argc, char** argv) {
       "flatnet capture-calibration",
       "Show the separable Hadamard calibration patterns, capture each, then calibrate (Asif et al. 2017).\n"
       "Resumable: run the same command again after an interruption.");
-  o.add_options()("out", "folder for the pattern captures (NAME.png + NAME.json)", cxxopts::value<std::string>())(
-      "calib-out", "calibration .mat to write once every pattern is captured (default: OUT/calib.mat)",
-      cxxopts::value<std::string>());
   add_flags(o, pattern_flags());
   add_collect_flags<PatternCollect>(o);
   add_force_folder(o);
@@ -297,11 +343,10 @@ int capture_calibration(int argc, char** argv) {
   if (!parse(o, argc, argv, r)) return 0;
   require(r.count("out"), "capture-calibration", "--out DIR is required");
   const auto camera = camera_from(r);
-  const std::filesystem::path out = r["out"].as<std::string>();
-  const std::filesystem::path calib_out =
-      r.count("calib-out") ? std::filesystem::path(r["calib-out"].as<std::string>()) : out / "calib.mat";
   PatternSettings pattern;
   read_flags(r, pattern_flags(), pattern);
+  const auto& out = pattern.out;
+  const auto calib_out = r.count("calib-out") ? pattern.calib_out : out / "calib.mat";
   const int level = pattern.level;
   std::vector<CollectItem> items;
   for (auto& p : calibration_patterns(camera.scene_size, level))
@@ -322,6 +367,7 @@ int capture_calibration(int argc, char** argv) {
   return 0;
 }
 
+CommandFlags cameras_command_flags() { return command_flags("cameras", cameras_flags()); }
 CommandFlags capture_command_flags() { return command_flags("capture", capture_flags(), device_flags()); }
 CommandFlags capture_dataset_command_flags() {
   return command_flags("capture-dataset", capture_dataset_flags(), collect_flags<PhotoCollect>(), device_flags(),
@@ -335,10 +381,6 @@ CommandFlags live_command_flags() { return command_flags("live", live_flags(), d
 
 int live(int argc, char** argv) {
   cxxopts::Options o("flatnet live", "Live view: grab, reconstruct (Tikhonov or FlatNet), show with the frame rate.");
-  o.add_options()("model", "FlatNet model file (its camera preprocessing is used)", cxxopts::value<std::string>())(
-      "calib", "calibration .mat for Tikhonov (default: the camera file's)", cxxopts::value<std::string>())(
-      "no-window", "print the frame rate instead of showing the reconstruction")(
-      "require-fit", "stop (exit 2) when a frame does not fit the camera the reconstruction is for");
   add_flags(o, live_flags());
   add_precision(o);
   add_camera_flags(o);
@@ -352,15 +394,15 @@ int live(int argc, char** argv) {
   spec.method = r.count("model") ? "flatnet" : "tikhonov";
   spec.use_camera = !r.count("model") || r.count("camera");  // a model preprocesses as it was trained
   if (spec.use_camera) spec.camera = camera_from(r);
-  if (r.count("model")) spec.model = r["model"].as<std::string>();
-  if (r.count("calib")) spec.calibration = r["calib"].as<std::string>();
+  if (r.count("model")) spec.model = set.model;
+  if (r.count("calib")) spec.calibration = set.calib;
   spec.lambda = set.lambda;
   spec.levers.bf16 = r.count("model") && precision_from(r) == Precision::bf16;
   auto built = make_reconstructor(spec);
   const auto& camera = built.camera;
   auto source = open_from_flags(r, camera);
   std::unique_ptr<Display> display;
-  if (!r.count("no-window")) {
+  if (!set.no_window) {
     DisplayOptions d;
     d.fullscreen = false;
     d.title = "flatnet live";
@@ -374,7 +416,7 @@ int live(int argc, char** argv) {
   opt.log = display ? nullptr : &std::cout;
   opt.fit = built.fit.get();
   opt.warn = &std::cerr;
-  opt.require_fit = r.count("require-fit") > 0;
+  opt.require_fit = set.require_fit;
   require(!opt.require_fit || opt.fit, "--require-fit", "cannot judge the frames: " + built.no_fit);
   if (!opt.fit) std::cerr << "note: live: frames are not judged against the camera: " << built.no_fit << "\n";
   watch_interrupts();

@@ -27,6 +27,7 @@ namespace flatnet::cli {
 int simulate(int argc, char** argv);
 // Each command's flag rows (cli/flag_rows.hpp), and all of them for `flatnet options --for`.
 const FlagTable<SimulateOptions>& simulate_flags();
+CommandFlags simulate_command_flags();
 CommandFlags calibrate_command_flags();
 CommandFlags recon_command_flags();
 // --batch and --require-fit of every command that reconstructs files (recon, infer).
@@ -34,12 +35,19 @@ const FlagTable<BatchOptions>& batch_flags();
 CommandFlags eval_command_flags();
 CommandFlags fit_niqe_command_flags();
 CommandFlags report_command_flags();
+CommandFlags report_inversion_command_flags();
 CommandFlags infer_command_flags();
+CommandFlags train_command_flags();  // "train flags": the command line's own; the config's rows: --for train
+CommandFlags export_command_flags();
+CommandFlags import_command_flags();
+CommandFlags mask_train_command_flags();
+CommandFlags mask_separable_command_flags();
 CommandFlags mask_eval_command_flags();
 CommandFlags mask_report_command_flags();
 CommandFlags mask_camera_command_flags();
 CommandFlags bench_command_flags();
 CommandFlags demo_command_flags();
+CommandFlags cameras_command_flags();
 CommandFlags capture_command_flags();
 CommandFlags capture_dataset_command_flags();
 CommandFlags capture_calibration_command_flags();
@@ -146,10 +154,19 @@ Precision precision_from(const cxxopts::ParseResult& r);
 OutputClaim claim_out(const cxxopts::ParseResult& r, const std::filesystem::path& out, const std::string& command,
                       const std::string& settings = "", const std::string& own_file = "");
 // "--force" for commands whose only output is a folder.
+struct ForceChoice {
+  bool force = false;
+};
+const FlagTable<ForceChoice>& force_folder_flags();
 void add_force_folder(cxxopts::Options& options);
 
 CameraConfig camera_from(const cxxopts::ParseResult& r, const std::string& flag = "camera");
 // --lpips alex|vgg and --lpips-dir DIR (eval, report).
+struct LpipsChoice {
+  std::string backbone;             // empty: no LPIPS column
+  std::filesystem::path directory;  // empty: the default search
+};
+const FlagTable<LpipsChoice>& lpips_flags();
 void add_lpips(cxxopts::Options& options);
 // The LPIPS backbone to score with and its files, or {"", {}} without --lpips. A wrong backbone name
 // is an error; missing weight files are not: one line on stderr says which files to get and where

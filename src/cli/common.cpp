@@ -45,30 +45,6 @@ void add_common(cxxopts::Options& options) {
 
 namespace {
 
-// Numeric flags declared by hand (no row: no default), checked wherever a command has one of this
-// name and the user gave it; a row's number is checked by its own range (cli/flag_rows.hpp).
-const std::vector<NumberRule>& number_rules() {
-  static const std::vector<NumberRule> rules = {
-      {"exposure", 1e-6, 1e6, "a positive factor"},
-  };
-  return rules;
-}
-
-void check_numbers(const cxxopts::ParseResult& result) {
-  for (const auto& kv : result.arguments()) {
-    for (const auto& rule : number_rules()) {
-      if (kv.key() != rule.name) continue;
-      const auto problem = number_problem(kv.value(), rule);
-      if (!problem.empty())
-        throw Error("--" + kv.key(), "'" + printable(kv.value()) + "' " + problem + ": " + rule.meaning);
-    }
-  }
-}
-
-}  // namespace
-
-namespace {
-
 // A switch given a value (`--force=false`, as scripts write `--force=$FORCE`) is read by its value:
 // true/1/yes/on keep it, false/0/no/off drop it before cxxopts counts it (every command reads a
 // switch by count), anything else is refused. cxxopts itself counts `--force=false` as given.
@@ -137,7 +113,6 @@ bool parse(cxxopts::Options& options, int argc, char** argv, cxxopts::ParseResul
     return false;
   }
   if (!result.unmatched().empty()) throw Error("unexpected argument '" + result.unmatched()[0] + "'");
-  check_numbers(result);
   CommonSettings common;
   read_flags(result, common_flags(), common);
   set_threads(common.threads);
@@ -163,22 +138,35 @@ std::vector<std::string> set_overrides(const cxxopts::ParseResult& r) {
   return sets;
 }
 
-void add_lpips(cxxopts::Options& options) {
-  options.add_options()("lpips",
-                        "add LPIPS v0.1 with this backbone: alex|vgg (needs torchvision's backbone file and "
-                        "the lpips package's linear layers; docs/evaluation.md)",
-                        cxxopts::value<std::string>())(
-      "lpips-dir", "folder with the LPIPS files (also searched: models/lpips, ~/.cache/torch/hub/checkpoints)",
-      cxxopts::value<std::string>());
+const FlagTable<LpipsChoice>& lpips_flags() {
+  static const FlagTable<LpipsChoice> rows = {
+      {"lpips", &LpipsChoice::backbone,
+       "add LPIPS v0.1 with this backbone: alex|vgg (needs torchvision's backbone file and the lpips package's "
+       "linear layers; docs/evaluation.md)"},
+      {"lpips-dir", &LpipsChoice::directory,
+       "folder with the LPIPS files (also searched: models/lpips, ~/.cache/torch/hub/checkpoints)"},
+  };
+  return rows;
 }
 
+const FlagTable<ForceChoice>& force_folder_flags() {
+  static const FlagTable<ForceChoice> rows = {
+      {"force", &ForceChoice::force,
+       "write into an --out folder that holds other output or files flatnet did not write"},
+  };
+  return rows;
+}
+
+void add_lpips(cxxopts::Options& options) { add_flags(options, lpips_flags()); }
+
 std::pair<std::string, LpipsFiles> lpips_from(const cxxopts::ParseResult& r) {
+  LpipsChoice chosen;
+  read_flags(r, lpips_flags(), chosen);
   if (!r.count("lpips")) return {};
-  const auto name = r["lpips"].as<std::string>();
-  require(name == "alex" || name == "vgg", "--lpips", "expected alex or vgg, got '" + name + "'");
+  const auto& name = chosen.backbone;
+  require(name == "alex" || name == "vgg", "--lpips", "expected alex or vgg, got '" + printable(name) + "'");
   try {
-    return {name, find_lpips_files(parse_lpips_backbone(name),
-                                   r.count("lpips-dir") ? r["lpips-dir"].as<std::string>() : std::string())};
+    return {name, find_lpips_files(parse_lpips_backbone(name), chosen.directory)};
   } catch (const Error& e) {
     std::cerr << "no LPIPS column: " << e.what() << "\n";
     return {};
@@ -214,9 +202,7 @@ OutputClaim claim_out(const cxxopts::ParseResult& r, const std::filesystem::path
   return claim_output_folder(out, role);
 }
 
-void add_force_folder(cxxopts::Options& options) {
-  options.add_options()("force", "write into an --out folder that holds other output or files flatnet did not write");
-}
+void add_force_folder(cxxopts::Options& options) { add_flags(options, force_folder_flags()); }
 
 std::vector<std::pair<std::string, std::string>> named_paths(const std::vector<std::string>& items,
                                                              const std::string& flag, bool bare_allowed) {

@@ -44,10 +44,16 @@ std::vector<std::pair<std::string, std::filesystem::path>> shipped_models() {
 
 struct DemoSettings {
   std::filesystem::path out = "demo_out";
+  std::filesystem::path images;  // empty: python3-skimage's sample photographs
+  std::filesystem::path camera;  // empty: the reference camera (camera_from reads the flag)
 };
 
 const FlagTable<DemoSettings>& demo_flags() {
-  static const FlagTable<DemoSettings> rows = {{"out", &DemoSettings::out, "output folder"}};
+  static const FlagTable<DemoSettings> rows = {
+      {"out", &DemoSettings::out, "output folder"},
+      {"images", &DemoSettings::images, "photographs to use (default: python3-skimage's sample photographs)"},
+      {"camera", &DemoSettings::camera, "camera .yaml (default: the reference camera)"},
+  };
   return rows;
 }
 
@@ -58,9 +64,6 @@ CommandFlags demo_command_flags() { return command_flags("demo", demo_flags()); 
 int demo(int argc, char** argv) {
   cxxopts::Options o("flatnet demo", "Simulate captures of a few photographs, reconstruct them, and evaluate.");
   add_flags(o, demo_flags());
-  o.add_options()("images", "photographs to use (default: python3-skimage's sample photographs)",
-                  cxxopts::value<std::string>())("camera", "camera .yaml (default: the reference camera)",
-                                                 cxxopts::value<std::string>());
   add_force_folder(o);
   add_common(o);
   cxxopts::ParseResult r;
@@ -70,8 +73,7 @@ int demo(int argc, char** argv) {
   const auto out = set.out;
   const auto claim = claim_out(r, out, "demo");
   const auto camera = camera_from(r);
-  const auto images = r.count("images") ? std::filesystem::path(r["images"].as<std::string>())
-                                        : gather_demo_images(kDemoImageDir, out / "photos");
+  const auto images = r.count("images") ? set.images : gather_demo_images(kDemoImageDir, out / "photos");
 
   std::cout << "[1/3] simulating captures with camera '" << camera.name << "'\n";
   SimulateOptions sim;

@@ -43,9 +43,11 @@ template <class S>
 struct FlagRow {
   using Struct = S;
   const char* flag;  // "val-fraction" for --val-fraction
+  // A bool is a switch (given: true; its struct default must be false); a list of texts is a
+  // repeatable flag (each occurrence whole, in order: a value may hold commas).
   std::variant<double S::*, int64_t S::*, int S::*, uint64_t S::*, bool S::*, std::string S::*,
-               std::filesystem::path S::*, FlagText<S>>
-      member;  // a bool is a switch (given: true); its struct default must be false
+               std::filesystem::path S::*, std::vector<std::string> S::*, FlagText<S>>
+      member;
   const char* doc;
   // Numbers only: the allowed range and what it means ("0 to 1"); none when `range` is empty.
   double lo = -std::numeric_limits<double>::infinity();
@@ -55,6 +57,30 @@ struct FlagRow {
 
 template <class S>
 using FlagTable = std::vector<FlagRow<S>>;
+
+// A comma list (A,B,...) as its items, each whole; an empty item is kept (two commas together, a
+// trailing comma), for the reader to name.
+inline std::vector<std::string> comma_items(const std::string& text) {
+  std::vector<std::string> items;
+  size_t start = 0;
+  for (size_t comma = text.find(','); comma != std::string::npos; comma = text.find(',', start)) {
+    items.push_back(text.substr(start, comma - start));
+    start = comma + 1;
+  }
+  if (!text.empty()) items.push_back(text.substr(start));
+  return items;
+}
+
+// A row's reader for a comma-list flag (--models A,B,...) into a list member.
+template <class S, std::vector<std::string> S::*member>
+FlagText<S> comma_list() {
+  return {[](S& s, const std::string& text) { s.*member = comma_items(text); },
+          [](const S& s) {
+            std::string text;
+            for (const auto& item : s.*member) text += (text.empty() ? "" : ",") + item;
+            return text;
+          }};
+}
 
 // What `flatnet options --for COMMAND` prints of a row.
 struct FlagDescription {
@@ -72,6 +98,10 @@ std::string shown(const T& value) {
     return value.string();
   } else if constexpr (std::is_same_v<T, bool>) {
     return value ? "true" : "false";
+  } else if constexpr (std::is_same_v<T, std::vector<std::string>>) {
+    std::string joined;
+    for (const auto& v : value) joined += (joined.empty() ? "" : " ") + v;
+    return joined;
   } else {
     std::ostringstream s;
     s.precision(10);
@@ -152,6 +182,11 @@ void read_flags(const cxxopts::ParseResult& r, const FlagTable<S>& rows, S& s) {
       s.*std::get<bool S::*>(row.member) = true;
       continue;
     }
+    if (const auto* list = std::get_if<std::vector<std::string> S::*>(&row.member)) {
+      for (const auto& kv : r.arguments())
+        if (kv.key() == row.flag) (s.**list).push_back(kv.value());
+      continue;
+    }
     const auto text = r[row.flag].template as<std::string>();
     std::visit(
         [&](auto member) {
@@ -166,7 +201,7 @@ void read_flags(const cxxopts::ParseResult& r, const FlagTable<S>& rows, S& s) {
             using T = std::decay_t<decltype(s.*member)>;
             if constexpr (std::is_same_v<T, std::string> || std::is_same_v<T, std::filesystem::path>) {
               s.*member = T(text);
-            } else if constexpr (!std::is_same_v<T, bool>) {
+            } else if constexpr (!std::is_same_v<T, bool> && !std::is_same_v<T, std::vector<std::string>>) {
               flag_detail::assign_number(row.flag, text, row.lo, row.hi, row.range, s.*member);
             }
           }

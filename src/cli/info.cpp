@@ -115,19 +115,59 @@ std::string recorded_scores(const std::vector<std::string>& items, const std::st
   return recorded.dump();
 }
 
+namespace {
+
+struct InfoSettings {
+  std::filesystem::path file;
+  bool json = false;
+};
+
+const FlagTable<InfoSettings>& info_flags() {
+  static const FlagTable<InfoSettings> rows = {
+      {"file", &InfoSettings::file, "model file (.flatnet) or training checkpoint (.ckpt)"},
+      {"json", &InfoSettings::json, "print one JSON object instead of text"},
+  };
+  return rows;
+}
+
+struct OptionsSettings {
+  std::string prefix, for_command = "train";
+  std::filesystem::path defaults;
+  bool markdown = false, check = false;
+};
+
+const FlagTable<OptionsSettings>& options_flags() {
+  using S = OptionsSettings;
+  static const FlagTable<S> rows = {
+      {"prefix", &S::prefix, "only keys starting with this (train., loss.lr ...)"},
+      {"for", &S::for_command,
+       "train (flatnet train), mask (mask train) or separable (mask separable): a trainer's config settings; or "
+       "any other command (simulate, recon, 'eval fit-niqe' ...): its flags"},
+      {"defaults", &S::defaults, "a defaults file to describe instead (a .yaml)"},
+      {"markdown", &S::markdown, "print a Markdown table"},
+      {"check", &S::check,
+       "check that every command's flags agree with their option structs (the defaults --help shows are the "
+       "structs', and each flag sets its member)"},
+  };
+  return rows;
+}
+
+}  // namespace
+
 int info(int argc, char** argv) {
   cxxopts::Options o("flatnet info",
                      "What a model file or checkpoint holds: architecture, camera, recipe, "
                      "training, recorded scores and its SHA-256.");
-  o.add_options()("file", "model file (.flatnet) or training checkpoint (.ckpt)", cxxopts::value<std::string>())(
-      "json", "print one JSON object instead of text");
+  add_flags(o, info_flags());
   o.parse_positional({"file"});
   o.positional_help("FILE");
   add_common(o);
   cxxopts::ParseResult r;
   if (!parse(o, argc, argv, r)) return 0;
+  InfoSettings settings;
+  read_flags(r, info_flags(), settings);
   require(r.count("file"), "info", "a model file is required: flatnet info MODEL.flatnet");
-  const std::filesystem::path path = r["file"].as<std::string>();
+  const auto& path = settings.file;
   const bool checkpoint = is_checkpoint_file(path);
   bool average = false;
   auto m = checkpoint ? model_from_checkpoint(path, &average) : load_model_file(path);
@@ -138,7 +178,7 @@ int info(int argc, char** argv) {
   const auto hash = sha256_hex(path);
   const auto bytes = std::filesystem::file_size(path);
 
-  if (r.count("json")) {
+  if (settings.json) {
     nlohmann::json j = {
         {"file", path.string()},
         {"bytes", bytes},
@@ -284,21 +324,15 @@ int options(int argc, char** argv) {
   cxxopts::Options o("flatnet options",
                      "Every setting of a trainer's config, with its default, its range and what it does. Set them in "
                      "an experiment file (--config) or with --set key=value.");
-  o.add_options()("prefix", "only keys starting with this (train., loss.lr ...)", cxxopts::value<std::string>())(
-      "for",
-      "train (flatnet train), mask (mask train) or separable (mask separable): a trainer's config settings; or "
-      "any other command (simulate, recon, 'eval fit-niqe' ...): its flags (default: train)",
-      cxxopts::value<std::string>())("defaults", "a defaults file to describe instead (a .yaml)",
-                                     cxxopts::value<std::string>())("markdown", "print a Markdown table")(
-      "check",
-      "check that every command's flags agree with their option structs (the defaults --help shows are "
-      "the structs', and each flag sets its member)");
+  add_flags(o, options_flags());
   o.parse_positional({"prefix"});
   o.positional_help("[PREFIX]");
   add_common(o);
   cxxopts::ParseResult r;
   if (!parse(o, argc, argv, r)) return 0;
-  if (r.count("check")) {
+  OptionsSettings settings;
+  read_flags(r, options_flags(), settings);
+  if (settings.check) {
     const auto problems = check_command_flags();
     size_t flags = 0;
     const auto commands = every_command_flags();
@@ -310,9 +344,9 @@ int options(int argc, char** argv) {
               << "\n";
     return problems.empty() ? 0 : 1;
   }
-  const auto which = r.count("for") ? r["for"].as<std::string>() : std::string("train");
-  const auto prefix = r.count("prefix") ? r["prefix"].as<std::string>() : std::string();
-  const bool markdown = r.count("markdown") > 0;
+  const auto& which = settings.for_command;
+  const auto& prefix = settings.prefix;
+  const bool markdown = settings.markdown;
   const std::map<std::string, std::string> files = {
       {"train", "defaults.yaml"}, {"mask", "mask_defaults.yaml"}, {"separable", "separable_defaults.yaml"}};
   if (!files.count(which) && !r.count("defaults")) {
@@ -323,8 +357,7 @@ int options(int argc, char** argv) {
     }
     throw Error("--for", "'" + printable(which) + "' is no command with flags: give train, mask, separable" + names);
   }
-  const std::filesystem::path file = r.count("defaults") ? std::filesystem::path(r["defaults"].as<std::string>())
-                                                         : data_dir() / "configs" / files.at(which);
+  const std::filesystem::path file = r.count("defaults") ? settings.defaults : data_dir() / "configs" / files.at(which);
   if (markdown) std::cout << "| key | default | range | what it does |\n|---|---|---|---|\n";
   size_t shown = 0;
   for (const auto& s : describe_settings(file)) {
@@ -337,23 +370,32 @@ int options(int argc, char** argv) {
 }
 
 std::vector<CommandFlags> every_command_flags() {
-  return {command_flags("simulate", simulate_flags()),
+  return {simulate_command_flags(),
           calibrate_command_flags(),
           recon_command_flags(),
           eval_command_flags(),
           fit_niqe_command_flags(),
           report_command_flags(),
+          report_inversion_command_flags(),
           infer_command_flags(),
+          mask_train_command_flags(),
+          mask_separable_command_flags(),
           mask_eval_command_flags(),
           mask_report_command_flags(),
           mask_camera_command_flags(),
           bench_command_flags(),
           demo_command_flags(),
+          cameras_command_flags(),
           capture_command_flags(),
           capture_dataset_command_flags(),
           capture_calibration_command_flags(),
           live_command_flags(),
-          command_flags("every command", common_flags(), precision_flags())};
+          train_command_flags(),
+          export_command_flags(),
+          import_command_flags(),
+          command_flags("info", info_flags()),
+          command_flags("options", options_flags()),
+          command_flags("every command", common_flags(), precision_flags(), force_folder_flags(), lpips_flags())};
 }
 
 }  // namespace flatnet::cli

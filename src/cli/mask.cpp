@@ -43,36 +43,54 @@ std::vector<std::filesystem::path> first(const std::vector<std::filesystem::path
                                                        : std::vector<std::filesystem::path>(v.begin(), v.begin() + n);
 }
 
+// The mask and code-pair trainers' run flags (their settings are their config's rows).
+struct TrainerRun {
+  std::filesystem::path config, out;
+  std::vector<std::string> set;  // --set key=value, repeatable, in order
+  bool resume = false, force = false;
+};
+
+const FlagTable<TrainerRun>& trainer_run_flags() {
+  using S = TrainerRun;
+  static const FlagTable<S> rows = {
+      {"config", &S::config, "experiment config overriding the trainer's defaults file (configs/mask_rank1.yaml, ...)"},
+      {"set", &S::set, "override a setting, key=value (repeatable)"},
+      {"out", &S::out, "output folder (the run: config.yaml, latest.ckpt, log.csv, what it learned)"},
+      {"resume", &S::resume,
+       "continue the run in --out from its latest.ckpt, with its own config (--set and the shortcut flags change "
+       "single settings)"},
+      {"force", &S::force, "start afresh in an --out folder that holds another run"},
+  };
+  return rows;
+}
+
 // The config of a trainer's run in `out`: with --resume the run's own (out/config.yaml) under
 // `sets`, else --config's or the defaults'. Refuses --resume without a checkpoint or with --config,
 // and a new run over a run's checkpoint without --force; `run` names the run in that message.
-Config run_config(const cxxopts::ParseResult& r, const std::filesystem::path& out, const std::vector<std::string>& sets,
-                  const std::filesystem::path& defaults, const std::string& run) {
-  const bool resume = r.count("resume") > 0;
-  require(!resume || !r.count("config"), "--resume",
+Config run_config(const TrainerRun& flags, const std::vector<std::string>& sets, const std::filesystem::path& defaults,
+                  const std::string& run) {
+  const auto& out = flags.out;
+  require(!flags.resume || flags.config.empty(), "--resume",
           "continues with the run's own config (" + (out / "config.yaml").string() +
               "); change single settings with --set");
-  require(!resume || has_trainer_checkpoint(out), out / "latest.ckpt", "nothing to resume (no checkpoint)");
-  require(resume || r.count("force") || !has_trainer_checkpoint(out), out,
+  require(!flags.resume || has_trainer_checkpoint(out), out / "latest.ckpt", "nothing to resume (no checkpoint)");
+  require(flags.resume || flags.force || !has_trainer_checkpoint(out), out,
           "already holds a " + run + "; continue it with --resume, or start afresh with --force");
-  return resume ? Config::load(out / "config.yaml", sets, defaults)
-                : Config::load(r.count("config") ? r["config"].as<std::string>() : "", sets, defaults);
+  return flags.resume ? Config::load(out / "config.yaml", sets, defaults) : Config::load(flags.config, sets, defaults);
 }
 
 int mask_train(int argc, char** argv) {
   cxxopts::Options o("flatnet mask train", "Learn a rank-k amplitude mask end to end through Wiener deconvolution.");
-  o.add_options()("config", "experiment config (configs/mask_rank1.yaml, ...)", cxxopts::value<std::string>())(
-      "set", "override a setting (repeatable)", cxxopts::value<std::string>())("out", "output folder",
-                                                                               cxxopts::value<std::string>())(
-      "resume", "continue the run in --out from its latest.ckpt, with its own config (--set changes single settings)");
-  add_force_folder(o);
+  add_flags(o, trainer_run_flags());
   add_common(o);
   cxxopts::ParseResult r;
   if (!parse(o, argc, argv, r)) return 0;
   require(r.count("out"), "mask train", "--out DIR is required");
-  const std::filesystem::path out = r["out"].as<std::string>();
-  const bool resume = r.count("resume") > 0;
-  const auto c = run_config(r, out, set_overrides(r), mask_defaults(), "mask training run");
+  TrainerRun run;
+  read_flags(r, trainer_run_flags(), run);
+  const auto& out = run.out;
+  const bool resume = run.resume;
+  const auto c = run_config(run, run.set, mask_defaults(), "mask training run");
   MaskOptions mo;
   read_options(c, mask_fields(), mo, "mask.");
   MaskTrainOptions to;
@@ -83,7 +101,7 @@ int mask_train(int argc, char** argv) {
   mo.cols = cam.cols;
   to.out = out;
   to.resume = resume;
-  to.force = r.count("force") > 0;
+  to.force = run.force;
   require(to.gamma_init > 0, "train.gamma_init", "must be positive");
   MaskModel model(mo);  // validates rank, projection, throughput rule
   PhotoSplit photos;
@@ -109,6 +127,8 @@ int mask_train(int argc, char** argv) {
 
 // The settings of `flatnet mask eval`.
 struct MaskEvalSettings {
+  std::string mask;  // mask.png, mls or m02
+  std::filesystem::path images;
   double noise = WienerCamera{}.noise_sigma;
   int64_t count = 0;
 };
@@ -116,6 +136,8 @@ struct MaskEvalSettings {
 const FlagTable<MaskEvalSettings>& mask_eval_flags() {
   using S = MaskEvalSettings;
   static const FlagTable<S> rows = {
+      {"mask", &S::mask, "mask.png (16-bit, 65535 = transparent), mls or m02"},
+      {"images", &S::images, "photographs: gamma is tuned on the first quarter, PSNR measured on the rest"},
       {"noise", &S::noise, "Gaussian noise sigma", 1e-12, 1, "a positive sigma up to 1"},
       {"count", &S::count, "use at most this many photographs (0: all)", 0, 1e12, "0 (all) or more"},
   };
@@ -125,9 +147,6 @@ const FlagTable<MaskEvalSettings>& mask_eval_flags() {
 // gamma tuned on the first quarter, PSNR on the rest.
 int mask_eval(int argc, char** argv) {
   cxxopts::Options o("flatnet mask eval", "Throughput, tuned gamma and mean PSNR of a mask under the Wiener protocol.");
-  o.add_options()("mask", "mask.png (16-bit, 65535 = transparent), mls or m02", cxxopts::value<std::string>())(
-      "images", "photographs: gamma is tuned on the first quarter, PSNR measured on the rest",
-      cxxopts::value<std::string>());
   add_flags(o, mask_eval_flags());
   add_common(o);
   cxxopts::ParseResult r;
@@ -137,20 +156,19 @@ int mask_eval(int argc, char** argv) {
   read_flags(r, mask_eval_flags(), set);
   WienerCamera cam;
   cam.noise_sigma = set.noise;
-  const auto window = load_mask_window(r["mask"].as<std::string>(), cam);
-  require(window.min().item<double>() >= 0 && window.max().item<double>() <= 1, r["mask"].as<std::string>(),
+  const auto window = load_mask_window(set.mask, cam);
+  require(window.min().item<double>() >= 0 && window.max().item<double>() <= 1, set.mask,
           "transmittance outside [0, 1]");
-  const auto images = first(list_images(r["images"].as<std::string>(), kImageExtensions), set.count);
-  require(images.size() >= 2, r["images"].as<std::string>(), "needs at least 2 readable images");
+  const auto images = first(list_images(set.images, kImageExtensions), set.count);
+  require(images.size() >= 2, set.images, "needs at least 2 readable images");
   const auto scenes = load_luma_scenes(images, cam.scene, 2);
   const int64_t n_tune = std::max<int64_t>(1, scenes.size(0) / 4);
   const double gamma = tune_gamma(window, scenes.slice(0, 0, n_tune), cam, 777);
   const double psnr = mask_psnr(window, gamma, scenes.slice(n_tune), cam, 4242);
-  std::cout << "mask " << r["mask"].as<std::string>() << ": throughput " << std::setprecision(4) << throughput(window)
-            << ", gamma " << std::scientific << std::setprecision(3) << gamma << std::defaultfloat << " (tuned on "
-            << n_tune << " images), PSNR " << std::fixed << std::setprecision(2) << psnr << " dB on "
-            << scenes.size(0) - n_tune << " images at sigma " << std::scientific << std::setprecision(1)
-            << cam.noise_sigma << "\n";
+  std::cout << "mask " << set.mask << ": throughput " << std::setprecision(4) << throughput(window) << ", gamma "
+            << std::scientific << std::setprecision(3) << gamma << std::defaultfloat << " (tuned on " << n_tune
+            << " images), PSNR " << std::fixed << std::setprecision(2) << psnr << " dB on " << scenes.size(0) - n_tune
+            << " images at sigma " << std::scientific << std::setprecision(1) << cam.noise_sigma << "\n";
   return 0;
 }
 
@@ -163,12 +181,31 @@ std::string shown(const std::filesystem::path& p) {
   return !rel.empty() && *rel.begin() != ".." ? rel.string() : p.string();
 }
 
-const FlagTable<MaskReportOptions>& mask_report_flags() {
-  using S = MaskReportOptions;
+// mask report's flags: the library's options with the lists that build them.
+struct MaskReportSettings : MaskReportOptions {
+  std::vector<std::string> masks, codes, sections, flatnet;  // comma lists
+};
+
+const FlagTable<MaskReportSettings>& mask_report_flags() {
+  using S = MaskReportSettings;
   static const FlagTable<S> rows = {
-      {"noise", &S::noise, "Wiener protocol: noise sigma of the main table", 1e-12, 1, "a positive sigma up to 1"},
-      {"tune-count", &S::tune_count, "held-out photographs that tune gamma and lambda", 1, 1e12, "at least 1"},
-      {"count", &S::count, "held-out photographs scored after those (0: the rest)", 0, 1e12, "0 (the rest) or more"},
+      {"masks", comma_list<S, &S::masks>(), "folders written by `flatnet mask train` (comma-separated)"},
+      {"images", static_cast<std::filesystem::path S::*>(&MaskReportOptions::images),
+       "photographs; the held-out split (as training's and simulate's) is used"},
+      {"out", static_cast<std::filesystem::path S::*>(&MaskReportOptions::out),
+       "folder for report.md, masks.png, sweep.png, separable_sweep.png"},
+      {"codes", comma_list<S, &S::codes>(),
+       "separable code pairs NAME=codes.mat (comma-separated; 'none': no separable section). Default: MLS, the "
+       "shipped separable-learned codes and their binary variant; rank-1 --masks are added as sign(u), sign(v)"},
+      {"sections", comma_list<S, &S::sections>(), "wiener, separable, or both (comma-separated; default: both)"},
+      {"flatnet", comma_list<S, &S::flatnet>(),
+       "FlatNet models trained on a code pair's camera, NAME=model.flatnet (NAME as in --codes)"},
+      {"noise", static_cast<double S::*>(&MaskReportOptions::noise), "Wiener protocol: noise sigma of the main table",
+       1e-12, 1, "a positive sigma up to 1"},
+      {"tune-count", static_cast<int64_t S::*>(&MaskReportOptions::tune_count),
+       "held-out photographs that tune gamma and lambda", 1, 1e12, "at least 1"},
+      {"count", static_cast<int64_t S::*>(&MaskReportOptions::count),
+       "held-out photographs scored after those (0: the rest)", 0, 1e12, "0 (the rest) or more"},
   };
   return rows;
 }
@@ -178,19 +215,6 @@ int mask_report(int argc, char** argv) {
       "flatnet mask report",
       "Compare masks: the Wiener protocol (learned masks, MLS, 02; noise sweep), then code pairs built into the "
       "separable reference camera (Tikhonov and FlatNet on held-out captures; light sweep).");
-  o.add_options()("masks", "folders written by `flatnet mask train` (comma-separated)",
-                  cxxopts::value<std::vector<std::string>>())(
-      "images", "photographs; the held-out split (as training's and simulate's) is used",
-      cxxopts::value<std::string>())("out", "folder for report.md, masks.png, sweep.png, separable_sweep.png",
-                                     cxxopts::value<std::string>())(
-      "codes",
-      "separable code pairs NAME=codes.mat (comma-separated; 'none': no separable section). Default: MLS, the shipped "
-      "separable-learned codes and their binary variant; rank-1 --masks are added as sign(u), sign(v)",
-      cxxopts::value<std::vector<std::string>>())("sections",
-                                                  "wiener, separable, or both (comma-separated; default: both)",
-                                                  cxxopts::value<std::vector<std::string>>())(
-      "flatnet", "FlatNet models trained on a code pair's camera, NAME=model.flatnet (NAME as in --codes)",
-      cxxopts::value<std::vector<std::string>>());
   add_flags(o, mask_report_flags());
   add_force_folder(o);
   add_common(o);
@@ -198,30 +222,27 @@ int mask_report(int argc, char** argv) {
   cxxopts::ParseResult r;
   if (!parse(o, argc, argv, r)) return 0;
   require(r.count("images") && r.count("out"), "mask report", "--images and --out are required");
-  MaskReportOptions opt;
-  read_flags(r, mask_report_flags(), opt);
-  opt.images = r["images"].as<std::string>();
-  opt.out = r["out"].as<std::string>();
+  MaskReportSettings settings;
+  read_flags(r, mask_report_flags(), settings);
+  MaskReportOptions opt = settings;
   const auto claim = claim_out(r, opt.out, "mask report");
   bool separable = false;
   opt.wiener = false;
-  const auto sections = r.count("sections") ? r["sections"].as<std::vector<std::string>>()
-                                            : std::vector<std::string>{"wiener", "separable"};
+  const auto sections = r.count("sections") ? settings.sections : std::vector<std::string>{"wiener", "separable"};
   for (const auto& section : sections) {
     require(section == "wiener" || section == "separable", "--sections",
             "takes wiener and/or separable, got '" + section + "'");
     (section == "wiener" ? opt.wiener : separable) = true;
   }
   if (r.count("masks"))
-    for (const auto& d : r["masks"].as<std::vector<std::string>>()) opt.mask_dirs.emplace_back(d);
+    for (const auto& d : settings.masks) opt.mask_dirs.emplace_back(d);
 
   std::vector<std::pair<std::string, std::string>> codes = {
       {"MLS", shipped("models/camera/codes_mls.mat").string()},
       {"separable-learned", shipped("models/masks/separable/codes.mat").string()},
       {"separable-learned binary", shipped("models/masks/separable/binary/codes.mat").string()}};
-  const bool no_codes =
-      r.count("codes") && r["codes"].as<std::vector<std::string>>() == std::vector<std::string>{"none"};
-  if (r.count("codes") && !no_codes) codes = named_paths(r["codes"].as<std::vector<std::string>>(), "--codes");
+  const bool no_codes = r.count("codes") && settings.codes == std::vector<std::string>{"none"};
+  if (r.count("codes") && !no_codes) codes = named_paths(settings.codes, "--codes");
   if (separable && !no_codes) {
     for (const auto& [name, path] : codes) {
       for (const auto& c : opt.separable) require(c.name != name, "--codes", "names '" + name + "' twice");
@@ -242,7 +263,7 @@ int mask_report(int argc, char** argv) {
     require(!opt.separable.empty(), "--flatnet",
             "needs code pairs (--codes is none, or --sections leaves out separable)");
     const auto precision = precision_from(r);
-    for (const auto& [name, path] : named_paths(r["flatnet"].as<std::vector<std::string>>(), "--flatnet")) {
+    for (const auto& [name, path] : named_paths(settings.flatnet, "--flatnet")) {
       auto it = std::find_if(opt.separable.begin(), opt.separable.end(), [&](const auto& c) { return c.name == name; });
       require(it != opt.separable.end(), "--flatnet", "'" + name + "' names no code pair (--codes names them)");
       auto model = load_model_file(path);
@@ -274,25 +295,20 @@ int mask_separable(int argc, char** argv) {
   cxxopts::Options o("flatnet mask separable",
                      "Learn a separable FlatCam's codes end to end: codes -> PhiL/PhiR -> noisy capture -> Tikhonov. "
                      "Settings: configs/separable_defaults.yaml (each shortcut flag sets one of its keys).");
-  o.add_options()("config", "experiment config overriding configs/separable_defaults.yaml",
-                  cxxopts::value<std::string>())("set", "override a setting, key=value (repeatable)",
-                                                 cxxopts::value<std::string>())(
-      "out", "folder for codes.mat, lambda.txt, log.csv, curve.png, config.yaml", cxxopts::value<std::string>())(
-      "resume",
-      "continue the run in --out from its latest.ckpt, with its own config (--set and the shortcut flags "
-      "change single settings)");
+  add_flags(o, trainer_run_flags());
   add_row_flags(o, separable_train_fields(), setting_docs(separable_defaults()));
-  add_force_folder(o);
   add_common(o);
   cxxopts::ParseResult r;
   if (!parse(o, argc, argv, r)) return 0;
   require(r.count("out"), "mask separable", "--out DIR is required");
+  TrainerRun run;
+  read_flags(r, trainer_run_flags(), run);
   auto sets = row_flag_settings(r, separable_train_fields());
-  for (const auto& s : set_overrides(r)) sets.push_back(s);
-  const std::filesystem::path out = r["out"].as<std::string>();
-  const bool resume = r.count("resume") > 0;
-  const auto c = run_config(r, out, sets, separable_defaults(), "code-pair training run");
-  require(resume || r.count("force") || !std::filesystem::exists(out / "codes.mat"), out,
+  for (const auto& s : run.set) sets.push_back(s);
+  const auto& out = run.out;
+  const bool resume = run.resume;
+  const auto c = run_config(run, sets, separable_defaults(), "code-pair training run");
+  require(resume || run.force || !std::filesystem::exists(out / "codes.mat"), out,
           "already holds learned codes; choose another --out (or --force)");
   SeparableTrainOptions opt;
   read_options(c, separable_train_fields(), opt);
@@ -306,7 +322,7 @@ int mask_separable(int argc, char** argv) {
           "at least 1 (the code pair's validation needs photographs)");
   opt.out = out;
   opt.resume = resume;
-  opt.force = r.count("force") > 0;
+  opt.force = run.force;
   const auto claim = claim_out(r, opt.out, "mask separable");
   write_text_atomically(opt.out / "config.yaml", c.to_yaml());
   watch_interrupts();
@@ -321,6 +337,8 @@ int mask_separable(int argc, char** argv) {
 
 // The settings of `flatnet mask camera`.
 struct MaskCameraSettings {
+  std::filesystem::path codes, out;
+  uint64_t random_codes = 0;
   double calib_error = 0.03;
   uint64_t seed = 0;
   std::string centring = "plane";
@@ -330,6 +348,12 @@ struct MaskCameraSettings {
 const FlagTable<MaskCameraSettings>& mask_camera_flags() {
   using S = MaskCameraSettings;
   static const FlagTable<S> rows = {
+      {"codes", &S::codes,
+       ".mat with code_rows and code_cols (vectors, values in [-1, 1]); models/camera/codes_mls.mat is MLS"},
+      {"random-codes", &S::random_codes,
+       "instead of --codes: a seeded pair of random +-1 codes, 511 each (another FlatCam, for adaptation tests); "
+       "written to OUT/codes.mat"},
+      {"out", &S::out, "folder to write"},
       {"calib-error", &S::calib_error, "relative (Frobenius) error of the calibration, as a real one has", 0, 1,
        "0 to 1 (0.03: 3 %)"},
       {"seed", &S::seed, "seed of that error"},
@@ -345,13 +369,6 @@ int mask_camera(int argc, char** argv) {
       "flatnet mask camera",
       "Build the reference camera with a separable code pair: rig.mat, calib.mat (with estimation error) "
       "and camera.yaml, for simulate, calibrate, recon and train.");
-  o.add_options()("codes",
-                  ".mat with code_rows and code_cols (vectors, values in [-1, 1]); models/camera/codes_mls.mat is MLS",
-                  cxxopts::value<std::string>())(
-      "random-codes",
-      "instead of --codes: a seeded pair of random +-1 codes, 511 each (another FlatCam, for adaptation tests); "
-      "written to OUT/codes.mat",
-      cxxopts::value<uint64_t>())("out", "folder to write", cxxopts::value<std::string>());
   add_flags(o, mask_camera_flags());
   add_common(o);
   cxxopts::ParseResult r;
@@ -360,15 +377,14 @@ int mask_camera(int argc, char** argv) {
           "one of --codes FILE or --random-codes SEED, and --out DIR, are required");
   MaskCameraSettings set;
   read_flags(r, mask_camera_flags(), set);
-  const std::filesystem::path out = r["out"].as<std::string>();
-  const std::filesystem::path codes_path =
-      r.count("codes") ? std::filesystem::path(r["codes"].as<std::string>()) : out / "codes.mat";
+  const auto& out = set.out;
+  const auto codes_path = r.count("codes") ? set.codes : out / "codes.mat";
   const double error = set.calib_error;
   CodePair codes;
   if (r.count("codes")) {
     codes = load_code_pair(codes_path);
   } else {  // +-1 with probability 1/2 each, rows then columns from one seeded generator
-    auto gen = at::detail::createCPUGenerator(r["random-codes"].as<uint64_t>());
+    auto gen = at::detail::createCPUGenerator(set.random_codes);
     codes.rows = at::randint(0, 2, {511}, gen, torch::kFloat64) * 2 - 1;
     codes.cols = at::randint(0, 2, {511}, gen, torch::kFloat64) * 2 - 1;
   }
@@ -390,6 +406,8 @@ int mask_camera(int argc, char** argv) {
 
 }  // namespace
 
+CommandFlags mask_train_command_flags() { return command_flags("mask train", trainer_run_flags()); }
+CommandFlags mask_separable_command_flags() { return command_flags("mask separable", trainer_run_flags()); }
 CommandFlags mask_eval_command_flags() { return command_flags("mask eval", mask_eval_flags()); }
 CommandFlags mask_report_command_flags() { return command_flags("mask report", mask_report_flags()); }
 CommandFlags mask_camera_command_flags() { return command_flags("mask camera", mask_camera_flags()); }

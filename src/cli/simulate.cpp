@@ -27,7 +27,8 @@ const FlagTable<SimulateOptions>& simulate_flags() {
       {"workers", &S::workers, "simulation threads (0: all cores)", 0, 256, "0 (all cores) to 256"},
       {"only", &S::only, "all|train|val: simulate only that part of the split (e.g. val: a held-out evaluation set)"},
       {"exposure", &S::exposure,
-       "scene light relative to the display's, in linear light (0.33: a dim set); gt/ shows the dimmed scene"},
+       "scene light relative to the display's, in linear light, in (0, 100] (0.33: a dim set); gt/ shows the dimmed "
+       "scene"},
       {"lamp", &S::lamp,
        "add one small lamp per scene (a lamp set; position drawn per image), --lamp-gain x display white"},
       {"lamp-gain", &S::lamp_gain, "the lamp's radiance relative to display white"},
@@ -37,10 +38,26 @@ const FlagTable<SimulateOptions>& simulate_flags() {
   return rows;
 }
 
+namespace {
+
+struct SimulateCamera {
+  std::filesystem::path camera;  // empty: the reference camera (camera_from reads the flag)
+};
+
+const FlagTable<SimulateCamera>& simulate_camera_flags() {
+  static const FlagTable<SimulateCamera> rows = {
+      {"camera", &SimulateCamera::camera, "rig .mat or camera .yaml naming one (default: the reference camera)"},
+  };
+  return rows;
+}
+
+}  // namespace
+
+CommandFlags simulate_command_flags() { return command_flags("simulate", simulate_camera_flags(), simulate_flags()); }
+
 int simulate(int argc, char** argv) {
   cxxopts::Options o("flatnet simulate", "Simulate the captures a FlatCam gives of photographs shown on a display.");
-  o.add_options()("camera", "rig .mat or camera .yaml naming one (default: the reference camera)",
-                  cxxopts::value<std::string>());
+  add_flags(o, simulate_camera_flags());
   add_flags(o, simulate_flags());
   add_common(o);
   cxxopts::ParseResult r;

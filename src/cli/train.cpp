@@ -22,9 +22,46 @@ namespace flatnet::cli {
 
 namespace {
 
+// Given flags override torchrun's environment (distributed_from_env), which overrides these defaults.
 const FlagTable<DistributedOptions>& distributed_flags() {
-  static const FlagTable<DistributedOptions> rows = {
-      {"dist-timeout", &DistributedOptions::timeout_s, "seconds a collective may wait before the job fails"},
+  using S = DistributedOptions;
+  static const FlagTable<S> rows = {
+      {"world-size", &S::world_size, "processes in the job", 1, 65536, "1 to 65536"},
+      {"rank", &S::rank, "this process, 0..world-size-1", 0, 65535, "0 to world-size - 1"},
+      {"master-addr", &S::master_addr, "host of rank 0 (rendezvous)"},
+      {"master-port", &S::master_port, "TCP port of the rendezvous on rank 0", 1, 65535, "a TCP port"},
+      {"dist-timeout", &S::timeout_s, "seconds a collective may wait before the job fails"},
+  };
+  return rows;
+}
+
+// flatnet train's own flags (the config's rows are train/options.cpp's).
+struct TrainSettings {
+  std::filesystem::path config, out, init_from, source_camera;
+  std::vector<std::string> set;  // --set key=value, repeatable, in order
+  bool resume = false, force = false;
+  std::string reinit;
+};
+
+const FlagTable<TrainSettings>& train_command_rows() {
+  using S = TrainSettings;
+  static const FlagTable<S> rows = {
+      {"config", &S::config, "experiment config (configs/*.yaml); defaults.yaml alone when absent"},
+      {"set", &S::set, "override a setting: --set train.iterations=100 (repeatable)"},
+      {"out", &S::out, "run folder (checkpoints, logs, model.flatnet)"},
+      {"resume", &S::resume, "continue the run in --out from its latest checkpoint"},
+      {"force", &S::force,
+       "start afresh in an --out folder that holds another run (its checkpoints and logs are deleted)"},
+      {"init-from", &S::init_from,
+       "start from a model file's generator weights (a shipped model, or one from another camera's run) with fresh "
+       "optimisers; the config must describe the same architecture"},
+      {"source-camera", &S::source_camera,
+       "with --reinit inversion and model.inversion.init transfer: the camera .yaml the --init-from model was "
+       "trained for (default: the model's data.camera)"},
+      {"reinit", &S::reinit,
+       "with --init-from: 'inversion' keeps the model's enhancer (and level path) and initialises the first stage "
+       "afresh for this run's camera, from its calibration or geometry (model.inversion.init): adapting a model to "
+       "another camera"},
   };
   return rows;
 }
@@ -59,59 +96,37 @@ std::string consistency_blur_text(const ReconstructorSpec& s) { return model_or_
 
 int train(int argc, char** argv) {
   cxxopts::Options o("flatnet train", "Train a FlatNet reconstruction network (GAN, FlatNet-sep).");
-  o.add_options()("config", "experiment config (configs/*.yaml); defaults.yaml alone when absent",
-                  cxxopts::value<std::string>())("set", "override a setting: --set train.iterations=100 (repeatable)",
-                                                 cxxopts::value<std::string>())(
-      "out", "run folder (checkpoints, logs, model.flatnet)", cxxopts::value<std::string>())(
-      "resume", "continue the run in --out from its latest checkpoint")(
-      "force", "start afresh in an --out folder that holds another run (its checkpoints and logs are deleted)")(
-      "init-from",
-      "start from a model file's generator weights (a shipped model, or one from another camera's run) "
-      "with fresh optimisers; the config must describe the same architecture",
-      cxxopts::value<std::string>())(
-      "source-camera",
-      "with --reinit inversion and model.inversion.init transfer: the camera .yaml the --init-from model was trained "
-      "for (default: the model's data.camera)",
-      cxxopts::value<std::string>())(
-      "reinit",
-      "with --init-from: 'inversion' keeps the model's enhancer (and level path) and initialises the first stage "
-      "afresh for this run's camera, from its calibration or geometry (model.inversion.init): adapting a model to "
-      "another camera",
-      cxxopts::value<std::string>());
+  add_flags(o, train_command_rows());
   add_row_flags(o, train_fields(), setting_docs(Config::default_path()));  // --iterations, --lr, --seed ...
-  o.add_options("distributed (defaults: torchrun's WORLD_SIZE, RANK, MASTER_ADDR, MASTER_PORT)")(
-      "world-size", "processes in the job", cxxopts::value<int>())(
-      "rank", "this process, 0..world-size-1", cxxopts::value<int>())("master-addr", "host of rank 0 (rendezvous)",
-                                                                      cxxopts::value<std::string>())(
-      "master-port", "TCP port of the rendezvous on rank 0", cxxopts::value<int>());
   add_flags(o, distributed_flags(), "distributed (defaults: torchrun's WORLD_SIZE, RANK, MASTER_ADDR, MASTER_PORT)");
   add_common(o);
   cxxopts::ParseResult r;
   if (!parse(o, argc, argv, r)) return 0;
   require(r.count("out"), "train", "--out DIR is required");
+  TrainSettings settings;
+  read_flags(r, train_command_rows(), settings);
   ExperimentOptions e;
-  e.out = r["out"].as<std::string>();
-  e.force = r.count("force") > 0;
-  if (r.count("config")) e.config = r["config"].as<std::string>();
+  e.out = settings.out;
+  e.force = settings.force;
+  e.config = settings.config;
   e.sets = row_flag_settings(r, train_fields());
-  for (const auto& s : set_overrides(r)) e.sets.push_back(s);  // --set last: it wins, as in `mask separable`
-  e.resume = r.count("resume") > 0;
-  if (r.count("init-from")) e.init_from = r["init-from"].as<std::string>();
+  for (const auto& s : settings.set) e.sets.push_back(s);  // --set last: it wins, as in `mask separable`
+  e.resume = settings.resume;
+  e.init_from = settings.init_from;
   if (r.count("reinit")) {
-    require(r["reinit"].as<std::string>() == "inversion", "--reinit",
-            "'" + r["reinit"].as<std::string>() +
-                "': only 'inversion' (the camera-specific first stage) can be re-initialised");
+    require(settings.reinit == "inversion", "--reinit",
+            "'" + printable(settings.reinit) +
+                "': only 'inversion' (the camera-specific first stage) can be "
+                "re-initialised");
     require(r.count("init-from") > 0, "--reinit", "needs --init-from MODEL");
     e.reinit_inversion = true;
   }
-  if (r.count("source-camera")) e.source_camera = r["source-camera"].as<std::string>();
+  e.source_camera = settings.source_camera;
   auto& dist = e.distributed;
   dist = distributed_from_env();
-  if (r.count("world-size")) dist.world_size = r["world-size"].as<int>();
-  if (r.count("rank")) dist.rank = r["rank"].as<int>();
-  if (r.count("master-addr")) dist.master_addr = r["master-addr"].as<std::string>();
-  if (r.count("master-port")) dist.master_port = r["master-port"].as<int>();
   read_flags(r, distributed_flags(), dist);
+  require(dist.rank < dist.world_size, "--rank",
+          std::to_string(dist.rank) + " is outside [0, world size " + std::to_string(dist.world_size) + ")");
   // Rank 0 writes the run folder: it claims it (one run at a time; never a folder of other output).
   // A --resume with nothing to resume is refused before the folder is touched.
   OutputClaim claim;
@@ -149,26 +164,64 @@ int train(int argc, char** argv) {
 
 namespace {
 
+// flatnet export's flags.
+struct ExportSettings {
+  std::filesystem::path checkpoint, model, out, onnx;
+  std::vector<std::string> average_of, scores;  // comma lists A,B,...
+  std::string method;
+  bool state_dict = false, flatnet_checkpoint = false, force = false;
+  // --data-consistency and --consistency-blur, read as infer reads them; the blur 0 unless given.
+  ReconstructorSpec consistency = [] {
+    ReconstructorSpec spec;
+    spec.consistency_blur = 0;
+    return spec;
+  }();
+};
+
+const FlagTable<ExportSettings>& export_flags() {
+  using S = ExportSettings;
+  static const FlagTable<S> rows = {
+      {"checkpoint", &S::checkpoint, "training checkpoint (RUN/best.ckpt or latest.ckpt)"},
+      {"model", &S::model, "model file (instead of --checkpoint; for --state-dict)"},
+      {"average-of", comma_list<S, &S::average_of>(),
+       "instead of --checkpoint or --model: the mean of the weights of these model files or checkpoints (A,B,...; "
+       "checkpoints give their moving average), e.g. the last snapshots of one run's low-rate end; one model and "
+       "camera, the last file's record"},
+      {"out", &S::out, "file to write"},
+      {"state-dict", &S::state_dict,
+       "write torch.save(state_dict) with FlatNet-sep's parameter names instead of a model file"},
+      {"flatnet-checkpoint", &S::flatnet_checkpoint,
+       "write FlatNet's checkpoint layout {'gen_state_dict': state_dict} (its main.py loads it)"},
+      {"onnx", &S::onnx,
+       "write an ONNX graph to this file (input meas {batch,4,rows,cols}, output image {batch,3,N,N}; ONNX Runtime "
+       "and OpenCV DNN read it: `flatnet infer --engine opencv`)"},
+      {"scores", comma_list<S, &S::scores>(),
+       "record held-out scores in the model file: SET=EVAL_DIR,... (folders `flatnet eval` wrote, or their "
+       "scores.json); `flatnet info` prints them"},
+      {"method", &S::method, "with --scores: which method of the eval folder is this model (default: its only one)"},
+      {"data-consistency",
+       FlagText<S>{[](S& s, const std::string& text) { set_consistency_strength(s.consistency, text); },
+                   [](const S& s) { return consistency_strength_text(s.consistency); }},
+       "with --out: the data-consistency step the model applies at inference unless `infer --data-consistency` says "
+       "otherwise (its strength C, 0 or off: none; docs/evaluation.md), kept in the file's model spec (model: the "
+       "file's own, unchanged)"},
+      {"consistency-blur",
+       FlagText<S>{[](S& s, const std::string& text) { set_consistency_blur(s.consistency, text); },
+                   [](const S& s) { return consistency_blur_text(s.consistency); }},
+       "with --data-consistency: the correction's blur (scene pixels)"},
+      {"force", &S::force, "replace an existing --out file"},
+  };
+  return rows;
+}
+
 // `export --data-consistency C --consistency-blur B`: the step the model file applies at inference by
 // default (ReconstructorSpec::kModelsOwn). A model trained without the step keeps its weights; its
 // provenance says the step was set at export, not trained with.
-void set_inference_consistency(const cxxopts::ParseResult& r, ModelFile& m) {
+void set_inference_consistency(const cxxopts::ParseResult& r, const ReconstructorSpec& given, ModelFile& m) {
   require(r.count("out") && !(r.count("state-dict") || r.count("flatnet-checkpoint")), "--data-consistency",
           "is kept in a model file (--out), not in ONNX or state-dict exports");
   require(r.count("data-consistency") > 0, "--consistency-blur", "needs --data-consistency");
   // Read as `infer` reads the same flags; "model" (the file's own) has no meaning when writing one.
-  ReconstructorSpec given;
-  given.consistency_blur = 0;
-  const auto read = [&](const char* flag, void (*set)(ReconstructorSpec&, const std::string&)) {
-    if (!r.count(flag)) return;
-    try {
-      set(given, r[flag].as<std::string>());
-    } catch (const std::invalid_argument& e) {
-      require(false, std::string("--") + flag, e.what());
-    }
-  };
-  read("data-consistency", set_consistency_strength);
-  read("consistency-blur", set_consistency_blur);
   require(given.data_consistency != ReconstructorSpec::kModelsOwn, "--data-consistency",
           "takes off or a number when writing a model file, not model");
   require(given.consistency_blur != ReconstructorSpec::kModelsOwn, "--consistency-blur",
@@ -197,31 +250,7 @@ void set_inference_consistency(const cxxopts::ParseResult& r, ModelFile& m) {
 
 int export_model(int argc, char** argv) {
   cxxopts::Options o("flatnet export", "Export a trained model: a self-contained model file, or a PyTorch state_dict.");
-  o.add_options()("checkpoint", "training checkpoint (RUN/best.ckpt or latest.ckpt)", cxxopts::value<std::string>())(
-      "model", "model file (instead of --checkpoint; for --state-dict)", cxxopts::value<std::string>())(
-      "average-of",
-      "instead of --checkpoint or --model: the mean of the weights of these model files or checkpoints "
-      "(A,B,...; checkpoints give their moving average), e.g. the last snapshots of one run's low-rate end; "
-      "one model and camera, the last file's record",
-      cxxopts::value<std::vector<std::string>>())("out", "file to write", cxxopts::value<std::string>())(
-      "state-dict", "write torch.save(state_dict) with FlatNet-sep's parameter names instead of a model file")(
-      "flatnet-checkpoint", "write FlatNet's checkpoint layout {'gen_state_dict': state_dict} (its main.py loads it)")(
-      "onnx",
-      "write an ONNX graph to this file (input meas {batch,4,rows,cols}, output image {batch,3,N,N}; "
-      "ONNX Runtime and OpenCV DNN read it: `flatnet infer --engine opencv`)",
-      cxxopts::value<std::string>())(
-      "scores",
-      "record held-out scores in the model file: SET=EVAL_DIR,... (folders `flatnet eval` wrote, or their "
-      "scores.json); `flatnet info` prints them",
-      cxxopts::value<std::vector<std::string>>())(
-      "method", "with --scores: which method of the eval folder is this model (default: its only one)",
-      cxxopts::value<std::string>())(
-      "data-consistency",
-      "with --out: the data-consistency step the model applies at inference unless `infer --data-consistency` says "
-      "otherwise (its strength C, 0 or off: none; docs/evaluation.md), kept in the file's model spec",
-      cxxopts::value<std::string>())("consistency-blur",
-                                     "with --data-consistency: the correction's blur (scene pixels)",
-                                     cxxopts::value<std::string>())("force", "replace an existing --out file");
+  add_flags(o, export_flags());
   add_common(o);
   cxxopts::ParseResult r;
   if (!parse(o, argc, argv, r)) return 0;
@@ -232,16 +261,18 @@ int export_model(int argc, char** argv) {
           "required");
   require(r.count("state-dict") + r.count("flatnet-checkpoint") + r.count("onnx") <= 1, "export",
           "give one of --state-dict, --flatnet-checkpoint and --onnx");
-  const std::filesystem::path out = r.count("onnx") ? r["onnx"].as<std::string>() : r["out"].as<std::string>();
+  ExportSettings settings;
+  read_flags(r, export_flags(), settings);
+  const std::filesystem::path out = r.count("onnx") ? settings.onnx : settings.out;
   std::vector<std::filesystem::path> inputs;
   if (r.count("average-of"))
-    for (const auto& a : r["average-of"].as<std::vector<std::string>>()) {
+    for (const auto& a : settings.average_of) {
       require(!a.empty(), "--average-of", "holds an empty name (two commas together?): list the files as A,B,...");
       inputs.emplace_back(a);
     }
   else
-    inputs.emplace_back(r.count("checkpoint") ? r["checkpoint"].as<std::string>() : r["model"].as<std::string>());
-  require_new_output(out, r.count("force") > 0, inputs);
+    inputs.emplace_back(r.count("checkpoint") ? settings.checkpoint : settings.model);
+  require_new_output(out, settings.force, inputs);
   require(!r.count("scores") || !(r.count("onnx") || r.count("state-dict") || r.count("flatnet-checkpoint")),
           "--scores", "is recorded in a model file (--out), not in ONNX or state-dict exports");
   bool average = false;
@@ -249,11 +280,9 @@ int export_model(int argc, char** argv) {
            : r.count("checkpoint") ? model_from_checkpoint(inputs[0], &average)
                                    : load_model_file(inputs[0]);
   if (r.count("average-of")) std::cerr << "averaging the weights of " << inputs.size() << " models\n";
-  if (r.count("scores"))
-    m.provenance.scores = recorded_scores(r["scores"].as<std::vector<std::string>>(),
-                                          r.count("method") ? r["method"].as<std::string>() : "");
+  if (r.count("scores")) m.provenance.scores = recorded_scores(settings.scores, settings.method);
   if (average) std::cerr << "exporting the moving average of the weights (train.ema_decay)\n";
-  if (r.count("data-consistency") || r.count("consistency-blur")) set_inference_consistency(r, m);
+  if (r.count("data-consistency") || r.count("consistency-blur")) set_inference_consistency(r, settings.consistency, m);
   if (m.spec.consistency_strength > 0 && (r.count("onnx") || r.count("state-dict") || r.count("flatnet-checkpoint")))
     std::cerr << "warning: this model was trained with its pictures corrected by their captures (model.consistency); "
                  "the exported network does not hold that step (recon/data_consistency.hpp: apply it after the "
@@ -280,31 +309,50 @@ int export_model(int argc, char** argv) {
   return 0;
 }
 
+namespace {
+
+struct ImportSettings {
+  std::filesystem::path state_dict, config, camera, out;
+  std::vector<std::string> set;  // --set key=value, repeatable
+  bool verbose = false, force = false;
+};
+
+const FlagTable<ImportSettings>& import_flags() {
+  using S = ImportSettings;
+  static const FlagTable<S> rows = {
+      {"state-dict", &S::state_dict, "torch.save'd state dict (or FlatNet checkpoint with gen_state_dict)"},
+      {"config", &S::config, "config describing the architecture (e.g. configs/flatnet_paper.yaml)"},
+      {"set", &S::set, "override a setting (repeatable)"},
+      {"camera", &S::camera, "camera the weights were trained for (default: the config's data.camera)"},
+      {"out", &S::out, "model file to write"},
+      {"verbose", &S::verbose, "list the file's tensors that the model does not use"},
+      {"force", &S::force, "replace an existing --out file"},
+  };
+  return rows;
+}
+
+}  // namespace
+
 int import_model(int argc, char** argv) {
   cxxopts::Options o("flatnet import", "Make a model file from a PyTorch state_dict with FlatNet-sep's names.");
-  o.add_options()("state-dict", "torch.save'd state dict (or FlatNet checkpoint with gen_state_dict)",
-                  cxxopts::value<std::string>())(
-      "config", "config describing the architecture (e.g. configs/flatnet_paper.yaml)", cxxopts::value<std::string>())(
-      "set", "override a setting (repeatable)", cxxopts::value<std::string>())(
-      "camera", "camera the weights were trained for (default: the config's data.camera)",
-      cxxopts::value<std::string>())("out", "model file to write", cxxopts::value<std::string>())(
-      "verbose", "list the file's tensors that the model does not use")("force", "replace an existing --out file");
+  add_flags(o, import_flags());
   add_common(o);
   cxxopts::ParseResult r;
   if (!parse(o, argc, argv, r)) return 0;
   require(r.count("state-dict") && r.count("out"), "import", "--state-dict FILE and --out MODEL are required");
-  const std::filesystem::path out = r["out"].as<std::string>();
-  require_new_output(out, r.count("force") > 0, {r["state-dict"].as<std::string>()});
-  const auto sets = set_overrides(r);
-  auto config = Config::load(r.count("config") ? r["config"].as<std::string>() : "", sets);
-  const auto camera = r.count("camera") ? load_camera_config(r["camera"].as<std::string>())
+  ImportSettings settings;
+  read_flags(r, import_flags(), settings);
+  const auto& out = settings.out;
+  require_new_output(out, settings.force, {settings.state_dict});
+  auto config = Config::load(settings.config, settings.set);
+  const auto camera = r.count("camera") ? load_camera_config(settings.camera)
                                         : load_camera_config(config.path(data_key(&DataOptions::camera)));
   Generator g(generator_options(config, camera, false));
-  const auto rep = import_state_dict(r["state-dict"].as<std::string>(), g);
+  const auto rep = import_state_dict(settings.state_dict, g);
   save_model_file(out, g, config, camera);
   std::cout << "read " << rep.used << " tensors from " << rep.source
             << (rep.data_parallel ? " (DataParallel names)" : "") << "; " << rep.unused.size() << " unused"
-            << (rep.unused.empty() || r.count("verbose") ? "" : " (--verbose lists them)") << "\n";
+            << (rep.unused.empty() || settings.verbose ? "" : " (--verbose lists them)") << "\n";
   if (r.count("verbose"))
     for (const auto& name : rep.unused) std::cout << "  unused: " << name << "\n";
   std::cout << "wrote model " << out.string() << "\n";
@@ -313,14 +361,25 @@ int import_model(int argc, char** argv) {
 
 namespace {
 
-// The engine `infer` runs the model on (its only setting that is not the reconstructor's).
-struct InferEngine {
+// What `infer` reads and writes, and the engine it runs the model on (its settings that are not the
+// reconstructor's).
+struct InferSettings {
+  std::filesystem::path model, input, out, camera;
+  bool self_ensemble = false;
   std::string engine = "libtorch";
 };
 
-const FlagTable<InferEngine>& infer_engine_flags() {
-  static const FlagTable<InferEngine> rows = {
-      {"engine", &InferEngine::engine,
+const FlagTable<InferSettings>& infer_engine_flags() {
+  using S = InferSettings;
+  static const FlagTable<S> rows = {
+      {"model", &S::model, "model file (models/*.flatnet or RUN/model.flatnet; an .onnx file with --engine opencv)"},
+      {"input", &S::input, "raw capture PNG or folder of them"},
+      {"out", &S::out, "output folder (PNGs with the captures' names)"},
+      {"camera", &S::camera, "camera .yaml whose preprocessing to use (default: the model's)"},
+      {"self-ensemble", &S::self_ensemble,
+       "average the enhancer over the image and its three flips (test-time self-ensemble; about 4x the enhancer's "
+       "time; libtorch engine)"},
+      {"engine", &S::engine,
        "libtorch, or opencv: an ONNX file from `flatnet export --onnx` through OpenCV's DNN module"},
   };
   return rows;
@@ -361,6 +420,10 @@ const FlagTable<AdaptationOptions>& adaptation_flags() {
 
 }  // namespace
 
+CommandFlags train_command_flags() { return command_flags("train flags", train_command_rows(), distributed_flags()); }
+CommandFlags export_command_flags() { return command_flags("export", export_flags()); }
+CommandFlags import_command_flags() { return command_flags("import", import_flags()); }
+
 CommandFlags infer_command_flags() {
   return command_flags("infer", infer_engine_flags(), infer_flags(), batch_flags(), adaptation_flags());
 }
@@ -368,14 +431,6 @@ CommandFlags infer_command_flags() {
 // Every flag of `flatnet infer`.
 cxxopts::Options infer_options() {
   cxxopts::Options o("flatnet infer", "Reconstruct raw captures with a trained FlatNet model.");
-  o.add_options()("model", "model file (models/*.flatnet or RUN/model.flatnet; an .onnx file with --engine opencv)",
-                  cxxopts::value<std::string>())("input", "raw capture PNG or folder of them",
-                                                 cxxopts::value<std::string>())(
-      "out", "output folder (PNGs with the captures' names)", cxxopts::value<std::string>())(
-      "camera", "camera .yaml whose preprocessing to use (default: the model's)", cxxopts::value<std::string>())(
-      "self-ensemble",
-      "average the enhancer over the image and its three flips (test-time self-ensemble; about 4x the enhancer's "
-      "time; libtorch engine)");
   add_flags(o, infer_engine_flags());
   add_flags(o, infer_flags());
   add_flags(o, batch_flags());
@@ -388,16 +443,17 @@ cxxopts::Options infer_options() {
 }
 
 // What `infer` builds, from its flags (each checked, the flag named).
-ReconstructorSpec infer_spec(const cxxopts::ParseResult& r, const std::string& engine) {
+ReconstructorSpec infer_spec(const cxxopts::ParseResult& r, const InferSettings& settings) {
+  const auto& engine = settings.engine;
   ReconstructorSpec spec;
   read_flags(r, infer_flags(), spec);
   read_flags(r, adaptation_flags(), spec.adapt);
   spec.method = engine == "opencv" ? "opencv" : "flatnet";
-  spec.model = r["model"].as<std::string>();
+  spec.model = settings.model;
   spec.use_camera = r.count("camera") > 0;  // else the preprocessing the model file carries
-  if (spec.use_camera) spec.camera = load_camera_config(r["camera"].as<std::string>());
+  if (spec.use_camera) spec.camera = load_camera_config(settings.camera);
   if (precision_from(r) == Precision::bf16) spec.levers.bf16 = true;  // the enhancer in bf16; inversion, sigmoid fp32
-  spec.levers.self_ensemble = r.count("self-ensemble") > 0;
+  spec.levers.self_ensemble = settings.self_ensemble;
   require(!spec.levers.self_ensemble || engine == "libtorch", "--self-ensemble",
           "runs on the libtorch engine (an ONNX file holds the plain model)");
   require(spec.data_consistency <= 0 || engine == "libtorch", "--data-consistency",
@@ -428,16 +484,17 @@ int infer(int argc, char** argv) {
   if (!parse(o, argc, argv, r)) return 0;
   require(r.count("model") && r.count("input") && r.count("out"), "infer",
           "--model MODEL, --input DIR|FILE and --out DIR are required");
-  InferEngine chosen;
-  read_flags(r, infer_engine_flags(), chosen);
-  const auto engine = chosen.engine;
-  require(engine == "libtorch" || engine == "opencv", "--engine", "libtorch or opencv expected, got '" + engine + "'");
-  auto spec = infer_spec(r, engine);
+  InferSettings settings;
+  read_flags(r, infer_engine_flags(), settings);
+  const auto& engine = settings.engine;
+  require(engine == "libtorch" || engine == "opencv", "--engine",
+          "libtorch or opencv expected, got '" + printable(engine) + "'");
+  auto spec = infer_spec(r, settings);
   BatchOptions opt;
   read_flags(r, batch_flags(), opt);
-  opt.out = r["out"].as<std::string>();
+  opt.out = settings.out;
   opt.label = "infer";
-  const auto captures = collect_captures(r["input"].as<std::string>());
+  const auto captures = collect_captures(settings.input);
   spec.adapt_on = captures;
   check_output_names(captures, opt.out);                         // never over a capture, even with --force
   if (!captures.empty()) spec.first_capture = captures.front();  // read once more, before the build
