@@ -885,9 +885,15 @@ TEST_CASE("flatnet options: every setting with its default, range and documentat
   r = test::run_flatnet("options nosuch.");
   CHECK(r.code == 2);
   CHECK_THAT(r.output, Contains("defaults.yaml") && Contains("no setting starting with 'nosuch.'"));
+  // A camera file's keys: each with its one range, the bench's too.
+  r = test::run_flatnet("options --for camera");
+  REQUIRE(r.code == 0);
+  CHECK_THAT(r.output, Contains("noise_gain") && Contains("[0, 1) full scale") && Contains("display_gamma") &&
+                           Contains("0 (the sRGB curve) or a power within [0.5, 3]") && Contains("bench.crosstalk") &&
+                           Contains("hot_pixels") && Contains("colour_mix"));
   r = test::run_flatnet("options --for gan");
   CHECK(r.code == 2);
-  CHECK_THAT(r.output, Contains("give train, mask, separable, simulate"));
+  CHECK_THAT(r.output, Contains("give train, mask, separable, camera, simulate"));
 }
 
 TEST_CASE("model cards: flatnet info tells what a model file holds, export records held-out scores",

@@ -2,6 +2,8 @@
 #include "catch_torch.hpp"
 
 #include <matio.h>
+#include <set>
+#include <sstream>
 #include <tuple>
 #include <fstream>
 
@@ -10,6 +12,7 @@
 #include <numeric>
 
 #include "helpers.hpp"
+#include "io/camera_config.hpp"
 #include "io/dataset.hpp"
 #include "io/image.hpp"
 #include "io/mat.hpp"
@@ -320,5 +323,46 @@ TEST_CASE("worker threads run single-threaded, and BLAS from two workers at once
   for (int i = 0; i < 4; ++i) {
     CHECK(seen[i] == 1);
     CHECK(worst[i] < 1e-3);
+  }
+}
+
+TEST_CASE("camera-file keys: one row each, written and read back whole, each range checked once by its row",
+          "[io][camera]") {
+  CameraConfig c;
+  c.name = "rows";
+  c.raw.raw_height = 512, c.raw.raw_width = 640, c.raw.adc_bits = 12, c.raw.rotation = 0.01;
+  c.raw.crop = {2, 4, 200, 300};
+  c.raw.centring = Centring::level;
+  c.raw.hot_pixels = {{3, 5}};
+  c.scene_size = 128, c.tikhonov_lambda = 2e-4, c.tv_lambda = 3e-4;
+  c.noise_gain = 1e-4, c.noise_floor = 2e-6, c.dark = 0.01;
+  c.fit_threshold = 2, c.leak_threshold = 3, c.open_light = 4, c.display_gamma = 1.25;
+  c.colour_mix = {{{0, 0.1, 0.9}}, {{0.1, 0.8, 0.1}}, {{0.1, 0.8, 0.1}}, {{0.9, 0.1, 0}}};
+  const auto text = camera_geometry_yaml(c);
+  const auto back = camera_from_yaml_text(text, "rows.yaml");
+  CHECK(camera_geometry_yaml(back) == text);
+  CHECK((back.raw.hot_pixels == c.raw.hot_pixels));
+  CHECK(back.display_gamma == 1.25);
+  // Every key the writer states is a key of the rows, and every row is listed with its range.
+  std::set<std::string> listed;
+  for (const auto& k : camera_file_keys()) listed.insert(k.key);
+  std::istringstream lines(text);
+  for (std::string line; std::getline(lines, line);) {
+    INFO(line);
+    CHECK(listed.count(line.substr(0, line.find(':'))) == 1);
+  }
+  CHECK(listed.count("calibration") == 1);
+  CHECK(listed.count("bench.second_term") == 1);
+  // Out of its range, a key is named with the range its row states.
+  const std::vector<std::pair<std::string, std::string>> bad = {
+      {"adc_bits: 17", "adc_bits is 1 to 16; got 17"},
+      {"noise_gain: 1.5", "noise_gain is [0, 1) full scale"},
+      {"fit_threshold: 0.5", "fit_threshold is 0 (the camera fit's own) or a ratio within [1, 1000]"},
+      {"tikhonov_lambda: 0", "tikhonov_lambda is (0, 1e4]"},
+      {"open_light: -1", "open_light is 0 (unknown)"},
+      {"raw_width: 641", "raw_height and raw_width must be positive and even"}};
+  for (const auto& [line, message] : bad) {
+    INFO(line);
+    CHECK_THROWS_WITH(camera_from_yaml_text(line + "\n", "bad.yaml"), Contains("bad.yaml") && Contains(message));
   }
 }

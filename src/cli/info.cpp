@@ -141,8 +141,8 @@ const FlagTable<OptionsSettings>& options_flags() {
   static const FlagTable<S> rows = {
       {"prefix", &S::prefix, "only keys starting with this (train., loss.lr ...)"},
       {"for", &S::for_command,
-       "train (flatnet train), mask (mask train) or separable (mask separable): a trainer's config settings; or "
-       "any other command (simulate, recon, 'eval fit-niqe' ...): its flags"},
+       "train (flatnet train), mask (mask train) or separable (mask separable): a trainer's config settings; camera: "
+       "a camera file's keys; or any other command (simulate, recon, 'eval fit-niqe' ...): its flags"},
       {"defaults", &S::defaults, "a defaults file to describe instead (a .yaml)"},
       {"markdown", &S::markdown, "print a Markdown table"},
       {"check", &S::check,
@@ -271,6 +271,19 @@ int print_command_flags(const CommandFlags& command, const std::string& prefix, 
   return 0;
 }
 
+// `flatnet options --for camera`: every key a camera file may hold (io/camera_config.hpp's rows).
+int print_camera_keys(const std::string& prefix, bool markdown) {
+  if (markdown) std::cout << "| key | default | range | what it is |\n|---|---|---|---|\n";
+  size_t shown = 0;
+  for (const auto& k : camera_file_keys()) {
+    if (k.key.compare(0, prefix.size(), prefix) != 0) continue;
+    ++shown;
+    print_setting(k.key, k.default_text.empty() ? "\"\"" : k.default_text, k.range, k.doc, markdown, 24);
+  }
+  require(shown > 0, "--for camera", "has no key starting with '" + prefix + "'");
+  return 0;
+}
+
 // A value for `row` other than its default, inside its range: what --check gives the flag.
 std::string other_value(const FlagDescription& row, const std::string& range_lo) {
   if (!range_lo.empty() && range_lo != row.default_text) return range_lo;
@@ -347,6 +360,7 @@ int options(int argc, char** argv) {
   const auto& which = settings.for_command;
   const auto& prefix = settings.prefix;
   const bool markdown = settings.markdown;
+  if (which == "camera") return print_camera_keys(prefix, markdown);
   const std::map<std::string, std::string> files = {
       {"train", "defaults.yaml"}, {"mask", "mask_defaults.yaml"}, {"separable", "separable_defaults.yaml"}};
   if (!files.count(which) && !r.count("defaults")) {
@@ -355,7 +369,8 @@ int options(int argc, char** argv) {
       if (command.command == which) return print_command_flags(command, prefix, markdown);
       names += ", " + command.command;
     }
-    throw Error("--for", "'" + printable(which) + "' is no command with flags: give train, mask, separable" + names);
+    throw Error("--for",
+                "'" + printable(which) + "' is no command with flags: give train, mask, separable, camera" + names);
   }
   const std::filesystem::path file = r.count("defaults") ? settings.defaults : data_dir() / "configs" / files.at(which);
   if (markdown) std::cout << "| key | default | range | what it does |\n|---|---|---|---|\n";

@@ -3,6 +3,9 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdlib>
+#include <functional>
+#include <sstream>
+#include <type_traits>
 
 #include "io/image.hpp"
 #include "io/yaml_text.hpp"
@@ -41,26 +44,244 @@ std::filesystem::path default_camera_path() { return data_dir() / "configs" / "c
 
 namespace {
 
-const std::vector<std::string> kKnownKeys = {
-    "name",       "raw_height",  "raw_width",   "adc_bits",      "rotation",        "crop",
-    "centring",   "scene_size",  "calibration", "rig",           "tikhonov_lambda", "tv_lambda",
-    "noise_gain", "noise_floor", "dark",        "fit_threshold", "leak_threshold",  "open_light",
-    "bench",      "hot_pixels",  "colour_mix",  "display_gamma"};
+// One row per camera-file key (the order a camera file states them in): how it is read, how it is
+// written (nothing where the file leaves it out), the one check of its range, and what `flatnet
+// options --for camera` shows of it. Checks across keys (even raw sizes, the crop inside the plane,
+// hot pixels inside the frame, colour_mix's rows and rank) follow the rows in validate().
+struct CameraKey {
+  CameraKeyDescription shown;  // key, default, range, doc
+  std::function<void(const YAML::Node&, CameraConfig&, const std::filesystem::path& path,
+                     const std::filesystem::path& base)>
+      read;
+  std::function<void(const CameraConfig&, std::ostream&)> write;
+  std::function<std::string(const CameraConfig&)> problem;  // "" when in range
+};
 
+// A number's range: [lo, hi] (lo excluded when lo_open), or 0 where 0 means "unknown / the default
+// rule" (zero_off).
+struct NumberRange {
+  double lo, hi;
+  bool lo_open = false, zero_off = false, hi_open = false;
+};
+
+std::string number_text(double v) {
+  std::ostringstream os;
+  os.precision(17);
+  os << v;
+  return os.str();
+}
+
+// A number key: `ref` its member; stated in the file when `stated` says so (always when null).
+template <class T>
+CameraKey number_key(const char* key, T& (*ref)(CameraConfig&), NumberRange range, const char* range_text,
+                     const char* doc, bool (*stated)(const CameraConfig&) = nullptr) {
+  static_assert(std::is_arithmetic_v<T>);
+  auto value = [ref](const CameraConfig& c) { return ref(const_cast<CameraConfig&>(c)); };
+  CameraConfig defaults;
+  CameraKey k;
+  k.shown = {key, number_text(static_cast<double>(ref(defaults))), range_text, doc};
+  k.read = [ref, key](const YAML::Node& y, CameraConfig& c, const std::filesystem::path&,
+                      const std::filesystem::path&) { ref(c) = y[key].as<T>(); };
+  k.write = [value, key, stated](const CameraConfig& c, std::ostream& os) {
+    if (!stated || stated(c)) os << key << ": " << number_text(static_cast<double>(value(c))) << "\n";
+  };
+  k.problem = [value, key, range, range_text](const CameraConfig& c) -> std::string {
+    const auto v = static_cast<double>(value(c));
+    const bool in =
+        std::isfinite(v) && ((range.zero_off && v == 0) || ((range.lo_open ? v > range.lo : v >= range.lo) &&
+                                                            (range.hi_open ? v < range.hi : v <= range.hi)));
+    return in ? "" : std::string(key) + " is " + range_text + "; got " + number_text(v);
+  };
+  return k;
+}
+
+// A key with a structure (a text, a list, a path, a mapping): its own reader and writer.
+CameraKey structure_key(const char* key, std::string default_text, const char* range_text, const char* doc,
+                        decltype(CameraKey::read) read, decltype(CameraKey::write) write) {
+  CameraKey k;
+  k.shown = {key, std::move(default_text), range_text, doc};
+  k.read = std::move(read);
+  k.write = write ? std::move(write) : [](const CameraConfig&, std::ostream&) {};
+  k.problem = [](const CameraConfig&) { return std::string(); };
+  return k;
+}
+
+BenchErrors bench_from_node(const YAML::Node& y, const std::filesystem::path& path);
+
+// colour_mix: 4 rows of finite shares, each summing to 1, of rank 3.
+void validate_colour_mix(const std::vector<std::array<double, 3>>& mix, const std::filesystem::path& path) {
+  require(mix.size() == 4, path, "colour_mix: 4 rows (b, gb, gr, r) of 3 shares (R, G, B)");
+  for (const auto& row : mix)
+    for (const double v : row)
+      require(std::isfinite(v) && std::abs(v) <= 10, path,
+              "colour_mix: each share is a finite number within [-10, 10]");
+  constexpr double kColourMixSumTolerance = 0.02;
+  constexpr const char* kPlaneNames[] = {"b", "gb", "gr", "r"};
+  // Each row is a plane's shares of the primaries, scaled to sum 1 (calibrate --dataset writes it so):
+  // a row summing to 2 would brighten that plane's scene twice over, silently.
+  for (size_t p = 0; p < mix.size(); ++p) {
+    const double sum = mix[p][0] + mix[p][1] + mix[p][2];
+    require(std::abs(sum - 1) <= kColourMixSumTolerance, path,
+            "colour_mix: row " + std::to_string(p + 1) + " (" + std::string(kPlaneNames[p]) + ") sums to " +
+                std::to_string(sum) + "; each plane's shares of the primaries sum to 1 (within " +
+                std::to_string(kColourMixSumTolerance) +
+                "): scale the row, or put the plane's gain in the calibration");
+  }
+  // The primaries must be recoverable from the planes: the mix has rank 3, not barely.
+  const auto smallest = torch::linalg_svdvals(colour_mix_matrix(mix)).min().item<double>();
+  require(smallest > 1e-3, path,
+          "colour_mix cannot be undone (its smallest singular value is " + std::to_string(smallest) +
+              "): two primaries look alike to every plane");
+}
+
+bool noise_known(const CameraConfig& c) { return c.knows_noise(); }
+bool positive_threshold(const CameraConfig& c) { return c.fit_threshold > 0; }
+bool positive_leak(const CameraConfig& c) { return c.leak_threshold > 0; }
+bool positive_light(const CameraConfig& c) { return c.open_light > 0; }
+bool positive_gamma(const CameraConfig& c) { return c.display_gamma > 0; }
+
+const std::vector<CameraKey>& camera_keys() {
+  using C = CameraConfig;
+  static const std::vector<CameraKey> keys = {
+      structure_key(
+          "name", "sim", "", "the camera's name (models and reports show it)",
+          [](const YAML::Node& y, C& c, auto&, auto&) { c.name = y["name"].as<std::string>(); },
+          [](const C& c, std::ostream& os) { os << "name: " << yaml_quoted(c.name) << "\n"; }),
+      number_key<int64_t>(
+          "raw_height", [](C& c) -> int64_t& { return c.raw.raw_height; }, {2, 65536},
+          "even, 2 to 65536 (Bayer mosaic rows)", "raw frame rows"),
+      number_key<int64_t>(
+          "raw_width", [](C& c) -> int64_t& { return c.raw.raw_width; }, {2, 65536},
+          "even, 2 to 65536 (Bayer mosaic columns)", "raw frame columns"),
+      number_key<int>(
+          "adc_bits", [](C& c) -> int& { return c.raw.adc_bits; }, {1, 16}, "1 to 16",
+          "ADC resolution; codes are stored as q * 2^(16 - adc_bits)"),
+      number_key<double>(
+          "rotation", [](C& c) -> double& { return c.raw.rotation; }, {-kMaxCameraRotation, kMaxCameraRotation},
+          "radians, -0.175 to 0.175 (about 10 degrees)",
+          "the mask's rotation on the sensor, undone on each Bayer plane about its top-left corner"),
+      structure_key(
+          "crop", "[6, 10, 500, 620]", "inside the Bayer plane",
+          "top, left, height, width of the window within a plane",
+          [](const YAML::Node& y, C& c, auto& path, auto&) {
+            auto v = y["crop"].as<std::vector<int64_t>>();
+            require(v.size() == 4, path, "crop must be [top, left, height, width]");
+            std::copy(v.begin(), v.end(), c.raw.crop.begin());
+          },
+          [](const C& c, std::ostream& os) {
+            const auto& g = c.raw.crop;
+            os << "crop: [" << g[0] << ", " << g[1] << ", " << g[2] << ", " << g[3] << "]\n";
+          }),
+      structure_key(
+          "centring", "plane", "plane, level, flatnet or none", "how each plane is centred before inversion",
+          [](const YAML::Node& y, C& c, auto& path, auto&) {
+            c.raw.centring = parse_centring(y["centring"].as<std::string>(), path);
+          },
+          [](const C& c, std::ostream& os) { os << "centring: " << centring_name(c.raw.centring) << "\n"; }),
+      structure_key(
+          "hot_pixels", "[]", "at most 100000 [row, col] pairs inside the raw frame",
+          "stuck pixels, repaired from their neighbours before anything else",
+          [](const YAML::Node& y, C& c, auto& path, auto&) {
+            const auto list = y["hot_pixels"];
+            require(list.IsSequence(), path, "hot_pixels: expected a list of [row, col] pairs");
+            for (const auto& item : list) {
+              require(item.IsSequence() && item.size() == 2, path,
+                      "hot_pixels: each entry is [row, col] of the raw frame");
+              c.raw.hot_pixels.push_back({item[0].as<int64_t>(), item[1].as<int64_t>()});
+            }
+          },
+          [](const C& c, std::ostream& os) {
+            const auto& h = c.raw.hot_pixels;
+            if (h.empty()) return;
+            os << "hot_pixels: [";
+            for (size_t i = 0; i < h.size(); ++i) os << (i ? ", " : "") << "[" << h[i][0] << ", " << h[i][1] << "]";
+            os << "]\n";
+          }),
+      number_key<int64_t>(
+          "scene_size", [](C& c) -> int64_t& { return c.scene_size; }, {1, 4096}, "1 to 4096",
+          "scene / reconstruction side, pixels"),
+      structure_key(
+          "calibration", "", "a .mat beside the camera file",
+          "FlatNet-layout calibration (P1b..Q1r), relative paths "
+          "from the camera file's folder",
+          [](const YAML::Node& y, C& c, auto&, auto& base) {
+            c.calibration = base / y["calibration"].as<std::string>();
+          },
+          nullptr),
+      structure_key(
+          "rig", "", "a .mat beside the camera file", "a simulated camera's true response",
+          [](const YAML::Node& y, C& c, auto&, auto& base) { c.rig = base / y["rig"].as<std::string>(); }, nullptr),
+      number_key<double>(
+          "tikhonov_lambda", [](C& c) -> double& { return c.tikhonov_lambda; }, {0, 1e4, true}, "(0, 1e4]",
+          "the calibration's Tikhonov regulariser"),
+      number_key<double>(
+          "tv_lambda", [](C& c) -> double& { return c.tv_lambda; }, {0, 1e4, true}, "(0, 1e4]", "the TV weight"),
+      number_key<double>(
+          "noise_gain", [](C& c) -> double& { return c.noise_gain; }, {0, 1, false, false, true}, "[0, 1) full scale",
+          "the sensor's noise: variance noise_gain x (level - dark) + noise_floor; 0: unknown", noise_known),
+      number_key<double>(
+          "noise_floor", [](C& c) -> double& { return c.noise_floor; }, {0, 1, false, false, true}, "[0, 1) full scale",
+          "read noise and the ADC's rounding (variance)", noise_known),
+      number_key<double>(
+          "dark", [](C& c) -> double& { return c.dark; }, {0, 1, false, false, true}, "[0, 1) full scale",
+          "the level without light", noise_known),
+      number_key<double>(
+          "fit_threshold", [](C& c) -> double& { return c.fit_threshold; }, {1, 1e3, false, true},
+          "0 (the camera fit's own) or a ratio within [1, 1000]",
+          "the camera fit's threshold for an estimated calibration", positive_threshold),
+      number_key<double>(
+          "leak_threshold", [](C& c) -> double& { return c.leak_threshold; }, {1, 1e3, false, true},
+          "0 (the camera fit's own) or a ratio within [1, 1000]",
+          "the near-twin test's threshold for an estimated calibration", positive_leak),
+      number_key<double>(
+          "open_light", [](C& c) -> double& { return c.open_light; }, {0, 1e3, true, true},
+          "0 (unknown) or a plane's level per unit of mean scene light, within (0, 1000]",
+          "the light every pixel reads whatever the scene", positive_light),
+      number_key<double>(
+          "display_gamma", [](C& c) -> double& { return c.display_gamma; },
+          {kLeastDisplayGamma, kLargestDisplayGamma, false, true}, "0 (the sRGB curve) or a power within [0.5, 3]",
+          "how a displayed photograph's value becomes light in the calibration's units", positive_gamma),
+      structure_key(
+          "colour_mix", "[]", "4 rows of 3 shares, each row summing to 1, rank 3",
+          "each Bayer plane's share of the display's primaries (R, G, B)",
+          [](const YAML::Node& y, C& c, auto& path, auto&) {
+            const auto rows = y["colour_mix"];
+            require(rows.IsSequence() && rows.size() == 4, path,
+                    "colour_mix: 4 rows (b, gb, gr, r) of 3 shares (R, G, B)");
+            for (const auto& row : rows) {
+              require(row.IsSequence() && row.size() == 3, path, "colour_mix: each row is 3 shares (R, G, B)");
+              c.colour_mix.push_back({row[0].as<double>(), row[1].as<double>(), row[2].as<double>()});
+            }
+          },
+          [](const C& c, std::ostream& os) {
+            if (c.colour_mix.empty()) return;
+            os << "colour_mix: [";
+            for (size_t p = 0; p < c.colour_mix.size(); ++p)
+              os << (p ? ", " : "") << "[" << number_text(c.colour_mix[p][0]) << ", " << number_text(c.colour_mix[p][1])
+                 << ", " << number_text(c.colour_mix[p][2]) << "]";
+            os << "]\n";
+          }),
+      structure_key(
+          "bench", "", "a mapping of bench errors (bench.*)", "a simulated bench camera's errors (simulation only)",
+          [](const YAML::Node& y, C& c, auto& path, auto&) { c.bench = bench_from_node(y["bench"], path); }, nullptr),
+  };
+  return keys;
+}
+
+// Each key's range (its row), then the rules across keys.
 void validate(const CameraConfig& c, const std::filesystem::path& path) {
+  for (const auto& key : camera_keys()) {
+    const auto problem = key.problem(c);
+    require(problem.empty(), path, problem);
+  }
   const auto& g = c.raw;
-  require(g.raw_height > 0 && g.raw_width > 0 && g.raw_height % 2 == 0 && g.raw_width % 2 == 0, path,
+  require(g.raw_height % 2 == 0 && g.raw_width % 2 == 0, path,
           "raw_height and raw_width must be positive and even (Bayer mosaic)");
-  require(g.adc_bits >= 1 && g.adc_bits <= 16, path, "adc_bits must be within 1..16");
   require(g.crop[0] >= 0 && g.crop[1] >= 0 && g.crop[2] > 0 && g.crop[3] > 0 &&
               g.crop[0] + g.crop[2] <= g.plane_height() && g.crop[1] + g.crop[3] <= g.plane_width(),
           path,
           "crop [top, left, height, width] must lie inside the " + std::to_string(g.plane_height()) + "x" +
               std::to_string(g.plane_width()) + " Bayer plane");
-  require(g.raw_height <= 65536 && g.raw_width <= 65536, path, "raw_height and raw_width must be at most 65536");
-  require(std::isfinite(g.rotation) && std::abs(g.rotation) <= kMaxCameraRotation, path,
-          "rotation is in radians, within [-" + std::to_string(kMaxCameraRotation) + ", " +
-              std::to_string(kMaxCameraRotation) + "] (about 10 degrees); got " + std::to_string(g.rotation));
   require(static_cast<int64_t>(g.hot_pixels.size()) <= kMaxHotPixels, path,
           "hot_pixels lists " + std::to_string(g.hot_pixels.size()) + " pixels; at most " +
               std::to_string(kMaxHotPixels) + " (a sensor with more is broken, not calibrated)");
@@ -68,49 +289,7 @@ void validate(const CameraConfig& c, const std::filesystem::path& path) {
     require(row >= 0 && row < g.raw_height && col >= 0 && col < g.raw_width, path,
             "hot_pixels: [" + std::to_string(row) + ", " + std::to_string(col) + "] lies outside the " +
                 std::to_string(g.raw_height) + "x" + std::to_string(g.raw_width) + " raw frame (rows x columns)");
-  if (!c.colour_mix.empty()) {
-    require(c.colour_mix.size() == 4, path, "colour_mix: 4 rows (b, gb, gr, r) of 3 shares (R, G, B)");
-    for (const auto& row : c.colour_mix)
-      for (const double v : row)
-        require(std::isfinite(v) && std::abs(v) <= 10, path,
-                "colour_mix: each share is a finite number within [-10, 10]");
-    constexpr double kColourMixSumTolerance = 0.02;
-    constexpr const char* kPlaneNames[] = {"b", "gb", "gr", "r"};
-    // Each row is a plane's shares of the primaries, scaled to sum 1 (calibrate --dataset writes it so):
-    // a row summing to 2 would brighten that plane's scene twice over, silently.
-    for (size_t p = 0; p < c.colour_mix.size(); ++p) {
-      const auto& row = c.colour_mix[p];
-      const double sum = row[0] + row[1] + row[2];
-      require(std::abs(sum - 1) <= kColourMixSumTolerance, path,
-              "colour_mix: row " + std::to_string(p + 1) + " (" + std::string(kPlaneNames[p]) + ") sums to " +
-                  std::to_string(sum) + "; each plane's shares of the primaries sum to 1 (within " +
-                  std::to_string(kColourMixSumTolerance) +
-                  "): scale the row, or put the plane's gain in the calibration");
-    }
-    // The primaries must be recoverable from the planes: the mix has rank 3, not barely.
-    const auto smallest = torch::linalg_svdvals(colour_mix_matrix(c.colour_mix)).min().item<double>();
-    require(smallest > 1e-3, path,
-            "colour_mix cannot be undone (its smallest singular value is " + std::to_string(smallest) +
-                "): two primaries look alike to every plane");
-  }
-  require(c.scene_size > 0 && c.scene_size <= 4096, path, "scene_size must lie within 1..4096");
-  require(std::isfinite(c.noise_gain) && std::isfinite(c.noise_floor) && std::isfinite(c.dark) && c.noise_gain >= 0 &&
-              c.noise_gain < 1 && c.noise_floor >= 0 && c.noise_floor < 1 && c.dark >= 0 && c.dark < 1,
-          path, "noise_gain, noise_floor and dark are full-scale quantities within [0, 1)");
-  require(std::isfinite(c.fit_threshold) && (c.fit_threshold == 0 || (c.fit_threshold >= 1 && c.fit_threshold <= 1e3)),
-          path, "fit_threshold is 0 (the camera fit's own) or a ratio within [1, 1000]");
-  require(
-      std::isfinite(c.leak_threshold) && (c.leak_threshold == 0 || (c.leak_threshold >= 1 && c.leak_threshold <= 1e3)),
-      path, "leak_threshold is 0 (the camera fit's own) or a ratio within [1, 1000]");
-  require(std::isfinite(c.display_gamma) && (c.display_gamma == 0 || (c.display_gamma >= kLeastDisplayGamma &&
-                                                                      c.display_gamma <= kLargestDisplayGamma)),
-          path, "display_gamma is 0 (the sRGB curve) or a power within [0.5, 3]");
-  require(std::isfinite(c.open_light) && c.open_light >= 0 && c.open_light <= 1e3, path,
-          "open_light is 0 (unknown) or a plane's level per unit of mean scene light, within (0, 1000]");
-  // Above ~1e4 the SVD filter s / (s^2 + lambda) is ~0 for any real camera: black images, not an answer.
-  require(std::isfinite(c.tikhonov_lambda) && std::isfinite(c.tv_lambda) && c.tikhonov_lambda > 0 && c.tv_lambda > 0 &&
-              c.tikhonov_lambda <= 1e4 && c.tv_lambda <= 1e4,
-          path, "regularisation weights (tikhonov_lambda, tv_lambda) must lie in (0, 1e4]");
+  if (!c.colour_mix.empty()) validate_colour_mix(c.colour_mix, path);
 }
 
 }  // namespace
@@ -149,118 +328,81 @@ std::string camera_file_text(const CameraConfig& camera, const std::string& cali
 }
 
 std::string camera_geometry_yaml(const CameraConfig& c) {
-  const auto& g = c.raw;
   std::ostringstream os;
-  os << "name: " << yaml_quoted(c.name) << "\n"
-     << "raw_height: " << g.raw_height << "\nraw_width: " << g.raw_width << "\n"
-     << "adc_bits: " << g.adc_bits << "\n";
-  os.precision(17);
-  os << "rotation: " << g.rotation << "\n"
-     << "crop: [" << g.crop[0] << ", " << g.crop[1] << ", " << g.crop[2] << ", " << g.crop[3] << "]\n"
-     << "centring: " << centring_name(g.centring) << "\n";
-  if (!g.hot_pixels.empty()) {
-    os << "hot_pixels: [";
-    for (size_t i = 0; i < g.hot_pixels.size(); ++i)
-      os << (i ? ", " : "") << "[" << g.hot_pixels[i][0] << ", " << g.hot_pixels[i][1] << "]";
-    os << "]\n";
-  }
-  os << "scene_size: " << c.scene_size << "\n"
-     << "tikhonov_lambda: " << c.tikhonov_lambda << "\ntv_lambda: " << c.tv_lambda << "\n";
-  if (c.knows_noise())
-    os << "noise_gain: " << c.noise_gain << "\nnoise_floor: " << c.noise_floor << "\ndark: " << c.dark << "\n";
-  if (c.fit_threshold > 0) os << "fit_threshold: " << c.fit_threshold << "\n";
-  if (c.leak_threshold > 0) os << "leak_threshold: " << c.leak_threshold << "\n";
-  if (c.open_light > 0) os << "open_light: " << c.open_light << "\n";
-  if (c.display_gamma > 0) os << "display_gamma: " << c.display_gamma << "\n";
-  if (!c.colour_mix.empty()) {
-    os << "colour_mix: [";
-    for (size_t p = 0; p < c.colour_mix.size(); ++p)
-      os << (p ? ", " : "") << "[" << c.colour_mix[p][0] << ", " << c.colour_mix[p][1] << ", " << c.colour_mix[p][2]
-         << "]";
-    os << "]\n";
-  }
+  for (const auto& key : camera_keys()) key.write(c, os);
   return os.str();
 }
 
-// The bench: section: each key a number within its range (a simulated bench's plausible errors),
-// checked by the rule every config number is (core/util.hpp number_problem).
-static BenchErrors bench_from_node(const YAML::Node& y, const std::filesystem::path& path) {
+namespace {
+
+// The bench: section's keys: each a number within its range (a simulated bench's plausible errors),
+// checked by the rule every config number is (core/util.hpp number_problem). hot_pixels, a count, has
+// no double member.
+struct BenchKey {
+  NumberRule rule;
+  double BenchErrors::*member;
+};
+
+const std::vector<BenchKey>& bench_keys() {
+  using B = BenchErrors;
+  static const std::vector<BenchKey> keys = {
+      {{"crosstalk", 0, 0.5, "a share, 0 to 0.5"}, &B::crosstalk},
+      {{"mask_rotation", -0.1, 0.1, "radians, -0.1 to 0.1"}, &B::mask_rotation},
+      {{"second_term", 0, 0.5, "a share, 0 to 0.5"}, &B::second_term},
+      {{"flicker", 0, 0.5, "0 to 0.5"}, &B::flicker},
+      {{"stray_light", 0, 0.5, "full scale, 0 to 0.5"}, &B::stray_light},
+      {{"hot_pixels", 0, 1e5, "0 to 100000 pixels"}, nullptr},
+      {{"display_shift", -16, 16, "scene pixels, -16 to 16"}, &B::display_shift},
+      {{"display_scale", 0.8, 1.25, "0.8 to 1.25"}, &B::display_scale},
+      {{"calibration_error", 0, 0.5, "a share of the coded light, 0 to 0.5"}, &B::calibration_error}};
+  return keys;
+}
+
+BenchErrors bench_from_node(const YAML::Node& y, const std::filesystem::path& path) {
   require(y.IsMap(), path, "bench: expected a mapping of bench errors");
   BenchErrors b;
-  double hot = 0;
-  const std::pair<NumberRule, double*> rows[] = {
-      {{"crosstalk", 0, 0.5, "a share, 0 to 0.5"}, &b.crosstalk},
-      {{"mask_rotation", -0.1, 0.1, "radians, -0.1 to 0.1"}, &b.mask_rotation},
-      {{"second_term", 0, 0.5, "a share, 0 to 0.5"}, &b.second_term},
-      {{"flicker", 0, 0.5, "0 to 0.5"}, &b.flicker},
-      {{"stray_light", 0, 0.5, "full scale, 0 to 0.5"}, &b.stray_light},
-      {{"hot_pixels", 0, 1e5, "0 to 100000 pixels"}, &hot},
-      {{"display_shift", -16, 16, "scene pixels, -16 to 16"}, &b.display_shift},
-      {{"display_scale", 0.8, 1.25, "0.8 to 1.25"}, &b.display_scale},
-      {{"calibration_error", 0, 0.5, "a share of the coded light, 0 to 0.5"}, &b.calibration_error}};
+  const auto& keys = bench_keys();
   for (const auto& kv : y) {
     const auto key = kv.first.as<std::string>(), text = kv.second.as<std::string>();
-    const auto row = std::find_if(std::begin(rows), std::end(rows), [&](const auto& r) { return key == r.first.name; });
-    require(row != std::end(rows), path, "unknown bench error 'bench." + printable(key) + "'");
-    const auto problem = number_problem(text, row->first);
-    require(problem.empty(), path,
-            "bench." + key + " = " + printable(text) + " " + problem + ": " + row->first.meaning);
-    *row->second = std::strtod(text.c_str(), nullptr);
+    const auto row = std::find_if(keys.begin(), keys.end(), [&](const BenchKey& k) { return key == k.rule.name; });
+    require(row != keys.end(), path, "unknown bench error 'bench." + printable(key) + "'");
+    const auto problem = number_problem(text, row->rule);
+    require(problem.empty(), path, "bench." + key + " = " + printable(text) + " " + problem + ": " + row->rule.meaning);
+    const double value = std::strtod(text.c_str(), nullptr);
+    if (row->member)
+      b.*(row->member) = value;
+    else
+      b.hot_pixels = static_cast<int64_t>(value);
   }
-  b.hot_pixels = static_cast<int64_t>(hot);
   return b;
+}
+
+}  // namespace
+
+std::vector<CameraKeyDescription> camera_file_keys() {
+  std::vector<CameraKeyDescription> shown;
+  for (const auto& key : camera_keys()) shown.push_back(key.shown);
+  const BenchErrors defaults;
+  for (const auto& key : bench_keys())
+    shown.push_back({std::string("bench.") + key.rule.name,
+                     number_text(key.member ? defaults.*(key.member) : static_cast<double>(defaults.hot_pixels)),
+                     key.rule.meaning, "a simulated bench's error (simulation only)"});
+  return shown;
 }
 
 CameraConfig camera_from_node(const YAML::Node& y, const std::filesystem::path& path,
                               const std::filesystem::path& base) {
   CameraConfig c;
   require(y.IsMap(), path, "expected a mapping of camera settings");
+  const auto& keys = camera_keys();
   try {
     for (const auto& kv : y) {
       const auto key = kv.first.as<std::string>();
-      require(std::find(kKnownKeys.begin(), kKnownKeys.end(), key) != kKnownKeys.end(), path,
-              "unknown camera setting '" + key + "'");
+      require(std::any_of(keys.begin(), keys.end(), [&](const CameraKey& k) { return k.shown.key == key; }), path,
+              "unknown camera setting '" + printable(key) + "'");
     }
-    if (y["name"]) c.name = y["name"].as<std::string>();
-    if (y["raw_height"]) c.raw.raw_height = y["raw_height"].as<int64_t>();
-    if (y["raw_width"]) c.raw.raw_width = y["raw_width"].as<int64_t>();
-    if (y["adc_bits"]) c.raw.adc_bits = y["adc_bits"].as<int>();
-    if (y["rotation"]) c.raw.rotation = y["rotation"].as<double>();
-    if (y["crop"]) {
-      auto v = y["crop"].as<std::vector<int64_t>>();
-      require(v.size() == 4, path, "crop must be [top, left, height, width]");
-      std::copy(v.begin(), v.end(), c.raw.crop.begin());
-    }
-    if (y["hot_pixels"]) {
-      const auto list = y["hot_pixels"];
-      require(list.IsSequence(), path, "hot_pixels: expected a list of [row, col] pairs");
-      for (const auto& item : list) {
-        require(item.IsSequence() && item.size() == 2, path, "hot_pixels: each entry is [row, col] of the raw frame");
-        c.raw.hot_pixels.push_back({item[0].as<int64_t>(), item[1].as<int64_t>()});
-      }
-    }
-    if (y["centring"]) c.raw.centring = parse_centring(y["centring"].as<std::string>(), path);
-    if (y["scene_size"]) c.scene_size = y["scene_size"].as<int64_t>();
-    if (y["calibration"]) c.calibration = base / y["calibration"].as<std::string>();
-    if (y["rig"]) c.rig = base / y["rig"].as<std::string>();
-    if (y["tikhonov_lambda"]) c.tikhonov_lambda = y["tikhonov_lambda"].as<double>();
-    if (y["tv_lambda"]) c.tv_lambda = y["tv_lambda"].as<double>();
-    if (y["noise_gain"]) c.noise_gain = y["noise_gain"].as<double>();
-    if (y["noise_floor"]) c.noise_floor = y["noise_floor"].as<double>();
-    if (y["dark"]) c.dark = y["dark"].as<double>();
-    if (y["fit_threshold"]) c.fit_threshold = y["fit_threshold"].as<double>();
-    if (y["leak_threshold"]) c.leak_threshold = y["leak_threshold"].as<double>();
-    if (y["open_light"]) c.open_light = y["open_light"].as<double>();
-    if (y["display_gamma"]) c.display_gamma = y["display_gamma"].as<double>();
-    if (y["bench"]) c.bench = bench_from_node(y["bench"], path);
-    if (y["colour_mix"]) {
-      const auto rows = y["colour_mix"];
-      require(rows.IsSequence() && rows.size() == 4, path, "colour_mix: 4 rows (b, gb, gr, r) of 3 shares (R, G, B)");
-      for (const auto& row : rows) {
-        require(row.IsSequence() && row.size() == 3, path, "colour_mix: each row is 3 shares (R, G, B)");
-        c.colour_mix.push_back({row[0].as<double>(), row[1].as<double>(), row[2].as<double>()});
-      }
-    }
+    for (const auto& key : keys)
+      if (y[key.shown.key]) key.read(y, c, path, base);
   } catch (const YAML::Exception& e) {
     throw Error(path, std::string("bad value: ") + e.what());
   }

@@ -115,6 +115,12 @@ CameraConfig load_camera_config(const std::filesystem::path& path);
 
 // The same settings from YAML text (as embedded in a model file); `where` names the source in errors.
 CameraConfig camera_from_yaml_text(const std::string& text, const std::filesystem::path& where);
+// Every key a camera file may hold (bench.* included), with its default, its one range and what it
+// is: what `flatnet options --for camera` prints.
+struct CameraKeyDescription {
+  std::string key, default_text, range, doc;
+};
+std::vector<CameraKeyDescription> camera_file_keys();
 // The preprocessing settings (geometry, scene size, lambdas; no file paths) as YAML text.
 std::string camera_geometry_yaml(const CameraConfig& camera);
 // A camera file made from data (`calibrate`): `comment`, then `camera`'s settings without its rig,
