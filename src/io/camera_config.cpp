@@ -140,9 +140,10 @@ bool positive_leak(const CameraConfig& c) { return c.leak_threshold > 0; }
 bool positive_light(const CameraConfig& c) { return c.open_light > 0; }
 bool positive_gamma(const CameraConfig& c) { return c.display_gamma > 0; }
 
-const std::vector<CameraKey>& camera_keys() {
+// The frame and the window: what preprocessing needs.
+std::vector<CameraKey> geometry_keys() {
   using C = CameraConfig;
-  static const std::vector<CameraKey> keys = {
+  return {
       structure_key(
           "name", "sim", "", "the camera's name (models and reports show it)",
           [](const YAML::Node& y, C& c, auto&, auto&) { c.name = y["name"].as<std::string>(); },
@@ -200,6 +201,13 @@ const std::vector<CameraKey>& camera_keys() {
       number_key<int64_t>(
           "scene_size", [](C& c) -> int64_t& { return c.scene_size; }, {1, 4096}, "1 to 4096",
           "scene / reconstruction side, pixels"),
+  };
+}
+
+// The calibration and what was measured of the sensor and the light.
+std::vector<CameraKey> calibration_keys() {
+  using C = CameraConfig;
+  return {
       structure_key(
           "calibration", "", "a .mat beside the camera file",
           "FlatNet-layout calibration (P1b..Q1r), relative paths "
@@ -265,6 +273,14 @@ const std::vector<CameraKey>& camera_keys() {
           "bench", "", "a mapping of bench errors (bench.*)", "a simulated bench camera's errors (simulation only)",
           [](const YAML::Node& y, C& c, auto& path, auto&) { c.bench = bench_from_node(y["bench"], path); }, nullptr),
   };
+}
+
+const std::vector<CameraKey>& camera_keys() {
+  static const std::vector<CameraKey> keys = [] {
+    auto all = geometry_keys();
+    for (auto& key : calibration_keys()) all.push_back(std::move(key));
+    return all;
+  }();
   return keys;
 }
 

@@ -310,6 +310,26 @@ void require_signal(const Sums& first, int64_t count, int64_t pixels, int64_t sc
                      " flat: one grey level each), so nothing identifies the camera; show photographs");
 }
 
+void require_valid(const DatasetCalibrationOptions& o, int64_t count) {
+  require_option(count >= 1, "calibrate.dataset", "no pairs to calibrate from");
+  require_option(o.iterations >= 1 && o.ridge >= 0 && o.tolerance >= 0, "calibrate.dataset",
+                 "iterations >= 1, ridge >= 0 and tolerance >= 0 are needed");
+  require_option(o.structure == FactorStructure::Free || o.iterations >= o.free_passes + 2, "calibrate.dataset",
+                 "the shift structure is judged after the free passes and two shift searches per axis: iterations >= "
+                 "free_passes + 2 are needed");
+}
+
+// The progress bar's status of a pass: the relative residual and what the factors are.
+std::string fit_status(double total, bool rejected, const StructuredFactor& p, const StructuredFactor& q) {
+  std::ostringstream status;
+  status << "residual " << std::setprecision(4) << total;
+  if (rejected)
+    status << ", free factors";
+  else if (p.steps > 0)
+    status << ", shifts " << p.shift << " " << q.shift;
+  return status.str();
+}
+
 }  // namespace
 
 torch::Tensor scene_through_mix(const torch::Tensor& scene, const torch::Tensor& mix) {
@@ -318,12 +338,7 @@ torch::Tensor scene_through_mix(const torch::Tensor& scene, const torch::Tensor&
 
 DatasetCalibration calibrate_from_pairs(int64_t count, const std::function<CapturePair(int64_t)>& load, int64_t rows,
                                         int64_t cols, int64_t scene, const DatasetCalibrationOptions& o) {
-  require_option(count >= 1, "calibrate.dataset", "no pairs to calibrate from");
-  require_option(o.iterations >= 1 && o.ridge >= 0 && o.tolerance >= 0, "calibrate.dataset",
-                 "iterations >= 1, ridge >= 0 and tolerance >= 0 are needed");
-  require_option(o.structure == FactorStructure::Free || o.iterations >= o.free_passes + 2, "calibrate.dataset",
-                 "the shift structure is judged after the free passes and two shift searches per axis: iterations >= "
-                 "free_passes + 2 are needed");
+  require_valid(o, count);
   PairStream pairs(count, load, rows, cols, scene, o.cache_bytes);
   auto gen = at::detail::createCPUGenerator(o.seed);
   auto Q = at::randn({4, cols, scene}, gen) / std::sqrt(static_cast<double>(cols));  // a random start
@@ -381,13 +396,7 @@ DatasetCalibration calibrate_from_pairs(int64_t count, const std::function<Captu
       const auto rel = (energy / sums.norm.clamp_min(1e-30)).sqrt();
       for (int c = 0; c < 4; ++c) result.residual[c] = rel[c].item<double>();
       const double total = std::sqrt(energy.sum().item<double>() / std::max(1e-30, sums.norm.sum().item<double>()));
-      std::ostringstream status;
-      status << "residual " << std::setprecision(4) << total;
-      if (result.structure_rejected)
-        status << ", free factors";
-      else if (p_shape.steps > 0)
-        status << ", shifts " << p_shape.shift << " " << q_shape.shift;
-      progress.set_status(status.str());
+      progress.set_status(fit_status(total, result.structure_rejected, p_shape, q_shape));
       progress.tick();
       result.iterations = it;
       if (last - total < o.tolerance * last || it == o.iterations) break;
