@@ -135,8 +135,7 @@ NoiseSample capture_sample(const std::filesystem::path& path, const CameraConfig
 std::optional<WhiteCaptureInput> white_capture_of(const cxxopts::ParseResult& r, const CalibrateSettings& s,
                                                   const CameraConfig& camera) {
   if (!r.count("white-capture")) return std::nullopt;
-  const std::filesystem::path path = s.white_capture;
-  return WhiteCaptureInput{path.string(), s.white_light, capture_sample(path, camera)};
+  return WhiteCaptureInput{s.white_capture.string(), s.white_light, capture_sample(s.white_capture, camera)};
 }
 
 void print_light_unit(const LightUnit& unit) {

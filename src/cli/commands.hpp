@@ -138,8 +138,6 @@ bool parse(cxxopts::Options& options, int argc, char** argv, cxxopts::ParseResul
 // A single output file: never one of `inputs` (even with --force), and an existing file only with --force.
 void require_new_output(const std::filesystem::path& out, bool force,
                         const std::vector<std::filesystem::path>& inputs = {});
-// The repeated --set key=value overrides (none when absent).
-std::vector<std::string> set_overrides(const cxxopts::ParseResult& r);
 // --precision auto|fp32|bf16 (auto: bf16 where the CPU runs it natively).
 struct PrecisionChoice {
   std::string precision = "auto";

@@ -129,15 +129,6 @@ void require_new_output(const std::filesystem::path& out, bool force,
   if (std::filesystem::exists(out) && !force) throw Error(out, "already exists; add --force to replace it");
 }
 
-std::vector<std::string> set_overrides(const cxxopts::ParseResult& r) {
-  // Every --set in order, each one whole: a value may hold commas (a list, a path), which cxxopts's
-  // vector options would split.
-  std::vector<std::string> sets;
-  for (const auto& kv : r.arguments())
-    if (kv.key() == "set") sets.push_back(kv.value());
-  return sets;
-}
-
 const FlagTable<LpipsChoice>& lpips_flags() {
   static const FlagTable<LpipsChoice> rows = {
       {"lpips", &LpipsChoice::backbone,

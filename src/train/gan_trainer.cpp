@@ -442,7 +442,7 @@ void GanTrainer::checkpoint_and_validate(TrainSummary& summary) {
     summary.best_ssim = v.ssim;
     save_checkpoint(opt_.out / "best.ckpt", g_, d_, *opt_g_, *opt_d_, state_, identity_, ema, checkpoint_camera());
   }
-  save_checkpoint(opt_.out / "latest.ckpt", g_, d_, *opt_g_, *opt_d_, state_, identity_, ema, checkpoint_camera());
+  save_resumable();
   save_model_file(opt_.out / "model.flatnet", exported(), exported_identity());
   if (opt_.keep_every > 0 && state_.step % opt_.keep_every == 0) keep_model();
 }
